@@ -25,7 +25,7 @@ if ! .venv/bin/python -c "import torch" 2>/dev/null; then
         "${pip[@]}" "torch>=2.4,<2.14"
     else
         # The CPU build: a plain requirement would pull several GB of CUDA packages.
-        "${pip[@]}" "torch==2.13.0" || "${pip[@]}" "torch>=2.4,<2.14" --index-url https://download.pytorch.org/whl/cpu
+        "${pip[@]}" "torch==2.13.0" || "${pip[@]}" "torch>=2.4,<2.14"
     fi
 fi
 "${pip[@]}" -e ".[dev]"

@@ -1,0 +1,348 @@
+"""Typed, frozen run configuration, presets as data, and a command-line reader for both.
+
+A run is described by one `RunConfig`. Presets are plain dictionaries of field overrides,
+applied in order: task family (dmc / metaworld) → per-task feedback amounts → preset
+(paper / small / tiny) → explicit command-line flags.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import types
+import typing
+from dataclasses import dataclass, field
+from typing import Any
+
+
+@dataclass(frozen=True)
+class SACConfig:
+    """Soft actor-critic; defaults are the paper's DMControl values."""
+
+    hidden_dim: int = 1024
+    """width of every hidden layer of actor and critic"""
+    hidden_layers: int = 2
+    """number of hidden layers of actor and critic"""
+    lr: float = 5e-4
+    """Adam learning rate of actor, critic and temperature"""
+    batch_size: int = 1024
+    """transitions per update"""
+    init_temperature: float = 0.2
+    """initial entropy temperature alpha"""
+    gamma: float = 0.99
+    """discount"""
+    tau: float = 0.01
+    """Polyak rate of the target critic"""
+    target_update_every: int = 2
+    """critic target update period, in updates"""
+    actor_update_every: int = 1
+    """actor and temperature update period, in updates"""
+    log_std_min: float = -5.0
+    """lower bound of the actor's log standard deviation"""
+    log_std_max: float = 2.0
+    """upper bound of the actor's log standard deviation"""
+    betas: tuple[float, float] = (0.9, 0.999)
+    """Adam betas"""
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """The preference reward model: an ensemble of MLPs on (s, a) with a tanh output."""
+
+    ensemble_size: int = 3
+    """members of the ensemble"""
+    hidden_dim: int = 256
+    """width of each hidden layer"""
+    hidden_layers: int = 3
+    """hidden layers per member"""
+    lr: float = 3e-4
+    """Adam learning rate"""
+    batch_size: int = 128
+    """labelled pairs per gradient step"""
+    max_epochs: int = 50
+    """upper bound on passes over all labels per round"""
+    stop_accuracy: float = 0.98
+    """stop a round's training once the mean training accuracy reaches this"""
+
+
+@dataclass(frozen=True)
+class TeacherConfig:
+    """Who answers queries. `noisy` is the paper's teacher (eps = 0 is the ideal one);
+    `bpref` has B-Pref's knobs."""
+
+    kind: str = "noisy"
+    """noisy | bpref"""
+    eps: float = 0.0
+    """noisy: random label when |R(tau0) - R(tau1)| < eps * R_avg"""
+    beta: float = math.inf
+    """bpref: Bradley-Terry rationality (inf = always prefers the larger return)"""
+    gamma: float = 1.0
+    """bpref: myopic discount of earlier steps within a segment"""
+    eps_mistake: float = 0.0
+    """bpref: probability of flipping an answer"""
+    eps_skip: float = 0.0
+    """bpref: skip when both segment returns are below eps_skip * margin"""
+    eps_equal: float = 0.0
+    """bpref: answer 'equal' when the segment returns differ by less than eps_equal * margin"""
+    recent_trajectories: int = 10
+    """how many recent trajectories give R_avg (and B-Pref's margin)"""
+
+
+@dataclass(frozen=True)
+class FeedbackConfig:
+    """The preference-learning loop (PEBBLE's schedule)."""
+
+    segment_length: int = 50
+    """steps per segment"""
+    every: int = 20_000
+    """environment steps between feedback rounds"""
+    per_round: int = 100
+    """queries per round"""
+    budget: int = 1000
+    """total queries over the run, the first round included"""
+    selection: str = "disagreement"
+    """uniform | disagreement | entropy"""
+    candidate_factor: int = 10
+    """candidates per round = per_round * candidate_factor"""
+    pool_trajectories: int = 100
+    """candidates come from the last N finished trajectories"""
+    first_round_selection: str = "uniform"
+    """rule for the first round, when no label exists yet and the ensemble is untrained"""
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """One training run: environment, algorithm, schedule, teacher, logging."""
+
+    task: str = "dmc:cheetah_run"
+    """dmc:<domain>_<task> or metaworld:<name>"""
+    algo: str = "pebble"
+    """pebble (preference learning) | sac (oracle on the ground-truth reward)"""
+    preset: str = "paper"
+    """paper | small | tiny"""
+    seed: int = 0
+    """seeds the environment, networks, sampling and teacher"""
+    steps: int = 1_000_000
+    """environment steps"""
+    episode_length: int = 0
+    """steps per episode; 0 = the task's own (1000 DMC, 500 Metaworld)"""
+    seed_steps: int = 1000
+    """uniformly random actions at the start"""
+    unsup_steps: int = 9000
+    """unsupervised state-entropy pretraining steps after the seed steps (pebble only)"""
+    entropy_k: int = 5
+    """k of the kNN state-entropy reward during pretraining"""
+    update_every: int = 1
+    """environment steps per SAC update"""
+    replay_capacity: int = 1_000_000
+    """transitions kept in the replay buffer"""
+    eval_every: int = 10_000
+    """environment steps between evaluations (0 = never)"""
+    eval_episodes: int = 10
+    """episodes per evaluation"""
+    checkpoint_every: int = 50_000
+    """environment steps between checkpoints (also one at every feedback round)"""
+    device: str = "auto"
+    """auto | cpu | cuda"""
+    threads: int = 0
+    """torch CPU threads; 0 = torch's default"""
+    run_dir: str = ""
+    """where metrics, labels and checkpoints go; empty = runs/<task>-<algo>-s<seed>"""
+    sac: SACConfig = field(default_factory=SACConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
+    teacher: TeacherConfig = field(default_factory=TeacherConfig)
+
+
+# ---------------------------------------------------------------------------------------------
+# Presets: plain data. Keys are dotted field paths.
+
+FAMILY_PRESETS: dict[str, dict[str, Any]] = {
+    "dmc": {"feedback.every": 20_000},
+    "metaworld": {
+        "sac.hidden_dim": 256,
+        "sac.hidden_layers": 3,
+        "sac.lr": 1e-4,
+        "sac.batch_size": 512,
+        "feedback.every": 5_000,
+        "feedback.per_round": 100,
+        "feedback.budget": 30_000,
+    },
+}
+
+# The paper's feedback amounts (total / per round) per task.
+TASK_PRESETS: dict[str, dict[str, Any]] = {
+    "dmc:cheetah_run": {"feedback.budget": 1000, "feedback.per_round": 100},
+    "dmc:walker_run": {"feedback.budget": 1000, "feedback.per_round": 100},
+    "dmc:quadruped_walk": {"feedback.budget": 2000, "feedback.per_round": 200},
+    "dmc:quadruped_run": {"feedback.budget": 2000, "feedback.per_round": 200},
+}
+
+PRESETS: dict[str, dict[str, Any]] = {
+    # The paper's networks and schedule: GPU work (1 M steps, 1024-wide nets).
+    "paper": {},
+    # Learns on a 2-core CPU in about an hour per 100 k steps.
+    "small": {
+        "sac.hidden_dim": 256,
+        "sac.hidden_layers": 2,
+        "sac.batch_size": 256,
+        "unsup_steps": 4000,
+        "feedback.every": 5000,
+        "replay_capacity": 200_000,
+        "eval_every": 10_000,
+        "eval_episodes": 5,
+        "checkpoint_every": 20_000,
+    },
+    # For tests and smoke runs: seconds, not minutes. Learns nothing useful.
+    "tiny": {
+        "sac.hidden_dim": 32,
+        "sac.hidden_layers": 2,
+        "sac.batch_size": 32,
+        "reward.hidden_dim": 32,
+        "reward.hidden_layers": 2,
+        "reward.max_epochs": 5,
+        "seed_steps": 200,
+        "unsup_steps": 200,
+        "feedback.segment_length": 20,
+        "feedback.every": 400,
+        "feedback.per_round": 10,
+        "feedback.budget": 30,
+        "feedback.candidate_factor": 5,
+        "replay_capacity": 10_000,
+        "eval_every": 0,
+        "eval_episodes": 1,
+        "checkpoint_every": 400,
+        "episode_length": 200,
+    },
+}
+
+
+def task_family(task: str) -> str:
+    return task.split(":", 1)[0]
+
+
+def _replace_path(cfg: Any, path: str, value: Any) -> Any:
+    head, _, rest = path.partition(".")
+    if not any(f.name == head for f in dataclasses.fields(cfg)):
+        raise ValueError(f"unknown config field {path!r}")
+    if rest:
+        return dataclasses.replace(cfg, **{head: _replace_path(getattr(cfg, head), rest, value)})
+    return dataclasses.replace(cfg, **{head: value})
+
+
+def apply_overrides(cfg: RunConfig, overrides: dict[str, Any]) -> RunConfig:
+    for path, value in overrides.items():
+        cfg = _replace_path(cfg, path, value)
+    return cfg
+
+
+def build_config(task: str, preset: str, overrides: dict[str, Any] | None = None) -> RunConfig:
+    """The run config for `task` under `preset`, with explicit `overrides` (dotted paths) last."""
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; valid: {', '.join(PRESETS)}")
+    cfg = RunConfig(task=task, preset=preset)
+    cfg = apply_overrides(cfg, FAMILY_PRESETS.get(task_family(task), {}))
+    cfg = apply_overrides(cfg, TASK_PRESETS.get(task, {}))
+    cfg = apply_overrides(cfg, PRESETS[preset])
+    return apply_overrides(cfg, overrides or {})
+
+
+def to_dict(cfg: RunConfig) -> dict[str, Any]:
+    return dataclasses.asdict(cfg)
+
+
+def from_dict(data: dict[str, Any]) -> RunConfig:
+    def build(cls: type, values: dict[str, Any]) -> Any:
+        hints = typing.get_type_hints(cls)
+        kwargs = {}
+        for f in dataclasses.fields(cls):
+            if f.name not in values:
+                continue
+            v = values[f.name]
+            if dataclasses.is_dataclass(hints[f.name]):
+                v = build(hints[f.name], v)
+            elif isinstance(v, list):
+                v = tuple(v)
+            kwargs[f.name] = v
+        return cls(**kwargs)
+
+    return build(RunConfig, data)
+
+
+def save_json(cfg: RunConfig, path: str) -> None:
+    with open(path, "w") as f:
+        json.dump(to_dict(cfg), f, indent=2, default=str)
+
+
+# ---------------------------------------------------------------------------------------------
+# Command line: every leaf field becomes a flag (`--sac.lr 1e-4`); the common ones also have
+# short aliases (`--eps`, `--selection`, `--budget`, ...).
+
+ALIASES = {
+    "eps": "teacher.eps",
+    "selection": "feedback.selection",
+    "budget": "feedback.budget",
+    "per-round": "feedback.per_round",
+    "feedback-every": "feedback.every",
+}
+
+
+def _leaf_fields(cls: type, prefix: str = "") -> list[tuple[str, type, str]]:
+    hints = typing.get_type_hints(cls)
+    out = []
+    for f in dataclasses.fields(cls):
+        t = hints[f.name]
+        if dataclasses.is_dataclass(t):
+            out += _leaf_fields(t, f"{prefix}{f.name}.")
+        else:
+            out.append((prefix + f.name, t, _field_doc(cls, f.name)))
+    return out
+
+
+def _field_doc(cls: type, name: str) -> str:
+    import inspect
+
+    lines = inspect.getsource(cls).splitlines()
+    for i, line in enumerate(lines):
+        if line.strip().startswith(f"{name}:") and i + 1 < len(lines):
+            doc = lines[i + 1].strip()
+            if doc.startswith('"""'):
+                return doc.strip('"')
+    return ""
+
+
+def _parse_value(t: Any, text: str) -> Any:
+    if t is bool:
+        return text.lower() in ("1", "true", "yes", "on")
+    if t is int:
+        return int(float(text)) if "e" in text.lower() else int(text)
+    if t is float:
+        return float(text)
+    if typing.get_origin(t) is tuple:
+        return tuple(float(x) for x in text.split(","))
+    if isinstance(t, types.UnionType):
+        return text
+    return text
+
+
+def add_config_arguments(parser: argparse.ArgumentParser) -> None:
+    for path, t, doc in _leaf_fields(RunConfig):
+        if path in ("task", "preset"):
+            continue
+        names = [f"--{path}"] + [f"--{a}" for a, p in ALIASES.items() if p == path]
+        if "_" in path:
+            names.append(f"--{path.replace('_', '-')}")
+        parser.add_argument(
+            *names, dest=path, default=None, metavar=t.__name__.upper() if hasattr(t, "__name__")
+            else "VALUE", help=doc, type=lambda s, t=t: _parse_value(t, s)
+        )
+
+
+def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
+    return {
+        path: getattr(args, path)
+        for path, _, _ in _leaf_fields(RunConfig)
+        if path not in ("task", "preset") and getattr(args, path, None) is not None
+    }

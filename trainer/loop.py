@@ -1,0 +1,281 @@
+"""The training loop: SAC on the ground-truth reward (the oracle), or PEBBLE's preference loop.
+
+PEBBLE: `seed_steps` of random actions, then unsupervised state-entropy pretraining until the
+first feedback round, a critic reset after that round, then a round every `feedback.every` steps
+until the label budget is spent. Rounds, evaluations and checkpoints happen at episode
+boundaries, so a checkpoint never has to capture a half-run episode.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from trainer.checkpoint import load_checkpoint, save_checkpoint
+from trainer.config import RunConfig, save_json
+from trainer.entropy import RunningMeanStd, knn_distance
+from trainer.envs import make_env
+from trainer.feedback import LabelLog, PreferenceFeedback
+from trainer.metrics import Metrics
+from trainer.nets import NumpyMLP
+from trainer.replay_buffer import ReplayBuffer
+from trainer.reward_model import RewardModel
+from trainer.sac import SAC
+from trainer.teachers import make_teacher
+from trainer.trajectories import EpisodeRecorder, TrajectoryPool
+from trainer.utils import pick_device, set_seed
+
+ALGOS = ("sac", "pebble")
+CHECKPOINT = "checkpoint.pt"
+
+
+def default_run_dir(cfg: RunConfig) -> str:
+    return os.path.join("runs", f"{cfg.task.replace(':', '-')}-{cfg.algo}-s{cfg.seed}")
+
+
+class TrainingRun:
+    def __init__(self, cfg: RunConfig, resume: bool = False, progress: bool = True):
+        if cfg.algo not in ALGOS:
+            raise ValueError(f"unknown algorithm {cfg.algo!r}; valid: {', '.join(ALGOS)}")
+        self.cfg, self.progress = cfg, progress
+        self.run_dir = cfg.run_dir or default_run_dir(cfg)
+        self.checkpoint_path = os.path.join(self.run_dir, CHECKPOINT)
+        if not resume and os.path.exists(self.checkpoint_path):
+            raise FileExistsError(
+                f"{self.run_dir} already holds a run; pass --resume to continue it "
+                "or choose another --run-dir"
+            )
+        if resume and not os.path.exists(self.checkpoint_path):
+            raise FileNotFoundError(f"--resume: no checkpoint in {self.run_dir}")
+        os.makedirs(self.run_dir, exist_ok=True)
+
+        if cfg.threads > 0:
+            torch.set_num_threads(cfg.threads)
+        set_seed(cfg.seed)
+        self.device = pick_device(cfg.device)
+        length = cfg.episode_length or None
+        self.env = make_env(cfg.task, cfg.seed, length)
+        self.eval_env = make_env(cfg.task, cfg.seed + 100_000, length)
+        obs_dim, act_dim = self.env.obs_dim, self.env.action_dim
+        self.rng = np.random.default_rng(cfg.seed)
+        self.agent = SAC(obs_dim, act_dim, cfg.sac, self.device)
+        self.buffer = ReplayBuffer(obs_dim, act_dim, cfg.replay_capacity, self.device, cfg.seed)
+        self.pool = TrajectoryPool(cfg.feedback.pool_trajectories)
+        self.env.reset()
+        state_dim = len(self.env.physics_state())
+        self.recorder = EpisodeRecorder(obs_dim, act_dim, state_dim, self.env.episode_length)
+        self.entropy_stats = RunningMeanStd()
+
+        self.feedback: PreferenceFeedback | None = None
+        if cfg.algo == "pebble":
+            model = RewardModel(obs_dim, act_dim, cfg.reward, self.device, cfg.seed)
+            teacher = make_teacher(cfg.teacher, cfg.seed, cfg.feedback.segment_length,
+                                   self.env.episode_length)
+            self.feedback = PreferenceFeedback(
+                cfg.feedback, model, teacher, f"scripted:{cfg.teacher.kind}",
+                LabelLog(os.path.join(self.run_dir, "labels.jsonl")),
+                np.random.default_rng(cfg.seed + 1),
+            )
+            self._numpy_reward = (
+                NumpyMLP(list(model.ensemble.layers), "leaky_relu", "tanh")
+                if self.device.type == "cpu" else None
+            )
+
+        self.step = 0
+        self.episode = 0
+        self.next_round_step = cfg.seed_steps + cfg.unsup_steps
+        self.last_checkpoint_step = 0
+        self.last_eval_step = 0
+        if resume:
+            self._load()
+        else:
+            save_json(cfg, os.path.join(self.run_dir, "config.json"))
+        self.metrics = Metrics(self.run_dir, purge_step=self.step + 1 if resume else None)
+        if resume:
+            self._trim_metrics()
+
+    # ----------------------------------------------------------------------------------------
+    @property
+    def preference_phase(self) -> bool:
+        """PEBBLE after its first round: the agent trains on the learned reward."""
+        return self.feedback is not None and self.feedback.rounds > 0
+
+    def _agent_reward(self, obs: np.ndarray, action: np.ndarray, true_reward: float) -> float:
+        if self.feedback is None:
+            return true_reward
+        if not self.preference_phase:
+            return 0.0  # unsupervised phase: the intrinsic reward is computed per batch
+        if self._numpy_reward is not None:
+            x = np.concatenate([obs, action])[None]
+            return float(self._numpy_reward(x).mean())
+        with torch.no_grad():
+            o = torch.as_tensor(obs, device=self.device)[None]
+            a = torch.as_tensor(action, device=self.device)[None]
+            return float(self.feedback.model.reward(o, a)[0])
+
+    def _update(self) -> dict[str, float]:
+        batch = self.buffer.sample(self.cfg.sac.batch_size)
+        if self.feedback is not None and not self.preference_phase:
+            # PEBBLE's pretraining reward: kNN distance of s' to the buffer's states, normalised.
+            points = self.buffer.next_obs[: len(self.buffer)]
+            dist = knn_distance(batch.next_obs, points, self.cfg.entropy_k + 1)
+            self.entropy_stats.update(dist)
+            batch = batch._replace(reward=(dist / self.entropy_stats.std).unsqueeze(1))
+        return self.agent.update(batch)
+
+    def train(self) -> dict[str, float]:
+        cfg, feedback = self.cfg, self.feedback
+        if feedback is not None and feedback.pending:  # resumed inside a round
+            self._finish_round()
+        obs = self.env.reset()
+        episode_return, last_metrics = 0.0, {}
+        start_step, start_time = self.step, time.time()
+        bar = tqdm(total=cfg.steps, initial=self.step, disable=not self.progress,
+                   dynamic_ncols=True, unit="step")
+        while self.step < cfg.steps:
+            if self.step < cfg.seed_steps:
+                action = self.rng.uniform(-1, 1, self.env.action_dim).astype(np.float32)
+            else:
+                action = self.agent.act(obs, self.rng).astype(np.float32)
+            state = self.env.physics_state()
+            result = self.env.step(action)
+            reward = self._agent_reward(obs, action, result.reward)
+            self.buffer.add(obs, action, reward, result.reward, result.obs)
+            self.recorder.record(obs, action, result.reward, state, result.success)
+            obs, episode_return = result.obs, episode_return + result.reward
+            self.step += 1
+            if self.step > cfg.seed_steps and self.step % cfg.update_every == 0:
+                last_metrics = self._update()
+            bar.update(1)
+
+            if result.done:
+                traj = self.recorder.finish(self.episode, self.env.episode_context())
+                self.pool.add(traj)
+                self.episode += 1
+                fps = (self.step - start_step) / max(time.time() - start_time, 1e-9)
+                labels = feedback.labels_used if feedback else 0
+                self.metrics.log("episodes", {
+                    "step": self.step, "episode": self.episode, "return": episode_return,
+                    "success": float(traj.success), "labels_used": labels, "fps": fps,
+                } | {k: v for k, v in last_metrics.items() if k in ("critic_loss", "alpha")})
+                bar.set_postfix(ret=f"{episode_return:.1f}", labels=labels, refresh=False)
+                self._end_of_episode()
+                obs, episode_return = self.env.reset(), 0.0
+        bar.close()
+        self._save()
+        self.metrics.close()
+        return self.summary()
+
+    def _end_of_episode(self) -> None:
+        cfg = self.cfg
+        if cfg.eval_every > 0 and self.step - self.last_eval_step >= cfg.eval_every:
+            self.evaluate()
+        if (self.feedback is not None and self.step >= self.next_round_step
+                and self.feedback.budget_left > 0 and len(self.pool) >= 2):
+            self.feedback.open_round(self.pool, self.step)
+            self._save()  # the chosen queries survive a kill; their answers go to labels.jsonl
+            self._finish_round()
+        if self.step - self.last_checkpoint_step >= cfg.checkpoint_every:
+            self._save()
+
+    def _finish_round(self) -> None:
+        fb = self.feedback
+        assert fb is not None
+        first = fb.rounds == 0
+        metrics = fb.finish_round(self.pool)
+        self.buffer.relabel(fb.model.reward)
+        if first:
+            self.agent.reset_critic()  # PEBBLE: the critic learned the intrinsic reward
+        self.next_round_step = self.step + self.cfg.feedback.every
+        self.metrics.log("rounds", {"step": self.step} | metrics)
+
+    def evaluate(self) -> dict[str, float]:
+        returns, successes = [], []
+        for _ in range(self.cfg.eval_episodes):
+            obs, total, success, done = self.eval_env.reset(), 0.0, False, False
+            while not done:
+                result = self.eval_env.step(self.agent.act(obs, self.rng, deterministic=True))
+                obs, total, success, done = (result.obs, total + result.reward,
+                                             success or result.success, result.done)
+            returns.append(total)
+            successes.append(success)
+        self.last_eval_step = self.step
+        row = {"step": self.step, "return": float(np.mean(returns)),
+               "return_std": float(np.std(returns)), "success_rate": float(np.mean(successes)),
+               "labels_used": self.feedback.labels_used if self.feedback else 0}
+        self.metrics.log("eval", row)
+        return row
+
+    def summary(self) -> dict[str, float]:
+        returns = self.pool.returns[-10:]
+        out = {"step": self.step, "episodes": self.episode,
+               "mean_return_last10": float(np.mean(returns)) if returns else float("nan")}
+        if self.feedback is not None:
+            out["labels_used"] = self.feedback.labels_used
+            out["rounds"] = self.feedback.rounds
+        return out
+
+    # ----------------------------------------------------------------------------------------
+    def _state(self) -> dict:
+        state = {
+            "step": self.step,
+            "episode": self.episode,
+            "next_round_step": self.next_round_step,
+            "last_eval_step": self.last_eval_step,
+            "agent": self.agent.state_dict(),
+            "buffer": self.buffer.state_dict(),
+            "pool": self.pool.state_dict(),
+            "entropy_stats": self.entropy_stats.state_dict(),
+            "rng": self.rng.bit_generator.state,
+            "torch_rng": torch.get_rng_state(),
+            "env_rng": self.env.rng_state(),
+            "eval_env_rng": self.eval_env.rng_state(),
+        }
+        if self.device.type == "cuda":
+            state["cuda_rng"] = torch.cuda.get_rng_state()
+        if self.feedback is not None:
+            state["feedback"] = self.feedback.state_dict()
+        return state
+
+    def _save(self) -> None:
+        self.last_checkpoint_step = self.step
+        save_checkpoint(self.checkpoint_path, self._state())
+
+    def _load(self) -> None:
+        state = load_checkpoint(self.checkpoint_path)
+        self.step, self.episode = state["step"], state["episode"]
+        self.next_round_step = state["next_round_step"]
+        self.last_eval_step = state["last_eval_step"]
+        self.last_checkpoint_step = self.step
+        self.agent.load_state_dict(state["agent"])
+        self.buffer.load_state_dict(state["buffer"])
+        self.pool.load_state_dict(state["pool"])
+        self.entropy_stats.load_state_dict(state["entropy_stats"])
+        self.rng.bit_generator.state = state["rng"]
+        torch.set_rng_state(state["torch_rng"])
+        if "cuda_rng" in state and self.device.type == "cuda":
+            torch.cuda.set_rng_state(state["cuda_rng"])
+        self.env.set_rng_state(state["env_rng"])
+        self.eval_env.set_rng_state(state["eval_env_rng"])
+        if self.feedback is not None:
+            self.feedback.load_state_dict(state["feedback"])
+
+    def _trim_metrics(self) -> None:
+        """Drop metric rows written after the checkpoint; the resumed run writes them again."""
+        step = self.step
+        pending = self.feedback is not None and bool(self.feedback.pending)
+        self.metrics.streams["episodes"].keep_rows(lambda r: int(r["step"]) <= step)
+        self.metrics.streams["eval"].keep_rows(lambda r: int(r["step"]) <= step)
+        self.metrics.streams["rounds"].keep_rows(
+            lambda r: int(r["step"]) < step or (int(r["step"]) == step and not pending)
+        )
+
+
+def read_config(run_dir: str) -> dict:
+    with open(os.path.join(run_dir, "config.json")) as f:
+        return json.load(f)

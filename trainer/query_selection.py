@@ -1,0 +1,123 @@
+"""Query selection: sample candidate segment pairs from the trajectory pool, score them, keep the
+best. Rules: uniform, disagreement (spread of P across the ensemble), entropy (of P).
+
+Scoring touches each pooled transition once per round: the ensemble rewards every transition of
+the pool in one pass, prefix sums per member give any segment's return as a difference, and the
+pair statistics follow from those returns.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from trainer.reward_model import RewardModel
+from trainer.trajectories import Trajectory
+
+RULES = ("uniform", "disagreement", "entropy")
+
+
+@dataclass(frozen=True)
+class Candidates:
+    """Segment pairs as indices into the pool: trajectory and start step of each side."""
+
+    traj0: np.ndarray
+    start0: np.ndarray
+    traj1: np.ndarray
+    start1: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.traj0)
+
+    def take(self, idx: np.ndarray) -> Candidates:
+        return Candidates(self.traj0[idx], self.start0[idx], self.traj1[idx], self.start1[idx])
+
+
+def sample_candidates(lengths: np.ndarray, n: int, segment_length: int,
+                      rng: np.random.Generator) -> Candidates:
+    """`n` pairs whose two segments come from different trajectories of the given lengths."""
+    usable = np.flatnonzero(lengths >= segment_length)
+    if len(usable) < 2:
+        raise ValueError(
+            f"need two trajectories of at least {segment_length} steps to form a query; "
+            f"the pool has {len(usable)}"
+        )
+    a = rng.integers(0, len(usable), n)
+    # Drawing the second from the other len-1 trajectories keeps the pair distinct and uniform.
+    b = rng.integers(0, len(usable) - 1, n)
+    b = b + (b >= a)
+    traj0, traj1 = usable[a], usable[b]
+    start0 = (rng.random(n) * (lengths[traj0] - segment_length + 1)).astype(np.int64)
+    start1 = (rng.random(n) * (lengths[traj1] - segment_length + 1)).astype(np.int64)
+    return Candidates(traj0, start0, traj1, start1)
+
+
+def pool_inputs(pool: list[Trajectory]) -> tuple[np.ndarray, np.ndarray]:
+    """Every transition of the pool as one (N, obs_dim + action_dim) array, and the offset of
+    each trajectory's first transition in it."""
+    lengths = np.array([t.length for t in pool])
+    offsets = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    inputs = np.concatenate([np.concatenate([t.obs, t.actions], axis=1) for t in pool])
+    return inputs, offsets
+
+
+def segment_returns(model: RewardModel, pool: list[Trajectory], cands: Candidates,
+                    segment_length: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-member predicted returns of both sides of every candidate: two (E, n) tensors."""
+    inputs, offsets = pool_inputs(pool)
+    rewards = model.member_rewards(torch.as_tensor(inputs, device=model.device)).double()
+    prefix = torch.nn.functional.pad(rewards.cumsum(dim=1), (1, 0))  # (E, N + 1)
+
+    def sums(traj: np.ndarray, start: np.ndarray) -> torch.Tensor:
+        first = torch.as_tensor(offsets[traj] + start, device=model.device)
+        return prefix[:, first + segment_length] - prefix[:, first]
+
+    return sums(cands.traj0, cands.start0).float(), sums(cands.traj1, cands.start1).float()
+
+
+def preference_probabilities(returns0: torch.Tensor, returns1: torch.Tensor) -> torch.Tensor:
+    """P[seg1 > seg0] per member: (E, n)."""
+    return torch.sigmoid(returns1 - returns0)
+
+
+def disagreement(p: torch.Tensor) -> torch.Tensor:
+    """Spread of P across the ensemble (population standard deviation): (n,)."""
+    return p.std(dim=0, unbiased=False)
+
+
+def entropy(p: torch.Tensor) -> torch.Tensor:
+    """Mean over members of the binary entropy of P: (n,)."""
+    p = p.clamp(1e-6, 1 - 1e-6)
+    return -(p * p.log() + (1 - p) * (1 - p).log()).mean(0)
+
+
+def top_k(scores: torch.Tensor, k: int) -> np.ndarray:
+    return torch.topk(scores, min(k, len(scores))).indices.cpu().numpy()
+
+
+@dataclass(frozen=True)
+class Selection:
+    queries: Candidates
+    """the chosen pairs"""
+    probability: np.ndarray
+    """the model's mean P[seg1 > seg0] for each chosen pair (nan when the model was not used)"""
+    score: np.ndarray
+    """the selection score of each chosen pair (nan for uniform)"""
+
+
+def select_queries(rule: str, model: RewardModel, pool: list[Trajectory], n_queries: int,
+                   n_candidates: int, segment_length: int, rng: np.random.Generator) -> Selection:
+    if rule not in RULES:
+        raise ValueError(f"unknown selection rule {rule!r}; valid: {', '.join(RULES)}")
+    lengths = np.array([t.length for t in pool])
+    if rule == "uniform":
+        chosen = sample_candidates(lengths, n_queries, segment_length, rng)
+        nan = np.full(len(chosen), np.nan)
+        return Selection(chosen, nan, nan)
+    cands = sample_candidates(lengths, n_candidates, segment_length, rng)
+    p = preference_probabilities(*segment_returns(model, pool, cands, segment_length))
+    scores = disagreement(p) if rule == "disagreement" else entropy(p)
+    idx = top_k(scores, n_queries)
+    return Selection(cands.take(idx), p.mean(0).cpu().numpy()[idx], scores.cpu().numpy()[idx])

@@ -1,0 +1,136 @@
+"""The preference reward model: an ensemble of MLPs r_psi(s, a) with a tanh output, trained with
+the Bradley-Terry cross-entropy on labelled segment pairs.
+
+P[seg1 > seg0] = sigmoid(sum_t r(seg1_t) - sum_t r(seg0_t)). A label's target is the probability
+that the second segment is preferred: 0 (first), 1 (second) or 0.5 (equal).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from trainer.config import RewardConfig
+from trainer.nets import EnsembleMLP
+
+
+def bradley_terry_loss(returns0: torch.Tensor, returns1: torch.Tensor, target: torch.Tensor):
+    """Cross-entropy of P[seg1 > seg0] = sigmoid(R1 - R0) against `target` (a probability).
+
+    Shapes broadcast: (..., batch). Returns the mean over the last axis, keeping the rest.
+    """
+    logits = returns1 - returns0
+    return F.binary_cross_entropy_with_logits(
+        logits, target.expand_as(logits), reduction="none"
+    ).mean(-1)
+
+
+class LabelledPairs:
+    """The labelled segment pairs the model trains on: (obs, action) of both segments, target."""
+
+    def __init__(self) -> None:
+        self.seg0: list[np.ndarray] = []
+        self.seg1: list[np.ndarray] = []
+        self.targets: list[float] = []
+
+    def __len__(self) -> int:
+        return len(self.targets)
+
+    def add(self, seg0: np.ndarray, seg1: np.ndarray, target: float) -> None:
+        """`seg0`, `seg1`: (H, obs_dim + action_dim) float32."""
+        self.seg0.append(seg0)
+        self.seg1.append(seg1)
+        self.targets.append(target)
+
+    def tensors(self, device: torch.device):
+        return (
+            torch.as_tensor(np.stack(self.seg0), device=device),
+            torch.as_tensor(np.stack(self.seg1), device=device),
+            torch.as_tensor(np.asarray(self.targets, np.float32), device=device),
+        )
+
+    def state_dict(self) -> dict:
+        return {"seg0": self.seg0, "seg1": self.seg1, "targets": self.targets}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.seg0, self.seg1, self.targets = state["seg0"], state["seg1"], list(state["targets"])
+
+
+class RewardModel:
+    def __init__(self, obs_dim: int, action_dim: int, cfg: RewardConfig, device: torch.device,
+                 seed: int):
+        self.cfg, self.device = cfg, device
+        self.ensemble = EnsembleMLP(
+            cfg.ensemble_size,
+            obs_dim + action_dim,
+            1,
+            cfg.hidden_dim,
+            cfg.hidden_layers,
+            activation=nn.LeakyReLU,
+            output_activation=nn.Tanh,
+        ).to(device)
+        self.opt = torch.optim.Adam(self.ensemble.parameters(), lr=cfg.lr)
+        self.generator = torch.Generator(device="cpu").manual_seed(seed)
+
+    @torch.no_grad()
+    def member_rewards(self, obs_action: torch.Tensor, chunk: int = 65_536) -> torch.Tensor:
+        """Per-member rewards of (n, obs_dim + action_dim) inputs: (ensemble, n)."""
+        parts = [
+            self.ensemble(obs_action[i : i + chunk])[..., 0] for i in range(0, len(obs_action), chunk)
+        ]
+        return torch.cat(parts, dim=1)
+
+    @torch.no_grad()
+    def reward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """The reward the agent trains on: the ensemble mean, (n,)."""
+        return self.member_rewards(torch.cat([obs, action], dim=-1)).mean(0)
+
+    def _segment_returns(self, segments: torch.Tensor) -> torch.Tensor:
+        """(E, B, H, D) member-specific segments -> (E, B) summed member rewards."""
+        e, b, h, d = segments.shape
+        return self.ensemble(segments.reshape(e, b * h, d)).reshape(e, b, h).sum(-1)
+
+    def train_round(self, pairs: LabelledPairs) -> dict[str, float]:
+        """Train on every label so far: up to `max_epochs` passes, each member on its own
+        shuffle, stopping once the mean training accuracy reaches `stop_accuracy`."""
+        seg0, seg1, target = pairs.tensors(self.device)
+        n, e = len(target), self.cfg.ensemble_size
+        epochs, loss_value, accuracy = 0, float("nan"), 0.0
+        for epochs in range(1, self.cfg.max_epochs + 1):
+            order = torch.stack([torch.randperm(n, generator=self.generator) for _ in range(e)])
+            order = order.to(self.device)
+            correct = torch.zeros(e, device=self.device)
+            counted = 0
+            total_loss = 0.0
+            for start in range(0, n, self.cfg.batch_size):
+                idx = order[:, start : start + self.cfg.batch_size]  # (E, B)
+                r0, r1 = self._segment_returns(seg0[idx]), self._segment_returns(seg1[idx])
+                y = target[idx]
+                loss = bradley_terry_loss(r0, r1, y).sum()
+                self.opt.zero_grad(set_to_none=True)
+                loss.backward()
+                self.opt.step()
+                total_loss += loss.item() * idx.shape[1]
+                # Accuracy over decisive labels only: an "equal" label has no right side.
+                decisive = y != 0.5
+                correct += (((r1 > r0) == (y > 0.5)) & decisive).sum(1).float()
+                counted += int(decisive[0].sum())
+            loss_value = total_loss / (n * e)
+            accuracy = float(correct.mean() / max(counted, 1))
+            if accuracy >= self.cfg.stop_accuracy:
+                break
+        return {"reward_loss": loss_value, "reward_accuracy": accuracy, "reward_epochs": epochs}
+
+    def state_dict(self) -> dict:
+        return {
+            "ensemble": self.ensemble.state_dict(),
+            "opt": self.opt.state_dict(),
+            "generator": self.generator.get_state(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.ensemble.load_state_dict(state["ensemble"])
+        self.opt.load_state_dict(state["opt"])
+        self.generator.set_state(state["generator"])
