@@ -66,7 +66,10 @@ class LabelLog:
     def append(self, labels: list[Label]) -> None:
         with open(self.path, "a") as f:
             for label in labels:
-                row = asdict(label.query) | {
+                # Strict JSON: NaN (no model probability for uniform picks) becomes null.
+                query = {k: None if isinstance(v, float) and v != v else v
+                         for k, v in asdict(label.query).items()}
+                row = query | {
                     "choice": str(label.choice),
                     "distinguishable": label.distinguishable,
                     "correct": label.correct,
@@ -74,7 +77,7 @@ class LabelLog:
                     "source": label.source,
                     "answered_at": label.answered_at,
                 }
-                f.write(json.dumps(row) + "\n")
+                f.write(json.dumps(row, allow_nan=False) + "\n")
             f.flush()
             os.fsync(f.fileno())
 
@@ -137,14 +140,19 @@ class PreferenceFeedback:
         reused, not asked again), then train the reward model on every label so far."""
         queries, by_id = self.pending, {t.id: t for t in pool.trajectories}
         logged = {row["query_id"]: row for row in self.log.read() if row["round"] == self.rounds}
-        missing = [q for q in queries if q.query_id not in logged]
-        truths = [self._truth(q, by_id) for q in missing]
-        # The teacher takes R_avg from the last few of these (the most recent trajectories).
-        answers = self.teacher.answer(truths, pool.returns)
+        for q in queries:
+            row = logged.get(q.query_id)
+            if row and (row["trajectory0"], row["start0"], row["trajectory1"], row["start1"]) != (
+                    q.trajectory0, q.start0, q.trajectory1, q.start1):
+                raise RuntimeError(f"labels.jsonl holds a different query under {q.query_id}")
+        # The teacher answers every query so its random stream advances as in an uninterrupted
+        # run; answers already on record win. It takes R_avg from the latest returns.
+        answers = self.teacher.answer([self._truth(q, by_id) for q in queries], pool.returns)
         now = time.time()
         new = [
             Label(q, a.choice, a.distinguishable, a.correct, self.labeller, "scripted", now)
-            for q, a in zip(missing, answers, strict=True)
+            for q, a in zip(queries, answers, strict=True)
+            if q.query_id not in logged
         ]
         self.log.append(new)
         answered = {lab.query.query_id: (str(lab.choice), lab.distinguishable, lab.correct)

@@ -11,7 +11,8 @@ from torch.utils.tensorboard import SummaryWriter
 
 
 class CSVStream:
-    """Appends rows to a CSV file; columns are fixed by the first row written."""
+    """Appends rows to a CSV file. A row with a column the file lacks widens the file (rare:
+    a metric that appears mid-run); a missing column is written empty."""
 
     def __init__(self, path: str):
         self.path = path
@@ -24,8 +25,11 @@ class CSVStream:
         new = self.fields is None
         if new:
             self.fields = list(row)
+        elif any(k not in self.fields for k in row):
+            self.fields += [k for k in row if k not in self.fields]
+            self.keep_rows(lambda r: True)
         with open(self.path, "a", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=self.fields)
+            writer = csv.DictWriter(f, fieldnames=self.fields, restval="")
             if new:
                 writer.writeheader()
             writer.writerow(row)
@@ -50,7 +54,9 @@ class Metrics:
     STREAMS = ("episodes", "eval", "rounds")
 
     def __init__(self, run_dir: str, purge_step: int | None = None):
-        self.streams = {name: CSVStream(os.path.join(run_dir, f"{name}.csv")) for name in self.STREAMS}
+        self.streams = {
+            name: CSVStream(os.path.join(run_dir, f"{name}.csv")) for name in self.STREAMS
+        }
         self.tb = SummaryWriter(os.path.join(run_dir, "tb"), purge_step=purge_step)
 
     def log(self, stream: str, row: dict[str, Any]) -> None:

@@ -78,7 +78,8 @@ class RewardModel:
     def member_rewards(self, obs_action: torch.Tensor, chunk: int = 65_536) -> torch.Tensor:
         """Per-member rewards of (n, obs_dim + action_dim) inputs: (ensemble, n)."""
         parts = [
-            self.ensemble(obs_action[i : i + chunk])[..., 0] for i in range(0, len(obs_action), chunk)
+            self.ensemble(obs_action[i : i + chunk])[..., 0]
+            for i in range(0, len(obs_action), chunk)
         ]
         return torch.cat(parts, dim=1)
 
@@ -97,8 +98,9 @@ class RewardModel:
         shuffle, stopping once the mean training accuracy reaches `stop_accuracy`."""
         seg0, seg1, target = pairs.tensors(self.device)
         n, e = len(target), self.cfg.ensemble_size
-        epochs, loss_value, accuracy = 0, float("nan"), 0.0
-        for epochs in range(1, self.cfg.max_epochs + 1):
+        loss_value, accuracy, epochs = float("nan"), 0.0, 0
+        while epochs < self.cfg.max_epochs:
+            epochs += 1
             order = torch.stack([torch.randperm(n, generator=self.generator) for _ in range(e)])
             order = order.to(self.device)
             correct = torch.zeros(e, device=self.device)
@@ -118,7 +120,7 @@ class RewardModel:
                 correct += (((r1 > r0) == (y > 0.5)) & decisive).sum(1).float()
                 counted += int(decisive[0].sum())
             loss_value = total_loss / (n * e)
-            accuracy = float(correct.mean() / max(counted, 1))
+            accuracy = correct.sum().item() / (e * max(counted, 1))
             if accuracy >= self.cfg.stop_accuracy:
                 break
         return {"reward_loss": loss_value, "reward_accuracy": accuracy, "reward_epochs": epochs}

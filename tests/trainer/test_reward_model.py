@@ -56,11 +56,18 @@ def test_reward_model_learns_a_planted_preference():
 
 
 def test_training_stops_early_at_the_accuracy_threshold():
-    cfg = RewardConfig(hidden_dim=16, hidden_layers=1, max_epochs=50, stop_accuracy=0.5)
-    model = RewardModel(2, 1, cfg, torch.device("cpu"), seed=0)
     pairs = LabelledPairs()
     for i in range(20):
         s = np.full((5, 3), i / 20, np.float32)
         pairs.add(s, s + 0.5, 1.0)
-    metrics = model.train_round(pairs)
-    assert metrics["reward_epochs"] < 50 and metrics["reward_accuracy"] >= 0.5
+
+    def train(stop_accuracy: float) -> dict:
+        torch.manual_seed(0)
+        cfg = RewardConfig(hidden_dim=16, hidden_layers=1, max_epochs=60,
+                           stop_accuracy=stop_accuracy)
+        return RewardModel(2, 1, cfg, torch.device("cpu"), seed=0).train_round(pairs)
+
+    reached = train(0.95)
+    assert reached["reward_accuracy"] >= 0.95 and reached["reward_epochs"] < 60
+    unreachable = train(1.01)
+    assert unreachable["reward_epochs"] == 60

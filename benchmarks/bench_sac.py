@@ -1,0 +1,150 @@
+"""SAC gradient-update throughput: trainer.sac.SAC against Stable-Baselines3's SAC.
+
+Both run in this one process on the same torch thread count, with the same network sizes, batch
+size, learning rate, tau, target period, gamma, initial temperature and observation/action
+dimensions (DMC cheetah: 17 and 6). Each samples its own replay buffer, pre-filled with the same
+random transitions, so an "update" is sample + critic + actor + temperature (+ target every 2nd).
+
+    .venv/bin/python benchmarks/bench_sac.py                      # both presets
+    .venv/bin/python benchmarks/bench_sac.py --hidden 256 --layers 2 --batch 256
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import gymnasium as gym
+import numpy as np
+import torch
+from stable_baselines3 import SAC as SB3SAC
+from stable_baselines3.common.logger import configure
+
+from trainer.config import SACConfig
+from trainer.replay_buffer import ReplayBuffer
+from trainer.sac import SAC
+
+OBS_DIM, ACTION_DIM = 17, 6
+# (hidden, layers, batch, timed updates per repeat): our small preset, then the paper's DMC sizes.
+PRESETS = [(256, 2, 256, 300), (1024, 2, 1024, 20)]
+
+
+class BoxEnv(gym.Env):
+    """Only there to give SB3 its spaces; never stepped."""
+
+    observation_space = gym.spaces.Box(-np.inf, np.inf, (OBS_DIM,), np.float32)
+    action_space = gym.spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32)
+
+
+def random_transitions(n: int, seed: int):
+    rng = np.random.default_rng(seed)
+    obs = rng.normal(size=(n, OBS_DIM)).astype(np.float32)
+    next_obs = rng.normal(size=(n, OBS_DIM)).astype(np.float32)
+    action = rng.uniform(-1, 1, (n, ACTION_DIM)).astype(np.float32)
+    reward = rng.random(n).astype(np.float32)
+    return obs, action, reward, next_obs
+
+
+def make_sb3(cfg: SACConfig, data) -> SB3SAC:
+    n = len(data[0])
+    arch = [cfg.hidden_dim] * cfg.hidden_layers
+    model = SB3SAC(
+        "MlpPolicy", BoxEnv(), learning_rate=cfg.lr, buffer_size=n, learning_starts=0,
+        batch_size=cfg.batch_size, tau=cfg.tau, gamma=cfg.gamma,
+        ent_coef=f"auto_{cfg.init_temperature}", target_update_interval=cfg.target_update_every,
+        policy_kwargs={"net_arch": {"pi": arch, "qf": arch}}, device="cpu", seed=0,
+    )
+    model.set_logger(configure(None, []))  # train() records its losses somewhere
+    rb = model.replay_buffer
+    obs, action, reward, next_obs = data
+    rb.observations[:, 0] = obs
+    rb.actions[:, 0] = action
+    rb.rewards[:, 0] = reward
+    rb.next_observations[:, 0] = next_obs
+    rb.dones[:] = 0
+    rb.full, rb.pos = True, 0
+    return model
+
+
+def make_ours(cfg: SACConfig, data) -> tuple[SAC, ReplayBuffer]:
+    n = len(data[0])
+    cpu = torch.device("cpu")
+    agent = SAC(OBS_DIM, ACTION_DIM, cfg, cpu)
+    buffer = ReplayBuffer(OBS_DIM, ACTION_DIM, n, cpu, seed=0)
+    obs, action, reward, next_obs = (torch.from_numpy(x) for x in data)
+    buffer.obs[:], buffer.action[:], buffer.next_obs[:] = obs, action, next_obs
+    buffer.reward[:, 0] = buffer.true_reward[:, 0] = reward
+    buffer.size = n
+    return agent, buffer
+
+
+def time_sb3(model: SB3SAC, updates: int, batch: int) -> float:
+    start = time.perf_counter()
+    model.train(gradient_steps=updates, batch_size=batch)
+    return updates / (time.perf_counter() - start)
+
+
+def time_ours(agent: SAC, buffer: ReplayBuffer, updates: int, batch: int) -> float:
+    start = time.perf_counter()
+    for _ in range(updates):
+        agent.update(buffer.sample(batch))
+    return updates / (time.perf_counter() - start)
+
+
+def bench(hidden: int, layers: int, batch: int, updates: int, repeats: int, warmup: int,
+          buffer_size: int) -> tuple[float, float]:
+    cfg = SACConfig(hidden_dim=hidden, hidden_layers=layers, batch_size=batch, lr=5e-4,
+                    tau=0.01, target_update_every=2, actor_update_every=1, gamma=0.99,
+                    init_temperature=0.2)
+    data = random_transitions(buffer_size, seed=0)
+    torch.manual_seed(0)
+    sb3 = make_sb3(cfg, data)
+    agent, buffer = make_ours(cfg, data)
+    time_sb3(sb3, warmup, batch)
+    time_ours(agent, buffer, warmup, batch)
+    sb3_rates, our_rates = [], []
+    for r in range(repeats):
+        # Alternate who goes first so drift (thermal, other load) hits both alike.
+        if r % 2 == 0:
+            sb3_rates.append(time_sb3(sb3, updates, batch))
+            our_rates.append(time_ours(agent, buffer, updates, batch))
+        else:
+            our_rates.append(time_ours(agent, buffer, updates, batch))
+            sb3_rates.append(time_sb3(sb3, updates, batch))
+    return statistics.median(sb3_rates), statistics.median(our_rates)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--hidden", type=int, help="hidden width (actor and critic); default: presets")
+    p.add_argument("--layers", type=int, default=2, help="hidden layers (actor and critic)")
+    p.add_argument("--batch", type=int, help="batch size; default: same as --hidden")
+    p.add_argument("--updates", type=int, help="timed updates per repeat; default: per preset")
+    p.add_argument("--repeats", type=int, default=5, help="timed repeats per side (median)")
+    p.add_argument("--warmup", type=int, default=10, help="untimed updates per side first")
+    p.add_argument("--buffer", type=int, default=50_000, help="pre-filled random transitions")
+    p.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch threads")
+    args = p.parse_args()
+    torch.set_num_threads(args.threads)
+
+    if args.hidden is None:
+        configs = PRESETS
+    else:
+        batch = args.batch or args.hidden
+        default_updates = max(20, min(300, 300 * 256 * 256 // (args.hidden * batch)))
+        configs = [(args.hidden, args.layers, batch, args.updates or default_updates)]
+
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, "
+          f"obs {OBS_DIM}, action {ACTION_DIM}, buffer {args.buffer}")
+    print(f"{'hidden x layers':>15} {'batch':>6} {'updates':>8} {'SB3 upd/s':>10} "
+          f"{'ours upd/s':>11} {'ours/SB3':>9}")
+    for hidden, layers, batch, updates in configs:
+        updates = args.updates or updates
+        sb3, ours = bench(hidden, layers, batch, updates, args.repeats, args.warmup, args.buffer)
+        print(f"{f'{hidden} x {layers}':>15} {batch:>6} {updates:>8} {sb3:>10.1f} "
+              f"{ours:>11.1f} {ours / sb3:>8.2f}x", flush=True)
+
+
+if __name__ == "__main__":
+    main()

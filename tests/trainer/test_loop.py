@@ -1,0 +1,73 @@
+"""The preference loop end to end on tiny configs: budget accounting and the label record."""
+
+import csv
+import json
+import os
+
+import pytest
+
+from trainer.config import build_config
+from trainer.loop import TrainingRun
+
+
+def _rows(path: str) -> list[dict]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _labels(run_dir: str) -> list[dict]:
+    with open(os.path.join(run_dir, "labels.jsonl")) as f:
+        return [json.loads(line) for line in f]
+
+
+def test_budget_counts_every_label_including_the_first_round(tmp_path):
+    # Rounds at 400 (first: uniform), 800, 1200; 10 per round; budget 25 -> 10 + 10 + 5.
+    cfg = build_config("dmc:cheetah_run", "tiny", {
+        "algo": "pebble", "steps": 1600, "threads": 1, "run_dir": str(tmp_path),
+        "feedback.budget": 25, "teacher.eps": 0.3,
+    })
+    summary = TrainingRun(cfg, progress=False).train()
+    rounds = _rows(tmp_path / "rounds.csv")
+    assert [int(r["queries"]) for r in rounds] == [10, 10, 5]
+    assert [int(r["labels_used"]) for r in rounds] == [10, 20, 25]
+    assert [int(r["step"]) for r in rounds] == [400, 800, 1200]
+    assert summary["labels_used"] == 25
+    labels = _labels(str(tmp_path))
+    assert len(labels) == 25 and len({lab["query_id"] for lab in labels}) == 25
+    assert labels[0]["rule"] == "uniform" and labels[-1]["rule"] == "disagreement"
+    # the two segments of a query always come from different trajectories
+    assert all(lab["trajectory0"] != lab["trajectory1"] for lab in labels)
+    # the label record agrees with the teacher's rule: a distinguishable answer follows the
+    # segments' true sums
+    for lab in labels:
+        if lab["distinguishable"] and lab["choice"] in ("first", "second"):
+            better = "second" if lab["segment_return1"] > lab["segment_return0"] else "first"
+            assert lab["choice"] == better
+    # every round logs the distinguishable ratio, equal to the fraction in the label record
+    for r in rounds:
+        in_round = [lab for lab in labels if lab["round"] == int(r["round"])]
+        ratio = sum(lab["distinguishable"] for lab in in_round) / len(in_round)
+        assert float(r["distinguishable_ratio"]) == pytest.approx(ratio)
+
+
+def test_sac_oracle_uses_no_labels(tmp_path):
+    cfg = build_config("dmc:cheetah_run", "tiny", {
+        "algo": "sac", "steps": 600, "threads": 1, "run_dir": str(tmp_path), "eval_every": 400,
+    })
+    summary = TrainingRun(cfg, progress=False).train()
+    assert "labels_used" not in summary
+    assert not os.path.exists(tmp_path / "labels.jsonl")
+    evals = _rows(tmp_path / "eval.csv")
+    assert [int(r["step"]) for r in evals] == [400]
+    assert len(_rows(tmp_path / "episodes.csv")) == 3
+
+
+def test_an_existing_run_directory_is_not_overwritten(tmp_path):
+    cfg = build_config("dmc:cheetah_run", "tiny", {
+        "algo": "sac", "steps": 200, "threads": 1, "run_dir": str(tmp_path),
+    })
+    TrainingRun(cfg, progress=False).train()
+    before = (tmp_path / "episodes.csv").read_text()
+    with pytest.raises(FileExistsError, match="--resume"):
+        TrainingRun(cfg, progress=False)
+    assert (tmp_path / "episodes.csv").read_text() == before
