@@ -12,6 +12,7 @@ random transitions, so an "update" is sample + critic + actor + temperature (+ t
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
 
@@ -135,8 +136,8 @@ def main() -> None:
         default_updates = max(20, min(300, 300 * 256 * 256 // (args.hidden * batch)))
         configs = [(args.hidden, args.layers, batch, args.updates or default_updates)]
 
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, "
-          f"obs {OBS_DIM}, action {ACTION_DIM}, buffer {args.buffer}")
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, load average "
+          f"{os.getloadavg()[0]:.2f}; obs {OBS_DIM}, action {ACTION_DIM}, buffer {args.buffer}")
     print(f"{'hidden x layers':>15} {'batch':>6} {'updates':>8} {'SB3 upd/s':>10} "
           f"{'ours upd/s':>11} {'ours/SB3':>9}")
     for hidden, layers, batch, updates in configs:

@@ -41,8 +41,9 @@ class EnsembleLinear(nn.Module):
             nn.init.uniform_(self.bias, -bound, bound)
 
     def forward(self, x: torch.Tensor, detach_params: bool = False) -> torch.Tensor:
-        w, b = (self.weight.detach(), self.bias.detach()) if detach_params else (self.weight, self.bias)
-        return torch.baddbmm(b, x, w)
+        if detach_params:
+            return torch.baddbmm(self.bias.detach(), x, self.weight.detach())
+        return torch.baddbmm(self.bias, x, self.weight)
 
 
 class EnsembleMLP(nn.Module):
@@ -65,7 +66,10 @@ class EnsembleMLP(nn.Module):
         self.layers = nn.ModuleList(
             EnsembleLinear(n, a, b, init) for a, b in zip(dims[:-1], dims[1:], strict=True)
         )
-        self.activation = activation()
+        # In place where the module allows it: the preceding baddbmm does not need its output
+        # for backward, and it saves an activation-sized allocation per layer.
+        inplace = activation in (nn.ReLU, nn.LeakyReLU)
+        self.activation = activation(inplace=True) if inplace else activation()
         self.output_activation = output_activation() if output_activation else None
 
     def forward(self, x: torch.Tensor, detach_params: bool = False) -> torch.Tensor:
@@ -93,16 +97,23 @@ class NumpyMLP:
         self.params = []
         for layer in layers:
             if isinstance(layer, nn.Linear):
-                self.params.append((layer.weight.detach().numpy().T, layer.bias.detach().numpy()))
+                # Kept (out, in) as torch stores it: w @ x is the fastest NumPy matvec here.
+                self.params.append((layer.weight.detach().numpy(), layer.bias.detach().numpy()))
             elif isinstance(layer, EnsembleLinear):
                 # x of shape (1, in) broadcasts against (n, in, out) to (n, 1, out).
                 self.params.append((layer.weight.detach().numpy(), layer.bias.detach().numpy()))
+        self.ensemble = any(isinstance(layer, EnsembleLinear) for layer in layers)
         self.activation, self.output_activation = activation, output_activation
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
+        """x: (in,) for an nn.Linear stack, (1, in) for an ensemble."""
         last = len(self.params) - 1
         for i, (w, b) in enumerate(self.params):
-            x = x @ w + b
+            x = x @ w if self.ensemble else w @ x
+            x += b  # in place on the fresh product: one allocation per layer, not two
             if i < last:
-                x = np.maximum(x, 0) if self.activation == "relu" else np.maximum(x, 0.01 * x)
+                if self.activation == "relu":
+                    np.maximum(x, 0, out=x)
+                else:
+                    np.maximum(x, 0.01 * x, out=x)
         return np.tanh(x) if self.output_activation == "tanh" else x

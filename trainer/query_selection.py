@@ -17,6 +17,8 @@ from trainer.reward_model import RewardModel
 from trainer.trajectories import Trajectory
 
 RULES = ("uniform", "disagreement", "entropy")
+SCORING_CHUNK = 4096
+"""transitions per ensemble forward pass when scoring the pool"""
 
 
 @dataclass(frozen=True)
@@ -67,8 +69,12 @@ def segment_returns(model: RewardModel, pool: list[Trajectory], cands: Candidate
                     segment_length: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-member predicted returns of both sides of every candidate: two (E, n) tensors."""
     inputs, offsets = pool_inputs(pool)
-    rewards = model.member_rewards(torch.as_tensor(inputs, device=model.device)).double()
-    prefix = torch.nn.functional.pad(rewards.cumsum(dim=1), (1, 0))  # (E, N + 1)
+    with torch.inference_mode():
+        # 4096 rows keep each layer's activations at ~12 MB: big chunks cost a fresh, page-
+        # faulted allocation per layer (65 536 rows took ~1.6x as long on a 2-core CPU).
+        rewards = model.member_rewards(torch.as_tensor(inputs, device=model.device),
+                                       chunk=SCORING_CHUNK)
+    prefix = torch.nn.functional.pad(rewards.double().cumsum(dim=1), (1, 0))  # (E, N + 1)
 
     def sums(traj: np.ndarray, start: np.ndarray) -> torch.Tensor:
         first = torch.as_tensor(offsets[traj] + start, device=model.device)

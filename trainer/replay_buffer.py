@@ -15,7 +15,8 @@ from trainer.sac import Batch
 
 
 class ReplayBuffer:
-    def __init__(self, obs_dim: int, action_dim: int, capacity: int, device: torch.device, seed: int):
+    def __init__(self, obs_dim: int, action_dim: int, capacity: int, device: torch.device,
+                 seed: int):
         self.capacity, self.device = capacity, device
         self.obs = torch.empty(capacity, obs_dim, device=device)
         self.next_obs = torch.empty(capacity, obs_dim, device=device)
@@ -25,6 +26,13 @@ class ReplayBuffer:
         self.size = 0
         self.cursor = 0
         self.generator = torch.Generator(device="cpu").manual_seed(seed)
+        # On the CPU, `add` writes through NumPy views of the same memory: five plain array
+        # writes instead of five torch indexing calls (~1.5 us instead of ~15-25 us a step).
+        self._arrays = (
+            tuple(t.numpy() for t in (self.obs, self.action, self.next_obs, self.reward,
+                                      self.true_reward))
+            if self.device.type == "cpu" else None
+        )
 
     def __len__(self) -> int:
         return self.size
@@ -32,11 +40,16 @@ class ReplayBuffer:
     def add(self, obs: np.ndarray, action: np.ndarray, reward: float, true_reward: float,
             next_obs: np.ndarray) -> None:
         i = self.cursor
-        self.obs[i] = torch.from_numpy(obs)
-        self.action[i] = torch.from_numpy(action)
-        self.next_obs[i] = torch.from_numpy(next_obs)
-        self.reward[i, 0] = reward
-        self.true_reward[i, 0] = true_reward
+        if self._arrays is not None:
+            obs_a, action_a, next_obs_a, reward_a, true_reward_a = self._arrays
+            obs_a[i], action_a[i], next_obs_a[i] = obs, action, next_obs
+            reward_a[i, 0], true_reward_a[i, 0] = reward, true_reward
+        else:
+            self.obs[i] = torch.from_numpy(obs)
+            self.action[i] = torch.from_numpy(action)
+            self.next_obs[i] = torch.from_numpy(next_obs)
+            self.reward[i, 0] = reward
+            self.true_reward[i, 0] = true_reward
         self.cursor = (i + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
@@ -54,12 +67,13 @@ class ReplayBuffer:
 
     def state_dict(self) -> dict:
         n = self.size
+        # Copies, not views: torch.save writes a view's whole storage, i.e. the full capacity.
         return {
-            "obs": self.obs[:n].cpu(),
-            "next_obs": self.next_obs[:n].cpu(),
-            "action": self.action[:n].cpu(),
-            "reward": self.reward[:n].cpu(),
-            "true_reward": self.true_reward[:n].cpu(),
+            "obs": self.obs[:n].to("cpu", copy=True),
+            "next_obs": self.next_obs[:n].to("cpu", copy=True),
+            "action": self.action[:n].to("cpu", copy=True),
+            "reward": self.reward[:n].to("cpu", copy=True),
+            "true_reward": self.true_reward[:n].to("cpu", copy=True),
             "size": n,
             "cursor": self.cursor,
             "generator": self.generator.get_state(),

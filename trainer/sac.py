@@ -38,21 +38,24 @@ class Actor(nn.Module):
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         mean, log_std = self.trunk(obs).chunk(2, dim=-1)
-        # Soft clamp into [min, max] keeps gradients alive at the bounds (pytorch_sac).
-        log_std = torch.tanh(log_std)
-        log_std = self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (log_std + 1)
+        # Soft clamp into [min, max] keeps gradients alive at the bounds (pytorch_sac):
+        # min + (max - min) * (tanh + 1) / 2, written as one multiply and one add.
+        half = 0.5 * (self.log_std_max - self.log_std_min)
+        log_std = torch.tanh(log_std).mul(half).add_(self.log_std_min + half)
         return mean, log_std
 
     def sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """A reparameterised action in (-1, 1) and its log-probability, shape (batch, 1)."""
         mean, log_std = self(obs)
         noise = torch.randn_like(mean)
-        u = mean + noise * log_std.exp()
+        u = torch.addcmul(mean, noise, log_std.exp())
         action = torch.tanh(u)
         # log N(u) - log|d tanh(u)/du|, the latter as 2(log 2 - u - softplus(-2u)) for stability.
-        log_prob = -0.5 * noise.pow(2) - log_std - LOG_SQRT_2PI
-        log_prob = log_prob - 2 * (math.log(2) - u - F.softplus(-2 * u))
-        return action, log_prob.sum(-1, keepdim=True)
+        # Per dimension: -noise^2 / 2 - log_std + 2(u + softplus(-2u)); the constants
+        # -log sqrt(2 pi) - 2 log 2 are added once per row, after the sum (fewer ops per update).
+        log_prob = torch.addcmul(2 * (u + F.softplus(-2 * u)) - log_std, noise, noise, value=-0.5)
+        const = mean.shape[-1] * (LOG_SQRT_2PI + 2 * math.log(2))
+        return action, log_prob.sum(-1, keepdim=True) - const
 
 
 class Critic(nn.Module):
@@ -92,6 +95,9 @@ class SAC:
         self.critic_opt = _adam(self.critic.parameters(), cfg, device)
         self.alpha_opt = _adam([self.log_alpha], cfg, device)
         self.updates = 0
+        # In-place loads and resets keep these the same tensors, so the lists stay valid.
+        self._critic_params = list(self.critic.parameters())
+        self._target_params = list(self.critic_target.parameters())
         self._numpy_actor = NumpyMLP(list(self.actor.trunk)) if device.type == "cpu" else None
 
     @property
@@ -105,63 +111,67 @@ class SAC:
             with torch.no_grad():
                 mean, log_std = (t[0].cpu().numpy() for t in self.actor(obs_t))
         else:
-            mean, log_std = np.split(self._numpy_actor(obs), 2)
-            log_std = np.tanh(log_std)
-            lo, hi = self.cfg.log_std_min, self.cfg.log_std_max
-            log_std = lo + 0.5 * (hi - lo) * (log_std + 1)
+            out, d = self._numpy_actor(obs), self.action_dim
+            mean, log_std = out[:d], out[d:]
+            # Actor.forward's soft clamp, in the same multiply-add form.
+            half = 0.5 * (self.cfg.log_std_max - self.cfg.log_std_min)
+            log_std = np.tanh(log_std) * half + (self.cfg.log_std_min + half)
         if deterministic:
             return np.tanh(mean)
-        return np.tanh(mean + rng.standard_normal(mean.shape, np.float32) * np.exp(log_std))
+        return np.tanh(mean + rng.standard_normal(self.action_dim, np.float32) * np.exp(log_std))
 
     def update(self, batch: Batch) -> dict[str, float]:
-        metrics = self._update_critic(batch)
+        # log_alpha changes only at the end of the update, so one exp serves all three losses.
+        alpha = self.log_alpha.exp()
+        metrics = self._update_critic(batch, alpha.detach())
         if self.updates % self.cfg.actor_update_every == 0:
-            metrics |= self._update_actor_and_alpha(batch.obs)
+            metrics |= self._update_actor_and_alpha(batch.obs, alpha)
         if self.updates % self.cfg.target_update_every == 0:
             self._update_target()
         self.updates += 1
         return metrics
 
-    def _update_critic(self, batch: Batch) -> dict[str, float]:
+    def _update_critic(self, batch: Batch, alpha: torch.Tensor) -> dict[str, float]:
         with torch.no_grad():
             next_action, next_log_prob = self.actor.sample(batch.next_obs)
             target_q = self.critic_target(batch.next_obs, next_action).min(dim=0).values
             # No terminal states: DMControl and Metaworld episodes end only by time limit.
-            target = batch.reward + self.cfg.gamma * (target_q - self.alpha * next_log_prob)
+            soft_q = torch.addcmul(target_q, alpha, next_log_prob, value=-1)  # Q' - alpha log pi
+            target = torch.add(batch.reward, soft_q, alpha=self.cfg.gamma)
         q = self.critic(batch.obs, batch.action)
-        loss = (q - target).pow(2).mean(dim=(1, 2)).sum()
+        # The sum over both critics of each one's mean squared error.
+        loss = F.mse_loss(q, target.expand_as(q), reduction="sum") / len(target)
         self.critic_opt.zero_grad(set_to_none=True)
         loss.backward()
         self.critic_opt.step()
         return {"critic_loss": loss.item(), "q": q.detach().mean().item()}
 
-    def _update_actor_and_alpha(self, obs: torch.Tensor) -> dict[str, float]:
+    def _update_actor_and_alpha(self, obs: torch.Tensor, alpha: torch.Tensor) -> dict[str, float]:
         action, log_prob = self.actor.sample(obs)
         q = self.critic(obs, action, detach_params=True).min(dim=0).values
-        alpha = self.alpha.detach()
-        actor_loss = (alpha * log_prob - q).mean()
+        actor_loss = (alpha.detach() * log_prob - q).mean()
+        mean_log_prob = log_prob.detach().mean()
+        alpha_loss = alpha * (-mean_log_prob - self.target_entropy)
+        # Each loss sees the other's parameters detached, so one backward pass through their
+        # sum gives exactly the two separate gradients.
         self.actor_opt.zero_grad(set_to_none=True)
-        actor_loss.backward()
-        self.actor_opt.step()
-
-        alpha_loss = (self.alpha * (-log_prob.detach() - self.target_entropy)).mean()
         self.alpha_opt.zero_grad(set_to_none=True)
-        alpha_loss.backward()
+        (actor_loss + alpha_loss).backward()
+        self.actor_opt.step()
         self.alpha_opt.step()
         return {
             "actor_loss": actor_loss.item(),
             "alpha": alpha.item(),
-            "entropy": -log_prob.detach().mean().item(),
+            "entropy": -mean_log_prob.item(),
         }
 
     @torch.no_grad()
     def _update_target(self) -> None:
-        torch._foreach_lerp_(
-            list(self.critic_target.parameters()), list(self.critic.parameters()), self.cfg.tau
-        )
+        torch._foreach_lerp_(self._target_params, self._critic_params, self.cfg.tau)
 
     def reset_critic(self) -> None:
-        """PEBBLE's critic reset after unsupervised pretraining: fresh critic, target and optimiser."""
+        """PEBBLE's critic reset after unsupervised pretraining: fresh critic, target and
+        optimiser."""
         fresh = Critic(self.obs_dim, self.action_dim, self.cfg).to(self.device)
         self.critic.load_state_dict(fresh.state_dict())
         self.critic_target.load_state_dict(fresh.state_dict())
