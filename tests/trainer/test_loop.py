@@ -4,6 +4,7 @@ import csv
 import json
 import os
 
+import numpy as np
 import pytest
 
 from trainer.config import build_config
@@ -71,3 +72,21 @@ def test_an_existing_run_directory_is_not_overwritten(tmp_path):
     with pytest.raises(FileExistsError, match="--resume"):
         TrainingRun(cfg, progress=False)
     assert (tmp_path / "episodes.csv").read_text() == before
+
+
+def test_pebble_on_metaworld_records_success_and_contexts(tmp_path):
+    cfg = build_config("metaworld:door-open", "tiny", {
+        "algo": "pebble", "steps": 1000, "threads": 1, "run_dir": str(tmp_path),
+        "eval_every": 1000, "episode_length": 200,
+    })
+    assert cfg.sac.hidden_layers == 2 and cfg.feedback.per_round == 10  # tiny beats the family
+    run = TrainingRun(cfg, progress=False)
+    summary = run.train()
+    assert summary["labels_used"] == 20  # rounds at 400 and 800
+    evals = _rows(tmp_path / "eval.csv")
+    assert len(evals) == 1 and 0.0 <= float(evals[0]["success_rate"]) <= 1.0
+    episodes = _rows(tmp_path / "episodes.csv")
+    assert len(episodes) == 5 and all(r["success"] in ("0.0", "1.0") for r in episodes)
+    # each stored trajectory replays: restoring its first state gives its first observation
+    traj = run.pool[0]
+    np.testing.assert_array_equal(run.env.restore(traj.states[5], traj.context), traj.obs[5])
