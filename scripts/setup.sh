@@ -19,14 +19,24 @@ fi
 
 python=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$python" -m venv .venv
-pip=(.venv/bin/python -m pip install -q)
+pip_install() {
+    # Quiet unless it fails; drops pip's notes about configured local mirrors that are absent.
+    local log
+    log=$(mktemp)
+    if ! .venv/bin/python -m pip install -q "$@" >"$log" 2>&1; then
+        cat "$log" >&2
+        return 1
+    fi
+    grep -v "^WARNING: Location 'file:" "$log" || true
+    rm -f "$log"
+}
 if ! .venv/bin/python -c "import torch" 2>/dev/null; then
     if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi >/dev/null 2>&1; then
-        "${pip[@]}" "torch>=2.4,<2.14"
+        pip_install "torch>=2.4,<2.14"
     else
         # The CPU build: a plain requirement would pull several GB of CUDA packages.
-        "${pip[@]}" "torch==2.13.0" || "${pip[@]}" "torch>=2.4,<2.14"
+        pip_install "torch==2.13.0" || pip_install "torch>=2.4,<2.14"
     fi
 fi
-"${pip[@]}" -e ".[dev]"
+pip_install -e ".[dev]"
 echo "set-up done: $(.venv/bin/python -c 'import torch, mujoco, dm_control; print("torch", torch.__version__, "mujoco", mujoco.__version__)')"
