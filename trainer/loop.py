@@ -23,10 +23,11 @@ from trainer.envs import make_env
 from trainer.feedback import LabelLog, PreferenceFeedback
 from trainer.metrics import Metrics
 from trainer.nets import NumpyMLP
+from trainer.query_selection import RULES
 from trainer.replay_buffer import ReplayBuffer
 from trainer.reward_model import RewardModel
 from trainer.sac import SAC
-from trainer.teachers import make_teacher
+from trainer.teachers import TEACHER_KINDS, make_teacher
 from trainer.trajectories import EpisodeRecorder, TrajectoryPool
 from trainer.utils import pick_device, set_seed
 
@@ -38,10 +39,44 @@ def default_run_dir(cfg: RunConfig) -> str:
     return os.path.join("runs", f"{cfg.task.replace(':', '-')}-{cfg.algo}-s{cfg.seed}")
 
 
+def check_config(cfg: RunConfig) -> None:
+    """Reject a bad configuration before any training, with a message naming the bad field."""
+    choices = {
+        "algo": (cfg.algo, ALGOS),
+        "feedback.selection": (cfg.feedback.selection, RULES),
+        "feedback.first_round_selection": (cfg.feedback.first_round_selection, RULES),
+        "teacher.kind": (cfg.teacher.kind, TEACHER_KINDS),
+    }
+    for name, (value, valid) in choices.items():
+        if value not in valid:
+            raise ValueError(f"unknown {name} {value!r}; valid: {', '.join(valid)}")
+    positive = {
+        "steps": cfg.steps, "replay_capacity": cfg.replay_capacity,
+        "update_every": cfg.update_every, "sac.batch_size": cfg.sac.batch_size,
+        "sac.hidden_dim": cfg.sac.hidden_dim, "reward.batch_size": cfg.reward.batch_size,
+        "reward.ensemble_size": cfg.reward.ensemble_size,
+        "feedback.segment_length": cfg.feedback.segment_length,
+        "feedback.every": cfg.feedback.every, "feedback.per_round": cfg.feedback.per_round,
+        "feedback.candidate_factor": cfg.feedback.candidate_factor,
+        "feedback.pool_trajectories": cfg.feedback.pool_trajectories,
+    }
+    for name, value in positive.items():
+        if value <= 0:
+            raise ValueError(f"{name} must be positive, got {value}")
+    if cfg.feedback.pool_trajectories < 2:
+        raise ValueError("feedback.pool_trajectories must be at least 2 (a query pairs two)")
+    if cfg.feedback.budget < 0 or cfg.seed_steps < 0 or cfg.unsup_steps < 0:
+        raise ValueError("feedback.budget, seed_steps and unsup_steps cannot be negative")
+    if not 0 <= cfg.teacher.eps < 1:
+        raise ValueError(f"teacher.eps is an error rate in [0, 1), got {cfg.teacher.eps}")
+    if cfg.episode_length and cfg.episode_length < cfg.feedback.segment_length:
+        raise ValueError(f"episode_length {cfg.episode_length} is shorter than a segment "
+                         f"({cfg.feedback.segment_length} steps)")
+
+
 class TrainingRun:
     def __init__(self, cfg: RunConfig, resume: bool = False, progress: bool = True):
-        if cfg.algo not in ALGOS:
-            raise ValueError(f"unknown algorithm {cfg.algo!r}; valid: {', '.join(ALGOS)}")
+        check_config(cfg)
         self.cfg, self.progress = cfg, progress
         self.run_dir = cfg.run_dir or default_run_dir(cfg)
         self.checkpoint_path = os.path.join(self.run_dir, CHECKPOINT)

@@ -90,3 +90,17 @@ def test_pebble_on_metaworld_records_success_and_contexts(tmp_path):
     # each stored trajectory replays: restoring its first state gives its first observation
     traj = run.pool[0]
     np.testing.assert_array_equal(run.env.restore(traj.states[5], traj.context), traj.obs[5])
+
+
+@pytest.mark.parametrize("override, message", [
+    ({"feedback.selection": "bald"}, "feedback.selection 'bald'; valid: uniform"),
+    ({"teacher.kind": "oracle"}, "teacher.kind 'oracle'; valid: noisy, bpref"),
+    ({"teacher.eps": 1.5}, "teacher.eps is an error rate"),
+    ({"feedback.per_round": 0}, "feedback.per_round must be positive"),
+    ({"episode_length": 10}, "shorter than a segment"),
+])
+def test_bad_configuration_is_rejected_before_training(tmp_path, override, message):
+    cfg = build_config("dmc:cheetah_run", "tiny", {"run_dir": str(tmp_path / "run")} | override)
+    with pytest.raises(ValueError, match=message):
+        TrainingRun(cfg, progress=False)
+    assert not (tmp_path / "run").exists()
