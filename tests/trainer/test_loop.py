@@ -104,3 +104,36 @@ def test_bad_configuration_is_rejected_before_training(tmp_path, override, messa
     with pytest.raises(ValueError, match=message):
         TrainingRun(cfg, progress=False)
     assert not (tmp_path / "run").exists()
+
+
+def test_a_run_stopped_between_choosing_queries_and_answering_them_resumes(tmp_path,
+                                                                           monkeypatch):
+    overrides = {"algo": "pebble", "steps": 1200, "threads": 1, "teacher.eps": 0.3}
+    reference = build_config("dmc:cheetah_run", "tiny",
+                             overrides | {"run_dir": str(tmp_path / "reference")})
+    TrainingRun(reference, progress=False).train()
+
+    cfg = build_config("dmc:cheetah_run", "tiny", overrides | {"run_dir": str(tmp_path / "cut")})
+    finish = TrainingRun._finish_round
+
+    def stop_in_second_round(self):
+        if self.feedback.rounds == 1:
+            raise KeyboardInterrupt  # the process dies with round 1's queries chosen, unanswered
+        finish(self)
+
+    monkeypatch.setattr(TrainingRun, "_finish_round", stop_in_second_round)
+    with pytest.raises(KeyboardInterrupt):
+        TrainingRun(cfg, progress=False).train()
+    assert len(_labels(cfg.run_dir)) == 10
+    monkeypatch.setattr(TrainingRun, "_finish_round", finish)
+
+    resumed = TrainingRun(cfg, resume=True, progress=False)
+    assert [q.query_id for q in resumed.feedback.pending] == [f"r1-q{i}" for i in range(10)]
+    resumed.train()
+
+    def strip(rows):
+        return [{k: v for k, v in r.items() if k != "answered_at"} for r in rows]
+
+    assert strip(_labels(cfg.run_dir)) == strip(_labels(reference.run_dir))
+    assert [r["reward_accuracy"] for r in _rows(os.path.join(cfg.run_dir, "rounds.csv"))] == [
+        r["reward_accuracy"] for r in _rows(os.path.join(reference.run_dir, "rounds.csv"))]
