@@ -198,8 +198,9 @@ class TrainingRun:
                     "step": self.step, "episode": self.episode, "return": episode_return,
                     "success": float(traj.success), "labels_used": labels, "fps": fps,
                 } | {k: v for k, v in last_metrics.items() if k in ("critic_loss", "alpha")})
-                bar.set_postfix(ret=f"{episode_return:.1f}", labels=labels, refresh=False)
                 self._end_of_episode()
+                bar.set_postfix(ret=f"{episode_return:.1f}",
+                                labels=feedback.labels_used if feedback else 0, refresh=False)
                 obs, episode_return = self.env.reset(), 0.0
         bar.close()
         self._save()
