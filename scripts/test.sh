@@ -4,7 +4,8 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 export MUJOCO_GL=${MUJOCO_GL:-egl}
-.venv/bin/python -m ruff check trainer tests benchmarks
+.venv/bin/python -m ruff check trainer labelqueue migrations tests benchmarks
+.venv/bin/python -m mypy
 set +e
 .venv/bin/python -m pytest "$@"
 rc=$?

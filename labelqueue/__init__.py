@@ -1,0 +1,93 @@
+"""The queue database: the only contract between the trainer's workers and the server.
+
+Tables are in `models`; the operations on them, each one atomic transaction (see
+`transaction`), are in `labellers`, `runs`, `queries`, `labels` and `metrics`; engines,
+sessions and migrations in `db`. Import what you need from here.
+"""
+
+from labelqueue.db import DEFAULT_URL, make_engine, migrate, session_factory
+from labelqueue.errors import Conflict, InvalidTransition, LeaseError, NotFound, QueueError
+from labelqueue.labellers import authenticate, create_labeller, set_labeller_active
+from labelqueue.labels import consume_labels, labels_for_queries, preferred_segment, submit_label
+from labelqueue.metrics import read_metrics, write_metrics
+from labelqueue.models import (
+    Choice,
+    Label,
+    Labeller,
+    LabelSource,
+    Metric,
+    MetricStream,
+    Preferred,
+    Query,
+    QueryStatus,
+    Role,
+    Run,
+    RunStatus,
+    TeacherKind,
+    Worker,
+)
+from labelqueue.queries import (
+    LEASE_SECONDS,
+    cancel_queries,
+    lease_next_query,
+    push_queries,
+    set_clips,
+)
+from labelqueue.runs import (
+    DEAD_WORKER_AFTER_S,
+    OPERATOR_MOVES,
+    claim_run,
+    create_run,
+    finish_run,
+    heartbeat,
+    set_run_status,
+    set_teacher,
+)
+
+__all__ = [
+    "DEAD_WORKER_AFTER_S",
+    "DEFAULT_URL",
+    "LEASE_SECONDS",
+    "OPERATOR_MOVES",
+    "Choice",
+    "Conflict",
+    "InvalidTransition",
+    "Label",
+    "LabelSource",
+    "Labeller",
+    "LeaseError",
+    "Metric",
+    "MetricStream",
+    "NotFound",
+    "Preferred",
+    "Query",
+    "QueryStatus",
+    "QueueError",
+    "Role",
+    "Run",
+    "RunStatus",
+    "TeacherKind",
+    "Worker",
+    "authenticate",
+    "cancel_queries",
+    "claim_run",
+    "consume_labels",
+    "create_labeller",
+    "create_run",
+    "finish_run",
+    "heartbeat",
+    "labels_for_queries",
+    "lease_next_query",
+    "make_engine",
+    "migrate",
+    "preferred_segment",
+    "push_queries",
+    "read_metrics",
+    "set_clips",
+    "set_labeller_active",
+    "set_run_status",
+    "set_teacher",
+    "session_factory",
+    "submit_label",
+    "write_metrics",
+]

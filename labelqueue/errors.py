@@ -1,0 +1,25 @@
+"""What the queue operations raise when a request cannot be honoured.
+
+Every error is a `QueueError`, so a caller can map the whole family to a client error in one
+place; the subclasses say why.
+"""
+
+
+class QueueError(Exception):
+    """A queue operation refused; nothing was changed."""
+
+
+class NotFound(QueueError):
+    """The run, query or labeller named does not exist."""
+
+
+class LeaseError(QueueError):
+    """The labeller does not hold a valid lease on the query."""
+
+
+class Conflict(QueueError):
+    """The request contradicts the stored state (another worker's run, a different query)."""
+
+
+class InvalidTransition(Conflict):
+    """The run's status does not allow the change asked for."""

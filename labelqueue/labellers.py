@@ -1,0 +1,64 @@
+"""Labellers and their bearer tokens.
+
+A token reads `"<id>.<secret>"`: the id finds the row, and the sha256 of the whole token is
+compared with the stored one in constant time. Only the hash is stored; the token is shown once.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import secrets
+
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from labelqueue.errors import Conflict
+from labelqueue.models import Labeller, Role
+from labelqueue.transaction import detach, get_row, transaction
+
+
+def hash_token(token: str) -> str:
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+def create_labeller(
+    session: Session, *, name: str, role: Role | str = Role.LABELLER
+) -> tuple[Labeller, str]:
+    """A new labeller and its bearer token; Conflict if the name is taken."""
+    with transaction(session):
+        labeller = Labeller(name=name, role=Role(role), token_hash="")
+        session.add(labeller)
+        try:
+            session.flush()
+        except IntegrityError as error:
+            raise Conflict(f"a labeller named {name!r} already exists") from error
+        token = f"{labeller.id}.{secrets.token_urlsafe(32)}"
+        labeller.token_hash = hash_token(token)
+        detach(session, labeller)
+    return labeller, token
+
+
+def authenticate(session: Session, *, token: str) -> Labeller | None:
+    """The active labeller whose token this is, or None."""
+    labeller_id, dot, _secret = token.partition(".")
+    if not dot or not labeller_id.isdigit() or len(labeller_id) > 18:
+        return None
+    with transaction(session):
+        labeller = session.get(Labeller, int(labeller_id), populate_existing=True)
+        if labeller is not None:
+            detach(session, labeller)
+    if labeller is None or not labeller.active:
+        return None
+    if not hmac.compare_digest(labeller.token_hash, hash_token(token)):
+        return None
+    return labeller
+
+
+def set_labeller_active(session: Session, *, labeller_id: int, active: bool) -> Labeller:
+    """Revoke (or restore) a labeller's access; its labels stay on record."""
+    with transaction(session):
+        labeller = get_row(session, Labeller, labeller_id)
+        labeller.active = active
+        detach(session, labeller)
+    return labeller

@@ -1,0 +1,287 @@
+"""The queue database's tables: labellers, runs, workers, queries, labels, metrics.
+
+Enumerated columns are VARCHAR with a named CHECK constraint, not native PostgreSQL enums: adding
+a value later alters a constraint the same way on both databases. Times are UTC and come back
+timezone-aware from either database. Defaults are set in Python, not by the database, so an
+inserted row is complete in memory and reading it never opens a new transaction.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from enum import StrEnum
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    Boolean,
+    DateTime,
+    Dialect,
+    Enum,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    MetaData,
+    String,
+    Text,
+    TypeDecorator,
+    UniqueConstraint,
+)
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
+
+
+class Role(StrEnum):
+    LABELLER = "labeller"
+    OPERATOR = "operator"
+
+
+class RunStatus(StrEnum):
+    QUEUED = "queued"
+    RUNNING = "running"
+    PAUSED = "paused"
+    STOPPING = "stopping"
+    STOPPED = "stopped"
+    FINISHED = "finished"
+    FAILED = "failed"
+
+
+class TeacherKind(StrEnum):
+    HUMAN = "human"
+    SCRIPTED = "scripted"
+
+
+class QueryStatus(StrEnum):
+    PENDING = "pending"
+    LEASED = "leased"
+    LABELLED = "labelled"
+    CANCELLED = "cancelled"
+
+
+class Choice(StrEnum):
+    """What the labeller clicked, in screen terms."""
+
+    LEFT = "left"
+    RIGHT = "right"
+    EQUAL = "equal"
+    CANT_TELL = "cant_tell"
+    SKIP = "skip"
+
+
+class Preferred(StrEnum):
+    """The answer in segment terms, as the trainer uses it."""
+
+    FIRST = "first"
+    SECOND = "second"
+    EQUAL = "equal"
+
+
+class LabelSource(StrEnum):
+    HUMAN = "human"
+    SCRIPTED = "scripted"
+    GOLD = "gold"
+
+
+class MetricStream(StrEnum):
+    EPISODES = "episodes"
+    EVAL = "eval"
+    ROUNDS = "rounds"
+
+
+def utcnow() -> datetime:
+    return datetime.now(UTC)
+
+
+class UTCDateTime(TypeDecorator[datetime]):
+    """A timezone-aware UTC datetime on every backend (SQLite keeps no offset of its own)."""
+
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value: datetime | None, dialect: Dialect) -> datetime | None:
+        if value is None:
+            return None
+        value = value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+        # SQLite stores the text as given; one fixed offset keeps comparisons in SQL correct.
+        return value.replace(tzinfo=None) if dialect.name == "sqlite" else value
+
+    def process_result_value(self, value: datetime | None, dialect: Dialect) -> datetime | None:
+        if value is None:
+            return None
+        return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+
+
+def _enum(cls: type[StrEnum], name: str) -> Enum:
+    # Store the values ("running"), not the member names ("RUNNING").
+    return Enum(
+        cls,
+        name=name,
+        native_enum=False,
+        create_constraint=True,
+        length=16,
+        values_callable=lambda members: [m.value for m in members],
+        validate_strings=True,
+    )
+
+
+class Base(DeclarativeBase):
+    # Named constraints, so Alembic's batch mode on SQLite can find and alter them later.
+    metadata = MetaData(
+        naming_convention={
+            "ix": "ix_%(column_0_label)s",
+            "uq": "uq_%(table_name)s_%(column_0_N_name)s",
+            "ck": "ck_%(table_name)s_%(constraint_name)s",
+            "fk": "fk_%(table_name)s_%(column_0_name)s_%(referred_table_name)s",
+            "pk": "pk_%(table_name)s",
+        }
+    )
+
+
+class Labeller(Base):
+    """A person (or a scripted teacher) who answers queries; operators also manage runs."""
+
+    __tablename__ = "labellers"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    name: Mapped[str] = mapped_column(String(100), unique=True)
+    role: Mapped[Role] = mapped_column(_enum(Role, "role"))
+    token_hash: Mapped[str] = mapped_column(String(64))
+    """sha256 hex of the bearer token `"<id>.<secret>"`; the token itself is never stored"""
+    active: Mapped[bool] = mapped_column(Boolean, default=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class Run(Base):
+    """One training run: what to train, who teaches it, and where it stands."""
+
+    __tablename__ = "runs"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    name: Mapped[str] = mapped_column(String(200))
+    task: Mapped[str] = mapped_column(String(100))
+    algo: Mapped[str] = mapped_column(String(50))
+    preset: Mapped[str] = mapped_column(String(50))
+    seed: Mapped[int] = mapped_column(Integer)
+    config: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    """overrides of the preset, as the trainer's CLI flags name them (`{"sac.lr": 1e-4}`)"""
+    teacher: Mapped[TeacherKind] = mapped_column(_enum(TeacherKind, "teacher"))
+    teacher_params: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    budget: Mapped[int] = mapped_column(Integer)
+    """answers the run may ask for in all"""
+    labels_used: Mapped[int] = mapped_column(Integer, default=0)
+    step: Mapped[int] = mapped_column(Integer, default=0)
+    progress: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    """the worker's latest summary (last return, round, ...), for the dashboard"""
+    status: Mapped[RunStatus] = mapped_column(_enum(RunStatus, "status"), index=True)
+    worker_id: Mapped[str | None] = mapped_column(String(200))
+    heartbeat_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    started_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    error: Mapped[str | None] = mapped_column(Text)
+
+
+class Worker(Base):
+    """A trainer process, as last seen: lets an operator tell idle workers from dead ones."""
+
+    __tablename__ = "workers"
+
+    id: Mapped[str] = mapped_column(String(200), primary_key=True)
+    run_id: Mapped[int | None] = mapped_column(ForeignKey("runs.id"))
+    first_seen_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    last_seen_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class Query(Base):
+    """A pair of segments to compare, with provenance, clips and hidden ground truth.
+
+    "first" and "second" are the trainer's segment 0 and 1; which one a labeller sees on the
+    left is decided per label. The returns are ground truth for scripted teachers and accuracy
+    statistics and must never reach a labeller's browser.
+    """
+
+    __tablename__ = "queries"
+    __table_args__ = (UniqueConstraint("run_id", "round", "position"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id"))
+    round: Mapped[int] = mapped_column(Integer)
+    position: Mapped[int] = mapped_column(Integer)
+    """index of the query within its round"""
+    step: Mapped[int | None] = mapped_column(Integer)
+    """training step at which the query was selected"""
+    segment_length: Mapped[int] = mapped_column(Integer)
+
+    first_trajectory: Mapped[int] = mapped_column(Integer)
+    first_start: Mapped[int] = mapped_column(Integer)
+    first_skill: Mapped[list[float] | None] = mapped_column(JSON)
+    first_clip: Mapped[str | None] = mapped_column(String(500))
+    """storage key of the rendered clip, relative to the clips folder"""
+    first_segment_return: Mapped[float] = mapped_column(Float)
+    first_trajectory_return: Mapped[float] = mapped_column(Float)
+
+    second_trajectory: Mapped[int] = mapped_column(Integer)
+    second_start: Mapped[int] = mapped_column(Integer)
+    second_skill: Mapped[list[float] | None] = mapped_column(JSON)
+    second_clip: Mapped[str | None] = mapped_column(String(500))
+    second_segment_return: Mapped[float] = mapped_column(Float)
+    second_trajectory_return: Mapped[float] = mapped_column(Float)
+
+    model_p: Mapped[float | None] = mapped_column(Float)
+    """the reward model's P[second preferred] at selection time"""
+    score: Mapped[float | None] = mapped_column(Float)
+    """the selection score (none for uniform picks)"""
+    rule: Mapped[str | None] = mapped_column(String(50))
+    """the selection rule that picked the pair"""
+
+    needs_labels: Mapped[int] = mapped_column(Integer, default=1)
+    """distinct labellers' answers wanted"""
+    label_count: Mapped[int] = mapped_column(Integer, default=0)
+    status: Mapped[QueryStatus] = mapped_column(_enum(QueryStatus, "status"))
+    lease_holder: Mapped[int | None] = mapped_column(ForeignKey("labellers.id"), index=True)
+    lease_expires_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+# The lease scan: open queries of a run, oldest first.
+Index("ix_queries_run_id_status", Query.run_id, Query.status, Query.id)
+
+
+class Label(Base):
+    """One labeller's answer to one query."""
+
+    __tablename__ = "labels"
+    __table_args__ = (UniqueConstraint("query_id", "labeller_id"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    query_id: Mapped[int] = mapped_column(ForeignKey("queries.id"))
+    # Copied from the query so the trainer's consume scan needs no join.
+    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id"))
+    labeller_id: Mapped[int] = mapped_column(ForeignKey("labellers.id"))
+    choice: Mapped[Choice] = mapped_column(_enum(Choice, "choice"))
+    left_is_first: Mapped[bool] = mapped_column(Boolean)
+    """whether the first segment was shown on the left"""
+    preferred: Mapped[Preferred | None] = mapped_column(_enum(Preferred, "preferred"))
+    """the choice in segment terms; none for cant_tell and skip"""
+    source: Mapped[LabelSource] = mapped_column(_enum(LabelSource, "source"))
+    shown_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    answered_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    consumed_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    """when the trainer took the label; none until then"""
+
+
+Index("ix_labels_run_id_consumed_at", Label.run_id, Label.consumed_at)
+
+
+class Metric(Base):
+    """One row of a run's learning curve (an episode, an evaluation or a feedback round)."""
+
+    __tablename__ = "metrics"
+    # One row per (run, stream, step): a resumed run rewrites the steps it repeats.
+    __table_args__ = (UniqueConstraint("run_id", "stream", "step"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id"))
+    stream: Mapped[MetricStream] = mapped_column(_enum(MetricStream, "stream"))
+    step: Mapped[int] = mapped_column(Integer)
+    values: Mapped[dict[str, Any]] = mapped_column(JSON)

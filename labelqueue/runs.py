@@ -1,0 +1,230 @@
+"""Runs: created by an operator, claimed and driven by a worker, steered by the operator.
+
+    worker:    queued -> running (claim_run)
+               running | paused | stopping -> finished | failed | stopped (finish_run)
+    operator:  running <-> paused (pause, resume)
+               running | paused -> stopping (stop; the worker checkpoints and ends as stopped)
+               queued | stopping -> stopped (cancel; or a stop whose worker died)
+               stopped | failed -> queued (requeue)
+
+A worker that stops heartbeating loses its running run to the next worker that claims one; the
+newcomer resumes from the run's last checkpoint.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from datetime import datetime, timedelta
+from typing import Any
+
+from sqlalchemy import and_, or_, select, update
+from sqlalchemy.orm import Session
+
+from labelqueue.coerce import json_object
+from labelqueue.errors import Conflict, InvalidTransition
+from labelqueue.models import Run, RunStatus, TeacherKind, Worker, utcnow
+from labelqueue.transaction import changed, detach, get_row, transaction
+
+DEAD_WORKER_AFTER_S = 300.0
+"""a running run whose heartbeat is older than this may be claimed by another worker"""
+
+# Which statuses an operator may move a run to, and from where.
+OPERATOR_MOVES: dict[RunStatus, tuple[RunStatus, ...]] = {
+    RunStatus.PAUSED: (RunStatus.RUNNING,),
+    RunStatus.RUNNING: (RunStatus.PAUSED,),
+    RunStatus.STOPPING: (RunStatus.RUNNING, RunStatus.PAUSED),
+    # From stopping too: for when the worker died before it could acknowledge.
+    RunStatus.STOPPED: (RunStatus.QUEUED, RunStatus.STOPPING),
+    RunStatus.QUEUED: (RunStatus.STOPPED, RunStatus.FAILED),
+}
+WORKER_ENDS = (RunStatus.FINISHED, RunStatus.FAILED, RunStatus.STOPPED)
+"""the statuses a worker may end its run with"""
+OWNED = (RunStatus.RUNNING, RunStatus.PAUSED, RunStatus.STOPPING)
+"""the statuses in which a run belongs to its worker"""
+
+
+def create_run(
+    session: Session,
+    *,
+    name: str,
+    task: str,
+    algo: str,
+    budget: int,
+    preset: str = "small",
+    seed: int = 0,
+    teacher: TeacherKind | str = TeacherKind.HUMAN,
+    teacher_params: Mapping[str, Any] | None = None,
+    config: Mapping[str, Any] | None = None,
+) -> Run:
+    """A queued run, for the next free worker to claim."""
+    with transaction(session):
+        run = Run(
+            name=name,
+            task=task,
+            algo=algo,
+            preset=preset,
+            seed=seed,
+            budget=budget,
+            teacher=TeacherKind(teacher),
+            teacher_params=json_object(teacher_params or {}),
+            config=json_object(config or {}),
+            status=RunStatus.QUEUED,
+        )
+        session.add(run)
+        detach(session, run)
+    return run
+
+
+def _saw_worker(session: Session, *, worker_id: str, now: datetime, run_id: int | None) -> None:
+    # Only the worker itself writes its row, so get-then-add races with no other writer.
+    worker = session.get(Worker, worker_id, populate_existing=True)
+    if worker is None:
+        session.add(Worker(id=worker_id, run_id=run_id, first_seen_at=now, last_seen_at=now))
+    else:
+        worker.last_seen_at = now
+        worker.run_id = run_id
+
+
+def claim_run(
+    session: Session, *, worker_id: str, stale_after: float = DEAD_WORKER_AFTER_S
+) -> Run | None:
+    """Take the oldest queued run, or a running one whose worker stopped heartbeating.
+
+    The run becomes `running`, owned by `worker_id`. None when there is nothing to do; an idle
+    worker calls this in a loop, which also records that it is alive.
+    """
+    now = utcnow()
+    dead = now - timedelta(seconds=stale_after)
+    claimable = or_(
+        Run.status == RunStatus.QUEUED,
+        and_(Run.status == RunStatus.RUNNING, Run.heartbeat_at < dead),
+    )
+    with transaction(session):
+        candidates = session.scalars(
+            select(Run.id).where(claimable).order_by(Run.created_at, Run.id).limit(20)
+        ).all()
+        for run_id in candidates:
+            won = changed(
+                session,
+                update(Run)
+                .where(Run.id == run_id, claimable)
+                .values(status=RunStatus.RUNNING, worker_id=worker_id, heartbeat_at=now),
+            )
+            if won:
+                run = get_row(session, Run, run_id)
+                if run.started_at is None:
+                    run.started_at = now
+                _saw_worker(session, worker_id=worker_id, now=now, run_id=run_id)
+                detach(session, run)
+                return run
+        _saw_worker(session, worker_id=worker_id, now=now, run_id=None)
+    return None
+
+
+def _not_owner(session: Session, *, run_id: int, worker_id: str) -> Conflict:
+    run = get_row(session, Run, run_id)
+    return Conflict(f"run {run_id} belongs to worker {run.worker_id!r}, not {worker_id!r}")
+
+
+def heartbeat(
+    session: Session,
+    *,
+    run_id: int,
+    worker_id: str,
+    step: int,
+    progress: Mapping[str, Any] | None = None,
+) -> RunStatus:
+    """Record that the owning worker is alive at `step`; the run's status, for it to obey.
+
+    `paused`: stop training, keep heartbeating; `stopping`: checkpoint, then
+    `finish_run(status="stopped")`; `stopped`: an operator forced the stop, so checkpoint and
+    exit. Raises Conflict once the run belongs to another worker (it was requeued, or declared
+    dead and claimed): this worker must then stop writing to it.
+    """
+    now = utcnow()
+    values: dict[str, Any] = {"heartbeat_at": now, "step": int(step)}
+    if progress is not None:
+        values["progress"] = json_object(progress)
+    with transaction(session):
+        status = session.execute(
+            update(Run)
+            .where(Run.id == run_id, Run.worker_id == worker_id)
+            .values(**values)
+            .returning(Run.status),
+            execution_options={"synchronize_session": False},
+        ).scalar_one_or_none()
+        if status is None:
+            raise _not_owner(session, run_id=run_id, worker_id=worker_id)
+        _saw_worker(session, worker_id=worker_id, now=now, run_id=run_id)
+    return RunStatus(status)
+
+
+def set_run_status(session: Session, *, run_id: int, status: RunStatus | str) -> Run:
+    """An operator's pause, resume, stop, cancel or requeue (see OPERATOR_MOVES).
+
+    InvalidTransition for any other move; requeueing clears the worker, times and error.
+    """
+    target = RunStatus(status)
+    values: dict[str, Any] = {"status": target}
+    if target is RunStatus.STOPPED:
+        values["finished_at"] = utcnow()
+    if target is RunStatus.QUEUED:
+        values |= {"worker_id": None, "heartbeat_at": None, "finished_at": None, "error": None}
+    with transaction(session):
+        moved = changed(
+            session,
+            update(Run)
+            .where(Run.id == run_id, Run.status.in_(OPERATOR_MOVES.get(target, ())))
+            .values(**values),
+        )
+        run = get_row(session, Run, run_id)
+        if not moved:
+            raise InvalidTransition(f"run {run_id} is {run.status}; it cannot be made {target}")
+        detach(session, run)
+    return run
+
+
+def finish_run(
+    session: Session,
+    *,
+    run_id: int,
+    worker_id: str,
+    status: RunStatus | str = RunStatus.FINISHED,
+    error: str | None = None,
+) -> Run:
+    """The owning worker's last word: finished, failed (with `error`) or stopped."""
+    target = RunStatus(status)
+    if target not in WORKER_ENDS:
+        raise InvalidTransition(f"a worker ends a run as one of {', '.join(WORKER_ENDS)}")
+    now = utcnow()
+    with transaction(session):
+        ended = changed(
+            session,
+            update(Run)
+            .where(Run.id == run_id, Run.worker_id == worker_id, Run.status.in_(OWNED))
+            .values(status=target, finished_at=now, error=error),
+        )
+        run = get_row(session, Run, run_id)
+        if not ended:
+            if run.worker_id != worker_id:
+                raise _not_owner(session, run_id=run_id, worker_id=worker_id)
+            raise InvalidTransition(f"run {run_id} is {run.status}; it cannot be made {target}")
+        _saw_worker(session, worker_id=worker_id, now=now, run_id=None)
+        detach(session, run)
+    return run
+
+
+def set_teacher(
+    session: Session,
+    *,
+    run_id: int,
+    teacher: TeacherKind | str,
+    params: Mapping[str, Any] | None = None,
+) -> Run:
+    """Switch who answers a run's queries; the worker reads it when it opens its next round."""
+    with transaction(session):
+        run = get_row(session, Run, run_id)
+        run.teacher = TeacherKind(teacher)
+        run.teacher_params = json_object(params or {})
+        detach(session, run)
+    return run
