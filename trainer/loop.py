@@ -211,7 +211,8 @@ class TrainingRun:
         cfg = self.cfg
         if cfg.eval_every > 0 and self.step - self.last_eval_step >= cfg.eval_every:
             self.evaluate()
-        if (self.feedback is not None and self.step >= self.next_round_step
+        # No round at the very end: its labels could no longer shape the policy.
+        if (self.feedback is not None and self.next_round_step <= self.step < cfg.steps
                 and self.feedback.budget_left > 0 and len(self.pool) >= 2):
             self.feedback.open_round(self.pool, self.step)
             self._save()  # the chosen queries survive a kill; their answers go to labels.jsonl
