@@ -1,0 +1,48 @@
+"""The app factory: `create_app(settings)` -> FastAPI; `uvicorn server.app:app` serves it."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+
+from labelqueue import make_engine, migrate, session_factory
+from server.errors import install_error_handlers
+from server.routes import label, labellers, runs
+from server.settings import Settings, get_settings
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The API over the queue database `settings.database_url`, migrated at start-up."""
+    settings = settings or get_settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        migrate(settings.database_url)
+        engine = make_engine(settings.database_url)
+        app.state.sessions = session_factory(engine)
+        try:
+            yield
+        finally:
+            engine.dispose()
+
+    app = FastAPI(title="S-EPOA labelling", version="0.1.0", lifespan=lifespan)
+    app.state.settings = settings
+    install_error_handlers(app)
+    app.include_router(runs.router)
+    app.include_router(labellers.router)
+    app.include_router(label.router)
+
+    @app.get("/healthz", tags=["health"])
+    def healthz() -> dict[str, str]:
+        return {"status": "ok"}
+
+    return app
+
+
+def __getattr__(name: str) -> FastAPI:
+    # `uvicorn server.app:app`: built on first access, so importing this module stays cheap.
+    if name == "app":
+        return create_app()
+    raise AttributeError(name)

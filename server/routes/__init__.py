@@ -1,0 +1,1 @@
+"""The API's routers: operator (`runs`, `labellers`) and labeller (`label`, clips)."""

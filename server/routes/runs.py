@@ -1,0 +1,68 @@
+"""Operator endpoints for runs: create, list, status, metrics, pause/resume/stop, teacher."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+
+from labelqueue import RunStatus, read_metrics, set_run_status, set_teacher
+from server import services
+from server.deps import OperatorDep, SessionDep
+from server.schemas import MetricOut, RunCreate, RunOut, StreamName, TeacherUpdate
+
+router = APIRouter(prefix="/api/runs", tags=["runs"])
+
+
+@router.post("", status_code=201, response_model=RunOut)
+def create_run(spec: RunCreate, session: SessionDep, _: OperatorDep) -> RunOut:
+    return RunOut.model_validate(services.new_run(session, spec=spec))
+
+
+@router.get("", response_model=list[RunOut])
+def list_runs(session: SessionDep, _: OperatorDep) -> list[RunOut]:
+    return [RunOut.model_validate(run) for run in services.list_runs(session)]
+
+
+@router.get("/{run_id}", response_model=RunOut)
+def get_run(run_id: int, session: SessionDep, _: OperatorDep) -> RunOut:
+    return RunOut.model_validate(services.get_run(session, run_id=run_id))
+
+
+@router.get("/{run_id}/metrics", response_model=list[MetricOut])
+def get_metrics(
+    run_id: int,
+    session: SessionDep,
+    _: OperatorDep,
+    stream: StreamName = "episodes",
+    after_step: int | None = None,
+) -> list[MetricOut]:
+    services.get_run(session, run_id=run_id)
+    rows = read_metrics(session, run_id=run_id, stream=stream, after_step=after_step)
+    return [MetricOut.model_validate(row) for row in rows]
+
+
+@router.post("/{run_id}/pause", response_model=RunOut)
+def pause_run(run_id: int, session: SessionDep, _: OperatorDep) -> RunOut:
+    return RunOut.model_validate(set_run_status(session, run_id=run_id, status=RunStatus.PAUSED))
+
+
+@router.post("/{run_id}/resume", response_model=RunOut)
+def resume_run(run_id: int, session: SessionDep, _: OperatorDep) -> RunOut:
+    return RunOut.model_validate(set_run_status(session, run_id=run_id, status=RunStatus.RUNNING))
+
+
+@router.post("/{run_id}/stop", response_model=RunOut)
+def stop_run(run_id: int, session: SessionDep, _: OperatorDep, force: bool = False) -> RunOut:
+    """Running/paused: stopping; queued: stopped; `force=true` also ends a stopping run."""
+    return RunOut.model_validate(services.stop_run(session, run_id=run_id, force=force))
+
+
+@router.post("/{run_id}/requeue", response_model=RunOut)
+def requeue_run(run_id: int, session: SessionDep, _: OperatorDep) -> RunOut:
+    """A stopped or failed run back in the queue; its next worker resumes its checkpoint."""
+    return RunOut.model_validate(set_run_status(session, run_id=run_id, status=RunStatus.QUEUED))
+
+
+@router.put("/{run_id}/teacher", response_model=RunOut)
+def put_teacher(run_id: int, body: TeacherUpdate, session: SessionDep, _: OperatorDep) -> RunOut:
+    run = set_teacher(session, run_id=run_id, teacher=body.teacher, params=body.params)
+    return RunOut.model_validate(run)

@@ -1,0 +1,129 @@
+"""What the routes do, as keyword-only functions over a session: reads and small compositions
+of queue operations. Reads commit at once, so SQLite's write lock (every transaction begins
+IMMEDIATE) is never held for the rest of a request.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from labelqueue import (
+    Conflict,
+    Labeller,
+    NotFound,
+    Query,
+    Run,
+    RunStatus,
+    TeacherKind,
+    create_run,
+    lease_next_query,
+    set_run_status,
+)
+from server import clips
+from server.schemas import NextQuery, RunCreate
+from server.settings import Settings
+
+
+@contextmanager
+def reading(session: Session) -> Iterator[None]:
+    """End the read transaction when the block ends (rows stay readable: no expiry on commit)."""
+    try:
+        yield
+    finally:
+        session.commit()
+
+
+def get_run(session: Session, *, run_id: int) -> Run:
+    with reading(session):
+        run = session.get(Run, run_id, populate_existing=True)
+    if run is None:
+        raise NotFound(f"run {run_id} does not exist")
+    return run
+
+
+def list_runs(session: Session) -> list[Run]:
+    with reading(session):
+        return list(session.scalars(select(Run).order_by(Run.id)))
+
+
+def list_labellers(session: Session) -> list[Labeller]:
+    with reading(session):
+        return list(session.scalars(select(Labeller).order_by(Labeller.id)))
+
+
+def get_query(session: Session, *, query_id: int) -> Query:
+    with reading(session):
+        query = session.get(Query, query_id, populate_existing=True)
+    if query is None:
+        raise NotFound(f"query {query_id} does not exist")
+    return query
+
+
+def new_run(session: Session, *, spec: RunCreate) -> Run:
+    return create_run(
+        session,
+        name=spec.name or f"{spec.task}-{spec.algo}-s{spec.seed}",
+        task=spec.task,
+        algo=spec.algo,
+        budget=spec.budget,
+        preset=spec.preset,
+        seed=spec.seed,
+        teacher=spec.teacher,
+        teacher_params=spec.teacher_params,
+        config=spec.config,
+    )
+
+
+def stop_run(session: Session, *, run_id: int, force: bool = False) -> Run:
+    """Running or paused: stopping (the worker checkpoints, then ends it). Queued: stopped.
+
+    `force` also ends a stopping run whose worker died before acknowledging.
+    """
+    status = get_run(session, run_id=run_id).status
+    immediate = status is RunStatus.QUEUED or (force and status is RunStatus.STOPPING)
+    target = RunStatus.STOPPED if immediate else RunStatus.STOPPING
+    return set_run_status(session, run_id=run_id, status=target)
+
+
+def next_query(
+    session: Session, *, settings: Settings, labeller_id: int, run_id: int | None
+) -> NextQuery | None:
+    """Lease the labeller's next query and describe it without ground truth; None if none."""
+    if run_id is not None and get_run(session, run_id=run_id).teacher is not TeacherKind.HUMAN:
+        raise Conflict(f"run {run_id} is taught by a scripted teacher, not by people")
+    query = lease_next_query(
+        session, labeller_id=labeller_id, run_id=run_id, lease_seconds=settings.lease_seconds
+    )
+    if query is None:
+        return None
+    assert query.lease_expires_at is not None
+    first_left = clips.left_is_first(settings=settings, query_id=query.id, labeller_id=labeller_id)
+    now = time.time()
+    urls = {
+        side: clips.signed_clip_url(settings=settings, query_id=query.id, side=side, now=now)
+        for side in clips.SIDES
+    }
+    return NextQuery(
+        query_id=query.id,
+        run_id=query.run_id,
+        lease_expires_at=query.lease_expires_at,
+        left_clip_url=urls["first" if first_left else "second"],
+        right_clip_url=urls["second" if first_left else "first"],
+        left_is_first=first_left,
+        segment_length=query.segment_length,
+    )
+
+
+def clip_path(session: Session, *, settings: Settings, query_id: int, side: str) -> Path:
+    """The file of a query's clip; NotFound when the query, side or file is not there."""
+    query = get_query(session, query_id=query_id)
+    path = clips.clip_file(settings=settings, query=query, side=side)
+    if path is None:
+        raise NotFound(f"query {query_id} has no {side!r} clip (not rendered yet, or no such side)")
+    return path

@@ -1,0 +1,52 @@
+"""Server settings, read from the environment (prefix `SEPOA_`) by pydantic-settings."""
+
+from __future__ import annotations
+
+import secrets
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from labelqueue import DEFAULT_URL, LEASE_SECONDS
+
+
+class Settings(BaseSettings):
+    """Everything the server reads from its environment; frozen once built."""
+
+    model_config = SettingsConfigDict(env_prefix="SEPOA_", frozen=True)
+
+    database_url: str = DEFAULT_URL
+    """the queue database (SQLite file by default, or a `postgresql+psycopg://` URL)"""
+    data_dir: Path = Path("data")
+    """where the SQLite file and clips live by default"""
+    clips_dir: Path | None = None
+    """the clips folder; `<data_dir>/clips` when unset"""
+    lease_seconds: float = Field(default=LEASE_SECONDS, gt=0)
+    """how long a labeller holds a query before another may take it"""
+    operator_token: str | None = Field(default=None, min_length=16)
+    """a bearer token that acts as an operator (bootstraps the first labellers); unset: none"""
+    secret_key: str = Field(default_factory=lambda: secrets.token_urlsafe(32), min_length=16)
+    """signs clip URLs; random per process unless set (set it when several servers share a DB)"""
+    clip_url_seconds: float = Field(default=900.0, gt=0)
+    """how long a signed clip URL stays valid"""
+
+    @model_validator(mode="after")
+    def _default_clips_dir(self) -> Settings:
+        if self.clips_dir is None:
+            # frozen: set through the object's dict, once, while validating.
+            object.__setattr__(self, "clips_dir", self.data_dir / "clips")
+        return self
+
+    @property
+    def clips_root(self) -> Path:
+        """The clips folder, absolute."""
+        assert self.clips_dir is not None
+        return self.clips_dir.resolve()
+
+
+@lru_cache
+def get_settings() -> Settings:
+    """The process's settings, read from the environment once."""
+    return Settings()

@@ -1,0 +1,228 @@
+"""The labeller's path: lease a query, watch its clips, answer it; and every way it can fail."""
+
+from __future__ import annotations
+
+import json
+from datetime import UTC, datetime, timedelta
+
+from fastapi.testclient import TestClient
+from server_helpers import (
+    OPERATOR,
+    SECRET_RETURNS,
+    bearer,
+    new_labeller,
+    new_run,
+    running_run_with_queries,
+    snapshot,
+)
+from sqlalchemy import func, select, update
+from sqlalchemy.orm import Session
+
+from labelqueue import Label, Query
+from server.settings import Settings
+
+NEXT_KEYS = {
+    "query_id",
+    "run_id",
+    "lease_expires_at",
+    "left_clip_url",
+    "right_clip_url",
+    "left_is_first",
+    "segment_length",
+}
+
+
+def shown_at() -> str:
+    return datetime.now(UTC).isoformat()
+
+
+def label_count(session: Session) -> int:
+    count = session.scalar(select(func.count()).select_from(Label))
+    session.commit()
+    return int(count or 0)
+
+
+def test_a_labeller_answers_each_query_once_and_then_has_nothing_to_do(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    alice = bearer(new_labeller(client, "alice"))
+    run_id, query_ids = running_run_with_queries(client, session, settings)
+
+    response = client.get("/api/label/next", headers=alice)
+    assert response.status_code == 200, response.text
+    shown = response.json()
+    assert set(shown) == NEXT_KEYS
+    assert shown["query_id"] == query_ids[0] and shown["run_id"] == run_id
+    # No ground truth anywhere in what the browser gets, under any name.
+    for value in SECRET_RETURNS.values():
+        assert str(value) not in response.text
+    assert not {"return", "model_p", "score", "rule"} & set(json.dumps(shown).split('"'))
+
+    # The clips come from the signed URLs alone (a <video> tag sends no Authorization header).
+    left, right = client.get(shown["left_clip_url"]), client.get(shown["right_clip_url"])
+    assert left.status_code == right.status_code == 200
+    assert left.headers["content-type"] == "video/mp4"
+    left_side = "a" if shown["left_is_first"] else "b"
+    assert left.content.startswith(f"fake mp4 run{run_id}/q{query_ids[0]}-{left_side}".encode())
+    assert left.content != right.content
+
+    # A browser seeking in the video asks for a byte range.
+    partial = client.get(shown["left_clip_url"], headers={"Range": "bytes=5-14"})
+    assert partial.status_code == 206 and partial.content == left.content[5:15]
+
+    # A page reload keeps the same query and the same sides.
+    again = client.get("/api/label/next", headers=alice).json()
+    assert again["query_id"] == shown["query_id"]
+    assert again["left_is_first"] == shown["left_is_first"]
+
+    body = {"choice": "left", "left_is_first": shown["left_is_first"], "shown_at": shown_at()}
+    first = client.post(f"/api/label/{shown['query_id']}", json=body, headers=alice)
+    assert first.status_code == 201, first.text
+    label = first.json()
+    assert label["choice"] == "left"
+    assert label["preferred"] == ("first" if shown["left_is_first"] else "second")
+
+    repeat = client.post(f"/api/label/{shown['query_id']}", json=body, headers=alice)
+    assert repeat.status_code == 200 and repeat.json() == label
+    assert label_count(session) == 1
+    run = client.get(f"/api/runs/{run_id}", headers=OPERATOR).json()
+    assert run["labels_used"] == 1
+
+    second = client.get("/api/label/next", headers=alice)
+    assert second.status_code == 200 and second.json()["query_id"] == query_ids[1]
+    body["left_is_first"] = second.json()["left_is_first"]
+    assert client.post(f"/api/label/{query_ids[1]}", json=body, headers=alice).status_code == 201
+
+    done = client.get("/api/label/next", headers=alice)
+    assert done.status_code == 204 and done.content == b""
+    assert client.get(f"/api/label/next?run_id={run_id}", headers=alice).status_code == 204
+
+
+def test_a_label_for_an_expired_lease_is_refused_and_changes_nothing(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    alice = bearer(new_labeller(client, "alice"))
+    running_run_with_queries(client, session, settings, n=1)
+    shown = client.get("/api/label/next", headers=alice).json()
+    session.execute(
+        update(Query)
+        .where(Query.id == shown["query_id"])
+        .values(lease_expires_at=datetime.now(UTC) - timedelta(seconds=1))
+    )
+    session.commit()
+    before = snapshot(session)
+
+    body = {"choice": "right", "left_is_first": True, "shown_at": shown_at()}
+    response = client.post(f"/api/label/{shown['query_id']}", json=body, headers=alice)
+    assert response.status_code == 409
+    assert "expired" in response.json()["detail"]
+    assert snapshot(session) == before
+
+
+def test_a_label_for_another_labellers_query_is_refused_and_changes_nothing(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    alice = bearer(new_labeller(client, "alice"))
+    bob = bearer(new_labeller(client, "bob"))
+    running_run_with_queries(client, session, settings, n=1)
+    shown = client.get("/api/label/next", headers=alice).json()
+    # Bob finds nothing: the only query is Alice's while her lease lasts.
+    assert client.get("/api/label/next", headers=bob).status_code == 204
+    before = snapshot(session)
+
+    body = {"choice": "left", "left_is_first": True, "shown_at": shown_at()}
+    response = client.post(f"/api/label/{shown['query_id']}", json=body, headers=bob)
+    assert response.status_code == 409
+    assert "leased to another labeller" in response.json()["detail"]
+    assert snapshot(session) == before
+
+
+def test_malformed_or_misdirected_labels_are_refused_and_change_nothing(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    alice = bearer(new_labeller(client, "alice"))
+    running_run_with_queries(client, session, settings, n=1)
+    query_id = client.get("/api/label/next", headers=alice).json()["query_id"]
+    before = snapshot(session)
+    good = {"choice": "left", "left_is_first": True, "shown_at": shown_at()}
+
+    for body, field in [
+        (good | {"choice": "top"}, "choice"),
+        ({k: v for k, v in good.items() if k != "left_is_first"}, "left_is_first"),
+        (good | {"shown_at": "yesterday"}, "shown_at"),
+        (good | {"score": 1.0}, "score"),
+    ]:
+        response = client.post(f"/api/label/{query_id}", json=body, headers=alice)
+        assert response.status_code == 422, body
+        assert any(field in error["loc"] for error in response.json()["detail"]), response.text
+    response = client.post("/api/label/999", json=good, headers=alice)
+    assert response.status_code == 404 and "query 999" in response.json()["detail"]
+    assert snapshot(session) == before
+
+
+def test_next_query_names_unknown_and_scripted_runs(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    alice = bearer(new_labeller(client, "alice"))
+    unknown = client.get("/api/label/next?run_id=42", headers=alice)
+    assert unknown.status_code == 404 and "run 42" in unknown.json()["detail"]
+    scripted = new_run(client, teacher="scripted", teacher_params={"eps": 0.1})
+    response = client.get(f"/api/label/next?run_id={scripted['id']}", headers=alice)
+    assert response.status_code == 409 and "scripted" in response.json()["detail"]
+
+
+def test_clips_need_a_valid_signature_or_token_and_never_leave_the_clips_folder(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    alice = bearer(new_labeller(client, "alice"))
+    run_id, (query_id,) = running_run_with_queries(client, session, settings, n=1)
+    url = client.get("/api/label/next", headers=alice).json()["left_clip_url"]
+    path, _, params = url.partition("?")
+    expires, sig = (pair.split("=")[1] for pair in params.split("&"))
+
+    tampered = client.get(
+        f"{path}?expires={expires}&sig={sig[:-1]}{'0' if sig[-1] != '0' else '1'}"
+    )
+    assert tampered.status_code == 403 and "signature" in tampered.json()["detail"]
+    stretched = client.get(f"{path}?expires={int(expires) + 3600}&sig={sig}")
+    assert stretched.status_code == 403
+    other_side = (
+        path.replace("first", "second") if "first" in path else path.replace("second", "first")
+    )
+    assert client.get(f"{other_side}?expires={expires}&sig={sig}").status_code == 403
+    past = client.get(f"{path}?expires=1000&sig={sig}")
+    assert past.status_code == 403
+
+    assert client.get(path).status_code == 401
+    assert client.get(path, headers=bearer("1.wrong")).status_code == 401
+    assert client.get(path, headers=alice).status_code == 200
+    assert client.get(path, headers=OPERATOR).status_code == 200
+
+    for bad in ["third", "..", "%2e%2e", "first%2F..%2F..%2Fqueue.db"]:
+        response = client.get(f"/api/clips/{query_id}/{bad}", headers=alice)
+        assert response.status_code == 404, bad
+    assert client.get("/api/clips/999/first", headers=alice).status_code == 404
+
+    # A stored key that escapes the clips folder (written behind the queue's back) is refused,
+    # and so is a link inside the folder that points outside it.
+    outside = settings.data_dir / "outside.mp4"
+    outside.write_bytes(b"not a clip")
+    (settings.clips_root / "link.mp4").symlink_to(outside)
+    for key in ["../outside.mp4", "/etc/passwd", "link.mp4", f"run{run_id}/missing.mp4"]:
+        session.execute(update(Query).where(Query.id == query_id).values(first_clip=key))
+        session.commit()
+        response = client.get(f"/api/clips/{query_id}/first", headers=alice)
+        assert response.status_code == 404, key
+        assert f"query {query_id}" in response.json()["detail"]
+
+
+def test_a_query_without_clips_is_not_served_to_people(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    alice = bearer(new_labeller(client, "alice"))
+    _, (query_id,) = running_run_with_queries(client, session, settings, n=1)
+    session.execute(update(Query).values(first_clip=None, second_clip=None))
+    session.commit()
+    assert client.get("/api/label/next", headers=alice).status_code == 204
+    response = client.get(f"/api/clips/{query_id}/first", headers=alice)
+    assert response.status_code == 404 and "not rendered" in response.json()["detail"]

@@ -1,0 +1,244 @@
+"""The operator's REST API: runs, their controls and curves, labellers; auth and bad input."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+from server_helpers import OPERATOR, bearer, new_labeller, new_run, snapshot
+from sqlalchemy.orm import Session
+
+from labelqueue import Run, RunStatus, claim_run, write_metrics
+from server.settings import get_settings
+
+
+def stored_run(session: Session, run_id: int) -> Run:
+    run = session.get(Run, run_id, populate_existing=True)
+    session.commit()
+    assert run is not None
+    return run
+
+
+def test_health_and_openapi_list_the_api(client: TestClient) -> None:
+    assert client.get("/healthz").json() == {"status": "ok"}
+    paths = set(client.get("/openapi.json").json()["paths"])
+    assert {
+        "/api/runs",
+        "/api/runs/{run_id}",
+        "/api/runs/{run_id}/metrics",
+        "/api/runs/{run_id}/pause",
+        "/api/runs/{run_id}/resume",
+        "/api/runs/{run_id}/stop",
+        "/api/runs/{run_id}/teacher",
+        "/api/labellers",
+        "/api/label/next",
+        "/api/label/{query_id}",
+        "/api/clips/{query_id}/{side}",
+        "/healthz",
+    } <= paths
+
+
+def test_an_operator_creates_lists_and_reads_runs(client: TestClient, session: Session) -> None:
+    run = new_run(
+        client,
+        task="metaworld:drawer-open-v3",
+        algo="pebble",
+        teacher="scripted",
+        teacher_params={"eps": 0.1},
+        seed=3,
+        budget=500,
+        config={"sac.lr": 1e-4},
+    )
+    assert run["status"] == "queued" and run["name"] == "metaworld:drawer-open-v3-pebble-s3"
+    assert run["teacher_params"] == {"eps": 0.1} and run["config"] == {"sac.lr": 1e-4}
+    row = stored_run(session, run["id"])
+    assert (row.task, row.algo, row.seed, row.budget) == (
+        "metaworld:drawer-open-v3",
+        "pebble",
+        3,
+        500,
+    )
+
+    listed = client.get("/api/runs", headers=OPERATOR).json()
+    assert [r["id"] for r in listed] == [run["id"]]
+    status = client.get(f"/api/runs/{run['id']}", headers=OPERATOR).json()
+    for key in ("status", "step", "labels_used", "budget", "worker_id", "heartbeat_at", "error"):
+        assert key in status
+
+
+def test_metrics_come_back_by_stream_and_step(client: TestClient, session: Session) -> None:
+    run_id = new_run(client)["id"]
+    write_metrics(session, run_id=run_id, stream="eval", step=2000, values={"return": 5.0})
+    write_metrics(session, run_id=run_id, stream="eval", step=1000, values={"return": 3.0})
+    write_metrics(session, run_id=run_id, stream="episodes", step=1000, values={"return": 1.0})
+    response = client.get(f"/api/runs/{run_id}/metrics?stream=eval", headers=OPERATOR)
+    assert response.json() == [
+        {"step": 1000, "values": {"return": 3.0}},
+        {"step": 2000, "values": {"return": 5.0}},
+    ]
+    bad = client.get(f"/api/runs/{run_id}/metrics?stream=losses", headers=OPERATOR)
+    assert bad.status_code == 422 and "stream" in bad.json()["detail"][0]["loc"]
+    missing = client.get("/api/runs/77/metrics?stream=eval", headers=OPERATOR)
+    assert missing.status_code == 404 and "run 77" in missing.json()["detail"]
+
+
+def test_pause_resume_stop_and_teacher_switch_change_the_run(
+    client: TestClient, session: Session
+) -> None:
+    run_id = new_run(client)["id"]
+    assert claim_run(session, worker_id="worker-1") is not None
+
+    def post(action: str) -> dict[str, Any]:
+        response = client.post(f"/api/runs/{run_id}/{action}", headers=OPERATOR)
+        assert response.status_code == 200, response.text
+        body: dict[str, Any] = response.json()
+        return body
+
+    assert post("pause")["status"] == "paused"
+    assert stored_run(session, run_id).status is RunStatus.PAUSED
+    assert post("resume")["status"] == "running"
+    assert stored_run(session, run_id).status is RunStatus.RUNNING
+
+    switched = client.put(
+        f"/api/runs/{run_id}/teacher",
+        json={"teacher": "scripted", "params": {"eps": 0.2}},
+        headers=OPERATOR,
+    )
+    assert switched.status_code == 200 and switched.json()["teacher"] == "scripted"
+    row = stored_run(session, run_id)
+    assert row.teacher == "scripted" and row.teacher_params == {"eps": 0.2}
+
+    assert post("stop")["status"] == "stopping"
+    assert stored_run(session, run_id).status is RunStatus.STOPPING
+    assert post("stop?force=true")["status"] == "stopped"
+    assert post("requeue")["status"] == "queued"
+    assert post("stop")["status"] == "stopped"  # a queued run is cancelled at once
+    assert stored_run(session, run_id).status is RunStatus.STOPPED
+
+
+@pytest.mark.parametrize(
+    ("action", "detail"),
+    [
+        ("resume", "run 1 is queued; it cannot be made running"),
+        ("pause", "run 1 is queued; it cannot be made paused"),
+        ("requeue", "run 1 is queued; it cannot be made queued"),
+    ],
+)
+def test_an_invalid_transition_is_refused_and_changes_nothing(
+    client: TestClient, session: Session, action: str, detail: str
+) -> None:
+    assert new_run(client)["id"] == 1
+    before = snapshot(session)
+    response = client.post(f"/api/runs/1/{action}", headers=OPERATOR)
+    assert response.status_code == 409 and response.json() == {"detail": detail}
+    assert snapshot(session) == before
+
+
+def test_unknown_runs_are_404_and_change_nothing(client: TestClient, session: Session) -> None:
+    new_run(client)
+    before = snapshot(session)
+    for method, path, body in [
+        ("GET", "/api/runs/9", None),
+        ("POST", "/api/runs/9/pause", None),
+        ("POST", "/api/runs/9/stop", None),
+        ("PUT", "/api/runs/9/teacher", {"teacher": "human"}),
+    ]:
+        response = client.request(method, path, json=body, headers=OPERATOR)
+        assert response.status_code == 404, path
+        assert response.json() == {"detail": "run 9 does not exist"}
+    assert snapshot(session) == before
+
+
+@pytest.mark.parametrize(
+    ("override", "field"),
+    [
+        ({"task": "cheetah_run"}, "task"),
+        ({"task": "dmc:Cheetah Run"}, "task"),
+        ({"task": "atari:pong"}, "task"),
+        ({"algo": "ppo"}, "algo"),
+        ({"budget": -1}, "budget"),
+        ({"preset": "huge"}, "preset"),
+        ({"teacher": "oracle"}, "teacher"),
+        ({"seed": "one"}, "seed"),
+        ({"budgett": 5}, "budgett"),
+    ],
+)
+def test_a_malformed_run_is_422_naming_the_field(
+    client: TestClient, session: Session, override: dict[str, Any], field: str
+) -> None:
+    before = snapshot(session)
+    body = {"task": "dmc:cheetah_run", "algo": "sac", "budget": 0} | override
+    response = client.post("/api/runs", json=body, headers=OPERATOR)
+    assert response.status_code == 422
+    assert any(field in error["loc"] for error in response.json()["detail"]), response.text
+    assert snapshot(session) == before
+
+
+def test_a_body_that_is_not_json_is_422(client: TestClient) -> None:
+    response = client.post(
+        "/api/runs", content=b"{not json", headers=OPERATOR | {"Content-Type": "application/json"}
+    )
+    assert response.status_code == 422 and response.headers["content-type"] == "application/json"
+
+
+def test_auth_is_401_without_a_valid_token_and_403_for_the_wrong_role(
+    client: TestClient, session: Session
+) -> None:
+    alice = bearer(new_labeller(client, "alice"))
+    before = snapshot(session)
+    body = {"task": "dmc:cheetah_run", "algo": "sac", "budget": 0}
+
+    missing = client.post("/api/runs", json=body)
+    assert missing.status_code == 401 and "missing bearer token" in missing.json()["detail"]
+    assert missing.headers["www-authenticate"] == "Bearer"
+    for wrong in ["nonsense", "1.not-the-secret", "99.x", OPERATOR["Authorization"][7:] + "x"]:
+        response = client.post("/api/runs", json=body, headers=bearer(wrong))
+        assert response.status_code == 401 and "invalid" in response.json()["detail"]
+    basic = client.get("/api/runs", headers={"Authorization": "Basic YWxpY2U6eA=="})
+    assert basic.status_code == 401
+
+    forbidden = client.post("/api/runs", json=body, headers=alice)
+    assert (
+        forbidden.status_code == 403 and "'alice' is not an operator" in forbidden.json()["detail"]
+    )
+    assert client.post("/api/labellers", json={"name": "eve"}, headers=alice).status_code == 403
+    # The settings' operator token manages, but is nobody who could answer a query.
+    not_a_labeller = client.get("/api/label/next", headers=OPERATOR)
+    assert not_a_labeller.status_code == 403 and "not a labeller" in not_a_labeller.json()["detail"]
+    assert snapshot(session) == before
+
+
+def test_labellers_are_created_with_a_token_shown_once(
+    client: TestClient, session: Session
+) -> None:
+    created = client.post(
+        "/api/labellers", json={"name": "olga", "role": "operator"}, headers=OPERATOR
+    ).json()
+    assert set(created) == {"id", "name", "role", "token"} and created["role"] == "operator"
+    # The new operator's own token works for operator endpoints.
+    assert client.get("/api/runs", headers=bearer(created["token"])).status_code == 200
+
+    listed = client.get("/api/labellers", headers=OPERATOR)
+    assert [row["name"] for row in listed.json()] == ["olga"]
+    assert created["token"] not in listed.text and "hash" not in listed.text
+
+    before = snapshot(session)
+    duplicate = client.post("/api/labellers", json={"name": "olga"}, headers=OPERATOR)
+    assert duplicate.status_code == 409 and "olga" in duplicate.json()["detail"]
+    bad_role = client.post("/api/labellers", json={"name": "x", "role": "admin"}, headers=OPERATOR)
+    assert bad_role.status_code == 422
+    assert snapshot(session) == before
+
+
+def test_settings_come_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("SEPOA_DATA_DIR", "/srv/sepoa")
+    monkeypatch.setenv("SEPOA_LEASE_SECONDS", "30")
+    get_settings.cache_clear()
+    try:
+        settings = get_settings()
+        assert get_settings() is settings
+        assert str(settings.clips_dir) == "/srv/sepoa/clips" and settings.lease_seconds == 30
+        assert settings.database_url == "sqlite:///data/queue.db"
+    finally:
+        get_settings.cache_clear()

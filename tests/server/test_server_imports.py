@@ -1,0 +1,41 @@
+"""The web process stays light: the server never imports the trainer or torch, and the trainer
+never imports the server."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_the_server_imports_neither_the_trainer_nor_torch() -> None:
+    probe = (
+        "import sys, server.app; server.app.create_app; "
+        "print(sorted(m for m in sys.modules if m == 'torch' or m.split('.')[0] == 'trainer'))"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, check=True, cwd=ROOT
+    )
+    assert result.stdout.strip() == "[]"
+
+
+def test_the_trainer_never_imports_the_server() -> None:
+    probe = (
+        "import sys, trainer; print(sorted(m for m in sys.modules if m.split('.')[0] == 'server'))"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, check=True, cwd=ROOT
+    )
+    assert result.stdout.strip() == "[]"
+    # Every module, without importing torch: no `import server` / `from server` anywhere.
+    for path in (ROOT / "trainer").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module]
+            assert not [n for n in names if n.split(".")[0] == "server"], path
