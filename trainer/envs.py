@@ -288,16 +288,15 @@ class Env(abc.ABC):
             frame = np.ascontiguousarray(frame[::-1, ::-1])
         return frame
 
-    def set_render_quality(self, shadow_size: int | None = None,
-                           multisamples: int | None = None) -> None:
-        """Shadow-map size (0: no shadows) and off-screen multisampling of render(); None keeps
-        the model's value. A renderer reads both once, when it makes its GL context, so the
-        cached renderers are dropped when a value changes."""
-        quality = self._model.vis.quality
-        new = (quality.shadowsize if shadow_size is None else shadow_size,
-               quality.offsamples if multisamples is None else multisamples)
-        if new != (quality.shadowsize, quality.offsamples):
-            quality.shadowsize, quality.offsamples = new
+    def set_render_quality(self, **quality: int) -> None:
+        """Sets fields of the model's `vis.quality` (shadowsize, offsamples, numslices, ...)
+        for render(). A renderer reads them once, when it makes its GL context, so the cached
+        renderers are dropped when a value changes."""
+        current = self._model.vis.quality
+        changed = {k: v for k, v in quality.items() if getattr(current, k) != v}
+        for name, value in changed.items():
+            setattr(current, name, value)
+        if changed:
             for renderer in self._renderers.values():
                 renderer.close()
             self._renderers.clear()

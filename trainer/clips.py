@@ -1,0 +1,175 @@
+"""Off-screen clips of preference-query segments, as short h264 mp4 files that browsers play.
+
+A segment is re-rendered from the physics states stored with its trajectory (`env.restore()`
+then `env.render()` per step), so the clip shows exactly what the agent did, whatever the env
+was doing before. Rendering moves the env's simulator (and on Metaworld a change of goal variant
+re-runs the task's reset), so give clips an env of their own rather than the one being trained.
+
+Files are encoded by imageio-ffmpeg's bundled ffmpeg (libx264, yuv420p, moov atom first so that
+playback can start before the whole file has arrived), written under a temporary name in the
+target folder and renamed into place, so a reader never sees a half-written clip.
+
+Render quality: software rendering (Mesa's llvmpipe behind `MUJOCO_GL=egl` or `osmesa` on a
+machine without a GPU) spends its time on the shadow pass and on the geometry's triangles.
+At 128 px on 2 cores, MuJoCo's defaults (a 2048-4096 texel shadow map, 4x multisampling,
+capsules of 28 x 16 facets) render cheetah at 25-45 fps; a 512-texel shadow map without
+multisampling at 75-120 fps; and with 12 x 8 facets as well at 140-240 fps, with no difference
+to see at 128-256 px (`benchmarks/bench_clips.py`). A renderer reads these settings once, when
+it is created: `iter_segment_frames()` sets them on the env first, and the env drops renderers
+made with other settings.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import uuid
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import imageio.v2 as imageio
+import numpy as np
+
+from trainer.envs import Env
+from trainer.trajectories import Trajectory
+
+MIN_SIZE, MAX_SIZE = 64, 512
+
+
+@dataclass(frozen=True)
+class ClipConfig:
+    """How segments are rendered and encoded."""
+
+    width: int = 128
+    """frame width in pixels: even, 64 to 512"""
+    height: int = 128
+    """frame height in pixels: even, 64 to 512"""
+    fps: float = 30.0
+    """playback rate: at 30, a 50-step segment lasts 1.7 s"""
+    camera: int | str | None = None
+    """camera index or name; None: the env's default view"""
+    shadow_size: int | None = 512
+    """shadow-map side in texels (0: no shadows; None: the model's own, 2048 or 4096)"""
+    multisamples: int | None = 0
+    """off-screen multisampling samples (None: the model's own, 4)"""
+    slices: int | None = 12
+    """facets around built-in spheres, capsules and cylinders (None: the model's own, 28)"""
+    stacks: int | None = 8
+    """facets along built-in spheres and capsules (None: the model's own, 16)"""
+    crf: int = 23
+    """x264 constant rate factor: 0 is lossless, 51 the worst; 23 is x264's default"""
+    preset: str = "veryfast"
+    """x264 speed preset; at these sizes "veryfast" encodes faster than "medium" and no larger"""
+    pixel_format: str = "yuv420p"
+    """chroma layout; yuv420p is the one every browser decodes"""
+    macro_block_size: int = 2
+    """width and height must be multiples of this (imageio would otherwise rescale frames);
+    2 is what yuv420p needs, 16 suits old hardware decoders"""
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.macro_block_size, int) and self.macro_block_size >= 1):
+            raise ValueError(f"ClipConfig: macro_block_size must be a positive integer, "
+                             f"got {self.macro_block_size!r}")
+        step = math.lcm(2, self.macro_block_size)  # yuv420p halves the chroma planes: even sizes
+        for name in ("width", "height"):
+            size = getattr(self, name)
+            if not (isinstance(size, int) and MIN_SIZE <= size <= MAX_SIZE and size % step == 0):
+                raise ValueError(f"ClipConfig: {name} must be a multiple of {step} pixels in "
+                                 f"[{MIN_SIZE}, {MAX_SIZE}], got {size!r}")
+        if not self.fps > 0:
+            raise ValueError(f"ClipConfig: fps must be positive, got {self.fps!r}")
+        for name, low in (("shadow_size", 0), ("multisamples", 0), ("slices", 3), ("stacks", 2)):
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, int) and value >= low):
+                raise ValueError(f"ClipConfig: {name} must be an integer >= {low} or None, "
+                                 f"got {value!r}")
+        if not 0 <= self.crf <= 51:
+            raise ValueError(f"ClipConfig: crf must be in [0, 51], got {self.crf}")
+
+
+def render_quality(cfg: ClipConfig) -> dict[str, int]:
+    """The config's settings as MuJoCo `model.vis.quality` fields (those not left as None)."""
+    fields = {"shadowsize": cfg.shadow_size, "offsamples": cfg.multisamples,
+              "numslices": cfg.slices, "numstacks": cfg.stacks}
+    return {k: v for k, v in fields.items() if v is not None}
+
+
+def iter_segment_frames(env: Env, traj_states: np.ndarray, context: int, start: int,
+                        length: int, cfg: ClipConfig) -> Iterator[np.ndarray]:
+    """Frames of steps start .. start+length-1, one at a time (uint8 (h, w, 3) each)."""
+    states = np.asarray(traj_states)
+    if states.ndim != 2 or length < 1 or start < 0 or start + length > len(states):
+        raise ValueError(f"{env.task}: segment [{start}, {start + length}) does not fit in "
+                         f"{len(states)} stored states of shape {states.shape}")
+    # Before the first render: a renderer takes these settings when it is created.
+    env.set_render_quality(**render_quality(cfg))
+
+    def frames() -> Iterator[np.ndarray]:
+        for state in states[start:start + length]:
+            env.restore(state, context)
+            yield env.render(cfg.width, cfg.height, cfg.camera)
+
+    return frames()  # checked above now, rendered lazily
+
+
+def render_segment(env: Env, traj_states: np.ndarray, context: int, start: int, length: int,
+                   cfg: ClipConfig) -> np.ndarray:
+    """uint8 (length, height, width, 3): the segment re-rendered from its stored states."""
+    frames = np.empty((length, cfg.height, cfg.width, 3), np.uint8)
+    for i, frame in enumerate(iter_segment_frames(env, traj_states, context, start, length, cfg)):
+        frames[i] = frame
+    return frames
+
+
+def encode_mp4(frames: Iterable[np.ndarray], path: str | os.PathLike, cfg: ClipConfig) -> Path:
+    """Writes the frames (uint8 (height, width, 3) each, an array or any iterable: frames are
+    encoded as they come) to an h264 mp4 at `path`, atomically. Returns the path."""
+    path = Path(path)
+    if path.suffix != ".mp4":
+        raise ValueError(f"clip path must end in .mp4, got {str(path)!r}")
+    # Same folder (so the rename is atomic), hidden, and still .mp4 for ffmpeg's muxer choice.
+    tmp = path.with_name(f".{path.stem}.{uuid.uuid4().hex[:12]}.tmp.mp4")
+    writer = imageio.get_writer(
+        tmp, format="FFMPEG", fps=cfg.fps, codec="libx264", pixelformat=cfg.pixel_format,
+        macro_block_size=cfg.macro_block_size, quality=None,  # None: rate control from -crf
+        ffmpeg_params=["-crf", str(cfg.crf), "-preset", cfg.preset, "-movflags", "+faststart",
+                       # One encoder thread: the renderer has the other cores, and a clip of a
+                       # few dozen frames gains nothing from x264's frame threads.
+                       "-threads", "1"],
+    )
+    n = 0
+    try:
+        with writer:
+            for frame in frames:
+                if frame.shape != (cfg.height, cfg.width, 3) or frame.dtype != np.uint8:
+                    raise ValueError(f"frame {n}: expected uint8 {(cfg.height, cfg.width, 3)}, "
+                                     f"got {frame.dtype} {frame.shape}")
+                writer.append_data(frame)
+                n += 1
+            if n == 0:
+                raise ValueError("no frames to encode")
+        with open(tmp, "rb") as f:  # on disk before it has its name, even after a crash
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def render_query_clips(env: Env, traj0: Trajectory, start0: int, traj1: Trajectory, start1: int,
+                       length: int, out_dir: str | os.PathLike, stem: str,
+                       cfg: ClipConfig) -> tuple[str, str]:
+    """Renders and encodes both segments of a query to `out_dir/<stem>-0.mp4` and
+    `<stem>-1.mp4`; returns those two file names, relative to out_dir."""
+    if not stem or Path(stem).name != stem or stem.startswith("."):
+        raise ValueError(f"stem must be a plain file name, got {stem!r}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    # Both segments are checked before either file is written.
+    sides = [iter_segment_frames(env, traj.states, traj.context, start, length, cfg)
+             for traj, start in ((traj0, start0), (traj1, start1))]
+    names = (f"{stem}-0.mp4", f"{stem}-1.mp4")
+    for name, frames in zip(names, sides, strict=True):
+        encode_mp4(frames, out / name, cfg)  # streamed: ffmpeg encodes while the next renders
+    return names
