@@ -33,24 +33,23 @@ def _train_parser(sub) -> argparse.ArgumentParser:
 
 
 def _config_from_args(args: argparse.Namespace):
-    from trainer.config import build_config, from_dict, overrides_from_args
-    from trainer.loop import read_config
+    from trainer.config import apply_overrides, build_config, load_json, overrides_from_args
 
     overrides = overrides_from_args(args)
     if args.resume:
         run_dir = overrides.get("run_dir")
         if not run_dir:
             raise SystemExit("error: --resume needs --run-dir")
-        if not os.path.exists(os.path.join(run_dir, "config.json")):
+        config_path = os.path.join(run_dir, "config.json")
+        if not os.path.exists(config_path):
             raise SystemExit(f"error: --resume: {run_dir} holds no run (config.json missing)")
-        cfg = from_dict(read_config(run_dir))
+        cfg = load_json(config_path)
         # A resumed run keeps its configuration; only the length may be extended.
         allowed = {"run_dir", "steps", "device", "threads"}
         ignored = set(overrides) - allowed
         if ignored:
             raise SystemExit(f"error: --resume keeps the run's configuration; "
                              f"cannot change {', '.join(sorted(ignored))}")
-        from trainer.config import apply_overrides
         return apply_overrides(cfg, overrides)
     task = args.task or "dmc:cheetah_run"
     preset = args.preset or "paper"

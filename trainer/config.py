@@ -11,7 +11,6 @@ import argparse
 import dataclasses
 import json
 import math
-import types
 import typing
 from dataclasses import dataclass, field
 from typing import Any
@@ -276,6 +275,11 @@ def save_json(cfg: RunConfig, path: str) -> None:
         json.dump(to_dict(cfg), f, indent=2, default=str)
 
 
+def load_json(path: str) -> RunConfig:
+    with open(path) as f:
+        return from_dict(json.load(f))
+
+
 # ---------------------------------------------------------------------------------------------
 # Command line: every leaf field becomes a flag (`--sac.lr 1e-4`); the common ones also have
 # short aliases (`--eps`, `--selection`, `--budget`, ...).
@@ -322,8 +326,6 @@ def _parse_value(t: Any, text: str) -> Any:
         return float(text)
     if typing.get_origin(t) is tuple:
         return tuple(float(x) for x in text.split(","))
-    if isinstance(t, types.UnionType):
-        return text
     return text
 
 

@@ -8,7 +8,6 @@ boundaries, so a checkpoint never has to capture a half-run episode.
 
 from __future__ import annotations
 
-import json
 import os
 import time
 
@@ -107,6 +106,7 @@ class TrainingRun:
         self.entropy_stats = RunningMeanStd()
 
         self.feedback: PreferenceFeedback | None = None
+        self._numpy_reward: NumpyMLP | None = None
         if cfg.algo == "pebble":
             model = RewardModel(obs_dim, act_dim, cfg.reward, self.device, cfg.seed)
             teacher = make_teacher(cfg.teacher, cfg.seed, cfg.feedback.segment_length,
@@ -311,8 +311,3 @@ class TrainingRun:
         self.metrics.streams["rounds"].keep_rows(
             lambda r: int(r["step"]) < step or (int(r["step"]) == step and not pending)
         )
-
-
-def read_config(run_dir: str) -> dict:
-    with open(os.path.join(run_dir, "config.json")) as f:
-        return json.load(f)

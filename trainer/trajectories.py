@@ -95,9 +95,6 @@ class TrajectoryPool:
         self.trajectories.append(traj)
         self.returns.append(traj.true_return)
 
-    def recent_returns(self, n: int) -> list[float]:
-        return self.returns[-n:]
-
     def state_dict(self) -> dict:
         return {"trajectories": list(self.trajectories), "returns": list(self.returns)}
 

@@ -1,4 +1,4 @@
-"""Small helpers that keep the training loop legible: step predicates, seeding, device choice."""
+"""Small helpers for the training loop: seeding and device choice."""
 
 from __future__ import annotations
 
@@ -6,26 +6,6 @@ import random
 
 import numpy as np
 import torch
-
-
-class Every:
-    """True once every `period` steps (never when period <= 0)."""
-
-    def __init__(self, period: int):
-        self.period = period
-
-    def __call__(self, step: int) -> bool:
-        return self.period > 0 and step % self.period == 0
-
-
-class Until:
-    """True while step < limit."""
-
-    def __init__(self, limit: int):
-        self.limit = limit
-
-    def __call__(self, step: int) -> bool:
-        return step < self.limit
 
 
 def set_seed(seed: int) -> None:
