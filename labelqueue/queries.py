@@ -182,6 +182,7 @@ def lease_next_query(
     labeller_id: int,
     run_id: int | None = None,
     lease_seconds: float = LEASE_SECONDS,
+    ahead_of: int | None = None,
 ) -> Query | None:
     """Lease the oldest open query this labeller has not answered; None when there is none.
 
@@ -189,6 +190,10 @@ def lease_next_query(
     once both clips exist (a scripted teacher needs none). A query is leased to one labeller at
     a time. A labeller holds at most one lease: asking again while it holds one returns the same
     query with the lease renewed (a page reload); asking for another run releases it.
+
+    `ahead_of`: the query the labeller is looking at. Its lease is kept (and renewed) and a
+    second query is leased besides it, so a page can preload the next pair; asking again with
+    the same `ahead_of` returns the same second query.
     """
     now = utcnow()
     expires = now + timedelta(seconds=lease_seconds)
@@ -196,6 +201,14 @@ def lease_next_query(
     with transaction(session):
         if not get_row(session, Labeller, labeller_id).active:
             raise LeaseError(f"labeller {labeller_id} is deactivated")
+        if ahead_of is not None:
+            changed(
+                session,
+                update(Query)
+                .where(Query.id == ahead_of, mine, Query.lease_expires_at > now)
+                .values(lease_expires_at=expires),
+            )
+            mine = and_(mine, Query.id != ahead_of)
 
         held_query = (
             select(Query.id)

@@ -92,13 +92,22 @@ def stop_run(session: Session, *, run_id: int, force: bool = False) -> Run:
 
 
 def next_query(
-    session: Session, *, settings: Settings, labeller_id: int, run_id: int | None
+    session: Session,
+    *,
+    settings: Settings,
+    labeller_id: int,
+    run_id: int | None,
+    ahead_of: int | None = None,
 ) -> NextQuery | None:
     """Lease the labeller's next query and describe it without ground truth; None if none."""
     if run_id is not None and get_run(session, run_id=run_id).teacher is not TeacherKind.HUMAN:
         raise Conflict(f"run {run_id} is taught by a scripted teacher, not by people")
     query = lease_next_query(
-        session, labeller_id=labeller_id, run_id=run_id, lease_seconds=settings.lease_seconds
+        session,
+        labeller_id=labeller_id,
+        run_id=run_id,
+        lease_seconds=settings.lease_seconds,
+        ahead_of=ahead_of,
     )
     if query is None:
         return None

@@ -26,10 +26,17 @@ def next_query(
     settings: SettingsDep,
     caller: LabellerDep,
     run_id: int | None = None,
+    ahead_of: int | None = None,
 ) -> NextQuery | Response:
+    """Lease the next query. `ahead_of=<query_id being shown>` keeps that lease and leases one
+    more, so the page can preload the next pair."""
     assert caller.labeller_id is not None
     query = services.next_query(
-        session, settings=settings, labeller_id=caller.labeller_id, run_id=run_id
+        session,
+        settings=settings,
+        labeller_id=caller.labeller_id,
+        run_id=run_id,
+        ahead_of=ahead_of,
     )
     return Response(status_code=204) if query is None else query
 

@@ -116,6 +116,29 @@ def test_lease_takes_the_oldest_and_a_reload_returns_the_same_query(session: Ses
     assert second is not None and second.id == ids[1]
 
 
+def test_a_labeller_may_lease_one_query_ahead_to_preload_it(session: Session) -> None:
+    run = running_run(session)
+    ids = push_queries(session, run_id=run.id, queries=[query_spec(i) for i in range(3)])
+    alice, _ = create_labeller(session, name="alice")
+    bob, _ = create_labeller(session, name="bob")
+
+    current = lease_next_query(session, labeller_id=alice.id, run_id=run.id)
+    assert current is not None and current.id == ids[0]
+    ahead = lease_next_query(session, labeller_id=alice.id, run_id=run.id, ahead_of=ids[0])
+    assert ahead is not None and ahead.id == ids[1]
+    # Asking again (a retried preload) returns the same pair; both leases are alice's.
+    again = lease_next_query(session, labeller_id=alice.id, run_id=run.id, ahead_of=ids[0])
+    assert again is not None and again.id == ids[1]
+    other = lease_next_query(session, labeller_id=bob.id, run_id=run.id)
+    assert other is not None and other.id == ids[2]
+
+    submit_label(session, query_id=ids[0], labeller_id=alice.id, choice="left",
+                 left_is_first=True)
+    submit_label(session, query_id=ids[1], labeller_id=alice.id, choice="right",
+                 left_is_first=True)
+    assert lease_next_query(session, labeller_id=alice.id, run_id=run.id, ahead_of=ids[1]) is None
+
+
 def test_no_labeller_sees_a_query_twice(session: Session) -> None:
     run = running_run(session)
     [query_id] = push_queries(session, run_id=run.id, queries=[query_spec(0, needs_labels=2)])
