@@ -23,6 +23,7 @@ from labelqueue.models import (
     Role,
     Run,
     RunStatus,
+    ShadowChoice,
     TeacherKind,
     Worker,
 )
@@ -66,6 +67,7 @@ __all__ = [
     "Role",
     "Run",
     "RunStatus",
+    "ShadowChoice",
     "TeacherKind",
     "Worker",
     "authenticate",

@@ -76,6 +76,16 @@ class Preferred(StrEnum):
     EQUAL = "equal"
 
 
+class ShadowChoice(StrEnum):
+    """The scripted teacher's answer in segment terms, recorded with each query."""
+
+    FIRST = "first"
+    SECOND = "second"
+    EQUAL = "equal"
+    CANT_TELL = "cant_tell"
+    SKIP = "skip"
+
+
 class LabelSource(StrEnum):
     HUMAN = "human"
     SCRIPTED = "scripted"
@@ -233,6 +243,12 @@ class Query(Base):
     """the selection score (none for uniform picks)"""
     rule: Mapped[str | None] = mapped_column(String(50))
     """the selection rule that picked the pair"""
+    shadow_choice: Mapped[ShadowChoice | None] = mapped_column(
+        _enum(ShadowChoice, "shadow_choice"), nullable=True
+    )
+    """the run's scripted teacher's answer (hidden): compared with people's and the model's"""
+    distinguishable: Mapped[bool | None] = mapped_column(Boolean)
+    """whether the scripted teacher can tell the pair apart (hidden)"""
 
     needs_labels: Mapped[int] = mapped_column(Integer, default=1)
     """distinct labellers' answers wanted"""

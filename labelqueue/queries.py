@@ -24,6 +24,7 @@ from labelqueue.models import (
     QueryStatus,
     Run,
     RunStatus,
+    ShadowChoice,
     TeacherKind,
     utcnow,
 )
@@ -57,6 +58,8 @@ _OPTIONAL = (
     "score",
     "rule",
     "needs_labels",
+    "shadow_choice",
+    "distinguishable",
 )
 # What makes a stored query the same pair as a pushed one.
 _PROVENANCE = (
@@ -84,6 +87,10 @@ def _query_fields(spec: Mapping[str, Any]) -> dict[str, Any]:
     fields["model_p"] = finite(spec.get("model_p"))
     fields["score"] = finite(spec.get("score"))
     fields["rule"] = spec.get("rule")
+    shadow = spec.get("shadow_choice")
+    fields["shadow_choice"] = None if shadow is None else ShadowChoice(shadow)
+    distinguishable = spec.get("distinguishable")
+    fields["distinguishable"] = None if distinguishable is None else bool(distinguishable)
     fields["needs_labels"] = int(spec.get("needs_labels", 1))
     if fields["needs_labels"] < 1:
         raise ValueError("needs_labels must be at least 1")
@@ -98,7 +105,8 @@ def push_queries(
     Each dict holds `Query` columns by name: round, position, segment_length, the trajectory
     and start of both sides, the four ground-truth returns (`first_segment_return`, ...,
     `second_trajectory_return`), and optionally step, first/second_skill, first/second_clip,
-    model_p, score, rule and needs_labels. Idempotent per (run, round, position): a run resumed
+    model_p, score, rule, needs_labels, and the hidden shadow_choice (the run's scripted
+    teacher's answer: first, second, equal, cant_tell or skip) and distinguishable. Idempotent per (run, round, position): a run resumed
     from an older checkpoint that pushes the same round again gets the stored ids back; a
     different pair at a stored position raises Conflict.
     """

@@ -51,7 +51,8 @@ def counts(session: Session) -> tuple[int, int, int]:
 
 def test_push_stores_provenance_and_hidden_truth(session: Session) -> None:
     run = running_run(session)
-    spec = query_spec(0, first_skill=np.array([0.5, -1.0]), model_p=float("nan"), score=None)
+    spec = query_spec(0, first_skill=np.array([0.5, -1.0]), model_p=float("nan"), score=None,
+                      shadow_choice="second", distinguishable=np.bool_(True))
     spec["first_trajectory"] = np.int64(7)  # the trainer's NumPy scalars are welcome
     spec["first_segment_return"] = np.float32(1.5)
     ids = push_queries(session, run_id=run.id, queries=[spec, query_spec(1)])
@@ -66,6 +67,9 @@ def test_push_stores_provenance_and_hidden_truth(session: Session) -> None:
     assert query.model_p is None and query.score is None  # NaN is stored as null
     assert query.first_clip == "r0/q0-a.mp4"
     assert query.status is QueryStatus.PENDING and query.needs_labels == 1
+    assert query.shadow_choice == "second" and query.distinguishable is True
+    with pytest.raises(ValueError, match="maybe"):
+        push_queries(session, run_id=run.id, queries=[query_spec(2, shadow_choice="maybe")])
 
 
 def test_pushing_a_round_again_returns_the_stored_ids(session: Session) -> None:
