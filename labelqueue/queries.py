@@ -106,9 +106,10 @@ def push_queries(
     and start of both sides, the four ground-truth returns (`first_segment_return`, ...,
     `second_trajectory_return`), and optionally step, first/second_skill, first/second_clip,
     model_p, score, rule, needs_labels, and the hidden shadow_choice (the run's scripted
-    teacher's answer: first, second, equal, cant_tell or skip) and distinguishable. Idempotent per (run, round, position): a run resumed
-    from an older checkpoint that pushes the same round again gets the stored ids back; a
-    different pair at a stored position raises Conflict.
+    teacher's answer: first, second, equal, cant_tell or skip) and distinguishable.
+    Idempotent per (run, round, position): a run resumed from an older checkpoint that pushes
+    the same round again gets the stored ids back; a different pair at a stored position
+    raises Conflict.
     """
     specs = [_query_fields(spec) for spec in queries]
     with transaction(session):
