@@ -1,9 +1,14 @@
-"""Feedback rounds: choose queries, ask the teacher, record every label, train the reward model.
+"""Feedback rounds: choose queries, gather answers, record every label, train the reward model.
 
-Every answer becomes one JSON line in the run's `labels.jsonl`, written and flushed as soon as
-it exists; that file is the record of truth for labels. A round is split in two so that a run
-killed in the middle of one loses nothing: `open_round` selects the queries (the loop
-checkpoints right after), `finish_round` asks only for the answers the label log lacks.
+A round is split in two so that a run killed in the middle of one loses nothing: `open_round`
+selects the queries and has the run's scripted teacher answer them at once (its *shadow*
+answers, kept with the queries and checkpointed by the loop right after); `finish_round` takes
+the answers that count, from whoever gave them, and trains. Standalone runs answer with the
+shadow answers themselves (`scripted_answers`); a worker takes them from the queue database,
+where people or the scripted teacher put them.
+
+Every answer becomes one JSON line in the run's `labels.jsonl`, flushed as soon as it exists;
+a round finished again after a resume adds no second line for a query.
 """
 
 from __future__ import annotations
@@ -11,6 +16,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -18,7 +24,7 @@ import numpy as np
 from trainer.config import FeedbackConfig
 from trainer.query_selection import select_queries
 from trainer.reward_model import LabelledPairs, RewardModel
-from trainer.teachers import Choice, QueryTruth, choice_target
+from trainer.teachers import Choice, QueryTruth, choice_target, is_correct
 from trainer.trajectories import Trajectory, TrajectoryPool
 
 
@@ -43,6 +49,21 @@ class Query:
     score: float
     """the selection score (nan for uniform)"""
     rule: str
+    shadow_choice: str
+    """the run's scripted teacher's answer, given when the round opened"""
+    distinguishable: bool
+    """whether the scripted teacher could tell the pair apart"""
+
+
+@dataclass(frozen=True)
+class Answer:
+    """An answer to a query, from a person or a scripted teacher."""
+
+    choice: Choice
+    labeller: str
+    source: str
+    """scripted | human | gold"""
+    answered_at: float
 
 
 @dataclass(frozen=True)
@@ -119,10 +140,14 @@ class PreferenceFeedback:
             self.cfg.segment_length, self.rng,
         )
         q, h = selection.queries, self.cfg.segment_length
+        pairs = [(trajectories[q.traj0[i]], int(q.start0[i]), trajectories[q.traj1[i]],
+                  int(q.start1[i])) for i in range(len(q))]
+        # The teacher answers now, once per query, whoever ends up answering: its random stream
+        # then depends only on the queries, and it takes R_avg from the latest returns.
+        shadow = self.teacher.answer([_truth(t0, s0, t1, s1, h) for t0, s0, t1, s1 in pairs],
+                                     pool.returns)
         queries = []
-        for i in range(len(q)):
-            t0, t1 = trajectories[q.traj0[i]], trajectories[q.traj1[i]]
-            s0, s1 = int(q.start0[i]), int(q.start1[i])
+        for i, ((t0, s0, t1, s1), answer) in enumerate(zip(pairs, shadow, strict=True)):
             queries.append(Query(
                 query_id=f"r{self.rounds}-q{i}", round=self.rounds, step=step,
                 trajectory0=t0.id, start0=s0, trajectory1=t1.id, start1=s1, segment_length=h,
@@ -130,52 +155,61 @@ class PreferenceFeedback:
                 segment_return1=float(t1.true_rewards[s1 : s1 + h].sum(dtype=np.float64)),
                 trajectory_return0=t0.true_return, trajectory_return1=t1.true_return,
                 model_p=float(selection.probability[i]), score=float(selection.score[i]),
-                rule=rule,
+                rule=rule, shadow_choice=str(answer.choice),
+                distinguishable=answer.distinguishable,
             ))
         self.pending = queries
         return queries
 
-    def finish_round(self, pool: TrajectoryPool) -> dict[str, float]:
-        """Collect the answers to the pending queries (those already in the label log are
-        reused, not asked again), then train the reward model on every label so far."""
+    def scripted_answers(self) -> dict[str, Answer]:
+        """The shadow answers of the open round, as the answers of a standalone run."""
+        now = time.time()
+        return {q.query_id: Answer(Choice(q.shadow_choice), self.labeller, "scripted", now)
+                for q in self.pending}
+
+    def finish_round(self, pool: TrajectoryPool, answers: Mapping[str, Answer]) -> dict[str, float]:
+        """Close the open round with `answers` (by query id; a query without one is dropped and
+        costs no budget), log the new ones, and train the reward model on every label so far."""
         queries, by_id = self.pending, {t.id: t for t in pool.trajectories}
+        unknown = set(answers) - {q.query_id for q in queries}
+        if unknown:
+            raise ValueError(f"answers for queries not in round {self.rounds}: {sorted(unknown)}")
         logged = {row["query_id"]: row for row in self.log.read() if row["round"] == self.rounds}
         for q in queries:
             row = logged.get(q.query_id)
             if row and (row["trajectory0"], row["start0"], row["trajectory1"], row["start1"]) != (
                     q.trajectory0, q.start0, q.trajectory1, q.start1):
                 raise RuntimeError(f"labels.jsonl holds a different query under {q.query_id}")
-        # The teacher answers every query so its random stream advances as in an uninterrupted
-        # run; answers already on record win. It takes R_avg from the latest returns.
-        answers = self.teacher.answer([self._truth(q, by_id) for q in queries], pool.returns)
-        now = time.time()
-        new = [
-            Label(q, a.choice, a.distinguishable, a.correct, self.labeller, "scripted", now)
-            for q, a in zip(queries, answers, strict=True)
-            if q.query_id not in logged
-        ]
-        self.log.append(new)
-        answered = {lab.query.query_id: (str(lab.choice), lab.distinguishable, lab.correct)
-                    for lab in new}
-        for qid, row in logged.items():
-            answered[qid] = (row["choice"], row["distinguishable"], row["correct"])
 
-        for q in queries:
-            target = choice_target(Choice(answered[q.query_id][0]))
+        answered = [(q, answers[q.query_id]) for q in queries if q.query_id in answers]
+        labels = [
+            Label(q, a.choice, q.distinguishable, is_correct(a.choice, _query_truth(q, by_id)),
+                  a.labeller, a.source, a.answered_at)
+            for q, a in answered
+        ]
+        self.log.append([lab for lab in labels if lab.query.query_id not in logged])
+
+        for q, a in answered:
+            target = choice_target(a.choice)
             if target is not None:
                 self.pairs.add(
                     _segment(by_id[q.trajectory0], q.start0, q.segment_length),
                     _segment(by_id[q.trajectory1], q.start1, q.segment_length),
                     target,
                 )
-        self.labels_used += len(queries)
-        results = [answered[q.query_id] for q in queries]
+        self.labels_used += len(answered)
         metrics = {
             "round": self.rounds,
             "queries": len(queries),
+            "answered": len(answered),
             "labels_used": self.labels_used,
-            "distinguishable_ratio": float(np.mean([r[1] for r in results])) if results else 0.0,
-            "teacher_accuracy": _mean([r[2] for r in results if r[2] is not None]),
+            # Of the selected pairs, whether or not anyone answered: the paper's ratio.
+            "distinguishable_ratio": _mean([q.distinguishable for q in queries]),
+            "teacher_accuracy": _mean([lab.correct for lab in labels if lab.correct is not None]),
+            "shadow_agreement": _agreement(
+                [(str(a.choice), q.shadow_choice) for q, a in answered]),
+            "model_agreement": _agreement(
+                [(_model_choice(q.model_p), q.shadow_choice) for q in queries]),
             "trained_pairs": len(self.pairs),
         }
         if len(self.pairs):
@@ -183,16 +217,6 @@ class PreferenceFeedback:
         self.rounds += 1
         self.pending = []
         return metrics
-
-    @staticmethod
-    def _truth(q: Query, by_id: dict[int, Trajectory]) -> QueryTruth:
-        t0, t1, h = by_id[q.trajectory0], by_id[q.trajectory1], q.segment_length
-        return QueryTruth(
-            segment_rewards0=t0.true_rewards[q.start0 : q.start0 + h],
-            segment_rewards1=t1.true_rewards[q.start1 : q.start1 + h],
-            trajectory_return0=t0.true_return,
-            trajectory_return1=t1.true_return,
-        )
 
     def state_dict(self) -> dict:
         return {
@@ -212,6 +236,34 @@ class PreferenceFeedback:
         self.rng.bit_generator.state = state["rng"]
         self.teacher.load_state_dict(state["teacher"])
         self.model.load_state_dict(state["model"])
+
+
+def _truth(t0: Trajectory, s0: int, t1: Trajectory, s1: int, h: int) -> QueryTruth:
+    return QueryTruth(
+        segment_rewards0=t0.true_rewards[s0 : s0 + h],
+        segment_rewards1=t1.true_rewards[s1 : s1 + h],
+        trajectory_return0=t0.true_return,
+        trajectory_return1=t1.true_return,
+    )
+
+
+def _query_truth(q: Query, by_id: dict[int, Trajectory]) -> QueryTruth:
+    return _truth(by_id[q.trajectory0], q.start0, by_id[q.trajectory1], q.start1,
+                  q.segment_length)
+
+
+def _model_choice(p: float) -> str | None:
+    """The reward model's preference from its P[segment 1 preferred]; None without a model."""
+    if p != p:
+        return None
+    return "second" if p > 0.5 else "first" if p < 0.5 else "equal"
+
+
+def _agreement(pairs: list[tuple[str | None, str]]) -> float:
+    """How often two answers agree, over the pairs where both state a preference."""
+    preferences = ("first", "second", "equal")
+    both = [(a, b) for a, b in pairs if a in preferences and b in preferences]
+    return _mean([a == b for a, b in both])
 
 
 def _mean(values: list) -> float:

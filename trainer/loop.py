@@ -19,7 +19,8 @@ from trainer.checkpoint import load_checkpoint, save_checkpoint
 from trainer.config import RunConfig, save_json
 from trainer.entropy import RunningMeanStd, knn_distance
 from trainer.envs import make_env
-from trainer.feedback import LabelLog, PreferenceFeedback
+from trainer.feedback import Answer, LabelLog, PreferenceFeedback
+from trainer.hooks import RunHooks
 from trainer.metrics import Metrics
 from trainer.nets import NumpyMLP
 from trainer.query_selection import RULES
@@ -74,9 +75,11 @@ def check_config(cfg: RunConfig) -> None:
 
 
 class TrainingRun:
-    def __init__(self, cfg: RunConfig, resume: bool = False, progress: bool = True):
+    def __init__(self, cfg: RunConfig, resume: bool = False, progress: bool = True,
+                 hooks: RunHooks | None = None):
         check_config(cfg)
         self.cfg, self.progress = cfg, progress
+        self.hooks = hooks or RunHooks()
         self.run_dir = cfg.run_dir or default_run_dir(cfg)
         self.checkpoint_path = os.path.join(self.run_dir, CHECKPOINT)
         if not resume and os.path.exists(self.checkpoint_path):
@@ -123,6 +126,7 @@ class TrainingRun:
 
         self.step = 0
         self.episode = 0
+        self.stopped = False
         self.next_round_step = cfg.seed_steps + cfg.unsup_steps
         self.last_checkpoint_step = 0
         self.last_eval_step = 0
@@ -163,12 +167,20 @@ class TrainingRun:
             batch = batch._replace(reward=(dist / self.entropy_stats.std).unsqueeze(1))
         return self.agent.update(batch)
 
+    def _log(self, stream: str, row: dict) -> None:
+        self.metrics.log(stream, row)
+        self.hooks.metrics(stream, row)
+
     def train(self) -> dict[str, float]:
+        """Train until `cfg.steps`, or until the hooks ask to stop (then at an episode's end,
+        after a checkpoint: `summary()["stopped"]` is 1)."""
         cfg, feedback = self.cfg, self.feedback
         if feedback is not None and feedback.pending:  # resumed inside a round
-            self._finish_round()
+            self.hooks.round_opened(feedback.pending, self.pool)
+            self._try_finish_round()
         obs = self.env.reset()
         episode_return, last_metrics = 0.0, {}
+        stopping = False
         start_step, start_time = self.step, time.time()
         bar = tqdm(total=cfg.steps, initial=self.step, disable=not self.progress,
                    dynamic_ncols=True, unit="step")
@@ -187,6 +199,7 @@ class TrainingRun:
             if self.step > cfg.seed_steps and self.step % cfg.update_every == 0:
                 last_metrics = self._update()
             bar.update(1)
+            stopping = stopping or self.hooks.stop_requested(self.step)
 
             if result.done:
                 traj = self.recorder.finish(self.episode, self.env.episode_context())
@@ -194,7 +207,7 @@ class TrainingRun:
                 self.episode += 1
                 fps = (self.step - start_step) / max(time.time() - start_time, 1e-9)
                 labels = feedback.labels_used if feedback else 0
-                self.metrics.log("episodes", {
+                self._log("episodes", {
                     "step": self.step, "episode": self.episode, "return": episode_return,
                     "success": float(traj.success), "labels_used": labels, "fps": fps,
                 } | {k: v for k, v in last_metrics.items() if k in ("critic_loss", "alpha")})
@@ -202,7 +215,12 @@ class TrainingRun:
                 bar.set_postfix(ret=f"{episode_return:.1f}",
                                 labels=feedback.labels_used if feedback else 0, refresh=False)
                 obs, episode_return = self.env.reset(), 0.0
+                if stopping or self.hooks.stop_requested(self.step):
+                    self.stopped = True
+                    break
         bar.close()
+        if feedback is not None and feedback.pending and not self.stopped:
+            self._try_finish_round()  # a round still collecting answers closes with what came
         self._save()
         self.metrics.close()
         return self.summary()
@@ -211,25 +229,39 @@ class TrainingRun:
         cfg = self.cfg
         if cfg.eval_every > 0 and self.step - self.last_eval_step >= cfg.eval_every:
             self.evaluate()
+        fb = self.feedback
+        if fb is not None and fb.pending:
+            self._try_finish_round()
         # No round at the very end: its labels could no longer shape the policy.
-        if (self.feedback is not None and self.next_round_step <= self.step < cfg.steps
-                and self.feedback.budget_left > 0 and len(self.pool) >= 2):
-            self.feedback.open_round(self.pool, self.step)
+        elif (fb is not None and self.next_round_step <= self.step < cfg.steps
+                and fb.budget_left > 0 and len(self.pool) >= 2):
+            fb.open_round(self.pool, self.step)
             self._save()  # the chosen queries survive a kill; their answers go to labels.jsonl
-            self._finish_round()
+            self.hooks.round_opened(fb.pending, self.pool)
+            self._try_finish_round()
         if self.step - self.last_checkpoint_step >= cfg.checkpoint_every:
             self._save()
 
-    def _finish_round(self) -> None:
+    def _try_finish_round(self) -> None:
+        """Finish the open round if its answers are in; it must close once the next round is
+        due, or at the end of the run."""
+        fb = self.feedback
+        assert fb is not None and fb.pending
+        due = min(fb.pending[0].step + self.cfg.feedback.every, self.cfg.steps)
+        answers = self.hooks.answers(fb, self.pool, final=self.step >= due)
+        if answers is not None:
+            self._finish_round(answers)
+
+    def _finish_round(self, answers: dict[str, Answer]) -> None:
         fb = self.feedback
         assert fb is not None
         first = fb.rounds == 0
-        metrics = fb.finish_round(self.pool)
+        metrics = fb.finish_round(self.pool, answers)
         self.buffer.relabel(fb.model.reward)
         if first:
             self.agent.reset_critic()  # PEBBLE: the critic learned the intrinsic reward
         self.next_round_step = self.step + self.cfg.feedback.every
-        self.metrics.log("rounds", {"step": self.step} | metrics)
+        self._log("rounds", {"step": self.step} | metrics)
 
     def evaluate(self) -> dict[str, float]:
         returns, successes = [], []
@@ -245,12 +277,12 @@ class TrainingRun:
         row = {"step": self.step, "return": float(np.mean(returns)),
                "return_std": float(np.std(returns)), "success_rate": float(np.mean(successes)),
                "labels_used": self.feedback.labels_used if self.feedback else 0}
-        self.metrics.log("eval", row)
+        self._log("eval", row)
         return row
 
     def summary(self) -> dict[str, float]:
         returns = self.pool.returns[-10:]
-        out = {"step": self.step, "episodes": self.episode,
+        out = {"step": self.step, "episodes": self.episode, "stopped": int(self.stopped),
                "mean_return_last10": float(np.mean(returns)) if returns else float("nan")}
         if self.feedback is not None:
             out["labels_used"] = self.feedback.labels_used

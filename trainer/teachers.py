@@ -95,7 +95,7 @@ def _sum_choice(sum0: float, sum1: float) -> Choice:
     return Choice.EQUAL
 
 
-def _correct(choice: Choice, truth: QueryTruth) -> bool | None:
+def is_correct(choice: Choice, truth: QueryTruth) -> bool | None:
     """Agreement of a FIRST/SECOND choice with the plain segment-sum comparison."""
     best = _sum_choice(float(np.sum(truth.segment_rewards0)), float(np.sum(truth.segment_rewards1)))
     if choice not in (Choice.FIRST, Choice.SECOND) or best is Choice.EQUAL:
@@ -169,7 +169,7 @@ class NoisyTeacher:
                     float(np.sum(truth.segment_rewards0)), float(np.sum(truth.segment_rewards1))
                 )
                 distinguishable = True
-            answers.append(TeacherAnswer(choice, distinguishable, _correct(choice, truth)))
+            answers.append(TeacherAnswer(choice, distinguishable, is_correct(choice, truth)))
         return answers
 
     def state_dict(self) -> dict:
@@ -254,7 +254,7 @@ class BPrefTeacher:
                 choice = Choice.SECOND if u_choice < p_second else Choice.FIRST
             if u_mistake < cfg.eps_mistake:
                 choice = _flip(choice)
-            answers.append(TeacherAnswer(choice, True, _correct(choice, truth)))
+            answers.append(TeacherAnswer(choice, True, is_correct(choice, truth)))
         return answers
 
     def state_dict(self) -> dict:

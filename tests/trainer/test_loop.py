@@ -116,10 +116,10 @@ def test_a_run_stopped_between_choosing_queries_and_answering_them_resumes(tmp_p
     cfg = build_config("dmc:cheetah_run", "tiny", overrides | {"run_dir": str(tmp_path / "cut")})
     finish = TrainingRun._finish_round
 
-    def stop_in_second_round(self):
+    def stop_in_second_round(self, answers):
         if self.feedback.rounds == 1:
             raise KeyboardInterrupt  # the process dies with round 1's queries chosen, unanswered
-        finish(self)
+        finish(self, answers)
 
     monkeypatch.setattr(TrainingRun, "_finish_round", stop_in_second_round)
     with pytest.raises(KeyboardInterrupt):

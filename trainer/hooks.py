@@ -1,0 +1,34 @@
+"""What a supervisor plugs into a training run: stop requests, metrics, and who answers queries.
+
+`TrainingRun` calls these at fixed points; the defaults run it standalone (never stop, keep
+metrics in files only, answer each round at once with the run's scripted teacher). The queue
+worker (`trainer.worker`) overrides them to obey operators, mirror metrics into the database
+and take answers from labellers.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from trainer.feedback import Answer, PreferenceFeedback, Query
+from trainer.trajectories import TrajectoryPool
+
+
+class RunHooks:
+    def stop_requested(self, step: int) -> bool:
+        """Called between steps (keep it cheap). True: end the run at the end of this episode,
+        after a checkpoint. May block, e.g. while an operator has the run paused."""
+        return False
+
+    def metrics(self, stream: str, row: dict[str, Any]) -> None:
+        """A metric row the run just logged (stream: episodes | eval | rounds)."""
+
+    def round_opened(self, queries: list[Query], pool: TrajectoryPool) -> None:
+        """A round's queries were chosen and checkpointed; also called again for the open round
+        of a resumed run."""
+
+    def answers(self, feedback: PreferenceFeedback, pool: TrajectoryPool,
+                final: bool) -> dict[str, Answer] | None:
+        """The open round's answers by query id, or None to keep training and ask again at the
+        next episode's end. `final`: the round must close now, with whatever answers exist."""
+        return feedback.scripted_answers()
