@@ -7,7 +7,16 @@ sessions and migrations in `db`. Import what you need from here.
 
 from labelqueue.db import DEFAULT_URL, make_engine, migrate, session_factory
 from labelqueue.errors import Conflict, InvalidTransition, LeaseError, NotFound, QueueError
-from labelqueue.labellers import authenticate, create_labeller, set_labeller_active
+from labelqueue.export import COLUMNS as EXPORT_COLUMNS
+from labelqueue.export import FORMATS as EXPORT_FORMATS
+from labelqueue.export import SCHEMA_VERSION as EXPORT_SCHEMA_VERSION
+from labelqueue.export import ExportFormat, export_rows, write_export
+from labelqueue.labellers import (
+    authenticate,
+    create_labeller,
+    find_labeller,
+    set_labeller_active,
+)
 from labelqueue.labels import consume_labels, labels_for_queries, preferred_segment, submit_label
 from labelqueue.metrics import read_metrics, write_metrics
 from labelqueue.models import (
@@ -41,6 +50,7 @@ from labelqueue.runs import (
     create_run,
     finish_run,
     heartbeat,
+    read_run,
     set_run_status,
     set_teacher,
 )
@@ -48,10 +58,14 @@ from labelqueue.runs import (
 __all__ = [
     "DEAD_WORKER_AFTER_S",
     "DEFAULT_URL",
+    "EXPORT_COLUMNS",
+    "EXPORT_FORMATS",
+    "EXPORT_SCHEMA_VERSION",
     "LEASE_SECONDS",
     "OPERATOR_MOVES",
     "Choice",
     "Conflict",
+    "ExportFormat",
     "InvalidTransition",
     "Label",
     "LabelSource",
@@ -76,6 +90,8 @@ __all__ = [
     "consume_labels",
     "create_labeller",
     "create_run",
+    "export_rows",
+    "find_labeller",
     "finish_run",
     "heartbeat",
     "labels_for_queries",
@@ -85,11 +101,13 @@ __all__ = [
     "preferred_segment",
     "push_queries",
     "read_metrics",
+    "read_run",
     "set_clips",
     "set_labeller_active",
     "set_run_status",
     "set_teacher",
     "session_factory",
     "submit_label",
+    "write_export",
     "write_metrics",
 ]

@@ -10,6 +10,7 @@ import hashlib
 import hmac
 import secrets
 
+from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -61,4 +62,17 @@ def set_labeller_active(session: Session, *, labeller_id: int, active: bool) -> 
         labeller = get_row(session, Labeller, labeller_id)
         labeller.active = active
         detach(session, labeller)
+    return labeller
+
+
+def find_labeller(session: Session, *, name: str) -> Labeller | None:
+    """The labeller named `name`, or None."""
+    with transaction(session):
+        labeller = session.scalars(
+            select(Labeller)
+            .where(Labeller.name == name)
+            .execution_options(populate_existing=True)
+        ).one_or_none()
+        if labeller is not None:
+            detach(session, labeller)
     return labeller

@@ -17,7 +17,7 @@ from collections.abc import Mapping
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import and_, or_, select, update
+from sqlalchemy import and_, case, or_, select, update
 from sqlalchemy.orm import Session
 
 from labelqueue.coerce import json_object
@@ -75,6 +75,14 @@ def create_run(
     return run
 
 
+def read_run(session: Session, *, run_id: int) -> Run:
+    """The run as stored now (NotFound if there is none)."""
+    with transaction(session):
+        run = get_row(session, Run, run_id)
+        detach(session, run)
+    return run
+
+
 def _saw_worker(session: Session, *, worker_id: str, now: datetime, run_id: int | None) -> None:
     # Only the worker itself writes its row, so get-then-add races with no other writer.
     worker = session.get(Worker, worker_id, populate_existing=True)
@@ -88,27 +96,38 @@ def _saw_worker(session: Session, *, worker_id: str, now: datetime, run_id: int 
 def claim_run(
     session: Session, *, worker_id: str, stale_after: float = DEAD_WORKER_AFTER_S
 ) -> Run | None:
-    """Take the oldest queued run, or a running one whose worker stopped heartbeating.
+    """Take back a run this worker id already owns (the worker was restarted), else the oldest
+    queued run, or a running one whose worker stopped heartbeating.
 
-    The run becomes `running`, owned by `worker_id`. None when there is nothing to do; an idle
-    worker calls this in a loop, which also records that it is alive.
+    The run is owned by `worker_id` and becomes `running` (a paused or stopping run taken back
+    keeps its status). None when there is nothing to do; an idle worker calls this in a loop,
+    which also records that it is alive.
     """
     now = utcnow()
     dead = now - timedelta(seconds=stale_after)
     claimable = or_(
         Run.status == RunStatus.QUEUED,
         and_(Run.status == RunStatus.RUNNING, Run.heartbeat_at < dead),
+        and_(Run.status.in_(OWNED), Run.worker_id == worker_id),
     )
+    mine_first = case((Run.worker_id == worker_id, 0), else_=1)
     with transaction(session):
         candidates = session.scalars(
-            select(Run.id).where(claimable).order_by(Run.created_at, Run.id).limit(20)
+            select(Run.id).where(claimable).order_by(mine_first, Run.created_at, Run.id).limit(20)
         ).all()
         for run_id in candidates:
             won = changed(
                 session,
                 update(Run)
                 .where(Run.id == run_id, claimable)
-                .values(status=RunStatus.RUNNING, worker_id=worker_id, heartbeat_at=now),
+                .values(
+                    status=case(
+                        (Run.status == RunStatus.QUEUED, RunStatus.RUNNING.value),
+                        else_=Run.status,
+                    ),
+                    worker_id=worker_id,
+                    heartbeat_at=now,
+                ),
             )
             if won:
                 run = get_row(session, Run, run_id)

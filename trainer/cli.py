@@ -3,6 +3,8 @@
     sepoa train --task dmc:cheetah_run --algo pebble --teacher noisy --eps 0.3 \
                 --preset small --seed 0 --steps 100000
     sepoa train --run-dir runs/x --resume          # continue a killed run where it stopped
+    sepoa worker --database-url sqlite:///data/queue.db --data-dir data
+                                                   # train runs queued in the database
     sepoa tasks                                    # list valid task names
     sepoa presets                                  # show the presets as data
 """
@@ -30,6 +32,60 @@ def _train_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_config_arguments(p)
     return p
+
+
+def _worker_parser(sub) -> argparse.ArgumentParser:
+    p = sub.add_parser("worker", help="train the runs queued in the queue database",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    env = os.environ.get
+    p.add_argument("--database-url", default=env("SEPOA_DATABASE_URL"),
+                   help="the queue database (env SEPOA_DATABASE_URL; default "
+                   "sqlite:///<data-dir>/queue.db)")
+    p.add_argument("--data-dir", default=env("SEPOA_DATA_DIR", "data"),
+                   help="runs and clips go under it (env SEPOA_DATA_DIR)")
+    p.add_argument("--clips-dir", default=env("SEPOA_CLIPS_DIR"),
+                   help="where clips go; <data-dir>/clips when unset (env SEPOA_CLIPS_DIR)")
+    p.add_argument("--worker-id", default=env("SEPOA_WORKER_ID"),
+                   help="name in the database (env SEPOA_WORKER_ID; host-pid if unset); a "
+                   "worker restarted under the same id takes its runs back at once")
+    p.add_argument("--once", action="store_true", help="exit when no run is waiting")
+    p.add_argument("--poll-seconds", type=float, default=2.0)
+    p.add_argument("--device", default=None, help="overrides each run's device: auto|cpu|cuda")
+    p.add_argument("--threads", type=int, default=None, help="overrides each run's torch threads")
+    p.add_argument("--clip-size", type=int, default=128, help="clip width and height in pixels")
+    p.add_argument("--clip-fps", type=float, default=30.0)
+    p.add_argument("--clip-shadow-size", type=int, default=512,
+                   help="shadow map texels (0: no shadows); larger is slower on a CPU")
+    p.add_argument("--clip-multisamples", type=int, default=0,
+                   help="off-screen multisampling; 0 is fastest on a CPU")
+    return p
+
+
+def _run_worker(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from trainer.clips import ClipConfig
+    from trainer.worker import WorkerConfig, run_worker
+
+    try:
+        clip = ClipConfig(width=args.clip_size, height=args.clip_size, fps=args.clip_fps,
+                          shadow_size=args.clip_shadow_size, multisamples=args.clip_multisamples)
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    extra = {"worker_id": args.worker_id} if args.worker_id else {}
+    url = args.database_url or f"sqlite:///{os.path.join(args.data_dir, 'queue.db')}"
+    worker = WorkerConfig(
+        database_url=url, data_dir=Path(args.data_dir),
+        clips_dir=Path(args.clips_dir) if args.clips_dir else None, once=args.once,
+        poll_seconds=args.poll_seconds, device=args.device, threads=args.threads, clip=clip,
+        **extra,
+    )
+    try:
+        run_worker(worker)
+    except KeyboardInterrupt:
+        return 130
+    return 0
 
 
 def _config_from_args(args: argparse.Namespace):
@@ -61,6 +117,7 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     _train_parser(sub)
+    _worker_parser(sub)
     sub.add_parser("tasks", help="list valid task names")
     sub.add_parser("presets", help="print the presets")
     args = parser.parse_args(argv)
@@ -76,6 +133,9 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({"family": FAMILY_PRESETS, "task": TASK_PRESETS, "preset": PRESETS},
                          indent=2))
         return 0
+
+    if args.command == "worker":
+        return _run_worker(args)
 
     from trainer.envs import UnknownTaskError
     from trainer.loop import TrainingRun

@@ -109,6 +109,9 @@ class FeedbackConfig:
     """candidates come from the last N finished trajectories"""
     first_round_selection: str = "uniform"
     """rule for the first round, when no label exists yet and the ensemble is untrained"""
+    wait_for_labels: bool = True
+    """people teaching: pause training until a round is answered (false: keep training on the
+    current reward and use what arrived when the next round is due)"""
 
 
 @dataclass(frozen=True)
@@ -246,6 +249,30 @@ def build_config(task: str, preset: str, overrides: dict[str, Any] | None = None
     cfg = apply_overrides(cfg, TASK_PRESETS.get(task, {}))
     cfg = apply_overrides(cfg, PRESETS[preset])
     return apply_overrides(cfg, overrides or {})
+
+
+def typed_overrides(values: dict[str, Any]) -> dict[str, Any]:
+    """Overrides from JSON (a run's stored config) checked against the fields' types: ints
+    stay ints (a whole float is taken), floats take ints, bools and strings must be exact."""
+    types = {path: t for path, t, _ in _leaf_fields(RunConfig)}
+    out = {}
+    for path, value in values.items():
+        if path not in types:
+            raise ValueError(f"unknown config field {path!r}")
+        t, bad = types[path], False
+        if t is bool or t is str:
+            bad = not isinstance(value, t)
+        elif t is int:
+            bad = isinstance(value, bool) or not (
+                isinstance(value, int) or (isinstance(value, float) and value.is_integer()))
+            value = value if bad else int(value)
+        elif t is float:
+            bad = isinstance(value, bool) or not isinstance(value, int | float)
+            value = value if bad else float(value)
+        if bad:
+            raise ValueError(f"config field {path!r} takes {t.__name__}, got {value!r}")
+        out[path] = value
+    return out
 
 
 def to_dict(cfg: RunConfig) -> dict[str, Any]:

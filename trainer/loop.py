@@ -248,9 +248,14 @@ class TrainingRun:
         fb = self.feedback
         assert fb is not None and fb.pending
         due = min(fb.pending[0].step + self.cfg.feedback.every, self.cfg.steps)
+        opened = fb.pending[0].step
         answers = self.hooks.answers(fb, self.pool, final=self.step >= due)
         if answers is not None:
             self._finish_round(answers)
+            if self.step > opened:
+                # It closed episodes after it opened: a resume must not re-live that wait, whose
+                # length depended on when people answered.
+                self._save()
 
     def _finish_round(self, answers: dict[str, Answer]) -> None:
         fb = self.feedback

@@ -77,6 +77,22 @@ def test_a_dead_workers_run_is_claimed_after_the_heartbeat_timeout(session: Sess
         finish_run(session, run_id=run.id, worker_id="dead")
 
 
+def test_a_restarted_worker_takes_back_its_own_runs_first(session: Session) -> None:
+    older = new_run(session, "older")
+    mine = new_run(session, "mine")
+    set_run_status(session, run_id=older.id, status=RunStatus.STOPPED)
+    claim_run(session, worker_id="w1")  # takes "mine"
+    set_run_status(session, run_id=mine.id, status=RunStatus.PAUSED)
+    queued = new_run(session, "queued")
+
+    # Killed and restarted under the same id: no heartbeat timeout to wait for, and the run
+    # stays paused; another worker id gets the queued run, not this one.
+    back = claim_run(session, worker_id="w1")
+    assert back is not None and back.id == mine.id and back.status is RunStatus.PAUSED
+    other = claim_run(session, worker_id="w2")
+    assert other is not None and other.id == queued.id
+
+
 def test_heartbeat_records_progress_and_tells_the_worker_the_status(session: Session) -> None:
     run = new_run(session)
     claim_run(session, worker_id="w")

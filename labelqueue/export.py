@@ -1,0 +1,383 @@
+"""Export of the label database: one row per label, as JSONL, CSV or Parquet.
+
+The columns are declared once, in `COLUMNS`; docs/EXPORT.md lists the same table (a test keeps
+the two equal). `SCHEMA_VERSION` is written into every row and into the Parquet file's metadata.
+Additive changes (a new column) keep the version; renaming or removing a column, or changing
+its type or meaning, bumps it.
+
+Rows hold hidden ground truth (segment and trajectory returns, the scripted teacher's answer):
+an export is for operators, never for a labeller's browser.
+
+Rows are read in chunks by label id, each chunk in its own short transaction, up to the newest
+label at the start of the export: SQLite's write lock is never held for the whole export, and
+labels answered meanwhile wait for the next one.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from enum import StrEnum
+from typing import IO, Any, Literal, get_args
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from labelqueue.errors import NotFound
+from labelqueue.models import Label, Labeller, Query, Run
+from labelqueue.transaction import transaction
+
+SCHEMA_VERSION = 1
+PARQUET_VERSION_KEY = "sepoa.export.schema_version"
+"""the key of the schema version in a Parquet file's key-value metadata"""
+CHUNK_ROWS = 2000
+
+ExportFormat = Literal["jsonl", "csv", "parquet"]
+FORMATS: tuple[ExportFormat, ...] = get_args(ExportFormat)
+ColumnType = Literal["int64", "float64", "string", "bool", "timestamp", "list<float64>"]
+
+
+@dataclass(frozen=True)
+class Column:
+    """One exported column, as docs/EXPORT.md documents it."""
+
+    name: str
+    type: ColumnType
+    nullable: bool
+    description: str
+
+
+def _c(name: str, type_: ColumnType, description: str, *, nullable: bool = False) -> Column:
+    return Column(name, type_, nullable, description)
+
+
+COLUMNS: tuple[Column, ...] = (
+    _c("schema_version", "int64", "version of this column schema (see below)"),
+    _c("label_id", "int64", "the label's id; rows are ordered by it"),
+    _c("query_id", "int64", "the query (pair of segments) the label answers"),
+    _c("run_id", "int64", "the run that asked the query"),
+    _c("run_name", "string", "the run's name"),
+    _c("task", "string", "the run's task, e.g. `dmc:cheetah_run`"),
+    _c("algo", "string", "the run's algorithm: sac, pebble or sepoa"),
+    _c("preset", "string", "the run's configuration preset"),
+    _c("seed", "int64", "the run's seed"),
+    _c("round", "int64", "the feedback round that asked the query"),
+    _c("position", "int64", "the query's index within its round"),
+    _c("step", "int64", "training step at which the query was selected", nullable=True),
+    _c("segment_length", "int64", "steps per segment"),
+    _c("rule", "string", "the selection rule that picked the pair", nullable=True),
+    _c("first_trajectory", "int64", "the first segment's trajectory index"),
+    _c("first_start", "int64", "the first segment's start step within its trajectory"),
+    _c("first_skill", "list<float64>", "the first segment's skill vector", nullable=True),
+    _c("second_trajectory", "int64", "the second segment's trajectory index"),
+    _c("second_start", "int64", "the second segment's start step within its trajectory"),
+    _c("second_skill", "list<float64>", "the second segment's skill vector", nullable=True),
+    _c("first_segment_return", "float64", "ground truth: the first segment's true return"),
+    _c("second_segment_return", "float64", "ground truth: the second segment's true return"),
+    _c(
+        "first_trajectory_return",
+        "float64",
+        "ground truth: the first segment's whole trajectory's return",
+    ),
+    _c(
+        "second_trajectory_return",
+        "float64",
+        "ground truth: the second segment's whole trajectory's return",
+    ),
+    _c(
+        "model_p",
+        "float64",
+        "the reward model's P[second preferred] when the pair was selected",
+        nullable=True,
+    ),
+    _c("score", "float64", "the selection score (null for uniform picks)", nullable=True),
+    _c(
+        "shadow_choice",
+        "string",
+        "the run's scripted teacher's answer in segment terms: "
+        "first, second, equal, cant_tell or skip",
+        nullable=True,
+    ),
+    _c(
+        "distinguishable",
+        "bool",
+        "whether the scripted teacher can tell the pair apart",
+        nullable=True,
+    ),
+    _c("labeller_id", "int64", "who answered"),
+    _c("labeller_name", "string", "who answered, by name"),
+    _c("source", "string", "what answered: human, scripted or gold"),
+    _c(
+        "choice",
+        "string",
+        "what was clicked, in screen terms: left, right, equal, cant_tell or skip",
+    ),
+    _c("left_is_first", "bool", "whether the first segment was shown on the left"),
+    _c("left_segment", "string", "which segment was shown on the left: first or second"),
+    _c(
+        "preferred",
+        "string",
+        "the answer in segment terms: first, second or equal; null for cant_tell and skip",
+        nullable=True,
+    ),
+    _c(
+        "agrees_with_shadow",
+        "bool",
+        "`preferred` equals `shadow_choice`; null unless both are first, second or equal",
+        nullable=True,
+    ),
+    _c(
+        "correct",
+        "bool",
+        "`preferred` names the segment with the larger true segment return "
+        "(equal: the returns are exactly equal); null when `preferred` is null",
+        nullable=True,
+    ),
+    _c("shown_at", "timestamp", "when the pair was shown (as the page reported it)", nullable=True),
+    _c("answered_at", "timestamp", "when the answer was stored"),
+    _c(
+        "answer_seconds",
+        "float64",
+        "seconds from `shown_at` to `answered_at`",
+        nullable=True,
+    ),
+    _c(
+        "consumed_at",
+        "timestamp",
+        "when the trainer took the label; null until then",
+        nullable=True,
+    ),
+)
+COLUMN_NAMES: tuple[str, ...] = tuple(column.name for column in COLUMNS)
+
+# The stored values, by column name; `_row` derives the other columns from them.
+_STORED: dict[str, Any] = {
+    "label_id": Label.id,
+    "query_id": Label.query_id,
+    "run_id": Label.run_id,
+    "run_name": Run.name,
+    "task": Run.task,
+    "algo": Run.algo,
+    "preset": Run.preset,
+    "seed": Run.seed,
+    "round": Query.round,
+    "position": Query.position,
+    "step": Query.step,
+    "segment_length": Query.segment_length,
+    "rule": Query.rule,
+    "first_trajectory": Query.first_trajectory,
+    "first_start": Query.first_start,
+    "first_skill": Query.first_skill,
+    "second_trajectory": Query.second_trajectory,
+    "second_start": Query.second_start,
+    "second_skill": Query.second_skill,
+    "first_segment_return": Query.first_segment_return,
+    "second_segment_return": Query.second_segment_return,
+    "first_trajectory_return": Query.first_trajectory_return,
+    "second_trajectory_return": Query.second_trajectory_return,
+    "model_p": Query.model_p,
+    "score": Query.score,
+    "shadow_choice": Query.shadow_choice,
+    "distinguishable": Query.distinguishable,
+    "labeller_id": Label.labeller_id,
+    "labeller_name": Labeller.name,
+    "source": Label.source,
+    "choice": Label.choice,
+    "left_is_first": Label.left_is_first,
+    "preferred": Label.preferred,
+    "shown_at": Label.shown_at,
+    "answered_at": Label.answered_at,
+    "consumed_at": Label.consumed_at,
+}
+_SEGMENT_ANSWERS = ("first", "second", "equal")
+
+
+def _plain(value: Any) -> Any:
+    """Enum members as their values, non-finite floats as None, skills as lists of floats."""
+    if isinstance(value, StrEnum):
+        return value.value
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, list):
+        return [_plain(float(x)) for x in value]
+    return value
+
+
+def correct_answer(first_return: float | None, second_return: float | None) -> str | None:
+    """The segment answer the true segment returns call for: first, second or equal."""
+    if first_return is None or second_return is None:
+        return None
+    if first_return == second_return:
+        return "equal"
+    return "first" if first_return > second_return else "second"
+
+
+def _row(stored: Mapping[str, Any]) -> dict[str, Any]:
+    got = {name: _plain(value) for name, value in stored.items()}
+    preferred, shadow = got["preferred"], got["shadow_choice"]
+    truth = correct_answer(got["first_segment_return"], got["second_segment_return"])
+    shown, answered = got["shown_at"], got["answered_at"]
+    derived = {
+        "schema_version": SCHEMA_VERSION,
+        "left_segment": "first" if got["left_is_first"] else "second",
+        "agrees_with_shadow": (
+            preferred == shadow
+            if preferred in _SEGMENT_ANSWERS and shadow in _SEGMENT_ANSWERS
+            else None
+        ),
+        "correct": None if preferred is None or truth is None else preferred == truth,
+        "answer_seconds": (
+            None if shown is None or answered is None else (answered - shown).total_seconds()
+        ),
+    }
+    merged = got | derived
+    return {name: merged[name] for name in COLUMN_NAMES}
+
+
+def export_rows(
+    session: Session, *, run_id: int | None = None, chunk_rows: int | None = None
+) -> Iterator[dict[str, Any]]:
+    """One dict per label (keys: `COLUMN_NAMES`), ordered by label id; of one run or all.
+
+    Raises NotFound at once for an unknown run. Labels answered after the call are left out.
+    Values are Python values: int, float, str, bool, UTC-aware datetime, list[float] or None.
+    Each chunk of `chunk_rows` (default `CHUNK_ROWS`) is read in a transaction of its own.
+    """
+    limit = chunk_rows or CHUNK_ROWS
+    condition = [] if run_id is None else [Label.run_id == run_id]
+    with transaction(session):
+        if run_id is not None and session.scalar(select(Run.id).where(Run.id == run_id)) is None:
+            raise NotFound(f"run {run_id} does not exist")
+        last = session.scalar(select(func.max(Label.id)).where(*condition))
+
+    def rows() -> Iterator[dict[str, Any]]:
+        after = 0
+        while last is not None and after < last:
+            with transaction(session):
+                chunk = session.execute(
+                    select(*(column.label(name) for name, column in _STORED.items()))
+                    .join(Query, Query.id == Label.query_id)
+                    .join(Run, Run.id == Label.run_id)
+                    .join(Labeller, Labeller.id == Label.labeller_id)
+                    .where(Label.id > after, Label.id <= last, *condition)
+                    .order_by(Label.id)
+                    .limit(limit)
+                ).all()
+            if not chunk:
+                return
+            after = chunk[-1].label_id
+            for stored in chunk:
+                yield _row(stored._asdict())
+
+    return rows()
+
+
+def _chunks(rows: Iterator[dict[str, Any]], size: int) -> Iterator[list[dict[str, Any]]]:
+    chunk: list[dict[str, Any]] = []
+    for row in rows:
+        chunk.append(row)
+        if len(chunk) == size:
+            yield chunk
+            chunk = []
+    if chunk:
+        yield chunk
+
+
+def _iso(value: datetime) -> str:
+    return value.astimezone(UTC).isoformat(timespec="microseconds")
+
+
+def _json_value(value: Any) -> Any:
+    return _iso(value) if isinstance(value, datetime) else value
+
+
+def _csv_cell(value: Any) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, datetime):
+        return _iso(value)
+    if isinstance(value, list):
+        return json.dumps(value, allow_nan=False)
+    return str(value)  # repr-exact for floats
+
+
+def _write_jsonl(rows: Iterator[dict[str, Any]], out: IO[bytes]) -> int:
+    count = 0
+    for row in rows:
+        line = json.dumps(
+            {name: _json_value(value) for name, value in row.items()},
+            allow_nan=False,
+            ensure_ascii=False,
+            separators=(",", ":"),
+        )
+        out.write(line.encode() + b"\n")
+        count += 1
+    return count
+
+
+def _write_csv(rows: Iterator[dict[str, Any]], out: IO[bytes]) -> int:
+    text = io.StringIO()
+    writer = csv.writer(text, lineterminator="\n")
+    writer.writerow(COLUMN_NAMES)
+    count = 0
+    for chunk in _chunks(rows, CHUNK_ROWS):
+        writer.writerows([_csv_cell(value) for value in row.values()] for row in chunk)
+        out.write(text.getvalue().encode())
+        text.seek(0)
+        text.truncate()
+        count += len(chunk)
+    out.write(text.getvalue().encode())  # the header of an empty export
+    return count
+
+
+def parquet_schema() -> Any:
+    """The pyarrow schema of the Parquet export (typed columns even when there are no rows)."""
+    import pyarrow as pa  # type: ignore[import-untyped]  # lazily: the server starts fast
+
+    types = {
+        "int64": pa.int64(),
+        "float64": pa.float64(),
+        "string": pa.string(),
+        "bool": pa.bool_(),
+        "timestamp": pa.timestamp("us", tz="UTC"),
+        "list<float64>": pa.list_(pa.float64()),
+    }
+    fields = [pa.field(column.name, types[column.type], nullable=True) for column in COLUMNS]
+    return pa.schema(fields, metadata={PARQUET_VERSION_KEY: str(SCHEMA_VERSION)})
+
+
+def _write_parquet(rows: Iterator[dict[str, Any]], out: IO[bytes]) -> int:
+    import pyarrow as pa
+    import pyarrow.parquet as pq  # type: ignore[import-untyped]
+
+    schema = parquet_schema()
+    count = 0
+    with pq.ParquetWriter(out, schema) as writer:
+        for chunk in _chunks(rows, CHUNK_ROWS):
+            writer.write_table(pa.Table.from_pylist(chunk, schema=schema))
+            count += len(chunk)
+        if count == 0:
+            writer.write_table(schema.empty_table())
+    return count
+
+
+_WRITERS = {"jsonl": _write_jsonl, "csv": _write_csv, "parquet": _write_parquet}
+
+
+def write_export(
+    session: Session, *, fmt: ExportFormat | str, out: IO[bytes], run_id: int | None = None
+) -> int:
+    """Write the labels (of one run, or all) to `out` as jsonl, csv or parquet; rows written.
+
+    ValueError for an unknown format, NotFound for an unknown run (before anything is written).
+    """
+    if fmt not in _WRITERS:
+        raise ValueError(f"unknown export format {fmt!r}; valid formats: {', '.join(FORMATS)}")
+    return _WRITERS[fmt](export_rows(session, run_id=run_id), out)

@@ -1,0 +1,1 @@
+"""The `sepoa` command: one entry point over the trainer, the server and the queue database."""

@@ -1,0 +1,371 @@
+"""The trainer worker: claims runs from the queue database, trains them, and hands them back.
+
+    sepoa worker --database-url sqlite:///data/queue.db --data-dir data
+
+A worker trains one run at a time; any number of workers may share one database. For each run
+it claims (a queued one, or one whose worker stopped heartbeating), it builds the run's config
+from the row (task, algorithm, preset, seed, budget, teacher parameters, config overrides),
+resumes from the checkpoint in `<data dir>/runs/run-<id>` if there is one, and trains with
+`QueueHooks`, which:
+
+- heartbeat every few seconds with the run's progress, and obey the operator between steps:
+  paused -> wait, stopping/stopped -> end at the episode's end after a checkpoint;
+- mirror every metric row into the database for the dashboard;
+- push each round's queries, render their clips when people teach the run, and take the
+  answers from the queue. A scripted teacher answers through the same queue operations as a
+  person (it is the labeller `scripted-teacher`); an operator may switch a live run between
+  people and the scripted teacher, and the switch applies to the open round's unanswered
+  queries at once.
+
+A round's labels are read back by query id (`labels_for_queries`), which does not care whether a
+label was consumed before: a worker killed after labels arrived resumes from the checkpoint
+taken when the round opened, pushes the same queries again (the push is idempotent) and finds
+every label given meanwhile. Each query's first label is the one trained on.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import sys
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session, sessionmaker
+
+from labelqueue import (
+    Conflict,
+    Label,
+    Labeller,
+    Run,
+    RunStatus,
+    TeacherKind,
+    cancel_queries,
+    claim_run,
+    consume_labels,
+    create_labeller,
+    find_labeller,
+    finish_run,
+    heartbeat,
+    labels_for_queries,
+    lease_next_query,
+    make_engine,
+    migrate,
+    push_queries,
+    read_run,
+    session_factory,
+    set_clips,
+    submit_label,
+    write_metrics,
+)
+from trainer.clips import ClipConfig, render_query_clips
+from trainer.config import RunConfig, build_config, typed_overrides
+from trainer.envs import Env, make_env
+from trainer.feedback import Answer, PreferenceFeedback, Query
+from trainer.hooks import RunHooks
+from trainer.loop import CHECKPOINT, TrainingRun
+from trainer.teachers import Choice
+from trainer.trajectories import TrajectoryPool
+
+SCRIPTED_LABELLER = "scripted-teacher"
+# The scripted teacher's answer in screen terms; it always sees the first segment on the left.
+SCRIPTED_SCREEN = {"first": "left", "second": "right", "equal": "equal",
+                   "cant_tell": "cant_tell", "skip": "skip"}
+PREFERRED_CHOICE = {"first": Choice.FIRST, "second": Choice.SECOND, "equal": Choice.EQUAL}
+
+
+@dataclass(frozen=True)
+class WorkerConfig:
+    """One worker process."""
+
+    database_url: str
+    """the queue database"""
+    data_dir: Path
+    """runs go to <data_dir>/runs/run-<id>, clips to <data_dir>/clips (or clips_dir)"""
+    clips_dir: Path | None = None
+    """where clips are written; the server must serve the same folder"""
+    worker_id: str = field(default_factory=lambda: f"{socket.gethostname()}-{os.getpid()}")
+    """this worker's name in the database"""
+    poll_seconds: float = 2.0
+    """how often an idle worker looks for a run, and a waiting one for labels"""
+    heartbeat_seconds: float = 2.0
+    """how often a training worker reports (and reads the operator's commands)"""
+    once: bool = False
+    """exit when no run is waiting, instead of polling forever"""
+    device: str | None = None
+    """overrides every run's device (auto | cpu | cuda)"""
+    threads: int | None = None
+    """overrides every run's torch CPU threads"""
+    clip: ClipConfig = field(default_factory=ClipConfig)
+
+    @property
+    def clips_root(self) -> Path:
+        return self.clips_dir or self.data_dir / "clips"
+
+
+class LostRun(Exception):
+    """The run was given to another worker (requeued, or this one was declared dead)."""
+
+
+def run_config(run: Run, worker: WorkerConfig) -> RunConfig:
+    """The training config a queued run describes; ValueError naming a bad field."""
+    overrides = typed_overrides(dict(run.config))
+    overrides |= typed_overrides({f"teacher.{k}": v for k, v in run.teacher_params.items()})
+    overrides |= {"algo": run.algo, "seed": run.seed, "feedback.budget": run.budget,
+                  "run_dir": str(worker.data_dir / "runs" / f"run-{run.id}")}
+    if worker.device is not None:
+        overrides["device"] = worker.device
+    if worker.threads is not None:
+        overrides["threads"] = worker.threads
+    return build_config(run.task, run.preset, overrides)
+
+
+def _answer(label: Label, labeller_names: dict[int, str]) -> Answer:
+    preferred = label.preferred.value if label.preferred is not None else None
+    choice = PREFERRED_CHOICE[preferred] if preferred else Choice(label.choice.value)
+    name = labeller_names.get(label.labeller_id, f"labeller-{label.labeller_id}")
+    return Answer(choice, name, label.source.value, label.answered_at.timestamp())
+
+
+class QueueHooks(RunHooks):
+    """Connects one training run to the queue database (see the module's docstring)."""
+
+    def __init__(self, sessions: sessionmaker[Session], run: Run, worker: WorkerConfig,
+                 cfg: RunConfig, scripted_labeller_id: int):
+        self.sessions, self.worker, self.cfg = sessions, worker, cfg
+        self.run_id, self.teacher = run.id, run.teacher
+        self.scripted_id = scripted_labeller_id
+        self.status = RunStatus.RUNNING
+        self.step = 0
+        self.progress: dict[str, Any] = {}
+        self.next_beat = 0.0
+        self.query_ids: dict[str, int] = {}
+        self.clips: dict[str, tuple[str, str]] = {}
+        self.render_env: Env | None = None
+
+    # -- operator ------------------------------------------------------------------------------
+    def beat(self, step: int, force: bool = False) -> RunStatus:
+        """Heartbeat (at most every `heartbeat_seconds` unless forced); the run's status."""
+        self.step = step
+        now = time.monotonic()
+        if not force and now < self.next_beat:
+            return self.status
+        self.next_beat = now + self.worker.heartbeat_seconds
+        with self.sessions() as session:
+            try:
+                self.status = heartbeat(session, run_id=self.run_id,
+                                        worker_id=self.worker.worker_id, step=step,
+                                        progress=self.progress | {"teacher": self.teacher})
+            except Conflict as err:
+                raise LostRun(str(err)) from err
+            self.teacher = read_run(session, run_id=self.run_id).teacher
+        return self.status
+
+    def stop_requested(self, step: int) -> bool:
+        status = self.beat(step)
+        while status is RunStatus.PAUSED:
+            time.sleep(self.worker.poll_seconds)
+            status = self.beat(step, force=True)
+        return status in (RunStatus.STOPPING, RunStatus.STOPPED)
+
+    def metrics(self, stream: str, row: dict[str, Any]) -> None:
+        if stream == "episodes":
+            self.progress |= {"episode": row["episode"], "last_return": row["return"],
+                              "labels_used": row["labels_used"], "fps": row["fps"]}
+        elif stream == "eval":
+            self.progress["eval_return"] = row["return"]
+        elif stream == "rounds":
+            self.progress |= {"round": row["round"], "labels_used": row["labels_used"]}
+        with self.sessions() as session:
+            write_metrics(session, run_id=self.run_id, stream=stream, step=int(row["step"]),
+                          values=row)
+
+    # -- queries -------------------------------------------------------------------------------
+    def round_opened(self, queries: list[Query], pool: TrajectoryPool) -> None:
+        specs = [{
+            "round": q.round, "position": i, "step": q.step, "segment_length": q.segment_length,
+            "first_trajectory": q.trajectory0, "first_start": q.start0,
+            "second_trajectory": q.trajectory1, "second_start": q.start1,
+            "first_segment_return": q.segment_return0,
+            "second_segment_return": q.segment_return1,
+            "first_trajectory_return": q.trajectory_return0,
+            "second_trajectory_return": q.trajectory_return1,
+            "model_p": q.model_p, "score": q.score, "rule": q.rule,
+            "shadow_choice": q.shadow_choice, "distinguishable": q.distinguishable,
+        } for i, q in enumerate(queries)]
+        with self.sessions() as session:
+            ids = push_queries(session, run_id=self.run_id, queries=specs)
+        self.query_ids = {q.query_id: db_id for q, db_id in zip(queries, ids, strict=True)}
+        self.clips = {}
+        self.progress["waiting_for"] = len(queries)
+        if self.teacher is TeacherKind.HUMAN:
+            self._render(queries, pool)
+
+    def _render(self, queries: list[Query], pool: TrajectoryPool) -> None:
+        """Clips for the queries that have none yet, attached one query at a time so people can
+        start on the first while the rest render. A clip already on disk is not rendered again."""
+        by_id = {t.id: t for t in pool.trajectories}
+        for q in queries:
+            if q.query_id in self.clips:
+                continue
+            folder = f"run-{self.run_id}"
+            stem = f"r{q.round}-{q.query_id.split('-')[-1]}"
+            keys = (f"{folder}/{stem}-0.mp4", f"{folder}/{stem}-1.mp4")
+            root = self.worker.clips_root
+            if not all((root / key).is_file() for key in keys):
+                if self.render_env is None:
+                    self.render_env = make_env(self.cfg.task, self.cfg.seed + 200_000,
+                                               self.cfg.episode_length or None)
+                render_query_clips(self.render_env, by_id[q.trajectory0], q.start0,
+                                   by_id[q.trajectory1], q.start1, q.segment_length,
+                                   root / folder, stem, self.worker.clip)
+            with self.sessions() as session:
+                set_clips(session, query_id=self.query_ids[q.query_id], first_clip=keys[0],
+                          second_clip=keys[1])
+            self.clips[q.query_id] = keys
+            self.beat(self.step)
+
+    def _answer_as_scripted(self, queries: list[Query]) -> None:
+        """The scripted teacher takes every open query of the round it can lease."""
+        by_db_id = {self.query_ids[q.query_id]: q for q in queries}
+        with self.sessions() as session:
+            while (leased := lease_next_query(session, labeller_id=self.scripted_id,
+                                              run_id=self.run_id)) is not None:
+                query = by_db_id.get(leased.id)
+                if query is None:  # an older round's query left open: not this round's to answer
+                    cancel_queries(session, run_id=self.run_id, query_ids=[leased.id])
+                    continue
+                submit_label(session, query_id=leased.id, labeller_id=self.scripted_id,
+                             choice=SCRIPTED_SCREEN[query.shadow_choice], left_is_first=True,
+                             source="scripted")
+
+    def answers(self, feedback: PreferenceFeedback, pool: TrajectoryPool,
+                final: bool) -> dict[str, Answer] | None:
+        queries = feedback.pending
+        ids = [self.query_ids[q.query_id] for q in queries]
+        wait = self.cfg.feedback.wait_for_labels
+        while True:
+            if self.teacher is TeacherKind.SCRIPTED:
+                self._answer_as_scripted(queries)
+            elif len(self.clips) < len(queries):  # switched to people mid-round
+                self._render(queries, pool)
+            with self.sessions() as session:
+                labels = labels_for_queries(session, query_ids=ids)
+            answered = {label.query_id for label in labels}
+            self.progress["waiting_for"] = len(ids) - len(answered)
+            if len(answered) == len(ids):
+                break
+            if final:
+                with self.sessions() as session:
+                    # Cancel first: a label submitted after this read could not be used.
+                    cancel_queries(session, run_id=self.run_id, query_ids=ids)
+                    labels = labels_for_queries(session, query_ids=ids)
+                break
+            if not wait:
+                self.beat(self.step)
+                return None
+            time.sleep(self.worker.poll_seconds)
+            if self.stop_requested(self.step):
+                return None
+
+        with self.sessions() as session:
+            consume_labels(session, run_id=self.run_id)  # bookkeeping: the round has them
+            names = self._labeller_names(session, {label.labeller_id for label in labels})
+        by_db_id = {db_id: qid for qid, db_id in self.query_ids.items()}
+        out: dict[str, Answer] = {}
+        for label in labels:  # oldest first: a query's first label is the one used
+            out.setdefault(by_db_id[label.query_id], _answer(label, names))
+        self.progress["waiting_for"] = 0
+        return out
+
+    @staticmethod
+    def _labeller_names(session: Session, ids: set[int]) -> dict[int, str]:
+        rows = session.execute(select(Labeller.id, Labeller.name).where(Labeller.id.in_(ids)))
+        names = {labeller_id: name for labeller_id, name in rows}
+        session.commit()  # end the read: SQLite writers wait on an open transaction
+        return names
+
+
+def scripted_labeller_id(sessions: sessionmaker[Session]) -> int:
+    """The labeller the scripted teacher answers as, created on first use."""
+    with sessions() as session:
+        labeller = find_labeller(session, name=SCRIPTED_LABELLER)
+        if labeller is None:
+            try:
+                labeller, _token = create_labeller(session, name=SCRIPTED_LABELLER)
+            except Conflict:  # another worker created it just now
+                labeller = find_labeller(session, name=SCRIPTED_LABELLER)
+        assert labeller is not None
+        return labeller.id
+
+
+def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerConfig,
+                      scripted_id: int) -> RunStatus | None:
+    """Train a run this worker has claimed, and end it; its final status (None if lost)."""
+    log = f"[worker {worker.worker_id}] run {run.id}"
+    try:
+        cfg = run_config(run, worker)
+        resume = os.path.exists(os.path.join(cfg.run_dir, CHECKPOINT))
+        if not resume and os.path.isdir(cfg.run_dir):
+            shutil.rmtree(cfg.run_dir)  # an attempt that died before its first checkpoint
+        hooks = QueueHooks(sessions, run, worker, cfg, scripted_id)
+        print(f"{log}: {'resuming' if resume else 'starting'} {run.task} {run.algo} "
+              f"in {cfg.run_dir}", file=sys.stderr, flush=True)
+        training = TrainingRun(cfg, resume=resume, progress=False, hooks=hooks)
+        summary = training.train()
+        hooks.beat(int(summary["step"]), force=True)  # the final step and progress, on record
+    except LostRun as err:
+        print(f"{log}: lost ({err})", file=sys.stderr, flush=True)
+        return None
+    except Exception as err:  # noqa: BLE001 - any failure ends the run as failed, with why
+        traceback.print_exc()
+        return _end(sessions, run.id, worker, RunStatus.FAILED, f"{type(err).__name__}: {err}")
+    status = RunStatus.STOPPED if summary.get("stopped") else RunStatus.FINISHED
+    print(f"{log}: {status} at step {summary['step']}", file=sys.stderr, flush=True)
+    return _end(sessions, run.id, worker, status, None)
+
+
+def _end(sessions: sessionmaker[Session], run_id: int, worker: WorkerConfig, status: RunStatus,
+         error: str | None) -> RunStatus | None:
+    with sessions() as session:
+        try:
+            return finish_run(session, run_id=run_id, worker_id=worker.worker_id,
+                              status=status, error=error).status
+        except Conflict:  # requeued or taken over meanwhile, or force-stopped: not ours to end
+            return read_run(session, run_id=run_id).status
+
+
+def run_worker(worker: WorkerConfig) -> int:
+    """Claim and train runs until interrupted (or, with `once`, until none is waiting)."""
+    for attempt in range(5):  # the server may be migrating the same database right now
+        try:
+            migrate(worker.database_url)
+            break
+        except Exception:  # noqa: BLE001
+            if attempt == 4:
+                raise
+            time.sleep(1.0)
+    engine = make_engine(worker.database_url)
+    sessions = session_factory(engine)
+    scripted_id = scripted_labeller_id(sessions)
+    print(f"[worker {worker.worker_id}] waiting for runs in {worker.database_url}",
+          file=sys.stderr, flush=True)
+    trained = 0
+    try:
+        while True:
+            with sessions() as session:
+                run = claim_run(session, worker_id=worker.worker_id)
+            if run is None:
+                if worker.once:
+                    return trained
+                time.sleep(worker.poll_seconds)
+                continue
+            train_claimed_run(sessions, run, worker, scripted_id)
+            trained += 1
+    finally:
+        engine.dispose()
