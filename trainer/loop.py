@@ -214,10 +214,10 @@ class TrainingRun:
                 self._end_of_episode()
                 bar.set_postfix(ret=f"{episode_return:.1f}",
                                 labels=feedback.labels_used if feedback else 0, refresh=False)
-                obs, episode_return = self.env.reset(), 0.0
                 if stopping or self.hooks.stop_requested(self.step):
-                    self.stopped = True
+                    self.stopped = True  # before the reset: a resumed run makes that reset
                     break
+                obs, episode_return = self.env.reset(), 0.0
         bar.close()
         if feedback is not None and feedback.pending and not self.stopped:
             self._try_finish_round()  # a round still collecting answers closes with what came
