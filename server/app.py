@@ -9,7 +9,8 @@ from fastapi import FastAPI
 
 from labelqueue import make_engine, migrate, session_factory
 from server.errors import install_error_handlers
-from server.routes import label, labellers, runs
+from server.routes import export as export_routes
+from server.routes import label, labellers, pages, runs, stats
 from server.settings import Settings, get_settings
 
 
@@ -33,6 +34,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(runs.router)
     app.include_router(labellers.router)
     app.include_router(label.router)
+    app.include_router(export_routes.router)
+    app.include_router(stats.router)
+    app.include_router(pages.router)
+    app.mount("/static", pages.static_files(), name="static")
 
     @app.get("/healthz", tags=["health"])
     def healthz() -> dict[str, str]:

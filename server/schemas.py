@@ -125,3 +125,29 @@ class LabelOut(Out):
     preferred: str | None
     shown_at: datetime | None
     answered_at: datetime
+
+
+class ThroughputBucket(BaseModel):
+    t: datetime
+    """the bucket's start (UTC, a multiple of the bucket length since the epoch)"""
+    labels: int
+
+
+class Throughput(BaseModel):
+    """How fast a run gets its labels, from the labels' answer times (operator dashboard)."""
+
+    run_id: int
+    bucket_s: int
+    total: int
+    by_source: dict[str, int]
+    """labels per source: human, scripted, gold (every source present, 0 if none)"""
+    median_answer_s: float | None
+    """median of answered_at - shown_at over human labels that record shown_at; None if none"""
+    buckets: list[ThroughputBucket]
+    """labels answered per bucket, oldest first; buckets without labels are left out"""
+
+
+class LabelCount(BaseModel):
+    """How many labels the caller has given, over all runs."""
+
+    labels: int

@@ -1,0 +1,112 @@
+"""The operator's pages in a real headless Chromium: the new-run form shows the API's 422
+errors and creates runs; a run's page draws its curves, pauses it and downloads its labels."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from web_helpers import OPERATOR_TOKEN, LiveServer
+
+from labelqueue import (
+    RunStatus,
+    create_labeller,
+    lease_next_query,
+    read_run,
+    submit_label,
+    write_metrics,
+)
+
+
+def test_the_new_run_form_explains_refusals_and_creates_runs(live: LiveServer, page: Any) -> None:
+    page.goto(f"{live.url}/runs#token={OPERATOR_TOKEN}")
+    page.wait_for_selector("#runs-body tr")
+
+    page.fill("#new-run [name=task]", "cheetah")
+    page.fill("#new-run [name=budget]", "-1")
+    page.click("#new-run [type=submit]")
+    page.wait_for_selector("#new-run-errors:not([hidden])")
+    errors = page.inner_text("#new-run-errors")
+    assert "task: String should match pattern" in errors
+    assert "budget: Input should be greater than or equal to 0" in errors
+
+    page.fill("#new-run [name=task]", "dmc:walker_run")
+    page.fill("#new-run [name=budget]", "200")
+    page.select_option("#new-run [name=teacher]", "scripted")
+    page.fill("#new-run [name=eps]", "0.3")
+    page.fill("#new-run [name=name]", "walker-from-the-form")
+    page.click("#new-run [type=submit]")
+    page.wait_for_selector("#runs-body a:text('walker-from-the-form')")
+    assert page.is_hidden("#new-run-errors")
+    created = next(r for r in live.api("GET", "/api/runs") if r["name"] == "walker-from-the-form")
+    assert (created["task"], created["budget"], created["teacher"]) == (
+        "dmc:walker_run",
+        200,
+        "scripted",
+    )
+    assert created["teacher_params"] == {"eps": 0.3}
+    # Out of the queue again: other tests' workers claim the oldest queued run.
+    live.api("POST", f"/api/runs/{created['id']}/stop")
+
+
+def test_a_run_page_draws_curves_pauses_the_run_and_exports_its_labels(
+    live: LiveServer, page: Any, tmp_path: Path
+) -> None:
+    run_id = live.new_human_run()
+    live.push_rendered_queries(run_id, 1)
+    with live.sessions() as session:
+        for step in (1000, 2000, 3000):
+            write_metrics(
+                session,
+                run_id=run_id,
+                stream="episodes",
+                step=step,
+                values={"return": step / 10, "labels_used": step // 1000},
+            )
+        write_metrics(session, run_id=run_id, stream="eval", step=3000, values={"return": 250.0})
+        for round_ in (1, 2):
+            write_metrics(
+                session,
+                run_id=run_id,
+                stream="rounds",
+                step=1000 * round_,
+                values={
+                    "round": round_,
+                    "distinguishable_ratio": 0.5,
+                    "model_agreement": 0.6,
+                    "shadow_agreement": None,
+                },
+            )
+        teacher, _ = create_labeller(session, name=f"scripted-{run_id}")
+        query = lease_next_query(session, labeller_id=teacher.id, run_id=run_id)
+        assert query is not None
+        submit_label(
+            session,
+            query_id=query.id,
+            labeller_id=teacher.id,
+            choice="right",
+            left_is_first=True,
+            source="scripted",
+        )
+
+    page.goto(f"{live.url}/runs/{run_id}#token={OPERATOR_TOKEN}")
+    page.wait_for_selector("#chart-return svg polyline")
+    assert page.locator("#chart-return circle").count() == 4  # 3 episodes + 1 evaluation
+    assert page.locator("#chart-agreement circle").count() == 2  # the null series is left out
+    assert "1 label (1 scripted)" in page.inner_text("#chart-throughput")
+    assert page.locator("#chart-throughput rect").count() == 1
+
+    page.click("#controls button:text('Pause')")
+    page.wait_for_selector("#run-status:text('paused')")
+    with live.sessions() as session:
+        assert read_run(session, run_id=run_id).status is RunStatus.PAUSED
+
+    with page.expect_download() as download_info:
+        page.click("[data-export=jsonl]")
+    download = download_info.value
+    assert download.suggested_filename.startswith(f"labels-run{run_id}")
+    saved = tmp_path / "labels.jsonl"
+    download.save_as(saved)
+    rows = [json.loads(line) for line in saved.read_text().splitlines()]
+    assert [(row["run_id"], row["choice"]) for row in rows] == [(run_id, "right")]

@@ -1,0 +1,95 @@
+"""What the browser tests share: the live server's handle and the worker's and operator's
+moves on it (fixtures are in conftest.py)."""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import httpx
+from sqlalchemy.orm import Session, sessionmaker
+
+from labelqueue import claim_run, push_queries, set_clips
+from server.settings import Settings
+
+OPERATOR_TOKEN = "web-test-operator-token-0123456789"
+SECRET_KEY = "web-test-secret-key-0123456789"
+TASK = "dmc:cheetah_run"
+SEGMENT = 40  # steps per clip: 1.3 s at 30 fps, so a clip plays through quickly
+# Ground truth with values nothing else has, to look for in the page.
+SECRET_RETURNS = {
+    "first_segment_return": 987.125,
+    "second_segment_return": -654.375,
+    "first_trajectory_return": 4321.5,
+    "second_trajectory_return": -8765.25,
+    "model_p": 0.123456,
+    "score": 7.654321,
+}
+
+
+@dataclass(frozen=True)
+class Labeller:
+    id: int
+    token: str
+
+
+@dataclass
+class LiveServer:
+    """The running server, and what a trainer and an operator would do to its database."""
+
+    url: str
+    settings: Settings
+    sessions: sessionmaker[Session]
+    clips: list[tuple[Path, Path]]
+
+    def api(self, method: str, path: str, **kwargs: Any) -> Any:
+        headers = {"Authorization": f"Bearer {OPERATOR_TOKEN}"}
+        response = httpx.request(method, self.url + path, headers=headers, timeout=10, **kwargs)
+        assert response.is_success, response.text
+        return response.json()
+
+    def new_labeller(self, name: str) -> Labeller:
+        created = self.api("POST", "/api/labellers", json={"name": name})
+        return Labeller(id=created["id"], token=created["token"])
+
+    def new_human_run(self) -> int:
+        """A human-taught run, claimed by a worker (so its queries can be labelled)."""
+        run_id: int = self.api(
+            "POST",
+            "/api/runs",
+            json={"task": TASK, "algo": "sepoa", "budget": 10, "preset": "tiny"},
+        )["id"]
+        with self.sessions() as session:
+            claimed = claim_run(session, worker_id=f"web-test-worker-{run_id}")
+        # The oldest queued run is claimed: a test that queues a run must stop it again.
+        assert claimed is not None and claimed.id == run_id, "another run is still queued"
+        return run_id
+
+    def push_rendered_queries(self, run_id: int, n: int) -> list[int]:
+        """`n` queries pushed as a worker would, each with two real clips; their ids."""
+        specs = [
+            {
+                "round": 0,
+                "position": i,
+                "segment_length": SEGMENT,
+                "first_trajectory": 0,
+                "first_start": 10 * i,
+                "second_trajectory": 1,
+                "second_start": 40 + 10 * i,
+                **SECRET_RETURNS,
+            }
+            for i in range(n)
+        ]
+        with self.sessions() as session:
+            ids = push_queries(session, run_id=run_id, queries=specs)
+            for k, query_id in enumerate(ids):
+                files = self.clips[k % len(self.clips)]
+                keys = [f"run{run_id}/q{query_id}-{side}.mp4" for side in ("first", "second")]
+                for key, source in zip(keys, files, strict=True):
+                    target = self.settings.clips_root / key
+                    target.parent.mkdir(parents=True, exist_ok=True)
+                    shutil.copyfile(source, target)
+                set_clips(session, query_id=query_id, first_clip=keys[0], second_clip=keys[1])
+        return ids

@@ -1,0 +1,114 @@
+// Shared by every page: the bearer token and JSON requests that carry it.
+//
+// The token comes from the URL fragment (`#token=...`: a fragment never reaches a server or its
+// logs), is kept in localStorage (one slot per role, so an operator can also label), and is then
+// removed from the address bar. Without one, or when the API refuses it (401/403), the page
+// shows the sign-in form with the API's message.
+
+const STORAGE = { labeller: "sepoa.labeller-token", operator: "sepoa.operator-token" };
+const role = document.body.dataset.role;
+let token = null;
+
+export class ApiError extends Error {
+  constructor(status, detail) {
+    super(describe(detail) || `HTTP ${status}`);
+    this.status = status;
+  }
+}
+
+/** Thrown once the token was refused: the page should stop its loops (sign-in reloads it). */
+export class SignedOut extends Error {}
+
+/** Reads the token and calls `ready()` once signed in; otherwise shows the sign-in form. */
+export function start(ready) {
+  const fragment = new URLSearchParams(location.hash.slice(1)).get("token");
+  if (fragment) {
+    localStorage.setItem(STORAGE[role], fragment);
+    history.replaceState(null, "", location.pathname + location.search);
+  }
+  token = localStorage.getItem(STORAGE[role]);
+  document.getElementById("signin-form").addEventListener("submit", (event) => {
+    event.preventDefault();
+    localStorage.setItem(STORAGE[role], document.getElementById("signin-token").value.trim());
+    location.reload(); // a clean start: no half-run loops from before
+  });
+  const signOutButton = document.getElementById("sign-out");
+  signOutButton.addEventListener("click", () => signOut(""));
+  if (!token) {
+    signOut("");
+    return;
+  }
+  signOutButton.hidden = false;
+  ready();
+}
+
+function signOut(message) {
+  token = null;
+  localStorage.removeItem(STORAGE[role]);
+  document.getElementById("app").hidden = true;
+  document.getElementById("sign-out").hidden = true;
+  document.getElementById("signin").hidden = false;
+  const error = document.getElementById("signin-error");
+  error.textContent = message;
+  error.hidden = !message;
+  document.getElementById("signin-token").focus();
+}
+
+/** `{status, data, response}`; data is the parsed JSON body (null for 204). */
+export async function request(method, path, body) {
+  if (!token) throw new SignedOut();
+  const headers = { Authorization: `Bearer ${token}` };
+  if (body !== undefined) headers["Content-Type"] = "application/json";
+  const response = await fetch(path, {
+    method,
+    headers,
+    body: body === undefined ? undefined : JSON.stringify(body),
+  });
+  if (response.status === 401 || response.status === 403) {
+    const data = await response.json().catch(() => null);
+    signOut(describe(data && data.detail) || `HTTP ${response.status}`);
+    throw new SignedOut();
+  }
+  if (!response.ok) {
+    const data = await response.json().catch(() => null);
+    throw new ApiError(response.status, data && data.detail);
+  }
+  const data = response.status === 204 ? null : await response.json();
+  return { status: response.status, data, response };
+}
+
+export const get = (path) => request("GET", path).then((r) => r.data);
+export const post = (path, body) => request("POST", path, body).then((r) => r.data);
+
+/** A file from an authenticated endpoint, saved by the browser (a plain link sends no token). */
+export async function download(path, fallbackName) {
+  if (!token) throw new SignedOut();
+  const response = await fetch(path, { headers: { Authorization: `Bearer ${token}` } });
+  if (!response.ok) {
+    const data = await response.json().catch(() => null);
+    throw new ApiError(response.status, data && data.detail);
+  }
+  const disposition = response.headers.get("content-disposition") || "";
+  const name = /filename="?([^";]+)"?/.exec(disposition)?.[1] || fallbackName;
+  const url = URL.createObjectURL(await response.blob());
+  const link = Object.assign(document.createElement("a"), { href: url, download: name });
+  document.body.append(link);
+  link.click();
+  link.remove();
+  setTimeout(() => URL.revokeObjectURL(url), 10_000);
+}
+
+/** An API error body as text: a string as it is; FastAPI's 422 list as "field: message" lines. */
+export function describe(detail) {
+  if (detail == null) return "";
+  if (typeof detail === "string") return detail;
+  if (Array.isArray(detail)) {
+    return detail
+      .map((e) => {
+        const where = (e.loc || []).filter((part) => part !== "body").join(".");
+        return where ? `${where}: ${e.msg}` : e.msg;
+      })
+      .join("\n");
+  }
+  return JSON.stringify(detail);
+}

@@ -1,0 +1,343 @@
+// The labeller's page: two clips side by side driven by one clock, answered by button or key.
+//
+// The next pair is leased and loaded (hidden) while the current one is shown (`ahead_of`), and
+// swapped in the moment an answer is given; the answer is sent after the swap. With nothing to
+// label the page polls until the trainer pushes work. API calls run one at a time, in order, so
+// an answer is stored before the next preload asks the server what this labeller holds.
+
+import { SignedOut, request, start } from "./api.js";
+
+const KEYS = {
+  ArrowLeft: "left", 1: "left",
+  ArrowRight: "right", 2: "right",
+  ArrowUp: "equal", 3: "equal",
+  ArrowDown: "cant_tell", 4: "cant_tell",
+  s: "skip", S: "skip", 5: "skip",
+};
+const POLL_MS = 2000; // nothing to label, or nothing preloaded yet: ask again this often
+const RENEW_MS = 30_000; // both pairs in hand: renew their leases (120 s) this often
+const RETRY_MS = 5000; // after a failed request
+const SEEK_S = 0.3; // a clip this far off the clock is seeked; nearer, its rate is nudged
+const END_HOLD_S = 0.3; // both clips hold their last frame this long before looping
+const MAX_TICK_S = 0.1; // a long frame (a background tab) does not make the clock jump
+
+const $ = (id) => document.getElementById(id);
+const runId = new URLSearchParams(location.search).get("run");
+
+const state = {
+  current: null, // the Pair on screen
+  next: null, // the preloaded Pair, hidden
+  submitting: false,
+  timer: null,
+  chain: Promise.resolve(),
+  session: 0,
+  total: null,
+  clockOffsetMs: 0,
+};
+const clock = { t: 0, passes: 0, last: performance.now() };
+
+/** One query's two clips, in a hidden element until shown. */
+class Pair {
+  constructor(query) {
+    this.query = query;
+    this.shownAt = null;
+    this.broken = false;
+    this.root = $("pair-template").content.firstElementChild.cloneNode(true);
+    this.root.hidden = true;
+    this.root.dataset.queryId = query.query_id;
+    this.root.dataset.leftIsFirst = query.left_is_first;
+    this.videos = [...this.root.querySelectorAll("video")];
+    const urls = [query.left_clip_url, query.right_clip_url];
+    this.videos.forEach((video, i) => {
+      video.muted = true; // muted clips may play without a click
+      video.addEventListener("error", () => this.failed());
+      video.src = urls[i];
+      video.load(); // start fetching now, even while hidden
+    });
+    $("pairs").append(this.root);
+  }
+
+  failed() {
+    this.broken = true;
+    if (this === state.current) {
+      notice("A clip could not be loaded: answer “Can’t tell” or “Skip” to move on.", "error");
+      updateButtons();
+    }
+  }
+
+  remove() {
+    for (const video of this.videos) {
+      video.pause();
+      video.removeAttribute("src");
+      video.load(); // frees the decoder
+    }
+    this.root.remove();
+  }
+}
+
+// ---- the clock: one master time for both clips ----------------------------------------------
+
+function playable(video) {
+  const atEnd = video.currentTime >= video.duration - 0.05;
+  return !video.seeking && (video.readyState >= 3 || (video.readyState >= 2 && atEnd));
+}
+
+function tick(now) {
+  const dt = Math.min((now - clock.last) / 1000, MAX_TICK_S);
+  clock.last = now;
+  if (state.current) advance(state.current, dt);
+  requestAnimationFrame(tick);
+}
+
+/** Moves the clock while both clips can play, and keeps each clip on it. */
+function advance(pair, dt) {
+  const videos = pair.videos;
+  const length = Math.max(...videos.map((v) => v.duration)); // NaN until both have metadata
+  if (!(length > 0) || !videos.every(playable)) {
+    videos.forEach((v) => v.pause()); // the clock waits for the slower clip
+    return;
+  }
+  pair.shownAt ??= serverNow(); // first frame on screen: the answer time starts here
+  clock.t += dt;
+  if (clock.t >= length + END_HOLD_S) {
+    if (videos.every((v) => v.ended || v.currentTime >= v.duration - 0.1)) clock.passes += 1;
+    clock.t = 0;
+    updateButtons();
+  }
+  for (const video of videos) {
+    const target = Math.min(clock.t, video.duration);
+    const drift = video.currentTime - target;
+    if (video.paused || Math.abs(drift) > SEEK_S) {
+      if (Math.abs(drift) > 0.04) video.currentTime = target;
+      video.playbackRate = 1;
+    } else {
+      video.playbackRate = Math.min(1.5, Math.max(0.5, 1 - 2 * drift)); // catch up smoothly
+    }
+    if (video.paused && target < video.duration - 0.04) video.play().catch(() => {});
+  }
+  $("clock-bar").style.width = `${Math.min(100, (100 * clock.t) / length)}%`;
+}
+
+function replay() {
+  clock.t = 0;
+  for (const video of state.current?.videos || []) video.currentTime = 0;
+}
+
+// ---- what is on screen ----------------------------------------------------------------------
+
+function show(pair) {
+  if (state.current && state.current !== pair) state.current.remove();
+  state.current = pair;
+  pair.root.hidden = false;
+  clock.t = 0;
+  clock.passes = 0;
+  $("pair-id").textContent = `${pair.query.query_id} · run ${pair.query.run_id}`;
+  $("waiting").hidden = true;
+  $("stage").hidden = false;
+  updateButtons();
+  if (pair.broken) pair.failed();
+}
+
+function showWaiting() {
+  state.current?.remove();
+  state.current = null;
+  $("stage").hidden = true;
+  $("waiting").hidden = false;
+}
+
+function updateButtons() {
+  const pair = state.current;
+  const watched = clock.passes >= 1;
+  for (const button of document.querySelectorAll("[data-choice]")) {
+    const escape = pair?.broken && ["cant_tell", "skip"].includes(button.dataset.choice);
+    button.disabled = !pair || state.submitting || !(watched || escape);
+  }
+  $("watch-hint").hidden = watched;
+}
+
+function showCounts() {
+  $("count-session").textContent = state.session;
+  $("count-total").textContent = state.total ?? "–";
+}
+
+function notice(message, kind = "info") {
+  const box = $("notice");
+  box.textContent = message;
+  box.className = `notice ${kind}`;
+  box.hidden = false;
+  clearTimeout(notice.timer);
+  notice.timer = setTimeout(() => (box.hidden = true), 5000);
+}
+
+// ---- talking to the API, one call at a time -------------------------------------------------
+
+function serial(task) {
+  const run = state.chain.then(task);
+  state.chain = run.catch(() => {});
+  return run;
+}
+
+/** Runs `task` in turn; a failure is shown and retried, a refused token stops everything. */
+async function attempt(task) {
+  try {
+    await task();
+  } catch (error) {
+    if (error instanceof SignedOut) {
+      clearTimeout(state.timer);
+      state.next?.remove();
+      state.current?.remove();
+      state.current = state.next = null;
+      return;
+    }
+    notice(`${error.message} (retrying)`, "error");
+    schedule(task, RETRY_MS);
+  }
+}
+
+function schedule(task, ms) {
+  clearTimeout(state.timer);
+  state.timer = setTimeout(() => serial(() => attempt(task)), ms);
+}
+
+/** The browser's clock corrected by the server's (Date header, whole seconds), when far off:
+ * shown_at is compared with the server's answered_at. */
+function serverNow() {
+  return new Date(Date.now() + state.clockOffsetMs);
+}
+
+function noteServerClock(response) {
+  const server = Date.parse(response.headers.get("date"));
+  if (Number.isNaN(server)) return;
+  const offset = server - Date.now();
+  state.clockOffsetMs = Math.abs(offset) > 5000 ? offset : 0;
+}
+
+async function fetchNext(aheadOf) {
+  const params = new URLSearchParams();
+  if (runId) params.set("run_id", runId);
+  if (aheadOf != null) params.set("ahead_of", aheadOf);
+  const { data, response } = await request("GET", `/api/label/next?${params}`);
+  noteServerClock(response);
+  return data; // null: nothing to label (204)
+}
+
+/** Nothing on screen: lease a pair and show it, or wait and ask again. */
+async function loadCurrent() {
+  const query = await fetchNext(null);
+  if (!query) {
+    showWaiting();
+    schedule(loadCurrent, POLL_MS);
+    return;
+  }
+  show(new Pair(query));
+  await preload();
+}
+
+/** A pair on screen: keep its lease and lease (or renew) the next one, loaded hidden. */
+async function preload() {
+  const shown = state.current;
+  if (!shown || state.submitting) return; // the answer's task preloads after it is stored
+  const query = await fetchNext(shown.query.query_id);
+  if (state.current !== shown || state.submitting) return; // answered meanwhile: stale
+  if (query?.query_id !== state.next?.query.query_id) {
+    state.next?.remove();
+    state.next = query && query.query_id !== shown.query.query_id ? new Pair(query) : null;
+  }
+  schedule(preload, state.next ? RENEW_MS : POLL_MS);
+}
+
+function answer(choice) {
+  const done = state.current;
+  const button = document.querySelector(`[data-choice="${choice}"]`);
+  if (!done || button.disabled) return;
+  state.submitting = true;
+  clearTimeout(state.timer);
+  const body = {
+    choice,
+    left_is_first: done.query.left_is_first,
+    shown_at: (done.shownAt ?? serverNow()).toISOString(),
+  };
+  if (state.next) {
+    show(state.next); // at once; the answer is sent below
+    state.next = null;
+  }
+  updateButtons();
+  serial(() => attempt(async () => {
+    try {
+      await submit(done.query.query_id, body);
+    } finally {
+      state.submitting = false;
+    }
+    if (state.current === done) await loadCurrent(); // nothing was preloaded
+    else {
+      updateButtons();
+      await preload();
+    }
+  }));
+}
+
+async function submit(queryId, body) {
+  try {
+    const { status } = await request("POST", `/api/label/${queryId}`, body);
+    if (status === 201) {
+      state.session += 1;
+      if (state.total != null) state.total += 1;
+      showCounts();
+    }
+  } catch (error) {
+    if (error instanceof SignedOut) throw error;
+    if (error.status === 409) notice("That pair was no longer yours (its lease ran out): moving on.");
+    else notice(`Your answer could not be saved: ${error.message}`, "error");
+  }
+}
+
+/** The caller's labels over all runs, once; later answers are added as they are stored. */
+async function loadCount() {
+  const { data } = await request("GET", "/api/label/count");
+  state.total = data.labels;
+  showCounts();
+}
+
+// ---- input ----------------------------------------------------------------------------------
+
+function onKey(event) {
+  if (event.repeat || event.ctrlKey || event.metaKey || event.altKey) return;
+  if (event.target.closest?.("input, textarea, select")) return;
+  if (event.key === "r" || event.key === "R") {
+    event.preventDefault();
+    replay();
+    return;
+  }
+  const choice = KEYS[event.key];
+  if (!choice) return;
+  event.preventDefault(); // arrows would scroll
+  const button = document.querySelector(`[data-choice="${choice}"]`);
+  button.classList.add("pressed");
+  setTimeout(() => button.classList.remove("pressed"), 150);
+  answer(choice);
+}
+
+start(() => {
+  if (runId !== null && !/^\d+$/.test(runId)) {
+    notice(`“?run=${runId}” is not a run id.`, "error");
+    return;
+  }
+  if (runId) {
+    $("scope").innerHTML = `Run ${runId} only · <a href="/label">all runs</a>`;
+  }
+  for (const button of document.querySelectorAll("[data-choice]")) {
+    button.addEventListener("click", () => {
+      button.blur(); // so Space or Enter cannot answer the next pair by accident
+      answer(button.dataset.choice);
+    });
+  }
+  $("replay").addEventListener("click", (event) => {
+    event.currentTarget.blur();
+    replay();
+  });
+  document.addEventListener("keydown", onKey);
+  requestAnimationFrame(tick);
+  showCounts();
+  serial(() => loadCount().catch(() => {})); // a nicety: "–" if it fails
+  schedule(loadCurrent, 0);
+});

@@ -1,0 +1,179 @@
+// One run: status and controls, teacher switch, label export, learning curves and label
+// throughput; all of it refreshed every 5 s while the tab is visible.
+
+import { SignedOut, download, get, post, request, start } from "./api.js";
+import { drawChart } from "./chart.js";
+import { ago, el, notify, num, poller, runActions } from "./dom.js";
+
+const runId = Number(document.body.dataset.runId);
+// Throughput buckets: the smallest of these that cuts the run's lifetime into at most 120 bars.
+const BUCKETS_S = [60, 300, 900, 3600, 3 * 3600, 6 * 3600, 86_400];
+const MIN_SPAN_MS = 30 * 60_000; // the throughput chart shows at least the last half hour
+
+const refresh = poller(async () => {
+  try {
+    const run = await get(`/api/runs/${runId}`);
+    const bucket = bucketFor(run);
+    const [episodes, evals, rounds, throughput] = await Promise.all([
+      get(`/api/runs/${runId}/metrics?stream=episodes`),
+      get(`/api/runs/${runId}/metrics?stream=eval`),
+      get(`/api/runs/${runId}/metrics?stream=rounds`),
+      get(`/api/runs/${runId}/throughput?bucket_s=${bucket}`),
+    ]);
+    document.getElementById("loading").hidden = true;
+    document.getElementById("run-body").hidden = false; // before drawing: charts fit its width
+    showRun(run);
+    drawCurves(run, episodes, evals, rounds);
+    drawThroughput(throughput, run);
+    document.getElementById("updated").textContent =
+      `updated ${new Date().toLocaleTimeString()}`;
+  } catch (error) {
+    if (error instanceof SignedOut) return false;
+    if (error.status === 404) {
+      document.getElementById("loading").hidden = true;
+      notify(`${error.message}.`, "error", 3600);
+      return false; // no such run: nothing to refresh
+    }
+    notify(`Could not refresh: ${error.message}`, "error");
+  }
+  return true;
+}, 5000);
+
+function bucketFor(run) {
+  const spanS = (Date.now() - Date.parse(run.created_at)) / 1000;
+  return BUCKETS_S.find((b) => spanS / b <= 120) ?? BUCKETS_S.at(-1);
+}
+
+function showRun(run) {
+  document.title = `${run.name} · S-EPOA`;
+  document.getElementById("run-title").textContent = `${run.id} · ${run.name}`;
+  const badge = document.getElementById("run-status");
+  badge.textContent = run.status;
+  badge.className = `badge ${run.status}`;
+  const facts = [
+    ["Task", run.task], ["Algorithm", run.algo], ["Preset", run.preset], ["Seed", run.seed],
+    ["Teacher", run.teacher + (run.teacher_params?.eps != null ? ` (ε=${run.teacher_params.eps})` : "")],
+    ["Step", num(run.step)], ["Labels", `${num(run.labels_used)} / ${num(run.budget)}`],
+    ["Last return", `${num(run.progress?.last_return, 4)} (episode) · `
+      + `${num(run.progress?.eval_return, 4)} (evaluation)`],
+    ["Round", num(run.progress?.round)],
+    ["Worker", run.worker_id || "–"], ["Heartbeat", ago(run.heartbeat_at)],
+    ["Created", ago(run.created_at)], ["Finished", ago(run.finished_at)],
+  ];
+  document.getElementById("run-facts").replaceChildren(
+    ...facts.flatMap(([name, value]) => [el("dt", {}, name), el("dd", {}, String(value))]));
+  const error = document.getElementById("run-error");
+  error.textContent = run.error || "";
+  error.hidden = !run.error;
+  document.getElementById("controls").replaceChildren(
+    ...runActions(run.status).map(([label, action, ask]) => el("button", {
+      type: "button",
+      onclick: () => control(run, label, action, ask),
+    }, label)));
+  const form = document.getElementById("teacher-form");
+  if (!form.contains(document.activeElement)) { // leave what the operator is typing alone
+    form.elements.teacher.value = run.teacher;
+    form.elements.eps.value = run.teacher_params?.eps ?? "";
+  }
+}
+
+async function control(run, label, action, ask) {
+  if (ask && !confirm(`${label} run ${run.id} (${run.name})?`)) return;
+  try {
+    await post(`/api/runs/${run.id}/${action}`);
+    notify(`${label}: done.`);
+  } catch (error) {
+    if (!(error instanceof SignedOut)) notify(`${label}: ${error.message}`, "error");
+  }
+  refresh();
+}
+
+async function switchTeacher(event) {
+  event.preventDefault();
+  const form = event.target;
+  const eps = form.elements.eps.value.trim();
+  const body = { teacher: form.elements.teacher.value, params: eps === "" ? {} : { eps: Number(eps) } };
+  try {
+    await request("PUT", `/api/runs/${runId}/teacher`, body);
+    notify(`Teacher: ${body.teacher}${eps === "" ? "" : ` (ε=${eps})`}.`);
+    document.activeElement.blur();
+  } catch (error) {
+    if (!(error instanceof SignedOut)) notify(`Teacher: ${error.message}`, "error");
+  }
+  refresh();
+}
+
+async function exportLabels(format) {
+  try {
+    await download(`/api/export?format=${format}&run_id=${runId}`, `run-${runId}-labels.${format}`);
+  } catch (error) {
+    if (!(error instanceof SignedOut)) notify(`Export (${format}): ${error.message}`, "error");
+  }
+}
+
+/** [[x, y]] of one metric key; x is the step, or the round number for per-round series. */
+const points = (rows, key, x = (row) => row.step) =>
+  rows.map((row, i) => [x(row, i), row.values[key]]).filter(([, y]) => typeof y === "number");
+const roundOf = (row, i) => row.values.round ?? i;
+
+function drawCurves(run, episodes, evals, rounds) {
+  const chart = (id) => document.getElementById(id);
+  drawChart(chart("chart-return"), {
+    title: "True return", xLabel: "step", yLabel: "return",
+    series: [
+      { name: "evaluation", points: points(evals, "return") },
+      { name: "training episodes", points: points(episodes, "return"), width: 1 },
+    ],
+  });
+  const used = new Map();
+  for (const row of [...episodes, ...evals, ...rounds]) {
+    if (typeof row.values.labels_used === "number") used.set(row.step, row.values.labels_used);
+  }
+  const usedPoints = [...used].sort((a, b) => a[0] - b[0]);
+  const steps = usedPoints.map(([x]) => x);
+  drawChart(chart("chart-labels"), {
+    title: "Labels used", xLabel: "step", yLabel: "labels", yMin: 0,
+    series: [
+      { name: "labels used", points: usedPoints },
+      { name: "budget", color: "#adb5bd", width: 1, points: steps.length
+        ? [[Math.min(...steps), run.budget], [Math.max(...steps), run.budget]] : [] },
+    ],
+  });
+  drawChart(chart("chart-distinguishable"), {
+    title: "Distinguishable pairs per round", xLabel: "round", yLabel: "ratio", yMin: 0, yMax: 1,
+    series: [{ name: "", points: points(rounds, "distinguishable_ratio", roundOf) }],
+  });
+  drawChart(chart("chart-agreement"), {
+    title: "Agreement per round", xLabel: "round", yLabel: "fraction", yMin: 0, yMax: 1,
+    series: [
+      { name: "reward model vs shadow label", points: points(rounds, "model_agreement", roundOf) },
+      { name: "given labels vs shadow label", points: points(rounds, "shadow_agreement", roundOf) },
+      { name: "teacher vs ground truth", points: points(rounds, "teacher_accuracy", roundOf) },
+    ],
+  });
+}
+
+function drawThroughput(stats, run) {
+  const sources = Object.entries(stats.by_source).filter(([, n]) => n > 0)
+    .map(([source, n]) => `${num(n)} ${source}`).join(", ");
+  const median = stats.median_answer_s == null ? "–" : `${num(stats.median_answer_s, 3)} s`;
+  const bars = stats.buckets.map((b) => [Date.parse(b.t), (b.labels * 60) / stats.bucket_s]);
+  const end = run.finished_at ? Date.parse(run.finished_at) : Date.now();
+  drawChart(document.getElementById("chart-throughput"), {
+    title: "Label throughput",
+    note: `${num(stats.total)} label${stats.total === 1 ? "" : "s"}${sources ? ` (${sources})` : ""}`
+      + ` · median answer time ${median} · ${stats.bucket_s / 60}-minute bars`,
+    xLabel: "time", yLabel: "labels / min", time: true,
+    xMin: Math.min(end - MIN_SPAN_MS, ...bars.map(([t]) => t)),
+    xMax: Math.max(end, ...bars.map(([t]) => t + stats.bucket_s * 1000)),
+    series: [{ name: "", kind: "bars", barWidth: stats.bucket_s * 1000, points: bars }],
+  });
+}
+
+start(() => {
+  document.getElementById("teacher-form").addEventListener("submit", switchTeacher);
+  for (const button of document.querySelectorAll("[data-export]")) {
+    button.addEventListener("click", () => exportLabels(button.dataset.export));
+  }
+  refresh();
+});
