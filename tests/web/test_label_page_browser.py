@@ -4,11 +4,13 @@ is waited on without a reload, and a refused token brings back the sign-in form.
 
 from __future__ import annotations
 
+import json
 import time
 from datetime import timedelta
 from typing import Any
 
-from web_helpers import SECRET_RETURNS, LiveServer
+import httpx
+from web_helpers import OPERATOR_TOKEN, SECRET_RETURNS, LiveServer
 
 from labelqueue import Label, labels_for_queries
 from server import clips
@@ -98,6 +100,12 @@ def test_a_labeller_watches_both_clips_and_answers_with_the_keyboard(
     assert timedelta(seconds=1) < label.answered_at - label.shown_at < timedelta(seconds=30)
     page.wait_for_function("document.querySelector('#count-session').textContent === '1'")
     assert page.text_content("#count-total") == "1"
+    # The operator's export lists the answer as given, with the sides it was shown on.
+    exported = httpx.get(f"{live.url}/api/export?format=jsonl&run_id={run_id}",
+                         headers={"Authorization": f"Bearer {OPERATOR_TOKEN}"})
+    [row] = [json.loads(line) for line in exported.text.splitlines()]
+    assert (row["query_id"], row["labeller_name"], row["choice"]) == (first, "alice", "left")
+    assert row["left_segment"] == ("first" if left_is_first else "second")
 
     # The pair after that is preloaded in turn; the first one is gone from the page.
     page.wait_for_selector(f'{PRELOADED}[data-query-id="{third}"]', state="attached")
