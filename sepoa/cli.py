@@ -83,25 +83,39 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import DBAPIError
+
     from labelqueue import NotFound, make_engine, session_factory
     from labelqueue.export import write_export
 
-    engine = make_engine(_database_url(args))
+    url = _database_url(args)
+    parsed = make_url(url)
+    if parsed.get_backend_name() == "sqlite" and not os.path.exists(parsed.database or ""):
+        print(f"error: no queue database at {parsed.database} (--data-dir / --database-url)",
+              file=sys.stderr)
+        return 2
+    engine = make_engine(url)
+    tmp = f"{args.out}.partial"
     try:
         with session_factory(engine)() as session:
             if args.out == "-":
                 rows = write_export(session, fmt=args.format, out=sys.stdout.buffer,
                                     run_id=args.run)
             else:
-                tmp = f"{args.out}.partial"
                 with open(tmp, "wb") as f:
                     rows = write_export(session, fmt=args.format, out=f, run_id=args.run)
                 os.replace(tmp, args.out)
     except NotFound as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    except DBAPIError as err:
+        print(f"error: cannot read labels from {url}: {err.orig}", file=sys.stderr)
+        return 2
     finally:
         engine.dispose()
+        if os.path.exists(tmp):
+            os.remove(tmp)
     print(f"{rows} labels exported", file=sys.stderr)
     return 0
 
