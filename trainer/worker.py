@@ -317,6 +317,7 @@ def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerC
         print(f"{log}: {'resuming' if resume else 'starting'} {run.task} {run.algo} "
               f"in {cfg.run_dir}", file=sys.stderr, flush=True)
         training = TrainingRun(cfg, resume=resume, progress=False, hooks=hooks)
+        hooks.step = training.step  # a resumed run reports its step before taking one
         summary = training.train()
         hooks.beat(int(summary["step"]), force=True)  # the final step and progress, on record
     except LostRun as err:
