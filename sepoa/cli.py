@@ -5,6 +5,7 @@ the others import only the server or the queue package, so they start fast.
     sepoa serve --port 8000           # the web server only (settings from SEPOA_* variables)
     sepoa worker                      # a trainer worker only
     sepoa train --task dmc:cheetah_run --algo pebble --preset small   # one run, no server
+    sepoa pretrain --task dmc:cheetah_run --skills aps --preset small # skill snapshot
     sepoa export --format parquet --run 3 --out labels.parquet
     sepoa labeller create alice [--role operator]
     sepoa tasks | presets
@@ -18,6 +19,7 @@ import sys
 
 TRAINER_COMMANDS = {
     "train": "train one run standalone, answered by a scripted teacher",
+    "pretrain": "pretrain skills (APS, DIAYN, CIC) for a task; writes a reusable snapshot",
     "worker": "train the runs queued in the queue database",
     "tasks": "list valid task names",
     "presets": "print the presets",

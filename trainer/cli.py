@@ -3,6 +3,8 @@
     sepoa train --task dmc:cheetah_run --algo pebble --teacher noisy --eps 0.3 \
                 --preset small --seed 0 --steps 100000
     sepoa train --run-dir runs/x --resume          # continue a killed run where it stopped
+    sepoa pretrain --task dmc:cheetah_run --skills aps --preset small --seed 0
+                                                   # skill pretraining -> snapshots/*.pt
     sepoa worker --database-url sqlite:///data/queue.db --data-dir data
                                                    # train runs queued in the database
     sepoa tasks                                    # list valid task names
@@ -32,6 +34,45 @@ def _train_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_config_arguments(p)
     return p
+
+
+def _pretrain_parser(sub) -> argparse.ArgumentParser:
+    from trainer.config import add_config_arguments
+
+    p = sub.add_parser("pretrain", help="unsupervised skill pretraining; writes a snapshot",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--task", default=None, help="dmc:<domain>_<task> or metaworld:<name>")
+    p.add_argument("--preset", default=None, help="paper | small | tiny")
+    p.add_argument("--steps", dest="skill.pretrain_steps", default=None,
+                   type=lambda s: int(float(s)), help="pretraining environment steps")
+    p.add_argument("--out", default=None, help="snapshot file; default "
+                   "<skill.snapshot_dir>/<task>-<backend>-<steps>-s<seed>.pt")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    # --steps is the pretraining length here, not the online run's.
+    add_config_arguments(p, exclude=("steps",))
+    return p
+
+
+def _run_pretrain(args: argparse.Namespace) -> int:
+    import time
+
+    from trainer.config import build_config, overrides_from_args
+    from trainer.envs import UnknownTaskError
+    from trainer.skills.pretrain import pretrain
+
+    start = time.time()
+    try:
+        cfg = build_config(args.task or "dmc:cheetah_run", args.preset or "paper",
+                           overrides_from_args(args))
+        path = pretrain(cfg, out=args.out, progress=not args.no_progress)
+    except (ValueError, UnknownTaskError, FileExistsError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    seconds = time.time() - start
+    steps = cfg.skill.pretrain_steps
+    print(json.dumps({"snapshot": path, "steps": steps, "seconds": round(seconds, 1),
+                      "steps_per_second": round(steps / max(seconds, 1e-9), 1)}))
+    return 0
 
 
 def _worker_parser(sub) -> argparse.ArgumentParser:
@@ -117,6 +158,7 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     _train_parser(sub)
+    _pretrain_parser(sub)
     _worker_parser(sub)
     sub.add_parser("tasks", help="list valid task names")
     sub.add_parser("presets", help="print the presets")
@@ -136,6 +178,8 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.command == "worker":
         return _run_worker(args)
+    if args.command == "pretrain":
+        return _run_pretrain(args)
 
     from trainer.envs import UnknownTaskError
     from trainer.loop import TrainingRun

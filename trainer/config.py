@@ -115,6 +115,42 @@ class FeedbackConfig:
 
 
 @dataclass(frozen=True)
+class SkillConfig:
+    """Unsupervised skill discovery (S-EPOA's pretraining); defaults are the paper's APS."""
+
+    backend: str = "aps"
+    """aps | diayn | cic"""
+    skill_dim: int = 0
+    """skill vector size; 0 = the backend's own (APS 10, DIAYN 16, CIC 64)"""
+    update_skill_every: int = 0
+    """pretraining: steps between fresh skills; 0 = the backend's own (APS 5, DIAYN/CIC 50)"""
+    pretrain_steps: int = 500_000
+    """environment steps of pretraining (the paper: 500 k, 1 M for quadruped and door-open)"""
+    seed_steps: int = 4000
+    """pretraining: uniformly random actions at the start (URLB's seed frames)"""
+    update_every: int = 2
+    """pretraining: environment steps per SAC and skill-net update (URLB: 2)"""
+    lr: float = 1e-4
+    """pretraining: Adam learning rate of SAC and the skill nets (fine-tuning uses sac.lr)"""
+    hidden_dim: int = 1024
+    """width of the skill nets' hidden layers (APS features, DIAYN discriminator, CIC nets)"""
+    hidden_layers: int = 2
+    """hidden layers of each skill net"""
+    beta: float = 5.0
+    """APS: weight of the particle-entropy term of the intrinsic reward"""
+    knn_k: int = 12
+    """APS and CIC: neighbours of the kNN particle entropy, over the batch"""
+    knn_clip: float = 1e-4
+    """APS and CIC: subtracted from the mean-normalised kNN distances, floored at 0 (URLB)"""
+    temperature: float = 0.5
+    """CIC: temperature of the contrastive (InfoNCE) logits"""
+    snapshot_dir: str = "snapshots"
+    """where `sepoa pretrain` writes <task>-<backend>-<steps>-s<seed>.pt by default"""
+    snapshot: str = ""
+    """online S-EPOA: the snapshot to start from; empty = the default name in snapshot_dir"""
+
+
+@dataclass(frozen=True)
 class RunConfig:
     """One training run: environment, algorithm, schedule, teacher, logging."""
 
@@ -156,6 +192,7 @@ class RunConfig:
     reward: RewardConfig = field(default_factory=RewardConfig)
     feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
     teacher: TeacherConfig = field(default_factory=TeacherConfig)
+    skill: SkillConfig = field(default_factory=SkillConfig)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -178,8 +215,11 @@ FAMILY_PRESETS: dict[str, dict[str, Any]] = {
 TASK_PRESETS: dict[str, dict[str, Any]] = {
     "dmc:cheetah_run": {"feedback.budget": 1000, "feedback.per_round": 100},
     "dmc:walker_run": {"feedback.budget": 1000, "feedback.per_round": 100},
-    "dmc:quadruped_walk": {"feedback.budget": 2000, "feedback.per_round": 200},
-    "dmc:quadruped_run": {"feedback.budget": 2000, "feedback.per_round": 200},
+    "dmc:quadruped_walk": {"feedback.budget": 2000, "feedback.per_round": 200,
+                           "skill.pretrain_steps": 1_000_000},
+    "dmc:quadruped_run": {"feedback.budget": 2000, "feedback.per_round": 200,
+                          "skill.pretrain_steps": 1_000_000},
+    "metaworld:door-open": {"skill.pretrain_steps": 1_000_000},
 }
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -196,6 +236,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         "eval_every": 10_000,
         "eval_episodes": 5,
         "checkpoint_every": 20_000,
+        "skill.hidden_dim": 256,
+        "skill.pretrain_steps": 200_000,  # APS: ~15 min at ~230 steps/s on 2 CPU cores
+        "skill.seed_steps": 2000,
     },
     # For tests and smoke runs: seconds, not minutes. Learns nothing useful.
     "tiny": {
@@ -217,6 +260,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         "eval_episodes": 1,
         "checkpoint_every": 400,
         "episode_length": 200,
+        "skill.hidden_dim": 32,
+        "skill.pretrain_steps": 300,
+        "skill.seed_steps": 100,
     },
 }
 
@@ -317,6 +363,7 @@ ALIASES = {
     "budget": "feedback.budget",
     "per-round": "feedback.per_round",
     "feedback-every": "feedback.every",
+    "skills": "skill.backend",
 }
 
 
@@ -356,9 +403,11 @@ def _parse_value(t: Any, text: str) -> Any:
     return text
 
 
-def add_config_arguments(parser: argparse.ArgumentParser) -> None:
+def add_config_arguments(parser: argparse.ArgumentParser,
+                         exclude: tuple[str, ...] = ()) -> None:
+    """A flag per leaf field but task, preset and `exclude` (which a command defines itself)."""
     for path, t, doc in _leaf_fields(RunConfig):
-        if path in ("task", "preset"):
+        if path in ("task", "preset", *exclude):
             continue
         names = [f"--{path}"] + [f"--{a}" for a, p in ALIASES.items() if p == path]
         if "_" in path:

@@ -8,6 +8,7 @@ algorithm as the reference implementations, with less overhead per step.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -77,15 +78,24 @@ def _adam(params, cfg: SACConfig, device: torch.device) -> torch.optim.Adam:
     return torch.optim.Adam(params, lr=cfg.lr, betas=cfg.betas, fused=fused)
 
 
-class SAC:
-    """Actor, twin critics, target critics and a learned temperature, updated by `update`."""
+CriticFactory = Callable[[int, int, SACConfig], nn.Module]
 
-    def __init__(self, obs_dim: int, action_dim: int, cfg: SACConfig, device: torch.device):
+
+class SAC:
+    """Actor, twin critics, target critics and a learned temperature, updated by `update`.
+
+    `critic_factory(obs_dim, action_dim, cfg)` swaps in another critic whose forward has
+    `Critic`'s signature and output shape (2, batch, 1): APS's successor-feature critic.
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int, cfg: SACConfig, device: torch.device,
+                 critic_factory: CriticFactory = Critic):
         self.cfg, self.device = cfg, device
         self.obs_dim, self.action_dim = obs_dim, action_dim
+        self.critic_factory = critic_factory
         self.actor = Actor(obs_dim, action_dim, cfg).to(device)
-        self.critic = Critic(obs_dim, action_dim, cfg).to(device)
-        self.critic_target = Critic(obs_dim, action_dim, cfg).to(device)
+        self.critic = critic_factory(obs_dim, action_dim, cfg).to(device)
+        self.critic_target = critic_factory(obs_dim, action_dim, cfg).to(device)
         self.critic_target.load_state_dict(self.critic.state_dict())
         self.critic_target.requires_grad_(False)
         self.log_alpha = torch.tensor(math.log(cfg.init_temperature), device=device)
@@ -172,7 +182,7 @@ class SAC:
     def reset_critic(self) -> None:
         """PEBBLE's critic reset after unsupervised pretraining: fresh critic, target and
         optimiser."""
-        fresh = Critic(self.obs_dim, self.action_dim, self.cfg).to(self.device)
+        fresh = self.critic_factory(self.obs_dim, self.action_dim, self.cfg).to(self.device)
         self.critic.load_state_dict(fresh.state_dict())
         self.critic_target.load_state_dict(fresh.state_dict())
         self.critic_opt = _adam(self.critic.parameters(), self.cfg, self.device)

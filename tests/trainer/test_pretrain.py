@@ -1,0 +1,143 @@
+"""Skill pretraining and its snapshots: `sepoa pretrain` as a user runs it, and what an online
+S-EPOA run gets back from a snapshot."""
+
+import csv
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from trainer.config import build_config
+from trainer.skills.pretrain import (
+    SkillPretraining,
+    build_skill_agent,
+    default_snapshot_path,
+    load_snapshot,
+    snapshot_path,
+)
+
+CPU = torch.device("cpu")
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+def _tiny(backend: str = "aps", **overrides):
+    return build_config("dmc:cheetah_run", "tiny",
+                        {"skill.backend": backend, "threads": 1, **overrides})
+
+
+def test_cli_pretrain_writes_a_plain_snapshot_with_its_metrics(tmp_path):
+    env = os.environ | {"PYTHONPATH": REPO, "MUJOCO_GL": "egl"}
+    out = subprocess.run(
+        [sys.executable, "-m", "sepoa.cli", "pretrain", "--task", "dmc:cheetah_run", "--skills",
+         "aps", "--preset", "tiny", "--seed", "0", "--threads", "1", "--no-progress"],
+        capture_output=True, text=True, timeout=300, cwd=tmp_path, env=env)
+    assert out.returncode == 0, out.stderr
+    summary = json.loads(out.stdout.strip().splitlines()[-1])
+    # the default place and name: task, backend, steps and seed, relative to where it ran
+    assert summary["snapshot"] == os.path.join("snapshots", "dmc-cheetah_run-aps-300-s0.pt")
+    path = tmp_path / summary["snapshot"]
+    state = torch.load(path, weights_only=True)  # plain data: no pickled objects
+    assert state["task"] == "dmc:cheetah_run" and state["backend"] == "aps"
+    assert state["skill_dim"] == 10 and state["steps"] == 300
+    assert state["config"]["skill"]["update_skill_every"] == 5  # resolved, not 0
+    assert str(tmp_path) not in repr(state)  # nothing in it depends on where it was written
+    with open(path.with_suffix(".csv"), newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["step"]) for r in rows] == [200]  # one finished 200-step episode
+    assert float(rows[0]["fps"]) > 0 and rows[0]["intrinsic_reward"] != ""
+    assert rows[0]["aps_loss"] != "" and rows[0]["critic_loss"] != ""
+
+    # a second run with the same arguments does not overwrite the first one's snapshot
+    again = subprocess.run(out.args, capture_output=True, text=True, timeout=300, cwd=tmp_path,
+                           env=env)
+    assert again.returncode == 2 and "exists already" in again.stderr
+
+
+@pytest.mark.parametrize("backend", ["aps", "diayn", "cic"])
+def test_a_snapshot_restores_the_pretrained_agent_exactly(tmp_path, backend):
+    run = SkillPretraining(_tiny(backend), out=str(tmp_path / "s.pt"), progress=False)
+    path = run.run()
+    snap = load_snapshot(path, "dmc:cheetah_run", backend)
+
+    # an online run: another seed, the fine-tuning learning rate, the same widths
+    online = _tiny(backend, seed=7, **{"sac.lr": 5e-4})
+    agent, skills = build_skill_agent(online, run.obs_dim, run.action_dim, CPU, snap)
+    fresh, _ = build_skill_agent(online, run.obs_dim, run.action_dim, CPU, None)
+    rng = np.random.default_rng(0)
+    obs = rng.normal(size=(5, run.obs_dim)).astype(np.float32)
+    z = skills.sample_skills(rng, 5)
+    for o, zi in zip(obs, z, strict=True):
+        restored = agent.act(o, zi, rng, deterministic=True)
+        np.testing.assert_array_equal(restored, run.agent.act(o, zi, rng, deterministic=True))
+        assert not np.allclose(restored, fresh.act(o, zi, rng, deterministic=True))
+    # the critic (and target) come along: the online phase starts from the pretrained Q
+    o, a = torch.from_numpy(obs), torch.zeros(5, run.action_dim)
+    torch.testing.assert_close(agent.q(o, a, torch.from_numpy(z)),
+                               run.agent.q(o, a, torch.from_numpy(z)))
+    assert agent.sac.cfg.lr == 5e-4  # fine-tuning's optimiser, not pretraining's
+    batch = run.buffer.sample(16)
+    torch.testing.assert_close(skills.intrinsic_reward(batch),
+                               run.backend.intrinsic_reward(batch))
+
+
+def test_skills_change_every_few_steps_and_at_each_episode_start(tmp_path):
+    run = SkillPretraining(_tiny("aps", **{"skill.pretrain_steps": 260}),
+                           out=str(tmp_path / "s.pt"), progress=False)
+    run.run()
+    skills = run.buffer.skill[: run.buffer.size].numpy()
+    changes = [t for t in range(1, len(skills)) if not np.array_equal(skills[t], skills[t - 1])]
+    # every 5 steps, and at step 200, where the second 200-step episode starts
+    assert changes == sorted(set(range(5, 260, 5)) | {200})
+    np.testing.assert_allclose(np.linalg.norm(skills, axis=1), 1.0, rtol=1e-5)
+
+
+def test_no_pretraining_is_fresh_nets_and_zero_steps_is_a_valid_snapshot(tmp_path):
+    cfg = _tiny("aps", **{"skill.pretrain_steps": 0})
+    path = SkillPretraining(cfg, out=str(tmp_path / "s.pt"), progress=False).run()
+    snap = load_snapshot(path, "dmc:cheetah_run")
+    assert snap.steps == 0
+    torch.manual_seed(123)
+    agent, backend = build_skill_agent(cfg, 17, 6, CPU)  # the paper's "no pretraining" ablation
+    assert backend.name == "aps" and agent.successor_features and agent.skill_dim == 10
+
+
+def test_load_snapshot_refuses_a_snapshot_of_another_run_with_a_clear_message(tmp_path):
+    path = SkillPretraining(_tiny("diayn", **{"skill.pretrain_steps": 0}),
+                            out=str(tmp_path / "s.pt"), progress=False).run()
+    with pytest.raises(ValueError, match="pretrained on 'dmc:cheetah_run', not on this run's "
+                       "task 'dmc:walker_run'"):
+        load_snapshot(path, "dmc:walker_run")
+    with pytest.raises(ValueError, match="holds 'diayn' skills.*skill.backend 'aps'"):
+        load_snapshot(path, "dmc:cheetah_run", "aps")
+    with pytest.raises(ValueError, match="skills of size 16.*skill_dim 8"):
+        load_snapshot(path, "dmc:cheetah_run", "diayn", 8)
+    with pytest.raises(FileNotFoundError, match="sepoa pretrain --task dmc:cheetah_run"):
+        load_snapshot(str(tmp_path / "missing.pt"), "dmc:cheetah_run")
+    (tmp_path / "junk.pt").write_bytes(b"not a snapshot")
+    with pytest.raises(ValueError, match="not a readable skill snapshot"):
+        load_snapshot(str(tmp_path / "junk.pt"), "dmc:cheetah_run")
+    # nets of another width cannot take the weights: said in the run's own terms
+    snap = load_snapshot(path, "dmc:cheetah_run")
+    wide = _tiny("diayn", **{"sac.hidden_dim": 64})
+    with pytest.raises(ValueError, match="32 wide x 2 layers.*sac.hidden_dim=64"):
+        build_skill_agent(wide, 17, 6, CPU, snap)
+
+
+def test_default_snapshot_name_and_pretraining_presets():
+    cfg = build_config("dmc:quadruped_run", "paper", {"skill.backend": "cic", "seed": 2})
+    assert default_snapshot_path(cfg) == os.path.join(
+        "snapshots", "dmc-quadruped_run-cic-1000000-s2.pt")  # the paper: 1 M for quadruped
+    assert snapshot_path(cfg) == default_snapshot_path(cfg)
+    shared = dataclasses.replace(cfg, skill=dataclasses.replace(cfg.skill, snapshot="x/s0.pt"))
+    assert snapshot_path(shared) == "x/s0.pt"  # any run can name the snapshot it starts from
+    paper = build_config("dmc:cheetah_run", "paper")
+    assert (paper.skill.pretrain_steps, paper.skill.lr, paper.skill.beta,
+            paper.skill.knn_k) == (500_000, 1e-4, 5.0, 12)
+    assert (paper.sac.hidden_dim, paper.sac.batch_size, paper.skill.hidden_dim) == (1024,) * 3
+    small = build_config("dmc:cheetah_run", "small")
+    assert (small.sac.hidden_dim, small.sac.batch_size, small.skill.hidden_dim) == (256,) * 3

@@ -1,0 +1,257 @@
+"""Skill pretraining (S-EPOA's `Unsupervised Pretrain`) and the snapshot it leaves.
+
+`pretrain(cfg)` runs `skill.seed_steps` of random actions, then SAC updates of pi(a|s,z) on the
+backend's intrinsic reward, with a fresh skill every `skill.update_skill_every` steps and at
+every episode start (URLB's schedule). It writes one snapshot and, beside it, a CSV of
+per-episode metrics (the task's own return, for information only; the mean intrinsic reward,
+losses and steps/s). The snapshot is a plain state dict (tensors, numbers, strings; loadable
+with `torch.load(weights_only=True)`, written atomically) holding the task, backend, sizes,
+the configuration used, the agent's weights and the backend's nets, and no path: any number of
+online runs of the task load it with `load_snapshot` and `build_skill_agent`.
+`build_skill_agent(..., snapshot=None)` gives fresh nets: the paper's "no pretraining" ablation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from trainer.checkpoint import load_checkpoint, save_checkpoint
+from trainer.config import RunConfig, to_dict
+from trainer.envs import make_env
+from trainer.metrics import CSVStream
+from trainer.skills import (
+    SkillAgent,
+    SkillBackend,
+    SkillReplayBuffer,
+    make_skill_backend,
+    resolve_skill_config,
+)
+from trainer.skills.common import mean_metrics
+from trainer.utils import pick_device, set_seed
+
+SNAPSHOT_FORMAT = "sepoa-skill-snapshot/1"
+
+
+class Snapshot(NamedTuple):
+    task: str
+    backend: str
+    skill_dim: int
+    obs_dim: int
+    action_dim: int
+    steps: int
+    """pretraining steps taken (0: fresh nets)"""
+    seed: int
+    config: dict[str, Any]
+    """the pretraining run's RunConfig as a dict, skill fields resolved"""
+    agent: dict
+    """`SkillAgent.weights()`"""
+    skill_nets: dict
+    """`SkillBackend.state_dict()`"""
+
+
+def default_snapshot_path(cfg: RunConfig) -> str:
+    """snapshot_dir/<task with : as ->-<backend>-<steps>-s<seed>.pt"""
+    name = (f"{cfg.task.replace(':', '-')}-{cfg.skill.backend}-{cfg.skill.pretrain_steps}"
+            f"-s{cfg.seed}.pt")
+    return os.path.join(cfg.skill.snapshot_dir, name)
+
+
+def snapshot_path(cfg: RunConfig) -> str:
+    """The snapshot an online run starts from: `skill.snapshot`, else the default name for its
+    task, backend, pretraining length and seed."""
+    return cfg.skill.snapshot or default_snapshot_path(cfg)
+
+
+def check_pretrain_config(cfg: RunConfig) -> RunConfig:
+    """`cfg` with its skill fields resolved; a ValueError naming the field for a bad one."""
+    cfg = dataclasses.replace(cfg, skill=resolve_skill_config(cfg.skill))
+    s = cfg.skill
+    positive = {
+        "skill.skill_dim": s.skill_dim, "skill.update_skill_every": s.update_skill_every,
+        "skill.update_every": s.update_every, "skill.hidden_dim": s.hidden_dim,
+        "skill.knn_k": s.knn_k, "skill.lr": s.lr, "skill.temperature": s.temperature,
+        "sac.batch_size": cfg.sac.batch_size, "replay_capacity": cfg.replay_capacity,
+    }
+    for name, value in positive.items():
+        if value <= 0:
+            raise ValueError(f"{name} must be positive, got {value}")
+    if s.pretrain_steps < 0 or s.seed_steps < 0:
+        raise ValueError("skill.pretrain_steps and skill.seed_steps cannot be negative")
+    if s.knn_k > cfg.sac.batch_size:
+        raise ValueError(f"skill.knn_k ({s.knn_k}) exceeds the batch (sac.batch_size "
+                         f"{cfg.sac.batch_size}) its neighbours come from")
+    return cfg
+
+
+def build_skill_agent(cfg: RunConfig, obs_dim: int, action_dim: int, device: torch.device,
+                      snapshot: Snapshot | None = None) -> tuple[SkillAgent, SkillBackend]:
+    """The agent pi(a|s,z) with its critic, and the skill backend, for `cfg.skill` and `cfg.sac`
+    (its lr, batch, ...): with a snapshot's weights, or fresh nets when `snapshot` is None."""
+    skill = resolve_skill_config(cfg.skill)
+    if snapshot is not None:
+        if (snapshot.obs_dim, snapshot.action_dim) != (obs_dim, action_dim):
+            raise ValueError(f"the snapshot's observation/action sizes ({snapshot.obs_dim}, "
+                             f"{snapshot.action_dim}) are not this env's ({obs_dim}, "
+                             f"{action_dim})")
+        # The skill nets as pretrained; sizes and the reward's constants come from the snapshot.
+        skill = resolve_skill_config(dataclasses.replace(
+            skill, **{k: v for k, v in snapshot.config["skill"].items()
+                      if k not in ("snapshot", "snapshot_dir")}))
+    backend = make_skill_backend(skill.backend, obs_dim, skill, device)
+    agent = SkillAgent(obs_dim, action_dim, backend.skill_dim, cfg.sac, device,
+                       backend.successor_features)
+    if snapshot is not None:
+        try:
+            agent.load_weights(snapshot.agent)
+        except RuntimeError as err:
+            pre = snapshot.config["sac"]
+            raise ValueError(
+                f"the snapshot's nets ({pre['hidden_dim']} wide x {pre['hidden_layers']} layers) "
+                f"do not fit this run's sac.hidden_dim={cfg.sac.hidden_dim}, "
+                f"sac.hidden_layers={cfg.sac.hidden_layers}") from err
+        backend.load_state_dict(snapshot.skill_nets)
+    return agent, backend
+
+
+def save_snapshot(path: str, cfg: RunConfig, agent: SkillAgent, backend: SkillBackend,
+                  obs_dim: int, action_dim: int, steps: int) -> None:
+    """Write the snapshot atomically (parent folders made as needed)."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    save_checkpoint(path, {
+        "format": SNAPSHOT_FORMAT,
+        "task": cfg.task,
+        "backend": backend.name,
+        "skill_dim": backend.skill_dim,
+        "obs_dim": obs_dim,
+        "action_dim": action_dim,
+        "steps": steps,
+        "seed": cfg.seed,
+        "config": to_dict(cfg),
+        "agent": agent.weights(),
+        "skill_nets": backend.state_dict(),
+    })
+
+
+def load_snapshot(path: str, expected_task: str, expected_backend: str | None = None,
+                  expected_skill_dim: int | None = None) -> Snapshot:
+    """The snapshot at `path`, checked against what the run expects; FileNotFoundError or
+    ValueError with the reason otherwise."""
+    if not os.path.exists(path):
+        raise FileNotFoundError(
+            f"no skill snapshot at {path}; make one with `sepoa pretrain --task {expected_task} "
+            f"--skills {expected_backend or 'aps'} ...` (or pass its path)")
+    try:
+        state = load_checkpoint(path)
+    except Exception as err:  # torch raises several types for a file that is no checkpoint
+        raise ValueError(f"{path} is not a readable skill snapshot: {err}") from err
+    if not isinstance(state, dict) or state.get("format") != SNAPSHOT_FORMAT:
+        raise ValueError(f"{path} is not a skill snapshot (format "
+                         f"{state.get('format') if isinstance(state, dict) else None!r}, "
+                         f"expected {SNAPSHOT_FORMAT!r})")
+    snap = Snapshot(**{f: state[f] for f in Snapshot._fields})
+    if snap.task != expected_task:
+        raise ValueError(f"snapshot {path} was pretrained on {snap.task!r}, not on this run's "
+                         f"task {expected_task!r}")
+    if expected_backend is not None and snap.backend != expected_backend:
+        raise ValueError(f"snapshot {path} holds {snap.backend!r} skills, but this run uses "
+                         f"skill.backend {expected_backend!r}")
+    if expected_skill_dim and snap.skill_dim != expected_skill_dim:
+        raise ValueError(f"snapshot {path} has skills of size {snap.skill_dim}, but this run "
+                         f"asks for skill.skill_dim {expected_skill_dim}")
+    return snap
+
+
+class SkillPretraining:
+    """One pretraining run: the env, the agent, the backend and the replay buffer; `run()`
+    trains and writes the snapshot."""
+
+    def __init__(self, cfg: RunConfig, out: str | None = None, progress: bool = True):
+        cfg = check_pretrain_config(cfg)
+        self.cfg, self.progress = cfg, progress
+        self.path = out or default_snapshot_path(cfg)
+        if os.path.exists(self.path):
+            raise FileExistsError(f"{self.path} exists already; remove it or choose another "
+                                  "--out")
+        if cfg.threads > 0:
+            torch.set_num_threads(cfg.threads)
+        set_seed(cfg.seed)
+        self.device = pick_device(cfg.device)
+        self.env = make_env(cfg.task, cfg.seed, cfg.episode_length or None)
+        self.obs_dim, self.action_dim = self.env.obs_dim, self.env.action_dim
+        # Pretraining's learning rate; the widths and batch are the run's, so the online phase
+        # loads the weights into nets of the same shape.
+        pre_cfg = dataclasses.replace(cfg, sac=dataclasses.replace(cfg.sac, lr=cfg.skill.lr))
+        self.agent, self.backend = build_skill_agent(pre_cfg, self.obs_dim, self.action_dim,
+                                                     self.device)
+        capacity = max(1, min(cfg.replay_capacity, cfg.skill.pretrain_steps))
+        self.buffer = SkillReplayBuffer(self.obs_dim, self.action_dim, self.backend.skill_dim,
+                                        capacity, self.device, cfg.seed)
+        self.rng = np.random.default_rng(cfg.seed)
+        self.step = 0
+
+    def _update(self) -> dict[str, float]:
+        batch = self.buffer.sample(self.cfg.sac.batch_size)
+        metrics = self.backend.update(batch)
+        # URLB's order: the skill nets step first, then reward the batch with the new nets.
+        reward = self.backend.intrinsic_reward(batch)
+        metrics |= self.agent.update(batch._replace(reward=reward))
+        return metrics | {"intrinsic_reward": reward.mean().item()}
+
+    def run(self) -> str:
+        """Pretrain for `skill.pretrain_steps` steps, save the snapshot, return its path."""
+        cfg, s, env, rng = self.cfg, self.cfg.skill, self.env, self.rng
+        os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
+        metrics_path = os.path.splitext(self.path)[0] + ".csv"
+        if os.path.exists(metrics_path):  # left by a run killed before its snapshot
+            os.remove(metrics_path)
+        stream = CSVStream(metrics_path)
+        episode, episode_return = 0, 0.0
+        updates: list[dict[str, float]] = []
+        start = time.time()
+        bar = tqdm(total=s.pretrain_steps, disable=not self.progress, dynamic_ncols=True,
+                   unit="step")
+        obs, new_episode = env.reset(), True
+        while self.step < s.pretrain_steps:
+            if new_episode or self.step % s.update_skill_every == 0:
+                skill = self.backend.sample_skills(rng, 1)[0]
+            new_episode = False
+            if self.step < s.seed_steps:
+                action = rng.uniform(-1, 1, self.action_dim).astype(np.float32)
+            else:
+                action = self.agent.act(obs, skill, rng).astype(np.float32)
+            result = env.step(action)
+            # The stored reward is unused: the intrinsic reward is computed per batch.
+            self.buffer.add(obs, action, 0.0, result.reward, result.obs, skill)
+            obs, episode_return = result.obs, episode_return + result.reward
+            self.step += 1
+            if self.step > s.seed_steps and self.step % s.update_every == 0:
+                updates.append(self._update())
+            bar.update(1)
+            if result.done:
+                episode += 1
+                row = {"step": self.step, "episode": episode, "return": episode_return,
+                       "fps": self.step / max(time.time() - start, 1e-9)}
+                row |= mean_metrics(updates)
+                stream.write(row)
+                if updates:
+                    bar.set_postfix(r_int=f"{row['intrinsic_reward']:.3f}", refresh=False)
+                updates, episode_return = [], 0.0
+                obs, new_episode = env.reset(), True
+        bar.close()
+        env.close()
+        save_snapshot(self.path, cfg, self.agent, self.backend, self.obs_dim, self.action_dim,
+                      self.step)
+        return self.path
+
+
+def pretrain(cfg: RunConfig, out: str | None = None, progress: bool = True) -> str:
+    """Pretrain skills for `cfg.task` with `cfg.skill`; returns the snapshot's path (`out`, by
+    default `default_snapshot_path(cfg)`). Refuses to overwrite an existing snapshot."""
+    return SkillPretraining(cfg, out, progress).run()
