@@ -102,7 +102,7 @@ class FeedbackConfig:
     budget: int = 1000
     """total queries over the run, the first round included"""
     selection: str = "disagreement"
-    """uniform | disagreement | entropy"""
+    """uniform | disagreement | entropy | skill (S-EPOA's; algo sepoa)"""
     candidate_factor: int = 10
     """candidates per round = per_round * candidate_factor"""
     pool_trajectories: int = 100
@@ -144,10 +144,26 @@ class SkillConfig:
     """APS and CIC: subtracted from the mean-normalised kNN distances, floored at 0 (URLB)"""
     temperature: float = 0.5
     """CIC: temperature of the contrastive (InfoNCE) logits"""
+    estimator_ensemble: int = 3
+    """online: members of R_theta(z), the trajectory-return estimator"""
+    estimator_hidden_dim: int = 256
+    """online: width of R_theta's hidden layers"""
+    estimator_hidden_layers: int = 3
+    """online: hidden layers of R_theta"""
+    estimator_lr: float = 3e-4
+    """online: Adam learning rate of R_theta"""
+    estimator_steps: int = 200
+    """online: full-batch steps refitting R_theta before each round"""
+    task_skill_samples: int = 50
+    """online: N_z, fresh random skills z_task is chosen from at each episode's end"""
+    score_spread: str = "var"
+    """online: spread of P in the selection score: var (the paper) | std (the authors' code)"""
     snapshot_dir: str = "snapshots"
     """where `sepoa pretrain` writes <task>-<backend>-<steps>-s<seed>.pt by default"""
     snapshot: str = ""
     """online S-EPOA: the snapshot to start from; empty = the default name in snapshot_dir"""
+    snapshot_seed: int = 0
+    """online S-EPOA: the pretraining seed of the default snapshot (runs of any seed share it)"""
 
 
 @dataclass(frozen=True)
@@ -157,7 +173,7 @@ class RunConfig:
     task: str = "dmc:cheetah_run"
     """dmc:<domain>_<task> or metaworld:<name>"""
     algo: str = "pebble"
-    """pebble (preference learning) | sac (oracle on the ground-truth reward)"""
+    """pebble | sepoa (preference learning) | sac (oracle on the ground-truth reward)"""
     preset: str = "paper"
     """paper | small | tiny"""
     seed: int = 0
@@ -286,15 +302,24 @@ def apply_overrides(cfg: RunConfig, overrides: dict[str, Any]) -> RunConfig:
     return cfg
 
 
+# Per algorithm: S-EPOA selects queries by its skill rule.
+ALGO_PRESETS: dict[str, dict[str, Any]] = {
+    "sepoa": {"feedback.selection": "skill"},
+}
+
+
 def build_config(task: str, preset: str, overrides: dict[str, Any] | None = None) -> RunConfig:
-    """The run config for `task` under `preset`, with explicit `overrides` (dotted paths) last."""
+    """The run config for `task` under `preset` (family, task, size and algorithm presets in
+    that order), with explicit `overrides` (dotted paths) last."""
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; valid: {', '.join(PRESETS)}")
+    overrides = overrides or {}
     cfg = RunConfig(task=task, preset=preset)
     cfg = apply_overrides(cfg, FAMILY_PRESETS.get(task_family(task), {}))
     cfg = apply_overrides(cfg, TASK_PRESETS.get(task, {}))
     cfg = apply_overrides(cfg, PRESETS[preset])
-    return apply_overrides(cfg, overrides or {})
+    cfg = apply_overrides(cfg, ALGO_PRESETS.get(overrides.get("algo", cfg.algo), {}))
+    return apply_overrides(cfg, overrides)
 
 
 def typed_overrides(values: dict[str, Any]) -> dict[str, Any]:

@@ -23,6 +23,7 @@ import numpy as np
 
 from trainer.config import FeedbackConfig
 from trainer.query_selection import select_queries
+from trainer.return_estimator import ReturnEstimator
 from trainer.reward_model import LabelledPairs, RewardModel
 from trainer.teachers import Choice, QueryTruth, choice_target, is_correct
 from trainer.trajectories import Trajectory, TrajectoryPool
@@ -118,9 +119,12 @@ class PreferenceFeedback:
     """Owns the labelled pairs, the budget and the round counter of one run."""
 
     def __init__(self, cfg: FeedbackConfig, reward_model: RewardModel, teacher, labeller: str,
-                 label_log: LabelLog, rng: np.random.Generator):
+                 label_log: LabelLog, rng: np.random.Generator,
+                 estimator: ReturnEstimator | None = None, spread: str = "var"):
         self.cfg, self.model, self.teacher = cfg, reward_model, teacher
         self.labeller, self.log, self.rng = labeller, label_log, rng
+        self.estimator, self.spread = estimator, spread
+        """S-EPOA's R_theta(z) (skill rule only), refitted as each round selects"""
         self.pairs = LabelledPairs()
         self.labels_used = 0
         self.rounds = 0
@@ -137,7 +141,7 @@ class PreferenceFeedback:
         trajectories = list(pool.trajectories)
         selection = select_queries(
             rule, self.model, trajectories, n, n * self.cfg.candidate_factor,
-            self.cfg.segment_length, self.rng,
+            self.cfg.segment_length, self.rng, self.estimator, self.spread,
         )
         q, h = selection.queries, self.cfg.segment_length
         pairs = [(trajectories[q.traj0[i]], int(q.start0[i]), trajectories[q.traj1[i]],
@@ -227,7 +231,7 @@ class PreferenceFeedback:
             "rng": self.rng.bit_generator.state,
             "teacher": self.teacher.state_dict(),
             "model": self.model.state_dict(),
-        }
+        } | ({"estimator": self.estimator.state_dict()} if self.estimator else {})
 
     def load_state_dict(self, state: dict) -> None:
         self.pairs.load_state_dict(state["pairs"])
@@ -236,6 +240,8 @@ class PreferenceFeedback:
         self.rng.bit_generator.state = state["rng"]
         self.teacher.load_state_dict(state["teacher"])
         self.model.load_state_dict(state["model"])
+        if self.estimator is not None:
+            self.estimator.load_state_dict(state["estimator"])
 
 
 def _truth(t0: Trajectory, s0: int, t1: Trajectory, s1: int, h: int) -> QueryTruth:

@@ -1,14 +1,25 @@
-"""The training loop: SAC on the ground-truth reward (the oracle), or PEBBLE's preference loop.
+"""The training loop: SAC on the ground-truth reward (the oracle), PEBBLE, or S-EPOA.
 
 PEBBLE: `seed_steps` of random actions, then unsupervised state-entropy pretraining until the
 first feedback round, a critic reset after that round, then a round every `feedback.every` steps
-until the label budget is spent. Rounds, evaluations and checkpoints happen at episode
-boundaries, so a checkpoint never has to capture a half-run episode.
+until the label budget is spent.
+
+S-EPOA (Algorithm 1): the skill-conditioned actor and critic pi(a|s,z) start from a pretraining
+snapshot (`sepoa pretrain`; made first if missing, or fresh nets when skill.pretrain_steps is 0,
+the paper's "no pretraining" ablation). Each episode acts with one skill: a random one until the
+first round, then z_task, the best of N_z fresh random skills under R_theta. The first round
+comes after `seed_steps`; the agent trains only on the learned reward, from the first round on
+(its pretrained critic is kept). Queries are selected by the skill rule (query_selection.py).
+
+Rounds, evaluations and checkpoints happen at episode boundaries, so a checkpoint never has to
+capture a half-run episode.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
+import sys
 import time
 
 import numpy as np
@@ -25,13 +36,16 @@ from trainer.metrics import Metrics
 from trainer.nets import NumpyMLP
 from trainer.query_selection import RULES
 from trainer.replay_buffer import ReplayBuffer
+from trainer.return_estimator import SPREADS, ReturnEstimator
 from trainer.reward_model import RewardModel
 from trainer.sac import SAC
+from trainer.skills import SkillAgent, SkillBackend, SkillReplayBuffer
+from trainer.skills.pretrain import build_skill_agent, load_snapshot, pretrain, snapshot_path
 from trainer.teachers import TEACHER_KINDS, make_teacher
 from trainer.trajectories import EpisodeRecorder, TrajectoryPool
 from trainer.utils import pick_device, set_seed
 
-ALGOS = ("sac", "pebble")
+ALGOS = ("sac", "pebble", "sepoa")
 CHECKPOINT = "checkpoint.pt"
 
 
@@ -67,11 +81,37 @@ def check_config(cfg: RunConfig) -> None:
         raise ValueError("feedback.pool_trajectories must be at least 2 (a query pairs two)")
     if cfg.feedback.budget < 0 or cfg.seed_steps < 0 or cfg.unsup_steps < 0:
         raise ValueError("feedback.budget, seed_steps and unsup_steps cannot be negative")
+    if "skill" in (cfg.feedback.selection, cfg.feedback.first_round_selection) and (
+            cfg.algo != "sepoa"):
+        raise ValueError("feedback.selection skill needs skills: use algo sepoa")
+    if cfg.algo == "sepoa" and cfg.feedback.first_round_selection == "skill":
+        raise ValueError("feedback.first_round_selection cannot be skill: before the first "
+                         "label there is no return estimate to select by")
+    if cfg.skill.score_spread not in SPREADS:
+        raise ValueError(f"unknown skill.score_spread {cfg.skill.score_spread!r}; valid: "
+                         f"{', '.join(SPREADS)}")
     if not 0 <= cfg.teacher.eps < 1:
         raise ValueError(f"teacher.eps is an error rate in [0, 1), got {cfg.teacher.eps}")
     if cfg.episode_length and cfg.episode_length < cfg.feedback.segment_length:
         raise ValueError(f"episode_length {cfg.episode_length} is shorter than a segment "
                          f"({cfg.feedback.segment_length} steps)")
+
+
+def _skill_agent(cfg: RunConfig, obs_dim: int, act_dim: int,
+                 device: torch.device) -> tuple[SkillAgent, SkillBackend]:
+    """S-EPOA's pi(a|s,z) from its pretraining snapshot (pretrained first when missing), or
+    fresh when skill.pretrain_steps is 0."""
+    if cfg.skill.pretrain_steps == 0:
+        return build_skill_agent(cfg, obs_dim, act_dim, device)
+    path = snapshot_path(cfg)
+    if not os.path.exists(path):
+        print(f"no skill snapshot at {path}: pretraining {cfg.skill.backend} for "
+              f"{cfg.skill.pretrain_steps} steps first", file=sys.stderr, flush=True)
+        pretrain(dataclasses.replace(cfg, seed=cfg.skill.snapshot_seed), out=path,
+                 progress=False)
+        set_seed(cfg.seed)  # the online run starts from the same state as with a snapshot at hand
+    snapshot = load_snapshot(path, cfg.task, cfg.skill.backend)
+    return build_skill_agent(cfg, obs_dim, act_dim, device, snapshot)
 
 
 class TrainingRun:
@@ -100,8 +140,19 @@ class TrainingRun:
         self.eval_env = make_env(cfg.task, cfg.seed + 100_000, length)
         obs_dim, act_dim = self.env.obs_dim, self.env.action_dim
         self.rng = np.random.default_rng(cfg.seed)
-        self.agent = SAC(obs_dim, act_dim, cfg.sac, self.device)
-        self.buffer = ReplayBuffer(obs_dim, act_dim, cfg.replay_capacity, self.device, cfg.seed)
+        self.skills: SkillBackend | None = None
+        self.skill: np.ndarray | None = None
+        """the skill the current episode acts with (S-EPOA)"""
+        estimator = None
+        if cfg.algo == "sepoa":
+            self.agent, self.skills = _skill_agent(cfg, obs_dim, act_dim, self.device)
+            self.buffer = SkillReplayBuffer(obs_dim, act_dim, self.skills.skill_dim,
+                                            cfg.replay_capacity, self.device, cfg.seed)
+            estimator = ReturnEstimator(self.skills.skill_dim, cfg.skill, self.device)
+        else:
+            self.agent = SAC(obs_dim, act_dim, cfg.sac, self.device)
+            self.buffer = ReplayBuffer(obs_dim, act_dim, cfg.replay_capacity, self.device,
+                                       cfg.seed)
         self.pool = TrajectoryPool(cfg.feedback.pool_trajectories)
         self.env.reset()
         state_dim = len(self.env.physics_state())
@@ -110,14 +161,14 @@ class TrainingRun:
 
         self.feedback: PreferenceFeedback | None = None
         self._numpy_reward: NumpyMLP | None = None
-        if cfg.algo == "pebble":
+        if cfg.algo in ("pebble", "sepoa"):
             model = RewardModel(obs_dim, act_dim, cfg.reward, self.device, cfg.seed)
             teacher = make_teacher(cfg.teacher, cfg.seed, cfg.feedback.segment_length,
                                    self.env.episode_length)
             self.feedback = PreferenceFeedback(
                 cfg.feedback, model, teacher, f"scripted:{cfg.teacher.kind}",
                 LabelLog(os.path.join(self.run_dir, "labels.jsonl")),
-                np.random.default_rng(cfg.seed + 1),
+                np.random.default_rng(cfg.seed + 1), estimator, cfg.skill.score_spread,
             )
             self._numpy_reward = (
                 NumpyMLP(list(model.ensemble.layers), "leaky_relu", "tanh")
@@ -127,7 +178,7 @@ class TrainingRun:
         self.step = 0
         self.episode = 0
         self.stopped = False
-        self.next_round_step = cfg.seed_steps + cfg.unsup_steps
+        self.next_round_step = cfg.seed_steps + (cfg.unsup_steps if cfg.algo == "pebble" else 0)
         self.last_checkpoint_step = 0
         self.last_eval_step = 0
         if resume:
@@ -141,8 +192,25 @@ class TrainingRun:
     # ----------------------------------------------------------------------------------------
     @property
     def preference_phase(self) -> bool:
-        """PEBBLE after its first round: the agent trains on the learned reward."""
+        """After the first round: the agent trains on the learned reward."""
         return self.feedback is not None and self.feedback.rounds > 0
+
+    def _act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        if self.skill is not None:
+            return self.agent.act(obs, self.skill, self.rng, deterministic)
+        return self.agent.act(obs, self.rng, deterministic)
+
+    def _start_episode(self) -> np.ndarray:
+        """Reset the env; S-EPOA picks the episode's skill (the reset and the pick happen in
+        this order in an uninterrupted run and in a resumed one alike)."""
+        obs = self.env.reset()
+        if self.skills is not None:
+            candidates = self.skills.sample_skills(self.rng, self.cfg.skill.task_skill_samples)
+            estimator = self.feedback.estimator if self.feedback else None
+            # Before the first round R_theta knows nothing: a random skill per episode.
+            fitted = estimator is not None and estimator.fitted
+            self.skill = estimator.best_skill(candidates) if fitted else candidates[0]
+        return obs
 
     def _agent_reward(self, obs: np.ndarray, action: np.ndarray, true_reward: float) -> float:
         if self.feedback is None:
@@ -158,6 +226,8 @@ class TrainingRun:
             return float(self.feedback.model.reward(o, a)[0])
 
     def _update(self) -> dict[str, float]:
+        if self.skills is not None and not self.preference_phase:
+            return {}  # S-EPOA keeps its pretrained policy until there is a reward to learn
         batch = self.buffer.sample(self.cfg.sac.batch_size)
         if self.feedback is not None and not self.preference_phase:
             # PEBBLE's pretraining reward: kNN distance of s' to the buffer's states, normalised.
@@ -178,21 +248,22 @@ class TrainingRun:
         if feedback is not None and feedback.pending:  # resumed inside a round
             self.hooks.round_opened(feedback.pending, self.pool)
             self._try_finish_round()
-        obs = self.env.reset()
+        obs = self._start_episode()
         episode_return, last_metrics = 0.0, {}
         stopping = False
         start_step, start_time = self.step, time.time()
         bar = tqdm(total=cfg.steps, initial=self.step, disable=not self.progress,
                    dynamic_ncols=True, unit="step")
         while self.step < cfg.steps:
-            if self.step < cfg.seed_steps:
+            if self.step < cfg.seed_steps and self.skills is None:
                 action = self.rng.uniform(-1, 1, self.env.action_dim).astype(np.float32)
-            else:
-                action = self.agent.act(obs, self.rng).astype(np.float32)
+            else:  # S-EPOA explores with its pretrained skills from the start
+                action = self._act(obs).astype(np.float32)
             state = self.env.physics_state()
             result = self.env.step(action)
             reward = self._agent_reward(obs, action, result.reward)
-            self.buffer.add(obs, action, reward, result.reward, result.obs)
+            skill = () if self.skill is None else (self.skill,)
+            self.buffer.add(obs, action, reward, result.reward, result.obs, *skill)
             self.recorder.record(obs, action, result.reward, state, result.success)
             obs, episode_return = result.obs, episode_return + result.reward
             self.step += 1
@@ -202,7 +273,8 @@ class TrainingRun:
             stopping = stopping or self.hooks.stop_requested(self.step)
 
             if result.done:
-                traj = self.recorder.finish(self.episode, self.env.episode_context())
+                traj = self.recorder.finish(self.episode, self.env.episode_context(),
+                                            self.skill)
                 self.pool.add(traj)
                 self.episode += 1
                 fps = (self.step - start_step) / max(time.time() - start_time, 1e-9)
@@ -217,7 +289,7 @@ class TrainingRun:
                 if stopping or self.hooks.stop_requested(self.step):
                     self.stopped = True  # before the reset: a resumed run makes that reset
                     break
-                obs, episode_return = self.env.reset(), 0.0
+                obs, episode_return = self._start_episode(), 0.0
         bar.close()
         if feedback is not None and feedback.pending and not self.stopped:
             self._try_finish_round()  # a round still collecting answers closes with what came
@@ -263,7 +335,7 @@ class TrainingRun:
         first = fb.rounds == 0
         metrics = fb.finish_round(self.pool, answers)
         self.buffer.relabel(fb.model.reward)
-        if first:
+        if first and self.skills is None:
             self.agent.reset_critic()  # PEBBLE: the critic learned the intrinsic reward
         self.next_round_step = self.step + self.cfg.feedback.every
         self._log("rounds", {"step": self.step} | metrics)
@@ -273,7 +345,7 @@ class TrainingRun:
         for _ in range(self.cfg.eval_episodes):
             obs, total, success, done = self.eval_env.reset(), 0.0, False, False
             while not done:
-                result = self.eval_env.step(self.agent.act(obs, self.rng, deterministic=True))
+                result = self.eval_env.step(self._act(obs, deterministic=True))
                 obs, total, success, done = (result.obs, total + result.reward,
                                              success or result.success, result.done)
             returns.append(total)

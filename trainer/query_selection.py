@@ -1,5 +1,6 @@
 """Query selection: sample candidate segment pairs from the trajectory pool, score them, keep the
-best. Rules: uniform, disagreement (spread of P across the ensemble), entropy (of P).
+best. Rules: uniform, disagreement (spread of P across the ensemble), entropy (of P), and
+S-EPOA's skill rule (see trainer/return_estimator.py).
 
 Scoring touches each pooled transition once per round: the ensemble rewards every transition of
 the pool in one pass, prefix sums per member give any segment's return as a difference, and the
@@ -13,10 +14,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from trainer.return_estimator import ReturnEstimator, skill_scores
 from trainer.reward_model import RewardModel
 from trainer.trajectories import Trajectory
 
-RULES = ("uniform", "disagreement", "entropy")
+RULES = ("uniform", "disagreement", "entropy", "skill")
 SCORING_CHUNK = 4096
 """transitions per ensemble forward pass when scoring the pool"""
 
@@ -65,9 +67,30 @@ def pool_inputs(pool: list[Trajectory]) -> tuple[np.ndarray, np.ndarray]:
     return inputs, offsets
 
 
-def segment_returns(model: RewardModel, pool: list[Trajectory], cands: Candidates,
-                    segment_length: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-member predicted returns of both sides of every candidate: two (E, n) tensors."""
+@dataclass(frozen=True)
+class PoolRewards:
+    """Per-member prefix sums of the predicted reward over every pooled transition."""
+
+    prefix: torch.Tensor
+    """(E, N + 1) float64"""
+    offsets: np.ndarray
+    """index of each trajectory's first transition"""
+    lengths: np.ndarray
+
+    def sums(self, traj: np.ndarray, start: np.ndarray, length: int | np.ndarray) -> torch.Tensor:
+        """Per-member predicted returns of the given spans: (E, n) float32."""
+        first = torch.as_tensor(self.offsets[traj] + start, device=self.prefix.device)
+        last = first + torch.as_tensor(length, device=self.prefix.device)
+        return (self.prefix[:, last] - self.prefix[:, first]).float()
+
+    def trajectory_returns(self) -> np.ndarray:
+        """Ensemble-mean predicted return of each whole trajectory: (n_traj,)."""
+        idx = np.arange(len(self.lengths))
+        return self.sums(idx, np.zeros_like(idx), self.lengths).mean(0).cpu().numpy()
+
+
+def pool_rewards(model: RewardModel, pool: list[Trajectory]) -> PoolRewards:
+    """Score every pooled transition once (the ensemble's rewards, as prefix sums)."""
     inputs, offsets = pool_inputs(pool)
     with torch.inference_mode():
         # 4096 rows keep each layer's activations at ~12 MB: big chunks cost a fresh, page-
@@ -75,12 +98,15 @@ def segment_returns(model: RewardModel, pool: list[Trajectory], cands: Candidate
         rewards = model.member_rewards(torch.as_tensor(inputs, device=model.device),
                                        chunk=SCORING_CHUNK)
     prefix = torch.nn.functional.pad(rewards.double().cumsum(dim=1), (1, 0))  # (E, N + 1)
+    return PoolRewards(prefix, offsets, np.array([t.length for t in pool]))
 
-    def sums(traj: np.ndarray, start: np.ndarray) -> torch.Tensor:
-        first = torch.as_tensor(offsets[traj] + start, device=model.device)
-        return prefix[:, first + segment_length] - prefix[:, first]
 
-    return sums(cands.traj0, cands.start0).float(), sums(cands.traj1, cands.start1).float()
+def segment_returns(model: RewardModel, pool: list[Trajectory], cands: Candidates,
+                    segment_length: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-member predicted returns of both sides of every candidate: two (E, n) tensors."""
+    rewards = pool_rewards(model, pool)
+    return (rewards.sums(cands.traj0, cands.start0, segment_length),
+            rewards.sums(cands.traj1, cands.start1, segment_length))
 
 
 def preference_probabilities(returns0: torch.Tensor, returns1: torch.Tensor) -> torch.Tensor:
@@ -114,7 +140,11 @@ class Selection:
 
 
 def select_queries(rule: str, model: RewardModel, pool: list[Trajectory], n_queries: int,
-                   n_candidates: int, segment_length: int, rng: np.random.Generator) -> Selection:
+                   n_candidates: int, segment_length: int, rng: np.random.Generator,
+                   estimator: ReturnEstimator | None = None, spread: str = "var") -> Selection:
+    """The rule's top `n_queries` of `n_candidates` random pairs (uniform: `n_queries` random
+    pairs). The skill rule first refits `estimator` (R_theta) on the pool's skills and
+    predicted returns, and scores by its `spread` of P ("var" or "std")."""
     if rule not in RULES:
         raise ValueError(f"unknown selection rule {rule!r}; valid: {', '.join(RULES)}")
     lengths = np.array([t.length for t in pool])
@@ -123,7 +153,20 @@ def select_queries(rule: str, model: RewardModel, pool: list[Trajectory], n_quer
         nan = np.full(len(chosen), np.nan)
         return Selection(chosen, nan, nan)
     cands = sample_candidates(lengths, n_candidates, segment_length, rng)
-    p = preference_probabilities(*segment_returns(model, pool, cands, segment_length))
-    scores = disagreement(p) if rule == "disagreement" else entropy(p)
+    rewards = pool_rewards(model, pool)
+    p = preference_probabilities(rewards.sums(cands.traj0, cands.start0, segment_length),
+                                 rewards.sums(cands.traj1, cands.start1, segment_length))
+    if rule == "skill":
+        if estimator is None or any(t.skill is None for t in pool):
+            raise ValueError("the skill rule needs S-EPOA's return estimator and trajectories "
+                             "with skills (algo sepoa)")
+        skills = np.stack([t.skill for t in pool])
+        estimator.fit(skills, rewards.trajectory_returns())
+        values = estimator.predict(skills)
+        idx0 = torch.as_tensor(cands.traj0, device=values.device)
+        idx1 = torch.as_tensor(cands.traj1, device=values.device)
+        scores = skill_scores(values[idx0], values[idx1], p.to(values.device), spread)
+    else:
+        scores = disagreement(p) if rule == "disagreement" else entropy(p)
     idx = top_k(scores, n_queries)
     return Selection(cands.take(idx), p.mean(0).cpu().numpy()[idx], scores.cpu().numpy()[idx])

@@ -132,7 +132,9 @@ def test_default_snapshot_name_and_pretraining_presets():
     cfg = build_config("dmc:quadruped_run", "paper", {"skill.backend": "cic", "seed": 2})
     assert default_snapshot_path(cfg) == os.path.join(
         "snapshots", "dmc-quadruped_run-cic-1000000-s2.pt")  # the paper: 1 M for quadruped
-    assert snapshot_path(cfg) == default_snapshot_path(cfg)
+    # Online runs of every seed share the snapshot pretrained with skill.snapshot_seed (0).
+    assert snapshot_path(cfg) == os.path.join(
+        "snapshots", "dmc-quadruped_run-cic-1000000-s0.pt")
     shared = dataclasses.replace(cfg, skill=dataclasses.replace(cfg.skill, snapshot="x/s0.pt"))
     assert snapshot_path(shared) == "x/s0.pt"  # any run can name the snapshot it starts from
     paper = build_config("dmc:cheetah_run", "paper")

@@ -56,17 +56,19 @@ class Snapshot(NamedTuple):
     """`SkillBackend.state_dict()`"""
 
 
-def default_snapshot_path(cfg: RunConfig) -> str:
-    """snapshot_dir/<task with : as ->-<backend>-<steps>-s<seed>.pt"""
+def default_snapshot_path(cfg: RunConfig, seed: int | None = None) -> str:
+    """snapshot_dir/<task with : as ->-<backend>-<steps>-s<seed>.pt (seed: cfg.seed)"""
+    seed = cfg.seed if seed is None else seed
     name = (f"{cfg.task.replace(':', '-')}-{cfg.skill.backend}-{cfg.skill.pretrain_steps}"
-            f"-s{cfg.seed}.pt")
+            f"-s{seed}.pt")
     return os.path.join(cfg.skill.snapshot_dir, name)
 
 
 def snapshot_path(cfg: RunConfig) -> str:
     """The snapshot an online run starts from: `skill.snapshot`, else the default name for its
-    task, backend, pretraining length and seed."""
-    return cfg.skill.snapshot or default_snapshot_path(cfg)
+    task, backend and pretraining length, pretrained with seed `skill.snapshot_seed`: online
+    runs of every seed, teacher and eps share one snapshot."""
+    return cfg.skill.snapshot or default_snapshot_path(cfg, cfg.skill.snapshot_seed)
 
 
 def check_pretrain_config(cfg: RunConfig) -> RunConfig:

@@ -1,0 +1,159 @@
+"""S-EPOA online: R_theta, the skill-based score, z_task, skill-trajectory alignment, and a tiny
+end-to-end run through the CLI."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from trainer.config import SkillConfig, build_config
+from trainer.loop import TrainingRun
+from trainer.return_estimator import ReturnEstimator, skill_scores
+
+CPU = torch.device("cpu")
+
+
+def _estimator(skill_dim: int = 4) -> ReturnEstimator:
+    torch.manual_seed(0)
+    return ReturnEstimator(skill_dim, SkillConfig(estimator_hidden_dim=64, estimator_steps=500,
+                                                  estimator_lr=3e-3), CPU)
+
+
+def test_return_estimator_fits_a_planted_skill_to_return_map():
+    rng = np.random.default_rng(0)
+    skills = rng.standard_normal((100, 4)).astype(np.float32)
+    returns = 300 * skills[:, 0] - 100 * skills[:, 2] + 50  # on any scale: targets are min-maxed
+    estimator = _estimator()
+    estimator.fit(skills, returns)
+    held_out = rng.standard_normal((200, 4)).astype(np.float32)
+    predicted = estimator.predict(held_out).numpy()
+    truth = 3 * held_out[:, 0] - held_out[:, 2]
+    assert np.corrcoef(predicted, truth)[0, 1] > 0.9
+    assert 0 <= predicted.min() and predicted.max() <= 1.05  # the targets lie in [0, 1]
+
+
+def test_z_task_is_the_candidate_with_the_highest_estimate():
+    rng = np.random.default_rng(1)
+    estimator = _estimator()
+    estimator.fit(rng.standard_normal((50, 4)).astype(np.float32), rng.random(50))
+    candidates = rng.standard_normal((50, 4)).astype(np.float32)
+    best = estimator.best_skill(candidates)
+    assert np.array_equal(best, candidates[int(estimator.predict(candidates).argmax())])
+
+
+def test_skill_score_prefers_the_largest_return_gap_when_spreads_tie():
+    value0 = torch.tensor([0.1, 0.2, 0.9, 0.5])
+    value1 = torch.tensor([0.2, 0.2, 0.1, 0.4])  # gaps 0.1, 0.0, 0.8, 0.1
+    p = torch.tensor([[0.3, 0.3, 0.3, 0.3], [0.7, 0.7, 0.7, 0.7]])  # the same spread everywhere
+    for spread in ("var", "std"):
+        scores = skill_scores(value0, value1, p, spread)
+        assert int(scores.argmax()) == 2
+        assert torch.allclose(scores, 1 + torch.tensor([0.125, 0.0, 1.0, 0.125]))
+
+
+def test_skill_score_prefers_the_largest_spread_when_gaps_tie():
+    value0, value1 = torch.tensor([0.5, 0.5, 0.5]), torch.tensor([0.1, 0.1, 0.1])
+    p = torch.tensor([[0.5, 0.1, 0.45], [0.5, 0.9, 0.55]])  # spreads 0, 0.4, 0.05
+    assert int(skill_scores(value0, value1, p, "var").argmax()) == 1
+    # I = (1 + gap') (1 + spread'), both min-max normalised over the candidates.
+    expected = 1 + torch.tensor([0.0, 1.0, 0.05 ** 2 / 0.4 ** 2])
+    assert torch.allclose(skill_scores(value0, value1, p, "var"), expected)
+    with pytest.raises(ValueError, match="spread"):
+        skill_scores(value0, value1, p, "mad")
+
+
+def _tiny(tmp_path, **overrides):
+    base = {"algo": "sepoa", "steps": 1200, "threads": 1, "teacher.eps": 0.3,
+            "skill.snapshot_dir": str(tmp_path / "snapshots"), "run_dir": str(tmp_path / "run")}
+    return build_config("dmc:cheetah_run", "tiny", base | overrides)
+
+
+def test_each_trajectory_keeps_the_skill_it_was_generated_with_after_fifo_eviction(tmp_path):
+    cfg = _tiny(tmp_path, **{"feedback.pool_trajectories": 3, "skill.pretrain_steps": 0})
+    run = TrainingRun(cfg, progress=False)
+    run.train()
+    assert len(run.pool) == 3 and run.episode == 6  # three evicted
+    for traj in run.pool.trajectories:
+        # Episode i filled buffer rows [i * 200, (i + 1) * 200): its skill is in every row.
+        rows = run.buffer.skill[traj.id * 200:(traj.id + 1) * 200].numpy()
+        assert np.array_equal(rows, np.broadcast_to(traj.skill, rows.shape)), traj.id
+    skills = [tuple(t.skill) for t in run.pool.trajectories]
+    assert len(set(skills)) == 3  # a fresh z_task each episode
+
+
+def _rows(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_a_tiny_sepoa_run_pretrains_once_then_learns_from_labels_by_the_skill_rule(tmp_path):
+    command = [sys.executable, "-m", "trainer.cli", "train", "--task", "dmc:cheetah_run",
+               "--algo", "sepoa", "--preset", "tiny", "--steps", "1200", "--eps", "0.3",
+               "--threads", "1", "--no-progress",
+               "--skill.snapshot_dir", str(tmp_path / "snapshots")]
+    env = os.environ | {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    first = subprocess.run(command + ["--run-dir", str(tmp_path / "a")], env=env,
+                           capture_output=True, text=True, timeout=300)
+    assert first.returncode == 0, first.stderr
+    assert "pretraining aps for 300 steps first" in first.stderr
+    snapshot = tmp_path / "snapshots" / "dmc-cheetah_run-aps-300-s0.pt"
+    assert snapshot.exists()
+
+    rounds = _rows(tmp_path / "a" / "rounds.csv")
+    assert [int(r["labels_used"]) for r in rounds] == [10, 20]
+    assert all(0 <= float(r["distinguishable_ratio"]) <= 1 for r in rounds)
+    with open(tmp_path / "a" / "labels.jsonl") as f:
+        labels = [json.loads(line) for line in f]
+    assert [lab["rule"] for lab in labels] == ["uniform"] * 10 + ["skill"] * 10
+    assert json.loads(first.stdout.splitlines()[-1])["labels_used"] == 20
+
+    # Another seed loads the same snapshot instead of pretraining again.
+    second = subprocess.run(command + ["--run-dir", str(tmp_path / "b"), "--seed", "1"],
+                            env=env, capture_output=True, text=True, timeout=300)
+    assert second.returncode == 0, second.stderr
+    assert "pretraining" not in second.stderr
+
+
+def test_a_sepoa_run_stopped_inside_a_round_resumes_like_an_uninterrupted_one(tmp_path,
+                                                                             monkeypatch):
+    shared = {"skill.pretrain_steps": 0}
+    reference = _tiny(tmp_path, **shared, run_dir=str(tmp_path / "reference"))
+    TrainingRun(reference, progress=False).train()
+
+    cfg = _tiny(tmp_path, **shared, run_dir=str(tmp_path / "cut"))
+    finish = TrainingRun._finish_round
+
+    def die_in_second_round(self, answers):
+        if self.feedback.rounds == 1:
+            raise KeyboardInterrupt
+        finish(self, answers)
+
+    monkeypatch.setattr(TrainingRun, "_finish_round", die_in_second_round)
+    with pytest.raises(KeyboardInterrupt):
+        TrainingRun(cfg, progress=False).train()
+    monkeypatch.setattr(TrainingRun, "_finish_round", finish)
+    TrainingRun(cfg, resume=True, progress=False).train()
+
+    def strip(path):
+        with open(path) as f:
+            return [{k: v for k, v in json.loads(line).items() if k != "answered_at"}
+                    for line in f]
+
+    assert strip(tmp_path / "cut" / "labels.jsonl") == strip(
+        tmp_path / "reference" / "labels.jsonl")
+    assert _rows(tmp_path / "cut" / "episodes.csv")[-1]["return"] == _rows(
+        tmp_path / "reference" / "episodes.csv")[-1]["return"]
+
+
+def test_skill_selection_is_refused_without_skills(tmp_path):
+    with pytest.raises(ValueError, match="use algo sepoa"):
+        TrainingRun(build_config("dmc:cheetah_run", "tiny", {
+            "algo": "pebble", "feedback.selection": "skill",
+            "run_dir": str(tmp_path / "x")}), progress=False)
