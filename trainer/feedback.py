@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from trainer.config import FeedbackConfig
-from trainer.query_selection import select_queries
+from trainer.query_selection import pool_rewards, select_queries
 from trainer.return_estimator import ReturnEstimator
 from trainer.reward_model import LabelledPairs, RewardModel
 from trainer.teachers import Choice, QueryTruth, choice_target, is_correct
@@ -139,6 +139,8 @@ class PreferenceFeedback:
         n = min(self.cfg.per_round, self.budget_left)
         rule = self.cfg.first_round_selection if self.rounds == 0 else self.cfg.selection
         trajectories = list(pool.trajectories)
+        if rule == "skill":
+            self.fit_estimator(pool)  # on the trajectories that came since the last round too
         selection = select_queries(
             rule, self.model, trajectories, n, n * self.cfg.candidate_factor,
             self.cfg.segment_length, self.rng, self.estimator, self.spread,
@@ -164,6 +166,13 @@ class PreferenceFeedback:
             ))
         self.pending = queries
         return queries
+
+    def fit_estimator(self, pool: TrajectoryPool) -> dict[str, float]:
+        """S-EPOA: refit R_theta on the pool's skills and summed predicted rewards."""
+        assert self.estimator is not None
+        trajectories = list(pool.trajectories)
+        returns = pool_rewards(self.model, trajectories).trajectory_returns()
+        return self.estimator.fit(np.stack([t.skill for t in trajectories]), returns)
 
     def scripted_answers(self) -> dict[str, Answer]:
         """The shadow answers of the open round, as the answers of a standalone run."""
@@ -218,6 +227,8 @@ class PreferenceFeedback:
         }
         if len(self.pairs):
             metrics |= self.model.train_round(self.pairs)
+        if self.estimator is not None:  # z_task follows the reward model from now on
+            metrics |= self.fit_estimator(pool)
         self.rounds += 1
         self.pending = []
         return metrics

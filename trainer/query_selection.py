@@ -143,8 +143,8 @@ def select_queries(rule: str, model: RewardModel, pool: list[Trajectory], n_quer
                    n_candidates: int, segment_length: int, rng: np.random.Generator,
                    estimator: ReturnEstimator | None = None, spread: str = "var") -> Selection:
     """The rule's top `n_queries` of `n_candidates` random pairs (uniform: `n_queries` random
-    pairs). The skill rule first refits `estimator` (R_theta) on the pool's skills and
-    predicted returns, and scores by its `spread` of P ("var" or "std")."""
+    pairs). The skill rule scores by the fitted `estimator` (R_theta) of each side's skill and
+    the `spread` of P ("var" or "std")."""
     if rule not in RULES:
         raise ValueError(f"unknown selection rule {rule!r}; valid: {', '.join(RULES)}")
     lengths = np.array([t.length for t in pool])
@@ -157,12 +157,10 @@ def select_queries(rule: str, model: RewardModel, pool: list[Trajectory], n_quer
     p = preference_probabilities(rewards.sums(cands.traj0, cands.start0, segment_length),
                                  rewards.sums(cands.traj1, cands.start1, segment_length))
     if rule == "skill":
-        if estimator is None or any(t.skill is None for t in pool):
-            raise ValueError("the skill rule needs S-EPOA's return estimator and trajectories "
-                             "with skills (algo sepoa)")
-        skills = np.stack([t.skill for t in pool])
-        estimator.fit(skills, rewards.trajectory_returns())
-        values = estimator.predict(skills)
+        if estimator is None or not estimator.fitted or any(t.skill is None for t in pool):
+            raise ValueError("the skill rule needs S-EPOA's fitted return estimator and "
+                             "trajectories with skills (algo sepoa)")
+        values = estimator.predict(np.stack([t.skill for t in pool]))
         idx0 = torch.as_tensor(cands.traj0, device=values.device)
         idx1 = torch.as_tensor(cands.traj1, device=values.device)
         scores = skill_scores(values[idx0], values[idx1], p.to(values.device), spread)

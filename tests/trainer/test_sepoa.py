@@ -157,3 +157,17 @@ def test_skill_selection_is_refused_without_skills(tmp_path):
         TrainingRun(build_config("dmc:cheetah_run", "tiny", {
             "algo": "pebble", "feedback.selection": "skill",
             "run_dir": str(tmp_path / "x")}), progress=False)
+
+
+def test_the_disagreement_ablation_still_acts_with_z_task(tmp_path):
+    cfg = _tiny(tmp_path, **{"skill.pretrain_steps": 0, "feedback.selection": "disagreement"})
+    run = TrainingRun(cfg, progress=False)
+    run.train()
+    with open(tmp_path / "run" / "labels.jsonl") as f:
+        rules = [json.loads(line)["rule"] for line in f]
+    assert rules == ["uniform"] * 10 + ["disagreement"] * 10
+    estimator = run.feedback.estimator
+    assert estimator.fitted  # refitted after each round, whatever the selection rule
+    candidates = run.skills.sample_skills(np.random.default_rng(5), 50)
+    assert np.array_equal(estimator.best_skill(candidates),
+                          candidates[int(estimator.predict(candidates).argmax())])
