@@ -1,20 +1,36 @@
 #!/usr/bin/env bash
 # Installs everything the project needs on a fresh Debian machine: the system libraries for
-# off-screen MuJoCo rendering, a virtual environment in .venv, torch, and the project itself.
+# off-screen MuJoCo rendering, the tools the tests use (headless Chromium for the browser tests,
+# PostgreSQL for the queue's PostgreSQL variants, docker-compose v1 to validate the compose
+# file), a virtual environment in .venv, torch, and the project itself.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-apt_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 libglfw3)
+apt_packages=(
+    libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 libglfw3  # off-screen MuJoCo: EGL, OSMesa
+    chromium        # headless browser tests (Python playwright, executable_path=/usr/bin/chromium)
+    postgresql      # scripts/test.sh starts a throwaway cluster for the PostgreSQL test variants
+    docker-compose  # v1: `docker-compose config` validates docker-compose.yml without an engine
+)
 missing=()
 for pkg in "${apt_packages[@]}"; do
-    dpkg -s "$pkg" >/dev/null 2>&1 || missing+=("$pkg")
+    # "install ok installed", not just known to dpkg (a removed package keeps its config files).
+    status=$(dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null || true)
+    [[ "$status" == *" ok installed" ]] || missing+=("$pkg")
 done
 if [ ${#missing[@]} -gt 0 ]; then
     echo "installing system packages: ${missing[*]}"
-    sudo_cmd=""
-    [ "$(id -u)" -eq 0 ] || sudo_cmd="sudo"
-    $sudo_cmd apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive $sudo_cmd apt-get install -y -qq --no-install-recommends "${missing[@]}"
+    # Waits for another apt/dpkg (unattended upgrades, a parallel set-up) instead of failing.
+    apt_get=(env DEBIAN_FRONTEND=noninteractive apt-get -o DPkg::Lock::Timeout=600)
+    [ "$(id -u)" -eq 0 ] || apt_get=(sudo "${apt_get[@]}")
+    apt_log=$(mktemp)
+    # Quiet unless it fails (dpkg prints several lines per package whatever -qq says).
+    if ! { "${apt_get[@]}" update -qq && "${apt_get[@]}" install -y -qq --no-install-recommends \
+            "${missing[@]}"; } >"$apt_log" 2>&1; then
+        cat "$apt_log" >&2
+        exit 1
+    fi
+    rm -f "$apt_log"
 fi
 
 python=${PYTHON:-python3}
@@ -38,5 +54,5 @@ if ! .venv/bin/python -c "import torch" 2>/dev/null; then
         pip_install "torch==2.13.0" || pip_install "torch>=2.4,<2.14"
     fi
 fi
-pip_install -e ".[dev]"
+pip_install -e ".[dev,postgres]"
 echo "set-up done: $(.venv/bin/python -c 'import torch, mujoco, dm_control; print("torch", torch.__version__, "mujoco", mujoco.__version__)')"
