@@ -177,6 +177,8 @@ def cancel_queries(session: Session, *, run_id: int, query_ids: Sequence[int] | 
 def _free(now: datetime) -> ColumnElement[bool]:
     """Still wanting labels, and pending or with its lease run out."""
     return and_(
+        # Spelled out first so the (run_id, status, id) index skips a run's answered queries.
+        Query.status.in_((QueryStatus.PENDING, QueryStatus.LEASED)),
         Query.label_count < Query.needs_labels,
         or_(
             Query.status == QueryStatus.PENDING,

@@ -5,9 +5,11 @@ from __future__ import annotations
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
+from anyio import to_thread
 from fastapi import FastAPI
 
 from labelqueue import make_engine, migrate, session_factory
+from server.deps import TokenCache
 from server.errors import install_error_handlers
 from server.routes import export as export_routes
 from server.routes import label, labellers, pages, runs, stats
@@ -23,6 +25,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         migrate(settings.database_url)
         engine = make_engine(settings.database_url)
         app.state.sessions = session_factory(engine)
+        app.state.token_cache = TokenCache(settings.auth_cache_seconds)
+        to_thread.current_default_thread_limiter().total_tokens = settings.threadpool_size
         try:
             yield
         finally:

@@ -7,7 +7,10 @@ and labellers, not answer queries). Missing or unknown token: 401; wrong role: 4
 
 from __future__ import annotations
 
+import hashlib
 import hmac
+import threading
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Annotated
@@ -52,21 +55,58 @@ def bearer_token(request: Request) -> str | None:
     return token.strip() or None if scheme.lower() == "bearer" else None
 
 
-def caller_from_token(*, session: Session, settings: Settings, token: str | None) -> Caller:
+class TokenCache:
+    """Tokens checked in the last `seconds`, by their sha256: a labeller's every request would
+    otherwise take the database's write lock (SQLite) just to read its own row."""
+
+    def __init__(self, seconds: float):
+        self.seconds = seconds
+        self._entries: dict[str, tuple[float, Caller]] = {}
+        self._lock = threading.Lock()
+
+    def get(self, token: str) -> Caller | None:
+        key = hashlib.sha256(token.encode()).hexdigest()
+        with self._lock:
+            entry = self._entries.get(key)
+        return entry[1] if entry is not None and entry[0] > time.monotonic() else None
+
+    def put(self, token: str, caller: Caller) -> None:
+        if self.seconds <= 0:
+            return
+        key = hashlib.sha256(token.encode()).hexdigest()
+        now = time.monotonic()
+        with self._lock:
+            if len(self._entries) > 10_000:  # drop what has run out; bounded memory
+                self._entries = {k: v for k, v in self._entries.items() if v[0] > now}
+            self._entries[key] = (now + self.seconds, caller)
+
+
+def caller_from_token(
+    *, session: Session, settings: Settings, token: str | None, cache: TokenCache | None = None
+) -> Caller:
     """The caller a bearer token names; 401 when there is none or it is not valid."""
     if token is None:
         raise HTTPException(401, "missing bearer token (Authorization: Bearer <token>)", HEADERS)
     admin = settings.operator_token
     if admin is not None and hmac.compare_digest(token.encode(), admin.encode()):
         return Caller(role=Role.OPERATOR, labeller_id=None, name="operator-token")
+    cached = cache.get(token) if cache is not None else None
+    if cached is not None:
+        return cached
     labeller = authenticate(session, token=token)
     if labeller is None:
         raise HTTPException(401, "invalid or revoked bearer token", HEADERS)
-    return Caller(role=labeller.role, labeller_id=labeller.id, name=labeller.name)
+    caller = Caller(role=labeller.role, labeller_id=labeller.id, name=labeller.name)
+    if cache is not None:
+        cache.put(token, caller)
+    return caller
 
 
 def get_caller(request: Request, session: SessionDep, settings: SettingsDep) -> Caller:
-    return caller_from_token(session=session, settings=settings, token=bearer_token(request))
+    cache: TokenCache | None = getattr(request.app.state, "token_cache", None)
+    return caller_from_token(
+        session=session, settings=settings, token=bearer_token(request), cache=cache
+    )
 
 
 def get_operator(caller: Annotated[Caller, Depends(get_caller)]) -> Caller:

@@ -31,6 +31,11 @@ class Settings(BaseSettings):
     """signs clip URLs; random per process unless set (set it when several servers share a DB)"""
     clip_url_seconds: float = Field(default=900.0, gt=0)
     """how long a signed clip URL stays valid"""
+    auth_cache_seconds: float = Field(default=5.0, ge=0)
+    """how long a checked token is trusted without the database (0: check every request); a
+    revoked labeller can still read for this long, but cannot lease or answer"""
+    threadpool_size: int = Field(default=8, ge=1)
+    """threads serving requests: more only queue on the database's one write lock"""
 
     @model_validator(mode="after")
     def _default_clips_dir(self) -> Settings:

@@ -18,7 +18,8 @@ from server_helpers import (
 from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
-from labelqueue import Label, Query
+from labelqueue import Label, Query, set_labeller_active
+from server.app import create_app
 from server.settings import Settings
 
 NEXT_KEYS = {
@@ -226,3 +227,28 @@ def test_a_query_without_clips_is_not_served_to_people(
     assert client.get("/api/label/next", headers=alice).status_code == 204
     response = client.get(f"/api/clips/{query_id}/first", headers=alice)
     assert response.status_code == 404 and "not rendered" in response.json()["detail"]
+
+
+def test_a_revoked_labeller_cannot_take_work_even_while_its_token_is_cached(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    running_run_with_queries(client, session, settings, n=2)
+    token = new_labeller(client, "mallory")
+    first = client.get("/api/label/next", headers=bearer(token))
+    assert first.status_code == 200
+    labeller_id = int(token.split(".")[0])
+    set_labeller_active(session, labeller_id=labeller_id, active=False)
+    # The token is trusted for a few seconds without the database, but leasing checks.
+    refused = client.get("/api/label/next", headers=bearer(token))
+    assert refused.status_code == 409 and "deactivated" in refused.json()["detail"]
+
+
+def test_without_the_auth_cache_a_revoked_token_is_refused_at_once(
+    settings: Settings, session: Session
+) -> None:
+    uncached = settings.model_copy(update={"auth_cache_seconds": 0.0})
+    with TestClient(create_app(uncached)) as client:
+        token = new_labeller(client, "trent")
+        assert client.get("/api/label/count", headers=bearer(token)).status_code == 200
+        set_labeller_active(session, labeller_id=int(token.split(".")[0]), active=False)
+        assert client.get("/api/label/count", headers=bearer(token)).status_code == 401
