@@ -10,6 +10,7 @@ returns, and a session used for other reads should be committed or closed prompt
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -51,9 +52,33 @@ def make_engine(url: str, *, foreign_keys: bool = True) -> Engine:
         cursor.execute("PRAGMA synchronous=NORMAL")
         cursor.close()
 
+    # Threads of one process queue for the write lock on a Python lock, which wakes the next
+    # one as soon as it is free; SQLite's busy handler would instead poll with sleeps of up to
+    # 100 ms, which made the label API's slowest requests. SQLite's own lock still decides (for
+    # other processes too), so a thread that waits too long here just goes on to it.
+    writer = threading.Lock()
+
     @event.listens_for(engine, "begin")
     def _on_begin(connection: Connection) -> None:
-        connection.exec_driver_sql("BEGIN IMMEDIATE")
+        connection.info["holds_writer"] = writer.acquire(timeout=BUSY_TIMEOUT_S)
+        try:
+            connection.exec_driver_sql("BEGIN IMMEDIATE")
+        except BaseException:
+            _release(connection)
+            raise
+
+    def _release(connection: Connection) -> None:
+        if connection.info.pop("holds_writer", False):
+            writer.release()
+
+    event.listen(engine, "commit", _release)
+    event.listen(engine, "rollback", _release)
+
+    @event.listens_for(engine, "checkin")
+    def _on_checkin(_dbapi_connection: Any, record: Any) -> None:
+        # A safety net: a connection back in the pool never keeps the lock.
+        if record.info.pop("holds_writer", False):
+            writer.release()
 
     return engine
 
