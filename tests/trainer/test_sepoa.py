@@ -171,3 +171,14 @@ def test_the_disagreement_ablation_still_acts_with_z_task(tmp_path):
     candidates = run.skills.sample_skills(np.random.default_rng(5), 50)
     assert np.array_equal(estimator.best_skill(candidates),
                           candidates[int(estimator.predict(candidates).argmax())])
+
+
+@pytest.mark.parametrize("backend", ["diayn", "cic"])
+def test_other_skill_backends_run_online_behind_the_same_interface(tmp_path, backend):
+    cfg = _tiny(tmp_path, **{"skill.backend": backend, "skill.pretrain_steps": 0,
+                             "steps": 1000})
+    run = TrainingRun(cfg, progress=False)
+    summary = run.train()
+    assert summary["labels_used"] == 20
+    dims = {"diayn": 16, "cic": 64}
+    assert all(t.skill.shape == (dims[backend],) for t in run.pool.trajectories)
