@@ -118,6 +118,8 @@ def run_config(run: Run, worker: WorkerConfig) -> RunConfig:
     overrides |= typed_overrides({f"teacher.{k}": v for k, v in run.teacher_params.items()})
     overrides |= {"algo": run.algo, "seed": run.seed, "feedback.budget": run.budget,
                   "run_dir": str(worker.data_dir / "runs" / f"run-{run.id}")}
+    # S-EPOA's skill snapshots are shared by the runs of a data folder (made on first use).
+    overrides.setdefault("skill.snapshot_dir", str(worker.data_dir / "snapshots"))
     if worker.device is not None:
         overrides["device"] = worker.device
     if worker.threads is not None:
