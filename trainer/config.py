@@ -64,6 +64,18 @@ class RewardConfig:
     """upper bound on passes over all labels per round"""
     stop_accuracy: float = 0.98
     """stop a round's training once the mean training accuracy reaches this"""
+    surf: bool = False
+    """SURF: temporal crops of labelled pairs and confident pseudo-labels of unlabelled ones"""
+    surf_crop_min: int = 45
+    """SURF: shortest crop, in steps (segments of 60 in the paper)"""
+    surf_crop_max: int = 55
+    """SURF: longest crop, in steps"""
+    surf_unlabelled_ratio: int = 4
+    """SURF: unlabelled pairs per labelled pair in each batch"""
+    surf_threshold: float = 0.999
+    """SURF: a pseudo-label needs P above this (or below 1 - this)"""
+    surf_weight: float = 1.0
+    """SURF: weight of the pseudo-labelled pairs' loss"""
 
 
 @dataclass(frozen=True)

@@ -22,9 +22,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from trainer.config import FeedbackConfig
-from trainer.query_selection import pool_rewards, select_queries
+from trainer.query_selection import pool_rewards, sample_candidates, select_queries
 from trainer.return_estimator import ReturnEstimator
 from trainer.reward_model import LabelledPairs, RewardModel
+from trainer.surf import PairSampler
 from trainer.teachers import Choice, QueryTruth, choice_target, is_correct
 from trainer.trajectories import Trajectory, TrajectoryPool
 
@@ -167,6 +168,21 @@ class PreferenceFeedback:
         self.pending = queries
         return queries
 
+    def _unlabelled_pairs(self, pool: TrajectoryPool) -> PairSampler:
+        """SURF's unlabelled pairs: random segments of different pooled trajectories."""
+        trajectories, h = list(pool.trajectories), self.cfg.segment_length
+        lengths = np.array([t.length for t in trajectories])
+        # A stream of its own, drawn once per round: the selection's stays as without SURF.
+        rng = np.random.default_rng(self.rng.integers(2**63))
+
+        def sample(n: int) -> tuple[np.ndarray, np.ndarray]:
+            c = sample_candidates(lengths, n, h, rng)
+            return tuple(  # type: ignore[return-value]
+                np.stack([_segment(trajectories[i], s, h) for i, s in zip(t, st, strict=True)])
+                for t, st in ((c.traj0, c.start0), (c.traj1, c.start1)))
+
+        return sample
+
     def fit_estimator(self, pool: TrajectoryPool) -> dict[str, float]:
         """S-EPOA: refit R_theta on the pool's skills and summed predicted rewards."""
         assert self.estimator is not None
@@ -226,7 +242,8 @@ class PreferenceFeedback:
             "trained_pairs": len(self.pairs),
         }
         if len(self.pairs):
-            metrics |= self.model.train_round(self.pairs)
+            unlabelled = self._unlabelled_pairs(pool) if self.model.cfg.surf else None
+            metrics |= self.model.train_round(self.pairs, unlabelled)
         if self.estimator is not None:  # z_task follows the reward model from now on
             metrics |= self.fit_estimator(pool)
         self.rounds += 1

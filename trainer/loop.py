@@ -41,6 +41,7 @@ from trainer.reward_model import RewardModel
 from trainer.sac import SAC
 from trainer.skills import SkillAgent, SkillBackend, SkillReplayBuffer
 from trainer.skills.pretrain import build_skill_agent, load_snapshot, pretrain, snapshot_path
+from trainer.surf import check_surf_config
 from trainer.teachers import TEACHER_KINDS, make_teacher
 from trainer.trajectories import EpisodeRecorder, TrajectoryPool
 from trainer.utils import pick_device, set_seed
@@ -90,6 +91,8 @@ def check_config(cfg: RunConfig) -> None:
     if cfg.skill.score_spread not in SPREADS:
         raise ValueError(f"unknown skill.score_spread {cfg.skill.score_spread!r}; valid: "
                          f"{', '.join(SPREADS)}")
+    if cfg.reward.surf:
+        check_surf_config(cfg.reward, cfg.feedback.segment_length)
     if not 0 <= cfg.teacher.eps < 1:
         raise ValueError(f"teacher.eps is an error rate in [0, 1), got {cfg.teacher.eps}")
     if cfg.episode_length and cfg.episode_length < cfg.feedback.segment_length:

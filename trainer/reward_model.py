@@ -14,6 +14,7 @@ from torch import nn
 
 from trainer.config import RewardConfig
 from trainer.nets import EnsembleMLP
+from trainer.surf import PairSampler, pseudo_labels, random_crops
 
 
 def bradley_terry_loss(returns0: torch.Tensor, returns1: torch.Tensor, target: torch.Tensor):
@@ -93,12 +94,16 @@ class RewardModel:
         e, b, h, d = segments.shape
         return self.ensemble(segments.reshape(e, b * h, d)).reshape(e, b, h).sum(-1)
 
-    def train_round(self, pairs: LabelledPairs) -> dict[str, float]:
+    def train_round(self, pairs: LabelledPairs,
+                    unlabelled: PairSampler | None = None) -> dict[str, float]:
         """Train on every label so far: up to `max_epochs` passes, each member on its own
-        shuffle, stopping once the mean training accuracy reaches `stop_accuracy`."""
+        shuffle, stopping once the mean training accuracy reaches `stop_accuracy`. With
+        `cfg.surf`, batches are temporally cropped and, given `unlabelled` pairs, pseudo-labelled
+        pairs join the loss (trainer/surf.py)."""
         seg0, seg1, target = pairs.tensors(self.device)
         n, e = len(target), self.cfg.ensemble_size
         loss_value, accuracy, epochs = float("nan"), 0.0, 0
+        confident, pseudo = 0, 0
         while epochs < self.cfg.max_epochs:
             epochs += 1
             order = torch.stack([torch.randperm(n, generator=self.generator) for _ in range(e)])
@@ -108,9 +113,20 @@ class RewardModel:
             total_loss = 0.0
             for start in range(0, n, self.cfg.batch_size):
                 idx = order[:, start : start + self.cfg.batch_size]  # (E, B)
-                r0, r1 = self._segment_returns(seg0[idx]), self._segment_returns(seg1[idx])
-                y = target[idx]
+                s0, s1, y = seg0[idx], seg1[idx], target[idx]
+                length = None
+                if self.cfg.surf:
+                    length = int(torch.randint(self.cfg.surf_crop_min, self.cfg.surf_crop_max + 1,
+                                               (), generator=self.generator))
+                    s0, s1 = (c.reshape(e, -1, length, c.shape[-1]) for c in random_crops(
+                        s0.flatten(0, 1), s1.flatten(0, 1), length, self.generator))
+                r0, r1 = self._segment_returns(s0), self._segment_returns(s1)
                 loss = bradley_terry_loss(r0, r1, y).sum()
+                if length is not None and unlabelled is not None:
+                    extra, kept = self._pseudo_label_loss(unlabelled, idx.shape[1], length)
+                    loss = loss + self.cfg.surf_weight * extra
+                    confident, pseudo = confident + kept, pseudo + e * idx.shape[1] * (
+                        self.cfg.surf_unlabelled_ratio)
                 self.opt.zero_grad(set_to_none=True)
                 loss.backward()
                 self.opt.step()
@@ -123,7 +139,29 @@ class RewardModel:
             accuracy = correct.sum().item() / (e * max(counted, 1))
             if accuracy >= self.cfg.stop_accuracy:
                 break
-        return {"reward_loss": loss_value, "reward_accuracy": accuracy, "reward_epochs": epochs}
+        metrics = {"reward_loss": loss_value, "reward_accuracy": accuracy,
+                   "reward_epochs": epochs}
+        if pseudo:
+            metrics["surf_confident_ratio"] = confident / pseudo
+        return metrics
+
+    def _pseudo_label_loss(self, unlabelled: PairSampler, batch: int,
+                           length: int) -> tuple[torch.Tensor, int]:
+        """SURF's loss on confidently self-labelled random pairs (summed over members, mean
+        over each member's confident pairs), and how many member-pairs were confident."""
+        n = batch * self.cfg.surf_unlabelled_ratio
+        if n == 0:
+            return torch.zeros((), device=self.device), 0
+        u0, u1 = (torch.as_tensor(u, device=self.device) for u in unlabelled(n))
+        u0, u1 = random_crops(u0, u1, length, self.generator)
+        e = self.cfg.ensemble_size
+        r0 = self._segment_returns(u0.expand(e, -1, -1, -1))
+        r1 = self._segment_returns(u1.expand(e, -1, -1, -1))
+        with torch.no_grad():
+            y, keep = pseudo_labels(torch.sigmoid(r1 - r0), self.cfg.surf_threshold)
+        losses = F.binary_cross_entropy_with_logits(r1 - r0, y, reduction="none") * keep
+        per_member = losses.sum(-1) / keep.sum(-1).clamp(min=1)
+        return per_member.sum(), int(keep.sum())
 
     def state_dict(self) -> dict:
         return {
