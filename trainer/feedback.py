@@ -22,7 +22,12 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from trainer.config import FeedbackConfig
-from trainer.query_selection import pool_rewards, sample_candidates, select_queries
+from trainer.query_selection import (
+    PoolRewards,
+    pool_rewards,
+    sample_candidates,
+    select_queries,
+)
 from trainer.return_estimator import ReturnEstimator
 from trainer.reward_model import LabelledPairs, RewardModel
 from trainer.surf import PairSampler
@@ -140,11 +145,13 @@ class PreferenceFeedback:
         n = min(self.cfg.per_round, self.budget_left)
         rule = self.cfg.first_round_selection if self.rounds == 0 else self.cfg.selection
         trajectories = list(pool.trajectories)
-        if rule == "skill":
-            self.fit_estimator(pool)  # on the trajectories that came since the last round too
+        rewards = None
+        if rule == "skill":  # R_theta on the trajectories that came since the last round too
+            rewards = pool_rewards(self.model, trajectories)
+            self.fit_estimator(pool, rewards)
         selection = select_queries(
             rule, self.model, trajectories, n, n * self.cfg.candidate_factor,
-            self.cfg.segment_length, self.rng, self.estimator, self.spread,
+            self.cfg.segment_length, self.rng, self.estimator, self.spread, rewards,
         )
         q, h = selection.queries, self.cfg.segment_length
         pairs = [(trajectories[q.traj0[i]], int(q.start0[i]), trajectories[q.traj1[i]],
@@ -183,11 +190,15 @@ class PreferenceFeedback:
 
         return sample
 
-    def fit_estimator(self, pool: TrajectoryPool) -> dict[str, float]:
-        """S-EPOA: refit R_theta on the pool's skills and summed predicted rewards."""
+    def fit_estimator(self, pool: TrajectoryPool,
+                      rewards: PoolRewards | None = None) -> dict[str, float]:
+        """S-EPOA: refit R_theta on the pool's skills and summed predicted rewards (`rewards`:
+        the pool already scored by the current model)."""
         assert self.estimator is not None
         trajectories = list(pool.trajectories)
-        returns = pool_rewards(self.model, trajectories).trajectory_returns()
+        if rewards is None:
+            rewards = pool_rewards(self.model, trajectories)
+        returns = rewards.trajectory_returns()
         return self.estimator.fit(np.stack([t.skill for t in trajectories]), returns)
 
     def scripted_answers(self) -> dict[str, Answer]:

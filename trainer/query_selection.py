@@ -141,10 +141,11 @@ class Selection:
 
 def select_queries(rule: str, model: RewardModel, pool: list[Trajectory], n_queries: int,
                    n_candidates: int, segment_length: int, rng: np.random.Generator,
-                   estimator: ReturnEstimator | None = None, spread: str = "var") -> Selection:
+                   estimator: ReturnEstimator | None = None, spread: str = "var",
+                   rewards: PoolRewards | None = None) -> Selection:
     """The rule's top `n_queries` of `n_candidates` random pairs (uniform: `n_queries` random
     pairs). The skill rule scores by the fitted `estimator` (R_theta) of each side's skill and
-    the `spread` of P ("var" or "std")."""
+    the `spread` of P ("var" or "std"). `rewards`: the pool already scored by `model`."""
     if rule not in RULES:
         raise ValueError(f"unknown selection rule {rule!r}; valid: {', '.join(RULES)}")
     lengths = np.array([t.length for t in pool])
@@ -153,7 +154,7 @@ def select_queries(rule: str, model: RewardModel, pool: list[Trajectory], n_quer
         nan = np.full(len(chosen), np.nan)
         return Selection(chosen, nan, nan)
     cands = sample_candidates(lengths, n_candidates, segment_length, rng)
-    rewards = pool_rewards(model, pool)
+    rewards = pool_rewards(model, pool) if rewards is None else rewards
     p = preference_probabilities(rewards.sums(cands.traj0, cands.start0, segment_length),
                                  rewards.sums(cands.traj1, cands.start1, segment_length))
     if rule == "skill":
