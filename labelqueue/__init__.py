@@ -5,7 +5,7 @@ Tables are in `models`; the operations on them, each one atomic transaction (see
 sessions and migrations in `db`. Import what you need from here.
 """
 
-from labelqueue.db import DEFAULT_URL, make_engine, migrate, session_factory
+from labelqueue.db import DEFAULT_URL, make_engine, migrate, session_factory, sqlite_url
 from labelqueue.errors import Conflict, InvalidTransition, LeaseError, NotFound, QueueError
 from labelqueue.export import COLUMNS as EXPORT_COLUMNS
 from labelqueue.export import FORMATS as EXPORT_FORMATS
@@ -105,6 +105,7 @@ __all__ = [
     "set_clips",
     "set_labeller_active",
     "set_run_status",
+    "sqlite_url",
     "set_teacher",
     "session_factory",
     "submit_label",

@@ -20,7 +20,13 @@ from sqlalchemy import Engine, create_engine, event
 from sqlalchemy.engine import Connection, make_url
 from sqlalchemy.orm import Session, sessionmaker
 
-DEFAULT_URL = "sqlite:///data/queue.db"
+
+def sqlite_url(data_dir: str | Path) -> str:
+    """The embedded default: the SQLite file `queue.db` in the data folder."""
+    return f"sqlite:///{Path(data_dir) / 'queue.db'}"
+
+
+DEFAULT_URL = sqlite_url("data")
 BUSY_TIMEOUT_S = 30.0
 MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
 

@@ -35,7 +35,9 @@ def _database_args(p: argparse.ArgumentParser) -> None:
 
 
 def _database_url(args: argparse.Namespace) -> str:
-    return args.database_url or f"sqlite:///{os.path.join(args.data_dir, 'queue.db')}"
+    from labelqueue import sqlite_url
+
+    return args.database_url or sqlite_url(args.data_dir)
 
 
 def _parser() -> argparse.ArgumentParser:

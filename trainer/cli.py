@@ -105,6 +105,7 @@ def _worker_parser(sub) -> argparse.ArgumentParser:
 def _run_worker(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from labelqueue import sqlite_url
     from trainer.clips import ClipConfig
     from trainer.worker import WorkerConfig, run_worker
 
@@ -115,7 +116,7 @@ def _run_worker(args: argparse.Namespace) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     extra = {"worker_id": args.worker_id} if args.worker_id else {}
-    url = args.database_url or f"sqlite:///{os.path.join(args.data_dir, 'queue.db')}"
+    url = args.database_url or sqlite_url(args.data_dir)
     worker = WorkerConfig(
         database_url=url, data_dir=Path(args.data_dir),
         clips_dir=Path(args.clips_dir) if args.clips_dir else None, once=args.once,
