@@ -26,11 +26,15 @@ TRAINER_COMMANDS = {
 }
 
 
-def _database_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--database-url", default=os.environ.get("SEPOA_DATABASE_URL"),
+def _database_args(p: argparse.ArgumentParser, inherit: bool = False) -> None:
+    """`inherit`: on a sub-action, where an absent flag keeps the parent parser's value (so
+    `sepoa labeller --data-dir D create x` and `sepoa labeller create x --data-dir D` agree)."""
+    url = argparse.SUPPRESS if inherit else os.environ.get("SEPOA_DATABASE_URL")
+    data = argparse.SUPPRESS if inherit else os.environ.get("SEPOA_DATA_DIR", "data")
+    p.add_argument("--database-url", default=url,
                    help="the queue database (env SEPOA_DATABASE_URL; default: "
                    "sqlite:///<data-dir>/queue.db)")
-    p.add_argument("--data-dir", default=os.environ.get("SEPOA_DATA_DIR", "data"),
+    p.add_argument("--data-dir", default=data,
                    help="where the SQLite file, runs and clips live (env SEPOA_DATA_DIR)")
 
 
@@ -70,7 +74,8 @@ def _parser() -> argparse.ArgumentParser:
     create = labeller_sub.add_parser("create", help="a new labeller; prints its token once")
     create.add_argument("name")
     create.add_argument("--role", choices=("labeller", "operator"), default="labeller")
-    labeller_sub.add_parser("list", help="list labellers")
+    _database_args(create, inherit=True)
+    _database_args(labeller_sub.add_parser("list", help="list labellers"), inherit=True)
 
     for name, text in TRAINER_COMMANDS.items():
         sub.add_parser(name, help=text, add_help=False)  # parsed by trainer.cli
