@@ -147,7 +147,8 @@ class QueueHooks(RunHooks):
         self.progress: dict[str, Any] = {}
         self.next_beat = 0.0
         self.query_ids: dict[str, int] = {}
-        self.clips: dict[str, tuple[str, str]] = {}
+        self.rendered: set[str] = set()
+        """the open round's queries whose clips are attached"""
         self.render_env: Env | None = None
 
     # -- operator ------------------------------------------------------------------------------
@@ -203,7 +204,7 @@ class QueueHooks(RunHooks):
         with self.sessions() as session:
             ids = push_queries(session, run_id=self.run_id, queries=specs)
         self.query_ids = {q.query_id: db_id for q, db_id in zip(queries, ids, strict=True)}
-        self.clips = {}
+        self.rendered = set()
         self.progress["waiting_for"] = len(queries)
         if self.teacher is TeacherKind.HUMAN:
             self._render(queries, pool)
@@ -213,7 +214,7 @@ class QueueHooks(RunHooks):
         start on the first while the rest render. A clip already on disk is not rendered again."""
         by_id = {t.id: t for t in pool.trajectories}
         for q in queries:
-            if q.query_id in self.clips:
+            if q.query_id in self.rendered:
                 continue
             folder = f"run-{self.run_id}"
             stem = f"r{q.round}-{q.query_id.split('-')[-1]}"
@@ -229,7 +230,7 @@ class QueueHooks(RunHooks):
             with self.sessions() as session:
                 set_clips(session, query_id=self.query_ids[q.query_id], first_clip=keys[0],
                           second_clip=keys[1])
-            self.clips[q.query_id] = keys
+            self.rendered.add(q.query_id)
             self.beat(self.step)
 
     def _answer_as_scripted(self, queries: list[Query]) -> None:
@@ -254,7 +255,7 @@ class QueueHooks(RunHooks):
         while True:
             if self.teacher is TeacherKind.SCRIPTED:
                 self._answer_as_scripted(queries)
-            elif len(self.clips) < len(queries):  # switched to people mid-round
+            elif len(self.rendered) < len(queries):  # switched to people mid-round
                 self._render(queries, pool)
             with self.sessions() as session:
                 labels = labels_for_queries(session, query_ids=ids)
