@@ -63,7 +63,7 @@ COLUMNS: tuple[Column, ...] = (
     _c("run_id", "int64", "the run that asked the query"),
     _c("run_name", "string", "the run's name"),
     _c("task", "string", "the run's task, e.g. `dmc:cheetah_run`"),
-    _c("algo", "string", "the run's algorithm: sac, pebble or sepoa"),
+    _c("algo", "string", "the run's algorithm: sac, pebble, surf, rune, rime or sepoa"),
     _c("preset", "string", "the run's configuration preset"),
     _c("seed", "int64", "the run's seed"),
     _c("round", "int64", "the feedback round that asked the query"),

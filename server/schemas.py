@@ -12,7 +12,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 TASK_PATTERN = r"^(dmc|metaworld):[a-z0-9_\-]+$"
-Algo = Literal["sac", "pebble", "sepoa"]
+Algo = Literal["sac", "pebble", "surf", "rune", "rime", "sepoa"]
 Preset = Literal["paper", "small", "tiny"]
 Teacher = Literal["human", "scripted"]
 RoleName = Literal["labeller", "operator"]

@@ -76,6 +76,27 @@ class RewardConfig:
     """SURF: a pseudo-label needs P above this (or below 1 - this)"""
     surf_weight: float = 1.0
     """SURF: weight of the pseudo-labelled pairs' loss"""
+    rune: bool = False
+    """RUNE: the agent's reward gets a bonus of beta_t times the ensemble's std of r_hat"""
+    rune_beta0: float = 0.05
+    """RUNE: beta_0, the bonus weight when the agent starts training on r_hat"""
+    rune_decay: float = 0.001
+    """RUNE: rho; beta_t = beta_0 (1 - rho)^t, t = environment steps since the first round"""
+    rime: bool = False
+    """RIME: train only on labels the model trusts (KL bound), flip confidently contradicted
+    ones, and warm-start the model on the intrinsic reward before the first round"""
+    rime_alpha: float = 0.5
+    """RIME: alpha of the lower bound -ln(rho) + alpha rho"""
+    rime_beta_max: float = 3.0
+    """RIME: initial weight of the KL spread in the bound"""
+    rime_beta_min: float = 1.0
+    """RIME: final weight of the KL spread in the bound"""
+    rime_k: float = 1 / 30
+    """RIME: beta falls linearly by k per training epoch (1/30 DMC, 1/300 Metaworld)"""
+    rime_tau_upper: float = 6.907755278982137
+    """RIME: 3 ln 10; cap of the spread term and the KL beyond which a label is flipped"""
+    rime_warm_start_updates: int = 5
+    """RIME: reward-model regression steps on the intrinsic reward per pretraining update"""
 
 
 @dataclass(frozen=True)
@@ -185,7 +206,8 @@ class RunConfig:
     task: str = "dmc:cheetah_run"
     """dmc:<domain>_<task> or metaworld:<name>"""
     algo: str = "pebble"
-    """pebble | sepoa (preference learning) | sac (oracle on the ground-truth reward)"""
+    """pebble | surf | rune | rime | sepoa (preference learning) | sac (the oracle on the
+    ground-truth reward)"""
     preset: str = "paper"
     """paper | small | tiny"""
     seed: int = 0
@@ -236,6 +258,7 @@ FAMILY_PRESETS: dict[str, dict[str, Any]] = {
         "feedback.every": 5_000,
         "feedback.per_round": 100,
         "feedback.budget": 30_000,
+        "reward.rime_k": 1 / 300,
     },
 }
 
@@ -291,6 +314,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         "skill.hidden_dim": 32,
         "skill.pretrain_steps": 300,
         "skill.seed_steps": 100,
+        "reward.surf_crop_min": 15,  # segments of 20 here
+        "reward.surf_crop_max": 18,
     },
 }
 
@@ -314,23 +339,35 @@ def apply_overrides(cfg: RunConfig, overrides: dict[str, Any]) -> RunConfig:
     return cfg
 
 
-# Per algorithm: S-EPOA selects queries by its skill rule.
+# Per algorithm. SURF, RUNE and RIME are PEBBLE with one piece added; S-EPOA selects queries
+# by its skill rule and, as in the paper, learns its reward with SURF.
+SURF = {"reward.surf": True, "feedback.segment_length": 60}
 ALGO_PRESETS: dict[str, dict[str, Any]] = {
-    "sepoa": {"feedback.selection": "skill"},
+    "surf": SURF,
+    "rune": {"reward.rune": True},
+    "rime": {"reward.rime": True},
+    "sepoa": {"feedback.selection": "skill"} | SURF,
+}
+# RIME's own unsupervised pretraining length on cheetah (9000 elsewhere, PEBBLE's).
+ALGO_TASK_PRESETS: dict[tuple[str, str], dict[str, Any]] = {
+    ("rime", "dmc:cheetah_run"): {"unsup_steps": 2000},
 }
 
 
 def build_config(task: str, preset: str, overrides: dict[str, Any] | None = None) -> RunConfig:
-    """The run config for `task` under `preset` (family, task, size and algorithm presets in
-    that order), with explicit `overrides` (dotted paths) last."""
+    """The run config for `task` under `preset`: family, task, algorithm and size presets in
+    that order (a size preset shrinks whatever came before), then explicit `overrides`
+    (dotted paths)."""
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; valid: {', '.join(PRESETS)}")
     overrides = overrides or {}
+    algo = overrides.get("algo", RunConfig.algo)
     cfg = RunConfig(task=task, preset=preset)
     cfg = apply_overrides(cfg, FAMILY_PRESETS.get(task_family(task), {}))
     cfg = apply_overrides(cfg, TASK_PRESETS.get(task, {}))
+    cfg = apply_overrides(cfg, ALGO_PRESETS.get(algo, {}))
+    cfg = apply_overrides(cfg, ALGO_TASK_PRESETS.get((algo, task), {}))
     cfg = apply_overrides(cfg, PRESETS[preset])
-    cfg = apply_overrides(cfg, ALGO_PRESETS.get(overrides.get("algo", cfg.algo), {}))
     return apply_overrides(cfg, overrides)
 
 

@@ -2,7 +2,16 @@
 
 PEBBLE: `seed_steps` of random actions, then unsupervised state-entropy pretraining until the
 first feedback round, a critic reset after that round, then a round every `feedback.every` steps
-until the label budget is spent.
+until the label budget is spent. SURF, RUNE and RIME are PEBBLE with one piece added, switched
+on by their algorithm presets (`reward.surf`, `reward.rune`, `reward.rime`):
+- SURF: cropped segments and pseudo-labels in reward training (trainer/surf.py).
+- RUNE: the agent trains on r_hat + beta_t * (the ensemble's std of r_hat), with
+  beta_t = beta_0 (1 - rho)^t where t counts environment steps since the first round closed,
+  i.e. since the agent began training on r_hat. The bonus is computed per update batch from the
+  current model and beta_t, so relabelling the buffer never freezes an old beta into it.
+- RIME: the label filter (trainer/rime.py), and a reward model warm-started on the normalised
+  state-entropy reward during the unsupervised phase, so the critic is kept, not reset, after
+  the first round.
 
 S-EPOA (Algorithm 1): the skill-conditioned actor and critic pi(a|s,z) start from a pretraining
 snapshot (`sepoa pretrain`; made first if missing, or fresh nets when skill.pretrain_steps is 0,
@@ -38,6 +47,8 @@ from trainer.query_selection import RULES
 from trainer.replay_buffer import ReplayBuffer
 from trainer.return_estimator import SPREADS, ReturnEstimator
 from trainer.reward_model import RewardModel
+from trainer.rime import check_rime_config
+from trainer.rune import check_rune_config, rune_beta
 from trainer.sac import SAC
 from trainer.skills import SkillAgent, SkillBackend, SkillReplayBuffer
 from trainer.skills.pretrain import build_skill_agent, load_snapshot, pretrain, snapshot_path
@@ -46,7 +57,8 @@ from trainer.teachers import TEACHER_KINDS, make_teacher
 from trainer.trajectories import EpisodeRecorder, TrajectoryPool
 from trainer.utils import pick_device, set_seed
 
-ALGOS = ("sac", "pebble", "sepoa")
+PEBBLE_FAMILY = ("pebble", "surf", "rune", "rime")
+ALGOS = ("sac", *PEBBLE_FAMILY, "sepoa")
 CHECKPOINT = "checkpoint.pt"
 
 
@@ -93,6 +105,10 @@ def check_config(cfg: RunConfig) -> None:
                          f"{', '.join(SPREADS)}")
     if cfg.reward.surf:
         check_surf_config(cfg.reward, cfg.feedback.segment_length)
+    if cfg.reward.rune:
+        check_rune_config(cfg.reward)
+    if cfg.reward.rime:
+        check_rime_config(cfg.reward)
     if not 0 <= cfg.teacher.eps < 1:
         raise ValueError(f"teacher.eps is an error rate in [0, 1), got {cfg.teacher.eps}")
     if cfg.episode_length and cfg.episode_length < cfg.feedback.segment_length:
@@ -164,7 +180,7 @@ class TrainingRun:
 
         self.feedback: PreferenceFeedback | None = None
         self._numpy_reward: NumpyMLP | None = None
-        if cfg.algo in ("pebble", "sepoa"):
+        if cfg.algo != "sac":
             model = RewardModel(obs_dim, act_dim, cfg.reward, self.device, cfg.seed)
             teacher = make_teacher(cfg.teacher, cfg.seed, cfg.feedback.segment_length,
                                    self.env.episode_length)
@@ -181,7 +197,10 @@ class TrainingRun:
         self.step = 0
         self.episode = 0
         self.stopped = False
-        self.next_round_step = cfg.seed_steps + (cfg.unsup_steps if cfg.algo == "pebble" else 0)
+        self.next_round_step = cfg.seed_steps + (
+            cfg.unsup_steps if cfg.algo in PEBBLE_FAMILY else 0)
+        self.reward_start_step: int | None = None
+        """when the first round closed: RUNE's t counts steps from here"""
         self.last_checkpoint_step = 0
         self.last_eval_step = 0
         if resume:
@@ -232,13 +251,35 @@ class TrainingRun:
         if self.skills is not None and not self.preference_phase:
             return {}  # S-EPOA keeps its pretrained policy until there is a reward to learn
         batch = self.buffer.sample(self.cfg.sac.batch_size)
+        reward_cfg = self.cfg.reward
         if self.feedback is not None and not self.preference_phase:
             # PEBBLE's pretraining reward: kNN distance of s' to the buffer's states, normalised.
-            points = self.buffer.next_obs[: len(self.buffer)]
-            dist = knn_distance(batch.next_obs, points, self.cfg.entropy_k + 1)
+            dist = self._entropy_distance(batch.next_obs)
             self.entropy_stats.update(dist)
             batch = batch._replace(reward=(dist / self.entropy_stats.std).unsqueeze(1))
+            if reward_cfg.rime:
+                self._warm_start_reward_model()
+        elif self.feedback is not None and reward_cfg.rune:
+            assert self.reward_start_step is not None
+            beta = rune_beta(reward_cfg, self.step - self.reward_start_step)
+            bonus = self.feedback.model.reward_std(batch.obs, batch.action)
+            batch = batch._replace(reward=batch.reward + beta * bonus.unsqueeze(1))
         return self.agent.update(batch)
+
+    def _entropy_distance(self, next_obs: torch.Tensor) -> torch.Tensor:
+        points = self.buffer.next_obs[: len(self.buffer)]
+        return knn_distance(next_obs, points, self.cfg.entropy_k + 1)
+
+    def _warm_start_reward_model(self) -> None:
+        """RIME: regress r_hat onto the state-entropy reward of fresh batches, standardised and
+        scaled into tanh's range, so the first round starts from a reward the agent knows."""
+        assert self.feedback is not None
+        for _ in range(self.cfg.reward.rime_warm_start_updates):
+            batch = self.buffer.sample(self.cfg.sac.batch_size)
+            z = (self._entropy_distance(batch.next_obs) - self.entropy_stats.mean) / (
+                self.entropy_stats.std)
+            target = z / z.abs().max().clamp(min=1e-8)
+            self.feedback.model.regress(torch.cat([batch.obs, batch.action], dim=1), target)
 
     def _log(self, stream: str, row: dict) -> None:
         self.metrics.log(stream, row)
@@ -285,7 +326,8 @@ class TrainingRun:
                 self._log("episodes", {
                     "step": self.step, "episode": self.episode, "return": episode_return,
                     "success": float(traj.success), "labels_used": labels, "fps": fps,
-                } | {k: v for k, v in last_metrics.items() if k in ("critic_loss", "alpha")})
+                } | {k: v for k, v in last_metrics.items() if k in ("critic_loss", "alpha")}
+                  | self._rune_row())
                 self._end_of_episode()
                 bar.set_postfix(ret=f"{episode_return:.1f}",
                                 labels=feedback.labels_used if feedback else 0, refresh=False)
@@ -299,6 +341,11 @@ class TrainingRun:
         self._save()
         self.metrics.close()
         return self.summary()
+
+    def _rune_row(self) -> dict[str, float]:
+        if not self.cfg.reward.rune or self.reward_start_step is None:
+            return {}
+        return {"rune_beta": rune_beta(self.cfg.reward, self.step - self.reward_start_step)}
 
     def _end_of_episode(self) -> None:
         cfg = self.cfg
@@ -338,8 +385,10 @@ class TrainingRun:
         first = fb.rounds == 0
         metrics = fb.finish_round(self.pool, answers)
         self.buffer.relabel(fb.model.reward)
-        if first and self.skills is None:
-            self.agent.reset_critic()  # PEBBLE: the critic learned the intrinsic reward
+        if first:
+            self.reward_start_step = self.step
+            if self.skills is None and not self.cfg.reward.rime:
+                self.agent.reset_critic()  # PEBBLE: the critic learned the intrinsic reward
         self.next_round_step = self.step + self.cfg.feedback.every
         self._log("rounds", {"step": self.step} | metrics)
 
@@ -376,6 +425,7 @@ class TrainingRun:
             "episode": self.episode,
             "next_round_step": self.next_round_step,
             "last_eval_step": self.last_eval_step,
+            "reward_start_step": self.reward_start_step,
             "agent": self.agent.state_dict(),
             "buffer": self.buffer.state_dict(),
             "pool": self.pool.state_dict(),
@@ -400,6 +450,7 @@ class TrainingRun:
         self.step, self.episode = state["step"], state["episode"]
         self.next_round_step = state["next_round_step"]
         self.last_eval_step = state["last_eval_step"]
+        self.reward_start_step = state.get("reward_start_step")
         self.last_checkpoint_step = self.step
         self.agent.load_state_dict(state["agent"])
         self.buffer.load_state_dict(state["buffer"])

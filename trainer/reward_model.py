@@ -14,6 +14,7 @@ from torch import nn
 
 from trainer.config import RewardConfig
 from trainer.nets import EnsembleMLP
+from trainer.rime import RimeFilter
 from trainer.surf import PairSampler, pseudo_labels, random_crops
 
 
@@ -74,6 +75,7 @@ class RewardModel:
         ).to(device)
         self.opt = torch.optim.Adam(self.ensemble.parameters(), lr=cfg.lr)
         self.generator = torch.Generator(device="cpu").manual_seed(seed)
+        self.rime = RimeFilter(cfg) if cfg.rime else None
 
     @torch.no_grad()
     def member_rewards(self, obs_action: torch.Tensor, chunk: int = 65_536) -> torch.Tensor:
@@ -89,6 +91,32 @@ class RewardModel:
         """The reward the agent trains on: the ensemble mean, (n,)."""
         return self.member_rewards(torch.cat([obs, action], dim=-1)).mean(0)
 
+    @torch.no_grad()
+    def reward_std(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """The ensemble's disagreement about each reward (RUNE's bonus): the members' std, (n,)."""
+        return self.member_rewards(torch.cat([obs, action], dim=-1)).std(0, unbiased=False)
+
+    def regress(self, obs_action: torch.Tensor, target: torch.Tensor) -> float:
+        """One MSE step of every member towards `target` (n,) (RIME's warm start)."""
+        e = self.cfg.ensemble_size
+        pred = self.ensemble(obs_action.expand(e, -1, -1))[..., 0]
+        loss = F.mse_loss(pred, target.expand(e, -1), reduction="none").mean(1).sum()
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt.step()
+        return loss.item() / e
+
+    @torch.no_grad()
+    def _mean_p(self, seg0: torch.Tensor, seg1: torch.Tensor, chunk: int = 256) -> torch.Tensor:
+        """The ensemble's mean P[seg1 preferred] for every labelled pair, (n,)."""
+        e = self.cfg.ensemble_size
+        parts = []
+        for i in range(0, len(seg0), chunk):
+            s0, s1 = (s[i : i + chunk].expand(e, -1, -1, -1) for s in (seg0, seg1))
+            parts.append(torch.sigmoid(self._segment_returns(s1) - self._segment_returns(s0))
+                         .mean(0))
+        return torch.cat(parts)
+
     def _segment_returns(self, segments: torch.Tensor) -> torch.Tensor:
         """(E, B, H, D) member-specific segments -> (E, B) summed member rewards."""
         e, b, h, d = segments.shape
@@ -99,15 +127,25 @@ class RewardModel:
         """Train on every label so far: up to `max_epochs` passes, each member on its own
         shuffle, stopping once the mean training accuracy reaches `stop_accuracy`. With
         `cfg.surf`, batches are temporally cropped and, given `unlabelled` pairs, pseudo-labelled
-        pairs join the loss (trainer/surf.py)."""
-        seg0, seg1, target = pairs.tensors(self.device)
-        n, e = len(target), self.cfg.ensemble_size
+        pairs join the loss (trainer/surf.py). With `cfg.rime`, each epoch trains on the labels
+        RIME's filter keeps, some flipped (trainer/rime.py)."""
+        seg0, seg1, all_targets = pairs.tensors(self.device)
+        e = self.cfg.ensemble_size
         loss_value, accuracy, epochs = float("nan"), 0.0, 0
         confident, pseudo = 0, 0
+        rime: dict[str, float] = {}
         while epochs < self.cfg.max_epochs:
             epochs += 1
+            active, target = torch.arange(len(all_targets), device=self.device), all_targets
+            if self.rime is not None:
+                active, kept, rime = self.rime.select(all_targets, self._mean_p(seg0, seg1))
+                target = all_targets.clone()
+                target[active] = kept
+            n = len(active)
+            if n == 0:
+                break  # nothing trusted this epoch: keep the model as it is
             order = torch.stack([torch.randperm(n, generator=self.generator) for _ in range(e)])
-            order = order.to(self.device)
+            order = active[order.to(self.device)]
             correct = torch.zeros(e, device=self.device)
             counted = 0
             total_loss = 0.0
@@ -140,7 +178,7 @@ class RewardModel:
             if accuracy >= self.cfg.stop_accuracy:
                 break
         metrics = {"reward_loss": loss_value, "reward_accuracy": accuracy,
-                   "reward_epochs": epochs}
+                   "reward_epochs": epochs} | rime
         if pseudo:
             metrics["surf_confident_ratio"] = confident / pseudo
         return metrics
@@ -168,9 +206,11 @@ class RewardModel:
             "ensemble": self.ensemble.state_dict(),
             "opt": self.opt.state_dict(),
             "generator": self.generator.get_state(),
-        }
+        } | ({"rime": self.rime.state_dict()} if self.rime is not None else {})
 
     def load_state_dict(self, state: dict) -> None:
         self.ensemble.load_state_dict(state["ensemble"])
         self.opt.load_state_dict(state["opt"])
         self.generator.set_state(state["generator"])
+        if self.rime is not None:
+            self.rime.load_state_dict(state["rime"])

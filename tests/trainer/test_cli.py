@@ -101,3 +101,27 @@ def test_resume_after_sigkill_continues_identically_and_loses_no_label(tmp_path)
         [float(r["return"]) for r in ref_eps], rel=1e-5)
     assert [r["reward_accuracy"] for r in _rows(killed / "rounds.csv")] == [
         r["reward_accuracy"] for r in _rows(reference / "rounds.csv")]
+
+
+def test_each_baseline_is_pebble_with_its_own_piece_switched_on():
+    from trainer.config import build_config
+
+    def cfg(algo, task="dmc:walker_run", preset="paper"):
+        return build_config(task, preset, {"algo": algo})
+
+    pebble = cfg("pebble")
+    assert not (pebble.reward.surf or pebble.reward.rune or pebble.reward.rime)
+    assert pebble.feedback.segment_length == 50 and pebble.unsup_steps == 9000
+    surf = cfg("surf")
+    assert surf.reward.surf and surf.feedback.segment_length == 60  # cropped to 45-55
+    assert surf.feedback.selection == "disagreement"
+    assert cfg("rune").reward.rune and cfg("rime").reward.rime
+    assert cfg("rime").unsup_steps == 9000
+    assert cfg("rime", "dmc:cheetah_run").unsup_steps == 2000  # RIME's own, on cheetah
+    sepoa = cfg("sepoa")
+    assert sepoa.feedback.selection == "skill" and sepoa.reward.surf
+    # A size preset shrinks what the algorithm preset set; explicit flags win over both.
+    tiny = cfg("sepoa", preset="tiny")
+    assert tiny.feedback.segment_length == 20 and tiny.reward.surf_crop_max <= 20
+    assert build_config("dmc:walker_run", "paper",
+                        {"algo": "sepoa", "reward.surf": False}).reward.surf is False
