@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from typing import Literal
+
+from fastapi import APIRouter, Response
 
 from labelqueue import RunStatus, read_metrics, set_run_status, set_teacher
-from server import services
+from server import curves, services
 from server.deps import OperatorDep, SessionDep
 from server.schemas import MetricOut, RunCreate, RunOut, StreamName, TeacherUpdate
 
@@ -38,6 +40,21 @@ def get_metrics(
     services.get_run(session, run_id=run_id)
     rows = read_metrics(session, run_id=run_id, stream=stream, after_step=after_step)
     return [MetricOut.model_validate(row) for row in rows]
+
+
+@router.get("/{run_id}/curves.png", response_class=Response,
+            responses={200: {"content": {"image/png": {}}}})
+def get_curves_png(
+    run_id: int,
+    session: SessionDep,
+    _: OperatorDep,
+    metric: Literal["return", "success_rate"] = "return",
+) -> Response:
+    """The run's evaluation curve beside its peers' (same task, preset and teacher eps), one
+    curve per algorithm with its spread across runs: the experiment report's figure."""
+    run = services.get_run(session, run_id=run_id)
+    png = curves.peer_curves_png(session, run, metric)
+    return Response(png, media_type="image/png", headers={"Cache-Control": "no-store"})
 
 
 @router.post("/{run_id}/pause", response_model=RunOut)

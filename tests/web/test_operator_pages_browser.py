@@ -96,6 +96,10 @@ def test_a_run_page_draws_curves_pauses_the_run_and_exports_its_labels(
     assert page.locator("#chart-agreement circle").count() == 2  # the null series is left out
     assert "1 label (1 scripted)" in page.inner_text("#chart-throughput")
     assert page.locator("#chart-throughput rect").count() == 1
+    # The report's figure of this run beside its peers, fetched with the operator's token.
+    page.wait_for_function(
+        "() => { const i = document.getElementById('peers-img');"
+        " return !i.hidden && i.complete && i.naturalWidth > 300; }")
 
     page.click("#controls button:text('Pause')")
     page.wait_for_selector("#run-status:text('paused')")

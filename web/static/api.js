@@ -56,6 +56,17 @@ function signOut(message) {
 
 /** `{status, data, response}`; data is the parsed JSON body (null for 204). */
 export async function request(method, path, body) {
+  const response = await send(method, path, body);
+  const data = response.status === 204 ? null : await response.json();
+  return { status: response.status, data, response };
+}
+
+/** A binary resource (an image) as a Blob, with the same sign-in and error handling. */
+export async function getBlob(path) {
+  return (await send("GET", path)).blob();
+}
+
+async function send(method, path, body) {
   if (!token) throw new SignedOut();
   const headers = { Authorization: `Bearer ${token}` };
   if (body !== undefined) headers["Content-Type"] = "application/json";
@@ -73,8 +84,7 @@ export async function request(method, path, body) {
     const data = await response.json().catch(() => null);
     throw new ApiError(response.status, data && data.detail);
   }
-  const data = response.status === 204 ? null : await response.json();
-  return { status: response.status, data, response };
+  return response;
 }
 
 export const get = (path) => request("GET", path).then((r) => r.data);

@@ -1,7 +1,7 @@
 // One run: status and controls, teacher switch, label export, learning curves and label
 // throughput; all of it refreshed every 5 s while the tab is visible.
 
-import { SignedOut, download, get, post, request, start } from "./api.js";
+import { SignedOut, download, get, getBlob, post, request, start } from "./api.js";
 import { drawChart } from "./chart.js";
 import { ago, el, notify, num, poller, runActions } from "./dom.js";
 
@@ -25,6 +25,7 @@ const refresh = poller(async () => {
     showRun(run);
     drawCurves(run, episodes, evals, rounds);
     drawThroughput(throughput, run);
+    await drawPeers(run, evals);
     document.getElementById("updated").textContent =
       `updated ${new Date().toLocaleTimeString()}`;
   } catch (error) {
@@ -38,6 +39,22 @@ const refresh = poller(async () => {
   }
   return true;
 }, 5000);
+
+// The report's figure (the run beside its peers), drawn by the server; redrawn only when this
+// run has a new evaluation, as drawing it costs the server a fraction of a second.
+let peersDrawnFor = null;
+async function drawPeers(run, evals) {
+  const metric = run.task.startsWith("metaworld:") ? "success_rate" : "return";
+  const key = `${evals.length}:${metric}`;
+  if (key === peersDrawnFor) return;
+  const blob = await getBlob(`/api/runs/${runId}/curves.png?metric=${metric}`);
+  const img = document.getElementById("peers-img");
+  const old = img.src;
+  img.src = URL.createObjectURL(blob);
+  if (old.startsWith("blob:")) URL.revokeObjectURL(old);
+  img.hidden = false;
+  peersDrawnFor = key;
+}
 
 function bucketFor(run) {
   const spanS = (Date.now() - Date.parse(run.created_at)) / 1000;

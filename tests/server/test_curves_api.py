@@ -1,0 +1,69 @@
+"""The run page's figure: a run's evaluation curve beside its peers', drawn by the report's
+plotting code."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+from server_helpers import OPERATOR, bearer, new_labeller, new_run
+from sqlalchemy.orm import Session
+
+from labelqueue import write_metrics
+from trainer.experiments import plots
+
+
+def _evaluated_run(client: TestClient, session: Session, *, algo: str, eps: float,
+                   returns: list[float], task: str = "dmc:cheetah_run") -> int:
+    run_id: int = new_run(client, algo=algo, task=task,
+                          teacher_params={"eps": eps})["id"]
+    for i, value in enumerate(returns):
+        write_metrics(session, run_id=run_id, stream="eval", step=1000 * (i + 1),
+                      values={"return": value, "success_rate": 0.0})
+    return run_id
+
+
+def test_the_figure_groups_peers_by_algorithm_and_draws_the_run_itself(
+    client: TestClient, session: Session, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    mine = _evaluated_run(client, session, algo="pebble", eps=0.3, returns=[1, 2, 3])
+    _evaluated_run(client, session, algo="pebble", eps=0.3, returns=[3, 4])
+    _evaluated_run(client, session, algo="sepoa", eps=0.3, returns=[5, 6, 7])
+    _evaluated_run(client, session, algo="sepoa", eps=0.1, returns=[9, 9])  # another eps
+    _evaluated_run(client, session, algo="sepoa", eps=0.3, returns=[9, 9],
+                   task="dmc:walker_run")  # another task
+    drawn: dict[str, Any] = {}
+    draw = plots.curves_png
+
+    def capture(curves: Any, **kwargs: Any) -> bytes:
+        drawn.update(curves=curves, **kwargs)
+        return draw(curves, **kwargs)
+
+    monkeypatch.setattr(plots, "curves_png", capture)
+    response = client.get(f"/api/runs/{mine}/curves.png", headers=OPERATOR)
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"] == "image/png"
+    assert response.content.startswith(plots.PNG_SIGNATURE)
+    curves = drawn["curves"]
+    assert sorted(curves) == ["pebble (2 runs)", "sepoa (1 run)", "this run (pebble, seed 0)"]
+    assert [list(values) for _, values in curves["pebble (2 runs)"]] == [[1, 2, 3], [3, 4]]
+    assert list(curves["this run (pebble, seed 0)"][0][0]) == [1000, 2000, 3000]
+    assert "ε = 0.3" in drawn["title"]
+    # The pebble band: mean and sample std of both seeds on the steps both reached.
+    band = plots.align(curves["pebble (2 runs)"])
+    assert list(band.steps) == [1000, 2000] and list(band.mean) == [2, 3]
+
+
+def test_the_figure_is_for_operators_of_existing_runs(client: TestClient) -> None:
+    run_id = new_run(client)["id"]
+    labeller = new_labeller(client, "ann")
+    assert client.get(f"/api/runs/{run_id}/curves.png").status_code == 401
+    assert client.get(f"/api/runs/{run_id}/curves.png",
+                      headers=bearer(labeller)).status_code == 403
+    assert client.get("/api/runs/999/curves.png", headers=OPERATOR).status_code == 404
+    assert client.get(f"/api/runs/{run_id}/curves.png?metric=loss",
+                      headers=OPERATOR).status_code == 422
+    # A run without evaluations yet still gets a (blank) figure.
+    empty = client.get(f"/api/runs/{run_id}/curves.png?metric=success_rate", headers=OPERATOR)
+    assert empty.status_code == 200 and empty.content.startswith(plots.PNG_SIGNATURE)
