@@ -20,6 +20,10 @@ class RunHooks:
         after a checkpoint. May block, e.g. while an operator has the run paused."""
         return False
 
+    def pretraining(self, step: int) -> None:
+        """Called after each step of the skill pretraining an S-EPOA run does first when its
+        snapshot is missing (keep it cheap)."""
+
     def metrics(self, stream: str, row: dict[str, Any]) -> None:
         """A metric row the run just logged (stream: episodes | eval | rounds)."""
 

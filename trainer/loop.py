@@ -116,8 +116,8 @@ def check_config(cfg: RunConfig) -> None:
                          f"({cfg.feedback.segment_length} steps)")
 
 
-def _skill_agent(cfg: RunConfig, obs_dim: int, act_dim: int,
-                 device: torch.device) -> tuple[SkillAgent, SkillBackend]:
+def _skill_agent(cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.device,
+                 hooks: RunHooks) -> tuple[SkillAgent, SkillBackend]:
     """S-EPOA's pi(a|s,z) from its pretraining snapshot (pretrained first when missing), or
     fresh when skill.pretrain_steps is 0."""
     if cfg.skill.pretrain_steps == 0:
@@ -127,7 +127,7 @@ def _skill_agent(cfg: RunConfig, obs_dim: int, act_dim: int,
         print(f"no skill snapshot at {path}: pretraining {cfg.skill.backend} for "
               f"{cfg.skill.pretrain_steps} steps first", file=sys.stderr, flush=True)
         pretrain(dataclasses.replace(cfg, seed=cfg.skill.snapshot_seed), out=path,
-                 progress=False)
+                 progress=False, tick=hooks.pretraining)
         set_seed(cfg.seed)  # the online run starts from the same state as with a snapshot at hand
     snapshot = load_snapshot(path, cfg.task, cfg.skill.backend)
     return build_skill_agent(cfg, obs_dim, act_dim, device, snapshot)
@@ -164,7 +164,8 @@ class TrainingRun:
         """the skill the current episode acts with (S-EPOA)"""
         estimator = None
         if cfg.algo == "sepoa":
-            self.agent, self.skills = _skill_agent(cfg, obs_dim, act_dim, self.device)
+            self.agent, self.skills = _skill_agent(cfg, obs_dim, act_dim, self.device,
+                                                   self.hooks)
             self.buffer = SkillReplayBuffer(obs_dim, act_dim, self.skills.skill_dim,
                                             cfg.replay_capacity, self.device, cfg.seed)
             estimator = ReturnEstimator(self.skills.skill_dim, cfg.skill, self.device)

@@ -176,6 +176,12 @@ class QueueHooks(RunHooks):
             status = self.beat(step, force=True)
         return status in (RunStatus.STOPPING, RunStatus.STOPPED)
 
+    def pretraining(self, step: int) -> None:
+        # Heartbeats keep the run ours while its skill snapshot is made (minutes to hours);
+        # pause and stop wait for the online phase, which can checkpoint.
+        self.progress["pretraining_step"] = step
+        self.beat(0)
+
     def metrics(self, stream: str, row: dict[str, Any]) -> None:
         if stream == "episodes":
             self.progress |= {"episode": row["episode"], "last_return": row["return"],

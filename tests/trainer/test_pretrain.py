@@ -143,3 +143,24 @@ def test_default_snapshot_name_and_pretraining_presets():
     assert (paper.sac.hidden_dim, paper.sac.batch_size, paper.skill.hidden_dim) == (1024,) * 3
     small = build_config("dmc:cheetah_run", "small")
     assert (small.sac.hidden_dim, small.sac.batch_size, small.skill.hidden_dim) == (256,) * 3
+
+
+def test_a_run_that_must_pretrain_first_reports_each_pretraining_step(tmp_path):
+    from trainer.hooks import RunHooks
+    from trainer.loop import TrainingRun
+
+    class Recorder(RunHooks):
+        def __init__(self):
+            self.steps = []
+
+        def pretraining(self, step):
+            self.steps.append(step)
+
+    hooks = Recorder()
+    cfg = build_config("dmc:cheetah_run", "tiny", {
+        "algo": "sepoa", "steps": 10, "run_dir": str(tmp_path / "run"),
+        "skill.snapshot": str(tmp_path / "skills.pt"), "threads": 1})
+    TrainingRun(cfg, progress=False, hooks=hooks)
+    # A worker heartbeats from these, so a long pretraining keeps its run.
+    assert hooks.steps == list(range(1, cfg.skill.pretrain_steps + 1))
+    assert os.path.exists(tmp_path / "skills.pt")

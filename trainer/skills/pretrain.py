@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -174,9 +175,12 @@ class SkillPretraining:
     """One pretraining run: the env, the agent, the backend and the replay buffer; `run()`
     trains and writes the snapshot."""
 
-    def __init__(self, cfg: RunConfig, out: str | None = None, progress: bool = True):
+    def __init__(self, cfg: RunConfig, out: str | None = None, progress: bool = True,
+                 tick: Callable[[int], None] | None = None):
         cfg = check_pretrain_config(cfg)
         self.cfg, self.progress = cfg, progress
+        self.tick = tick
+        """called with the step after every step (a worker heartbeats from it)"""
         self.path = out or default_snapshot_path(cfg)
         if os.path.exists(self.path):
             raise FileExistsError(f"{self.path} exists already; remove it or choose another "
@@ -236,6 +240,8 @@ class SkillPretraining:
             if self.step > s.seed_steps and self.step % s.update_every == 0:
                 updates.append(self._update())
             bar.update(1)
+            if self.tick is not None:
+                self.tick(self.step)
             if result.done:
                 episode += 1
                 row = {"step": self.step, "episode": episode, "return": episode_return,
@@ -253,7 +259,9 @@ class SkillPretraining:
         return self.path
 
 
-def pretrain(cfg: RunConfig, out: str | None = None, progress: bool = True) -> str:
+def pretrain(cfg: RunConfig, out: str | None = None, progress: bool = True,
+             tick: Callable[[int], None] | None = None) -> str:
     """Pretrain skills for `cfg.task` with `cfg.skill`; returns the snapshot's path (`out`, by
-    default `default_snapshot_path(cfg)`). Refuses to overwrite an existing snapshot."""
-    return SkillPretraining(cfg, out, progress).run()
+    default `default_snapshot_path(cfg)`). Refuses to overwrite an existing snapshot. `tick`
+    is called with the step after every step."""
+    return SkillPretraining(cfg, out, progress, tick).run()
