@@ -6,6 +6,8 @@ the others import only the server or the queue package, so they start fast.
     sepoa worker                      # a trainer worker only
     sepoa train --task dmc:cheetah_run --algo pebble --preset small   # one run, no server
     sepoa pretrain --task dmc:cheetah_run --skills aps --preset small # skill snapshot
+    sepoa experiment run specs/small/dmc-curves.toml --parallel 2    # a grid of runs
+    sepoa report results/dmc-curves-small                            # its figures and tables
     sepoa export --format parquet --run 3 --out labels.parquet
     sepoa labeller create alice [--role operator]
     sepoa tasks | presets
@@ -21,6 +23,8 @@ TRAINER_COMMANDS = {
     "train": "train one run standalone, answered by a scripted teacher",
     "pretrain": "pretrain skills (APS, DIAYN, CIC) for a task; writes a reusable snapshot",
     "worker": "train the runs queued in the queue database",
+    "experiment": "run a spec's grid of runs as resumable processes (docs/EXPERIMENTS.md)",
+    "report": "figures and tables of an experiment's results",
     "tasks": "list valid task names",
     "presets": "print the presets",
 }

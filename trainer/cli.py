@@ -7,6 +7,10 @@
                                                    # skill pretraining -> snapshots/*.pt
     sepoa worker --database-url sqlite:///data/queue.db --data-dir data
                                                    # train runs queued in the database
+    sepoa experiment run specs/small/dmc-curves.toml --results results --parallel 2
+                                                   # a spec's grid of runs, resumable
+    sepoa experiment status specs/small/dmc-curves.toml --results results
+    sepoa report results/dmc-curves-small        # figures + tables -> <folder>/report
     sepoa tasks                                    # list valid task names
     sepoa presets                                  # show the presets as data
 """
@@ -130,6 +134,66 @@ def _run_worker(args: argparse.Namespace) -> int:
     return 0
 
 
+def _experiment_parser(sub) -> argparse.ArgumentParser:
+    p = sub.add_parser("experiment", help="run a spec's grid of runs (docs/EXPERIMENTS.md)")
+    actions = p.add_subparsers(dest="action", required=True)
+    run = actions.add_parser("run", help="train the spec's runs; finished ones are skipped, "
+                             "partial ones resumed",
+                             formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    run.add_argument("spec", help="the spec file (TOML)")
+    run.add_argument("--results", default="results", help="runs go to <results>/<spec name>")
+    run.add_argument("--parallel", type=int, default=None,
+                     help="processes at a time; default cpu count // the spec's threads")
+    run.add_argument("--dry-run", action="store_true", help="print the plan, start nothing")
+    run.add_argument("--only-pretrain", action="store_true",
+                     help="only pretrain the skill snapshots the runs need")
+    run.add_argument("--force", action="store_true", help="delete and retrain runs whose "
+                     "stored definition differs from the spec's")
+    status = actions.add_parser("status", help="a table of the spec's runs and their state")
+    status.add_argument("spec", help="the spec file (TOML)")
+    status.add_argument("--results", default="results")
+    return p
+
+
+def _run_experiment(args: argparse.Namespace) -> int:
+    from trainer.experiments.runner import run_spec, status_table
+    from trainer.experiments.spec import SpecError, load_spec
+
+    try:
+        spec = load_spec(args.spec, check=args.action == "run")
+        if args.action == "status":
+            print(status_table(spec, args.results))
+            return 0
+        if args.parallel is not None and args.parallel < 1:
+            raise SpecError("--parallel must be at least 1")
+        outcome = run_spec(spec, args.results, args.parallel, dry_run=args.dry_run,
+                           only_pretrain=args.only_pretrain, force=args.force)
+    except SpecError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    return outcome.exit_code
+
+
+def _report_parser(sub) -> argparse.ArgumentParser:
+    p = sub.add_parser("report", help="figures and tables of a spec's results")
+    p.add_argument("folder", help="<results>/<spec name>, the folder holding spec.toml")
+    p.add_argument("--out", default=None, help="default <folder>/report")
+    return p
+
+
+def _run_report(args: argparse.Namespace) -> int:
+    from trainer.experiments.report import write_report
+    from trainer.experiments.spec import SpecError
+
+    try:
+        files = write_report(args.folder, args.out)
+    except SpecError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print("\n".join(str(f) for f in files))
+    return 0
+
+
 def _config_from_args(args: argparse.Namespace):
     from trainer.config import apply_overrides, build_config, load_json, overrides_from_args
 
@@ -161,6 +225,8 @@ def main(argv: list[str] | None = None) -> int:
     _train_parser(sub)
     _pretrain_parser(sub)
     _worker_parser(sub)
+    _experiment_parser(sub)
+    _report_parser(sub)
     sub.add_parser("tasks", help="list valid task names")
     sub.add_parser("presets", help="print the presets")
     args = parser.parse_args(argv)
@@ -181,6 +247,10 @@ def main(argv: list[str] | None = None) -> int:
         return _run_worker(args)
     if args.command == "pretrain":
         return _run_pretrain(args)
+    if args.command == "experiment":
+        return _run_experiment(args)
+    if args.command == "report":
+        return _run_report(args)
 
     from trainer.envs import UnknownTaskError
     from trainer.loop import TrainingRun

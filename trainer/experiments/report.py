@@ -1,0 +1,319 @@
+"""A spec's report: learning-curve figures and Markdown + CSV tables, indexed by report.md.
+
+The numbers, exactly (docs/EXPERIMENTS.md says the same):
+- Across seeds, "mean ± std" is the mean and the sample standard deviation (ddof=1); with one
+  seed there is no std and the cell shows the mean alone. A cell with fewer seeds than the
+  spec plans says `(n=k)`.
+- Final return of a run: the `return` of the last row of its eval.csv (itself the mean over
+  that evaluation's episodes), for finished runs only (done.json); unfinished runs are counted
+  and listed with the step of their last evaluation, never averaged in.
+- Distinguishability of a run: the mean of rounds.csv `distinguishable_ratio` over every round
+  after the first (the first round is uniform for every method); runs with fewer than two
+  rounds are left out; unfinished runs count with the rounds they have.
+- Curves: see `plots.align` (common step range of the seeds with at least one evaluation,
+  linear interpolation, mean ± one sample std).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from trainer.experiments.plots import Band, align, grid_png
+from trainer.experiments.results import KEYS, STATES, Results, load_results
+
+GROUP = ["task", "eps", "budget"]
+
+
+def mean_std(values: Iterable[float]) -> tuple[float, float, int]:
+    """(mean, sample std (ddof=1; NaN below two values), count) of the finite values."""
+    v = np.array([x for x in values if x is not None and math.isfinite(x)], dtype=float)
+    if not len(v):
+        return math.nan, math.nan, 0
+    return float(v.mean()), float(v.std(ddof=1)) if len(v) > 1 else math.nan, len(v)
+
+
+def cell(mean: float, std: float, n: int, digits: int, planned: int) -> str:
+    """'mean ± std' with fixed decimals; '–' without values; '(n=k)' below the planned seeds."""
+    if n == 0 or not math.isfinite(mean):
+        return "–"
+    text = f"{mean:.{digits}f}"
+    if n > 1:
+        text += f" ± {std:.{digits}f}"
+    return text + (f" (n={n})" if n < planned else "")
+
+
+def _markdown(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows])
+
+
+def _variants(results: Results) -> list[str]:
+    return [v.label for v in results.spec.variants]
+
+
+def _title(task: str, eps: float, budget: int) -> str:
+    return f"{task}, eps {eps:g}, budget {budget}"
+
+
+# ---------------------------------------------------------------------------------------------
+# Tables.
+
+def _join(runs: pd.DataFrame, per_run: pd.DataFrame, columns: list[str]) -> pd.DataFrame:
+    """`runs` with `columns` of `per_run` (one row per run, keyed by KEYS); NaN where absent."""
+    have = [c for c in columns if c in per_run]
+    out = runs.merge(per_run[KEYS + have], on=KEYS, how="left") if len(per_run) else runs.copy()
+    for col in columns:
+        if col not in out:
+            out[col] = math.nan
+    return out
+
+
+def final_returns(results: Results) -> pd.DataFrame:
+    """One row per planned run: its state and last evaluation (step, return, success rate)."""
+    last = results.evals.drop_duplicates(KEYS, keep="last").rename(
+        columns={"step": "eval_step", "return": "final_return", "success_rate": "final_success"})
+    return _join(results.runs, last, ["eval_step", "final_return", "final_success"])
+
+
+def final_table(results: Results) -> pd.DataFrame:
+    """Per task, eps, budget and variant: final return (and success rate) over finished seeds,
+    with how many seeds finished of those planned, and the unfinished ones' last evaluation."""
+    runs = final_returns(results)
+    rows = []
+    for (task, eps, budget), group in runs.groupby(GROUP, sort=False):
+        for variant in _variants(results):
+            sub = group[group["variant"] == variant]
+            if sub.empty:
+                continue
+            done = sub[sub["state"] == "done"]
+            r_mean, r_std, n = mean_std(done["final_return"])
+            s_mean, s_std, _ = mean_std(done["final_success"])
+            unfinished = ", ".join(
+                f"s{r.seed} {r.state}" + ("" if pd.isna(r.eval_step) else f" @ {r.eval_step:g}")
+                for r in sub[sub["state"] != "done"].itertuples())
+            rows.append({"task": task, "eps": eps, "budget": budget, "variant": variant,
+                         "algo": sub["algo"].iloc[0], "return_mean": r_mean,
+                         "return_std": r_std, "n": n, "planned": len(sub),
+                         "success_mean": s_mean, "success_std": s_std,
+                         "unfinished": unfinished})
+    return pd.DataFrame(rows)
+
+
+def distinguishability_per_run(results: Results) -> pd.DataFrame:
+    """KEYS + `distinguishability`: a run's mean ratio over its rounds after the first."""
+    rows = []
+    if "distinguishable_ratio" in results.rounds:
+        for key, group in results.rounds.groupby(KEYS, sort=False):
+            later = group.sort_values("step", kind="stable").iloc[1:]
+            if len(later):
+                rows.append(dict(zip(KEYS, key, strict=True))
+                            | {"distinguishability": later["distinguishable_ratio"].mean()})
+    return pd.DataFrame(rows, columns=[*KEYS, "distinguishability"])
+
+
+def distinguishability_table(results: Results) -> pd.DataFrame:
+    """Per task, eps, budget and query-selecting variant (algo not sac): mean ± std across
+    seeds of each run's distinguishability, with the variant's selection rule."""
+    runs = results.runs[results.runs["algo"] != "sac"]
+    runs = _join(runs, distinguishability_per_run(results), ["distinguishability"])
+    rows = []
+    for (task, eps, budget), group in runs.groupby(GROUP, sort=False):
+        for variant in _variants(results):
+            sub = group[group["variant"] == variant]
+            if sub.empty:
+                continue
+            mean, std, n = mean_std(sub["distinguishability"])
+            rows.append({"task": task, "eps": eps, "budget": budget, "variant": variant,
+                         "algo": sub["algo"].iloc[0],
+                         "selection": "/".join(sorted(set(sub["selection"]))),
+                         "mean": mean, "std": std, "n": n, "planned": len(sub)})
+    return pd.DataFrame(rows)
+
+
+def final_markdown(table: pd.DataFrame, metaworld: bool) -> str:
+    parts = []
+    for (task, eps, budget), group in table.groupby(GROUP, sort=False):
+        header = ["variant", "algo", "final return"] + (["success rate"] if metaworld else [])
+        header += ["seeds finished", "unfinished (state @ last evaluation step)"]
+        rows = []
+        for r in group.itertuples():
+            row = [r.variant, r.algo, cell(r.return_mean, r.return_std, r.n, 1, r.n)]
+            if metaworld:
+                row.append(cell(r.success_mean, r.success_std, r.n, 2, r.n))
+            rows.append(row + [f"{r.n}/{r.planned}", r.unfinished or "–"])
+        parts.append(f"### {_title(task, eps, budget)}\n\n{_markdown(header, rows)}")
+    return "\n\n".join(parts) if parts else "No runs."
+
+
+def queries_markdown(table: pd.DataFrame, variants: list[str], seeds: int) -> str:
+    """Per task and eps: a row per budget, a column per variant, final return cells."""
+    parts = []
+    for (task, eps), group in table.groupby(["task", "eps"], sort=False):
+        present = [v for v in variants if v in set(group["variant"])]
+        rows = []
+        for budget, by_budget in group.groupby("budget", sort=True):
+            cells = {r.variant: cell(r.return_mean, r.return_std, r.n, 1, seeds)
+                     for r in by_budget.itertuples()}
+            rows.append([str(budget)] + [cells.get(v, "–") for v in present])
+        parts.append(f"### {task}, eps {eps:g}\n\n" + _markdown(["queries", *present], rows))
+    return "\n\n".join(parts) if parts else "No runs."
+
+
+def distinguishability_markdown(table: pd.DataFrame, seeds: int) -> str:
+    if table.empty:
+        return "No variant selects queries (only sac runs)."
+    variants = list(dict.fromkeys(table["variant"]))
+    rules = {r.variant: r.selection for r in table.itertuples()}
+    header = ["task", "eps", "budget"] + [f"{v} ({rules[v]})" for v in variants]
+    rows = []
+    for (task, eps, budget), group in table.groupby(GROUP, sort=False):
+        cells = {r.variant: cell(r.mean, r.std, r.n, 3, seeds) for r in group.itertuples()}
+        rows.append([task, f"{eps:g}", str(budget)] + [cells.get(v, "–") for v in variants])
+    return _markdown(header, rows)
+
+
+# ---------------------------------------------------------------------------------------------
+# Figures.
+
+def curve_panels(results: Results, metric: str, tasks: list[str],
+                 budget: int | None) -> dict[tuple[str, str], dict[str, Band]]:
+    """{(f"eps {e}", task): {variant: Band}} of `metric` from eval.csv; one budget or all."""
+    evals = results.evals
+    if budget is not None:
+        evals = evals[evals["budget"] == budget]
+    panels: dict[tuple[str, str], dict[str, Band]] = {}
+    for eps in results.spec.eps:
+        for task in tasks:
+            curves = {}
+            for variant in _variants(results):
+                sub = evals[(evals["task"] == task) & (evals["eps"] == eps)
+                            & (evals["variant"] == variant)]
+                if sub.empty or metric not in sub:
+                    continue
+                seeds = [(g["step"].to_numpy(), g[metric].to_numpy())
+                         for _, g in sub.groupby("seed", sort=True)]
+                curves[variant] = align(seeds)
+            panels[(f"eps {eps:g}", task)] = curves
+    return panels
+
+
+def write_figures(results: Results, out: Path) -> list[tuple[str, str, dict]]:
+    """Write the curve figures; (file name, caption, panels) of each."""
+    spec = results.spec
+    base = "ablation" if spec.kind == "ablation" else "curves"
+    budgets: list[int | None] = list(spec.budgets) if len(spec.budgets) > 1 else [None]
+    rows = [f"eps {e:g}" for e in spec.eps]
+    metaworld = [t for t in spec.tasks if t.startswith("metaworld:")]
+    written = []
+    for budget in budgets:
+        suffix = "" if budget is None else f"_budget{budget}"
+        title = spec.title + ("" if budget is None else f", {budget} queries")
+        figures = [(f"{base}{suffix}.png", "evaluation return", "return", list(spec.tasks))]
+        if metaworld:
+            figures.append((f"success{suffix}.png", "evaluation success rate",
+                            "success_rate", metaworld))
+        for name, ylabel, metric, tasks in figures:
+            panels = curve_panels(results, metric, tasks, budget)
+            (out / name).write_bytes(grid_png(panels, rows, tasks, title=title, ylabel=ylabel))
+            written.append((name, f"{ylabel}{'' if budget is None else f', {budget} queries'}",
+                            panels))
+    return written
+
+
+def _short_curves(panels: dict[tuple[str, str], dict[str, Band]], seeds: int,
+                  steps: int) -> list[str]:
+    """Curves with fewer seeds than planned, or that stop before the spec's steps."""
+    return [f"{col}, {row}: {label}: {band.n} of {seeds} seeds"
+            + (f", up to step {band.steps[-1]:g}" if len(band.steps) else ", no evaluation")
+            for (row, col), curves in panels.items() for label, band in curves.items()
+            if band.n < seeds or not len(band.steps) or band.steps[-1] < steps]
+
+
+# ---------------------------------------------------------------------------------------------
+
+FINAL_DOC = ("Final return: the `return` of the last evaluation (eval.csv's last row, itself "
+             "the mean over that evaluation's episodes) of each finished run (done.json), then "
+             "mean ± sample std (ddof=1) across seeds. Unfinished runs are not averaged in; "
+             "the last column lists them with the step of their last evaluation.")
+QUERIES_DOC = ("Final return (as in the final-return table) by number of queries: a row per "
+               "budget (each run's `feedback.budget`), a column per variant; mean ± sample std "
+               "across finished seeds, `(n=k)` when fewer than the spec's seeds finished.")
+DISTINGUISHABILITY_DOC = (
+    "Distinguishable ratio of the selected queries (rounds.csv `distinguishable_ratio`): per "
+    "run the mean over every round after the first (the first round is uniform for every "
+    "method), then mean ± sample std across seeds (unfinished runs count with the rounds they "
+    "have; runs with fewer than two rounds are left out). The column header gives each "
+    "variant's selection rule (`feedback.selection`).")
+CURVES_DOC = (
+    "Each line is the mean evaluation return across seeds, the band ± one sample std. Seeds "
+    "that evaluated at different steps are interpolated linearly onto the union of their "
+    "evaluation steps within the range all of them reached, so a curve stops at its shortest "
+    "seed's last evaluation; seeds with no evaluation yet are left out.")
+
+
+def _grid_markdown(results: Results) -> list[str]:
+    """The report's opening: the grid, the variants and how many runs are where."""
+    spec = results.spec
+    budgets = ", ".join(map(str, spec.budgets)) or "each task's own"
+    shared = ", ".join(f"`{k} = {v!r}`" for k, v in spec.overrides.items()) or "none"
+    counts = results.runs["state"].value_counts()
+    states = ", ".join(f"{counts.get(s, 0)} {s}" for s in STATES)
+    return [
+        f"# {spec.title}", "",
+        f"Spec `{spec.name}` ({spec.kind}): preset `{spec.preset}`, {spec.steps} steps; "
+        f"tasks {', '.join(spec.tasks)}; eps {', '.join(f'{e:g}' for e in spec.eps)}; "
+        f"seeds {', '.join(map(str, spec.seeds))}; budgets {budgets}; shared overrides: "
+        f"{shared}.", "",
+        *[f"- **{v.label}**: algo `{v.algo}`"
+          + "".join(f", `{k} = {val!r}`" for k, val in v.overrides.items())
+          for v in spec.variants], "",
+        f"Runs: {len(results.runs)} planned: {states}.", "",
+    ]
+
+
+def write_report(folder: str | Path, out: str | Path | None = None) -> list[Path]:
+    """Write the figures and tables of the results in `folder` (default out:
+    `<folder>/report`); returns the files written."""
+    results = load_results(folder)
+    spec = results.spec
+    out = Path(out) if out is not None else results.folder / "report"
+    out.mkdir(parents=True, exist_ok=True)
+    metaworld = any(t.startswith("metaworld:") for t in spec.tasks)
+    seeds = len(spec.seeds)
+
+    final = final_table(results)
+    queries = final[["task", "eps", "budget", "variant", "algo", "return_mean", "return_std",
+                     "n", "planned"]] if len(final) else final
+    dist = distinguishability_table(results)
+    tables = {"final": final, "queries": queries, "distinguishability": dist}
+    for name, table in tables.items():
+        table.to_csv(out / f"{name}.csv", index=False)
+    sections = {
+        "final": ("Final return", FINAL_DOC, final_markdown(final, metaworld)),
+        "queries": ("Final return by number of queries", QUERIES_DOC,
+                    queries_markdown(final, _variants(results), seeds)),
+        "distinguishability": ("Distinguishability of the selected queries",
+                               DISTINGUISHABILITY_DOC, distinguishability_markdown(dist, seeds)),
+    }
+    for name, (heading, doc, body) in sections.items():
+        (out / f"{name}.md").write_text(f"# {heading} — {spec.title}\n\n{doc}\n\n{body}\n")
+    figures = write_figures(results, out)
+
+    lines = _grid_markdown(results) + ["## Learning curves", "", CURVES_DOC, ""]
+    for name, caption, panels in figures:
+        lines += [f"![{caption}]({name})", ""]
+        notes = _short_curves(panels, seeds, spec.steps)
+        if notes:
+            lines += ["Curves with fewer seeds than planned or short of the spec's steps:", ""]
+            lines += [f"- {n}" for n in notes] + [""]
+    for name, (heading, doc, body) in sections.items():
+        lines += [f"## {heading}", "", doc, "", body, "",
+                  f"Tables: [{name}.md]({name}.md), [{name}.csv]({name}.csv).", ""]
+    (out / "report.md").write_text("\n".join(lines).rstrip() + "\n")
+    return ([out / f"{n}.{ext}" for n in tables for ext in ("csv", "md")]
+            + [out / name for name, _, _ in figures] + [out / "report.md"])

@@ -1,0 +1,291 @@
+"""Experiment specs: a TOML grid of runs, checked on load and expanded into runs.
+
+A spec is tasks x variants x eps x seeds (x budgets) under one preset and one length, with
+shared config overrides; a variant is a label, an algorithm and its own overrides, which win
+over the shared ones. Each run gets a stable folder under the spec's results folder:
+`<task>/<variant>/eps<e>[/budget<b>]/s<seed>`. docs/EXPERIMENTS.md describes the format.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import tomllib
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from trainer.config import PRESETS, RunConfig, build_config, typed_overrides
+
+KINDS = ("curves", "ablation")
+REQUIRED = ("name", "preset", "steps", "tasks", "eps", "seeds", "variants")
+OPTIONAL = ("title", "kind", "budgets", "threads", "overrides")
+
+# Fields the spec sets through its own keys: an override of one would contradict the grid.
+RESERVED = {
+    "task": "tasks", "algo": "a variant's algo", "preset": "preset", "seed": "seeds",
+    "steps": "steps", "teacher.eps": "eps", "threads": "threads", "run_dir": "the runner",
+}
+
+
+class SpecError(ValueError):
+    """A spec that cannot be run; the message names the file and the problem."""
+
+
+Fail = Callable[[str], SpecError]
+
+
+@dataclass(frozen=True)
+class Variant:
+    label: str
+    algo: str
+    overrides: dict[str, Any]
+    """the variant's own dotted-path overrides"""
+
+
+@dataclass(frozen=True)
+class Run:
+    task: str
+    variant: str
+    """the variant's label"""
+    algo: str
+    eps: float
+    budget: int | None
+    """the budgets axis' value; None: the task's and preset's own feedback.budget"""
+    seed: int
+    preset: str
+    steps: int
+    overrides: dict[str, Any]
+    """shared overrides, then the variant's (which win), then the budget"""
+    dir: Path
+    """relative to the spec's results folder"""
+
+    def config_overrides(self) -> dict[str, Any]:
+        """Every dotted-path value the run sets, grid axes included."""
+        axes = {"algo": self.algo, "seed": self.seed, "steps": self.steps,
+                "teacher.eps": self.eps}
+        return axes | self.overrides
+
+    def config(self) -> RunConfig:
+        """The run's resolved configuration (run_dir left empty)."""
+        return build_config(self.task, self.preset, self.config_overrides())
+
+    def identity(self) -> dict[str, Any]:
+        """What defines the run's results, as JSON gives it back; the runner stores it in the
+        run's folder to notice a spec that changed under existing results."""
+        ident = {"task": self.task, "variant": self.variant, "algo": self.algo,
+                 "eps": self.eps, "budget": self.budget, "seed": self.seed,
+                 "preset": self.preset, "steps": self.steps, "overrides": self.overrides}
+        return json.loads(json.dumps(ident, default=str))
+
+
+@dataclass(frozen=True)
+class Spec:
+    name: str
+    title: str
+    kind: str
+    preset: str
+    steps: int
+    tasks: tuple[str, ...]
+    eps: tuple[float, ...]
+    seeds: tuple[int, ...]
+    budgets: tuple[int, ...]
+    """empty: each task's own budget"""
+    threads: int
+    """torch threads per process"""
+    overrides: dict[str, Any]
+    variants: tuple[Variant, ...]
+    source: str = ""
+    """the TOML text, stored beside the results"""
+
+    def runs(self) -> list[Run]:
+        """Every run of the grid, in folder order (task, variant, eps, budget, seed)."""
+        budgets: tuple[int | None, ...] = self.budgets or (None,)
+        out = []
+        for task in self.tasks:
+            for v in self.variants:
+                for eps in self.eps:
+                    for budget in budgets:
+                        for seed in self.seeds:
+                            extra = {} if budget is None else {"feedback.budget": budget}
+                            folder = Path(safe_name(task), safe_name(v.label), f"eps{eps:g}")
+                            if budget is not None:
+                                folder /= f"budget{budget}"
+                            out.append(Run(task, v.label, v.algo, eps, budget, seed,
+                                           self.preset, self.steps,
+                                           self.overrides | v.overrides | extra,
+                                           folder / f"s{seed}"))
+        return out
+
+
+def safe_name(text: str) -> str:
+    """A folder name for `text`: ':', '/' and '\\' become '-', other characters outside
+    [A-Za-z0-9._+-] become '_'."""
+    name = re.sub(r"[:/\\]", "-", text)
+    name = re.sub(r"[^A-Za-z0-9._+-]+", "_", name).strip("._")
+    return name or "_"
+
+
+def load_spec(path: str | Path, check: bool = True) -> Spec:
+    """Read and check a spec file. `check` also validates algorithms, task names and every
+    run's full configuration against the trainer (imports torch); without it only the grid and
+    the config field names and types are checked (enough to read results)."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+        data = tomllib.loads(text)
+    except OSError as err:
+        raise SpecError(f"{path}: cannot read the spec: {err.strerror}") from err
+    except tomllib.TOMLDecodeError as err:
+        raise SpecError(f"{path}: not valid TOML: {err}") from err
+    return parse_spec(data, str(path), source=text, check=check)
+
+
+def parse_spec(data: dict[str, Any], where: str, source: str = "",
+               check: bool = True) -> Spec:
+    """The spec in the parsed TOML `data`; errors are prefixed by `where` (the file name)."""
+
+    def fail(message: str) -> SpecError:
+        return SpecError(f"{where}: {message}")
+
+    unknown = sorted(set(data) - set(REQUIRED) - set(OPTIONAL))
+    if unknown:
+        raise fail(f"unknown key {unknown[0]!r}; valid keys: {', '.join(REQUIRED + OPTIONAL)}")
+    missing = [k for k in REQUIRED if k not in data]
+    if missing:
+        raise fail(f"missing required key {missing[0]!r}")
+
+    name = data["name"]
+    if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", name):
+        raise fail(f"'name' must be a folder name of letters, digits, '.', '_' or '-'; "
+                   f"got {name!r}")
+    preset = data["preset"]
+    if preset not in PRESETS:
+        raise fail(f"unknown preset {preset!r}; valid: {', '.join(PRESETS)}")
+    kind = data.get("kind", "curves")
+    if kind not in KINDS:
+        raise fail(f"unknown kind {kind!r}; valid: {', '.join(KINDS)}")
+    title = data.get("title", name)
+    if not isinstance(title, str):
+        raise fail("'title' must be a string")
+    steps = _integer(data["steps"], "steps", 1, fail)
+    threads = _integer(data.get("threads", 1), "threads", 1, fail)
+
+    tasks = _axis(data, "tasks", fail, lambda v, k: _text(v, k, fail))
+    eps = _axis(data, "eps", fail, lambda v, k: _rate(v, k, fail))
+    seeds = _axis(data, "seeds", fail, lambda v, k: _integer(v, k, 0, fail))
+    budgets = _axis(data, "budgets", fail, lambda v, k: _integer(v, k, 1, fail),
+                    allow_empty=True)
+
+    shared = data.get("overrides", {})
+    if not isinstance(shared, dict):
+        raise fail("'overrides' must be a table of config fields")
+    shared = _check_overrides(_flatten(shared), "[overrides]", bool(budgets), fail)
+
+    table = data["variants"]
+    if not isinstance(table, dict) or not table:
+        raise fail("'variants' is empty: a grid needs at least one variant "
+                   "([variants.<label>] with an algo)")
+    variants = []
+    for label, body in table.items():
+        section = f"[variants.{json.dumps(label)}]"
+        if not isinstance(body, dict):
+            raise fail(f"{section} must be a table with an 'algo'")
+        if "algo" not in body:
+            raise fail(f"{section}: missing required key 'algo'")
+        if not isinstance(body["algo"], str):
+            raise fail(f"{section}: 'algo' must be a string")
+        own = _flatten({k: v for k, v in body.items() if k != "algo"})
+        variants.append(Variant(label, body["algo"],
+                                _check_overrides(own, section, bool(budgets), fail)))
+
+    spec = Spec(name, title, kind, preset, steps, tasks, eps, seeds, budgets, threads, shared,
+                tuple(variants), source)
+    folders: dict[Path, Run] = {}
+    for run in spec.runs():
+        if run.dir in folders:
+            raise fail(f"duplicate run folder {run.dir} (variants {folders[run.dir].variant!r} "
+                       f"and {run.variant!r} give the same folder name)")
+        folders[run.dir] = run
+    if check:
+        check_runs(spec, fail)
+    return spec
+
+
+def check_runs(spec: Spec, fail: Fail) -> None:
+    """Algorithms, task names and each run's full configuration, as `train` would check them."""
+    from trainer.envs import available_tasks
+    from trainer.loop import ALGOS, check_config
+
+    for v in spec.variants:
+        if v.algo not in ALGOS:
+            raise fail(f"[variants.{json.dumps(v.label)}]: unknown algo {v.algo!r}; "
+                       f"valid: {', '.join(ALGOS)}")
+    known = set(available_tasks())
+    for task in spec.tasks:
+        if task not in known:
+            raise fail(f"unknown task {task!r} in 'tasks' (`sepoa tasks` lists them)")
+    for run in spec.runs():
+        try:
+            check_config(run.config())
+        except ValueError as err:
+            raise fail(f"variant {run.variant!r} on {run.task}, eps {run.eps:g}: {err}") from err
+
+
+def _flatten(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested tables to dotted paths: TOML reads `skill.backend = "diayn"` (unquoted) as a
+    table, `"skill.backend" = "diayn"` as one key; both mean the same field."""
+    out: dict[str, Any] = {}
+    for key, value in table.items():
+        if isinstance(value, dict):
+            out |= _flatten(value, f"{prefix}{key}.")
+        else:
+            out[prefix + key] = value
+    return out
+
+
+def _check_overrides(values: dict[str, Any], section: str, has_budgets: bool,
+                     fail: Fail) -> dict[str, Any]:
+    for path in values:
+        if path in RESERVED:
+            raise fail(f"{section}: {path!r} is set by the spec's {RESERVED[path]}, "
+                       "not by an override")
+        if path == "feedback.budget" and has_budgets:
+            raise fail(f"{section}: 'feedback.budget' is set by the spec's budgets")
+    try:
+        return typed_overrides(values)
+    except ValueError as err:
+        raise fail(f"{section}: {err}") from err
+
+
+def _axis(data: dict[str, Any], key: str, fail: Fail, item: Callable[[Any, str], Any],
+          allow_empty: bool = False) -> tuple:
+    values = data.get(key, [])
+    if not isinstance(values, list):
+        raise fail(f"{key!r} must be a list")
+    if not values and not allow_empty:
+        raise fail(f"{key!r} is empty: a grid needs at least one")
+    out = tuple(item(v, key) for v in values)
+    dupes = sorted({v for v in out if out.count(v) > 1}, key=str)
+    if dupes:
+        raise fail(f"{key!r} lists {dupes[0]!r} twice (a duplicate run)")
+    return out
+
+
+def _integer(value: Any, key: str, least: int, fail: Fail) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < least:
+        raise fail(f"{key!r} takes integers of at least {least}; got {value!r}")
+    return value
+
+
+def _rate(value: Any, key: str, fail: Fail) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not 0 <= value < 1:
+        raise fail(f"{key!r} takes numbers in [0, 1); got {value!r}")
+    return float(value)
+
+
+def _text(value: Any, key: str, fail: Fail) -> str:
+    if not isinstance(value, str) or not value:
+        raise fail(f"{key!r} takes non-empty strings; got {value!r}")
+    return value
