@@ -2,7 +2,7 @@
 
 Peers are the runs in the database with the same task, preset and teacher error rate. Each
 algorithm is one curve: the mean and standard deviation across its runs (seeds) of the
-evaluation return, on the steps all of them reached (trainer/experiments/plots.py). The run
+evaluation return, on the steps all of them reached (sepoa/plots.py). The run
 itself is drawn alone as well, so it can be told from its group.
 """
 
@@ -30,7 +30,7 @@ def _series(session: Session, run_id: int, metric: str) -> tuple[list[int], list
 
 def peer_curves_png(session: Session, run: Run, metric: str) -> bytes:
     """PNG of `metric` from the evaluations of `run` and its peers, one curve per algorithm."""
-    from trainer.experiments.plots import curves_png  # matplotlib: only when a figure is asked
+    from sepoa.plots import curves_png  # matplotlib: only when a figure is asked
 
     with reading(session):
         peers = [

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import math
 import typing
@@ -441,16 +442,17 @@ ALIASES = {
 }
 
 
-def _leaf_fields(cls: type, prefix: str = "") -> list[tuple[str, type, str]]:
+@functools.cache  # reading the docs parses source: once per class, not per call
+def _leaf_fields(cls: type, prefix: str = "") -> tuple[tuple[str, type, str], ...]:
     hints = typing.get_type_hints(cls)
-    out = []
+    out: list[tuple[str, type, str]] = []
     for f in dataclasses.fields(cls):
         t = hints[f.name]
         if dataclasses.is_dataclass(t):
             out += _leaf_fields(t, f"{prefix}{f.name}.")
         else:
             out.append((prefix + f.name, t, _field_doc(cls, f.name)))
-    return out
+    return tuple(out)
 
 
 def _field_doc(cls: type, name: str) -> str:

@@ -11,7 +11,7 @@ from server_helpers import OPERATOR, bearer, new_labeller, new_run
 from sqlalchemy.orm import Session
 
 from labelqueue import write_metrics
-from trainer.experiments import plots
+from sepoa import plots
 
 
 def _evaluated_run(client: TestClient, session: Session, *, algo: str, eps: float,

@@ -14,12 +14,22 @@ ROOT = Path(__file__).resolve().parents[2]
 def test_the_server_imports_neither_the_trainer_nor_torch() -> None:
     probe = (
         "import sys, server.app; server.app.create_app; "
-        "print(sorted(m for m in sys.modules if m == 'torch' or m.split('.')[0] == 'trainer'))"
+        "print(sorted(m for m in sys.modules if m in ('torch', 'matplotlib')"
+        " or m.split('.')[0] == 'trainer'))"
     )
     result = subprocess.run(
         [sys.executable, "-c", probe], capture_output=True, text=True, check=True, cwd=ROOT
     )
     assert result.stdout.strip() == "[]"
+    # Nor does any server module later, e.g. when drawing a figure (sepoa.plots is shared).
+    for path in (ROOT / "server").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module]
+            assert not [n for n in names if n.split(".")[0] in ("trainer", "torch")], path
 
 
 def test_the_trainer_never_imports_the_server() -> None:

@@ -11,12 +11,13 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
-from trainer.experiments.runner import run_spec, status_table
-from trainer.experiments.spec import SpecError, load_spec
+from trainer.experiments.runner import Outcome, run_spec, status_table
+from trainer.experiments.spec import Spec, SpecError, load_spec
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -117,13 +118,13 @@ eval_every = 200
 """
 
 
-def _lines() -> tuple[list[str], object]:
+def _lines() -> tuple[list[str], Callable[[str], None]]:
     lines: list[str] = []
     return lines, lines.append
 
 
 @pytest.fixture(scope="module")
-def finished(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, object, list[str]]:
+def finished(tmp_path_factory: pytest.TempPathFactory) -> tuple[Spec, Path, Outcome, list[str]]:
     """PEBBLE and S-EPOA x 2 seeds (the S-EPOA runs share one snapshot), run to the end."""
     tmp = tmp_path_factory.mktemp("experiment")
     spec_path = write(tmp, TINY.format(steps=600, seeds="[0, 1]") + """
@@ -132,20 +133,21 @@ algo = "pebble"
 [variants.S-EPOA]
 algo = "sepoa"
 """)
+    spec = load_spec(spec_path)
     lines, echo = _lines()
-    outcome = run_spec(load_spec(spec_path), tmp / "results", parallel=2, echo=echo)
-    return spec_path, tmp / "results", outcome, lines
+    outcome = run_spec(spec, tmp / "results", parallel=2, echo=echo)
+    return spec, tmp / "results", outcome, lines
 
 
 @pytest.mark.slow
 def test_the_runner_trains_the_grid_and_shares_one_snapshot(finished) -> None:
-    spec_path, results, outcome, lines = finished
+    spec, results, outcome, lines = finished
     assert outcome.exit_code == 0, "\n".join(lines)
     assert len(outcome.finished) == 4 and not outcome.failed
-    assert (results / "tiny" / "spec.toml").read_text() == spec_path.read_text()
+    assert (results / "tiny" / "spec.toml").read_text() == spec.source
     snapshots = sorted((results / "snapshots").glob("*.pt"))
     assert len(snapshots) == 1 and len(outcome.pretrained) == 1
-    for run in load_spec(spec_path, check=False).runs():
+    for run in spec.runs():
         folder = results / "tiny" / run.dir
         assert json.loads((folder / "done.json").read_text())["step"] == 600
         assert (folder / "eval.csv").read_text().splitlines()[-1].startswith("600,")
@@ -153,27 +155,26 @@ def test_the_runner_trains_the_grid_and_shares_one_snapshot(finished) -> None:
         config = json.loads((folder / "config.json").read_text())
         if run.algo == "sepoa":
             assert config["skill"]["snapshot"] == str(snapshots[0])
-    table = status_table(load_spec(spec_path, check=False), results)
+    table = status_table(spec, results)
     assert "4 runs: 4 done, 0 partial, 0 failed, 0 not started" in table
 
 
 @pytest.mark.slow
 def test_running_again_skips_finished_runs(finished) -> None:
-    spec_path, results, _, _ = finished
+    spec, results, _, _ = finished
     done = sorted((results / "tiny").rglob("done.json"))
     stamps = [p.stat().st_mtime_ns for p in done]
     lines, echo = _lines()
-    outcome = run_spec(load_spec(spec_path), results, parallel=2, echo=echo)
+    outcome = run_spec(spec, results, parallel=2, echo=echo)
     assert outcome.exit_code == 0
     assert (outcome.started, outcome.resumed, outcome.pretrained) == ([], [], [])
     assert len(outcome.skipped) == 4
     assert [p.stat().st_mtime_ns for p in done] == stamps
     # The same spec under a different definition is refused, not mixed in.
-    changed = write(spec_path.parent, spec_path.read_text().replace("eval_every = 200",
-                                                                    "eval_every = 300"),
+    changed = write(results.parent, spec.source.replace("eval_every = 200", "eval_every = 300"),
                     "changed.toml")
     with pytest.raises(SpecError, match="different definition for 4 run"):
-        run_spec(load_spec(changed), results, echo=echo)
+        run_spec(load_spec(changed, check=False), results, echo=echo)
 
 
 @pytest.mark.slow
@@ -217,7 +218,7 @@ algo = "sepoa"
 
 @pytest.mark.slow
 def test_a_killed_runner_stops_its_runs_and_the_next_call_resumes_them(tmp_path: Path) -> None:
-    spec_path = write(tmp_path, TINY.format(steps=1200, seeds="[0]")
+    spec_path = write(tmp_path, TINY.format(steps=1000, seeds="[0]")
                       + '[variants.PEBBLE]\nalgo = "pebble"\n')
     results = tmp_path / "results"
     folder = results / "tiny" / "dmc-cheetah_run" / "PEBBLE" / "eps0.3" / "s0"
@@ -241,9 +242,9 @@ def test_a_killed_runner_stops_its_runs_and_the_next_call_resumes_them(tmp_path:
     lines, echo = _lines()
     outcome = run_spec(load_spec(spec_path), results, parallel=1, echo=echo)
     assert outcome.resumed == ["dmc-cheetah_run/PEBBLE/eps0.3/s0"] and outcome.exit_code == 0
-    assert json.loads((folder / "done.json").read_text())["step"] == 1200
+    assert json.loads((folder / "done.json").read_text())["step"] == 1000
     log = (folder / "log.txt").read_text()
     assert log.count("\n=== ") + log.startswith("=== ") == 2 and " --resume " in log
     steps = [int(line.split(",")[0]) for line in
              (folder / "episodes.csv").read_text().splitlines()[1:]]
-    assert steps == sorted(set(steps)) and steps[-1] == 1200
+    assert steps == sorted(set(steps)) and steps[-1] == 1000

@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from trainer.experiments.plots import PNG_SIGNATURE, Band, align, curves_png
+from sepoa.plots import PNG_SIGNATURE, Band, align, curves_png
 from trainer.experiments.report import curve_panels, mean_std, write_report
 from trainer.experiments.results import load_results
 from trainer.experiments.spec import SpecError
@@ -183,7 +183,7 @@ def test_plots_draw_plain_data_without_torch() -> None:
                       "b": Band(np.array([0, 2]), np.array([1.0, 1.0]),
                                 np.array([0.1, 0.1]), 3)}, title="t")
     assert png.startswith(PNG_SIGNATURE)
-    probe = ("import sys, trainer.experiments.plots; "
+    probe = ("import sys, sepoa.plots; "
              "print('torch' in sys.modules, 'matplotlib.pyplot' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
                          check=True, cwd=ROOT)

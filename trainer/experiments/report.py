@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from trainer.experiments.plots import Band, align, grid_png
+from sepoa.plots import Band, align, grid_png
 from trainer.experiments.results import KEYS, STATES, Results, load_results
 
 GROUP = ["task", "eps", "budget"]
