@@ -11,6 +11,17 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 
 
+def imported_packages(path: Path) -> set[str]:
+    """The top-level packages a module imports anywhere in it (absolute imports)."""
+    names: list[str] = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names += [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names.append(node.module)
+    return {name.split(".")[0] for name in names}
+
+
 def test_the_server_imports_neither_the_trainer_nor_torch() -> None:
     probe = (
         "import sys, server.app; server.app.create_app; "
@@ -23,13 +34,7 @@ def test_the_server_imports_neither_the_trainer_nor_torch() -> None:
     assert result.stdout.strip() == "[]"
     # Nor does any server module later, e.g. when drawing a figure (sepoa.plots is shared).
     for path in (ROOT / "server").rglob("*.py"):
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            names = []
-            if isinstance(node, ast.Import):
-                names = [alias.name for alias in node.names]
-            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-                names = [node.module]
-            assert not [n for n in names if n.split(".")[0] in ("trainer", "torch")], path
+        assert not imported_packages(path) & {"trainer", "torch"}, path
 
 
 def test_the_trainer_never_imports_the_server() -> None:
@@ -42,10 +47,4 @@ def test_the_trainer_never_imports_the_server() -> None:
     assert result.stdout.strip() == "[]"
     # Every module, without importing torch: no `import server` / `from server` anywhere.
     for path in (ROOT / "trainer").rglob("*.py"):
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            names = []
-            if isinstance(node, ast.Import):
-                names = [alias.name for alias in node.names]
-            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-                names = [node.module]
-            assert not [n for n in names if n.split(".")[0] == "server"], path
+        assert "server" not in imported_packages(path), path

@@ -17,8 +17,9 @@ The numbers, exactly (docs/EXPERIMENTS.md says the same):
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -73,6 +74,16 @@ def _join(runs: pd.DataFrame, per_run: pd.DataFrame, columns: list[str]) -> pd.D
     return out
 
 
+def _cells(runs: pd.DataFrame, results: Results) -> Iterator[tuple[dict[str, Any], pd.DataFrame]]:
+    """A table's cells: per task, eps and budget, each variant's runs (variants in the spec's
+    order, those without runs there left out), with the cell's key columns."""
+    for (task, eps, budget), group in runs.groupby(GROUP, sort=False):
+        for variant in _variants(results):
+            sub = group[group["variant"] == variant]
+            if not sub.empty:
+                yield {"task": task, "eps": eps, "budget": budget, "variant": variant}, sub
+
+
 def final_returns(results: Results) -> pd.DataFrame:
     """One row per planned run: its state and last evaluation (step, return, success rate)."""
     last = results.evals.drop_duplicates(KEYS, keep="last").rename(
@@ -83,24 +94,18 @@ def final_returns(results: Results) -> pd.DataFrame:
 def final_table(results: Results) -> pd.DataFrame:
     """Per task, eps, budget and variant: final return (and success rate) over finished seeds,
     with how many seeds finished of those planned, and the unfinished ones' last evaluation."""
-    runs = final_returns(results)
     rows = []
-    for (task, eps, budget), group in runs.groupby(GROUP, sort=False):
-        for variant in _variants(results):
-            sub = group[group["variant"] == variant]
-            if sub.empty:
-                continue
-            done = sub[sub["state"] == "done"]
-            r_mean, r_std, n = mean_std(done["final_return"])
-            s_mean, s_std, _ = mean_std(done["final_success"])
-            unfinished = ", ".join(
-                f"s{r.seed} {r.state}" + ("" if pd.isna(r.eval_step) else f" @ {r.eval_step:g}")
-                for r in sub[sub["state"] != "done"].itertuples())
-            rows.append({"task": task, "eps": eps, "budget": budget, "variant": variant,
-                         "algo": sub["algo"].iloc[0], "return_mean": r_mean,
-                         "return_std": r_std, "n": n, "planned": len(sub),
-                         "success_mean": s_mean, "success_std": s_std,
-                         "unfinished": unfinished})
+    for cell_key, sub in _cells(final_returns(results), results):
+        done = sub[sub["state"] == "done"]
+        r_mean, r_std, n = mean_std(done["final_return"])
+        s_mean, s_std, _ = mean_std(done["final_success"])
+        unfinished = ", ".join(
+            f"s{r.seed} {r.state}" + ("" if pd.isna(r.eval_step) else f" @ {r.eval_step:g}")
+            for r in sub[sub["state"] != "done"].itertuples())
+        rows.append(cell_key | {"algo": sub["algo"].iloc[0], "return_mean": r_mean,
+                                "return_std": r_std, "n": n, "planned": len(sub),
+                                "success_mean": s_mean, "success_std": s_std,
+                                "unfinished": unfinished})
     return pd.DataFrame(rows)
 
 
@@ -122,16 +127,11 @@ def distinguishability_table(results: Results) -> pd.DataFrame:
     runs = results.runs[results.runs["algo"] != "sac"]
     runs = _join(runs, distinguishability_per_run(results), ["distinguishability"])
     rows = []
-    for (task, eps, budget), group in runs.groupby(GROUP, sort=False):
-        for variant in _variants(results):
-            sub = group[group["variant"] == variant]
-            if sub.empty:
-                continue
-            mean, std, n = mean_std(sub["distinguishability"])
-            rows.append({"task": task, "eps": eps, "budget": budget, "variant": variant,
-                         "algo": sub["algo"].iloc[0],
-                         "selection": "/".join(sorted(set(sub["selection"]))),
-                         "mean": mean, "std": std, "n": n, "planned": len(sub)})
+    for cell_key, sub in _cells(runs, results):
+        mean, std, n = mean_std(sub["distinguishability"])
+        rows.append(cell_key | {"algo": sub["algo"].iloc[0],
+                                "selection": "/".join(sorted(set(sub["selection"]))),
+                                "mean": mean, "std": std, "n": n, "planned": len(sub)})
     return pd.DataFrame(rows)
 
 
