@@ -8,6 +8,7 @@ itself is drawn alone as well, so it can be told from its group.
 
 from __future__ import annotations
 
+from collections import Counter
 from typing import Any
 
 from sqlalchemy import select
@@ -39,18 +40,16 @@ def peer_curves_png(session: Session, run: Run, metric: str) -> bytes:
                 .order_by(Run.id))
             if _eps(peer) == _eps(run)
         ]
+    # The run is one of its peers: each series is read once.
+    series = {peer.id: _series(session, peer.id, metric) for peer in peers}
+    counts = Counter(peer.algo for peer in peers)
     curves: dict[str, Any] = {}
     for peer in peers:
-        series = _series(session, peer.id, metric)
-        if series[0]:
-            curves.setdefault(f"{peer.algo} ({_count(peers, peer.algo)})", []).append(series)
-    own = _series(session, run.id, metric)
-    if own[0]:
-        curves[f"this run ({run.algo}, seed {run.seed})"] = [own]
+        if series[peer.id][0]:
+            n = counts[peer.algo]
+            label = f"{peer.algo} ({n} run{'' if n == 1 else 's'})"
+            curves.setdefault(label, []).append(series[peer.id])
+    if series[run.id][0]:
+        curves[f"this run ({run.algo}, seed {run.seed})"] = [series[run.id]]
     title = f"{run.task} · {run.preset} · ε = {_eps(run):g}"
     return curves_png(curves, title=title, ylabel=f"evaluation {metric.replace('_', ' ')}")
-
-
-def _count(peers: list[Run], algo: str) -> str:
-    n = sum(peer.algo == algo for peer in peers)
-    return f"{n} run" if n == 1 else f"{n} runs"
