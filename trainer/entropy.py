@@ -21,8 +21,9 @@ def knn_distance(x: torch.Tensor, points: torch.Tensor, k: int, chunk: int = 819
 class RunningMeanStd:
     """Running mean and variance over batches (Chan et al.'s parallel update)."""
 
-    def __init__(self, epsilon: float = 1e-4):
-        self.mean, self.var, self.count = 0.0, 1.0, epsilon
+    def __init__(self, epsilon: float = 1e-4, var: float = 1.0):
+        """`epsilon`: the prior's weight in counts; `var`: the prior variance."""
+        self.mean, self.var, self.count = 0.0, var, epsilon
 
     def update(self, x: torch.Tensor) -> None:
         batch_mean, batch_var, n = x.mean().item(), x.var(unbiased=False).item(), x.numel()

@@ -22,6 +22,7 @@ import math
 import torch
 
 from trainer.config import RewardConfig
+from trainer.entropy import RunningMeanStd
 
 DELTA = 1e-8
 """keeps -ln(rho) finite before any label is trusted"""
@@ -69,12 +70,13 @@ class RimeFilter:
     def __init__(self, cfg: RewardConfig):
         self.cfg = cfg
         self.rho = 0.0
-        self.mean, self.var, self.count = 0.0, 0.0, 0
+        self.kl = RunningMeanStd(epsilon=0.0, var=0.0)
+        """the trusted KLs' running mean and variance (no prior)"""
         self.epochs = 0
 
     @property
     def sigma(self) -> float:
-        return math.sqrt(self.var)
+        return self.kl.std
 
     def select(self, target: torch.Tensor,
                p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
@@ -99,16 +101,11 @@ class RimeFilter:
         if n == 0:
             return
         self.rho += MAX_RATE * (float(kl.max()) - self.rho)
-        batch_mean, batch_var = float(kl.mean()), float(kl.var(unbiased=False))
-        delta, total = batch_mean - self.mean, self.count + n
-        m2 = self.var * self.count + batch_var * n + delta**2 * self.count * n / total
-        self.mean += delta * n / total
-        self.var, self.count = m2 / total, total
+        self.kl.update(kl)
 
     def state_dict(self) -> dict:
-        return {"rho": self.rho, "mean": self.mean, "var": self.var, "count": self.count,
-                "epochs": self.epochs}
+        return {"rho": self.rho, "kl": self.kl.state_dict(), "epochs": self.epochs}
 
     def load_state_dict(self, state: dict) -> None:
-        self.rho, self.mean, self.var = state["rho"], state["mean"], state["var"]
-        self.count, self.epochs = state["count"], state["epochs"]
+        self.rho, self.epochs = state["rho"], state["epochs"]
+        self.kl.load_state_dict(state["kl"])

@@ -46,7 +46,7 @@ def test_lower_bound_against_hand_values_and_the_cap():
 def test_trusts_below_the_bound_flips_above_tau_upper_and_drops_the_rest():
     cfg = RewardConfig(rime=True)
     rime = RimeFilter(cfg)
-    rime.rho, rime.mean, rime.var, rime.count = 0.5, 0.3, 0.04, 10  # sigma 0.2
+    rime.rho, rime.kl.mean, rime.kl.var, rime.kl.count = 0.5, 0.3, 0.04, 10  # sigma 0.2
     bound = -math.log(0.5) + 0.25 + 3 * 0.2  # 1.543
     # KLs: 0.105 (trusted), 1.609 (above the bound: dropped), 9.21 (beyond 3 ln 10: flipped)
     y = torch.tensor([1.0, 1.0, 0.0, 0.5])
@@ -58,7 +58,7 @@ def test_trusts_below_the_bound_flips_above_tau_upper_and_drops_the_rest():
     assert info["rime_trusted_ratio"] == 0.5 and info["rime_flipped_ratio"] == 0.25
     # Statistics of the trusted KLs (0.1054 and 0): rho moves a tenth of the way to their max.
     assert rime.rho == pytest.approx(0.5 + 0.1 * (math.log(1 / 0.9) - 0.5), rel=1e-5)
-    assert rime.count == 12 and rime.epochs == 1
+    assert rime.kl.count == 12 and rime.epochs == 1
 
 
 def test_bad_rime_settings_are_refused():
@@ -132,7 +132,7 @@ def test_rime_runs_and_resumes_with_its_filter_state(tmp_path):
     run = TrainingRun(build_config("dmc:cheetah_run", "tiny", overrides), progress=False)
     run.train()
     state = run.feedback.model.rime.state_dict()
-    assert state["epochs"] >= run.feedback.rounds >= 2 and state["count"] > 0
+    assert state["epochs"] >= run.feedback.rounds >= 2 and state["kl"]["count"] > 0
     again = TrainingRun(build_config("dmc:cheetah_run", "tiny", overrides), resume=True,
                         progress=False)
     assert again.feedback.model.rime.state_dict() == state
