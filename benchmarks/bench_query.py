@@ -110,7 +110,8 @@ def main() -> None:
     model = RewardModel(OBS_DIM, ACTION_DIM, RewardConfig(), torch.device("cpu"), seed=0)
 
     def ours():
-        return select_queries("disagreement", model, pool, args.queries, args.candidates,
+        return select_queries("disagreement", model, pool, args.queries,
+                              args.candidates // args.queries,
                               args.segment, np.random.default_rng(1))
 
     ours()  # warm-up

@@ -2,11 +2,11 @@
 
 The paper's table metric: the fraction of selected queries the noisy teacher (eps) can tell
 apart, |R(tau0) - R(tau1)| >= eps * |R_avg| over the two segments' whole trajectories. An S-EPOA
-run trains as usual (its skill rule picks the queries that are answered); at every round the
-disagreement rule is also applied to the same pretrained agent, the same trajectory pool and
-the same reward model (with a random stream of its own, so the run is not disturbed), and both
-selections are scored with the teacher's threshold at that moment. The first round is uniform
-for both rules, so it is left out. Averages are over rounds, then over seeds.
+run trains as usual (its skill rule picks the queries that are answered) with
+`feedback.compare_rule disagreement`: at every round the disagreement rule is also applied to
+the same agent, pool and reward model (a random stream and a teacher copy of its own, so the
+run is not disturbed), and rounds.csv records both ratios. The first round is uniform for both
+rules, so it is left out. Averages are over rounds, then over seeds.
 
     .venv/bin/python benchmarks/distinguishability.py --task dmc:cheetah_run --eps 0.3 \\
         --preset small --seeds 0 1 --steps 50000 --snapshot snapshots/<...>.pt
@@ -17,6 +17,7 @@ The paper reports 0.327 (disagreement) against 0.484 (skill-based) at eps = 0.3 
 from __future__ import annotations
 
 import argparse
+import csv
 import os
 import statistics
 import sys
@@ -30,52 +31,22 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 from trainer.config import build_config  # noqa: E402
-from trainer.feedback import Query  # noqa: E402
-from trainer.hooks import RunHooks  # noqa: E402
 from trainer.loop import TrainingRun  # noqa: E402
-from trainer.query_selection import select_queries  # noqa: E402
-from trainer.trajectories import TrajectoryPool  # noqa: E402
-
-
-class CompareRules(RunHooks):
-    """At each round, the distinguishable fraction of the skill rule's queries (those asked)
-    and of the disagreement rule's picks on the same pool and reward model."""
-
-    def __init__(self, eps: float, seed: int):
-        self.eps, self.seed = eps, seed
-        self.run: TrainingRun | None = None
-        self.rows: list[tuple[int, float, float]] = []
-
-    def round_opened(self, queries: list[Query], pool: TrajectoryPool) -> None:
-        run = self.run
-        assert run is not None and run.feedback is not None
-        fb, cfg = run.feedback, run.cfg.feedback
-        if queries[0].rule == "uniform":
-            return
-        threshold = self.eps * abs(float(np.mean(pool.returns[-run.cfg.teacher.
-                                                              recent_trajectories:])))
-        trajectories = list(pool.trajectories)
-        rng = np.random.default_rng([self.seed, fb.rounds])
-        other = select_queries("disagreement", fb.model, trajectories, len(queries),
-                               len(queries) * cfg.candidate_factor, cfg.segment_length, rng)
-        returns = np.array([t.true_return for t in trajectories])
-        gap = np.abs(returns[other.queries.traj0] - returns[other.queries.traj1])
-        disagreement = float(np.mean(gap >= threshold))
-        skill = float(np.mean([q.distinguishable for q in queries]))
-        self.rows.append((fb.rounds, disagreement, skill))
 
 
 def one_seed(task: str, preset: str, eps: float, seed: int, steps: int, snapshot: str,
              overrides: dict) -> list[tuple[int, float, float]]:
-    hooks = CompareRules(eps, seed)
+    """(round, disagreement's ratio, the skill rule's ratio) for each round after the first."""
     with tempfile.TemporaryDirectory() as run_dir:
         cfg = build_config(task, preset, {
             "algo": "sepoa", "seed": seed, "steps": steps, "teacher.eps": eps, "threads": 1,
-            "eval_every": 0, "skill.snapshot": snapshot, "run_dir": run_dir} | overrides)
-        run = TrainingRun(cfg, progress=False, hooks=hooks)
-        hooks.run = run
-        run.train()
-    return hooks.rows
+            "eval_every": 0, "skill.snapshot": snapshot, "run_dir": run_dir,
+            "feedback.compare_rule": "disagreement"} | overrides)
+        TrainingRun(cfg, progress=False).train()
+        with open(os.path.join(run_dir, "rounds.csv"), newline="") as f:
+            rounds = list(csv.DictReader(f))
+    return [(int(r["round"]), float(r["compare_distinguishable_ratio"]),
+             float(r["distinguishable_ratio"])) for r in rounds[1:]]
 
 
 def _spread(xs: list[float]) -> str:

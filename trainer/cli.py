@@ -237,10 +237,9 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(available_tasks()))
         return 0
     if args.command == "presets":
-        from trainer.config import FAMILY_PRESETS, PRESETS, TASK_PRESETS
+        from trainer.config import preset_layers
 
-        print(json.dumps({"family": FAMILY_PRESETS, "task": TASK_PRESETS, "preset": PRESETS},
-                         indent=2))
+        print(json.dumps(preset_layers(), indent=2))
         return 0
 
     if args.command == "worker":

@@ -121,6 +121,9 @@ class TeacherConfig:
     """bpref: answer 'equal' when the segment returns differ by less than eps_equal * margin"""
     recent_trajectories: int = 10
     """how many recent trajectories give R_avg (and B-Pref's margin)"""
+    tie: str = "equal"
+    """answer when the two segments' true sums are exactly equal: equal (label 0.5; the paper's
+    labels are one-hot) | random | first (B-Pref's code)"""
 
 
 @dataclass(frozen=True)
@@ -138,7 +141,15 @@ class FeedbackConfig:
     selection: str = "disagreement"
     """uniform | disagreement | entropy | skill (S-EPOA's; algo sepoa)"""
     candidate_factor: int = 10
-    """candidates per round = per_round * candidate_factor"""
+    """candidates per query: N of per_query, or per_round * candidate_factor for top_k"""
+    selection_mode: str = "top_k"
+    """per_query: each query is the best of its own candidate_factor random pairs (the paper's
+    Algorithm 2) | top_k: the round's best per_round of one draw (PEBBLE's and the authors'
+    code; with a small pool it piles a round onto one trajectory)"""
+    compare_rule: str = ""
+    """diagnostic: also select each round by this rule on the same pool and reward model (a
+    random stream of its own; nothing is asked) and log how many of its picks the run's teacher
+    could tell apart (rounds.csv compare_distinguishable_ratio); empty = off"""
     pool_trajectories: int = 100
     """candidates come from the last N finished trajectories"""
     first_round_selection: str = "uniform"
@@ -189,7 +200,19 @@ class SkillConfig:
     estimator_steps: int = 200
     """online: full-batch steps refitting R_theta before each round"""
     task_skill_samples: int = 50
-    """online: N_z, fresh random skills z_task is chosen from at each episode's end"""
+    """online: N_z, fresh random skills z_task is chosen from"""
+    task_skill_draw: str = "refit"
+    """online: when z_task is drawn anew: refit (at the first episode after R_theta is refitted,
+    held in between) | episode (at every episode start, as the authors' code)"""
+    task_skill_update: bool = True
+    """online: each update also trains on its batch with z_task in place of every stored skill
+    (valid off-policy: r_hat does not depend on z), besides the update on the stored skills"""
+    initial_rollouts: int = 20
+    """online: episodes, each with its own random skill, before the first round (the authors'
+    reward_start_rollouts)"""
+    reset_critic: bool = True
+    """online: at the first round, reset the pretrained critic and its target (the actor is
+    kept), then run `reset_updates` updates on the learned reward"""
     score_spread: str = "var"
     """online: spread of P in the selection score: var (the paper) | std (the authors' code)"""
     snapshot_dir: str = "snapshots"
@@ -225,6 +248,8 @@ class RunConfig:
     """k of the kNN state-entropy reward during pretraining"""
     update_every: int = 1
     """environment steps per SAC update"""
+    reset_updates: int = 100
+    """SAC updates on the relabelled buffer right after a critic reset (PEBBLE's reset_update)"""
     replay_capacity: int = 1_000_000
     """transitions kept in the replay buffer"""
     eval_every: int = 10_000
@@ -291,6 +316,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "skill.hidden_dim": 256,
         "skill.pretrain_steps": 200_000,  # APS: ~15 min at ~230 steps/s on 2 CPU cores
         "skill.seed_steps": 2000,
+        "skill.initial_rollouts": 10,  # 10 k steps: round 0 compares 45 skill pairs
     },
     # For tests and smoke runs: seconds, not minutes. Learns nothing useful.
     "tiny": {
@@ -315,6 +341,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         "skill.hidden_dim": 32,
         "skill.pretrain_steps": 300,
         "skill.seed_steps": 100,
+        "skill.initial_rollouts": 3,
+        "reset_updates": 10,
         "reward.surf_crop_min": 15,  # segments of 20 here
         "reward.surf_crop_max": 18,
     },
@@ -347,12 +375,24 @@ ALGO_PRESETS: dict[str, dict[str, Any]] = {
     "surf": SURF,
     "rune": {"reward.rune": True},
     "rime": {"reward.rime": True},
-    "sepoa": {"feedback.selection": "skill"} | SURF,
+    "sepoa": {"feedback.selection": "skill", "feedback.selection_mode": "per_query"} | SURF,
 }
 # RIME's own unsupervised pretraining length on cheetah (9000 elsewhere, PEBBLE's).
 ALGO_TASK_PRESETS: dict[tuple[str, str], dict[str, Any]] = {
     ("rime", "dmc:cheetah_run"): {"unsup_steps": 2000},
 }
+
+
+def preset_layers() -> dict[str, dict[str, dict[str, Any]]]:
+    """Every preset layer, in the order `build_config` applies them (algorithm-and-task keys
+    written "<algo> <task>")."""
+    return {
+        "family": FAMILY_PRESETS,
+        "task": TASK_PRESETS,
+        "algorithm": ALGO_PRESETS,
+        "algorithm and task": {f"{a} {t}": v for (a, t), v in ALGO_TASK_PRESETS.items()},
+        "size": PRESETS,
+    }
 
 
 def build_config(task: str, preset: str, overrides: dict[str, Any] | None = None) -> RunConfig:

@@ -13,6 +13,7 @@ a round finished again after a resume adds no second line for a query.
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import time
@@ -23,6 +24,7 @@ import numpy as np
 
 from trainer.config import FeedbackConfig
 from trainer.query_selection import (
+    Candidates,
     PoolRewards,
     pool_rewards,
     sample_candidates,
@@ -135,6 +137,8 @@ class PreferenceFeedback:
         self.labels_used = 0
         self.rounds = 0
         self.pending: list[Query] = []
+        self.compare_ratio = float("nan")
+        """the open round's `cfg.compare_rule` diagnostic (nan when off)"""
 
     @property
     def budget_left(self) -> int:
@@ -150,12 +154,15 @@ class PreferenceFeedback:
             rewards = pool_rewards(self.model, trajectories)
             self.fit_estimator(pool, rewards)
         selection = select_queries(
-            rule, self.model, trajectories, n, n * self.cfg.candidate_factor,
+            rule, self.model, trajectories, n, self.cfg.candidate_factor,
             self.cfg.segment_length, self.rng, self.estimator, self.spread, rewards,
+            self.cfg.selection_mode,
         )
-        q, h = selection.queries, self.cfg.segment_length
-        pairs = [(trajectories[q.traj0[i]], int(q.start0[i]), trajectories[q.traj1[i]],
-                  int(q.start1[i])) for i in range(len(q))]
+        h = self.cfg.segment_length
+        self.compare_ratio = float("nan")
+        if self.cfg.compare_rule and rule != "uniform":
+            self.compare_ratio = self._compare(pool, n, rewards)
+        pairs = _pairs(trajectories, selection.queries)
         # The teacher answers now, once per query, whoever ends up answering: its random stream
         # then depends only on the queries, and it takes R_avg from the latest returns.
         shadow = self.teacher.answer([_truth(t0, s0, t1, s1, h) for t0, s0, t1, s1 in pairs],
@@ -174,6 +181,21 @@ class PreferenceFeedback:
             ))
         self.pending = queries
         return queries
+
+    def _compare(self, pool: TrajectoryPool, n: int, rewards: PoolRewards | None) -> float:
+        """The share of `cfg.compare_rule`'s picks on this pool and model that the teacher
+        could tell apart. Its own random streams (a generator seeded by the round, a copy of
+        the teacher): the run's selection and answers are the same with or without it."""
+        trajectories, h = list(pool.trajectories), self.cfg.segment_length
+        rng = np.random.default_rng([self.rounds, 0x5E1EC7])
+        other = select_queries(
+            self.cfg.compare_rule, self.model, trajectories, n, self.cfg.candidate_factor, h,
+            rng, self.estimator, self.spread, rewards, self.cfg.selection_mode,
+        )
+        truths = [_truth(t0, s0, t1, s1, h) for t0, s0, t1, s1 in _pairs(trajectories,
+                                                                           other.queries)]
+        answers = copy.deepcopy(self.teacher).answer(truths, pool.returns)
+        return _mean([a.distinguishable for a in answers])
 
     def _unlabelled_pairs(self, pool: TrajectoryPool) -> PairSampler:
         """SURF's unlabelled pairs: random segments of different pooled trajectories."""
@@ -251,7 +273,9 @@ class PreferenceFeedback:
             "model_agreement": _agreement(
                 [(_model_choice(q.model_p), q.shadow_choice) for q in queries]),
             "trained_pairs": len(self.pairs),
-        }
+        } | _spread_over_trajectories(queries)
+        if self.cfg.compare_rule:
+            metrics["compare_distinguishable_ratio"] = self.compare_ratio
         if len(self.pairs):
             unlabelled = self._unlabelled_pairs(pool) if self.model.cfg.surf else None
             metrics |= self.model.train_round(self.pairs, unlabelled)
@@ -267,6 +291,7 @@ class PreferenceFeedback:
             "labels_used": self.labels_used,
             "rounds": self.rounds,
             "pending": [asdict(q) for q in self.pending],
+            "compare_ratio": self.compare_ratio,
             "rng": self.rng.bit_generator.state,
             "teacher": self.teacher.state_dict(),
             "model": self.model.state_dict(),
@@ -276,11 +301,32 @@ class PreferenceFeedback:
         self.pairs.load_state_dict(state["pairs"])
         self.labels_used, self.rounds = state["labels_used"], state["rounds"]
         self.pending = [Query(**q) for q in state["pending"]]
+        self.compare_ratio = state["compare_ratio"]
         self.rng.bit_generator.state = state["rng"]
         self.teacher.load_state_dict(state["teacher"])
         self.model.load_state_dict(state["model"])
         if self.estimator is not None:
             self.estimator.load_state_dict(state["estimator"])
+
+
+def _pairs(trajectories: list[Trajectory], q: Candidates) -> list[tuple[Trajectory, int,
+                                                                        Trajectory, int]]:
+    return [(trajectories[q.traj0[i]], int(q.start0[i]), trajectories[q.traj1[i]],
+             int(q.start1[i])) for i in range(len(q))]
+
+
+def _spread_over_trajectories(queries: list[Query]) -> dict[str, float]:
+    """How a round's queries spread over the pool: distinct trajectory pairs, and the largest
+    share of the queries that one trajectory took part in."""
+    if not queries:
+        return {"trajectory_pairs": 0, "max_trajectory_share": float("nan")}
+    pairs = {tuple(sorted((q.trajectory0, q.trajectory1))) for q in queries}
+    counts: dict[int, int] = {}
+    for q in queries:
+        for t in (q.trajectory0, q.trajectory1):
+            counts[t] = counts.get(t, 0) + 1
+    return {"trajectory_pairs": len(pairs),
+            "max_trajectory_share": max(counts.values()) / len(queries)}
 
 
 def _truth(t0: Trajectory, s0: int, t1: Trajectory, s1: int, h: int) -> QueryTruth:

@@ -16,9 +16,16 @@ on by their algorithm presets (`reward.surf`, `reward.rune`, `reward.rime`):
 S-EPOA (Algorithm 1): the skill-conditioned actor and critic pi(a|s,z) start from a pretraining
 snapshot (`sepoa pretrain`; made first if missing, or fresh nets when skill.pretrain_steps is 0,
 the paper's "no pretraining" ablation). Each episode acts with one skill: a random one until the
-first round, then z_task, the best of N_z fresh random skills under R_theta. The first round
-comes after `seed_steps`; the agent trains only on the learned reward, from the first round on
-(its pretrained critic is kept). Queries are selected by the skill rule (query_selection.py).
+first round, then z_task, the best of N_z fresh random skills under R_theta, held until R_theta
+is refitted (or drawn each episode: skill.task_skill_draw). The first round comes after
+`seed_steps` and `skill.initial_rollouts` episodes; the agent trains only on the learned reward,
+from the first round on, where its pretrained critic is reset (skill.reset_critic). Each update
+trains the batch's stored skills and, with z_task in every row, the acting skill
+(skill.task_skill_update). Queries are selected by the skill rule, each the best of its own
+candidates (query_selection.py).
+
+After any critic reset, `reset_updates` updates on the relabelled buffer follow at once
+(PEBBLE's reset_update).
 
 Rounds, evaluations and checkpoints happen at episode boundaries, so a checkpoint never has to
 capture a half-run episode.
@@ -43,7 +50,7 @@ from trainer.feedback import Answer, LabelLog, PreferenceFeedback
 from trainer.hooks import RunHooks
 from trainer.metrics import Metrics
 from trainer.nets import NumpyMLP
-from trainer.query_selection import RULES
+from trainer.query_selection import MODES, RULES
 from trainer.replay_buffer import ReplayBuffer
 from trainer.return_estimator import SPREADS, ReturnEstimator
 from trainer.reward_model import RewardModel
@@ -53,13 +60,18 @@ from trainer.sac import SAC
 from trainer.skills import SkillAgent, SkillBackend, SkillReplayBuffer
 from trainer.skills.pretrain import build_skill_agent, load_snapshot, pretrain, snapshot_path
 from trainer.surf import check_surf_config
-from trainer.teachers import TEACHER_KINDS, make_teacher
+from trainer.teachers import TEACHER_KINDS, TIES, make_teacher
 from trainer.trajectories import EpisodeRecorder, TrajectoryPool
 from trainer.utils import pick_device, set_seed
 
 PEBBLE_FAMILY = ("pebble", "surf", "rune", "rime")
 ALGOS = ("sac", *PEBBLE_FAMILY, "sepoa")
 CHECKPOINT = "checkpoint.pt"
+LOOP_VERSION = 2
+"""Checkpoints of version 1 predate S-EPOA's initial rollouts, per-query selection, z_task
+updates and critic reset, and PEBBLE's post-reset updates: such a run cannot resume as it
+began, so it is refused."""
+TASK_SKILL_DRAWS = ("refit", "episode")
 
 
 def default_run_dir(cfg: RunConfig) -> str:
@@ -73,6 +85,10 @@ def check_config(cfg: RunConfig) -> None:
         "feedback.selection": (cfg.feedback.selection, RULES),
         "feedback.first_round_selection": (cfg.feedback.first_round_selection, RULES),
         "teacher.kind": (cfg.teacher.kind, TEACHER_KINDS),
+        "teacher.tie": (cfg.teacher.tie, TIES),
+        "feedback.selection_mode": (cfg.feedback.selection_mode, MODES),
+        "feedback.compare_rule": (cfg.feedback.compare_rule, ("", *RULES)),
+        "skill.task_skill_draw": (cfg.skill.task_skill_draw, TASK_SKILL_DRAWS),
     }
     for name, (value, valid) in choices.items():
         if value not in valid:
@@ -92,11 +108,17 @@ def check_config(cfg: RunConfig) -> None:
             raise ValueError(f"{name} must be positive, got {value}")
     if cfg.feedback.pool_trajectories < 2:
         raise ValueError("feedback.pool_trajectories must be at least 2 (a query pairs two)")
-    if cfg.feedback.budget < 0 or cfg.seed_steps < 0 or cfg.unsup_steps < 0:
-        raise ValueError("feedback.budget, seed_steps and unsup_steps cannot be negative")
-    if "skill" in (cfg.feedback.selection, cfg.feedback.first_round_selection) and (
-            cfg.algo != "sepoa"):
+    if min(cfg.feedback.budget, cfg.seed_steps, cfg.unsup_steps, cfg.reset_updates,
+           cfg.skill.initial_rollouts) < 0:
+        raise ValueError("feedback.budget, seed_steps, unsup_steps, reset_updates and "
+                         "skill.initial_rollouts cannot be negative")
+    if "skill" in (cfg.feedback.selection, cfg.feedback.first_round_selection,
+                   cfg.feedback.compare_rule) and cfg.algo != "sepoa":
         raise ValueError("feedback.selection skill needs skills: use algo sepoa")
+    if cfg.algo == "sepoa" and cfg.skill.initial_rollouts > cfg.feedback.pool_trajectories:
+        raise ValueError(f"skill.initial_rollouts {cfg.skill.initial_rollouts} exceeds "
+                         f"feedback.pool_trajectories {cfg.feedback.pool_trajectories}: round 0 "
+                         "could never see them all")
     if cfg.algo == "sepoa" and cfg.feedback.first_round_selection == "skill":
         raise ValueError("feedback.first_round_selection cannot be skill: before the first "
                          "label there is no return estimate to select by")
@@ -162,6 +184,8 @@ class TrainingRun:
         self.skills: SkillBackend | None = None
         self.skill: np.ndarray | None = None
         """the skill the current episode acts with (S-EPOA)"""
+        self.task_skill_fit = 0
+        """R_theta's fit count when z_task was last drawn (skill.task_skill_draw refit)"""
         estimator = None
         if cfg.algo == "sepoa":
             self.agent, self.skills = _skill_agent(cfg, obs_dim, act_dim, self.device,
@@ -228,12 +252,25 @@ class TrainingRun:
         this order in an uninterrupted run and in a resumed one alike)."""
         obs = self.env.reset()
         if self.skills is not None:
-            candidates = self.skills.sample_skills(self.rng, self.cfg.skill.task_skill_samples)
-            estimator = self.feedback.estimator if self.feedback else None
-            # Before the first round R_theta knows nothing: a random skill per episode.
-            fitted = estimator is not None and estimator.fitted
-            self.skill = estimator.best_skill(candidates) if fitted else candidates[0]
+            self.skill = self._episode_skill()
         return obs
+
+    def _episode_skill(self) -> np.ndarray:
+        """Before the first round R_theta knows nothing: a random skill per episode. Then
+        z_task, the best of N_z fresh random skills under R_theta, drawn at every episode or
+        held until R_theta is refitted (`skill.task_skill_draw`)."""
+        assert self.skills is not None and self.feedback is not None
+        # Drawn whether used or not: the random stream does not depend on the choice.
+        candidates = self.skills.sample_skills(self.rng, self.cfg.skill.task_skill_samples)
+        estimator = self.feedback.estimator
+        assert estimator is not None
+        if not estimator.fitted:
+            return candidates[0]
+        held = self.cfg.skill.task_skill_draw == "refit" and self.task_skill_fit == estimator.fits
+        if held and self.skill is not None:
+            return self.skill
+        self.task_skill_fit = estimator.fits
+        return estimator.best_skill(candidates)
 
     def _agent_reward(self, obs: np.ndarray, action: np.ndarray, true_reward: float) -> float:
         if self.feedback is None:
@@ -249,8 +286,21 @@ class TrainingRun:
             return float(self.feedback.model.reward(o, a)[0])
 
     def _update(self) -> dict[str, float]:
-        if self.skills is not None and not self.preference_phase:
+        if self.skills is None:
+            return self.agent.update(self._training_batch())
+        if not self.preference_phase:
             return {}  # S-EPOA keeps its pretrained policy until there is a reward to learn
+        metrics = self.agent.update(self._training_batch())
+        if self.cfg.skill.task_skill_update:
+            # The acting skill learns from every transition, not only its own episode's share.
+            batch = self._training_batch()
+            task = torch.as_tensor(self.skill, device=self.device).expand_as(batch.skill)
+            task_metrics = self.agent.update(batch._replace(skill=task))
+            metrics |= {f"task_{k}": v for k, v in task_metrics.items()}
+        return metrics
+
+    def _training_batch(self):
+        """A replay batch carrying the reward the agent trains on now."""
         batch = self.buffer.sample(self.cfg.sac.batch_size)
         reward_cfg = self.cfg.reward
         if self.feedback is not None and not self.preference_phase:
@@ -265,7 +315,7 @@ class TrainingRun:
             beta = rune_beta(reward_cfg, self.step - self.reward_start_step)
             bonus = self.feedback.model.reward_std(batch.obs, batch.action)
             batch = batch._replace(reward=batch.reward + beta * bonus.unsqueeze(1))
-        return self.agent.update(batch)
+        return batch
 
     def _entropy_distance(self, next_obs: torch.Tensor) -> torch.Tensor:
         points = self.buffer.next_obs[: len(self.buffer)]
@@ -357,13 +407,20 @@ class TrainingRun:
             self._try_finish_round()
         # No round at the very end: its labels could no longer shape the policy.
         elif (fb is not None and self.next_round_step <= self.step < cfg.steps
-                and fb.budget_left > 0 and len(self.pool) >= 2):
+                and fb.budget_left > 0 and len(self.pool) >= self._pool_needed()):
             fb.open_round(self.pool, self.step)
             self._save()  # the chosen queries survive a kill; their answers go to labels.jsonl
             self.hooks.round_opened(fb.pending, self.pool)
             self._try_finish_round()
         if self.step - self.last_checkpoint_step >= cfg.checkpoint_every:
             self._save()
+
+    def _pool_needed(self) -> int:
+        """Trajectories a round needs: two, and S-EPOA's round 0 its initial rollouts, each
+        with its own random skill, so the first labels compare many skills."""
+        if self.skills is not None and self.feedback is not None and self.feedback.rounds == 0:
+            return max(2, self.cfg.skill.initial_rollouts)
+        return 2
 
     def _try_finish_round(self) -> None:
         """Finish the open round if its answers are in; it must close once the next round is
@@ -386,12 +443,23 @@ class TrainingRun:
         first = fb.rounds == 0
         metrics = fb.finish_round(self.pool, answers)
         self.buffer.relabel(fb.model.reward)
+        metrics["reward_corr"] = self.buffer.reward_correlation()
         if first:
             self.reward_start_step = self.step
-            if self.skills is None and not self.cfg.reward.rime:
-                self.agent.reset_critic()  # PEBBLE: the critic learned the intrinsic reward
+            if self._resets_critic():
+                self.agent.reset_critic()
+                # PEBBLE's reset_update: the fresh critic catches up on the learned reward.
+                for _ in range(self.cfg.reset_updates):
+                    self._update()
         self.next_round_step = self.step + self.cfg.feedback.every
         self._log("rounds", {"step": self.step} | metrics)
+
+    def _resets_critic(self) -> bool:
+        """PEBBLE's critic learned the intrinsic reward (RIME's warm start keeps it); S-EPOA's
+        was pretrained on the skills' intrinsic reward (`skill.reset_critic`)."""
+        if self.skills is not None:
+            return self.cfg.skill.reset_critic
+        return not self.cfg.reward.rime
 
     def evaluate(self) -> dict[str, float]:
         returns, successes = [], []
@@ -422,6 +490,7 @@ class TrainingRun:
     # ----------------------------------------------------------------------------------------
     def _state(self) -> dict:
         state = {
+            "loop_version": LOOP_VERSION,
             "step": self.step,
             "episode": self.episode,
             "next_round_step": self.next_round_step,
@@ -435,6 +504,8 @@ class TrainingRun:
             "torch_rng": torch.get_rng_state(),
             "env_rng": self.env.rng_state(),
             "eval_env_rng": self.eval_env.rng_state(),
+            "skill": self.skill,
+            "task_skill_fit": self.task_skill_fit,
         }
         if self.device.type == "cuda":
             state["cuda_rng"] = torch.cuda.get_rng_state()
@@ -448,6 +519,14 @@ class TrainingRun:
 
     def _load(self) -> None:
         state = load_checkpoint(self.checkpoint_path)
+        version = state.get("loop_version", 1)
+        if version != LOOP_VERSION and self.cfg.algo != "sac":
+            raise ValueError(
+                f"{self.checkpoint_path} was written by training-loop version {version}; this "
+                f"is version {LOOP_VERSION}, whose {self.cfg.algo} differs (S-EPOA's initial "
+                "rollouts, per-query selection, z_task updates and critic reset; the updates "
+                "after a critic reset), so the run cannot resume as it began: start a new run")
+        self.skill, self.task_skill_fit = state.get("skill"), state.get("task_skill_fit", 0)
         self.step, self.episode = state["step"], state["episode"]
         self.next_round_step = state["next_round_step"]
         self.last_eval_step = state["last_eval_step"]

@@ -19,6 +19,7 @@ from trainer.reward_model import RewardModel
 from trainer.trajectories import Trajectory
 
 RULES = ("uniform", "disagreement", "entropy", "skill")
+MODES = ("per_query", "top_k")
 SCORING_CHUNK = 4096
 """transitions per ensemble forward pass when scoring the pool"""
 
@@ -129,6 +130,13 @@ def top_k(scores: torch.Tensor, k: int) -> np.ndarray:
     return torch.topk(scores, min(k, len(scores))).indices.cpu().numpy()
 
 
+def best_per_group(scores: torch.Tensor, groups: int) -> np.ndarray:
+    """Index of the best of each of `groups` consecutive, equal groups of `scores`."""
+    size = len(scores) // groups
+    best = scores.view(groups, size).argmax(dim=1).cpu().numpy()
+    return np.arange(groups) * size + best
+
+
 @dataclass(frozen=True)
 class Selection:
     queries: Candidates
@@ -137,23 +145,31 @@ class Selection:
     """the model's mean P[seg1 > seg0] for each chosen pair (nan when the model was not used)"""
     score: np.ndarray
     """the selection score of each chosen pair (nan for uniform)"""
+    candidate: np.ndarray
+    """the index of each chosen pair in the round's draw of candidates"""
 
 
 def select_queries(rule: str, model: RewardModel, pool: list[Trajectory], n_queries: int,
-                   n_candidates: int, segment_length: int, rng: np.random.Generator,
+                   candidate_factor: int, segment_length: int, rng: np.random.Generator,
                    estimator: ReturnEstimator | None = None, spread: str = "var",
-                   rewards: PoolRewards | None = None) -> Selection:
-    """The rule's top `n_queries` of `n_candidates` random pairs (uniform: `n_queries` random
-    pairs). The skill rule scores by the fitted `estimator` (R_theta) of each side's skill and
-    the `spread` of P ("var" or "std"). `rewards`: the pool already scored by `model`."""
+                   rewards: PoolRewards | None = None, mode: str = "top_k") -> Selection:
+    """`n_queries` pairs by `rule` (uniform: random pairs). `mode` per_query: each query is the
+    best of its own `candidate_factor` fresh random pairs (the paper's Algorithm 2); top_k: the
+    best `n_queries` of one draw of `n_queries * candidate_factor`. Either way the round draws
+    and scores the same number of candidates. The skill rule scores by the fitted `estimator`
+    (R_theta) of each side's skill and the `spread` of P ("var" or "std"), min-max normalised
+    over the candidates competing for a place. `rewards`: the pool already scored by `model`."""
     if rule not in RULES:
         raise ValueError(f"unknown selection rule {rule!r}; valid: {', '.join(RULES)}")
+    if mode not in MODES:
+        raise ValueError(f"unknown selection mode {mode!r}; valid: {', '.join(MODES)}")
     lengths = np.array([t.length for t in pool])
     if rule == "uniform":
         chosen = sample_candidates(lengths, n_queries, segment_length, rng)
         nan = np.full(len(chosen), np.nan)
-        return Selection(chosen, nan, nan)
-    cands = sample_candidates(lengths, n_candidates, segment_length, rng)
+        return Selection(chosen, nan, nan, np.arange(len(chosen)))
+    cands = sample_candidates(lengths, n_queries * candidate_factor, segment_length, rng)
+    groups = n_queries if mode == "per_query" else 1
     rewards = pool_rewards(model, pool) if rewards is None else rewards
     p = preference_probabilities(rewards.sums(cands.traj0, cands.start0, segment_length),
                                  rewards.sums(cands.traj1, cands.start1, segment_length))
@@ -164,8 +180,12 @@ def select_queries(rule: str, model: RewardModel, pool: list[Trajectory], n_quer
         values = estimator.predict(np.stack([t.skill for t in pool]))
         idx0 = torch.as_tensor(cands.traj0, device=values.device)
         idx1 = torch.as_tensor(cands.traj1, device=values.device)
-        scores = skill_scores(values[idx0], values[idx1], p.to(values.device), spread)
+        # Scores normalised within each group of competing candidates.
+        shape = (groups, len(cands) // groups)
+        scores = skill_scores(values[idx0].view(shape), values[idx1].view(shape),
+                              p.to(values.device).view(len(p), *shape), spread).reshape(-1)
     else:
         scores = disagreement(p) if rule == "disagreement" else entropy(p)
-    idx = top_k(scores, n_queries)
-    return Selection(cands.take(idx), p.mean(0).cpu().numpy()[idx], scores.cpu().numpy()[idx])
+    idx = best_per_group(scores, n_queries) if mode == "per_query" else top_k(scores, n_queries)
+    return Selection(cands.take(idx), p.mean(0).cpu().numpy()[idx], scores.cpu().numpy()[idx],
+                     idx)

@@ -65,6 +65,16 @@ class ReplayBuffer:
             end = min(start + chunk, self.size)
             self.reward[start:end, 0] = reward_fn(self.obs[start:end], self.action[start:end])
 
+    @torch.no_grad()
+    def reward_correlation(self) -> float:
+        """Pearson correlation of the stored (learned) reward with the true reward over the
+        buffer: whether the reward model ranks transitions as the task does (nan when either
+        is constant)."""
+        both = torch.cat([self.reward[: self.size], self.true_reward[: self.size]], dim=1)
+        if self.size < 2 or bool((both.std(dim=0) == 0).any()):
+            return float("nan")
+        return float(torch.corrcoef(both.T.double())[0, 1])
+
     def state_dict(self) -> dict:
         n = self.size
         # Copies, not views: torch.save writes a view's whole storage, i.e. the full capacity.

@@ -28,14 +28,16 @@ SPREADS = ("var", "std")
 
 
 def minmax(x: torch.Tensor) -> torch.Tensor:
-    """x scaled to [0, 1]; all zeros when x is constant."""
-    span = x.max() - x.min()
-    return (x - x.min()) / span if span > 0 else torch.zeros_like(x)
+    """x scaled to [0, 1] along its last dimension; zeros where a row is constant."""
+    low = x.amin(dim=-1, keepdim=True)
+    span = x.amax(dim=-1, keepdim=True) - low
+    return torch.where(span > 0, (x - low) / span.clamp(min=torch.finfo(x.dtype).tiny), 0.0)
 
 
 def skill_scores(value0: torch.Tensor, value1: torch.Tensor, p: torch.Tensor,
                  spread: str) -> torch.Tensor:
-    """I for n candidates: R_theta means of both sides (n,), preference probabilities (E, n)."""
+    """I for candidates: R_theta means of both sides (..., n), preference probabilities
+    (E, ..., n); each row of n competing candidates is min-max normalised on its own."""
     if spread not in SPREADS:
         raise ValueError(f"unknown spread {spread!r}; valid: {', '.join(SPREADS)}")
     s = p.var(dim=0, unbiased=False) if spread == "var" else p.std(dim=0, unbiased=False)
@@ -50,7 +52,12 @@ class ReturnEstimator:
         self.nets = EnsembleMLP(cfg.estimator_ensemble, skill_dim, 1, cfg.estimator_hidden_dim,
                                 cfg.estimator_hidden_layers, output_activation=nn.Tanh).to(device)
         self.opt = torch.optim.Adam(self.nets.parameters(), lr=cfg.estimator_lr)
-        self.fitted = False
+        self.fits = 0
+        """how many times `fit` has run (z_task held between refits is drawn anew after one)"""
+
+    @property
+    def fitted(self) -> bool:
+        return self.fits > 0
 
     def fit(self, skills: np.ndarray, predicted_returns: np.ndarray) -> dict[str, float]:
         """Regress the min-max normalised `predicted_returns` (n,) on `skills` (n, d)."""
@@ -63,7 +70,7 @@ class ReturnEstimator:
             self.opt.zero_grad(set_to_none=True)
             loss.backward()
             self.opt.step()
-        self.fitted = True
+        self.fits += 1
         return {"estimator_loss": loss.item()}
 
     @torch.no_grad()
@@ -77,10 +84,9 @@ class ReturnEstimator:
         return candidates[int(self.predict(candidates).argmax())]
 
     def state_dict(self) -> dict:
-        return {"nets": self.nets.state_dict(), "opt": self.opt.state_dict(),
-                "fitted": self.fitted}
+        return {"nets": self.nets.state_dict(), "opt": self.opt.state_dict(), "fits": self.fits}
 
     def load_state_dict(self, state: dict) -> None:
         self.nets.load_state_dict(state["nets"])
         self.opt.load_state_dict(state["opt"])
-        self.fitted = state["fitted"]
+        self.fits = state["fits"]

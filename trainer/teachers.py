@@ -6,6 +6,8 @@ comparison is labelled by the same teacher:
 - `NoisyTeacher`: the paper's noisy scripted teacher. When the *whole trajectories* behind a
   query have nearly equal ground-truth returns (|R(tau0) - R(tau1)| < eps * |R_avg|) it answers
   at random; otherwise the segments' ground-truth sums decide. eps = 0 is the ideal teacher.
+  Segments with exactly equal sums (a cheetah that does not move earns 0 in both) answer by
+  `teacher.tie`: EQUAL by default, a deviation from the paper's one-hot labels.
 - `BPrefTeacher`: B-Pref's simulated teacher (Lee et al. 2021) with its knobs: skip, equal,
   myopic discount gamma, Bradley-Terry rationality beta, and a mistake probability.
 
@@ -87,12 +89,19 @@ def _recent_mean(recent_returns: Sequence[float], n: int) -> float:
     return float(np.mean(last)) if last else 0.0
 
 
-def _sum_choice(sum0: float, sum1: float) -> Choice:
+TIES = ("equal", "random", "first")
+
+
+def _sum_choice(sum0: float, sum1: float, tie: str = "equal", u: float = 0.0) -> Choice:
+    """The larger sum wins; an exact tie answers by `tie`: EQUAL, a coin (`u` a uniform), or
+    FIRST (B-Pref's argmax)."""
     if sum1 > sum0:
         return Choice.SECOND
     if sum0 > sum1:
         return Choice.FIRST
-    return Choice.EQUAL
+    if tie == "random":
+        return Choice.SECOND if u < 0.5 else Choice.FIRST
+    return Choice.FIRST if tie == "first" else Choice.EQUAL
 
 
 def is_correct(choice: Choice, truth: QueryTruth) -> bool | None:
@@ -101,6 +110,11 @@ def is_correct(choice: Choice, truth: QueryTruth) -> bool | None:
     if choice not in (Choice.FIRST, Choice.SECOND) or best is Choice.EQUAL:
         return None
     return choice is best
+
+
+def _check_tie(tie: str) -> None:
+    if tie not in TIES:
+        raise ValueError(f"unknown teacher.tie {tie!r}; valid: {', '.join(TIES)}")
 
 
 def _flip(choice: Choice) -> Choice:
@@ -138,12 +152,14 @@ class NoisyTeacher:
 
     kind = "noisy"
 
-    def __init__(self, eps: float, seed: int, recent_trajectories: int = 10):
+    def __init__(self, eps: float, seed: int, recent_trajectories: int = 10,
+                 tie: str = "equal"):
         if not eps >= 0:
             raise ValueError(f"eps must be >= 0, got {eps}")
         if recent_trajectories < 1:
             raise ValueError(f"recent_trajectories must be >= 1, got {recent_trajectories}")
-        self.eps = float(eps)
+        _check_tie(tie)
+        self.eps, self.tie = float(eps), tie
         self.recent_trajectories = recent_trajectories
         self.rng = np.random.default_rng(seed)
 
@@ -165,9 +181,8 @@ class NoisyTeacher:
                 choice = Choice.SECOND if u < 0.5 else Choice.FIRST
                 distinguishable = False
             else:
-                choice = _sum_choice(
-                    float(np.sum(truth.segment_rewards0)), float(np.sum(truth.segment_rewards1))
-                )
+                choice = _sum_choice(float(np.sum(truth.segment_rewards0)),
+                                     float(np.sum(truth.segment_rewards1)), self.tie, u)
                 distinguishable = True
             answers.append(TeacherAnswer(choice, distinguishable, is_correct(choice, truth)))
         return answers
@@ -194,9 +209,9 @@ class BPrefTeacher:
     """B-Pref's simulated teacher: skip -> equal -> (myopic, Bradley-Terry) choice -> mistake.
 
     As in B-Pref, skip and equal test the plain segment sums against thresholds scaled from the
-    plain episode returns; gamma only shapes the choice itself. Ties under beta = inf answer
-    EQUAL (B-Pref silently picks the first segment). B-Pref also squares eps_mistake after the
-    first round by mistake; here it stays constant.
+    plain episode returns; gamma only shapes the choice itself. Exact ties under beta = inf
+    answer by `teacher.tie` (default EQUAL; B-Pref silently picks the first segment). B-Pref
+    also squares eps_mistake after the first round by mistake; here it stays constant.
     """
 
     kind = "bpref"
@@ -215,6 +230,7 @@ class BPrefTeacher:
             )
         if cfg.recent_trajectories < 1:
             raise ValueError(f"recent_trajectories must be >= 1, got {cfg.recent_trajectories}")
+        _check_tie(cfg.tie)
         self.cfg = cfg
         self.segment_length = segment_length
         self.episode_length = episode_length
@@ -248,7 +264,7 @@ class BPrefTeacher:
             my0 = _myopic_sum(truth.segment_rewards0, cfg.gamma)
             my1 = _myopic_sum(truth.segment_rewards1, cfg.gamma)
             if math.isinf(cfg.beta):
-                choice = _sum_choice(my0, my1)
+                choice = _sum_choice(my0, my1, cfg.tie, u_choice)
             else:
                 p_second = _sigmoid(cfg.beta * (my1 - my0))
                 choice = Choice.SECOND if u_choice < p_second else Choice.FIRST
@@ -273,7 +289,7 @@ def make_teacher(
     cfg: TeacherConfig, seed: int, segment_length: int, episode_length: int
 ) -> NoisyTeacher | BPrefTeacher:
     if cfg.kind == "noisy":
-        return NoisyTeacher(cfg.eps, seed, cfg.recent_trajectories)
+        return NoisyTeacher(cfg.eps, seed, cfg.recent_trajectories, cfg.tie)
     if cfg.kind == "bpref":
         return BPrefTeacher(cfg, seed, segment_length, episode_length)
     raise ValueError(f"unknown teacher kind {cfg.kind!r}; valid: {', '.join(TEACHER_KINDS)}")

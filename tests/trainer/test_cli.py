@@ -125,3 +125,14 @@ def test_each_baseline_is_pebble_with_its_own_piece_switched_on():
     assert tiny.feedback.segment_length == 20 and tiny.reward.surf_crop_max <= 20
     assert build_config("dmc:walker_run", "paper",
                         {"algo": "sepoa", "reward.surf": False}).reward.surf is False
+
+
+def test_presets_prints_every_layer_in_the_order_they_apply():
+    result = _run(["presets"])
+    assert result.returncode == 0, result.stderr
+    layers = json.loads(result.stdout)
+    assert list(layers) == ["family", "task", "algorithm", "algorithm and task", "size"]
+    assert layers["algorithm"]["sepoa"]["feedback.segment_length"] == 60
+    assert layers["algorithm"]["sepoa"]["feedback.selection_mode"] == "per_query"
+    assert layers["algorithm and task"]["rime dmc:cheetah_run"] == {"unsup_steps": 2000}
+    assert layers["size"]["small"]["skill.initial_rollouts"] == 10

@@ -98,6 +98,10 @@ def test_pebble_on_metaworld_records_success_and_contexts(tmp_path):
     ({"teacher.eps": 1.5}, "teacher.eps is an error rate"),
     ({"feedback.per_round": 0}, "feedback.per_round must be positive"),
     ({"episode_length": 10}, "shorter than a segment"),
+    ({"feedback.selection_mode": "best"}, "selection_mode 'best'; valid: per_query, top_k"),
+    ({"feedback.compare_rule": "skill"}, "use algo sepoa"),
+    ({"teacher.tie": "last"}, "teacher.tie 'last'; valid: equal, random, first"),
+    ({"reset_updates": -1}, "reset_updates .* cannot be negative"),
 ])
 def test_bad_configuration_is_rejected_before_training(tmp_path, override, message):
     cfg = build_config("dmc:cheetah_run", "tiny", {"run_dir": str(tmp_path / "run")} | override)
@@ -137,3 +141,33 @@ def test_a_run_stopped_between_choosing_queries_and_answering_them_resumes(tmp_p
     assert strip(_labels(cfg.run_dir)) == strip(_labels(reference.run_dir))
     assert [r["reward_accuracy"] for r in _rows(os.path.join(cfg.run_dir, "rounds.csv"))] == [
         r["reward_accuracy"] for r in _rows(os.path.join(reference.run_dir, "rounds.csv"))]
+
+
+def test_pebble_resets_its_critic_at_the_first_round_then_catches_up_on_r_hat(tmp_path,
+                                                                            monkeypatch):
+    from trainer.sac import SAC
+
+    calls = []
+    reset, update = SAC.reset_critic, SAC.update
+    monkeypatch.setattr(SAC, "reset_critic", lambda self: (calls.append("reset"), reset(self)))
+    monkeypatch.setattr(SAC, "update",
+                        lambda self, b: (calls.append("update"), update(self, b))[1])
+    finish = TrainingRun._finish_round
+
+    def mark(self, answers):
+        calls.append(f"round {self.feedback.rounds}")
+        finish(self, answers)
+
+    monkeypatch.setattr(TrainingRun, "_finish_round", mark)
+    cfg = build_config("dmc:cheetah_run", "tiny", {
+        "algo": "pebble", "steps": 900, "threads": 1, "run_dir": str(tmp_path),
+        "reset_updates": 7, "feedback.compare_rule": "uniform"})
+    TrainingRun(cfg, progress=False).train()
+    first = calls.index("round 0")
+    assert calls[first + 1: first + 9] == ["reset"] + ["update"] * 7
+    assert calls.count("reset") == 1
+    rounds = _rows(tmp_path / "rounds.csv")
+    # The diagnostic's column: uniform picks on the disagreement rounds (none on round 0).
+    assert rounds[0]["compare_distinguishable_ratio"] == "nan"
+    assert 0 <= float(rounds[1]["compare_distinguishable_ratio"]) <= 1
+    assert all(-1 <= float(r["reward_corr"]) <= 1 for r in rounds)

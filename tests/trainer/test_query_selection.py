@@ -79,17 +79,38 @@ def test_select_queries_by_disagreement_on_a_constructed_ensemble():
     with torch.no_grad():
         model.ensemble.layers[0].weight[0, 0, 0] = 1.0  # member 0: hidden = obs[0]
         model.ensemble.layers[1].weight[0, 0, 0] = 1.0  # member 0: reward = tanh(obs[0])
-    sel = select_queries("disagreement", model, pool, 5, 200, 10, np.random.default_rng(0))
+    sel = select_queries("disagreement", model, pool, 5, 40, 10, np.random.default_rng(0))
     q = sel.queries
     assert len(q) == 5
     assert np.all((q.traj0 == 3) | (q.traj1 == 3))
     assert np.all(sel.score > 0)
 
 
+def test_per_query_selection_takes_each_query_from_its_own_fresh_candidates():
+    pool = [_trajectory(i, 60) for i in range(6)]
+    model = RewardModel(3, 1, RewardConfig(hidden_dim=16, hidden_layers=2), torch.device("cpu"), 0)
+    n, factor = 8, 10
+    sel = select_queries("disagreement", model, pool, n, factor, 20, np.random.default_rng(3),
+                         mode="per_query")
+    # The same draw as the selection made: n groups of `factor` candidates, one per query.
+    cands = sample_candidates(np.array([60] * 6), n * factor, 20, np.random.default_rng(3))
+    p = torch.sigmoid(torch.stack(segment_returns(model, pool, cands, 20)).diff(dim=0)[0])
+    spread = disagreement(p).view(n, factor)
+    assert np.array_equal(sel.candidate // factor, np.arange(n))  # query i from group i
+    assert np.array_equal(sel.candidate % factor, spread.argmax(dim=1).numpy())
+    assert np.array_equal(sel.queries.traj0, cands.traj0[sel.candidate])
+    # top_k ranks the whole draw instead: its picks are the n best overall.
+    top = select_queries("disagreement", model, pool, n, factor, 20, np.random.default_rng(3))
+    assert set(top.candidate) == set(torch.topk(spread.reshape(-1), n).indices.tolist())
+    with pytest.raises(ValueError, match="valid: per_query, top_k"):
+        select_queries("disagreement", model, pool, n, factor, 20, np.random.default_rng(3),
+                       mode="best")
+
+
 def test_uniform_selection_and_unknown_rule():
     pool = [_trajectory(i, 50) for i in range(4)]
     model = RewardModel(3, 1, RewardConfig(hidden_dim=8, hidden_layers=1), torch.device("cpu"), 0)
-    sel = select_queries("uniform", model, pool, 7, 70, 10, np.random.default_rng(0))
+    sel = select_queries("uniform", model, pool, 7, 10, 10, np.random.default_rng(0))
     assert isinstance(sel.queries, Candidates) and len(sel.queries) == 7
     with pytest.raises(ValueError, match="valid: uniform, disagreement, entropy"):
-        select_queries("bald", model, pool, 7, 70, 10, np.random.default_rng(0))
+        select_queries("bald", model, pool, 7, 10, 10, np.random.default_rng(0))

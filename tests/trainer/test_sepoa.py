@@ -4,6 +4,7 @@ end-to-end run through the CLI."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 import subprocess
@@ -76,7 +77,8 @@ def _tiny(tmp_path, **overrides):
 
 
 def test_each_trajectory_keeps_the_skill_it_was_generated_with_after_fifo_eviction(tmp_path):
-    cfg = _tiny(tmp_path, **{"feedback.pool_trajectories": 3, "skill.pretrain_steps": 0})
+    cfg = _tiny(tmp_path, **{"feedback.pool_trajectories": 3, "skill.pretrain_steps": 0,
+                             "skill.task_skill_draw": "episode"})
     run = TrainingRun(cfg, progress=False)
     run.train()
     assert len(run.pool) == 3 and run.episode == 6  # three evicted
@@ -175,10 +177,118 @@ def test_the_disagreement_ablation_still_acts_with_z_task(tmp_path):
 
 @pytest.mark.parametrize("backend", ["diayn", "cic"])
 def test_other_skill_backends_run_online_behind_the_same_interface(tmp_path, backend):
-    cfg = _tiny(tmp_path, **{"skill.backend": backend, "skill.pretrain_steps": 0,
-                             "steps": 1000})
+    cfg = _tiny(tmp_path, **{"skill.backend": backend, "skill.pretrain_steps": 0})
     run = TrainingRun(cfg, progress=False)
     summary = run.train()
     assert summary["labels_used"] == 20
     dims = {"diayn": 16, "cic": 64}
     assert all(t.skill.shape == (dims[backend],) for t in run.pool.trajectories)
+
+
+def _labels(run_dir):
+    with open(os.path.join(run_dir, "labels.jsonl")) as f:
+        return [json.loads(line) for line in f]
+
+
+def test_round_zero_waits_for_the_initial_rollouts_and_spans_them(tmp_path):
+    cfg = _tiny(tmp_path, **{"skill.pretrain_steps": 0, "skill.initial_rollouts": 4})
+    run = TrainingRun(cfg, progress=False)
+    run.train()
+    round0 = [lab for lab in _labels(cfg.run_dir) if lab["round"] == 0]
+    assert {lab["step"] for lab in round0} == {800}  # after 4 episodes of 200, not at 200
+    used = {t for lab in round0 for t in (lab["trajectory0"], lab["trajectory1"])}
+    assert used == {0, 1, 2, 3}
+    skills = {tuple(t.skill) for t in run.pool.trajectories if t.id < 4}
+    assert len(skills) == 4  # each initial rollout had its own random skill
+    rounds = _rows(os.path.join(cfg.run_dir, "rounds.csv"))
+    assert int(rounds[0]["trajectory_pairs"]) > 1
+    assert 0 < float(rounds[0]["max_trajectory_share"]) <= 1
+    assert all(-1 <= float(r["reward_corr"]) <= 1 for r in rounds)
+    with pytest.raises(ValueError, match="initial_rollouts 5 exceeds feedback.pool_trajectories 4"):
+        TrainingRun(_tiny(tmp_path, **{"skill.initial_rollouts": 5,
+                                        "feedback.pool_trajectories": 4,
+                                        "run_dir": str(tmp_path / "x")}), progress=False)
+
+
+def test_every_update_after_the_first_round_also_trains_z_task_on_its_batch(tmp_path,
+                                                                          monkeypatch):
+    from trainer.skills.agent import SkillAgent
+
+    seen = []
+    update = SkillAgent.update
+
+    def spy(agent, batch):
+        seen.append((batch.skill.clone(), run.skill.copy()))
+        return update(agent, batch)
+
+    monkeypatch.setattr(SkillAgent, "update", spy)
+    run = TrainingRun(_tiny(tmp_path, **{"skill.pretrain_steps": 0}), progress=False)
+    run.train()
+    assert seen and len(seen) % 2 == 0  # a stored-skill update and a z_task one, in turn
+    stored, task = seen[0::2], seen[1::2]
+    for skills, acting in task:
+        assert torch.equal(skills, torch.as_tensor(acting).expand_as(skills))
+    # The stored-skill updates carry the skills of many episodes.
+    assert any(len(torch.unique(skills, dim=0)) > 1 for skills, _ in stored)
+
+    seen.clear()
+    off = _tiny(tmp_path, **{"skill.pretrain_steps": 0, "skill.task_skill_update": False,
+                             "run_dir": str(tmp_path / "off")})
+    run = TrainingRun(off, progress=False)
+    run.train()
+    assert seen and not any(torch.equal(s, torch.as_tensor(a).expand_as(s)) for s, a in seen)
+
+
+def _weights(module):
+    return {k: v.clone() for k, v in module.state_dict().items()}
+
+
+@pytest.mark.parametrize("reset", [True, False])
+def test_the_first_round_resets_the_critic_only_and_keeps_the_actor(tmp_path, monkeypatch,
+                                                                    reset):
+    cfg = _tiny(tmp_path, **{"skill.pretrain_steps": 0, "skill.reset_critic": reset,
+                             "reset_updates": 0, "steps": 700})
+    run = TrainingRun(cfg, progress=False)
+    sac = run.agent.sac
+    nets = {"actor": sac.actor, "critic": sac.critic, "target": sac.critic_target}
+    finish, before, after = TrainingRun._finish_round, {}, {}
+
+    def watch(self, answers):
+        before.update({name: _weights(net) for name, net in nets.items()})
+        finish(self, answers)
+        after.update({name: _weights(net) for name, net in nets.items()})
+
+    monkeypatch.setattr(TrainingRun, "_finish_round", watch)
+    run.train()
+    assert run.feedback.rounds == 1
+    for name in nets:
+        same = all(torch.equal(v, after[name][k]) for k, v in before[name].items())
+        assert same == (name == "actor" or not reset), name
+    torch.testing.assert_close(after["critic"], after["target"])
+
+
+def test_z_task_is_held_between_refits_or_drawn_each_episode(tmp_path):
+    skills = {}
+    for draw in ("refit", "episode"):
+        cfg = _tiny(tmp_path, **{"skill.pretrain_steps": 0, "skill.task_skill_draw": draw,
+                                 "run_dir": str(tmp_path / draw)})
+        run = TrainingRun(cfg, progress=False)
+        run.train()
+        skills[draw] = [tuple(t.skill) for t in run.pool.trajectories]
+    # Round 0 closes after episode 3 (R_theta fitted), round 1 after episode 5 (refitted).
+    held = skills["refit"]
+    assert len(set(held[:3])) == 3 and held[3] == held[4] != held[5]
+    assert len(set(skills["episode"])) == 6
+
+
+def test_a_checkpoint_from_before_these_changes_is_refused_with_the_reason(tmp_path):
+    from trainer.checkpoint import load_checkpoint, save_checkpoint
+
+    cfg = _tiny(tmp_path, **{"skill.pretrain_steps": 0, "steps": 400})
+    TrainingRun(cfg, progress=False).train()
+    path = os.path.join(cfg.run_dir, "checkpoint.pt")
+    state = load_checkpoint(path)
+    del state["loop_version"]
+    save_checkpoint(path, state)
+    with pytest.raises(ValueError, match="training-loop version 1.*start a new run"):
+        TrainingRun(dataclasses.replace(cfg, steps=800), resume=True, progress=False)

@@ -78,6 +78,26 @@ def test_noisy_equal_segment_sums_outside_band():
     assert a == TeacherAnswer(Choice.EQUAL, distinguishable=True, correct=None)
 
 
+def test_tied_segment_sums_answer_as_teacher_tie_says():
+    tied = [truth([0, 0], [0, 0], ret0=0.0, ret1=100.0)] * 400  # outside the band
+    first = NoisyTeacher(eps=0.3, seed=0, tie="first").answer(tied, RECENT)
+    assert {a.choice for a in first} == {Choice.FIRST}
+    coin = [a.choice for a in NoisyTeacher(eps=0.3, seed=0, tie="random").answer(tied, RECENT)]
+    assert set(coin) == {Choice.FIRST, Choice.SECOND}
+    assert two_sided_ok(coin.count(Choice.SECOND), 400, 0.5)
+    assert all(a.distinguishable and a.correct is None
+               for a in NoisyTeacher(0.3, 0, tie="random").answer(tied, RECENT))
+    # B-Pref's rational teacher takes the same option; beyond ties nothing changes.
+    untied = truth([0, 1], [0, 2])
+    for tie, expected in (("equal", Choice.EQUAL), ("first", Choice.FIRST)):
+        a = bpref(tie=tie).answer([tied[0], untied], RECENT)
+        assert [x.choice for x in a] == [expected, Choice.SECOND]
+    with pytest.raises(ValueError, match="unknown teacher.tie 'last'; valid: equal, random"):
+        NoisyTeacher(eps=0.3, seed=0, tie="last")
+    with pytest.raises(ValueError, match="teacher.tie"):
+        make_teacher(TeacherConfig(tie="coin"), 0, 2, 10)
+
+
 def test_noisy_inside_band_is_a_fair_coin():
     t = NoisyTeacher(eps=0.3, seed=1)
     n = 1000

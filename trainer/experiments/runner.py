@@ -37,7 +37,8 @@ LOG_HEADER = "=== "
 # Skill fields only the online phase reads: they leave a pretrained snapshot unchanged.
 ONLINE_SKILL_FIELDS = (
     "estimator_ensemble", "estimator_hidden_dim", "estimator_hidden_layers", "estimator_lr",
-    "estimator_steps", "task_skill_samples", "score_spread", "snapshot", "snapshot_dir",
+    "estimator_steps", "task_skill_samples", "task_skill_draw", "task_skill_update",
+    "initial_rollouts", "reset_critic", "score_spread", "snapshot", "snapshot_dir",
     "snapshot_seed",
 )
 STOP_GRACE_S = 30.0

@@ -57,6 +57,10 @@ class SkillAgent:
         next_obs = torch.cat([batch.next_obs, batch.skill], dim=-1)
         return self.sac.update(Batch(obs, batch.action, batch.reward, next_obs))
 
+    def reset_critic(self) -> None:
+        """A fresh critic, target and critic optimiser; the pretrained actor stays."""
+        self.sac.reset_critic()
+
     @torch.no_grad()
     def q(self, obs: torch.Tensor, action: torch.Tensor, skill: torch.Tensor) -> torch.Tensor:
         """min over the twin critics of Q(s, a, z), shape (batch, 1)."""
