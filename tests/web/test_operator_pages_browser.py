@@ -76,6 +76,7 @@ def test_a_run_page_draws_curves_pauses_the_run_and_exports_its_labels(
                     "distinguishable_ratio": 0.5,
                     "model_agreement": 0.6,
                     "shadow_agreement": None,
+                    "reward_corr": 0.2 * round_,
                 },
             )
         teacher, _ = create_labeller(session, name=f"scripted-{run_id}")
@@ -94,6 +95,8 @@ def test_a_run_page_draws_curves_pauses_the_run_and_exports_its_labels(
     page.wait_for_selector("#chart-return svg polyline")
     assert page.locator("#chart-return circle").count() == 4  # 3 episodes + 1 evaluation
     assert page.locator("#chart-agreement circle").count() == 2  # the null series is left out
+    assert page.locator("#chart-reward-corr circle").count() == 2
+    assert "Learned reward vs true reward" in page.inner_text("#chart-reward-corr")
     assert "1 label (1 scripted)" in page.inner_text("#chart-throughput")
     assert page.locator("#chart-throughput rect").count() == 1
     # The report's figure of this run beside its peers, fetched with the operator's token.

@@ -168,6 +168,11 @@ function drawCurves(run, episodes, evals, rounds) {
       { name: "teacher vs ground truth", points: points(rounds, "teacher_accuracy", roundOf) },
     ],
   });
+  drawChart(chart("chart-reward-corr"), {
+    title: "Learned reward vs true reward", xLabel: "round", yLabel: "correlation",
+    note: "over the replay buffer, after each round", yMin: -1, yMax: 1,
+    series: [{ name: "", points: points(rounds, "reward_corr", roundOf) }],
+  });
 }
 
 function drawThroughput(stats, run) {
