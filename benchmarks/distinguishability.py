@@ -63,13 +63,16 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=50_000)
     parser.add_argument("--snapshot", required=True, help="the pretraining snapshot (sepoa "
                         "pretrain); its length is the pretraining length reported")
+    parser.add_argument("--feedback-every", type=int, default=0,
+                        help="steps between rounds; 0 = the preset's")
     parser.add_argument("--jobs", type=int, default=2, help="seeds run in parallel")
     args = parser.parse_args()
+    overrides = {"feedback.every": args.feedback_every} if args.feedback_every else {}
 
     start = time.time()
     with ProcessPoolExecutor(args.jobs) as pool:
         futures = {seed: pool.submit(one_seed, args.task, args.preset, args.eps, seed,
-                                     args.steps, args.snapshot, {}) for seed in args.seeds}
+                                     args.steps, args.snapshot, overrides) for seed in args.seeds}
         results = {seed: f.result() for seed, f in futures.items()}
 
     print(f"{args.task}, preset {args.preset}, eps {args.eps}, {args.steps} steps per seed, "
