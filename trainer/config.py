@@ -202,8 +202,8 @@ class SkillConfig:
     task_skill_samples: int = 50
     """online: N_z, fresh random skills z_task is chosen from"""
     task_skill_draw: str = "refit"
-    """online: when z_task is drawn anew: refit (at the first episode after R_theta is refitted,
-    held in between) | episode (at every episode start, as the authors' code)"""
+    """online: when z_task is drawn anew: refit (when a round has refitted R_theta, held in
+    between) | episode (also at every episode start, as the authors' code)"""
     task_skill_update: bool = True
     """online: each update also trains on its batch with z_task in place of every stored skill
     (valid off-policy: r_hat does not depend on z), besides the update on the stored skills"""

@@ -16,13 +16,13 @@ on by their algorithm presets (`reward.surf`, `reward.rune`, `reward.rime`):
 S-EPOA (Algorithm 1): the skill-conditioned actor and critic pi(a|s,z) start from a pretraining
 snapshot (`sepoa pretrain`; made first if missing, or fresh nets when skill.pretrain_steps is 0,
 the paper's "no pretraining" ablation). Each episode acts with one skill: a random one until the
-first round, then z_task, the best of N_z fresh random skills under R_theta, held until R_theta
-is refitted (or drawn each episode: skill.task_skill_draw). The first round comes after
-`seed_steps` and `skill.initial_rollouts` episodes; the agent trains only on the learned reward,
-from the first round on, where its pretrained critic is reset (skill.reset_critic). Each update
-trains the batch's stored skills and, with z_task in every row, the acting skill
-(skill.task_skill_update). Queries are selected by the skill rule, each the best of its own
-candidates (query_selection.py).
+first round, then z_task, the best of N_z fresh random skills under R_theta, drawn when a round
+refits R_theta and held until the next (or drawn each episode: skill.task_skill_draw). The
+first round comes after `seed_steps` and `skill.initial_rollouts` episodes; the agent trains
+only on the learned reward, from the first round on, where its pretrained critic is reset
+(skill.reset_critic). Each update trains the batch's stored skills and, with z_task in every
+row, the acting skill (skill.task_skill_update). Queries are selected by the skill rule, each
+the best of its own candidates (query_selection.py).
 
 After any critic reset, `reset_updates` updates on the relabelled buffer follow at once
 (PEBBLE's reset_update).
@@ -184,8 +184,8 @@ class TrainingRun:
         self.skills: SkillBackend | None = None
         self.skill: np.ndarray | None = None
         """the skill the current episode acts with (S-EPOA)"""
-        self.task_skill_fit = 0
-        """R_theta's fit count when z_task was last drawn (skill.task_skill_draw refit)"""
+        self.task_skill: np.ndarray | None = None
+        """z_task, once R_theta is fitted (S-EPOA)"""
         estimator = None
         if cfg.algo == "sepoa":
             self.agent, self.skills = _skill_agent(cfg, obs_dim, act_dim, self.device,
@@ -242,9 +242,11 @@ class TrainingRun:
         """After the first round: the agent trains on the learned reward."""
         return self.feedback is not None and self.feedback.rounds > 0
 
-    def _act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
-        if self.skill is not None:
-            return self.agent.act(obs, self.skill, self.rng, deterministic)
+    def _act(self, obs: np.ndarray, deterministic: bool = False,
+             skill: np.ndarray | None = None) -> np.ndarray:
+        skill = self.skill if skill is None else skill
+        if skill is not None:
+            return self.agent.act(obs, skill, self.rng, deterministic)
         return self.agent.act(obs, self.rng, deterministic)
 
     def _start_episode(self) -> np.ndarray:
@@ -257,20 +259,22 @@ class TrainingRun:
 
     def _episode_skill(self) -> np.ndarray:
         """Before the first round R_theta knows nothing: a random skill per episode. Then
-        z_task, the best of N_z fresh random skills under R_theta, drawn at every episode or
-        held until R_theta is refitted (`skill.task_skill_draw`)."""
+        z_task, drawn when R_theta was refitted, or anew at each episode
+        (`skill.task_skill_draw`)."""
+        assert self.skills is not None
+        if self.task_skill is None:
+            return self.skills.sample_skills(self.rng, 1)[0]
+        if self.cfg.skill.task_skill_draw == "episode":
+            self._draw_task_skill()
+        return self.task_skill
+
+    def _draw_task_skill(self) -> None:
+        """z_task: the best of N_z fresh random skills under R_theta."""
         assert self.skills is not None and self.feedback is not None
-        # Drawn whether used or not: the random stream does not depend on the choice.
-        candidates = self.skills.sample_skills(self.rng, self.cfg.skill.task_skill_samples)
         estimator = self.feedback.estimator
-        assert estimator is not None
-        if not estimator.fitted:
-            return candidates[0]
-        held = self.cfg.skill.task_skill_draw == "refit" and self.task_skill_fit == estimator.fits
-        if held and self.skill is not None:
-            return self.skill
-        self.task_skill_fit = estimator.fits
-        return estimator.best_skill(candidates)
+        assert estimator is not None and estimator.fitted
+        candidates = self.skills.sample_skills(self.rng, self.cfg.skill.task_skill_samples)
+        self.task_skill = estimator.best_skill(candidates)
 
     def _agent_reward(self, obs: np.ndarray, action: np.ndarray, true_reward: float) -> float:
         if self.feedback is None:
@@ -294,7 +298,7 @@ class TrainingRun:
         if self.cfg.skill.task_skill_update:
             # The acting skill learns from every transition, not only its own episode's share.
             batch = self._training_batch()
-            task = torch.as_tensor(self.skill, device=self.device).expand_as(batch.skill)
+            task = torch.as_tensor(self.task_skill, device=self.device).expand_as(batch.skill)
             task_metrics = self.agent.update(batch._replace(skill=task))
             metrics |= {f"task_{k}": v for k, v in task_metrics.items()}
         return metrics
@@ -444,6 +448,8 @@ class TrainingRun:
         metrics = fb.finish_round(self.pool, answers)
         self.buffer.relabel(fb.model.reward)
         metrics["reward_corr"] = self.buffer.reward_correlation()
+        if self.skills is not None:
+            self._draw_task_skill()  # R_theta was refitted: the post-reset updates train it too
         if first:
             self.reward_start_step = self.step
             if self._resets_critic():
@@ -462,11 +468,13 @@ class TrainingRun:
         return not self.cfg.reward.rime
 
     def evaluate(self) -> dict[str, float]:
+        """Deterministic episodes on the evaluation env; S-EPOA acts with z_task once it has
+        one."""
         returns, successes = [], []
         for _ in range(self.cfg.eval_episodes):
             obs, total, success, done = self.eval_env.reset(), 0.0, False, False
             while not done:
-                result = self.eval_env.step(self._act(obs, deterministic=True))
+                result = self.eval_env.step(self._act(obs, True, self.task_skill))
                 obs, total, success, done = (result.obs, total + result.reward,
                                              success or result.success, result.done)
             returns.append(total)
@@ -505,7 +513,7 @@ class TrainingRun:
             "env_rng": self.env.rng_state(),
             "eval_env_rng": self.eval_env.rng_state(),
             "skill": self.skill,
-            "task_skill_fit": self.task_skill_fit,
+            "task_skill": self.task_skill,
         }
         if self.device.type == "cuda":
             state["cuda_rng"] = torch.cuda.get_rng_state()
@@ -526,7 +534,7 @@ class TrainingRun:
                 f"is version {LOOP_VERSION}, whose {self.cfg.algo} differs (S-EPOA's initial "
                 "rollouts, per-query selection, z_task updates and critic reset; the updates "
                 "after a critic reset), so the run cannot resume as it began: start a new run")
-        self.skill, self.task_skill_fit = state.get("skill"), state.get("task_skill_fit", 0)
+        self.skill, self.task_skill = state["skill"], state["task_skill"]
         self.step, self.episode = state["step"], state["episode"]
         self.next_round_step = state["next_round_step"]
         self.last_eval_step = state["last_eval_step"]
