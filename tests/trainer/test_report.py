@@ -188,3 +188,120 @@ def test_plots_draw_plain_data_without_torch() -> None:
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
                          check=True, cwd=ROOT)
     assert out.stdout.split() == ["False", "False"]
+
+
+def test_older_results_get_no_round_sections_and_a_monte_carlo_only_proposition(
+        results: Path) -> None:
+    out = results / "report"
+    names = {p.name for p in out.iterdir()}
+    assert not names & {"same-agent-distinguishability.csv", "round-diagnostics.csv"}
+    index = (out / "report.md").read_text()
+    assert "## Round diagnostics" not in index
+    assert "## Distinguishability on the same agent" not in index
+    # No run has a checkpoint.pt: the figure shows the Monte Carlo alone.
+    assert (out / "proposition1.png").read_bytes().startswith(PNG_SIGNATURE)
+    assert "No finished query-selecting run with a checkpoint.pt: Monte Carlo only." in index
+    assert pd.read_csv(out / "proposition1.csv").empty
+
+
+NEW_SPEC = """
+name = "diagnosed"
+preset = "tiny"
+steps = 600
+tasks = ["dmc:cheetah_run"]
+eps = [0.3]
+seeds = [0, 1]
+budgets = [100]
+
+[variants.A]
+algo = "pebble"
+
+[variants.B]
+algo = "sepoa"
+
+[variants.S]
+algo = "sac"
+"""
+NEW_HEADER = ("step,round,distinguishable_ratio,reward_corr,trajectory_pairs,"
+              "max_trajectory_share,compare_distinguishable_ratio")
+# (variant, seed) -> rounds (distinguishable, reward_corr, pairs, max share, compared ratio);
+# A sets no compare_rule (empty column); B compares with disagreement from its second round.
+NEW_ROUNDS = {
+    ("A", 0): [(1.0, 0.0, 10, 0.2, ""), (0.5, 0.2, 4, 0.6, "")],
+    ("A", 1): [(1.0, 0.1, 10, 0.2, ""), (0.5, 0.3, 6, 0.4, "")],
+    ("B", 0): [(0.5, 0.1, 10, 0.2, ""), (0.8, 0.5, 8, 0.3, 0.4), (0.6, 0.7, 6, 0.5, 0.2)],
+    # the last round logged no compared ratio: it is left out of both of its means
+    ("B", 1): [(0.5, 0.2, 10, 0.2, ""), (0.9, 0.6, 9, 0.2, 0.5), (1.0, 0.9, 7, 0.4, "")],
+}
+NEW_FEEDBACK = {"A": {"selection": "disagreement"},
+                "B": {"selection": "skill", "compare_rule": "disagreement"},
+                "S": {"selection": "uniform"}}
+
+
+@pytest.fixture(scope="module")
+def diagnosed(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Results whose rounds.csv have the round diagnostics and the compared rule's ratio; their
+    report in report/."""
+    folder = tmp_path_factory.mktemp("results") / "diagnosed"
+    folder.mkdir()
+    (folder / "spec.toml").write_text(NEW_SPEC)
+    for variant in ("A", "B", "S"):
+        for seed in (0, 1):
+            run = folder / "dmc-cheetah_run" / variant / "eps0.3" / "budget100" / f"s{seed}"
+            run.mkdir(parents=True)
+            (run / "config.json").write_text(json.dumps(
+                {"feedback": {"budget": 100} | NEW_FEEDBACK[variant]}))
+            _write_csv(run / "eval.csv", "step,return", ["600,1.0"])
+            rounds = NEW_ROUNDS.get((variant, seed), [])
+            if rounds:
+                _write_csv(run / "rounds.csv", NEW_HEADER,
+                           [",".join(map(str, (200 * (i + 1), i, *r)))
+                            for i, r in enumerate(rounds)])
+            (run / "done.json").write_text(json.dumps({"step": 600}))
+    write_report(folder)
+    return folder
+
+
+def test_same_agent_distinguishability(diagnosed: Path) -> None:
+    out = diagnosed / "report"
+    table = pd.read_csv(out / "same-agent-distinguishability.csv")
+    # Only B compares; A (no compare_rule) and S (sac) have no row.
+    assert table["variant"].tolist() == ["B"]
+    b = table.iloc[0]
+    assert (b.selection, b.compare_rule, b.n) == ("skill", "disagreement", 2)
+    # Per run, the rounds after the first with a compared ratio: s0 (0.8, 0.6) vs (0.4, 0.2),
+    # s1 0.9 vs 0.5; then mean and sample std across seeds.
+    assert b.own_mean == pytest.approx(0.8) and b.own_std == pytest.approx(math.sqrt(0.02))
+    assert b.compared_mean == pytest.approx(0.4)
+    assert b.compared_std == pytest.approx(math.sqrt(0.02))
+    md = (out / "same-agent-distinguishability.md").read_text()
+    assert ("| dmc:cheetah_run | 0.3 | 100 | B | skill | 0.800 ± 0.141 | disagreement "
+            "| 0.400 ± 0.141 |") in md
+    assert "## Distinguishability on the same agent" in (out / "report.md").read_text()
+
+
+def test_round_diagnostics(diagnosed: Path) -> None:
+    out = diagnosed / "report"
+    table = pd.read_csv(out / "round-diagnostics.csv").set_index("variant")
+    assert table.index.tolist() == ["A", "B"]  # sac selects no queries
+    a, b = table.loc["A"], table.loc["B"]
+    # reward_corr: mean over all rounds per run (A 0.1, 0.2; B 0.433, 0.567), last round
+    assert a.reward_corr_mean_mean == pytest.approx(0.15)
+    assert a.reward_corr_mean_std == pytest.approx(math.sqrt(0.005))
+    assert b.reward_corr_mean_mean == pytest.approx(0.5)
+    assert (a.reward_corr_last_mean, b.reward_corr_last_mean) == pytest.approx((0.25, 0.8))
+    # spread: rounds after the first (A 0.6 and 0.4; B 0.4 and 0.3)
+    assert (a.max_trajectory_share_mean, b.max_trajectory_share_mean) == pytest.approx(
+        (0.5, 0.35))
+    assert (a.trajectory_pairs_mean, b.trajectory_pairs_mean) == pytest.approx((5.0, 7.5))
+    assert a.trajectory_pairs_std == pytest.approx(math.sqrt(2.0)) and a.n == 2
+    md = (out / "round-diagnostics.md").read_text()
+    assert ("| task | eps | budget | variant | reward corr (mean over rounds) "
+            "| reward corr (last round) | max trajectory share | trajectory pairs |") in md
+    assert "| dmc:cheetah_run | 0.3 | 100 | A | 0.150 ± 0.071 | 0.250 ± 0.071 | 0.500 ± 0.141 " \
+           "| 5.0 ± 1.4 |" in md
+    assert "| dmc:cheetah_run | 0.3 | 100 | B | 0.500 ± 0.094 | 0.800 ± 0.141 | 0.350 ± 0.071 " \
+           "| 7.5 ± 0.7 |" in md
+    index = (out / "report.md").read_text()
+    assert "## Round diagnostics" in index
+    assert "[round-diagnostics.csv](round-diagnostics.csv)" in index

@@ -10,12 +10,20 @@ The numbers, exactly (docs/EXPERIMENTS.md says the same):
 - Distinguishability of a run: the mean of rounds.csv `distinguishable_ratio` over every round
   after the first (the first round is uniform for every method); runs with fewer than two
   rounds are left out; unfinished runs count with the rounds they have.
+- Same-agent distinguishability (runs with rounds.csv `compare_distinguishable_ratio`): per run
+  the means of its own `distinguishable_ratio` and of the compared rule's ratio over the same
+  rounds, those after the first where the compared ratio is logged.
+- Round diagnostics: per run the mean `reward_corr` over all rounds and its last round's, and
+  the means of `max_trajectory_share` and `trajectory_pairs` over the rounds after the first.
+- Proposition 1: Monte Carlo Var[P] against the return gap, and the measured curve of one
+  finished, checkpointed run per query-selecting variant (its lowest seed); see proposition.py.
 - Curves: see `plots.align` (common step range of the seeds with at least one evaluation,
   linear interpolation, mean ± one sample std).
 """
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -25,6 +33,11 @@ import numpy as np
 import pandas as pd
 
 from sepoa.plots import Band, align, grid_png
+from trainer.experiments.proposition import (
+    measured_disagreement,
+    proposition_png,
+    simulated_disagreement,
+)
 from trainer.experiments.results import KEYS, STATES, Results, load_results
 
 GROUP = ["task", "eps", "budget"]
@@ -109,15 +122,21 @@ def final_table(results: Results) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def _run_rounds(results: Results) -> Iterator[tuple[dict[str, Any], pd.DataFrame]]:
+    """Each run's key and its rounds in step order; `.iloc[1:]` is the rounds after the first
+    (the first is uniform for every method)."""
+    for key, group in results.rounds.groupby(KEYS, sort=False):
+        yield dict(zip(KEYS, key, strict=True)), group.sort_values("step", kind="stable")
+
+
 def distinguishability_per_run(results: Results) -> pd.DataFrame:
     """KEYS + `distinguishability`: a run's mean ratio over its rounds after the first."""
     rows = []
     if "distinguishable_ratio" in results.rounds:
-        for key, group in results.rounds.groupby(KEYS, sort=False):
-            later = group.sort_values("step", kind="stable").iloc[1:]
+        for key, rounds in _run_rounds(results):
+            later = rounds.iloc[1:]
             if len(later):
-                rows.append(dict(zip(KEYS, key, strict=True))
-                            | {"distinguishability": later["distinguishable_ratio"].mean()})
+                rows.append(key | {"distinguishability": later["distinguishable_ratio"].mean()})
     return pd.DataFrame(rows, columns=[*KEYS, "distinguishability"])
 
 
@@ -132,6 +151,97 @@ def distinguishability_table(results: Results) -> pd.DataFrame:
         rows.append(cell_key | {"algo": sub["algo"].iloc[0],
                                 "selection": "/".join(sorted(set(sub["selection"]))),
                                 "mean": mean, "std": std, "n": n, "planned": len(sub)})
+    return pd.DataFrame(rows)
+
+
+def _run_config(results: Results, run_dir: str) -> dict[str, Any]:
+    """A run's stored config.json ({} if it has none)."""
+    try:
+        return json.loads((results.folder / run_dir / "config.json").read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def same_agent_per_run(results: Results) -> pd.DataFrame:
+    """KEYS + `own`, `compared`, `rounds`: a run's mean distinguishable ratio of its own picks
+    and of `feedback.compare_rule`'s picks over the same rounds (after the first, with the
+    compared ratio logged)."""
+    columns = [*KEYS, "own", "compared", "rounds"]
+    if "compare_distinguishable_ratio" not in results.rounds:
+        return pd.DataFrame(columns=columns)
+    rows = []
+    for key, rounds in _run_rounds(results):
+        later = rounds.iloc[1:]
+        later = later[later["compare_distinguishable_ratio"].notna()]
+        if len(later):
+            rows.append(key | {"own": later["distinguishable_ratio"].mean(),
+                               "compared": later["compare_distinguishable_ratio"].mean(),
+                               "rounds": len(later)})
+    return pd.DataFrame(rows, columns=columns)
+
+
+def same_agent_table(results: Results) -> pd.DataFrame:
+    """Per task, eps, budget and variant with a compared rule: mean ± std across seeds of the
+    own and the compared rule's distinguishability on the same agent, pool and reward model."""
+    runs = _join(results.runs, same_agent_per_run(results), ["own", "compared"])
+    rows = []
+    for cell_key, sub in _cells(runs, results):
+        own, own_std, n = mean_std(sub["own"])
+        if n == 0:
+            continue
+        compared, compared_std, _ = mean_std(sub["compared"])
+        rules = {_run_config(results, d).get("feedback", {}).get("compare_rule", "")
+                 for d in sub["dir"]}
+        rows.append(cell_key | {"algo": sub["algo"].iloc[0],
+                                "selection": "/".join(sorted(set(sub["selection"]))),
+                                "compare_rule": "/".join(sorted(rules - {""})) or "?",
+                                "own_mean": own, "own_std": own_std,
+                                "compared_mean": compared, "compared_std": compared_std,
+                                "n": n})
+    return pd.DataFrame(rows)
+
+
+DIAGNOSTICS = {
+    "reward_corr_mean": "reward_corr",
+    "reward_corr_last": "reward_corr",
+    "max_trajectory_share": "max_trajectory_share",
+    "trajectory_pairs": "trajectory_pairs",
+}
+"""round-diagnostics column -> the rounds.csv column it comes from"""
+
+
+def diagnostics_per_run(results: Results) -> pd.DataFrame:
+    """KEYS + DIAGNOSTICS, those whose rounds.csv column exists: a run's mean `reward_corr`
+    over all rounds and its last round's, and the means of `max_trajectory_share` and
+    `trajectory_pairs` over the rounds after the first (the first is uniform)."""
+    have = [c for c, source in DIAGNOSTICS.items() if source in results.rounds]
+    rows = []
+    for key, rounds in _run_rounds(results):
+        row = dict(key)
+        if "reward_corr" in rounds:
+            row |= {"reward_corr_mean": rounds["reward_corr"].mean(),
+                    "reward_corr_last": rounds["reward_corr"].iloc[-1]}
+        for col in ("max_trajectory_share", "trajectory_pairs"):
+            if col in rounds:
+                row[col] = rounds[col].iloc[1:].mean() if len(rounds) > 1 else math.nan
+        rows.append(row)
+    return pd.DataFrame(rows, columns=[*KEYS, *have])
+
+
+def diagnostics_table(results: Results) -> pd.DataFrame:
+    """Per task, eps, budget and query-selecting variant: mean ± std across seeds of each
+    diagnostic of `diagnostics_per_run` (`<name>_mean`, `<name>_std`) and the seeds with
+    rounds."""
+    per_run = diagnostics_per_run(results)
+    have = [c for c in DIAGNOSTICS if c in per_run]
+    runs = _join(results.runs[results.runs["algo"] != "sac"], per_run, have)
+    rows = []
+    for cell_key, sub in _cells(runs, results):
+        row = cell_key | {"algo": sub["algo"].iloc[0]}
+        for col in have:
+            mean, std, _ = mean_std(sub[col])
+            row |= {f"{col}_mean": mean, f"{col}_std": std}
+        rows.append(row | {"n": int(sub[have].notna().any(axis=1).sum())})
     return pd.DataFrame(rows)
 
 
@@ -175,6 +285,81 @@ def distinguishability_markdown(table: pd.DataFrame, seeds: int) -> str:
         cells = {r.variant: cell(r.mean, r.std, r.n, 3, seeds) for r in group.itertuples()}
         rows.append([task, f"{eps:g}", str(budget)] + [cells.get(v, "–") for v in variants])
     return _markdown(header, rows)
+
+
+def same_agent_markdown(table: pd.DataFrame, seeds: int) -> str:
+    header = ["task", "eps", "budget", "variant", "rule", "distinguishable", "compared rule",
+              "distinguishable (compared)"]
+    rows = [[r.task, f"{r.eps:g}", str(r.budget), r.variant, r.selection,
+             cell(r.own_mean, r.own_std, r.n, 3, seeds), r.compare_rule,
+             cell(r.compared_mean, r.compared_std, r.n, 3, seeds)] for r in table.itertuples()]
+    return _markdown(header, rows)
+
+
+DIAGNOSTICS_HEADER = {"reward_corr_mean": ("reward corr (mean over rounds)", 3),
+                      "reward_corr_last": ("reward corr (last round)", 3),
+                      "max_trajectory_share": ("max trajectory share", 3),
+                      "trajectory_pairs": ("trajectory pairs", 1)}
+"""diagnostic -> its Markdown column header and decimals"""
+
+
+def diagnostics_markdown(table: pd.DataFrame, seeds: int) -> str:
+    if table.empty:
+        return "No variant selects queries (only sac runs)."
+    have = [c for c in DIAGNOSTICS_HEADER if f"{c}_mean" in table]
+    header = ["task", "eps", "budget", "variant"] + [DIAGNOSTICS_HEADER[c][0] for c in have]
+    rows = [[r["task"], f"{r['eps']:g}", str(r["budget"]), r["variant"]]
+            + [cell(r[f"{c}_mean"], r[f"{c}_std"], r["n"], DIAGNOSTICS_HEADER[c][1], seeds)
+               for c in have]
+            for _, r in table.iterrows()]
+    return _markdown(header, rows)
+
+
+# ---------------------------------------------------------------------------------------------
+# Proposition 1.
+
+PROPOSITION_C = (0.25, 1.0, 4.0)
+PROPOSITION_GAPS = np.linspace(0.0, 6.0, 25)
+
+
+def proposition_runs(results: Results) -> pd.DataFrame:
+    """The runs whose ensemble the Proposition 1 figure measures: finished, query-selecting,
+    with a checkpoint.pt; the lowest seed of each variant."""
+    runs = results.runs[(results.runs["state"] == "done") & (results.runs["algo"] != "sac")]
+    runs = runs[[(results.folder / d / "checkpoint.pt").exists() for d in runs["dir"]]]
+    return runs.sort_values("seed", kind="stable").drop_duplicates("variant")
+
+
+def proposition_section(results: Results, out: Path,
+                        pairs: int = 20_000) -> tuple[pd.DataFrame, str]:
+    """Write proposition1.png; the per-run table (KEYS, pairs, spearman) and the section's
+    Markdown body."""
+    simulated = {c: (PROPOSITION_GAPS, simulated_disagreement(
+        PROPOSITION_GAPS, c, samples=100_000, rng=np.random.default_rng(0)))
+        for c in PROPOSITION_C}
+    measured, rows, failed = {}, [], []
+    for run in proposition_runs(results).itertuples():
+        try:
+            curve = measured_disagreement(results.folder / run.dir, pairs=pairs)
+        except (OSError, KeyError, ValueError, RuntimeError) as err:
+            failed.append(f"- {run.dir}: {type(err).__name__}: {err}")
+            continue
+        measured[f"{run.variant} s{run.seed}"] = curve.table
+        rows.append({k: getattr(run, k) for k in KEYS}
+                    | {"pairs": int(curve.table["pairs"].sum()), "spearman": curve.spearman})
+    (out / "proposition1.png").write_bytes(proposition_png(simulated, measured))
+    table = pd.DataFrame(rows, columns=[*KEYS, "pairs", "spearman"])
+    body = ["![Proposition 1](proposition1.png)", ""]
+    if len(table):
+        body.append(_markdown(
+            ["variant", "task", "eps", "budget", "seed", "pairs", "Spearman(gap, Var[P])"],
+            [[r.variant, r.task, f"{r.eps:g}", str(r.budget), str(r.seed), str(r.pairs),
+              f"{r.spearman:.3f}"] for r in table.itertuples()]))
+    else:
+        body.append("No finished query-selecting run with a checkpoint.pt: Monte Carlo only.")
+    if failed:
+        body += ["", "Runs that could not be measured:", "", *failed]
+    return table, "\n".join(body)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -254,6 +439,29 @@ CURVES_DOC = (
     "that evaluated at different steps are interpolated linearly onto the union of their "
     "evaluation steps within the range all of them reached, so a curve stops at its shortest "
     "seed's last evaluation; seeds with no evaluation yet are left out.")
+SAME_AGENT_DOC = (
+    "Distinguishable ratio of the variant's own selection rule and of the compared rule "
+    "(`feedback.compare_rule`) on the same agent, pool and reward model: each round the "
+    "compared rule also picks queries, which are only judged by a copy of the teacher "
+    "(rounds.csv `compare_distinguishable_ratio`). Per run both are averaged over the same "
+    "rounds (after the first, where the compared ratio is logged), then mean ± sample std "
+    "across seeds. Only runs that set `feedback.compare_rule`.")
+DIAGNOSTICS_DOC = (
+    "Per run: the mean of rounds.csv `reward_corr` (Pearson correlation of the learned with "
+    "the true reward over the replay buffer after each round) over all rounds and its last "
+    "round's value, and the means of `max_trajectory_share` (the largest share of a round's "
+    "queries one trajectory took part in) and `trajectory_pairs` (distinct trajectory pairs "
+    "among a round's queries) over the rounds after the first; then mean ± sample std across "
+    "seeds (unfinished runs count with the rounds they have).")
+PROPOSITION_DOC = (
+    "Proposition 1: if each member's segment returns are r̂ ~ N(r, c), the ensemble's Var[P] "
+    "of P = sigmoid(r̂₁ − r̂₂) falls as the true gap r₁ − r₂ grows, so the disagreement rule "
+    "picks pairs of similar return. Left: Monte Carlo for c = 0.25, 1, 4. Right: the "
+    "population variance of P across the members of a trained reward model, for 20 000 random "
+    "segment pairs of its run's final pool, averaged per quantile bin of the true segment-"
+    "return gap; one finished run per query-selecting variant (its lowest seed, from its "
+    "checkpoint.pt). The table gives each run's Spearman rank correlation of gap and Var[P] "
+    "over all pairs (negative: the proposition holds).")
 
 
 def _grid_markdown(results: Results) -> list[str]:
@@ -291,8 +499,6 @@ def write_report(folder: str | Path, out: str | Path | None = None) -> list[Path
                      "n", "planned"]] if len(final) else final
     dist = distinguishability_table(results)
     tables = {"final": final, "queries": queries, "distinguishability": dist}
-    for name, table in tables.items():
-        table.to_csv(out / f"{name}.csv", index=False)
     sections = {
         "final": ("Final return", FINAL_DOC, final_markdown(final, metaworld)),
         "queries": ("Final return by number of queries", QUERIES_DOC,
@@ -300,6 +506,26 @@ def write_report(folder: str | Path, out: str | Path | None = None) -> list[Path
         "distinguishability": ("Distinguishability of the selected queries",
                                DISTINGUISHABILITY_DOC, distinguishability_markdown(dist, seeds)),
     }
+    # Sections on rounds.csv columns that older results lack: only when they are there.
+    same_agent = same_agent_table(results)
+    if len(same_agent):
+        tables["same-agent-distinguishability"] = same_agent
+        sections["same-agent-distinguishability"] = (
+            "Distinguishability on the same agent", SAME_AGENT_DOC,
+            same_agent_markdown(same_agent, seeds))
+    if any(source in results.rounds for source in DIAGNOSTICS.values()):
+        diagnostics = diagnostics_table(results)
+        tables["round-diagnostics"] = diagnostics
+        sections["round-diagnostics"] = ("Round diagnostics", DIAGNOSTICS_DOC,
+                                         diagnostics_markdown(diagnostics, seeds))
+    figures_extra = []
+    if any(v.algo != "sac" for v in spec.variants):
+        tables["proposition1"], body = proposition_section(results, out)
+        sections["proposition1"] = ("Proposition 1: disagreement against the return gap",
+                                    PROPOSITION_DOC, body)
+        figures_extra.append(out / "proposition1.png")
+    for name, table in tables.items():
+        table.to_csv(out / f"{name}.csv", index=False)
     for name, (heading, doc, body) in sections.items():
         (out / f"{name}.md").write_text(f"# {heading} — {spec.title}\n\n{doc}\n\n{body}\n")
     figures = write_figures(results, out)
@@ -316,4 +542,4 @@ def write_report(folder: str | Path, out: str | Path | None = None) -> list[Path
                   f"Tables: [{name}.md]({name}.md), [{name}.csv]({name}.csv).", ""]
     (out / "report.md").write_text("\n".join(lines).rstrip() + "\n")
     return ([out / f"{n}.{ext}" for n in tables for ext in ("csv", "md")]
-            + [out / name for name, _, _ in figures] + [out / "report.md"])
+            + [out / name for name, _, _ in figures] + figures_extra + [out / "report.md"])
