@@ -381,7 +381,7 @@ class TrainingRun:
                 self._log("episodes", {
                     "step": self.step, "episode": self.episode, "return": episode_return,
                     "success": float(traj.success), "labels_used": labels, "fps": fps,
-                } | {k: v for k, v in last_metrics.items() if k in ("critic_loss", "alpha")}
+                } | {k: v for k, v in last_metrics.items() if k in ("critic_loss", "alpha", "q")}
                   | self._rune_row())
                 self._end_of_episode()
                 bar.set_postfix(ret=f"{episode_return:.1f}",
