@@ -5,8 +5,23 @@ Tables are in `models`; the operations on them, each one atomic transaction (see
 sessions and migrations in `db`. Import what you need from here.
 """
 
-from labelqueue.db import DEFAULT_URL, make_engine, migrate, session_factory, sqlite_url
-from labelqueue.errors import Conflict, InvalidTransition, LeaseError, NotFound, QueueError
+from labelqueue.db import (
+    DEFAULT_URL,
+    check_url,
+    make_engine,
+    migrate,
+    session_factory,
+    sqlite_url,
+)
+from labelqueue.errors import (
+    Conflict,
+    InvalidTransition,
+    LeaseError,
+    NotFound,
+    QueueError,
+    Revoked,
+    RunClosed,
+)
 from labelqueue.export import COLUMNS as EXPORT_COLUMNS
 from labelqueue.export import FORMATS as EXPORT_FORMATS
 from labelqueue.export import SCHEMA_VERSION as EXPORT_SCHEMA_VERSION
@@ -15,7 +30,9 @@ from labelqueue.labellers import (
     authenticate,
     create_labeller,
     find_labeller,
+    rotate_token,
     set_labeller_active,
+    update_labeller,
 )
 from labelqueue.labels import consume_labels, labels_for_queries, preferred_segment, submit_label
 from labelqueue.metrics import read_metrics, write_metrics
@@ -78,13 +95,16 @@ __all__ = [
     "Query",
     "QueryStatus",
     "QueueError",
+    "Revoked",
     "Role",
     "Run",
+    "RunClosed",
     "RunStatus",
     "ShadowChoice",
     "TeacherKind",
     "Worker",
     "authenticate",
+    "check_url",
     "cancel_queries",
     "claim_run",
     "consume_labels",
@@ -102,6 +122,7 @@ __all__ = [
     "push_queries",
     "read_metrics",
     "read_run",
+    "rotate_token",
     "set_clips",
     "set_labeller_active",
     "set_run_status",
@@ -109,6 +130,7 @@ __all__ = [
     "set_teacher",
     "session_factory",
     "submit_label",
+    "update_labeller",
     "write_export",
     "write_metrics",
 ]

@@ -18,6 +18,7 @@ from alembic import command
 from alembic.config import Config
 from sqlalchemy import Engine, create_engine, event
 from sqlalchemy.engine import Connection, make_url
+from sqlalchemy.exc import ArgumentError, NoSuchModuleError
 from sqlalchemy.orm import Session, sessionmaker
 
 
@@ -27,6 +28,24 @@ def sqlite_url(data_dir: str | Path) -> str:
 
 
 DEFAULT_URL = sqlite_url("data")
+VALID_URLS = "sqlite:///PATH or postgresql+psycopg://USER:PASSWORD@HOST/DATABASE"
+
+
+def check_url(url: str) -> str:
+    """`url` if SQLAlchemy can open databases of its kind; ValueError saying what is valid."""
+    try:
+        parsed = make_url(url)
+        parsed.get_dialect()
+    except (ArgumentError, NoSuchModuleError, ValueError):
+        shown = url.split("@")[-1] if "@" in url else url  # never echo a password
+        raise ValueError(
+            f"{shown!r} is not a database URL this app can open; use {VALID_URLS}"
+        ) from None
+    if parsed.get_backend_name() not in ("sqlite", "postgresql"):
+        raise ValueError(
+            f"{parsed.get_backend_name()} databases are not supported; use {VALID_URLS}"
+        )
+    return url
 BUSY_TIMEOUT_S = 30.0
 MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
 

@@ -23,3 +23,11 @@ class Conflict(QueueError):
 
 class InvalidTransition(Conflict):
     """The run's status does not allow the change asked for."""
+
+
+class Revoked(QueueError):
+    """The labeller has been deactivated: it may neither lease nor answer."""
+
+
+class RunClosed(Conflict):
+    """The run takes no answers in its status (only running and paused runs do)."""

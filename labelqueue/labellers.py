@@ -10,13 +10,13 @@ import hashlib
 import hmac
 import secrets
 
-from sqlalchemy import select
+from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from labelqueue.errors import Conflict
-from labelqueue.models import Labeller, Role
-from labelqueue.transaction import detach, get_row, transaction
+from labelqueue.models import Labeller, Query, QueryStatus, Role
+from labelqueue.transaction import changed, detach, get_row, transaction
 
 
 def hash_token(token: str) -> str:
@@ -58,11 +58,59 @@ def authenticate(session: Session, *, token: str) -> Labeller | None:
 
 def set_labeller_active(session: Session, *, labeller_id: int, active: bool) -> Labeller:
     """Revoke (or restore) a labeller's access; its labels stay on record."""
+    return update_labeller(session, labeller_id=labeller_id, active=active)
+
+
+def _release_leases(session: Session, *, labeller_id: int) -> None:
+    changed(
+        session,
+        update(Query)
+        .where(Query.lease_holder == labeller_id, Query.status == QueryStatus.LEASED)
+        .values(
+            status=QueryStatus.PENDING, lease_holder=None, lease_expires_at=None, leased_at=None
+        ),
+    )
+
+
+def update_labeller(
+    session: Session,
+    *,
+    labeller_id: int,
+    active: bool | None = None,
+    role: Role | str | None = None,
+    name: str | None = None,
+) -> Labeller:
+    """Change what is given (None keeps it); NotFound, or Conflict if the name is taken.
+
+    Deactivating revokes at once: leasing and answering read `active` in their own transaction,
+    and the labeller's leases are released for others. Its labels stay on record.
+    """
     with transaction(session):
         labeller = get_row(session, Labeller, labeller_id)
-        labeller.active = active
+        if active is not None:
+            labeller.active = active
+            if not active:  # others may take its queries at once
+                _release_leases(session, labeller_id=labeller_id)
+        if role is not None:
+            labeller.role = Role(role)
+        if name is not None:
+            labeller.name = name
+        try:
+            session.flush()
+        except IntegrityError as error:
+            raise Conflict(f"a labeller named {name!r} already exists") from error
         detach(session, labeller)
     return labeller
+
+
+def rotate_token(session: Session, *, labeller_id: int) -> tuple[Labeller, str]:
+    """A new bearer token for the labeller; the old one stops working. NotFound if none."""
+    with transaction(session):
+        labeller = get_row(session, Labeller, labeller_id)
+        token = f"{labeller.id}.{secrets.token_urlsafe(32)}"
+        labeller.token_hash = hash_token(token)
+        detach(session, labeller)
+    return labeller, token
 
 
 def find_labeller(session: Session, *, name: str) -> Labeller | None:

@@ -10,15 +10,16 @@ returns their labels whether consumed or not, so nothing taken after the checkpo
 from __future__ import annotations
 
 from collections.abc import Sequence
-from datetime import datetime
+from datetime import UTC, datetime
 
 from sqlalchemy import ColumnElement, case, select, update
 from sqlalchemy.orm import Session
 
-from labelqueue.errors import LeaseError, NotFound
+from labelqueue.errors import LeaseError, NotFound, Revoked, RunClosed
 from labelqueue.models import (
     Choice,
     Label,
+    Labeller,
     LabelSource,
     Preferred,
     Query,
@@ -26,6 +27,7 @@ from labelqueue.models import (
     Run,
     utcnow,
 )
+from labelqueue.queries import LABELLABLE
 from labelqueue.transaction import changed, detach, get_row, transaction
 
 
@@ -58,6 +60,33 @@ def _why_no_lease(query: Query, *, labeller_id: int, now: datetime) -> str:
     return f"labeller {labeller_id} holds no lease on query {query.id}"
 
 
+def _why_refused(session: Session, query: Query, *, labeller_id: int, now: datetime) -> Exception:
+    """Why the conditional update in submit_label changed nothing (read only on refusal)."""
+    if not get_row(session, Labeller, labeller_id).active:
+        return Revoked(f"labeller {labeller_id} is deactivated")
+    status = get_row(session, Run, query.run_id).status
+    if status not in LABELLABLE:
+        return RunClosed(f"run {query.run_id} is {status}: it takes no more answers")
+    return LeaseError(_why_no_lease(query, labeller_id=labeller_id, now=now))
+
+
+def clamp_shown_at(
+    shown_at: datetime | None, *, leased_at: datetime | None, now: datetime
+) -> datetime | None:
+    """`shown_at` within [leased_at, now]: a page cannot show a pair before it was leased, nor
+    after it was answered, whatever the browser's clock says. Naive times are taken as UTC."""
+    if shown_at is None:
+        return None
+    try:
+        shown = shown_at.replace(tzinfo=UTC) if shown_at.tzinfo is None else shown_at
+        shown = shown.astimezone(UTC)
+    except OverflowError:
+        raise ValueError(f"shown_at {shown_at.isoformat()} is out of range") from None
+    if leased_at is not None and shown < leased_at:
+        shown = leased_at
+    return min(shown, now)
+
+
 def submit_label(
     session: Session,
     *,
@@ -71,8 +100,12 @@ def submit_label(
     """Store the answer of the labeller holding the query's lease; (label, created).
 
     A repeat of a stored answer returns the stored label with created=False and changes nothing
-    (a double click, a retried request). Otherwise the labeller must hold an unexpired lease on
-    the query, or LeaseError is raised. The lease ends; the query becomes `labelled` once it has
+    (a double click, a retried request). Otherwise the labeller must be active (else Revoked),
+    the query's run running or paused (else RunClosed: an answer after a stop is refused, while
+    those stored before it stay and are used when the run is requeued), and the labeller must
+    hold an unexpired lease on the query (else LeaseError); all three are checked by the one
+    conditional update that takes the answer. `shown_at` is stored within [the lease's start,
+    now] (`clamp_shown_at`). The lease ends; the query becomes `labelled` once it has
     `needs_labels` answers, else pending again; the run's `labels_used` grows by one whatever the
     answer (cant_tell and skip count against the budget too).
     """
@@ -85,6 +118,9 @@ def submit_label(
             detach(session, label)
             return label, False
         query = get_row(session, Query, query_id)
+        shown_at = clamp_shown_at(shown_at, leased_at=query.leased_at, now=now)
+        active = select(Labeller.id).where(Labeller.id == labeller_id, Labeller.active.is_(True))
+        open_run = select(Run.id).where(Run.id == query.run_id, Run.status.in_(LABELLABLE))
         taken = changed(
             session,
             update(Query)
@@ -93,6 +129,8 @@ def submit_label(
                 Query.status == QueryStatus.LEASED,
                 Query.lease_holder == labeller_id,
                 Query.lease_expires_at > now,
+                active.exists(),
+                open_run.exists(),
             )
             .values(
                 label_count=Query.label_count + 1,
@@ -102,6 +140,7 @@ def submit_label(
                 ),
                 lease_holder=None,
                 lease_expires_at=None,
+                leased_at=None,
             ),
         )
         if not taken:
@@ -110,7 +149,7 @@ def submit_label(
             if label is not None:
                 detach(session, label)
                 return label, False
-            raise LeaseError(_why_no_lease(query, labeller_id=labeller_id, now=now))
+            raise _why_refused(session, query, labeller_id=labeller_id, now=now)
         label = Label(
             query_id=query_id,
             run_id=query.run_id,

@@ -256,6 +256,8 @@ class Query(Base):
     status: Mapped[QueryStatus] = mapped_column(_enum(QueryStatus, "status"))
     lease_holder: Mapped[int | None] = mapped_column(ForeignKey("labellers.id"), index=True)
     lease_expires_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    leased_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    """when the current lease was taken (a renewal keeps it); a label's shown_at is not earlier"""
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
 
 

@@ -16,7 +16,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from labelqueue.coerce import clip_key, finite
-from labelqueue.errors import Conflict, LeaseError
+from labelqueue.errors import Conflict, Revoked
 from labelqueue.models import (
     Label,
     Labeller,
@@ -170,7 +170,12 @@ def cancel_queries(session: Session, *, run_id: int, query_ids: Sequence[int] | 
             session,
             update(Query)
             .where(*condition)
-            .values(status=QueryStatus.CANCELLED, lease_holder=None, lease_expires_at=None),
+            .values(
+                status=QueryStatus.CANCELLED,
+                lease_holder=None,
+                lease_expires_at=None,
+                leased_at=None,
+            ),
         )
 
 
@@ -211,7 +216,7 @@ def lease_next_query(
     mine = and_(Query.lease_holder == labeller_id, Query.status == QueryStatus.LEASED)
     with transaction(session):
         if not get_row(session, Labeller, labeller_id).active:
-            raise LeaseError(f"labeller {labeller_id} is deactivated")
+            raise Revoked(f"labeller {labeller_id} is deactivated")
         if ahead_of is not None:
             changed(
                 session,
@@ -239,7 +244,12 @@ def lease_next_query(
             session,
             update(Query)
             .where(mine, Query.lease_expires_at > now)
-            .values(status=QueryStatus.PENDING, lease_holder=None, lease_expires_at=None),
+            .values(
+                status=QueryStatus.PENDING,
+                lease_holder=None,
+                lease_expires_at=None,
+                leased_at=None,
+            ),
         )
 
         answered = exists().where(Label.query_id == Query.id, Label.labeller_id == labeller_id)
@@ -266,6 +276,7 @@ def lease_next_query(
                         status=QueryStatus.LEASED,
                         lease_holder=labeller_id,
                         lease_expires_at=expires,
+                        leased_at=now,
                     ),
                 ):
                     query = get_row(session, Query, query_id)

@@ -11,6 +11,7 @@ from fastapi import FastAPI
 from labelqueue import make_engine, migrate, session_factory
 from server.deps import TokenCache
 from server.errors import install_error_handlers
+from server.middleware import HardeningMiddleware
 from server.routes import export as export_routes
 from server.routes import label, labellers, pages, runs, stats
 from server.settings import Settings, get_settings
@@ -35,6 +36,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app = FastAPI(title="S-EPOA labelling", version="0.1.0", lifespan=lifespan)
     app.state.settings = settings
     install_error_handlers(app)
+    app.add_middleware(HardeningMiddleware, limit=settings.body_limit_bytes)
     app.include_router(runs.router)
     app.include_router(labellers.router)
     app.include_router(label.router)

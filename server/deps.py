@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session, sessionmaker
 
 from labelqueue import Role, authenticate
@@ -48,6 +49,11 @@ class Caller:
 
 
 HEADERS = {"WWW-Authenticate": "Bearer"}
+BEARER = HTTPBearer(
+    scheme_name="bearer",
+    description="a labeller's token (`POST /api/labellers`) or the operator token from settings",
+    auto_error=False,  # the 401s below name what is missing
+)
 
 
 def bearer_token(request: Request) -> str | None:
@@ -69,6 +75,14 @@ class TokenCache:
         with self._lock:
             entry = self._entries.get(key)
         return entry[1] if entry is not None and entry[0] > time.monotonic() else None
+
+    def forget(self, labeller_id: int) -> None:
+        """Drop the labeller's entries: a change to it applies at once in this process (other
+        server processes keep their entries until they run out, `seconds` at most)."""
+        with self._lock:
+            self._entries = {
+                k: v for k, v in self._entries.items() if v[1].labeller_id != labeller_id
+            }
 
     def put(self, token: str, caller: Caller) -> None:
         if self.seconds <= 0:
@@ -102,8 +116,14 @@ def caller_from_token(
     return caller
 
 
-def get_caller(request: Request, session: SessionDep, settings: SettingsDep) -> Caller:
-    cache: TokenCache | None = getattr(request.app.state, "token_cache", None)
+def get_caller(
+    request: Request,
+    session: SessionDep,
+    settings: SettingsDep,
+    _declared: Annotated[HTTPAuthorizationCredentials | None, Depends(BEARER)],
+) -> Caller:
+    """The caller (the `bearer` security scheme in OpenAPI); 401 without a valid token."""
+    cache = get_token_cache(request)
     return caller_from_token(
         session=session, settings=settings, token=bearer_token(request), cache=cache
     )
@@ -121,6 +141,12 @@ def get_labeller(caller: Annotated[Caller, Depends(get_caller)]) -> Caller:
     return caller
 
 
+def get_token_cache(request: Request) -> TokenCache | None:
+    cache: TokenCache | None = getattr(request.app.state, "token_cache", None)
+    return cache
+
+
+TokenCacheDep = Annotated[TokenCache | None, Depends(get_token_cache)]
 CallerDep = Annotated[Caller, Depends(get_caller)]
 OperatorDep = Annotated[Caller, Depends(get_operator)]
 LabellerDep = Annotated[Caller, Depends(get_labeller)]

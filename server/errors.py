@@ -1,20 +1,27 @@
-"""One place that turns the queue's refusals into JSON client errors `{"detail": "..."}`."""
+"""One place that turns refusals into JSON client errors `{"detail": "..."}`: the queue's errors,
+numbers the database cannot hold, and 405s that name every method the path allows."""
 
 from __future__ import annotations
 
-from collections.abc import Awaitable, Callable
+import re
+from collections.abc import Awaitable, Callable, Iterable, Iterator
 
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
+from sqlalchemy.exc import DataError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import BaseRoute
 
-from labelqueue import Conflict, LeaseError, NotFound
+from labelqueue import Conflict, LeaseError, NotFound, Revoked
 
 STATUS_OF: dict[type[Exception], int] = {
     NotFound: 404,
+    Revoked: 403,
     LeaseError: 409,
-    Conflict: 409,  # InvalidTransition too: it is a Conflict
+    Conflict: 409,  # InvalidTransition and RunClosed too: they are Conflicts
     ValueError: 422,
 }
+OUT_OF_RANGE = "a number in the request is out of the range the database holds"
 
 
 def _handler(status_code: int) -> Callable[[Request, Exception], Awaitable[JSONResponse]]:
@@ -24,7 +31,46 @@ def _handler(status_code: int) -> Callable[[Request, Exception], Awaitable[JSONR
     return handle
 
 
+async def _out_of_range(_request: Request, _error: Exception) -> JSONResponse:
+    # A safety net: the schemas bound every number, so this is for one that slipped through.
+    return JSONResponse(status_code=422, content={"detail": OUT_OF_RANGE})
+
+
+def _routes(routes: Iterable[BaseRoute]) -> Iterator[BaseRoute]:
+    """The app's routes, with those of included routers in place of the routers."""
+    for route in routes:
+        included = getattr(route, "original_router", None)
+        yield from _routes(included.routes) if included is not None else (route,)
+
+
+def allowed_methods(request: Request) -> set[str]:
+    """Every method the app's routes take at this request's path (the router's own 405 names
+    only the methods of the first route whose path matched)."""
+    path = request.url.path
+    allowed: set[str] = set()
+    for route in _routes(request.app.router.routes):
+        regex: re.Pattern[str] | None = getattr(route, "path_regex", None)
+        methods: set[str] | None = getattr(route, "methods", None)
+        if regex is not None and methods and regex.match(path):
+            allowed |= methods
+    return allowed
+
+
+async def _http_error(request: Request, error: Exception) -> JSONResponse:
+    assert isinstance(error, StarletteHTTPException)
+    headers = dict(error.headers or {})
+    if error.status_code == 405:
+        given = {m.strip() for m in headers.get("Allow", "").split(",") if m.strip()}
+        headers["Allow"] = ", ".join(sorted(given | allowed_methods(request)))
+    return JSONResponse(
+        status_code=error.status_code, content={"detail": error.detail}, headers=headers or None
+    )
+
+
 def install_error_handlers(app: FastAPI) -> None:
-    """Register the mapping above on `app` (once, in the app factory)."""
+    """Register the mappings above on `app` (once, in the app factory)."""
     for error_type, status_code in STATUS_OF.items():
         app.add_exception_handler(error_type, _handler(status_code))
+    app.add_exception_handler(OverflowError, _out_of_range)
+    app.add_exception_handler(DataError, _out_of_range)
+    app.add_exception_handler(StarletteHTTPException, _http_error)

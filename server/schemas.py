@@ -6,10 +6,13 @@ returns, no model probability, no selection score.
 
 from __future__ import annotations
 
-from datetime import datetime
-from typing import Any, Literal
+import json
+from datetime import UTC, datetime
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from fastapi import Path
+from fastapi import Query as QueryParam
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
 TASK_PATTERN = r"^(dmc|metaworld):[a-z0-9_\-]+$"
 Algo = Literal["sac", "pebble", "surf", "rune", "rime", "sepoa"]
@@ -18,6 +21,83 @@ Teacher = Literal["human", "scripted"]
 RoleName = Literal["labeller", "operator"]
 StreamName = Literal["episodes", "eval", "rounds"]
 ChoiceName = Literal["left", "right", "equal", "cant_tell", "skip"]
+
+INT32_MAX = 2**31 - 1
+"""the largest value an INTEGER column holds on PostgreSQL: ids, budgets, seeds and steps"""
+INT64_MAX = 2**63 - 1
+StoredInt = Annotated[int, Field(ge=0, le=INT32_MAX)]
+CONFIG_MAX_BYTES = 16 * 1024
+"""the most a run's `config` (or `teacher_params`) may take as JSON"""
+
+
+def _small_json(value: dict[str, Any]) -> dict[str, Any]:
+    size = len(json.dumps(value, default=str).encode())
+    if size > CONFIG_MAX_BYTES:
+        raise ValueError(f"is {size} bytes as JSON; at most {CONFIG_MAX_BYTES} are stored")
+    return value
+
+
+def _utc(value: datetime) -> datetime:
+    try:
+        return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+    except OverflowError:
+        raise ValueError("is out of range once converted to UTC") from None
+
+
+# Path and query parameters, bounded so that no number reaches the database unchecked (422).
+RunId = Annotated[int, Path(ge=1, le=INT32_MAX, description="the run's id")]
+QueryId = Annotated[int, Path(ge=1, le=INT32_MAX, description="the query's id")]
+LabellerId = Annotated[int, Path(ge=1, le=INT32_MAX, description="the labeller's id")]
+RunFilter = Annotated[int | None, QueryParam(ge=1, le=INT32_MAX, description="one run only")]
+AheadOf = Annotated[
+    int | None,
+    QueryParam(ge=1, le=INT32_MAX, description="the query being shown: keep it, lease one more"),
+]
+AfterStep = Annotated[
+    int | None, QueryParam(ge=-1, le=INT32_MAX, description="rows after this step only")
+]
+Expires = Annotated[int | None, QueryParam(ge=0, le=INT64_MAX, description="unix seconds")]
+
+SmallJson = Annotated[dict[str, Any], AfterValidator(_small_json)]
+UTCTime = Annotated[datetime, AfterValidator(_utc)]
+
+
+class ErrorOut(BaseModel):
+    """Every refusal's body."""
+
+    detail: str
+
+
+class InvalidOut(BaseModel):
+    """A 422: FastAPI's list of `{loc, msg, type}` for a malformed request, or one sentence for
+    a well-formed one the queue refuses."""
+
+    detail: str | list[dict[str, Any]]
+
+
+ERROR_TEXT: dict[int, str] = {
+    400: "the body cannot be read as JSON (not UTF-8)",
+    401: "missing, invalid or revoked bearer token",
+    403: "the caller's role may not do this, a labeller was revoked, or a clip URL's signature "
+    "is invalid or expired",
+    404: "no such run, query, labeller or clip",
+    409: "the request contradicts the stored state (a taken name, a move the run's status "
+    "forbids, a lease that ran out, a stopped run)",
+    413: "the request body is larger than the server accepts (64 KiB by default)",
+    422: "a malformed request, or values the queue refuses",
+}
+
+
+Responses = dict[int | str, dict[str, Any]]
+
+
+def errors(*codes: int, also: Responses | None = None) -> Responses:
+    """OpenAPI `responses` for the refusals an operation can answer with (and `also`)."""
+    refusals: Responses = {
+        code: {"model": InvalidOut if code == 422 else ErrorOut, "description": ERROR_TEXT[code]}
+        for code in codes
+    }
+    return (also or {}) | refusals
 
 
 class Body(BaseModel):
@@ -31,12 +111,12 @@ class Out(BaseModel):
 class RunCreate(Body):
     task: str = Field(pattern=TASK_PATTERN, examples=["dmc:cheetah_run"])
     algo: Algo
-    budget: int = Field(ge=0)
+    budget: StoredInt
     preset: Preset = "small"
-    seed: int = Field(default=0, ge=0)
+    seed: StoredInt = 0
     teacher: Teacher = "human"
-    teacher_params: dict[str, Any] = Field(default_factory=dict, examples=[{"eps": 0.1}])
-    config: dict[str, Any] = Field(default_factory=dict, examples=[{"sac.lr": 1e-4}])
+    teacher_params: SmallJson = Field(default_factory=dict, examples=[{"eps": 0.1}])
+    config: SmallJson = Field(default_factory=dict, examples=[{"sac.lr": 1e-4}])
     name: str | None = Field(default=None, min_length=1, max_length=200)
     """defaults to `<task>-<algo>-s<seed>`"""
 
@@ -66,7 +146,7 @@ class RunOut(Out):
 
 class TeacherUpdate(Body):
     teacher: Teacher
-    params: dict[str, Any] = Field(default_factory=dict)
+    params: SmallJson = Field(default_factory=dict)
 
 
 class MetricOut(Out):
@@ -77,6 +157,15 @@ class MetricOut(Out):
 class LabellerCreate(Body):
     name: str = Field(min_length=1, max_length=100)
     role: RoleName = "labeller"
+
+
+class LabellerUpdate(Body):
+    """What to change; a field left out stays as it is."""
+
+    active: bool | None = None
+    """false revokes the labeller's access (its labels stay); true restores it"""
+    role: RoleName | None = None
+    name: str | None = Field(default=None, min_length=1, max_length=100)
 
 
 class LabellerOut(Out):
@@ -112,7 +201,9 @@ class NextQuery(BaseModel):
 class LabelSubmit(Body):
     choice: ChoiceName
     left_is_first: bool
-    shown_at: datetime
+    """the value next-query gave; a different one is refused (422)"""
+    shown_at: UTCTime
+    """when the page showed the pair; stored clamped to [the lease's start, the answer's time]"""
 
 
 class LabelOut(Out):

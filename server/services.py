@@ -15,7 +15,9 @@ from sqlalchemy.orm import Session
 
 from labelqueue import (
     Conflict,
+    Label,
     Labeller,
+    LabelSource,
     NotFound,
     Query,
     Run,
@@ -24,9 +26,10 @@ from labelqueue import (
     create_run,
     lease_next_query,
     set_run_status,
+    submit_label,
 )
 from server import clips
-from server.schemas import NextQuery, RunCreate
+from server.schemas import LabelSubmit, NextQuery, RunCreate
 from server.settings import Settings
 
 
@@ -126,6 +129,30 @@ def next_query(
         right_clip_url=urls["second" if first_left else "first"],
         left_is_first=first_left,
         segment_length=query.segment_length,
+    )
+
+
+def submit_answer(
+    session: Session, *, settings: Settings, labeller_id: int, query_id: int, body: LabelSubmit
+) -> tuple[Label, bool]:
+    """Store a person's answer; (label, created). The side order is the server's own: an answer
+    echoing another `left_is_first` than next-query gave is refused (ValueError, 422), since
+    storing it would flip which segment it prefers."""
+    first_left = clips.left_is_first(settings=settings, query_id=query_id, labeller_id=labeller_id)
+    if body.left_is_first != first_left:
+        get_query(session, query_id=query_id)  # an unknown query is a 404 first
+        raise ValueError(
+            f"left_is_first={str(body.left_is_first).lower()} is not the side order this server "
+            f"showed for query {query_id} ({str(first_left).lower()}); reload the page"
+        )
+    return submit_label(
+        session,
+        query_id=query_id,
+        labeller_id=labeller_id,
+        choice=body.choice,
+        left_is_first=first_left,
+        shown_at=body.shown_at,
+        source=LabelSource.HUMAN,
     )
 
 

@@ -34,6 +34,8 @@ class Settings(BaseSettings):
     auth_cache_seconds: float = Field(default=5.0, ge=0)
     """how long a checked token is trusted without the database (0: check every request); a
     revoked labeller can still read for this long, but cannot lease or answer"""
+    body_limit_bytes: int = Field(default=64 * 1024, ge=1024)
+    """the largest request body read; a larger one is refused with 413"""
     threadpool_size: int = Field(default=8, ge=1)
     """threads serving requests: more only queue on the database's one write lock"""
 

@@ -17,6 +17,7 @@ from fastapi.responses import StreamingResponse
 
 from labelqueue import EXPORT_SCHEMA_VERSION, ExportFormat, write_export
 from server.deps import OperatorDep, SessionDep
+from server.schemas import RunFilter, errors
 
 router = APIRouter(prefix="/api", tags=["export"])
 
@@ -46,13 +47,15 @@ def _blocks(file: IO[bytes]) -> Iterator[bytes]:
 @router.get(
     "/export",
     response_class=StreamingResponse,
-    responses={200: {"content": {media: {} for media in MEDIA_TYPES.values()}}},
+    responses=errors(
+        401, 403, 404, 422, also={200: {"content": {media: {} for media in MEDIA_TYPES.values()}}}
+    ),
 )
 def export_labels(
     session: SessionDep,
     _: OperatorDep,
     fmt: Annotated[ExportFormat, Query(alias="format")] = "jsonl",
-    run_id: int | None = None,
+    run_id: RunFilter = None,
 ) -> StreamingResponse:
     """Every label (or one run's), one row each, with ground truth: see docs/EXPORT.md."""
     file = tempfile.SpooledTemporaryFile(max_size=SPOOL_BYTES)

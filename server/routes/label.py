@@ -3,30 +3,42 @@
 from __future__ import annotations
 
 import time
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response
 from fastapi.responses import FileResponse
 
-from labelqueue import LabelSource, submit_label
 from server import clips, services
 from server.deps import LabellerDep, SessionDep, SettingsDep, bearer_token, caller_from_token
-from server.schemas import LabelOut, LabelSubmit, NextQuery
+from server.schemas import (
+    AheadOf,
+    Expires,
+    LabelOut,
+    LabelSubmit,
+    NextQuery,
+    QueryId,
+    RunFilter,
+    errors,
+)
 
 router = APIRouter(prefix="/api", tags=["label"])
+BEARER_OR_SIGNED: dict[str, Any] = {"security": [{}, {"bearer": []}]}
+"""a clip URL's signature (`expires`, `sig`) or a bearer token"""
 
 
 @router.get(
     "/label/next",
     response_model=NextQuery,
-    responses={204: {"description": "nothing to label now; poll again"}},
+    responses=errors(
+        401, 403, 404, 409, 422, also={204: {"description": "nothing to label now; poll again"}}
+    ),
 )
 def next_query(
     session: SessionDep,
     settings: SettingsDep,
     caller: LabellerDep,
-    run_id: int | None = None,
-    ahead_of: int | None = None,
+    run_id: RunFilter = None,
+    ahead_of: AheadOf = None,
 ) -> NextQuery | Response:
     """Lease the next query. `ahead_of=<query_id being shown>` keeps that lease and leases one
     more, so the page can preload the next pair."""
@@ -42,23 +54,28 @@ def next_query(
 
 
 @router.post(
-    "/label/{query_id}",
+    "/label/{query_id:int}",
     status_code=201,
     response_model=LabelOut,
-    responses={200: {"model": LabelOut, "description": "a repeat: the label already stored"}},
+    responses=errors(
+        400, 401, 403, 404, 409, 413, 422,
+        also={200: {"model": LabelOut, "description": "a repeat: the label already stored"}},
+    ),
 )
 def post_label(
-    query_id: int, body: LabelSubmit, session: SessionDep, caller: LabellerDep, response: Response
+    query_id: QueryId,
+    body: LabelSubmit,
+    session: SessionDep,
+    settings: SettingsDep,
+    caller: LabellerDep,
+    response: Response,
 ) -> LabelOut:
+    """Answer a leased query. A revoked labeller: 403; a run no longer running or paused, an
+    expired lease or another labeller's query: 409; a `left_is_first` other than next-query's:
+    422. `shown_at` is stored within [the lease's start, now]."""
     assert caller.labeller_id is not None
-    label, created = submit_label(
-        session,
-        query_id=query_id,
-        labeller_id=caller.labeller_id,
-        choice=body.choice,
-        left_is_first=body.left_is_first,
-        shown_at=body.shown_at,
-        source=LabelSource.HUMAN,
+    label, created = services.submit_answer(
+        session, settings=settings, labeller_id=caller.labeller_id, query_id=query_id, body=body
     )
     if not created:
         response.status_code = 200
@@ -66,17 +83,24 @@ def post_label(
 
 
 @router.get(
-    "/clips/{query_id}/{side}",
+    "/clips/{query_id:int}/{side}",
     response_class=FileResponse,
-    responses={200: {"content": {"video/mp4": {}}}},
+    responses=errors(
+        401, 403, 404, 422,
+        also={
+            200: {"content": {"video/mp4": {}}},
+            206: {"description": "the byte range asked for", "content": {"video/mp4": {}}},
+        },
+    ),
+    openapi_extra=BEARER_OR_SIGNED,
 )
 def get_clip(
-    query_id: int,
+    query_id: QueryId,
     side: str,
     request: Request,
     session: SessionDep,
     settings: SettingsDep,
-    expires: Annotated[int | None, Query()] = None,
+    expires: Expires = None,
     sig: Annotated[str | None, Query(max_length=128)] = None,
 ) -> FileResponse:
     """An mp4 clip (Range requests supported); a signed URL from next-query, or a bearer token."""

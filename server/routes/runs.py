@@ -9,12 +9,23 @@ from fastapi import APIRouter, Response
 from labelqueue import RunStatus, read_metrics, set_run_status, set_teacher
 from server import curves, services
 from server.deps import OperatorDep, SessionDep
-from server.schemas import MetricOut, RunCreate, RunOut, StreamName, TeacherUpdate
+from server.schemas import (
+    AfterStep,
+    MetricOut,
+    RunCreate,
+    RunId,
+    RunOut,
+    StreamName,
+    TeacherUpdate,
+    errors,
+)
 
-router = APIRouter(prefix="/api/runs", tags=["runs"])
+MOVE_ERRORS = errors(404, 409, 422)
+
+router = APIRouter(prefix="/api/runs", tags=["runs"], responses=errors(401, 403))
 
 
-@router.post("", status_code=201, response_model=RunOut)
+@router.post("", status_code=201, response_model=RunOut, responses=errors(400, 413, 422))
 def create_run(spec: RunCreate, session: SessionDep, _: OperatorDep) -> RunOut:
     return RunOut.model_validate(services.new_run(session, spec=spec))
 
@@ -24,18 +35,18 @@ def list_runs(session: SessionDep, _: OperatorDep) -> list[RunOut]:
     return [RunOut.model_validate(run) for run in services.list_runs(session)]
 
 
-@router.get("/{run_id}", response_model=RunOut)
-def get_run(run_id: int, session: SessionDep, _: OperatorDep) -> RunOut:
+@router.get("/{run_id}", response_model=RunOut, responses=errors(404, 422))
+def get_run(run_id: RunId, session: SessionDep, _: OperatorDep) -> RunOut:
     return RunOut.model_validate(services.get_run(session, run_id=run_id))
 
 
-@router.get("/{run_id}/metrics", response_model=list[MetricOut])
+@router.get("/{run_id}/metrics", response_model=list[MetricOut], responses=errors(404, 422))
 def get_metrics(
-    run_id: int,
+    run_id: RunId,
     session: SessionDep,
     _: OperatorDep,
     stream: StreamName = "episodes",
-    after_step: int | None = None,
+    after_step: AfterStep = None,
 ) -> list[MetricOut]:
     services.get_run(session, run_id=run_id)
     rows = read_metrics(session, run_id=run_id, stream=stream, after_step=after_step)
@@ -43,9 +54,9 @@ def get_metrics(
 
 
 @router.get("/{run_id}/curves.png", response_class=Response,
-            responses={200: {"content": {"image/png": {}}}})
+            responses=errors(404, 422, also={200: {"content": {"image/png": {}}}}))
 def get_curves_png(
-    run_id: int,
+    run_id: RunId,
     session: SessionDep,
     _: OperatorDep,
     metric: Literal["return", "success_rate"] = "return",
@@ -57,29 +68,31 @@ def get_curves_png(
     return Response(png, media_type="image/png", headers={"Cache-Control": "no-store"})
 
 
-@router.post("/{run_id}/pause", response_model=RunOut)
-def pause_run(run_id: int, session: SessionDep, _: OperatorDep) -> RunOut:
+@router.post("/{run_id}/pause", response_model=RunOut, responses=MOVE_ERRORS)
+def pause_run(run_id: RunId, session: SessionDep, _: OperatorDep) -> RunOut:
     return RunOut.model_validate(set_run_status(session, run_id=run_id, status=RunStatus.PAUSED))
 
 
-@router.post("/{run_id}/resume", response_model=RunOut)
-def resume_run(run_id: int, session: SessionDep, _: OperatorDep) -> RunOut:
+@router.post("/{run_id}/resume", response_model=RunOut, responses=MOVE_ERRORS)
+def resume_run(run_id: RunId, session: SessionDep, _: OperatorDep) -> RunOut:
     return RunOut.model_validate(set_run_status(session, run_id=run_id, status=RunStatus.RUNNING))
 
 
-@router.post("/{run_id}/stop", response_model=RunOut)
-def stop_run(run_id: int, session: SessionDep, _: OperatorDep, force: bool = False) -> RunOut:
+@router.post("/{run_id}/stop", response_model=RunOut, responses=MOVE_ERRORS)
+def stop_run(run_id: RunId, session: SessionDep, _: OperatorDep, force: bool = False) -> RunOut:
     """Running/paused: stopping; queued: stopped; `force=true` also ends a stopping run."""
     return RunOut.model_validate(services.stop_run(session, run_id=run_id, force=force))
 
 
-@router.post("/{run_id}/requeue", response_model=RunOut)
-def requeue_run(run_id: int, session: SessionDep, _: OperatorDep) -> RunOut:
+@router.post("/{run_id}/requeue", response_model=RunOut, responses=MOVE_ERRORS)
+def requeue_run(run_id: RunId, session: SessionDep, _: OperatorDep) -> RunOut:
     """A stopped or failed run back in the queue; its next worker resumes its checkpoint."""
     return RunOut.model_validate(set_run_status(session, run_id=run_id, status=RunStatus.QUEUED))
 
 
-@router.put("/{run_id}/teacher", response_model=RunOut)
-def put_teacher(run_id: int, body: TeacherUpdate, session: SessionDep, _: OperatorDep) -> RunOut:
+@router.put(
+    "/{run_id}/teacher", response_model=RunOut, responses=errors(400, 404, 413, 422)
+)
+def put_teacher(run_id: RunId, body: TeacherUpdate, session: SessionDep, _: OperatorDep) -> RunOut:
     run = set_teacher(session, run_id=run_id, teacher=body.teacher, params=body.params)
     return RunOut.model_validate(run)

@@ -19,7 +19,7 @@ from sqlalchemy.orm import Session
 from labelqueue import Label, LabelSource
 from server import services
 from server.deps import LabellerDep, OperatorDep, SessionDep
-from server.schemas import LabelCount, Throughput, ThroughputBucket
+from server.schemas import LabelCount, RunId, Throughput, ThroughputBucket, errors
 
 router = APIRouter(prefix="/api", tags=["stats"])
 
@@ -61,9 +61,11 @@ def labels_given(session: Session, *, labeller_id: int) -> int:
     return int(count or 0)
 
 
-@router.get("/runs/{run_id}/throughput", response_model=Throughput)
+@router.get(
+    "/runs/{run_id}/throughput", response_model=Throughput, responses=errors(401, 403, 404, 422)
+)
 def get_throughput(
-    run_id: int,
+    run_id: RunId,
     session: SessionDep,
     _: OperatorDep,
     bucket_s: Annotated[int, Query(ge=1, le=86_400)] = 60,
@@ -72,7 +74,7 @@ def get_throughput(
     return label_throughput(session, run_id=run_id, bucket_s=bucket_s)
 
 
-@router.get("/label/count", response_model=LabelCount)
+@router.get("/label/count", response_model=LabelCount, responses=errors(401, 403))
 def get_label_count(session: SessionDep, caller: LabellerDep) -> LabelCount:
     """How many labels the caller has given, over all runs."""
     assert caller.labeller_id is not None

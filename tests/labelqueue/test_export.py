@@ -15,6 +15,7 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 from queue_helpers import query_spec
+from sqlalchemy import update
 from sqlalchemy.orm import Session, sessionmaker
 
 from labelqueue import (
@@ -34,7 +35,7 @@ from labelqueue import (
     write_export,
 )
 from labelqueue.export import PARQUET_VERSION_KEY, parquet_schema
-from labelqueue.models import utcnow
+from labelqueue.models import Query, utcnow
 
 DOCS = Path(__file__).resolve().parents[2] / "docs" / "EXPORT.md"
 NAMES = [column.name for column in EXPORT_COLUMNS]
@@ -140,6 +141,11 @@ def seed(session: Session) -> Seeded:
         labeller_id = labellers[answer.labeller]
         leased = lease_next_query(session, labeller_id=labeller_id, run_id=run_id)
         assert leased is not None and leased.id == query_id
+        # The pair has been on screen since the lease began, longer than SHOWN_BEFORE.
+        session.execute(
+            update(Query).where(Query.id == query_id).values(leased_at=utcnow() - 2 * SHOWN_BEFORE)
+        )
+        session.commit()
         submit_label(
             session,
             query_id=query_id,

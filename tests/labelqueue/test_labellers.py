@@ -11,10 +11,13 @@ from sqlalchemy.orm import Session
 from labelqueue import (
     Conflict,
     Labeller,
+    NotFound,
     Role,
     authenticate,
     create_labeller,
+    rotate_token,
     set_labeller_active,
+    update_labeller,
 )
 
 
@@ -59,3 +62,28 @@ def test_names_are_unique(session: Session) -> None:
     with pytest.raises(Conflict, match="alice"):
         create_labeller(session, name="alice")
     assert session.scalars(select(Labeller)).all()[0].name == "alice"
+
+
+def test_a_labeller_is_renamed_promoted_and_revoked_in_one_call(session: Session) -> None:
+    labeller, token = create_labeller(session, name="alice")
+    create_labeller(session, name="bob")
+    changed = update_labeller(
+        session, labeller_id=labeller.id, name="alice2", role="operator", active=False
+    )
+    assert (changed.name, changed.role, changed.active) == ("alice2", Role.OPERATOR, False)
+    assert authenticate(session, token=token) is None
+    with pytest.raises(Conflict, match="bob"):
+        update_labeller(session, labeller_id=labeller.id, name="bob")
+    stored = session.get(Labeller, labeller.id)
+    assert stored is not None and stored.name == "alice2"  # the refused rename changed nothing
+    with pytest.raises(NotFound):
+        update_labeller(session, labeller_id=labeller.id + 100, active=True)
+
+
+def test_a_new_token_replaces_the_old_one(session: Session) -> None:
+    labeller, old = create_labeller(session, name="alice")
+    same, new = rotate_token(session, labeller_id=labeller.id)
+    assert same.id == labeller.id and new != old
+    assert authenticate(session, token=old) is None
+    authenticated = authenticate(session, token=new)
+    assert authenticated is not None and authenticated.id == labeller.id

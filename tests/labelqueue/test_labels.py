@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 
 import pytest
 from queue_helpers import query_spec, running_run
@@ -15,12 +15,21 @@ from labelqueue import (
     LabelSource,
     NotFound,
     Preferred,
+    Query,
+    QueryStatus,
+    Revoked,
     Run,
+    RunClosed,
+    RunStatus,
+    claim_run,
     consume_labels,
     create_labeller,
+    finish_run,
     labels_for_queries,
     lease_next_query,
     push_queries,
+    set_labeller_active,
+    set_run_status,
     submit_label,
 )
 from labelqueue.labels import preferred_segment
@@ -64,7 +73,7 @@ def test_a_repeated_submit_returns_the_stored_label(session: Session) -> None:
     [query_id] = push_queries(session, run_id=run.id, queries=[query_spec(0)])
     alice, _ = create_labeller(session, name="alice")
     lease_next_query(session, labeller_id=alice.id, run_id=run.id)
-    shown = datetime(2026, 1, 2, 3, 4, 5, tzinfo=UTC)
+    shown = datetime.now(UTC)  # after the lease began: stored as given
     first, created = submit_label(
         session,
         query_id=query_id,
@@ -173,3 +182,83 @@ def test_returned_rows_stay_readable_after_a_failed_operation(session: Session) 
     # Reading a returned row neither fails nor opens a transaction that would hold SQLite's lock.
     assert query is not None and query.id == query_id and query.lease_holder == alice.id
     assert not session.in_transaction()
+
+
+def _stored(session: Session) -> tuple[int, int]:
+    """(labels stored, the run's labels_used) of the only run."""
+    labels = session.scalar(select(func.count()).select_from(Label))
+    used = session.scalars(select(Run.labels_used)).one()
+    session.commit()
+    return int(labels or 0), used
+
+
+def test_a_revoked_labeller_cannot_answer_the_query_it_holds(session: Session) -> None:
+    run = running_run(session)
+    [query_id] = push_queries(session, run_id=run.id, queries=[query_spec(0)])
+    mallory, _ = create_labeller(session, name="mallory")
+    bob, _ = create_labeller(session, name="bob")
+    assert lease_next_query(session, labeller_id=mallory.id, run_id=run.id) is not None
+    set_labeller_active(session, labeller_id=mallory.id, active=False)
+    with pytest.raises(Revoked, match="deactivated"):
+        submit_label(
+            session, query_id=query_id, labeller_id=mallory.id, choice="left", left_is_first=True
+        )
+    assert _stored(session) == (0, 0)
+    # Revoking released the lease: someone else may answer the query at once.
+    leased = lease_next_query(session, labeller_id=bob.id, run_id=run.id)
+    assert leased is not None and leased.id == query_id
+
+
+def test_an_answer_after_a_stop_is_refused_and_answers_before_it_are_used_on_requeue(
+    session: Session,
+) -> None:
+    run = running_run(session)
+    ids = push_queries(session, run_id=run.id, queries=[query_spec(0), query_spec(1)])
+    alice, _ = create_labeller(session, name="alice")
+    bob, _ = create_labeller(session, name="bob")
+    assert lease_next_query(session, labeller_id=alice.id, run_id=run.id) is not None
+    assert lease_next_query(session, labeller_id=bob.id, run_id=run.id) is not None
+    submit_label(session, query_id=ids[0], labeller_id=alice.id, choice="left", left_is_first=True)
+
+    set_run_status(session, run_id=run.id, status=RunStatus.STOPPING)
+    for status in ("stopping", "stopped"):
+        with pytest.raises(RunClosed, match=f"run {run.id} is {status}"):
+            submit_label(
+                session, query_id=ids[1], labeller_id=bob.id, choice="right", left_is_first=True
+            )
+        assert _stored(session) == (1, 1)  # the refused answer spent no budget
+        if status == "stopping":
+            finish_run(session, run_id=run.id, worker_id="worker-a", status=RunStatus.STOPPED)
+
+    # Requeued and resumed: the round's labels given before the stop are all there.
+    set_run_status(session, run_id=run.id, status=RunStatus.QUEUED)
+    assert claim_run(session, worker_id="worker-b") is not None
+    [kept] = labels_for_queries(session, query_ids=ids)
+    assert (kept.query_id, kept.labeller_id, kept.choice) == (ids[0], alice.id, Choice.LEFT)
+
+
+def test_shown_at_is_kept_between_the_lease_and_the_answer(session: Session) -> None:
+    run = running_run(session)
+    ids = push_queries(session, run_id=run.id, queries=[query_spec(i) for i in range(3)])
+    alice, _ = create_labeller(session, name="alice")
+    skewed = {
+        "years ago": datetime(2001, 1, 1, tzinfo=UTC),
+        "tomorrow": datetime.now(UTC) + timedelta(days=1),
+        "naive, a minute ago": datetime.now(UTC).replace(tzinfo=None) - timedelta(minutes=1),
+    }
+    for query_id, (why, shown) in zip(ids, skewed.items(), strict=True):
+        leased = lease_next_query(session, labeller_id=alice.id, run_id=run.id)
+        assert leased is not None and leased.leased_at is not None
+        label, _ = submit_label(
+            session, query_id=query_id, labeller_id=alice.id, choice="left", left_is_first=True,
+            shown_at=shown,
+        )
+        assert label.shown_at is not None
+        assert leased.leased_at <= label.shown_at <= label.answered_at, why
+        if why == "years ago":
+            assert label.shown_at == leased.leased_at
+        if why == "tomorrow":
+            assert label.shown_at == label.answered_at
+    session.commit()
+    stored = session.scalars(select(Query)).all()
+    assert all(q.status is QueryStatus.LABELLED and q.leased_at is None for q in stored)

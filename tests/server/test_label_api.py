@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from datetime import UTC, datetime, timedelta
+from typing import Any
 
 from fastapi.testclient import TestClient
 from server_helpers import (
@@ -113,7 +114,7 @@ def test_a_label_for_an_expired_lease_is_refused_and_changes_nothing(
     session.commit()
     before = snapshot(session)
 
-    body = {"choice": "right", "left_is_first": True, "shown_at": shown_at()}
+    body = {"choice": "right", "left_is_first": shown["left_is_first"], "shown_at": shown_at()}
     response = client.post(f"/api/label/{shown['query_id']}", json=body, headers=alice)
     assert response.status_code == 409
     assert "expired" in response.json()["detail"]
@@ -237,10 +238,17 @@ def test_a_revoked_labeller_cannot_take_work_even_while_its_token_is_cached(
     first = client.get("/api/label/next", headers=bearer(token))
     assert first.status_code == 200
     labeller_id = int(token.split(".")[0])
+    # Revoked by another process: this server still trusts the token for a few seconds...
     set_labeller_active(session, labeller_id=labeller_id, active=False)
-    # The token is trusted for a few seconds without the database, but leasing checks.
+    before = snapshot(session)
+    # ...but leasing and answering read `active` in their own transaction.
     refused = client.get("/api/label/next", headers=bearer(token))
-    assert refused.status_code == 409 and "deactivated" in refused.json()["detail"]
+    assert refused.status_code == 403 and "deactivated" in refused.json()["detail"]
+    body = {"choice": "left", "shown_at": shown_at()}
+    body["left_is_first"] = first.json()["left_is_first"]
+    answer = client.post(f"/api/label/{first.json()['query_id']}", json=body, headers=bearer(token))
+    assert answer.status_code == 403 and "deactivated" in answer.json()["detail"]
+    assert snapshot(session) == before  # no label stored, no budget spent
 
 
 def test_without_the_auth_cache_a_revoked_token_is_refused_at_once(
@@ -252,3 +260,84 @@ def test_without_the_auth_cache_a_revoked_token_is_refused_at_once(
         assert client.get("/api/label/count", headers=bearer(token)).status_code == 200
         set_labeller_active(session, labeller_id=int(token.split(".")[0]), active=False)
         assert client.get("/api/label/count", headers=bearer(token)).status_code == 401
+
+
+def test_an_answer_after_the_run_was_stopped_is_refused_and_earlier_answers_stay(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    alice = bearer(new_labeller(client, "alice"))
+    bob = bearer(new_labeller(client, "bob"))
+    run_id, query_ids = running_run_with_queries(client, session, settings, n=2)
+    shown_a = client.get("/api/label/next", headers=alice).json()
+    shown_b = client.get("/api/label/next", headers=bob).json()
+    body = {"choice": "left", "shown_at": shown_at()}
+    answered = client.post(
+        f"/api/label/{shown_a['query_id']}",
+        json=body | {"left_is_first": shown_a["left_is_first"]},
+        headers=alice,
+    )
+    assert answered.status_code == 201
+
+    assert client.post(f"/api/runs/{run_id}/stop", headers=OPERATOR).json()["status"] == "stopping"
+    before = snapshot(session)
+    late = client.post(
+        f"/api/label/{shown_b['query_id']}",
+        json=body | {"left_is_first": shown_b["left_is_first"]},
+        headers=bob,
+    )
+    assert late.status_code == 409
+    assert late.json()["detail"] == f"run {run_id} is stopping: it takes no more answers"
+    assert snapshot(session) == before
+    run = client.get(f"/api/runs/{run_id}", headers=OPERATOR).json()
+    assert run["labels_used"] == 1  # the answer given before the stop, kept
+
+
+def test_an_answer_with_another_side_order_than_shown_is_refused(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    alice = bearer(new_labeller(client, "alice"))
+    running_run_with_queries(client, session, settings, n=1)
+    shown = client.get("/api/label/next", headers=alice).json()
+    before = snapshot(session)
+    flipped = {"choice": "left", "shown_at": shown_at()}
+    flipped["left_is_first"] = not shown["left_is_first"]
+    response = client.post(f"/api/label/{shown['query_id']}", json=flipped, headers=alice)
+    assert response.status_code == 422
+    assert "side order" in response.json()["detail"] and "reload" in response.json()["detail"]
+    assert snapshot(session) == before  # nothing stored with `preferred` flipped
+
+    honest = flipped | {"left_is_first": shown["left_is_first"]}
+    stored = client.post(f"/api/label/{shown['query_id']}", json=honest, headers=alice).json()
+    assert stored["preferred"] == ("first" if shown["left_is_first"] else "second")
+
+
+def test_shown_at_outside_the_lease_is_clamped_and_an_overflowing_one_refused(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    alice = bearer(new_labeller(client, "alice"))
+    run_id, _ = running_run_with_queries(client, session, settings, n=3)
+
+    def answer(when: str, shown: dict[str, Any] | None = None) -> Any:
+        shown = shown or client.get("/api/label/next", headers=alice).json()
+        body = {"choice": "equal", "left_is_first": shown["left_is_first"], "shown_at": when}
+        return client.post(f"/api/label/{shown['query_id']}", json=body, headers=alice)
+
+    leased = datetime.now(UTC)
+    held = client.get("/api/label/next", headers=alice).json()
+    before = snapshot(session)
+    overflowing = answer("9999-12-31T23:59:59-16:09", held)
+    assert overflowing.status_code == 422
+    assert "out of range" in json.dumps(overflowing.json()["detail"])
+    assert snapshot(session) == before
+
+    past = answer("1999-01-01T00:00:00Z", held).json()
+    future = answer((datetime.now(UTC) + timedelta(days=2)).isoformat()).json()
+    for label in (past, future):
+        shown_time = datetime.fromisoformat(label["shown_at"])
+        assert leased - timedelta(seconds=1) <= shown_time <= datetime.fromisoformat(
+            label["answered_at"]
+        )
+    assert future["shown_at"] == future["answered_at"]
+    # So the median answer time stays a time a person took, not years or a negative time.
+    stats = client.get(f"/api/runs/{run_id}/throughput", headers=OPERATOR).json()
+    assert 0 <= stats["median_answer_s"] < 60

@@ -231,6 +231,65 @@ def test_labellers_are_created_with_a_token_shown_once(
     assert snapshot(session) == before
 
 
+def test_an_operator_revokes_restores_renames_and_promotes_a_labeller(
+    client: TestClient, session: Session
+) -> None:
+    token = new_labeller(client, "mallory")
+    mallory = bearer(token)
+    labeller_id = int(token.split(".")[0])
+    assert client.get("/api/label/count", headers=mallory).status_code == 200  # now cached
+
+    revoked = client.patch(f"/api/labellers/{labeller_id}", json={"active": False},
+                           headers=OPERATOR)
+    assert revoked.status_code == 200 and revoked.json()["active"] is False
+    # At once in this process, although the token was in the auth cache a moment ago.
+    refused = client.get("/api/label/count", headers=mallory)
+    assert refused.status_code == 401 and "revoked" in refused.json()["detail"]
+    listed = client.get("/api/labellers", headers=OPERATOR).json()
+    assert [(row["name"], row["active"]) for row in listed] == [("mallory", False)]
+
+    restored = client.patch(
+        f"/api/labellers/{labeller_id}",
+        json={"active": True, "name": "marta", "role": "operator"},
+        headers=OPERATOR,
+    ).json()
+    assert (restored["name"], restored["role"], restored["active"]) == ("marta", "operator", True)
+    assert client.get("/api/runs", headers=mallory).status_code == 200  # an operator now
+
+    new_labeller(client, "bob")
+    before = snapshot(session)
+    for body, status, words in [
+        ({"name": "bob"}, 409, "bob"),
+        ({"role": "admin"}, 422, "role"),
+        ({"active": "maybe"}, 422, "active"),
+        ({"name": ""}, 422, "name"),
+        ({"token_hash": "x"}, 422, "token_hash"),
+    ]:
+        response = client.patch(f"/api/labellers/{labeller_id}", json=body, headers=OPERATOR)
+        assert response.status_code == status and words in response.text, response.text
+    missing = client.patch("/api/labellers/999", json={"active": False}, headers=OPERATOR)
+    assert missing.status_code == 404 and "999" in missing.json()["detail"]
+    lena = bearer(new_labeller(client, "lena"))
+    not_operator = client.patch(f"/api/labellers/{labeller_id}", json={"active": False},
+                                headers=lena)
+    assert not_operator.status_code == 403
+    after = snapshot(session)
+    assert after["labellers"][:2] == before["labellers"]  # only lena was added
+
+
+def test_a_new_token_for_a_labeller_invalidates_the_old_one(client: TestClient) -> None:
+    old = new_labeller(client, "alice")
+    labeller_id = int(old.split(".")[0])
+    assert client.get("/api/label/count", headers=bearer(old)).status_code == 200  # cached
+    rotated = client.post(f"/api/labellers/{labeller_id}/token", headers=OPERATOR)
+    assert rotated.status_code == 200
+    new = rotated.json()["token"]
+    assert rotated.json()["name"] == "alice" and new != old
+    assert client.get("/api/label/count", headers=bearer(old)).status_code == 401
+    assert client.get("/api/label/count", headers=bearer(new)).status_code == 200
+    assert client.post("/api/labellers/999/token", headers=OPERATOR).status_code == 404
+
+
 def test_settings_come_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("SEPOA_DATA_DIR", "/srv/sepoa")
     monkeypatch.setenv("SEPOA_LEASE_SECONDS", "30")

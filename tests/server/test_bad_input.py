@@ -1,0 +1,146 @@
+"""Whatever a client sends, the answer is a clear 4xx: out-of-range numbers, oversized bodies,
+methods a path does not take; and every response carries the security headers."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import httpx
+import pytest
+import uvicorn
+from fastapi.testclient import TestClient
+from server_helpers import OPERATOR, bearer, new_labeller, new_run, snapshot
+from sqlalchemy.orm import Session
+
+from server.app import create_app
+from server.settings import Settings
+
+HUGE = 18446744073709551616  # 2**64: beyond every integer column
+TOO_BIG_FOR_INTEGER = 2**31  # beyond PostgreSQL's INTEGER, the ids' and budgets' column type
+
+
+def _detail_names(response: httpx.Response, name: str) -> bool:
+    detail = response.json()["detail"]
+    return any(name in error["loc"] for error in detail) if isinstance(detail, list) else False
+
+
+@pytest.mark.parametrize("number", [HUGE, TOO_BIG_FOR_INTEGER, -HUGE])
+def test_out_of_range_integers_are_a_422_naming_the_parameter(
+    client: TestClient, session: Session, number: int
+) -> None:
+    labeller = bearer(new_labeller(client, "alice"))
+    run = new_run(client)
+    before = snapshot(session)
+    body = {"task": "dmc:cheetah_run", "algo": "sac", "budget": 1}
+    label = {"choice": "left", "left_is_first": True, "shown_at": "2026-01-01T00:00:00Z"}
+    cases: list[tuple[str, str, dict[str, Any], str]] = [
+        ("GET", f"/api/label/next?run_id={number}", {"headers": labeller}, "run_id"),
+        ("GET", f"/api/label/next?ahead_of={number}", {"headers": labeller}, "ahead_of"),
+        ("GET", f"/api/runs/{number}", {"headers": OPERATOR}, "run_id"),
+        ("GET", f"/api/runs/{number}/throughput", {"headers": OPERATOR}, "run_id"),
+        ("GET", f"/api/runs/{run['id']}/metrics?after_step={number}", {"headers": OPERATOR},
+         "after_step"),
+        ("POST", f"/api/runs/{number}/pause", {"headers": OPERATOR}, "run_id"),
+        ("GET", f"/api/export?run_id={number}", {"headers": OPERATOR}, "run_id"),
+        ("POST", "/api/runs", {"headers": OPERATOR, "json": body | {"budget": number}}, "budget"),
+        ("POST", "/api/runs", {"headers": OPERATOR, "json": body | {"seed": number}}, "seed"),
+        ("PATCH", f"/api/labellers/{number}", {"headers": OPERATOR, "json": {"active": False}},
+         "labeller_id"),
+    ]
+    if number > 0:  # a negative id does not match these routes at all (404)
+        cases.append(("POST", f"/api/label/{number}", {"headers": labeller, "json": label},
+                      "query_id"))
+        cases.append(("GET", f"/api/clips/{number}/first?expires=1&sig=00", {}, "query_id"))
+    if abs(number) == HUGE:  # a clip URL's expiry is unix seconds: int64
+        cases.append(("GET", f"/api/clips/1/first?expires={number}&sig=00", {}, "expires"))
+    for method, url, kwargs, name in cases:
+        response = client.request(method, url, **kwargs)
+        assert response.status_code == 422, (url, response.text)
+        assert _detail_names(response, name), (url, response.text)
+    assert snapshot(session) == before
+
+
+def test_an_out_of_range_number_does_not_drop_the_connection(settings: Settings) -> None:
+    """Over a real socket: the next request on the same keep-alive connection still works."""
+    config = uvicorn.Config(create_app(settings), host="127.0.0.1", port=0, log_level="error")
+    server = uvicorn.Server(config)
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        deadline = time.monotonic() + 20
+        while not server.started:
+            assert time.monotonic() < deadline, "uvicorn did not start"
+            time.sleep(0.05)
+        port = server.servers[0].sockets[0].getsockname()[1]
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}") as http:
+            bad = http.get(f"/api/runs/{HUGE}", headers=OPERATOR)
+            assert bad.status_code == 422
+            assert http.get("/api/runs", headers=OPERATOR).status_code == 200
+            assert bad.headers.get("connection") != "close"
+    finally:
+        server.should_exit = True
+        thread.join(timeout=20)
+
+
+def test_a_body_over_the_limit_is_a_413_and_nothing_is_stored(
+    client: TestClient, session: Session
+) -> None:
+    before = snapshot(session)
+    config = {"note": "x" * (80 * 1024)}
+    body = {"task": "dmc:cheetah_run", "algo": "sac", "budget": 1, "config": config}
+    response = client.post("/api/runs", json=body, headers=OPERATOR)
+    assert response.status_code == 413
+    assert "65536 bytes" in response.json()["detail"]
+
+    def chunks() -> Iterator[bytes]:  # no Content-Length: counted as it streams in
+        yield b'{"task": "dmc:cheetah_run", "algo": "sac", "budget": 1, "name": "'
+        for _ in range(100):
+            yield b"y" * 1024
+        yield b'"}'
+
+    headers = OPERATOR | {"Content-Type": "application/json"}
+    streamed = client.post("/api/runs", content=chunks(), headers=headers)
+    assert streamed.status_code == 413 and "65536 bytes" in streamed.json()["detail"]
+    assert snapshot(session) == before
+
+
+def test_a_run_config_over_16_kib_is_refused_so_the_dashboard_stays_small(
+    client: TestClient, session: Session
+) -> None:
+    before = snapshot(session)
+    body = {"task": "dmc:cheetah_run", "algo": "sac", "budget": 1}
+    for field in ("config", "teacher_params"):
+        big = {f"key{i}": "v" * 100 for i in range(200)}  # about 22 KiB as JSON
+        response = client.post("/api/runs", json=body | {field: big}, headers=OPERATOR)
+        assert response.status_code == 422, response.text
+        assert _detail_names(response, field) and "16384" in response.text
+    assert snapshot(session) == before
+    assert client.post("/api/runs", json=body | {"config": {"sac.lr": 1e-4}},
+                       headers=OPERATOR).status_code == 201
+
+
+def test_a_method_a_path_does_not_take_is_a_405_listing_those_it_does(
+    client: TestClient,
+) -> None:
+    labeller = bearer(new_labeller(client, "alice"))
+    options = client.options("/api/runs", headers=OPERATOR)
+    assert options.status_code == 405 and options.headers["allow"] == "GET, POST"
+    for path in ("/api/label/count", "/api/label/next"):
+        response = client.post(path, json={}, headers=labeller)
+        assert response.status_code == 405, response.text
+        assert response.headers["allow"] == "GET"
+    put = client.put("/api/labellers/1", json={}, headers=OPERATOR)
+    assert put.status_code == 405 and put.headers["allow"] == "PATCH"
+
+
+@pytest.mark.parametrize("path", ["/", "/label", "/runs", "/runs/1", "/api/runs", "/healthz",
+                                  "/static/api.js", "/nothing-here"])
+def test_every_response_forbids_framing_and_sniffing(client: TestClient, path: str) -> None:
+    response = client.get(path)
+    assert response.headers["x-frame-options"] == "DENY"
+    assert "frame-ancestors 'none'" in response.headers["content-security-policy"]
+    assert response.headers["x-content-type-options"] == "nosniff"
+    assert response.headers["referrer-policy"] == "same-origin"
