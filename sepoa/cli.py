@@ -10,6 +10,7 @@ the others import only the server or the queue package, so they start fast.
     sepoa report results/dmc-curves-small                            # its figures and tables
     sepoa export --format parquet --run 3 --out labels.parquet
     sepoa labeller create alice [--role operator]
+    sepoa labeller revoke alice | activate alice | token alice | list
     sepoa tasks | presets
 """
 
@@ -18,6 +19,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from typing import NoReturn
 
 TRAINER_COMMANDS = {
     "train": "train one run standalone, answered by a scripted teacher",
@@ -28,6 +30,20 @@ TRAINER_COMMANDS = {
     "tasks": "list valid task names",
     "presets": "print the presets",
 }
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An argument error is one line on stderr, naming what is wrong (and where help is), with
+    exit status 2; not the whole usage."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def fail(message: str) -> int:
+    """Print `error: message` on stderr; the exit status of a user's mistake."""
+    print(f"error: {message}", file=sys.stderr)
+    return 2
 
 
 def _database_args(p: argparse.ArgumentParser, inherit: bool = False) -> None:
@@ -42,15 +58,24 @@ def _database_args(p: argparse.ArgumentParser, inherit: bool = False) -> None:
                    help="where the SQLite file, runs and clips live (env SEPOA_DATA_DIR)")
 
 
-def _database_url(args: argparse.Namespace) -> str:
-    from labelqueue import sqlite_url
+LABELLER_ACTIONS = {
+    "revoke": "revoke a labeller's access (its labels stay; leasing and answering stop at once)",
+    "activate": "restore a revoked labeller's access",
+    "token": "give a labeller a new token (printed once); its old token stops working",
+}
+NAME_MAX = 100
 
-    return args.database_url or sqlite_url(args.data_dir)
+
+def _database_url(args: argparse.Namespace) -> str:
+    """The queue database's URL; ValueError when it is not one this app can open."""
+    from labelqueue import check_url, sqlite_url
+
+    return check_url(args.database_url or sqlite_url(args.data_dir))
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="sepoa", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = OneLineParser(prog="sepoa", description=__doc__,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
 
     up = sub.add_parser("up", help="start the server and a worker on SQLite, with a demo run")
@@ -58,6 +83,9 @@ def _parser() -> argparse.ArgumentParser:
     up.add_argument("--host", default="127.0.0.1")
     up.add_argument("--port", type=int, default=8000)
     up.add_argument("--workers", type=int, default=1, help="trainer worker processes")
+    up.add_argument("--threads", type=int, default=None,
+                    help="torch CPU threads per worker; default: the cores divided among the "
+                    "workers and the server")
     up.add_argument("--no-demo", action="store_true",
                     help="do not queue the demo run on a fresh database")
 
@@ -72,7 +100,7 @@ def _parser() -> argparse.ArgumentParser:
     export.add_argument("--run", type=int, default=None, help="one run's labels only")
     export.add_argument("--out", default="-", help="file to write; - for standard output")
 
-    labeller = sub.add_parser("labeller", help="create or list labellers")
+    labeller = sub.add_parser("labeller", help="create, list, revoke or restore labellers")
     _database_args(labeller)
     labeller_sub = labeller.add_subparsers(dest="action", required=True)
     create = labeller_sub.add_parser("create", help="a new labeller; prints its token once")
@@ -80,6 +108,10 @@ def _parser() -> argparse.ArgumentParser:
     create.add_argument("--role", choices=("labeller", "operator"), default="labeller")
     _database_args(create, inherit=True)
     _database_args(labeller_sub.add_parser("list", help="list labellers"), inherit=True)
+    for action, text in LABELLER_ACTIONS.items():
+        one = labeller_sub.add_parser(action, help=text)
+        one.add_argument("name")
+        _database_args(one, inherit=True)
 
     for name, text in TRAINER_COMMANDS.items():
         sub.add_parser(name, help=text, add_help=False)  # parsed by trainer.cli
@@ -89,6 +121,11 @@ def _parser() -> argparse.ArgumentParser:
 def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
+    from sepoa.up import port_free
+
+    # Before anything is created or migrated: a busy port leaves no new database behind.
+    if not port_free(args.host, args.port):
+        return fail(f"{args.host}:{args.port} is in use; pick another with --port")
     os.environ["SEPOA_DATABASE_URL"] = _database_url(args)
     os.environ["SEPOA_DATA_DIR"] = args.data_dir
     uvicorn.run("server.app:app", host=args.host, port=args.port)
@@ -105,9 +142,15 @@ def _export(args: argparse.Namespace) -> int:
     url = _database_url(args)
     parsed = make_url(url)
     if parsed.get_backend_name() == "sqlite" and not os.path.exists(parsed.database or ""):
-        print(f"error: no queue database at {parsed.database} (--data-dir / --database-url)",
-              file=sys.stderr)
-        return 2
+        return fail(f"no queue database at {parsed.database} (--data-dir / --database-url)")
+    if args.out != "-":
+        folder = os.path.dirname(os.path.abspath(args.out))
+        if not os.path.isdir(folder):
+            return fail(f"--out {args.out}: the folder {folder} does not exist; give a file in "
+                        "an existing folder, or - for standard output")
+        if os.path.isdir(args.out):
+            return fail(f"--out {args.out} is a folder; give a file name, or - for standard "
+                        "output")
     engine = make_engine(url)
     tmp = f"{args.out}.partial"
     try:
@@ -120,11 +163,12 @@ def _export(args: argparse.Namespace) -> int:
                     rows = write_export(session, fmt=args.format, out=f, run_id=args.run)
                 os.replace(tmp, args.out)
     except NotFound as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+        return fail(str(err))
     except DBAPIError as err:
-        print(f"error: cannot read labels from {url}: {err.orig}", file=sys.stderr)
-        return 2
+        return fail(f"cannot read labels from {parsed.render_as_string(hide_password=True)}: "
+                    f"{str(err.orig).strip().splitlines()[0] if err.orig else err}")
+    except OSError as err:
+        return fail(f"cannot write --out {args.out}: {err.strerror or err}")
     finally:
         engine.dispose()
         if os.path.exists(tmp):
@@ -135,32 +179,56 @@ def _export(args: argparse.Namespace) -> int:
 
 def _labeller(args: argparse.Namespace) -> int:
     from sqlalchemy import select
+    from sqlalchemy.exc import DBAPIError
 
     from labelqueue import (
         Conflict,
         Labeller,
         create_labeller,
+        find_labeller,
         make_engine,
         migrate,
+        rotate_token,
         session_factory,
+        update_labeller,
     )
 
+    name = getattr(args, "name", None)
+    if name is not None and not 1 <= len(name) <= NAME_MAX:  # as POST /api/labellers
+        return fail(f"labeller name {name!r} is not valid: give 1 to {NAME_MAX} characters")
     url = _database_url(args)
-    migrate(url)
+    try:
+        migrate(url)
+    except DBAPIError as err:
+        return fail(f"cannot open the queue database: {str(err.orig).strip().splitlines()[0]}")
     engine = make_engine(url)
-    with session_factory(engine)() as session:
-        if args.action == "create":
-            try:
-                labeller, token = create_labeller(session, name=args.name, role=args.role)
-            except Conflict as err:
-                print(f"error: {err}", file=sys.stderr)
-                return 2
-            print(f"{labeller.role} {labeller.name!r} created; its token (shown once):")
-            print(token)
-        else:
-            for lab in session.scalars(select(Labeller).order_by(Labeller.id)):
-                print(f"{lab.id}\t{lab.name}\t{lab.role}\t{'active' if lab.active else 'revoked'}")
-    engine.dispose()
+    try:
+        with session_factory(engine)() as session:
+            if args.action == "create":
+                try:
+                    labeller, token = create_labeller(session, name=name, role=args.role)
+                except Conflict as err:
+                    return fail(str(err))
+                print(f"{labeller.role} {labeller.name!r} created; its token (shown once):")
+                print(token)
+            elif args.action == "list":
+                for lab in session.scalars(select(Labeller).order_by(Labeller.id)):
+                    state = "active" if lab.active else "revoked"
+                    print(f"{lab.id}\t{lab.name}\t{lab.role}\t{state}")
+            else:
+                found = find_labeller(session, name=name)
+                if found is None:
+                    return fail(f"no labeller named {name!r} (sepoa labeller list shows them)")
+                if args.action == "token":
+                    _, token = rotate_token(session, labeller_id=found.id)
+                    print(f"new token for {name!r} (shown once; the old one no longer works):")
+                    print(token)
+                else:
+                    active = args.action == "activate"
+                    update_labeller(session, labeller_id=found.id, active=active)
+                    print(f"{name!r} {'activated' if active else 'revoked'}")
+    finally:
+        engine.dispose()
     return 0
 
 
@@ -171,16 +239,22 @@ def main(argv: list[str] | None = None) -> int:
 
         return trainer_main(argv)
     args = _parser().parse_args(argv)
-    if args.command == "up":
-        from sepoa.up import up
+    try:
+        if args.command == "up":
+            from sepoa.up import up
 
-        return up(database_url=_database_url(args), data_dir=args.data_dir, host=args.host,
-                  port=args.port, workers=args.workers, demo=not args.no_demo)
-    if args.command == "serve":
-        return _serve(args)
-    if args.command == "export":
-        return _export(args)
-    return _labeller(args)
+            if args.workers < 1 or (args.threads is not None and args.threads < 1):
+                return fail("--workers and --threads must be at least 1")
+            return up(database_url=_database_url(args), data_dir=args.data_dir, host=args.host,
+                      port=args.port, workers=args.workers, demo=not args.no_demo,
+                      threads=args.threads)
+        if args.command == "serve":
+            return _serve(args)
+        if args.command == "export":
+            return _export(args)
+        return _labeller(args)
+    except ValueError as err:  # a database URL that cannot be opened, among others
+        return fail(str(err))
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from labelqueue import Run, create_labeller, create_run, make_engine, migrate, session_factory
+from trainer.threads import default_threads, describe
 
 DEMO_RUN: dict[str, Any] = {
     "name": "demo: cheetah run, taught in the browser",
@@ -65,16 +66,19 @@ def _queue_demo_run(url: str) -> int | None:
     return None if run is None else run.id
 
 
-def _port_free(host: str, port: int) -> bool:
+def port_free(host: str, port: int) -> bool:
     with socket.socket() as sock:
         return sock.connect_ex((host, port)) != 0
 
 
 def up(*, database_url: str, data_dir: str, host: str, port: int, workers: int,
-       demo: bool) -> int:
-    if not _port_free(host, port):
+       demo: bool, threads: int | None = None) -> int:
+    if not port_free(host, port):
         print(f"error: {host}:{port} is in use; pick another with --port", file=sys.stderr)
         return 2
+    chosen = threads is not None
+    threads = threads or default_threads(workers=workers, server=True)
+    print(describe(threads, workers=workers, server=True, chosen=chosen), flush=True)
     migrate(database_url)
     creds = _credentials(Path(data_dir) / "credentials.json", database_url)
     demo_run = _queue_demo_run(database_url) if demo else None
@@ -90,7 +94,8 @@ def up(*, database_url: str, data_dir: str, host: str, port: int, workers: int,
         worker_id = f"{socket.gethostname()}-up-{i}"
         children.append(subprocess.Popen(
             [python, "-m", "trainer.cli", "worker", "--database-url", database_url,
-             "--data-dir", data_dir, "--worker-id", worker_id], env=env))
+             "--data-dir", data_dir, "--worker-id", worker_id, "--threads", str(threads)],
+            env=env))
 
     base = f"http://{host}:{port}"
     print(f"\nS-EPOA labelling is up at {base}\n"

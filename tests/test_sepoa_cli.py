@@ -1,9 +1,17 @@
 """The `sepoa` command's database commands: labellers and export, flags before or after the
-action, and a clear error for a database that is not there."""
+action; and every mistake a user can make is one line of error with exit status 2."""
 
 from __future__ import annotations
 
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
 from sepoa.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_labellers_are_created_and_listed_with_the_data_folder_given_anywhere(tmp_path, capsys):
@@ -29,3 +37,63 @@ def test_export_names_a_missing_database_and_writes_an_empty_one(tmp_path, capsy
     assert out.read_text() == "" and not (tmp_path / "labels.jsonl.partial").exists()
     assert main(["export", "--data-dir", str(data), "--run", "7"]) == 2
     assert "run 7 does not exist" in capsys.readouterr().err
+
+
+def test_labellers_are_revoked_restored_and_given_new_tokens(tmp_path, capsys):
+    from labelqueue import authenticate, make_engine, session_factory, sqlite_url
+
+    data = str(tmp_path / "data")
+    assert main(["labeller", "create", "zoe", "--data-dir", data]) == 0
+    old = capsys.readouterr().out.splitlines()[1]
+    assert main(["labeller", "revoke", "zoe", "--data-dir", data]) == 0
+    assert main(["labeller", "list", "--data-dir", data]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == "1\tzoe\tlabeller\trevoked"
+    assert main(["labeller", "--data-dir", data, "activate", "zoe"]) == 0
+    assert main(["labeller", "token", "zoe", "--data-dir", data]) == 0
+    new = capsys.readouterr().out.splitlines()[-1]
+    engine = make_engine(sqlite_url(data))
+    with session_factory(engine)() as session:
+        assert authenticate(session, token=old) is None  # replaced by the new token
+        assert authenticate(session, token=new) is not None  # and active again
+    engine.dispose()
+    assert main(["labeller", "revoke", "nobody", "--data-dir", data]) == 2
+    assert "no labeller named 'nobody'" in capsys.readouterr().err
+
+
+def _sepoa(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    code = "import sys; from sepoa.cli import main; sys.exit(main())"
+    env = os.environ | {"OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    return subprocess.run([sys.executable, "-c", code, *args], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=120)
+
+
+def test_every_cli_mistake_is_one_line_with_exit_status_2(tmp_path, capsys):
+    data = tmp_path / "data"
+    assert main(["labeller", "create", "zoe", "--data-dir", str(data)]) == 0  # a real database
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = str(busy.getsockname()[1])
+        cases = [
+            (["export", "--data-dir", str(data), "--out", "/nonexistent/dir/x.jsonl"],
+             ["/nonexistent/dir", "does not exist"]),
+            (["export", "--database-url", "nonsense://x"], ["nonsense://x", "sqlite:///"]),
+            (["worker", "--database-url", "nonsense://x", "--once"],
+             ["nonsense://x", "postgresql+psycopg://"]),
+            (["train", "--steps", "abc"], ["--steps", "invalid integer value: 'abc'"]),
+            (["labeller", "create", "", "--data-dir", str(data)], ["''", "1 to 100 characters"]),
+            (["serve", "--port", port, "--data-dir", str(tmp_path / "fresh")],
+             [f"127.0.0.1:{port} is in use", "--port"]),
+            (["export", "--format", "xml"], ["'xml'", "jsonl"]),
+        ]
+        for args, words in cases:
+            out = _sepoa(*args, cwd=tmp_path)
+            lines = out.stderr.strip().splitlines()
+            assert out.returncode == 2, (args, out.stderr)
+            assert len(lines) == 1 and "Traceback" not in out.stderr, (args, out.stderr)
+            assert all(word in lines[0] for word in words), (args, lines[0])
+    # Nothing was created by the refused commands: no empty labeller, no database.
+    assert not (tmp_path / "fresh").exists()
+    capsys.readouterr()
+    assert main(["labeller", "list", "--data-dir", str(data)]) == 0
+    assert capsys.readouterr().out.splitlines() == ["1\tzoe\tlabeller\tactive"]

@@ -24,6 +24,29 @@ import sys
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
+# How an argument error names the value a flag takes (by the flag's metavar).
+TYPE_WORDS = {"INT": "integer", "FLOAT": "number", "BOOL": "boolean (true or false)",
+              "STR": "string"}
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An argument error is one line naming the flag and the kind of value it takes, with exit
+    status 2, instead of the whole usage; sub-commands' parsers are of this class too."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+    def add_argument(self, *args, **kwargs):
+        kind = kwargs.get("type")
+        if callable(kind) and getattr(kind, "__name__", "") == "<lambda>":
+            def parse(text, kind=kind):
+                return kind(text)
+
+            # argparse says "invalid <type name> value": name it for what the flag takes.
+            parse.__name__ = TYPE_WORDS.get(str(kwargs.get("metavar")), "number")
+            kwargs["type"] = parse
+        return super().add_argument(*args, **kwargs)
+
 
 def _train_parser(sub) -> argparse.ArgumentParser:
     from trainer.config import add_config_arguments
@@ -96,7 +119,13 @@ def _worker_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--once", action="store_true", help="exit when no run is waiting")
     p.add_argument("--poll-seconds", type=float, default=2.0)
     p.add_argument("--device", default=None, help="overrides each run's device: auto|cpu|cuda")
-    p.add_argument("--threads", type=int, default=None, help="overrides each run's torch threads")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch CPU threads per run; default: the cores divided by "
+                   "--host-processes")
+    p.add_argument("--host-processes", type=int,
+                   default=int(env("SEPOA_HOST_PROCESSES", "2")),
+                   help="processes sharing this host's cores: the training workers, plus one "
+                   "for the server if it runs here (env SEPOA_HOST_PROCESSES)")
     p.add_argument("--clip-size", type=int, default=128, help="clip width and height in pixels")
     p.add_argument("--clip-fps", type=float, default=30.0)
     p.add_argument("--clip-shadow-size", type=int, default=512,
@@ -109,7 +138,9 @@ def _worker_parser(sub) -> argparse.ArgumentParser:
 def _run_worker(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from labelqueue import sqlite_url
+    from sqlalchemy.exc import DBAPIError
+
+    from labelqueue import check_url, sqlite_url
     from trainer.clips import ClipConfig
     from trainer.worker import WorkerConfig, run_worker
 
@@ -119,18 +150,36 @@ def _run_worker(args: argparse.Namespace) -> int:
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    from trainer.threads import cpu_cores
+
+    if (args.threads is not None and args.threads < 1) or args.host_processes < 1:
+        print("error: --threads and --host-processes must be at least 1", file=sys.stderr)
+        return 2
+    threads = args.threads or max(1, cpu_cores() // args.host_processes)
     extra = {"worker_id": args.worker_id} if args.worker_id else {}
-    url = args.database_url or sqlite_url(args.data_dir)
+    try:
+        url = check_url(args.database_url or sqlite_url(args.data_dir))
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    why = ("--threads" if args.threads is not None else
+           f"{cpu_cores()} cores shared by {args.host_processes} processes; --threads or "
+           "--host-processes to change")
+    print(f"[worker] torch threads: {threads} ({why})", file=sys.stderr, flush=True)
     worker = WorkerConfig(
         database_url=url, data_dir=Path(args.data_dir),
         clips_dir=Path(args.clips_dir) if args.clips_dir else None, once=args.once,
-        poll_seconds=args.poll_seconds, device=args.device, threads=args.threads, clip=clip,
+        poll_seconds=args.poll_seconds, device=args.device, threads=threads, clip=clip,
         **extra,
     )
     try:
         run_worker(worker)
     except KeyboardInterrupt:
         return 130
+    except DBAPIError as err:  # the database cannot be reached (or went away)
+        first = str(err.orig or err).strip().splitlines()[0]
+        print(f"error: queue database {url.split('@')[-1]}: {first}", file=sys.stderr)
+        return 2
     return 0
 
 
@@ -219,8 +268,8 @@ def _config_from_args(args: argparse.Namespace):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="sepoa", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = OneLineParser(prog="sepoa", description=__doc__,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     _train_parser(sub)
     _pretrain_parser(sub)
@@ -261,6 +310,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     print(f"run directory: {run.run_dir}", file=sys.stderr)
+    from trainer.threads import cpu_cores
+
+    print("torch threads: " + (f"{cfg.threads} (--threads)" if cfg.threads > 0 else
+          f"torch's default, one per core ({cpu_cores()}); --threads 1 when processes share "
+          "the cores"), file=sys.stderr, flush=True)
     summary = run.train()
     print(json.dumps(summary))
     return 0

@@ -43,6 +43,7 @@ from labelqueue import (
     Label,
     Labeller,
     Run,
+    RunClosed,
     RunStatus,
     TeacherKind,
     cancel_queries,
@@ -249,9 +250,12 @@ class QueueHooks(RunHooks):
                 if query is None:  # an older round's query left open: not this round's to answer
                     cancel_queries(session, run_id=self.run_id, query_ids=[leased.id])
                     continue
-                submit_label(session, query_id=leased.id, labeller_id=self.scripted_id,
-                             choice=SCRIPTED_SCREEN[query.shadow_choice], left_is_first=True,
-                             source="scripted")
+                try:
+                    submit_label(session, query_id=leased.id, labeller_id=self.scripted_id,
+                                 choice=SCRIPTED_SCREEN[query.shadow_choice],
+                                 left_is_first=True, source="scripted")
+                except RunClosed:  # stopped meanwhile; the caller's stop check ends the run
+                    return
 
     def answers(self, feedback: PreferenceFeedback, pool: TrajectoryPool,
                 final: bool) -> dict[str, Answer] | None:
