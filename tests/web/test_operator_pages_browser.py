@@ -1,5 +1,6 @@
 """The operator's pages in a real headless Chromium: the new-run form shows the API's 422
-errors and creates runs; a run's page draws its curves, pauses it and downloads its labels."""
+errors and creates runs; a run's page draws its curves, pauses it and downloads its labels;
+the labellers panel revokes, restores and re-keys a labeller."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+import httpx
 from web_helpers import OPERATOR_TOKEN, LiveServer
 
 from labelqueue import (
@@ -117,3 +119,28 @@ def test_a_run_page_draws_curves_pauses_the_run_and_exports_its_labels(
     download.save_as(saved)
     rows = [json.loads(line) for line in saved.read_text().splitlines()]
     assert [(row["run_id"], row["choice"]) for row in rows] == [(run_id, "right")]
+
+
+def test_the_runs_page_revokes_restores_and_rekeys_a_labeller(live: LiveServer, page: Any) -> None:
+    created = live.api("POST", "/api/labellers", json={"name": "page-revokes-me"})
+    old = {"Authorization": f"Bearer {created['token']}"}
+    page.on("dialog", lambda dialog: dialog.accept())  # the confirmations
+    page.goto(f"{live.url}/runs#token={OPERATOR_TOKEN}")
+    row = "#labellers-body tr[data-labeller='page-revokes-me']"
+    page.wait_for_selector(row)
+
+    page.click(f"{row} button:text('Revoke')")
+    page.wait_for_selector(f"{row} .badge:text('revoked')")
+    assert httpx.get(f"{live.url}/api/label/count", headers=old).status_code == 401
+
+    page.click(f"{row} button:text('Activate')")
+    page.wait_for_selector(f"{row} .badge:text('active')")
+    assert httpx.get(f"{live.url}/api/label/count", headers=old).status_code == 200
+
+    page.click(f"{row} button:text('New token')")
+    page.wait_for_selector("#new-token:not([hidden]) code")
+    new = page.inner_text("#new-token code")
+    assert new != created["token"] and "page-revokes-me" in page.inner_text("#new-token")
+    assert httpx.get(f"{live.url}/api/label/count", headers=old).status_code == 401
+    fresh = {"Authorization": f"Bearer {new}"}
+    assert httpx.get(f"{live.url}/api/label/count", headers=fresh).status_code == 200

@@ -286,7 +286,7 @@ async function submit(queryId, body) {
     }
   } catch (error) {
     if (error instanceof SignedOut) throw error;
-    if (error.status === 409) notice("That pair was no longer yours (its lease ran out): moving on.");
+    if (error.status === 409) notice(`That pair can no longer be answered (${error.message}): moving on.`);
     else notice(`Your answer could not be saved: ${error.message}`, "error");
   }
 }

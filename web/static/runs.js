@@ -2,6 +2,7 @@
 
 import { ApiError, SignedOut, get, post, start } from "./api.js";
 import { el, lastReturn, notify, num, poller, runActions } from "./dom.js";
+import { loadLabellers } from "./labellers.js";
 
 const refresh = poller(async () => {
   try {
@@ -107,4 +108,5 @@ async function createRun(event) {
 start(() => {
   document.getElementById("new-run").addEventListener("submit", createRun);
   refresh();
+  loadLabellers();
 });

@@ -1,0 +1,63 @@
+// The labellers table on the runs page: revoke or restore access, switch role, give a new token.
+
+import { SignedOut, get, request } from "./api.js";
+import { el, notify } from "./dom.js";
+
+export async function loadLabellers() {
+  try {
+    render(await get("/api/labellers"));
+  } catch (error) {
+    if (!(error instanceof SignedOut)) notify(`Could not load the labellers: ${error.message}`, "error");
+  }
+}
+
+function render(labellers) {
+  const body = document.getElementById("labellers-body");
+  if (labellers.length === 0) {
+    body.replaceChildren(el("tr", {}, el("td", { colspan: 5, class: "muted" },
+      "No labellers yet: `sepoa labeller create NAME` or POST /api/labellers.")));
+    return;
+  }
+  body.replaceChildren(...labellers.map((who) => el("tr", { "data-labeller": who.name },
+    el("td", {}, String(who.id)),
+    el("td", { class: "name" }, who.name),
+    el("td", {}, who.role),
+    el("td", {}, el("span", { class: `badge ${who.active ? "running" : "stopped"}` },
+      who.active ? "active" : "revoked")),
+    el("td", { class: "actions" },
+      button(who.active ? "Revoke" : "Activate", () =>
+        change(who, { active: !who.active }, who.active ? "revoked" : "activated",
+          who.active && `Revoke ${who.name}? Their answers stop being accepted at once.`)),
+      button(who.role === "operator" ? "Make labeller" : "Make operator", () =>
+        change(who, { role: who.role === "operator" ? "labeller" : "operator" }, "role changed",
+          `Change ${who.name}'s role?`)),
+      button("New token", () => newToken(who))),
+  )));
+}
+
+function button(label, onclick) {
+  return el("button", { type: "button", class: "small", onclick }, label);
+}
+
+async function change(who, body, done, ask) {
+  if (ask && !confirm(ask)) return;
+  try {
+    await request("PATCH", `/api/labellers/${who.id}`, body);
+    notify(`${who.name}: ${done}.`);
+  } catch (error) {
+    if (!(error instanceof SignedOut)) notify(`${who.name}: ${error.message}`, "error");
+  }
+  loadLabellers();
+}
+
+async function newToken(who) {
+  if (!confirm(`Give ${who.name} a new token? The old one stops working.`)) return;
+  try {
+    const { data } = await request("POST", `/api/labellers/${who.id}/token`);
+    const shown = document.getElementById("new-token");
+    shown.replaceChildren(`New token for ${data.name} (shown once): `, el("code", {}, data.token));
+    shown.hidden = false;
+  } catch (error) {
+    if (!(error instanceof SignedOut)) notify(`${who.name}: ${error.message}`, "error");
+  }
+}
