@@ -149,9 +149,11 @@ class PreferenceFeedback:
         n = min(self.cfg.per_round, self.budget_left)
         rule = self.cfg.first_round_selection if self.rounds == 0 else self.cfg.selection
         trajectories = list(pool.trajectories)
+        compare = bool(self.cfg.compare_rule) and rule != "uniform"
         rewards = None
-        if rule == "skill":  # R_theta on the trajectories that came since the last round too
+        if rule == "skill" or compare:  # the pool scored once, for every use below
             rewards = pool_rewards(self.model, trajectories)
+        if rule == "skill":  # R_theta on the trajectories that came since the last round too
             self.fit_estimator(pool, rewards)
         selection = select_queries(
             rule, self.model, trajectories, n, self.cfg.candidate_factor,
@@ -160,7 +162,7 @@ class PreferenceFeedback:
         )
         h = self.cfg.segment_length
         self.compare_ratio = float("nan")
-        if self.cfg.compare_rule and rule != "uniform":
+        if compare:
             self.compare_ratio = self._compare(pool, n, rewards)
         pairs = _pairs(trajectories, selection.queries)
         # The teacher answers now, once per query, whoever ends up answering: its random stream
@@ -182,7 +184,7 @@ class PreferenceFeedback:
         self.pending = queries
         return queries
 
-    def _compare(self, pool: TrajectoryPool, n: int, rewards: PoolRewards | None) -> float:
+    def _compare(self, pool: TrajectoryPool, n: int, rewards: PoolRewards) -> float:
         """The share of `cfg.compare_rule`'s picks on this pool and model that the teacher
         could tell apart. Its own random streams (a generator seeded by the round, a copy of
         the teacher): the run's selection and answers are the same with or without it."""

@@ -512,7 +512,6 @@ class TrainingRun:
             "torch_rng": torch.get_rng_state(),
             "env_rng": self.env.rng_state(),
             "eval_env_rng": self.eval_env.rng_state(),
-            "skill": self.skill,
             "task_skill": self.task_skill,
         }
         if self.device.type == "cuda":
@@ -534,7 +533,7 @@ class TrainingRun:
                 f"is version {LOOP_VERSION}, whose {self.cfg.algo} differs (S-EPOA's initial "
                 "rollouts, per-query selection, z_task updates and critic reset; the updates "
                 "after a critic reset), so the run cannot resume as it began: start a new run")
-        self.skill, self.task_skill = state["skill"], state["task_skill"]
+        self.task_skill = state["task_skill"]
         self.step, self.episode = state["step"], state["episode"]
         self.next_round_step = state["next_round_step"]
         self.last_eval_step = state["last_eval_step"]

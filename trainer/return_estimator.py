@@ -52,12 +52,7 @@ class ReturnEstimator:
         self.nets = EnsembleMLP(cfg.estimator_ensemble, skill_dim, 1, cfg.estimator_hidden_dim,
                                 cfg.estimator_hidden_layers, output_activation=nn.Tanh).to(device)
         self.opt = torch.optim.Adam(self.nets.parameters(), lr=cfg.estimator_lr)
-        self.fits = 0
-        """how many times `fit` has run (z_task held between refits is drawn anew after one)"""
-
-    @property
-    def fitted(self) -> bool:
-        return self.fits > 0
+        self.fitted = False
 
     def fit(self, skills: np.ndarray, predicted_returns: np.ndarray) -> dict[str, float]:
         """Regress the min-max normalised `predicted_returns` (n,) on `skills` (n, d)."""
@@ -70,7 +65,7 @@ class ReturnEstimator:
             self.opt.zero_grad(set_to_none=True)
             loss.backward()
             self.opt.step()
-        self.fits += 1
+        self.fitted = True
         return {"estimator_loss": loss.item()}
 
     @torch.no_grad()
@@ -84,9 +79,10 @@ class ReturnEstimator:
         return candidates[int(self.predict(candidates).argmax())]
 
     def state_dict(self) -> dict:
-        return {"nets": self.nets.state_dict(), "opt": self.opt.state_dict(), "fits": self.fits}
+        return {"nets": self.nets.state_dict(), "opt": self.opt.state_dict(),
+                "fitted": self.fitted}
 
     def load_state_dict(self, state: dict) -> None:
         self.nets.load_state_dict(state["nets"])
         self.opt.load_state_dict(state["opt"])
-        self.fits = state["fits"]
+        self.fitted = state["fitted"]
