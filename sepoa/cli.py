@@ -11,6 +11,7 @@ the others import only the server or the queue package, so they start fast.
     sepoa export --format parquet --run 3 --out labels.parquet
     sepoa labeller create alice [--role operator]
     sepoa labeller revoke alice | activate alice | token alice | list
+    sepoa doctor                      # can this machine render clips? (EGL, OSMesa, fps, upright)
     sepoa tasks | presets
 """
 
@@ -27,6 +28,7 @@ TRAINER_COMMANDS = {
     "worker": "train the runs queued in the queue database",
     "experiment": "run a spec's grid of runs as resumable processes (docs/EXPERIMENTS.md)",
     "report": "figures and tables of an experiment's results",
+    "doctor": "check off-screen rendering: EGL and OSMesa, GL strings, fps, upright frames",
     "tasks": "list valid task names",
     "presets": "print the presets",
 }

@@ -11,6 +11,7 @@
                                                    # a spec's grid of runs, resumable
     sepoa experiment status specs/small/dmc-curves.toml --results results
     sepoa report results/dmc-curves-small        # figures + tables -> <folder>/report
+    sepoa doctor                                   # can this machine render clips? EGL, OSMesa
     sepoa tasks                                    # list valid task names
     sepoa presets                                  # show the presets as data
 """
@@ -141,8 +142,7 @@ def _run_worker(args: argparse.Namespace) -> int:
     from sqlalchemy.exc import DBAPIError
 
     from labelqueue import check_url, sqlite_url
-    from trainer.clips import ClipConfig
-    from trainer.worker import WorkerConfig, run_worker
+    from trainer.clips import ClipConfig  # no MuJoCo yet: the rendering check comes first
 
     try:
         clip = ClipConfig(width=args.clip_size, height=args.clip_size, fps=args.clip_fps,
@@ -162,6 +162,15 @@ def _run_worker(args: argparse.Namespace) -> int:
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    from trainer.doctor import RenderingUnavailable, choose_backend
+
+    try:  # a probe process per backend: a broken EGL cannot take this process down
+        choose_backend(lambda line: print(f"[worker] {line}", file=sys.stderr, flush=True))
+    except RenderingUnavailable as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    from trainer.worker import WorkerConfig, run_worker  # imports MuJoCo
+
     why = ("--threads" if args.threads is not None else
            f"{cpu_cores()} cores shared by {args.host_processes} processes; --threads or "
            "--host-processes to change")
@@ -223,6 +232,31 @@ def _run_experiment(args: argparse.Namespace) -> int:
     return outcome.exit_code
 
 
+def _doctor_parser(sub) -> argparse.ArgumentParser:
+    from trainer.doctor import BACKENDS, TASKS
+
+    p = sub.add_parser("doctor", help="check off-screen rendering: which of EGL and OSMesa "
+                       "works, GL strings, fps, upright frames",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--backend", action="append", choices=BACKENDS, default=None,
+                   help=f"a backend to check (repeatable); default {' and '.join(BACKENDS)}")
+    p.add_argument("--task", action="append", default=None,
+                   help=f"a task to render (repeatable); default {' and '.join(TASKS)}")
+    p.add_argument("--size", type=int, default=128, help="frame width and height in pixels")
+    p.add_argument("--frames", type=int, default=20, help="frames timed after the first")
+    return p
+
+
+def _run_doctor(args: argparse.Namespace) -> int:
+    from trainer.doctor import BACKENDS, TASKS, run_doctor
+
+    if not 16 <= args.size <= 2048 or args.frames < 0:
+        print("error: --size takes 16 to 2048 pixels and --frames at least 0", file=sys.stderr)
+        return 2
+    return run_doctor(args.backend or BACKENDS, args.task or TASKS, size=args.size,
+                      frames=args.frames)
+
+
 def _report_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser("report", help="figures and tables of a spec's results")
     p.add_argument("folder", help="<results>/<spec name>, the folder holding spec.toml")
@@ -276,6 +310,7 @@ def main(argv: list[str] | None = None) -> int:
     _worker_parser(sub)
     _experiment_parser(sub)
     _report_parser(sub)
+    _doctor_parser(sub)
     sub.add_parser("tasks", help="list valid task names")
     sub.add_parser("presets", help="print the presets")
     args = parser.parse_args(argv)
@@ -299,6 +334,8 @@ def main(argv: list[str] | None = None) -> int:
         return _run_experiment(args)
     if args.command == "report":
         return _run_report(args)
+    if args.command == "doctor":
+        return _run_doctor(args)
 
     from trainer.envs import UnknownTaskError
     from trainer.loop import TrainingRun

@@ -27,12 +27,15 @@ import uuid
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import imageio.v2 as imageio
 import numpy as np
 
-from trainer.envs import Env
 from trainer.trajectories import Trajectory
+
+if TYPE_CHECKING:  # not at run time: the worker builds a ClipConfig before MuJoCo's import
+    from trainer.envs import Env
 
 MIN_SIZE, MAX_SIZE = 64, 512
 
