@@ -201,7 +201,9 @@ def _experiment_parser(sub) -> argparse.ArgumentParser:
     run.add_argument("spec", help="the spec file (TOML)")
     run.add_argument("--results", default="results", help="runs go to <results>/<spec name>")
     run.add_argument("--parallel", type=int, default=None,
-                     help="processes at a time; default cpu count // the spec's threads")
+                     help="processes at a time; default the cores // threads")
+    run.add_argument("--threads", type=int, default=None,
+                     help="torch threads per process, instead of the spec's threads")
     run.add_argument("--dry-run", action="store_true", help="print the plan, start nothing")
     run.add_argument("--only-pretrain", action="store_true",
                      help="only pretrain the skill snapshots the runs need")
@@ -222,10 +224,12 @@ def _run_experiment(args: argparse.Namespace) -> int:
         if args.action == "status":
             print(status_table(spec, args.results))
             return 0
-        if args.parallel is not None and args.parallel < 1:
-            raise SpecError("--parallel must be at least 1")
+        for flag in ("parallel", "threads"):
+            if getattr(args, flag) is not None and getattr(args, flag) < 1:
+                raise SpecError(f"--{flag} must be at least 1")
         outcome = run_spec(spec, args.results, args.parallel, dry_run=args.dry_run,
-                           only_pretrain=args.only_pretrain, force=args.force)
+                           only_pretrain=args.only_pretrain, force=args.force,
+                           threads=args.threads)
     except SpecError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -190,6 +190,32 @@ def test_a_dry_run_prints_the_plan_and_starts_nothing(tmp_path: Path) -> None:
     assert not (tmp_path / "results").exists()
 
 
+def test_threads_on_the_command_line_override_the_spec_s(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from trainer.cli import main
+
+    spec_path = write(tmp_path, TINY.replace("seeds = {seeds}", "seeds = {seeds}\nthreads = 2")
+                      .format(steps=600, seeds="[0]") + '[variants.S-EPOA]\nalgo = "sepoa"\n')
+    command = ["experiment", "run", str(spec_path), "--results", str(tmp_path / "results"),
+               "--dry-run", "--parallel", "1"]
+
+    def plan(*flags: str) -> tuple[list[str], str]:
+        assert main(command + list(flags)) == 0
+        lines = capsys.readouterr().out.splitlines()
+        return [line for line in lines if "trainer.cli" in line], lines[-1]
+
+    argvs, summary = plan("--threads", "3")
+    assert len(argvs) == 2  # the snapshot's pretraining and the run
+    assert all(" --threads=3 " in argv and "--threads=2" not in argv for argv in argvs)
+    assert summary.endswith("1 at a time, 3 thread(s) each (--threads)")
+    argvs, summary = plan()
+    assert all(" --threads=2 " in argv for argv in argvs)
+    assert summary.endswith("2 thread(s) each (the spec's threads)")
+    assert main(command + ["--threads", "0"]) == 2
+    assert capsys.readouterr().err == "error: --threads must be at least 1\n"
+    assert not (tmp_path / "results").exists()
+
+
 @pytest.mark.slow
 def test_a_failing_run_is_reported_and_the_others_finish(tmp_path: Path) -> None:
     broken = tmp_path / "not-a-snapshot.pt"

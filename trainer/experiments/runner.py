@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from trainer.experiments.spec import Run, Spec, SpecError, safe_name
+from trainer.threads import cpu_cores
 
 DONE, FAILED, RUN_INFO, LOG = "done.json", "failed.json", "run.json", "log.txt"
 CHECKPOINT = "checkpoint.pt"
@@ -84,7 +85,7 @@ def spec_folder(results: str | Path, spec: Spec) -> Path:
 
 
 def default_parallel(threads: int) -> int:
-    return max(1, (os.cpu_count() or 1) // threads)
+    return max(1, cpu_cores() // threads)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -421,12 +422,15 @@ def _signal_group(proc: subprocess.Popen, sig: int) -> None:
 
 def run_spec(spec: Spec, results: str | Path = "results", parallel: int | None = None,
              dry_run: bool = False, only_pretrain: bool = False, force: bool = False,
-             echo: Callable[[str], None] | None = None) -> Outcome:
-    """Train the spec's grid under `results/<spec name>`; see the module docstring."""
+             echo: Callable[[str], None] | None = None, threads: int | None = None) -> Outcome:
+    """Train the spec's grid under `results/<spec name>`; see the module docstring. `threads`
+    (torch threads per process) overrides the spec's; it is no part of a run's definition."""
     echo = echo or _print
     results = Path(results)
     root = spec_folder(results, spec)
-    parallel = parallel or default_parallel(spec.threads)
+    why = "--threads" if threads is not None else "the spec's threads"
+    threads = threads or spec.threads
+    parallel = parallel or default_parallel(threads)
     clash = conflicts(spec, results)
     if clash and not force:
         lines = [f"{folder}: {why}" for folder, why in clash.items()]
@@ -436,24 +440,25 @@ def run_spec(spec: Spec, results: str | Path = "results", parallel: int | None =
                         f"{len(clash)} run(s):\n  {shown}\nuse another spec name, or --force "
                         "to delete those runs and train them again")
     if dry_run:
-        pretrains, jobs, finished = plan(spec, results, spec.threads)
+        pretrains, jobs, finished = plan(spec, results, threads)
         for job in pretrains + ([] if only_pretrain else jobs):
             action = "pretrain" if job.run is None else "resume" if job.resume else "start"
             echo(f"{action:<8} {job.name}\n         {' '.join(job.argv)}")
         echo(f"{len(pretrains)} pretraining(s), {len(jobs)} run(s) to train, "
-             f"{len(finished)} finished{'; ' + str(len(clash)) + ' to redo' if clash else ''}")
+             f"{len(finished)} finished{'; ' + str(len(clash)) + ' to redo' if clash else ''}; "
+             f"{parallel} at a time, {threads} thread(s) each ({why})")
         return Outcome(skipped=finished)
     with spec_lock(root):
         for folder in clash:
             shutil.rmtree(root / folder, ignore_errors=True)
         (root / "spec.toml").write_text(spec.source)
-        pretrains, jobs, finished = plan(spec, results, spec.threads)
-        runner = Runner(parallel, spec.threads, echo)
+        pretrains, jobs, finished = plan(spec, results, threads)
+        runner = Runner(parallel, threads, echo)
         runner.outcome.skipped = finished
         runner.total = len(spec.runs())
         echo(f"{spec.name}: {runner.total} runs, {len(finished)} finished, "
              f"{sum(j.resume for j in jobs)} to resume, {len(pretrains)} snapshot(s) to "
-             f"pretrain; {parallel} at a time, {spec.threads} thread(s) each -> {root}")
+             f"pretrain; {parallel} at a time, {threads} thread(s) each ({why}) -> {root}")
         outcome = runner.execute(pretrains, [] if only_pretrain else jobs)
     done = len(outcome.finished) + len(outcome.skipped)
     echo(f"{spec.name}: {done}/{runner.total} runs finished, {len(outcome.failed)} failed"
