@@ -41,6 +41,7 @@ COPY sepoa ./sepoa
 COPY trainer ./trainer
 COPY labelqueue ./labelqueue
 COPY server ./server
+COPY runvocab ./runvocab
 COPY web ./web
 COPY migrations ./migrations
 # Editable, so the packages stay in /app beside migrations/ and web/: labelqueue finds its

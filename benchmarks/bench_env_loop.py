@@ -24,7 +24,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")  # as the CLI does; before mujoco is i
 import numpy as np
 import torch
 
-from trainer.config import build_config
+from runvocab.config import build_config
 from trainer.envs import _dmc_suite, _dmc_tasks, _mt1, make_env
 from trainer.replay_buffer import ReplayBuffer
 from trainer.sac import SAC

@@ -19,7 +19,7 @@ import time
 import numpy as np
 import torch
 
-from trainer.config import RewardConfig
+from runvocab.config import RewardConfig
 from trainer.query_selection import (
     SCORING_CHUNK,
     Candidates,

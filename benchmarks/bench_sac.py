@@ -22,7 +22,7 @@ import torch
 from stable_baselines3 import SAC as SB3SAC
 from stable_baselines3.common.logger import configure
 
-from trainer.config import SACConfig
+from runvocab.config import SACConfig
 from trainer.replay_buffer import ReplayBuffer
 from trainer.sac import SAC
 

@@ -30,7 +30,7 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-from trainer.config import build_config  # noqa: E402
+from runvocab.config import build_config  # noqa: E402
 from trainer.loop import TrainingRun  # noqa: E402
 
 

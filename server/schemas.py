@@ -7,6 +7,7 @@ returns, no model probability, no selection score.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
 from typing import Annotated, Any, Literal
 
@@ -14,9 +15,8 @@ from fastapi import Path
 from fastapi import Query as QueryParam
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
-TASK_PATTERN = r"^(dmc|metaworld):[a-z0-9_\-]+$"
-Algo = Literal["sac", "pebble", "surf", "rune", "rime", "sepoa"]
-Preset = Literal["paper", "small", "tiny"]
+from runvocab.names import ALGOS, SIZE_PRESETS, all_tasks, unknown, unknown_task
+
 Teacher = Literal["human", "scripted"]
 RoleName = Literal["labeller", "operator"]
 StreamName = Literal["episodes", "eval", "rounds"]
@@ -108,11 +108,34 @@ class Out(BaseModel):
     model_config = ConfigDict(from_attributes=True)
 
 
+def _one_of(field: str, valid: Callable[[], Sequence[str]]) -> Callable[[str], str]:
+    def check(value: str) -> str:
+        if value not in valid():
+            raise ValueError(unknown_task(value) if field == "task"
+                             else unknown(field, value, valid()))
+        return value
+
+    return check
+
+
+TaskName = Annotated[str, AfterValidator(_one_of("task", all_tasks)),
+                     Field(json_schema_extra={"enum": list(all_tasks())},
+                           examples=["dmc:cheetah_run"])]
+AlgoName = Annotated[str, AfterValidator(_one_of("algo", lambda: ALGOS)),
+                     Field(json_schema_extra={"enum": list(ALGOS)})]
+PresetName = Annotated[str, AfterValidator(_one_of("preset", lambda: SIZE_PRESETS)),
+                       Field(json_schema_extra={"enum": list(SIZE_PRESETS)})]
+
+
 class RunCreate(Body):
-    task: str = Field(pattern=TASK_PATTERN, examples=["dmc:cheetah_run"])
-    algo: Algo
+    """A new run. Besides each field's own check, the whole run is checked as a worker would
+    build it (`runvocab.queued_run`): an unknown or bad `config` field, or one that contradicts
+    a top-level field or `teacher_params`, is a 422 naming it."""
+
+    task: TaskName
+    algo: AlgoName
     budget: StoredInt
-    preset: Preset = "small"
+    preset: PresetName = "small"
     seed: StoredInt = 0
     teacher: Teacher = "human"
     teacher_params: SmallJson = Field(default_factory=dict, examples=[{"eps": 0.1}])

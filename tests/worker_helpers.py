@@ -15,8 +15,8 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from labelqueue import Query, Run, RunStatus, make_engine, migrate, session_factory
+from runvocab.config import build_config
 from trainer.clips import ClipConfig
-from trainer.config import build_config
 from trainer.loop import TrainingRun
 from trainer.worker import SCRIPTED_SCREEN, WorkerConfig, run_worker
 

@@ -50,7 +50,7 @@ class OneLineParser(argparse.ArgumentParser):
 
 
 def _train_parser(sub) -> argparse.ArgumentParser:
-    from trainer.config import add_config_arguments
+    from runvocab.config import add_config_arguments
 
     p = sub.add_parser("train", help="train one run (SAC oracle or PEBBLE)",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -65,7 +65,7 @@ def _train_parser(sub) -> argparse.ArgumentParser:
 
 
 def _pretrain_parser(sub) -> argparse.ArgumentParser:
-    from trainer.config import add_config_arguments
+    from runvocab.config import add_config_arguments
 
     p = sub.add_parser("pretrain", help="unsupervised skill pretraining; writes a snapshot",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -84,7 +84,7 @@ def _pretrain_parser(sub) -> argparse.ArgumentParser:
 def _run_pretrain(args: argparse.Namespace) -> int:
     import time
 
-    from trainer.config import build_config, overrides_from_args
+    from runvocab.config import build_config, overrides_from_args
     from trainer.envs import UnknownTaskError
     from trainer.skills.pretrain import pretrain
 
@@ -282,7 +282,7 @@ def _run_report(args: argparse.Namespace) -> int:
 
 
 def _config_from_args(args: argparse.Namespace):
-    from trainer.config import apply_overrides, build_config, load_json, overrides_from_args
+    from runvocab.config import apply_overrides, build_config, load_json, overrides_from_args
 
     overrides = overrides_from_args(args)
     if args.resume:
@@ -320,12 +320,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     if args.command == "tasks":
-        from trainer.envs import available_tasks
+        from runvocab.names import all_tasks
 
-        print("\n".join(available_tasks()))
+        print("\n".join(all_tasks()))
         return 0
     if args.command == "presets":
-        from trainer.config import preset_layers
+        from runvocab.config import preset_layers
 
         print(json.dumps(preset_layers(), indent=2))
         return 0

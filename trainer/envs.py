@@ -28,14 +28,16 @@ from __future__ import annotations
 
 import abc
 import atexit
-import difflib
 import functools
+import json
 import weakref
 from dataclasses import dataclass
 from typing import Any
 
 import mujoco
 import numpy as np
+
+from runvocab.names import TASKS_JSON, unknown_task
 
 DMC_PREFIX = "dmc:"
 METAWORLD_PREFIX = "metaworld:"
@@ -66,7 +68,7 @@ _DMC_UNRESTORABLE = {("quadruped", "escape")}
 
 
 class UnknownTaskError(ValueError):
-    """A task name that is not one of `available_tasks()`."""
+    """A task name that is not one of `installed_tasks()`."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -128,22 +130,11 @@ def _mt1(name: str) -> tuple[type, tuple[Any, ...]]:
     return benchmark.train_classes[f"{name}-v3"], tuple(benchmark.train_tasks)
 
 
-def available_tasks() -> list[str]:
-    dmc = [DMC_PREFIX + n for n in _dmc_tasks()]
-    return dmc + [METAWORLD_PREFIX + n for n in _metaworld_tasks()]
-
-
-def _unknown_task(task: str, family: str | None) -> UnknownTaskError:
-    families = {
-        "DMC": [DMC_PREFIX + n for n in _dmc_tasks()],
-        "Metaworld": [METAWORLD_PREFIX + n for n in _metaworld_tasks()],
-    }
-    if family is not None:
-        families = {family: families[family]}
-    close = difflib.get_close_matches(task, [n for names in families.values() for n in names])
-    hint = f" (did you mean {' or '.join(map(repr, close))}?)" if close else ""
-    listing = "".join(f"\n  {fam} tasks: {', '.join(names)}" for fam, names in families.items())
-    return UnknownTaskError(f"unknown task {task!r}{hint}; valid names:{listing}")
+def installed_tasks() -> dict[str, list[str]]:
+    """Every task of the installed dm_control and Metaworld, per family: what
+    `runvocab/tasks.json` must hold (`python -m trainer.envs` rewrites it)."""
+    return {"dmc": [DMC_PREFIX + n for n in _dmc_tasks()],
+            "metaworld": [METAWORLD_PREFIX + n for n in _metaworld_tasks()]}
 
 
 def make_env(task: str, seed: int, episode_length: int | None = None) -> Env:
@@ -152,14 +143,14 @@ def make_env(task: str, seed: int, episode_length: int | None = None) -> Env:
     if task.startswith(DMC_PREFIX):
         name = task.removeprefix(DMC_PREFIX)
         if name not in _dmc_tasks():
-            raise _unknown_task(task, "DMC")
+            raise UnknownTaskError(unknown_task(task))
         return DMCEnv(name, seed, episode_length or DMC_EPISODE_LENGTH)
     if task.startswith(METAWORLD_PREFIX):
         name = task.removeprefix(METAWORLD_PREFIX)
         if name not in _metaworld_tasks():
-            raise _unknown_task(task, "Metaworld")
+            raise UnknownTaskError(unknown_task(task))
         return MetaworldEnv(name, seed, episode_length or METAWORLD_EPISODE_LENGTH)
-    raise _unknown_task(task, None)
+    raise UnknownTaskError(unknown_task(task))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -517,3 +508,10 @@ class MetaworldEnv(Env):
 
     def _close(self) -> None:
         self._env.close()
+
+
+if __name__ == "__main__":
+    with open(TASKS_JSON, "w") as f:
+        json.dump(installed_tasks(), f, indent=1)
+        f.write("\n")
+    print(f"wrote {TASKS_JSON}")

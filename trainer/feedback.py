@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from trainer.config import FeedbackConfig
+from runvocab.config import FeedbackConfig
 from trainer.query_selection import (
     Candidates,
     PoolRewards,

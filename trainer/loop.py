@@ -42,100 +42,36 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from runvocab.config import RunConfig, save_json
+from runvocab.names import PEBBLE_FAMILY
+from runvocab.validate import validate
 from trainer.checkpoint import load_checkpoint, save_checkpoint
-from trainer.config import RunConfig, save_json
 from trainer.entropy import RunningMeanStd, knn_distance
 from trainer.envs import make_env
 from trainer.feedback import Answer, LabelLog, PreferenceFeedback
 from trainer.hooks import RunHooks
 from trainer.metrics import Metrics
 from trainer.nets import NumpyMLP
-from trainer.query_selection import MODES, RULES
 from trainer.replay_buffer import ReplayBuffer
-from trainer.return_estimator import SPREADS, ReturnEstimator
+from trainer.return_estimator import ReturnEstimator
 from trainer.reward_model import RewardModel
-from trainer.rime import check_rime_config
-from trainer.rune import check_rune_config, rune_beta
+from trainer.rune import rune_beta
 from trainer.sac import SAC
 from trainer.skills import SkillAgent, SkillBackend, SkillReplayBuffer
 from trainer.skills.pretrain import build_skill_agent, load_snapshot, pretrain, snapshot_path
-from trainer.surf import check_surf_config
-from trainer.teachers import TEACHER_KINDS, TIES, make_teacher
+from trainer.teachers import make_teacher
 from trainer.trajectories import EpisodeRecorder, TrajectoryPool
 from trainer.utils import pick_device, set_seed
 
-PEBBLE_FAMILY = ("pebble", "surf", "rune", "rime")
-ALGOS = ("sac", *PEBBLE_FAMILY, "sepoa")
 CHECKPOINT = "checkpoint.pt"
 LOOP_VERSION = 2
 """Checkpoints of version 1 predate S-EPOA's initial rollouts, per-query selection, z_task
 updates and critic reset, and PEBBLE's post-reset updates: such a run cannot resume as it
 began, so it is refused."""
-TASK_SKILL_DRAWS = ("refit", "episode")
 
 
 def default_run_dir(cfg: RunConfig) -> str:
     return os.path.join("runs", f"{cfg.task.replace(':', '-')}-{cfg.algo}-s{cfg.seed}")
-
-
-def check_config(cfg: RunConfig) -> None:
-    """Reject a bad configuration before any training, with a message naming the bad field."""
-    choices = {
-        "algo": (cfg.algo, ALGOS),
-        "feedback.selection": (cfg.feedback.selection, RULES),
-        "feedback.first_round_selection": (cfg.feedback.first_round_selection, RULES),
-        "teacher.kind": (cfg.teacher.kind, TEACHER_KINDS),
-        "teacher.tie": (cfg.teacher.tie, TIES),
-        "feedback.selection_mode": (cfg.feedback.selection_mode, MODES),
-        "feedback.compare_rule": (cfg.feedback.compare_rule, ("", *RULES)),
-        "skill.task_skill_draw": (cfg.skill.task_skill_draw, TASK_SKILL_DRAWS),
-    }
-    for name, (value, valid) in choices.items():
-        if value not in valid:
-            raise ValueError(f"unknown {name} {value!r}; valid: {', '.join(valid)}")
-    positive = {
-        "steps": cfg.steps, "replay_capacity": cfg.replay_capacity,
-        "update_every": cfg.update_every, "sac.batch_size": cfg.sac.batch_size,
-        "sac.hidden_dim": cfg.sac.hidden_dim, "reward.batch_size": cfg.reward.batch_size,
-        "reward.ensemble_size": cfg.reward.ensemble_size,
-        "feedback.segment_length": cfg.feedback.segment_length,
-        "feedback.every": cfg.feedback.every, "feedback.per_round": cfg.feedback.per_round,
-        "feedback.candidate_factor": cfg.feedback.candidate_factor,
-        "feedback.pool_trajectories": cfg.feedback.pool_trajectories,
-    }
-    for name, value in positive.items():
-        if value <= 0:
-            raise ValueError(f"{name} must be positive, got {value}")
-    if cfg.feedback.pool_trajectories < 2:
-        raise ValueError("feedback.pool_trajectories must be at least 2 (a query pairs two)")
-    if min(cfg.feedback.budget, cfg.seed_steps, cfg.unsup_steps, cfg.reset_updates,
-           cfg.skill.initial_rollouts) < 0:
-        raise ValueError("feedback.budget, seed_steps, unsup_steps, reset_updates and "
-                         "skill.initial_rollouts cannot be negative")
-    if "skill" in (cfg.feedback.selection, cfg.feedback.first_round_selection,
-                   cfg.feedback.compare_rule) and cfg.algo != "sepoa":
-        raise ValueError("feedback.selection skill needs skills: use algo sepoa")
-    if cfg.algo == "sepoa" and cfg.skill.initial_rollouts > cfg.feedback.pool_trajectories:
-        raise ValueError(f"skill.initial_rollouts {cfg.skill.initial_rollouts} exceeds "
-                         f"feedback.pool_trajectories {cfg.feedback.pool_trajectories}: round 0 "
-                         "could never see them all")
-    if cfg.algo == "sepoa" and cfg.feedback.first_round_selection == "skill":
-        raise ValueError("feedback.first_round_selection cannot be skill: before the first "
-                         "label there is no return estimate to select by")
-    if cfg.skill.score_spread not in SPREADS:
-        raise ValueError(f"unknown skill.score_spread {cfg.skill.score_spread!r}; valid: "
-                         f"{', '.join(SPREADS)}")
-    if cfg.reward.surf:
-        check_surf_config(cfg.reward, cfg.feedback.segment_length)
-    if cfg.reward.rune:
-        check_rune_config(cfg.reward)
-    if cfg.reward.rime:
-        check_rime_config(cfg.reward)
-    if not 0 <= cfg.teacher.eps < 1:
-        raise ValueError(f"teacher.eps is an error rate in [0, 1), got {cfg.teacher.eps}")
-    if cfg.episode_length and cfg.episode_length < cfg.feedback.segment_length:
-        raise ValueError(f"episode_length {cfg.episode_length} is shorter than a segment "
-                         f"({cfg.feedback.segment_length} steps)")
 
 
 def _skill_agent(cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.device,
@@ -158,7 +94,7 @@ def _skill_agent(cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.devic
 class TrainingRun:
     def __init__(self, cfg: RunConfig, resume: bool = False, progress: bool = True,
                  hooks: RunHooks | None = None):
-        check_config(cfg)
+        validate(cfg)
         self.cfg, self.progress = cfg, progress
         self.hooks = hooks or RunHooks()
         self.run_dir = cfg.run_dir or default_run_dir(cfg)

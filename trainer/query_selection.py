@@ -14,12 +14,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from runvocab.names import SELECTION_MODES, SELECTION_RULES
 from trainer.return_estimator import ReturnEstimator, skill_scores
 from trainer.reward_model import RewardModel
 from trainer.trajectories import Trajectory
 
-RULES = ("uniform", "disagreement", "entropy", "skill")
-MODES = ("per_query", "top_k")
+RULES, MODES = SELECTION_RULES, SELECTION_MODES
 SCORING_CHUNK = 4096
 """transitions per ensemble forward pass when scoring the pool"""
 

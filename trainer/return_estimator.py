@@ -21,10 +21,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from trainer.config import SkillConfig
+from runvocab.config import SkillConfig
+from runvocab.names import SCORE_SPREADS
 from trainer.nets import EnsembleMLP
 
-SPREADS = ("var", "std")
+SPREADS = SCORE_SPREADS
 
 
 def minmax(x: torch.Tensor) -> torch.Tensor:

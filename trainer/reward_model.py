@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from trainer.config import RewardConfig
+from runvocab.config import RewardConfig
 from trainer.nets import EnsembleMLP
 from trainer.rime import RimeFilter
 from trainer.surf import PairSampler, pseudo_labels, random_crops

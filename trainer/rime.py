@@ -21,7 +21,7 @@ import math
 
 import torch
 
-from trainer.config import RewardConfig
+from runvocab.config import RewardConfig
 from trainer.entropy import RunningMeanStd
 
 DELTA = 1e-8
@@ -49,19 +49,6 @@ def lower_bound(cfg: RewardConfig, rho: float, sigma: float, beta: float) -> flo
     """tau_lower = -ln(rho + delta) + alpha * rho + min(beta * sigma, tau_upper)."""
     return (-math.log(rho + DELTA) + cfg.rime_alpha * rho
             + min(beta * sigma, cfg.rime_tau_upper))
-
-
-def check_rime_config(cfg: RewardConfig) -> None:
-    if not 0 < cfg.rime_beta_min <= cfg.rime_beta_max:
-        raise ValueError(f"reward.rime_beta_min ({cfg.rime_beta_min}) must be positive and at "
-                         f"most reward.rime_beta_max ({cfg.rime_beta_max})")
-    positive = {"reward.rime_k": cfg.rime_k, "reward.rime_tau_upper": cfg.rime_tau_upper}
-    for name, value in positive.items():
-        if value <= 0:
-            raise ValueError(f"{name} must be positive, got {value}")
-    if cfg.rime_alpha < 0 or cfg.rime_warm_start_updates < 0:
-        raise ValueError("reward.rime_alpha and reward.rime_warm_start_updates cannot be "
-                         "negative")
 
 
 class RimeFilter:

@@ -9,16 +9,9 @@ r_hat: before that there is no r_hat to be unsure of.
 
 from __future__ import annotations
 
-from trainer.config import RewardConfig
+from runvocab.config import RewardConfig
 
 
 def rune_beta(cfg: RewardConfig, steps: int) -> float:
     """beta_t after `steps` environment steps of training on the learned reward."""
     return cfg.rune_beta0 * (1.0 - cfg.rune_decay) ** max(steps, 0)
-
-
-def check_rune_config(cfg: RewardConfig) -> None:
-    if cfg.rune_beta0 < 0:
-        raise ValueError(f"reward.rune_beta0 cannot be negative, got {cfg.rune_beta0}")
-    if not 0 <= cfg.rune_decay < 1:
-        raise ValueError(f"reward.rune_decay is a rate in [0, 1), got {cfg.rune_decay}")

@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from trainer.config import SACConfig
+from runvocab.config import SACConfig
 from trainer.nets import EnsembleMLP, NumpyMLP, mlp
 
 LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)

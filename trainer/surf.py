@@ -18,8 +18,6 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from trainer.config import RewardConfig
-
 PairSampler = Callable[[int], tuple[np.ndarray, np.ndarray]]
 """n -> two (n, H, obs_dim + action_dim) float32 arrays of unlabelled segment pairs"""
 
@@ -45,19 +43,3 @@ def pseudo_labels(p: torch.Tensor, threshold: float) -> tuple[torch.Tensor, torc
     where p < 1 - threshold; `confident` marks those, the only pairs trained on."""
     second, first = p > threshold, p < 1 - threshold
     return second.float(), second | first
-
-
-def check_surf_config(cfg: RewardConfig, segment_length: int) -> None:
-    """A ValueError naming the field when SURF's settings cannot work."""
-    if not 0 < cfg.surf_crop_min <= cfg.surf_crop_max:
-        raise ValueError(f"reward.surf_crop_min ({cfg.surf_crop_min}) must be positive and at "
-                         f"most reward.surf_crop_max ({cfg.surf_crop_max})")
-    if cfg.surf_crop_max > segment_length:
-        raise ValueError(f"reward.surf_crop_max ({cfg.surf_crop_max}) exceeds "
-                         f"feedback.segment_length ({segment_length}); SURF crops segments "
-                         f"of 60 steps in the paper")
-    if not 0.5 < cfg.surf_threshold < 1:
-        raise ValueError(f"reward.surf_threshold is a confidence in (0.5, 1), got "
-                         f"{cfg.surf_threshold}")
-    if cfg.surf_unlabelled_ratio < 0 or cfg.surf_weight < 0:
-        raise ValueError("reward.surf_unlabelled_ratio and reward.surf_weight cannot be negative")

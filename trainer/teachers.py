@@ -24,7 +24,8 @@ from enum import StrEnum
 
 import numpy as np
 
-from trainer.config import TeacherConfig
+from runvocab.config import TeacherConfig
+from runvocab.names import TEACHER_KINDS, TIES
 
 
 class Choice(StrEnum):
@@ -89,7 +90,6 @@ def _recent_mean(recent_returns: Sequence[float], n: int) -> float:
     return float(np.mean(last)) if last else 0.0
 
 
-TIES = ("equal", "random", "first")
 
 
 def _sum_choice(sum0: float, sum1: float, tie: str = "equal", u: float = 0.0) -> Choice:
@@ -282,7 +282,6 @@ class BPrefTeacher:
 
 # ---------------------------------------------------------------------------------------------
 
-TEACHER_KINDS = ("noisy", "bpref")
 
 
 def make_teacher(

@@ -64,8 +64,9 @@ from labelqueue import (
     submit_label,
     write_metrics,
 )
+from runvocab.config import RunConfig, apply_overrides
+from runvocab.queued_run import queued_run_config
 from trainer.clips import ClipConfig, render_query_clips
-from trainer.config import RunConfig, build_config, typed_overrides
 from trainer.envs import Env, make_env
 from trainer.feedback import Answer, PreferenceFeedback, Query
 from trainer.hooks import RunHooks
@@ -115,17 +116,18 @@ class LostRun(Exception):
 
 def run_config(run: Run, worker: WorkerConfig) -> RunConfig:
     """The training config a queued run describes; ValueError naming a bad field."""
-    overrides = typed_overrides(dict(run.config))
-    overrides |= typed_overrides({f"teacher.{k}": v for k, v in run.teacher_params.items()})
-    overrides |= {"algo": run.algo, "seed": run.seed, "feedback.budget": run.budget,
-                  "run_dir": str(worker.data_dir / "runs" / f"run-{run.id}")}
+    cfg = queued_run_config(task=run.task, algo=run.algo, preset=run.preset, seed=run.seed,
+                            budget=run.budget, teacher_params=run.teacher_params,
+                            config=run.config)
+    local: dict[str, object] = {"run_dir": str(worker.data_dir / "runs" / f"run-{run.id}")}
     # S-EPOA's skill snapshots are shared by the runs of a data folder (made on first use).
-    overrides.setdefault("skill.snapshot_dir", str(worker.data_dir / "snapshots"))
+    if "skill.snapshot_dir" not in run.config:
+        local["skill.snapshot_dir"] = str(worker.data_dir / "snapshots")
     if worker.device is not None:
-        overrides["device"] = worker.device
+        local["device"] = worker.device
     if worker.threads is not None:
-        overrides["threads"] = worker.threads
-    return build_config(run.task, run.preset, overrides)
+        local["threads"] = worker.threads
+    return apply_overrides(cfg, local)
 
 
 def _answer(label: Label, labeller_names: dict[int, str]) -> Answer:

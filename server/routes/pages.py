@@ -17,6 +17,12 @@ from fastapi.templating import Jinja2Templates
 from starlette.responses import Response
 from starlette.types import Scope
 
+from runvocab.names import ALGOS, SIZE_PRESETS, all_tasks
+
+ALGO_TITLES = {"sepoa": "S-EPOA", "pebble": "PEBBLE", "surf": "SURF", "rune": "RUNE",
+               "rime": "RIME", "sac": "SAC (true reward)"}
+"""the new-run form's algorithms, S-EPOA first"""
+assert set(ALGO_TITLES) == set(ALGOS)
 WEB_DIR = Path(__file__).resolve().parents[2] / "web"
 templates = Jinja2Templates(directory=WEB_DIR / "templates")
 router = APIRouter(include_in_schema=False)
@@ -60,7 +66,9 @@ def label_page(request: Request) -> HTMLResponse:
 
 @router.get("/runs", response_class=HTMLResponse)
 def runs_page(request: Request) -> HTMLResponse:
-    return page(request, "runs.html", nav="runs")
+    """The runs list and the new-run form, whose choices are the run vocabulary's names."""
+    return page(request, "runs.html", nav="runs", tasks=all_tasks(), algos=ALGO_TITLES,
+                presets=SIZE_PRESETS)
 
 
 @router.get("/runs/{run_id}", response_class=HTMLResponse)

@@ -9,6 +9,7 @@ from fastapi import APIRouter, Response
 from labelqueue import RunStatus, read_metrics, set_run_status, set_teacher
 from server import curves, services
 from server.deps import OperatorDep, SessionDep
+from server.run_check import check_run
 from server.schemas import (
     AfterStep,
     MetricOut,
@@ -27,6 +28,8 @@ router = APIRouter(prefix="/api/runs", tags=["runs"], responses=errors(401, 403)
 
 @router.post("", status_code=201, response_model=RunOut, responses=errors(400, 413, 422))
 def create_run(spec: RunCreate, session: SessionDep, _: OperatorDep) -> RunOut:
+    check_run(task=spec.task, algo=spec.algo, preset=spec.preset, seed=spec.seed,
+              budget=spec.budget, teacher_params=spec.teacher_params, config=spec.config)
     return RunOut.model_validate(services.new_run(session, spec=spec))
 
 
@@ -94,5 +97,9 @@ def requeue_run(run_id: RunId, session: SessionDep, _: OperatorDep) -> RunOut:
     "/{run_id}/teacher", response_model=RunOut, responses=errors(400, 404, 413, 422)
 )
 def put_teacher(run_id: RunId, body: TeacherUpdate, session: SessionDep, _: OperatorDep) -> RunOut:
+    """The run's teacher from now on, with its parameters checked as a worker will use them."""
+    run = services.get_run(session, run_id=run_id)
+    check_run(task=run.task, algo=run.algo, preset=run.preset, seed=run.seed, budget=run.budget,
+              teacher_params=body.params, config=run.config, params_at="params")
     run = set_teacher(session, run_id=run_id, teacher=body.teacher, params=body.params)
     return RunOut.model_validate(run)

@@ -42,7 +42,7 @@ def test_health_and_openapi_list_the_api(client: TestClient) -> None:
 def test_an_operator_creates_lists_and_reads_runs(client: TestClient, session: Session) -> None:
     run = new_run(
         client,
-        task="metaworld:drawer-open-v3",
+        task="metaworld:drawer-open",
         algo="pebble",
         teacher="scripted",
         teacher_params={"eps": 0.1},
@@ -50,11 +50,11 @@ def test_an_operator_creates_lists_and_reads_runs(client: TestClient, session: S
         budget=500,
         config={"sac.lr": 1e-4},
     )
-    assert run["status"] == "queued" and run["name"] == "metaworld:drawer-open-v3-pebble-s3"
+    assert run["status"] == "queued" and run["name"] == "metaworld:drawer-open-pebble-s3"
     assert run["teacher_params"] == {"eps": 0.1} and run["config"] == {"sac.lr": 1e-4}
     row = stored_run(session, run["id"])
     assert (row.task, row.algo, row.seed, row.budget) == (
-        "metaworld:drawer-open-v3",
+        "metaworld:drawer-open",
         "pebble",
         3,
         500,
@@ -172,6 +172,58 @@ def test_a_malformed_run_is_422_naming_the_field(
     response = client.post("/api/runs", json=body, headers=OPERATOR)
     assert response.status_code == 422
     assert any(field in error["loc"] for error in response.json()["detail"]), response.text
+    assert snapshot(session) == before
+
+
+@pytest.mark.parametrize(
+    ("override", "loc", "words"),
+    [
+        ({"task": "dmc:cheetah_runn"}, ["body", "task"], ["did you mean 'dmc:cheetah_run'"]),
+        ({"algo": "sepoaa"}, ["body", "algo"], ["did you mean 'sepoa'", "pebble"]),
+        ({"preset": "smal"}, ["body", "preset"], ["did you mean 'small'"]),
+        ({"config": {"feedback.per_rund": 10}}, ["body", "config", "feedback.per_rund"],
+         ["did you mean 'feedback.per_round'"]),
+        ({"config": {"sac.lr": "fast"}}, ["body", "config", "sac.lr"], ["takes float"]),
+        ({"config": {"feedback.budget": 500}}, ["body", "config", "feedback.budget"],
+         ["top-level field says 0"]),
+        ({"config": {"algo": "pebble"}}, ["body", "config", "algo"], ["says 'sac'"]),
+        ({"config": {"run_dir": "/tmp/elsewhere"}}, ["body", "config", "run_dir"], ["worker"]),
+        ({"teacher_params": {"eps": 5}}, ["body", "teacher_params", "eps"], ["[0, 1)"]),
+        ({"teacher_params": {"eps": 0.1}, "config": {"teacher.eps": 0.2}},
+         ["body", "config", "teacher.eps"], ["teacher_params says 0.1"]),
+        ({"config": {"feedback.per_round": 0}}, ["body", "config", "feedback.per_round"],
+         ["must be positive"]),
+    ],
+)
+def test_a_run_no_worker_could_train_is_422_naming_the_field_and_what_is_valid(
+    client: TestClient, session: Session, override: dict[str, Any], loc: list[str],
+    words: list[str]
+) -> None:
+    """Checked as the worker will build it, before it is stored: never a 201 for a run that
+    would fail later, and never a config value silently overwritten."""
+    before = snapshot(session)
+    body = {"task": "dmc:cheetah_run", "algo": "sac", "budget": 0} | override
+    response = client.post("/api/runs", json=body, headers=OPERATOR)
+    assert response.status_code == 422, response.text
+    [error] = response.json()["detail"]
+    assert error["loc"] == loc
+    for word in words:
+        assert word in error["msg"]
+    assert snapshot(session) == before
+
+
+def test_a_teacher_switch_with_bad_parameters_is_422_and_changes_nothing(
+    client: TestClient, session: Session
+) -> None:
+    run_id = client.post("/api/runs", json={"task": "dmc:cheetah_run", "algo": "pebble",
+                                           "budget": 10}, headers=OPERATOR).json()["id"]
+    before = snapshot(session)
+    for params, loc in [({"eps": 1.5}, ["body", "params", "eps"]),
+                        ({"epss": 0.1}, ["body", "params", "epss"])]:
+        response = client.put(f"/api/runs/{run_id}/teacher",
+                              json={"teacher": "scripted", "params": params}, headers=OPERATOR)
+        assert response.status_code == 422, response.text
+        assert response.json()["detail"][0]["loc"] == loc
     assert snapshot(session) == before
 
 

@@ -104,7 +104,7 @@ def test_resume_after_sigkill_continues_identically_and_loses_no_label(tmp_path)
 
 
 def test_each_baseline_is_pebble_with_its_own_piece_switched_on():
-    from trainer.config import build_config
+    from runvocab.config import build_config
 
     def cfg(algo, task="dmc:walker_run", preset="paper"):
         return build_config(task, preset, {"algo": algo})

@@ -7,7 +7,7 @@ import os
 import numpy as np
 import pytest
 
-from trainer.config import build_config
+from runvocab.config import build_config
 from trainer.loop import TrainingRun
 
 
@@ -101,7 +101,8 @@ def test_pebble_on_metaworld_records_success_and_contexts(tmp_path):
     ({"feedback.selection_mode": "best"}, "selection_mode 'best'; valid: per_query, top_k"),
     ({"feedback.compare_rule": "skill"}, "use algo sepoa"),
     ({"teacher.tie": "last"}, "teacher.tie 'last'; valid: equal, random, first"),
-    ({"reset_updates": -1}, "reset_updates .* cannot be negative"),
+    ({"reset_updates": -1}, "reset_updates cannot be negative"),
+    ({"algo": "sepoaa"}, "did you mean .sepoa."),
 ])
 def test_bad_configuration_is_rejected_before_training(tmp_path, override, message):
     cfg = build_config("dmc:cheetah_run", "tiny", {"run_dir": str(tmp_path / "run")} | override)

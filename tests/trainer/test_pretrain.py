@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from trainer.config import build_config
+from runvocab.config import build_config
 from trainer.skills.pretrain import (
     SkillPretraining,
     build_skill_agent,

@@ -13,8 +13,8 @@ import pandas as pd
 import pytest
 import torch
 
+from runvocab.config import build_config
 from sepoa.plots import PNG_SIGNATURE
-from trainer.config import build_config
 from trainer.experiments.proposition import (
     binned,
     measured_disagreement,

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from trainer.config import RewardConfig
+from runvocab.config import RewardConfig
 from trainer.query_selection import (
     Candidates,
     disagreement,

@@ -3,7 +3,7 @@ import math
 import numpy as np
 import torch
 
-from trainer.config import RewardConfig
+from runvocab.config import RewardConfig
 from trainer.reward_model import LabelledPairs, RewardModel, bradley_terry_loss
 
 

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from trainer.config import RewardConfig, build_config
+from runvocab.config import RewardConfig, build_config
 from trainer.loop import TrainingRun
 from trainer.reward_model import LabelledPairs, RewardModel
-from trainer.rime import RimeFilter, check_rime_config, label_kl, lower_bound, rime_beta
+from trainer.rime import RimeFilter, label_kl, lower_bound, rime_beta
 
 
 def test_label_kl_against_hand_values():
@@ -59,13 +59,6 @@ def test_trusts_below_the_bound_flips_above_tau_upper_and_drops_the_rest():
     # Statistics of the trusted KLs (0.1054 and 0): rho moves a tenth of the way to their max.
     assert rime.rho == pytest.approx(0.5 + 0.1 * (math.log(1 / 0.9) - 0.5), rel=1e-5)
     assert rime.kl.count == 12 and rime.epochs == 1
-
-
-def test_bad_rime_settings_are_refused():
-    with pytest.raises(ValueError, match="rime_beta_min"):
-        check_rime_config(RewardConfig(rime=True, rime_beta_min=4.0))
-    with pytest.raises(ValueError, match="rime_k"):
-        check_rime_config(RewardConfig(rime=True, rime_k=0.0))
 
 
 def _planted_pairs(n: int, corrupt: int, seed: int) -> tuple[LabelledPairs, np.ndarray]:

@@ -5,7 +5,7 @@ import torch
 from torch.distributions import Normal, TransformedDistribution
 from torch.distributions.transforms import TanhTransform
 
-from trainer.config import SACConfig
+from runvocab.config import SACConfig
 from trainer.replay_buffer import ReplayBuffer
 from trainer.sac import SAC
 

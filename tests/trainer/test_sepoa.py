@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from trainer.config import SkillConfig, build_config
+from runvocab.config import SkillConfig, build_config
 from trainer.loop import TrainingRun
 from trainer.return_estimator import ReturnEstimator, skill_scores
 

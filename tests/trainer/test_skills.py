@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch import nn
 
-from trainer.config import SACConfig, SkillConfig
+from runvocab.config import SACConfig, SkillConfig
 from trainer.entropy import RunningMeanStd
 from trainer.skills import (
     SKILL_BACKENDS,

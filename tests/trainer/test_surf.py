@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from trainer.config import RewardConfig, build_config
+from runvocab.config import RewardConfig, build_config
 from trainer.loop import TrainingRun
 from trainer.reward_model import LabelledPairs, RewardModel
-from trainer.surf import check_surf_config, crop, pseudo_labels, random_crops
+from trainer.surf import crop, pseudo_labels, random_crops
 
 
 def test_a_crop_keeps_consecutive_steps_from_its_own_start():
@@ -39,14 +39,6 @@ def test_pseudo_labels_only_for_predictions_beyond_the_threshold():
     target, confident = pseudo_labels(p, 0.999)
     assert confident.tolist() == [True, False, False, False, True]  # strict at the bounds
     assert target[confident].tolist() == [1.0, 0.0]
-
-
-def test_surf_settings_are_checked_against_the_segment_length():
-    check_surf_config(RewardConfig(surf=True), 60)
-    with pytest.raises(ValueError, match="exceeds feedback.segment_length"):
-        check_surf_config(RewardConfig(surf=True), 50)
-    with pytest.raises(ValueError, match="surf_threshold"):
-        check_surf_config(RewardConfig(surf=True, surf_threshold=0.3), 60)
 
 
 def test_pseudo_labelled_pairs_join_the_loss_only_when_confident():

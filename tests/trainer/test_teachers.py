@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from trainer.config import TeacherConfig
+from runvocab.config import TeacherConfig
 from trainer.teachers import (
     BPrefTeacher,
     Choice,

@@ -85,7 +85,7 @@ def test_a_run_that_cannot_start_fails_with_the_reason(tmp_path):
     assert run_status(sessions, typo.id) is RunStatus.FAILED
     assert "cheetah_run" in (run_row(sessions, typo.id).error or "")  # did you mean
     assert run_row(sessions, bad.id).error == (
-        "ValueError: config field 'steps' takes int, got 'many'")
+        "ConfigError: config field 'steps' takes int, got 'many'")
 
 
 def test_operator_pauses_a_waiting_run_and_hands_it_to_the_scripted_teacher(tmp_path,

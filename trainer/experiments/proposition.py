@@ -24,8 +24,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from numpy.typing import ArrayLike
 
+from runvocab.config import load_json
 from trainer.checkpoint import load_checkpoint
-from trainer.config import load_json
 from trainer.query_selection import pool_rewards, preference_probabilities, sample_candidates
 from trainer.reward_model import RewardModel
 from trainer.trajectories import TrajectoryPool

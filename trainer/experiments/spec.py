@@ -16,7 +16,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from trainer.config import PRESETS, RunConfig, build_config, typed_overrides
+from runvocab.config import PRESETS, RunConfig, build_config, typed_overrides
+from runvocab.names import ALGOS, all_tasks, unknown, unknown_task
+from runvocab.validate import validate
 
 KINDS = ("curves", "ablation")
 REQUIRED = ("name", "preset", "steps", "tasks", "eps", "seeds", "variants")
@@ -215,20 +217,15 @@ def parse_spec(data: dict[str, Any], where: str, source: str = "",
 
 def check_runs(spec: Spec, fail: Fail) -> None:
     """Algorithms, task names and each run's full configuration, as `train` would check them."""
-    from trainer.envs import available_tasks
-    from trainer.loop import ALGOS, check_config
-
     for v in spec.variants:
         if v.algo not in ALGOS:
-            raise fail(f"[variants.{json.dumps(v.label)}]: unknown algo {v.algo!r}; "
-                       f"valid: {', '.join(ALGOS)}")
-    known = set(available_tasks())
+            raise fail(f"[variants.{json.dumps(v.label)}]: {unknown('algo', v.algo, ALGOS)}")
     for task in spec.tasks:
-        if task not in known:
-            raise fail(f"unknown task {task!r} in 'tasks' (`sepoa tasks` lists them)")
+        if task not in all_tasks():
+            raise fail(f"'tasks': {unknown_task(task)}")
     for run in spec.runs():
         try:
-            check_config(run.config())
+            validate(run.config())
         except ValueError as err:
             raise fail(f"variant {run.variant!r} on {run.task}, eps {run.eps:g}: {err}") from err
 

@@ -8,7 +8,8 @@ import dataclasses
 
 import torch
 
-from trainer.config import SkillConfig
+from runvocab.config import SkillConfig
+from runvocab.names import unknown
 from trainer.skills.agent import SFCritic, SkillAgent, SkillReplayBuffer
 from trainer.skills.aps import APS
 from trainer.skills.cic import CIC
@@ -28,8 +29,7 @@ def resolve_skill_config(cfg: SkillConfig) -> SkillConfig:
     """`cfg` with the backend's own values filled in where it says 0 (skill_dim,
     update_skill_every); a ValueError naming the valid backends for an unknown one."""
     if cfg.backend not in SKILL_BACKENDS:
-        raise ValueError(f"unknown skill.backend {cfg.backend!r}; valid: "
-                         f"{', '.join(SKILL_BACKENDS)}")
+        raise ValueError(unknown("skill.backend", cfg.backend, SKILL_BACKENDS))
     cls = SKILL_BACKENDS[cfg.backend]
     return dataclasses.replace(
         cfg,

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from trainer.config import SACConfig
+from runvocab.config import SACConfig
 from trainer.nets import EnsembleMLP
 from trainer.replay_buffer import ReplayBuffer
 from trainer.sac import SAC, Batch, Critic

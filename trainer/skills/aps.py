@@ -16,7 +16,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from trainer.config import SkillConfig
+from runvocab.config import SkillConfig
 from trainer.entropy import RunningMeanStd
 from trainer.nets import mlp
 from trainer.skills.common import SkillBatch, adam, particle_entropy

@@ -8,7 +8,7 @@ from typing import ClassVar, NamedTuple, Protocol
 import numpy as np
 import torch
 
-from trainer.config import SkillConfig
+from runvocab.config import SkillConfig
 from trainer.entropy import RunningMeanStd
 
 

@@ -23,8 +23,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from runvocab.config import RunConfig, to_dict
+from runvocab.validate import validate
 from trainer.checkpoint import load_checkpoint, save_checkpoint
-from trainer.config import RunConfig, to_dict
 from trainer.envs import make_env
 from trainer.metrics import CSVStream
 from trainer.skills import (
@@ -73,24 +74,9 @@ def snapshot_path(cfg: RunConfig) -> str:
 
 
 def check_pretrain_config(cfg: RunConfig) -> RunConfig:
-    """`cfg` with its skill fields resolved; a ValueError naming the field for a bad one."""
-    cfg = dataclasses.replace(cfg, skill=resolve_skill_config(cfg.skill))
-    s = cfg.skill
-    positive = {
-        "skill.skill_dim": s.skill_dim, "skill.update_skill_every": s.update_skill_every,
-        "skill.update_every": s.update_every, "skill.hidden_dim": s.hidden_dim,
-        "skill.knn_k": s.knn_k, "skill.lr": s.lr, "skill.temperature": s.temperature,
-        "sac.batch_size": cfg.sac.batch_size, "replay_capacity": cfg.replay_capacity,
-    }
-    for name, value in positive.items():
-        if value <= 0:
-            raise ValueError(f"{name} must be positive, got {value}")
-    if s.pretrain_steps < 0 or s.seed_steps < 0:
-        raise ValueError("skill.pretrain_steps and skill.seed_steps cannot be negative")
-    if s.knn_k > cfg.sac.batch_size:
-        raise ValueError(f"skill.knn_k ({s.knn_k}) exceeds the batch (sac.batch_size "
-                         f"{cfg.sac.batch_size}) its neighbours come from")
-    return cfg
+    """`cfg` with its skill fields resolved; a ConfigError naming the field for a bad one."""
+    validate(cfg, pretraining=True)
+    return dataclasses.replace(cfg, skill=resolve_skill_config(cfg.skill))
 
 
 def build_skill_agent(cfg: RunConfig, obs_dim: int, action_dim: int, device: torch.device,

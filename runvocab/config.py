@@ -16,6 +16,8 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any
 
+from runvocab.names import ConfigError, did_you_mean, task_family, unknown
+
 
 @dataclass(frozen=True)
 class SACConfig:
@@ -349,16 +351,19 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
-def task_family(task: str) -> str:
-    return task.split(":", 1)[0]
+def _unknown_field(path: str) -> ConfigError:
+    paths = [p for p, _, _ in _leaf_fields(RunConfig)]
+    return ConfigError(path, f"unknown config field {path!r}{did_you_mean(path, paths)}; "
+                             "`sepoa train --help` lists every field")
 
 
-def _replace_path(cfg: Any, path: str, value: Any) -> Any:
+def _replace_path(cfg: Any, path: str, value: Any, full: str = "") -> Any:
     head, _, rest = path.partition(".")
     if not any(f.name == head for f in dataclasses.fields(cfg)):
-        raise ValueError(f"unknown config field {path!r}")
+        raise _unknown_field(full or path)
     if rest:
-        return dataclasses.replace(cfg, **{head: _replace_path(getattr(cfg, head), rest, value)})
+        inner = _replace_path(getattr(cfg, head), rest, value, full or path)
+        return dataclasses.replace(cfg, **{head: inner})
     return dataclasses.replace(cfg, **{head: value})
 
 
@@ -400,7 +405,7 @@ def build_config(task: str, preset: str, overrides: dict[str, Any] | None = None
     that order (a size preset shrinks whatever came before), then explicit `overrides`
     (dotted paths)."""
     if preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}; valid: {', '.join(PRESETS)}")
+        raise ConfigError("preset", unknown("preset", preset, PRESETS))
     overrides = overrides or {}
     algo = overrides.get("algo", RunConfig.algo)
     cfg = RunConfig(task=task, preset=preset)
@@ -419,7 +424,7 @@ def typed_overrides(values: dict[str, Any]) -> dict[str, Any]:
     out = {}
     for path, value in values.items():
         if path not in types:
-            raise ValueError(f"unknown config field {path!r}")
+            raise _unknown_field(path)
         t, bad = types[path], False
         if t is bool or t is str:
             bad = not isinstance(value, t)
@@ -431,7 +436,7 @@ def typed_overrides(values: dict[str, Any]) -> dict[str, Any]:
             bad = isinstance(value, bool) or not isinstance(value, int | float)
             value = value if bad else float(value)
         if bad:
-            raise ValueError(f"config field {path!r} takes {t.__name__}, got {value!r}")
+            raise ConfigError(path, f"config field {path!r} takes {t.__name__}, got {value!r}")
         out[path] = value
     return out
 
@@ -455,7 +460,8 @@ def from_dict(data: dict[str, Any]) -> RunConfig:
             kwargs[f.name] = v
         return cls(**kwargs)
 
-    return build(RunConfig, data)
+    cfg: RunConfig = build(RunConfig, data)
+    return cfg
 
 
 def save_json(cfg: RunConfig, path: str) -> None:
@@ -488,7 +494,7 @@ def _leaf_fields(cls: type, prefix: str = "") -> tuple[tuple[str, type, str], ..
     out: list[tuple[str, type, str]] = []
     for f in dataclasses.fields(cls):
         t = hints[f.name]
-        if dataclasses.is_dataclass(t):
+        if isinstance(t, type) and dataclasses.is_dataclass(t):
             out += _leaf_fields(t, f"{prefix}{f.name}.")
         else:
             out.append((prefix + f.name, t, _field_doc(cls, f.name)))
@@ -530,7 +536,8 @@ def add_config_arguments(parser: argparse.ArgumentParser,
             names.append(f"--{path.replace('_', '-')}")
         parser.add_argument(
             *names, dest=path, default=None, metavar=t.__name__.upper() if hasattr(t, "__name__")
-            else "VALUE", help=doc, type=lambda s, t=t: _parse_value(t, s)
+            else "VALUE", help=doc,
+            type=lambda s, t=t: _parse_value(t, s),  # type: ignore[misc]
         )
 
 

@@ -1,0 +1,206 @@
+"""One check of a whole run configuration, before any training: each refusal names the field,
+what it holds and what is valid."""
+
+from __future__ import annotations
+
+import math
+
+from runvocab.config import RunConfig
+from runvocab.names import (
+    ALGOS,
+    SCORE_SPREADS,
+    SELECTION_MODES,
+    SELECTION_RULES,
+    SIZE_PRESETS,
+    SKILL_BACKENDS,
+    TASK_SKILL_DRAWS,
+    TEACHER_KINDS,
+    TIES,
+    ConfigError,
+    all_tasks,
+    unknown,
+    unknown_task,
+)
+
+
+def validate(cfg: RunConfig, pretraining: bool = False) -> None:
+    """Raise a ConfigError for the first bad field of `cfg`. `pretraining`: `cfg` describes a
+    skill pretraining run (`sepoa pretrain`), whose skill fields are checked whatever the algo."""
+    _check_names(cfg)
+    _check_numbers(cfg)
+    _check_feedback(cfg)
+    _check_teacher(cfg)
+    if cfg.reward.surf:
+        _check_surf(cfg)
+    if cfg.reward.rune:
+        _check_rune(cfg)
+    if cfg.reward.rime:
+        _check_rime(cfg)
+    if pretraining or cfg.algo == "sepoa":
+        _check_skill(cfg, pretraining)
+
+
+def _positive(values: dict[str, float]) -> None:
+    for name, value in values.items():
+        if not value > 0:
+            raise ConfigError(name, f"{name} must be positive, got {value}")
+
+
+def _not_negative(values: dict[str, float]) -> None:
+    for name, value in values.items():
+        if value < 0:
+            raise ConfigError(name, f"{name} cannot be negative, got {value}")
+
+
+def _check_names(cfg: RunConfig) -> None:
+    if cfg.task not in all_tasks():
+        raise ConfigError("task", unknown_task(cfg.task))
+    choices: dict[str, tuple[str, tuple[str, ...]]] = {
+        "algo": (cfg.algo, ALGOS),
+        "preset": (cfg.preset, SIZE_PRESETS),
+        "feedback.selection": (cfg.feedback.selection, SELECTION_RULES),
+        "feedback.first_round_selection": (cfg.feedback.first_round_selection, SELECTION_RULES),
+        "feedback.selection_mode": (cfg.feedback.selection_mode, SELECTION_MODES),
+        "feedback.compare_rule": (cfg.feedback.compare_rule, ("", *SELECTION_RULES)),
+        "teacher.kind": (cfg.teacher.kind, TEACHER_KINDS),
+        "teacher.tie": (cfg.teacher.tie, TIES),
+        "skill.backend": (cfg.skill.backend, SKILL_BACKENDS),
+        "skill.task_skill_draw": (cfg.skill.task_skill_draw, TASK_SKILL_DRAWS),
+        "skill.score_spread": (cfg.skill.score_spread, SCORE_SPREADS),
+    }
+    for name, (value, valid) in choices.items():
+        if value not in valid:
+            raise ConfigError(name, unknown(name, value, valid))
+    kind, _, index = cfg.device.partition(":")
+    if kind not in ("auto", "cpu", "cuda") or (index and (kind != "cuda" or not index.isdigit())):
+        raise ConfigError("device", f"unknown device {cfg.device!r}; valid: auto, cpu, cuda, "
+                                    "cuda:<index>")
+
+
+def _check_numbers(cfg: RunConfig) -> None:
+    _positive({
+        "steps": cfg.steps, "replay_capacity": cfg.replay_capacity,
+        "update_every": cfg.update_every, "sac.batch_size": cfg.sac.batch_size,
+        "sac.hidden_dim": cfg.sac.hidden_dim, "sac.hidden_layers": cfg.sac.hidden_layers,
+        "sac.lr": cfg.sac.lr, "reward.batch_size": cfg.reward.batch_size,
+        "reward.ensemble_size": cfg.reward.ensemble_size,
+        "reward.hidden_dim": cfg.reward.hidden_dim, "reward.lr": cfg.reward.lr,
+        "eval_episodes": cfg.eval_episodes,
+    })
+    _not_negative({
+        "seed": cfg.seed, "seed_steps": cfg.seed_steps, "unsup_steps": cfg.unsup_steps,
+        "reset_updates": cfg.reset_updates, "episode_length": cfg.episode_length,
+        "eval_every": cfg.eval_every, "checkpoint_every": cfg.checkpoint_every,
+        "threads": cfg.threads,
+    })
+    if not 0 <= cfg.sac.gamma < 1:
+        raise ConfigError("sac.gamma", f"sac.gamma is a discount in [0, 1), got {cfg.sac.gamma}")
+    if not 0 < cfg.sac.tau <= 1:
+        raise ConfigError("sac.tau", f"sac.tau is a Polyak rate in (0, 1], got {cfg.sac.tau}")
+
+
+def _check_feedback(cfg: RunConfig) -> None:
+    fb = cfg.feedback
+    _positive({
+        "feedback.segment_length": fb.segment_length, "feedback.every": fb.every,
+        "feedback.per_round": fb.per_round, "feedback.candidate_factor": fb.candidate_factor,
+        "feedback.pool_trajectories": fb.pool_trajectories,
+    })
+    _not_negative({"feedback.budget": fb.budget,
+                   "skill.initial_rollouts": cfg.skill.initial_rollouts})
+    if fb.pool_trajectories < 2:
+        raise ConfigError("feedback.pool_trajectories",
+                          "feedback.pool_trajectories must be at least 2 (a query pairs two)")
+    for name in ("selection", "first_round_selection", "compare_rule"):
+        if getattr(fb, name) == "skill" and cfg.algo != "sepoa":
+            raise ConfigError(f"feedback.{name}",
+                              f"feedback.{name} skill needs skills: use algo sepoa")
+    if fb.first_round_selection == "skill":
+        raise ConfigError("feedback.first_round_selection",
+                          "feedback.first_round_selection cannot be skill: before the first "
+                          "label there is no return estimate to select by")
+    if cfg.algo == "sepoa" and cfg.skill.initial_rollouts > fb.pool_trajectories:
+        raise ConfigError("skill.initial_rollouts",
+                          f"skill.initial_rollouts {cfg.skill.initial_rollouts} exceeds "
+                          f"feedback.pool_trajectories {fb.pool_trajectories}: round 0 could "
+                          "never see them all")
+    if cfg.episode_length and cfg.episode_length < fb.segment_length:
+        raise ConfigError("episode_length",
+                          f"episode_length {cfg.episode_length} is shorter than a segment "
+                          f"({fb.segment_length} steps)")
+
+
+def _check_teacher(cfg: RunConfig) -> None:
+    t = cfg.teacher
+    if not 0 <= t.eps < 1:
+        raise ConfigError("teacher.eps", f"teacher.eps is an error rate in [0, 1), got {t.eps}")
+    if t.recent_trajectories < 1:
+        raise ConfigError("teacher.recent_trajectories",
+                          f"teacher.recent_trajectories must be at least 1, got "
+                          f"{t.recent_trajectories}")
+    if math.isnan(t.beta) or t.beta < 0:
+        raise ConfigError("teacher.beta",
+                          f"teacher.beta must be >= 0 (inf = rational), got {t.beta}")
+    for name, value in {"teacher.gamma": t.gamma, "teacher.eps_mistake": t.eps_mistake}.items():
+        if not 0 <= value <= 1:
+            raise ConfigError(name, f"{name} must be in [0, 1], got {value}")
+    _not_negative({"teacher.eps_skip": t.eps_skip, "teacher.eps_equal": t.eps_equal})
+
+
+def _check_surf(cfg: RunConfig) -> None:
+    r, segment = cfg.reward, cfg.feedback.segment_length
+    if not 0 < r.surf_crop_min <= r.surf_crop_max:
+        raise ConfigError("reward.surf_crop_min",
+                          f"reward.surf_crop_min ({r.surf_crop_min}) must be positive and at "
+                          f"most reward.surf_crop_max ({r.surf_crop_max})")
+    if r.surf_crop_max > segment:
+        raise ConfigError("reward.surf_crop_max",
+                          f"reward.surf_crop_max ({r.surf_crop_max}) exceeds "
+                          f"feedback.segment_length ({segment}); SURF crops segments of 60 "
+                          "steps in the paper")
+    if not 0.5 < r.surf_threshold < 1:
+        raise ConfigError("reward.surf_threshold",
+                          f"reward.surf_threshold is a confidence in (0.5, 1), got "
+                          f"{r.surf_threshold}")
+    _not_negative({"reward.surf_unlabelled_ratio": r.surf_unlabelled_ratio,
+                   "reward.surf_weight": r.surf_weight})
+
+
+def _check_rune(cfg: RunConfig) -> None:
+    r = cfg.reward
+    _not_negative({"reward.rune_beta0": r.rune_beta0})
+    if not 0 <= r.rune_decay < 1:
+        raise ConfigError("reward.rune_decay",
+                          f"reward.rune_decay is a rate in [0, 1), got {r.rune_decay}")
+
+
+def _check_rime(cfg: RunConfig) -> None:
+    r = cfg.reward
+    if not 0 < r.rime_beta_min <= r.rime_beta_max:
+        raise ConfigError("reward.rime_beta_min",
+                          f"reward.rime_beta_min ({r.rime_beta_min}) must be positive and at "
+                          f"most reward.rime_beta_max ({r.rime_beta_max})")
+    _positive({"reward.rime_k": r.rime_k, "reward.rime_tau_upper": r.rime_tau_upper})
+    _not_negative({"reward.rime_alpha": r.rime_alpha,
+                   "reward.rime_warm_start_updates": r.rime_warm_start_updates})
+
+
+def _check_skill(cfg: RunConfig, pretraining: bool) -> None:
+    s = cfg.skill
+    # 0 = the backend's own skill size and skill period.
+    _not_negative({"skill.skill_dim": s.skill_dim,
+                   "skill.update_skill_every": s.update_skill_every,
+                   "skill.pretrain_steps": s.pretrain_steps, "skill.seed_steps": s.seed_steps})
+    _positive({
+        "skill.update_every": s.update_every, "skill.hidden_dim": s.hidden_dim,
+        "skill.hidden_layers": s.hidden_layers, "skill.knn_k": s.knn_k, "skill.lr": s.lr,
+        "skill.temperature": s.temperature, "skill.estimator_ensemble": s.estimator_ensemble,
+        "skill.estimator_hidden_dim": s.estimator_hidden_dim,
+        "skill.estimator_lr": s.estimator_lr, "skill.task_skill_samples": s.task_skill_samples,
+    })
+    _not_negative({"skill.estimator_steps": s.estimator_steps})
+    if (pretraining or s.pretrain_steps > 0) and s.knn_k > cfg.sac.batch_size:
+        raise ConfigError("skill.knn_k",
+                          f"skill.knn_k ({s.knn_k}) exceeds the batch (sac.batch_size "
+                          f"{cfg.sac.batch_size}) its neighbours come from")
+
