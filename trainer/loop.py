@@ -28,14 +28,14 @@ After any critic reset, `reset_updates` updates on the relabelled buffer follow 
 (PEBBLE's reset_update).
 
 Rounds, evaluations and checkpoints happen at episode boundaries, so a checkpoint never has to
-capture a half-run episode.
+capture a half-run episode. The loop itself does not branch on the algorithm: the reward the
+agent trains on is `agent_reward.py`'s, and how the agent acts and learns (S-EPOA's skills
+included) is `policies.py`'s.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import os
-import sys
 import time
 
 import numpy as np
@@ -43,22 +43,16 @@ import torch
 from tqdm import tqdm
 
 from runvocab.config import RunConfig, save_json
-from runvocab.names import PEBBLE_FAMILY
 from runvocab.validate import validate
+from trainer.agent_reward import AgentReward
 from trainer.checkpoint import load_checkpoint, save_checkpoint
-from trainer.entropy import RunningMeanStd, knn_distance
 from trainer.envs import make_env
 from trainer.feedback import Answer, LabelLog, PreferenceFeedback
 from trainer.hooks import RunHooks
 from trainer.metrics import Metrics
-from trainer.nets import NumpyMLP
-from trainer.replay_buffer import ReplayBuffer
-from trainer.return_estimator import ReturnEstimator
+from trainer.policies import Meta, make_policy
 from trainer.reward_model import RewardModel
-from trainer.rune import rune_beta
-from trainer.sac import SAC
-from trainer.skills import SkillAgent, SkillBackend, SkillReplayBuffer
-from trainer.skills.pretrain import build_skill_agent, load_snapshot, pretrain, snapshot_path
+from trainer.schedule import After, Every, Period, Until
 from trainer.teachers import make_teacher
 from trainer.trajectories import EpisodeRecorder, TrajectoryPool
 from trainer.utils import pick_device, set_seed
@@ -72,23 +66,6 @@ began, so it is refused."""
 
 def default_run_dir(cfg: RunConfig) -> str:
     return os.path.join("runs", f"{cfg.task.replace(':', '-')}-{cfg.algo}-s{cfg.seed}")
-
-
-def _skill_agent(cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.device,
-                 hooks: RunHooks) -> tuple[SkillAgent, SkillBackend]:
-    """S-EPOA's pi(a|s,z) from its pretraining snapshot (pretrained first when missing), or
-    fresh when skill.pretrain_steps is 0."""
-    if cfg.skill.pretrain_steps == 0:
-        return build_skill_agent(cfg, obs_dim, act_dim, device)
-    path = snapshot_path(cfg)
-    if not os.path.exists(path):
-        print(f"no skill snapshot at {path}: pretraining {cfg.skill.backend} for "
-              f"{cfg.skill.pretrain_steps} steps first", file=sys.stderr, flush=True)
-        pretrain(dataclasses.replace(cfg, seed=cfg.skill.snapshot_seed), out=path,
-                 progress=False, tick=hooks.pretraining)
-        set_seed(cfg.seed)  # the online run starts from the same state as with a snapshot at hand
-    snapshot = load_snapshot(path, cfg.task, cfg.skill.backend)
-    return build_skill_agent(cfg, obs_dim, act_dim, device, snapshot)
 
 
 class TrainingRun:
@@ -117,30 +94,16 @@ class TrainingRun:
         self.eval_env = make_env(cfg.task, cfg.seed + 100_000, length)
         obs_dim, act_dim = self.env.obs_dim, self.env.action_dim
         self.rng = np.random.default_rng(cfg.seed)
-        self.skills: SkillBackend | None = None
-        self.skill: np.ndarray | None = None
-        """the skill the current episode acts with (S-EPOA)"""
-        self.task_skill: np.ndarray | None = None
-        """z_task, once R_theta is fitted (S-EPOA)"""
-        estimator = None
-        if cfg.algo == "sepoa":
-            self.agent, self.skills = _skill_agent(cfg, obs_dim, act_dim, self.device,
-                                                   self.hooks)
-            self.buffer = SkillReplayBuffer(obs_dim, act_dim, self.skills.skill_dim,
-                                            cfg.replay_capacity, self.device, cfg.seed)
-            estimator = ReturnEstimator(self.skills.skill_dim, cfg.skill, self.device)
-        else:
-            self.agent = SAC(obs_dim, act_dim, cfg.sac, self.device)
-            self.buffer = ReplayBuffer(obs_dim, act_dim, cfg.replay_capacity, self.device,
-                                       cfg.seed)
+        self.policy = make_policy(cfg, obs_dim, act_dim, self.device, self.hooks)
+        self.agent, self.buffer = self.policy.agent, self.policy.buffer
+        self.meta: Meta = ()
+        """what the current episode acts on besides the observation (S-EPOA: its skill)"""
         self.pool = TrajectoryPool(cfg.feedback.pool_trajectories)
         self.env.reset()
         state_dim = len(self.env.physics_state())
         self.recorder = EpisodeRecorder(obs_dim, act_dim, state_dim, self.env.episode_length)
-        self.entropy_stats = RunningMeanStd()
 
         self.feedback: PreferenceFeedback | None = None
-        self._numpy_reward: NumpyMLP | None = None
         if cfg.algo != "sac":
             model = RewardModel(obs_dim, act_dim, cfg.reward, self.device, cfg.seed)
             teacher = make_teacher(cfg.teacher, cfg.seed, cfg.feedback.segment_length,
@@ -148,22 +111,19 @@ class TrainingRun:
             self.feedback = PreferenceFeedback(
                 cfg.feedback, model, teacher, f"scripted:{cfg.teacher.kind}",
                 LabelLog(os.path.join(self.run_dir, "labels.jsonl")),
-                np.random.default_rng(cfg.seed + 1), estimator, cfg.skill.score_spread,
-            )
-            self._numpy_reward = (
-                NumpyMLP(list(model.ensemble.layers), "leaky_relu", "tanh")
-                if self.device.type == "cpu" else None
+                np.random.default_rng(cfg.seed + 1), self.policy.estimator,
+                cfg.skill.score_spread,
             )
 
         self.step = 0
         self.episode = 0
         self.stopped = False
-        self.next_round_step = cfg.seed_steps + (
-            cfg.unsup_steps if cfg.algo in PEBBLE_FAMILY else 0)
-        self.reward_start_step: int | None = None
-        """when the first round closed: RUNE's t counts steps from here"""
-        self.last_checkpoint_step = 0
-        self.last_eval_step = 0
+        self.reward = AgentReward(cfg, self.buffer, self.feedback, self.device)
+        self.next_round_step = cfg.seed_steps + self.reward.unsupervised_steps
+        self.random_actions = Until(self.policy.random_seed_steps)
+        self.learning, self.update_step = After(cfg.seed_steps), Every(cfg.update_every)
+        self.evaluations = Period(cfg.eval_every)
+        self.checkpoints = Period(max(cfg.checkpoint_every, 1))  # 0: at every episode's end
         if resume:
             self._load()
         else:
@@ -173,104 +133,18 @@ class TrainingRun:
             self._trim_metrics()
 
     # ----------------------------------------------------------------------------------------
-    @property
-    def preference_phase(self) -> bool:
-        """After the first round: the agent trains on the learned reward."""
-        return self.feedback is not None and self.feedback.rounds > 0
-
-    def _act(self, obs: np.ndarray, deterministic: bool = False,
-             skill: np.ndarray | None = None) -> np.ndarray:
-        skill = self.skill if skill is None else skill
-        if skill is not None:
-            return self.agent.act(obs, skill, self.rng, deterministic)
-        return self.agent.act(obs, self.rng, deterministic)
-
     def _start_episode(self) -> np.ndarray:
-        """Reset the env; S-EPOA picks the episode's skill (the reset and the pick happen in
-        this order in an uninterrupted run and in a resumed one alike)."""
+        """Reset the env, then the episode's meta (the reset and the pick happen in this order
+        in an uninterrupted run and in a resumed one alike)."""
         obs = self.env.reset()
-        if self.skills is not None:
-            self.skill = self._episode_skill()
+        self.meta = self.policy.episode_meta(self.rng)
         return obs
 
-    def _episode_skill(self) -> np.ndarray:
-        """Before the first round R_theta knows nothing: a random skill per episode. Then
-        z_task, drawn when R_theta was refitted, or anew at each episode
-        (`skill.task_skill_draw`)."""
-        assert self.skills is not None
-        if self.task_skill is None:
-            return self.skills.sample_skills(self.rng, 1)[0]
-        if self.cfg.skill.task_skill_draw == "episode":
-            self._draw_task_skill()
-        return self.task_skill
-
-    def _draw_task_skill(self) -> None:
-        """z_task: the best of N_z fresh random skills under R_theta."""
-        assert self.skills is not None and self.feedback is not None
-        estimator = self.feedback.estimator
-        assert estimator is not None and estimator.fitted
-        candidates = self.skills.sample_skills(self.rng, self.cfg.skill.task_skill_samples)
-        self.task_skill = estimator.best_skill(candidates)
-
-    def _agent_reward(self, obs: np.ndarray, action: np.ndarray, true_reward: float) -> float:
-        if self.feedback is None:
-            return true_reward
-        if not self.preference_phase:
-            return 0.0  # unsupervised phase: the intrinsic reward is computed per batch
-        if self._numpy_reward is not None:
-            x = np.concatenate([obs, action])[None]
-            return float(self._numpy_reward(x).mean())
-        with torch.no_grad():
-            o = torch.as_tensor(obs, device=self.device)[None]
-            a = torch.as_tensor(action, device=self.device)[None]
-            return float(self.feedback.model.reward(o, a)[0])
-
     def _update(self) -> dict[str, float]:
-        if self.skills is None:
-            return self.agent.update(self._training_batch())
-        if not self.preference_phase:
-            return {}  # S-EPOA keeps its pretrained policy until there is a reward to learn
-        metrics = self.agent.update(self._training_batch())
-        if self.cfg.skill.task_skill_update:
-            # The acting skill learns from every transition, not only its own episode's share.
-            batch = self._training_batch()
-            task = torch.as_tensor(self.task_skill, device=self.device).expand_as(batch.skill)
-            task_metrics = self.agent.update(batch._replace(skill=task))
-            metrics |= {f"task_{k}": v for k, v in task_metrics.items()}
-        return metrics
+        return self.policy.update(self._training_batch, self.reward.learned)
 
     def _training_batch(self):
-        """A replay batch carrying the reward the agent trains on now."""
-        batch = self.buffer.sample(self.cfg.sac.batch_size)
-        reward_cfg = self.cfg.reward
-        if self.feedback is not None and not self.preference_phase:
-            # PEBBLE's pretraining reward: kNN distance of s' to the buffer's states, normalised.
-            dist = self._entropy_distance(batch.next_obs)
-            self.entropy_stats.update(dist)
-            batch = batch._replace(reward=(dist / self.entropy_stats.std).unsqueeze(1))
-            if reward_cfg.rime:
-                self._warm_start_reward_model()
-        elif self.feedback is not None and reward_cfg.rune:
-            assert self.reward_start_step is not None
-            beta = rune_beta(reward_cfg, self.step - self.reward_start_step)
-            bonus = self.feedback.model.reward_std(batch.obs, batch.action)
-            batch = batch._replace(reward=batch.reward + beta * bonus.unsqueeze(1))
-        return batch
-
-    def _entropy_distance(self, next_obs: torch.Tensor) -> torch.Tensor:
-        points = self.buffer.next_obs[: len(self.buffer)]
-        return knn_distance(next_obs, points, self.cfg.entropy_k + 1)
-
-    def _warm_start_reward_model(self) -> None:
-        """RIME: regress r_hat onto the state-entropy reward of fresh batches, standardised and
-        scaled into tanh's range, so the first round starts from a reward the agent knows."""
-        assert self.feedback is not None
-        for _ in range(self.cfg.reward.rime_warm_start_updates):
-            batch = self.buffer.sample(self.cfg.sac.batch_size)
-            z = (self._entropy_distance(batch.next_obs) - self.entropy_stats.mean) / (
-                self.entropy_stats.std)
-            target = z / z.abs().max().clamp(min=1e-8)
-            self.feedback.model.regress(torch.cat([batch.obs, batch.action], dim=1), target)
+        return self.reward.batch(self.buffer.sample(self.cfg.sac.batch_size), self.step)
 
     def _log(self, stream: str, row: dict) -> None:
         self.metrics.log(stream, row)
@@ -290,26 +164,25 @@ class TrainingRun:
         bar = tqdm(total=cfg.steps, initial=self.step, disable=not self.progress,
                    dynamic_ncols=True, unit="step")
         while self.step < cfg.steps:
-            if self.step < cfg.seed_steps and self.skills is None:
+            if self.random_actions(self.step):
                 action = self.rng.uniform(-1, 1, self.env.action_dim).astype(np.float32)
-            else:  # S-EPOA explores with its pretrained skills from the start
-                action = self._act(obs).astype(np.float32)
+            else:
+                action = self.policy.act(obs, self.meta, self.rng).astype(np.float32)
             state = self.env.physics_state()
             result = self.env.step(action)
-            reward = self._agent_reward(obs, action, result.reward)
-            skill = () if self.skill is None else (self.skill,)
-            self.buffer.add(obs, action, reward, result.reward, result.obs, *skill)
+            reward = self.reward.at_step(obs, action, result.reward)
+            self.buffer.add(obs, action, reward, result.reward, result.obs, *self.meta)
             self.recorder.record(obs, action, result.reward, state, result.success)
             obs, episode_return = result.obs, episode_return + result.reward
             self.step += 1
-            if self.step > cfg.seed_steps and self.step % cfg.update_every == 0:
+            if self.learning(self.step) and self.update_step(self.step):
                 last_metrics = self._update()
             bar.update(1)
             stopping = stopping or self.hooks.stop_requested(self.step)
 
             if result.done:
                 traj = self.recorder.finish(self.episode, self.env.episode_context(),
-                                            self.skill)
+                                            *self.meta)
                 self.pool.add(traj)
                 self.episode += 1
                 fps = (self.step - start_step) / max(time.time() - start_time, 1e-9)
@@ -318,7 +191,7 @@ class TrainingRun:
                     "step": self.step, "episode": self.episode, "return": episode_return,
                     "success": float(traj.success), "labels_used": labels, "fps": fps,
                 } | {k: v for k, v in last_metrics.items() if k in ("critic_loss", "alpha", "q")}
-                  | self._rune_row())
+                  | self.reward.episode_row(self.step))
                 self._end_of_episode()
                 bar.set_postfix(ret=f"{episode_return:.1f}",
                                 labels=feedback.labels_used if feedback else 0, refresh=False)
@@ -333,14 +206,9 @@ class TrainingRun:
         self.metrics.close()
         return self.summary()
 
-    def _rune_row(self) -> dict[str, float]:
-        if not self.cfg.reward.rune or self.reward_start_step is None:
-            return {}
-        return {"rune_beta": rune_beta(self.cfg.reward, self.step - self.reward_start_step)}
-
     def _end_of_episode(self) -> None:
         cfg = self.cfg
-        if cfg.eval_every > 0 and self.step - self.last_eval_step >= cfg.eval_every:
+        if self.evaluations.due(self.step):
             self.evaluate()
         fb = self.feedback
         if fb is not None and fb.pending:
@@ -352,15 +220,14 @@ class TrainingRun:
             self._save()  # the chosen queries survive a kill; their answers go to labels.jsonl
             self.hooks.round_opened(fb.pending, self.pool)
             self._try_finish_round()
-        if self.step - self.last_checkpoint_step >= cfg.checkpoint_every:
+        if self.checkpoints.due(self.step):
             self._save()
 
     def _pool_needed(self) -> int:
-        """Trajectories a round needs: two, and S-EPOA's round 0 its initial rollouts, each
-        with its own random skill, so the first labels compare many skills."""
-        if self.skills is not None and self.feedback is not None and self.feedback.rounds == 0:
-            return max(2, self.cfg.skill.initial_rollouts)
-        return 2
+        """Trajectories a round needs: two, and for the first round the policy's say (S-EPOA:
+        its initial rollouts, so the first labels compare many skills)."""
+        assert self.feedback is not None
+        return self.policy.trajectories_for_first_round() if self.feedback.rounds == 0 else 2
 
     def _try_finish_round(self) -> None:
         """Finish the open round if its answers are in; it must close once the next round is
@@ -384,24 +251,16 @@ class TrainingRun:
         metrics = fb.finish_round(self.pool, answers)
         self.buffer.relabel(fb.model.reward)
         metrics["reward_corr"] = self.buffer.reward_correlation()
-        if self.skills is not None:
-            self._draw_task_skill()  # R_theta was refitted: the post-reset updates train it too
+        self.policy.round_closed(self.rng)
         if first:
-            self.reward_start_step = self.step
-            if self._resets_critic():
+            self.reward.start_step = self.step
+            if self.policy.resets_critic:
                 self.agent.reset_critic()
                 # PEBBLE's reset_update: the fresh critic catches up on the learned reward.
                 for _ in range(self.cfg.reset_updates):
                     self._update()
         self.next_round_step = self.step + self.cfg.feedback.every
         self._log("rounds", {"step": self.step} | metrics)
-
-    def _resets_critic(self) -> bool:
-        """PEBBLE's critic learned the intrinsic reward (RIME's warm start keeps it); S-EPOA's
-        was pretrained on the skills' intrinsic reward (`skill.reset_critic`)."""
-        if self.skills is not None:
-            return self.cfg.skill.reset_critic
-        return not self.cfg.reward.rime
 
     def evaluate(self) -> dict[str, float]:
         """Deterministic episodes on the evaluation env; S-EPOA acts with z_task once it has
@@ -410,12 +269,13 @@ class TrainingRun:
         for _ in range(self.cfg.eval_episodes):
             obs, total, success, done = self.eval_env.reset(), 0.0, False, False
             while not done:
-                result = self.eval_env.step(self._act(obs, True, self.task_skill))
+                action = self.policy.act(obs, self.policy.eval_meta(self.meta), self.rng, True)
+                result = self.eval_env.step(action)
                 obs, total, success, done = (result.obs, total + result.reward,
                                              success or result.success, result.done)
             returns.append(total)
             successes.append(success)
-        self.last_eval_step = self.step
+        self.evaluations.happened(self.step)
         row = {"step": self.step, "return": float(np.mean(returns)),
                "return_std": float(np.std(returns)), "success_rate": float(np.mean(successes)),
                "labels_used": self.feedback.labels_used if self.feedback else 0}
@@ -433,22 +293,21 @@ class TrainingRun:
 
     # ----------------------------------------------------------------------------------------
     def _state(self) -> dict:
-        state = {
+        state = self.policy.state_dict() | {
             "loop_version": LOOP_VERSION,
             "step": self.step,
             "episode": self.episode,
             "next_round_step": self.next_round_step,
-            "last_eval_step": self.last_eval_step,
-            "reward_start_step": self.reward_start_step,
+            "last_eval_step": self.evaluations.last,
+            "reward_start_step": self.reward.start_step,
             "agent": self.agent.state_dict(),
             "buffer": self.buffer.state_dict(),
             "pool": self.pool.state_dict(),
-            "entropy_stats": self.entropy_stats.state_dict(),
+            "entropy_stats": self.reward.entropy_stats.state_dict(),
             "rng": self.rng.bit_generator.state,
             "torch_rng": torch.get_rng_state(),
             "env_rng": self.env.rng_state(),
             "eval_env_rng": self.eval_env.rng_state(),
-            "task_skill": self.task_skill,
         }
         if self.device.type == "cuda":
             state["cuda_rng"] = torch.cuda.get_rng_state()
@@ -457,7 +316,7 @@ class TrainingRun:
         return state
 
     def _save(self) -> None:
-        self.last_checkpoint_step = self.step
+        self.checkpoints.happened(self.step)
         save_checkpoint(self.checkpoint_path, self._state())
 
     def _load(self) -> None:
@@ -469,16 +328,16 @@ class TrainingRun:
                 f"is version {LOOP_VERSION}, whose {self.cfg.algo} differs (S-EPOA's initial "
                 "rollouts, per-query selection, z_task updates and critic reset; the updates "
                 "after a critic reset), so the run cannot resume as it began: start a new run")
-        self.task_skill = state["task_skill"]
+        self.policy.load_state_dict(state)
         self.step, self.episode = state["step"], state["episode"]
         self.next_round_step = state["next_round_step"]
-        self.last_eval_step = state["last_eval_step"]
-        self.reward_start_step = state.get("reward_start_step")
-        self.last_checkpoint_step = self.step
+        self.evaluations.happened(state["last_eval_step"])
+        self.reward.start_step = state.get("reward_start_step")
+        self.checkpoints.happened(self.step)
         self.agent.load_state_dict(state["agent"])
         self.buffer.load_state_dict(state["buffer"])
         self.pool.load_state_dict(state["pool"])
-        self.entropy_stats.load_state_dict(state["entropy_stats"])
+        self.reward.entropy_stats.load_state_dict(state["entropy_stats"])
         self.rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
         if "cuda_rng" in state and self.device.type == "cuda":

@@ -107,7 +107,7 @@ def test_warm_start_fits_the_intrinsic_reward_and_keeps_the_critic(tmp_path):
     def open_round(pool, step):
         # Just before the first round: how well does r_hat follow the entropy reward?
         batch = run.buffer.sample(256)
-        dist = run._entropy_distance(batch.next_obs)
+        dist = run.reward.entropy_distance(batch.next_obs)
         x = torch.cat([batch.obs, batch.action], 1)
         for name, model in (("warm", run.feedback.model), ("fresh", fresh)):
             r = model.member_rewards(x).mean(0)

@@ -32,22 +32,22 @@ def test_the_agent_trains_on_r_hat_plus_beta_t_times_the_ensemble_std(tmp_path):
     update = run.agent.update
 
     def spy(batch):
-        if run.preference_phase:
+        if run.reward.learned:
             seen.append((run.step, batch))
         return update(batch)
 
     run.agent.update = spy
     run.train()
-    assert run.reward_start_step == cfg.seed_steps + cfg.unsup_steps  # the first round's step
+    assert run.reward.start_step == cfg.seed_steps + cfg.unsup_steps  # the first round's step
     # One round only, so the buffer's r_hat and the model at the end are the ones each
     # update saw.
     assert run.feedback.rounds == 1 and len(seen) > 100
     model = run.feedback.model
     for step, batch in seen[:3] + seen[-3:]:
-        beta = 2.0 * 0.99 ** (step - run.reward_start_step)
+        beta = 2.0 * 0.99 ** (step - run.reward.start_step)
         members = model.member_rewards(torch.cat([batch.obs, batch.action], 1))
         r_hat, std = members.mean(0), members.std(0, unbiased=False)
         assert (std > 0).all()
         assert torch.allclose(batch.reward[:, 0], r_hat + beta * std, atol=1e-5)
-    first_beta = 2.0 * 0.99 ** (seen[0][0] - run.reward_start_step)
+    first_beta = 2.0 * 0.99 ** (seen[0][0] - run.reward.start_step)
     assert first_beta > 1.9  # t starts at the first round, not at the run's first step

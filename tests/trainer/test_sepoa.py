@@ -170,7 +170,7 @@ def test_the_disagreement_ablation_still_acts_with_z_task(tmp_path):
     assert rules == ["uniform"] * 10 + ["disagreement"] * 10
     estimator = run.feedback.estimator
     assert estimator.fitted  # refitted after each round, whatever the selection rule
-    candidates = run.skills.sample_skills(np.random.default_rng(5), 50)
+    candidates = run.policy.skills.sample_skills(np.random.default_rng(5), 50)
     assert np.array_equal(estimator.best_skill(candidates),
                           candidates[int(estimator.predict(candidates).argmax())])
 
@@ -218,14 +218,14 @@ def test_every_update_after_the_first_round_also_trains_z_task_on_its_batch(tmp_
     update = SkillAgent.update
 
     def spy(agent, batch):
-        seen.append((batch.skill.clone(), run.task_skill.copy()))
+        seen.append((batch.skill.clone(), run.policy.task_skill.copy()))
         return update(agent, batch)
 
     monkeypatch.setattr(SkillAgent, "update", spy)
     run = TrainingRun(_tiny(tmp_path, **{"skill.pretrain_steps": 0}), progress=False)
     run.train()
     assert seen and len(seen) % 2 == 0  # a stored-skill update and a z_task one, in turn
-    assert np.array_equal(run.skill, run.task_skill)  # the skill that acts is z_task
+    assert np.array_equal(run.meta[0], run.policy.task_skill)  # the skill that acts is z_task
     stored, task = seen[0::2], seen[1::2]
     for skills, acting in task:
         assert torch.equal(skills, torch.as_tensor(acting).expand_as(skills))

@@ -1,0 +1,108 @@
+"""Which reward the agent trains on.
+
+- The SAC oracle: the environment's true reward.
+- The preference-learning algorithms, before their first round: PEBBLE's unsupervised reward,
+  the kNN distance of s' to the buffer's states, normalised by its running std, computed per
+  batch (each stored transition holds 0 until then). RIME also warm-starts r_hat on it.
+  S-EPOA does not update before its first round.
+- After the first round: r_hat on every stored and every new transition (the buffer is
+  relabelled at each round), plus RUNE's bonus beta_t times the ensemble's std of r_hat.
+"""
+
+from __future__ import annotations
+
+from typing import Any, TypeVar
+
+import numpy as np
+import torch
+
+from runvocab.config import RunConfig
+from runvocab.names import PEBBLE_FAMILY
+from trainer.entropy import RunningMeanStd, knn_distance
+from trainer.feedback import PreferenceFeedback
+from trainer.nets import NumpyMLP
+from trainer.replay_buffer import ReplayBuffer
+from trainer.rune import rune_beta
+
+B = TypeVar("B", bound=Any)
+"""a replay batch: SAC's, or one that also carries skills"""
+
+
+class AgentReward:
+    """The reward of one run's agent, per step (what the buffer stores) and per batch (what an
+    update trains on)."""
+
+    def __init__(self, cfg: RunConfig, buffer: ReplayBuffer,
+                 feedback: PreferenceFeedback | None, device: torch.device):
+        self.cfg, self.buffer, self.feedback, self.device = cfg, buffer, feedback, device
+        self.entropy_stats = RunningMeanStd()
+        self.start_step: int | None = None
+        """the step the first round closed at: RUNE's t counts from here"""
+        self._numpy_reward = (
+            NumpyMLP(list(feedback.model.ensemble.layers), "leaky_relu", "tanh")
+            if feedback is not None and device.type == "cpu" else None
+        )
+
+    @property
+    def unsupervised_steps(self) -> int:
+        """Steps on PEBBLE's unsupervised reward after the seed steps, before the first round."""
+        return self.cfg.unsup_steps if self.cfg.algo in PEBBLE_FAMILY else 0
+
+    @property
+    def learned(self) -> bool:
+        """After the first round: the agent trains on r_hat."""
+        return self.feedback is not None and self.feedback.rounds > 0
+
+    def at_step(self, obs: np.ndarray, action: np.ndarray, true_reward: float) -> float:
+        """The reward stored with a new transition."""
+        if self.feedback is None:
+            return true_reward
+        if not self.learned:
+            return 0.0  # the unsupervised reward is computed per batch
+        if self._numpy_reward is not None:
+            x = np.concatenate([obs, action])[None]
+            return float(self._numpy_reward(x).mean())
+        with torch.no_grad():
+            o = torch.as_tensor(obs, device=self.device)[None]
+            a = torch.as_tensor(action, device=self.device)[None]
+            return float(self.feedback.model.reward(o, a)[0])
+
+    def batch(self, batch: B, step: int) -> B:
+        """`batch` carrying the reward the agent trains on at `step`."""
+        if self.feedback is None:
+            return batch
+        if not self.learned:
+            dist = self.entropy_distance(batch.next_obs)
+            self.entropy_stats.update(dist)
+            batch = batch._replace(reward=(dist / self.entropy_stats.std).unsqueeze(1))
+            if self.cfg.reward.rime:
+                self._warm_start_reward_model()
+        elif self.cfg.reward.rune:
+            bonus = self.feedback.model.reward_std(batch.obs, batch.action)
+            batch = batch._replace(reward=batch.reward + self.rune_beta(step) * bonus.unsqueeze(1))
+        return batch
+
+    def rune_beta(self, step: int) -> float:
+        assert self.start_step is not None
+        return rune_beta(self.cfg.reward, step - self.start_step)
+
+    def episode_row(self, step: int) -> dict[str, float]:
+        """What an episode's metrics row adds: RUNE's current beta once it applies."""
+        if not self.cfg.reward.rune or self.start_step is None:
+            return {}
+        return {"rune_beta": self.rune_beta(step)}
+
+    def entropy_distance(self, next_obs: torch.Tensor) -> torch.Tensor:
+        points = self.buffer.next_obs[: len(self.buffer)]
+        return knn_distance(next_obs, points, self.cfg.entropy_k + 1)
+
+    def _warm_start_reward_model(self) -> None:
+        """RIME: regress r_hat onto the state-entropy reward of fresh batches, standardised and
+        scaled into tanh's range, so the first round starts from a reward the agent knows."""
+        assert self.feedback is not None
+        for _ in range(self.cfg.reward.rime_warm_start_updates):
+            batch = self.buffer.sample(self.cfg.sac.batch_size)
+            z = (self.entropy_distance(batch.next_obs) - self.entropy_stats.mean) / (
+                self.entropy_stats.std)
+            target = z / z.abs().max().clamp(min=1e-8)
+            self.feedback.model.regress(torch.cat([batch.obs, batch.action], dim=1), target)

@@ -1,0 +1,169 @@
+"""The agent as the training loop sees it: what it acts on besides the observation, and how it
+learns. The loop passes each episode's `meta` along without looking inside (URLB's `meta`):
+an empty tuple for SAC, `(z,)` for S-EPOA's skill-conditioned agent pi(a|s,z); the replay
+buffer and the trajectory recorder take it as their trailing arguments.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import sys
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+
+from runvocab.config import RunConfig
+from trainer.hooks import RunHooks
+from trainer.replay_buffer import ReplayBuffer
+from trainer.return_estimator import ReturnEstimator
+from trainer.sac import SAC
+from trainer.skills import SkillAgent, SkillBackend, SkillReplayBuffer
+from trainer.skills.pretrain import build_skill_agent, load_snapshot, pretrain, snapshot_path
+from trainer.utils import set_seed
+
+Meta = tuple[np.ndarray, ...]
+Batches = Callable[[], Any]
+"""draws a replay batch carrying the reward the agent trains on now"""
+
+
+class Policy:
+    """SAC's pi(a|s): the oracle and the PEBBLE family."""
+
+    estimator: ReturnEstimator | None = None
+    """S-EPOA's R_theta(z), which query selection scores skills with"""
+
+    def __init__(self, cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.device):
+        self.cfg = cfg
+        self.agent: SAC | SkillAgent = SAC(obs_dim, act_dim, cfg.sac, device)
+        self.buffer: ReplayBuffer = ReplayBuffer(obs_dim, act_dim, cfg.replay_capacity,
+                                                 device, cfg.seed)
+
+    @property
+    def random_seed_steps(self) -> int:
+        """Steps of uniformly random actions at the start."""
+        return self.cfg.seed_steps
+
+    def trajectories_for_first_round(self) -> int:
+        return 2
+
+    def episode_meta(self, rng: np.random.Generator) -> Meta:
+        return ()
+
+    def eval_meta(self, episode_meta: Meta) -> Meta:
+        """What evaluation episodes act with, given the current episode's."""
+        return episode_meta
+
+    def act(self, obs: np.ndarray, meta: Meta, rng: np.random.Generator,
+            deterministic: bool = False) -> np.ndarray:
+        return self.agent.act(obs, *meta, rng, deterministic)
+
+    def update(self, batches: Batches, learned: bool) -> dict[str, float]:
+        return self.agent.update(batches())
+
+    def round_closed(self, rng: np.random.Generator) -> None:
+        """R_theta was refitted (S-EPOA): nothing to do here."""
+
+    @property
+    def resets_critic(self) -> bool:
+        """At the first round: PEBBLE's critic learned the intrinsic reward (RIME's warm start
+        keeps it)."""
+        return not self.cfg.reward.rime
+
+    def state_dict(self) -> dict[str, Any]:
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        pass
+
+
+class SkillPolicy(Policy):
+    """S-EPOA's pi(a|s,z) from its pretraining snapshot. Before the first round each episode
+    acts with a random skill; then with z_task, the best of N_z random skills under R_theta,
+    drawn when R_theta is refitted (or at each episode, `skill.task_skill_draw`)."""
+
+    def __init__(self, cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.device,
+                 hooks: RunHooks):
+        self.cfg, self.device = cfg, device
+        self.agent, self.skills = _skill_agent(cfg, obs_dim, act_dim, device, hooks)
+        self.buffer = SkillReplayBuffer(obs_dim, act_dim, self.skills.skill_dim,
+                                        cfg.replay_capacity, device, cfg.seed)
+        self.estimator = ReturnEstimator(self.skills.skill_dim, cfg.skill, device)
+        self.task_skill: np.ndarray | None = None
+        """z_task, once R_theta is fitted"""
+
+    @property
+    def random_seed_steps(self) -> int:
+        return 0  # it explores with its pretrained skills from the start
+
+    def trajectories_for_first_round(self) -> int:
+        """Its initial rollouts, each with its own random skill, so round 0 compares many."""
+        return max(2, self.cfg.skill.initial_rollouts)
+
+    def episode_meta(self, rng: np.random.Generator) -> Meta:
+        if self.task_skill is None:
+            return (self.skills.sample_skills(rng, 1)[0],)
+        if self.cfg.skill.task_skill_draw == "episode":
+            self._draw_task_skill(rng)
+        return (self.task_skill,)
+
+    def eval_meta(self, episode_meta: Meta) -> Meta:
+        """z_task once there is one; before, the current episode's random skill."""
+        return episode_meta if self.task_skill is None else (self.task_skill,)
+
+    def update(self, batches: Batches, learned: bool) -> dict[str, float]:
+        if not learned:
+            return {}  # the pretrained policy stays until there is a reward to learn
+        metrics = self.agent.update(batches())
+        if self.cfg.skill.task_skill_update:
+            # The acting skill learns from every transition, not only its own episode's share.
+            batch = batches()
+            task = torch.as_tensor(self.task_skill, device=self.device).expand_as(batch.skill)
+            task_metrics = self.agent.update(batch._replace(skill=task))
+            metrics |= {f"task_{k}": v for k, v in task_metrics.items()}
+        return metrics
+
+    def round_closed(self, rng: np.random.Generator) -> None:
+        self._draw_task_skill(rng)  # the updates after a critic reset train the new z_task
+
+    def _draw_task_skill(self, rng: np.random.Generator) -> None:
+        assert self.estimator.fitted
+        candidates = self.skills.sample_skills(rng, self.cfg.skill.task_skill_samples)
+        self.task_skill = self.estimator.best_skill(candidates)
+
+    @property
+    def resets_critic(self) -> bool:
+        """Its critic was pretrained on the skills' intrinsic reward (`skill.reset_critic`)."""
+        return self.cfg.skill.reset_critic
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"task_skill": self.task_skill}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.task_skill = state["task_skill"]
+
+
+def make_policy(cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.device,
+                hooks: RunHooks) -> Policy:
+    if cfg.algo == "sepoa":
+        return SkillPolicy(cfg, obs_dim, act_dim, device, hooks)
+    return Policy(cfg, obs_dim, act_dim, device)
+
+
+def _skill_agent(cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.device,
+                 hooks: RunHooks) -> tuple[SkillAgent, SkillBackend]:
+    """pi(a|s,z) from the run's pretraining snapshot (pretrained first when missing), or fresh
+    when skill.pretrain_steps is 0."""
+    if cfg.skill.pretrain_steps == 0:
+        return build_skill_agent(cfg, obs_dim, act_dim, device)
+    path = snapshot_path(cfg)
+    if not os.path.exists(path):
+        print(f"no skill snapshot at {path}: pretraining {cfg.skill.backend} for "
+              f"{cfg.skill.pretrain_steps} steps first", file=sys.stderr, flush=True)
+        pretrain(dataclasses.replace(cfg, seed=cfg.skill.snapshot_seed), out=path,
+                 progress=False, tick=hooks.pretraining)
+        set_seed(cfg.seed)  # the online run starts from the same state as with a snapshot at hand
+    snapshot = load_snapshot(path, cfg.task, cfg.skill.backend)
+    return build_skill_agent(cfg, obs_dim, act_dim, device, snapshot)
