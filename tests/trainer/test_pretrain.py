@@ -5,6 +5,7 @@ import csv
 import dataclasses
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from runvocab.config import build_config
+from runvocab.config import apply_overrides, build_config
 from trainer.skills.pretrain import (
     SkillPretraining,
     build_skill_agent,
@@ -39,7 +40,8 @@ def test_cli_pretrain_writes_a_plain_snapshot_with_its_metrics(tmp_path):
     assert out.returncode == 0, out.stderr
     summary = json.loads(out.stdout.strip().splitlines()[-1])
     # the default place and name: task, backend, steps and seed, relative to where it ran
-    assert summary["snapshot"] == os.path.join("snapshots", "dmc-cheetah_run-aps-300-s0.pt")
+    assert re.fullmatch(r"snapshots/dmc-cheetah_run-aps-300-s0-[0-9a-f]{10}\.pt",
+                        summary["snapshot"])
     path = tmp_path / summary["snapshot"]
     state = torch.load(path, weights_only=True)  # plain data: no pickled objects
     assert state["task"] == "dmc:cheetah_run" and state["backend"] == "aps"
@@ -130,11 +132,16 @@ def test_load_snapshot_refuses_a_snapshot_of_another_run_with_a_clear_message(tm
 
 def test_default_snapshot_name_and_pretraining_presets():
     cfg = build_config("dmc:quadruped_run", "paper", {"skill.backend": "cic", "seed": 2})
-    assert default_snapshot_path(cfg) == os.path.join(
-        "snapshots", "dmc-quadruped_run-cic-1000000-s2.pt")  # the paper: 1 M for quadruped
-    # Online runs of every seed share the snapshot pretrained with skill.snapshot_seed (0).
-    assert snapshot_path(cfg) == os.path.join(
-        "snapshots", "dmc-quadruped_run-cic-1000000-s0.pt")
+    name = r"dmc-quadruped_run-cic-1000000-s{}-[0-9a-f]{{10}}\.pt"  # the paper: 1 M for quadruped
+    assert re.fullmatch(os.path.join("snapshots", name.format(2)), default_snapshot_path(cfg))
+    # Online runs of every seed share the snapshot pretrained with skill.snapshot_seed (0):
+    # the name `sepoa pretrain --seed 0` gives the same settings.
+    assert re.fullmatch(os.path.join("snapshots", name.format(0)), snapshot_path(cfg))
+    assert snapshot_path(cfg) == default_snapshot_path(dataclasses.replace(cfg, seed=0))
+    # Settings only the online phase reads share it; one pretraining reads does not.
+    online = apply_overrides(cfg, {"skill.estimator_steps": 5, "skill.reset_critic": False})
+    assert snapshot_path(online) == snapshot_path(cfg)
+    assert snapshot_path(apply_overrides(cfg, {"skill.beta": 1.0})) != snapshot_path(cfg)
     shared = dataclasses.replace(cfg, skill=dataclasses.replace(cfg.skill, snapshot="x/s0.pt"))
     assert snapshot_path(shared) == "x/s0.pt"  # any run can name the snapshot it starts from
     paper = build_config("dmc:cheetah_run", "paper")

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import fcntl
-import hashlib
 import json
 import os
 import shutil
@@ -29,19 +28,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
-from trainer.experiments.spec import Run, Spec, SpecError, safe_name
+from trainer.experiments.spec import Run, Spec, SpecError
+from trainer.skills.pretrain import ONLINE_SKILL_FIELDS, default_snapshot_path
 from trainer.threads import cpu_cores
 
 DONE, FAILED, RUN_INFO, LOG = "done.json", "failed.json", "run.json", "log.txt"
 CHECKPOINT = "checkpoint.pt"
 LOG_HEADER = "=== "
-# Skill fields only the online phase reads: they leave a pretrained snapshot unchanged.
-ONLINE_SKILL_FIELDS = (
-    "estimator_ensemble", "estimator_hidden_dim", "estimator_hidden_layers", "estimator_lr",
-    "estimator_steps", "task_skill_samples", "task_skill_draw", "task_skill_update",
-    "initial_rollouts", "reset_critic", "score_spread", "snapshot", "snapshot_dir",
-    "snapshot_seed",
-)
 STOP_GRACE_S = 30.0
 POLL_S = 0.2
 
@@ -91,31 +84,17 @@ def default_parallel(threads: int) -> int:
 # ---------------------------------------------------------------------------------------------
 # Planning: which snapshots to pretrain, which runs to start, resume or skip.
 
-def snapshot_key(run: Run) -> dict[str, Any] | None:
-    """Every setting pretraining reads, resolved; None when the run needs no snapshot."""
+def snapshot_file(results: Path, run: Run) -> Path | None:
+    """The snapshot the run starts from: its own `skill.snapshot`, else a shared one under
+    `<results>/snapshots`, named as `sepoa pretrain` names it (`default_snapshot_path`)."""
     cfg = run.config()
     if cfg.algo != "sepoa" or cfg.skill.pretrain_steps == 0:
         return None
-    skill = {k: v for k, v in dataclasses.asdict(cfg.skill).items()
-             if k not in ONLINE_SKILL_FIELDS}
-    return {"task": cfg.task, "seed": cfg.skill.snapshot_seed,
-            "episode_length": cfg.episode_length, "replay_capacity": cfg.replay_capacity,
-            "sac": dataclasses.asdict(cfg.sac), "skill": skill}
-
-
-def snapshot_file(results: Path, run: Run) -> Path | None:
-    """The snapshot the run starts from: its own `skill.snapshot`, else a shared one under
-    `<results>/snapshots` named by task, backend, steps, seed and a hash of the settings."""
-    key = snapshot_key(run)
-    if key is None:
-        return None
     if run.overrides.get("skill.snapshot"):
         return Path(run.overrides["skill.snapshot"])
-    digest = hashlib.sha1(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()
-    skill = key["skill"]
-    name = (f"{safe_name(run.task)}-{skill['backend']}-{skill['pretrain_steps']}"
-            f"-s{key['seed']}-{digest[:10]}.pt")
-    return results / "snapshots" / name
+    shared = dataclasses.replace(cfg, skill=dataclasses.replace(
+        cfg.skill, snapshot_dir=str(results / "snapshots")))
+    return Path(default_snapshot_path(shared, cfg.skill.snapshot_seed))
 
 
 def _flag(path: str, value: Any) -> str:

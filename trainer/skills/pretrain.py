@@ -14,6 +14,8 @@ online runs of the task load it with `load_snapshot` and `build_skill_agent`.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import os
 import time
 from collections.abc import Callable
@@ -58,11 +60,34 @@ class Snapshot(NamedTuple):
     """`SkillBackend.state_dict()`"""
 
 
+ONLINE_SKILL_FIELDS = (
+    "estimator_ensemble", "estimator_hidden_dim", "estimator_hidden_layers", "estimator_lr",
+    "estimator_steps", "task_skill_samples", "task_skill_draw", "task_skill_update",
+    "initial_rollouts", "reset_critic", "score_spread", "snapshot", "snapshot_dir",
+    "snapshot_seed",
+)
+"""skill fields only the online phase reads: they leave a pretrained snapshot unchanged"""
+
+
+def snapshot_settings(cfg: RunConfig, seed: int) -> dict[str, Any]:
+    """Every setting a pretraining with `seed` reads: two runs whose settings agree can share
+    its snapshot."""
+    skill = {k: v for k, v in dataclasses.asdict(cfg.skill).items()
+             if k not in ONLINE_SKILL_FIELDS}
+    return {"task": cfg.task, "seed": seed, "episode_length": cfg.episode_length,
+            "replay_capacity": cfg.replay_capacity, "sac": dataclasses.asdict(cfg.sac),
+            "skill": skill}
+
+
 def default_snapshot_path(cfg: RunConfig, seed: int | None = None) -> str:
-    """snapshot_dir/<task with : as ->-<backend>-<steps>-s<seed>.pt (seed: cfg.seed)"""
+    """snapshot_dir/<task>-<backend>-<steps>-s<seed>-<hash>.pt (seed: cfg.seed): the one name
+    `sepoa pretrain`, online runs and experiments use. The hash covers every setting
+    pretraining reads (`snapshot_settings`), so a snapshot is never taken for another's."""
     seed = cfg.seed if seed is None else seed
+    settings = json.dumps(snapshot_settings(cfg, seed), sort_keys=True, default=str)
+    digest = hashlib.sha1(settings.encode()).hexdigest()[:10]
     name = (f"{cfg.task.replace(':', '-')}-{cfg.skill.backend}-{cfg.skill.pretrain_steps}"
-            f"-s{seed}.pt")
+            f"-s{seed}-{digest}.pt")
     return os.path.join(cfg.skill.snapshot_dir, name)
 
 
