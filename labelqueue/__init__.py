@@ -26,6 +26,7 @@ from labelqueue.export import COLUMNS as EXPORT_COLUMNS
 from labelqueue.export import FORMATS as EXPORT_FORMATS
 from labelqueue.export import SCHEMA_VERSION as EXPORT_SCHEMA_VERSION
 from labelqueue.export import ExportFormat, export_rows, write_export
+from labelqueue.instructions import set_instruction
 from labelqueue.labellers import (
     authenticate,
     create_labeller,
@@ -48,6 +49,7 @@ from labelqueue.models import (
     QueryStatus,
     Role,
     Run,
+    RunInstruction,
     RunStatus,
     ShadowChoice,
     TeacherKind,
@@ -133,4 +135,6 @@ __all__ = [
     "update_labeller",
     "write_export",
     "write_metrics",
+    "RunInstruction",
+    "set_instruction",
 ]

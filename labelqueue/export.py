@@ -29,10 +29,12 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from labelqueue.errors import NotFound
+from labelqueue.instructions import InstructionHistory, instructions_at
 from labelqueue.models import Label, Labeller, Query, Run
 from labelqueue.transaction import transaction
+from runvocab.instructions import instruction_sha256, run_instruction
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 PARQUET_VERSION_KEY = "sepoa.export.schema_version"
 """the key of the schema version in a Parquet file's key-value metadata"""
 CHUNK_ROWS = 2000
@@ -152,6 +154,16 @@ COLUMNS: tuple[Column, ...] = (
         "when the trainer took the label; null until then",
         nullable=True,
     ),
+    _c(
+        "instruction",
+        "string",
+        "the run's instruction to labellers when the label was answered, as shown",
+    ),
+    _c(
+        "instruction_sha256",
+        "string",
+        "hex sha256 of `instruction` (UTF-8): equal texts, equal hashes",
+    ),
 )
 COLUMN_NAMES: tuple[str, ...] = tuple(column.name for column in COLUMNS)
 
@@ -217,8 +229,11 @@ def correct_answer(first_return: float | None, second_return: float | None) -> s
     return "first" if first_return > second_return else "second"
 
 
-def _row(stored: Mapping[str, Any]) -> dict[str, Any]:
+def _row(stored: Mapping[str, Any], instructions: InstructionHistory) -> dict[str, Any]:
     got = {name: _plain(value) for name, value in stored.items()}
+    given = instructions.at(got["run_id"], got["answered_at"])
+    # A run from before instructions were recorded showed its task's own until its first edit.
+    text = given.text if given is not None else run_instruction(got["task"], None)
     preferred, shadow = got["preferred"], got["shadow_choice"]
     truth = correct_answer(got["first_segment_return"], got["second_segment_return"])
     shown, answered = got["shown_at"], got["answered_at"]
@@ -234,6 +249,8 @@ def _row(stored: Mapping[str, Any]) -> dict[str, Any]:
         "answer_seconds": (
             None if shown is None or answered is None else (answered - shown).total_seconds()
         ),
+        "instruction": text,
+        "instruction_sha256": instruction_sha256(text),
     }
     merged = got | derived
     return {name: merged[name] for name in COLUMN_NAMES}
@@ -271,8 +288,9 @@ def export_rows(
             if not chunk:
                 return
             after = chunk[-1].label_id
+            instructions = instructions_at(session, run_ids={row.run_id for row in chunk})
             for stored in chunk:
-                yield _row(stored._asdict())
+                yield _row(stored._asdict(), instructions)
 
     return rows()
 

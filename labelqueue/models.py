@@ -189,6 +189,25 @@ class Run(Base):
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     error: Mapped[str | None] = mapped_column(Text)
+    instruction: Mapped[str | None] = mapped_column(Text)
+    """the operator's instruction to labellers; none: the task's own (`runvocab.instructions`)"""
+    clip_size: Mapped[str | None] = mapped_column(String(16))
+    """the size clips are rendered at ("256x256", `runvocab.clip_format`); none: the default"""
+
+
+class RunInstruction(Base):
+    """The instruction a run showed from `set_at` on, as its full text: what a label was given
+    under is the newest row not after its answer."""
+
+    __tablename__ = "run_instructions"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id"), index=True)
+    text: Mapped[str] = mapped_column(Text)
+    sha256: Mapped[str] = mapped_column(String(64))
+    custom: Mapped[bool] = mapped_column(Boolean)
+    """whether an operator wrote it (false: the task's default instruction)"""
+    set_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
 
 
 class Worker(Base):

@@ -22,8 +22,10 @@ from sqlalchemy.orm import Session
 
 from labelqueue.coerce import json_object
 from labelqueue.errors import Conflict, InvalidTransition
+from labelqueue.instructions import checked_instruction, record_instruction
 from labelqueue.models import Run, RunStatus, TeacherKind, Worker, utcnow
 from labelqueue.transaction import changed, detach, get_row, transaction
+from runvocab.clip_format import parse_clip_size
 
 DEAD_WORKER_AFTER_S = 300.0
 """a running run whose heartbeat is older than this may be claimed by another worker"""
@@ -55,8 +57,15 @@ def create_run(
     teacher: TeacherKind | str = TeacherKind.HUMAN,
     teacher_params: Mapping[str, Any] | None = None,
     config: Mapping[str, Any] | None = None,
+    instruction: str | None = None,
+    clip_size: str | None = None,
 ) -> Run:
-    """A queued run, for the next free worker to claim."""
+    """A queued run, for the next free worker to claim. `instruction`: the operator's text for
+    labellers (None: the task's own); `clip_size`: a `runvocab.clip_format.CLIP_SIZES` name
+    (None: the default). ValueError for a bad instruction or clip size."""
+    stored_instruction = checked_instruction(instruction)
+    if clip_size is not None:
+        parse_clip_size(clip_size)
     with transaction(session):
         run = Run(
             name=name,
@@ -69,8 +78,12 @@ def create_run(
             teacher_params=json_object(teacher_params or {}),
             config=json_object(config or {}),
             status=RunStatus.QUEUED,
+            instruction=stored_instruction,
+            clip_size=clip_size,
         )
         session.add(run)
+        session.flush()
+        record_instruction(session, run)
         detach(session, run)
     return run
 

@@ -13,8 +13,11 @@ from typing import Annotated, Any, Literal
 
 from fastapi import Path
 from fastapi import Query as QueryParam
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, computed_field
 
+from runvocab.clip_format import CLIP_SIZES
+from runvocab.instructions import MAX_CHARS as MAX_INSTRUCTION_CHARS
+from runvocab.instructions import clean_instruction, run_instruction
 from runvocab.names import ALGOS, SIZE_PRESETS, all_tasks, unknown, unknown_task
 
 Teacher = Literal["human", "scripted"]
@@ -126,6 +129,12 @@ AlgoName = Annotated[str, AfterValidator(_one_of("algo", lambda: ALGOS)),
 PresetName = Annotated[str, AfterValidator(_one_of("preset", lambda: SIZE_PRESETS)),
                        Field(json_schema_extra={"enum": list(SIZE_PRESETS)})]
 
+ClipSizeName = Annotated[str, AfterValidator(_one_of("clip_size", lambda: list(CLIP_SIZES))),
+                         Field(json_schema_extra={"enum": list(CLIP_SIZES)})]
+InstructionText = Annotated[str, AfterValidator(clean_instruction),
+                            Field(max_length=4 * MAX_INSTRUCTION_CHARS,
+                                  examples=["Run forward as fast as possible."])]
+
 
 class RunCreate(Body):
     """A new run. Besides each field's own check, the whole run is checked as a worker would
@@ -142,6 +151,10 @@ class RunCreate(Body):
     config: SmallJson = Field(default_factory=dict, examples=[{"sac.lr": 1e-4}])
     name: str | None = Field(default=None, min_length=1, max_length=200)
     """defaults to `<task>-<algo>-s<seed>`"""
+    instruction: InstructionText | None = None
+    """what labellers are told "better" means; defaults to the task's own instruction"""
+    clip_size: ClipSizeName | None = None
+    """the size the run's clips are rendered at; defaults to 256x256"""
 
 
 class RunOut(Out):
@@ -165,6 +178,17 @@ class RunOut(Out):
     started_at: datetime | None
     finished_at: datetime | None
     error: str | None
+    instruction: str | None
+    """the operator's instruction; null: the task's own (see `instruction_text`)"""
+    clip_size: str | None
+    """null: the default size, 256x256"""
+
+    @computed_field  # type: ignore[prop-decorator]
+    @property
+    def instruction_text(self) -> str:
+        """the instruction labellers are shown"""
+        return run_instruction(self.task, self.instruction)
+
 
 
 class TeacherUpdate(Body):
@@ -265,3 +289,26 @@ class LabelCount(BaseModel):
     """How many labels the caller has given, over all runs."""
 
     labels: int
+
+
+class InstructionUpdate(Body):
+    instruction: InstructionText | None
+    """the run's instruction from now on; null: the task's own"""
+
+
+class RunBrief(BaseModel):
+    """What the label page shows about the run of the pair on screen."""
+
+    run_id: int
+    task: str
+    instruction: str
+    """what "better" means for this run: the operator's text, or the task's own"""
+    instruction_sha256: str
+    clip_width: int
+    clip_height: int
+    fps: float
+    """frames per second the clips are encoded at: one frame per environment step"""
+    step_seconds: float | None
+    """simulated seconds per environment step of the task; null when not known"""
+    real_time_ratio: float | None
+    """how fast a clip plays at 1x against the task's own time (0.33: a third of real speed)"""

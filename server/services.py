@@ -80,6 +80,8 @@ def new_run(session: Session, *, spec: RunCreate) -> Run:
         teacher=spec.teacher,
         teacher_params=spec.teacher_params,
         config=spec.config,
+        instruction=spec.instruction,
+        clip_size=spec.clip_size,
     )
 
 

@@ -3,6 +3,7 @@ and Parquet as pandas reads them, a versioned schema that docs/EXPORT.md lists e
 
 from __future__ import annotations
 
+import csv
 import io
 import json
 import math
@@ -227,7 +228,7 @@ def test_each_label_is_one_row_with_exact_derived_columns(session: Session) -> N
             row["agrees_with_shadow"],
             row["correct"],
         ) == answer[2:], (row["label_id"], answer)
-        assert row["schema_version"] == EXPORT_SCHEMA_VERSION == 1
+        assert row["schema_version"] == EXPORT_SCHEMA_VERSION == 2
 
     alpha_row, beta_row = rows[0], rows[6]
     assert (alpha_row["run_id"], alpha_row["run_name"], alpha_row["task"]) == (
@@ -319,9 +320,8 @@ def test_pandas_reads_the_same_rows_and_values_from_every_format(session: Sessio
     assert lines[0]["answered_at"].endswith("+00:00") and "T" in lines[0]["answered_at"]
     assert lines[6]["first_skill"] == [0.25, -1.0] and lines[6]["model_p"] is None
     csv_text = written(session, "csv")[0].decode()
-    header, first, *_ = csv_text.splitlines()
-    assert header == ",".join(NAMES)
-    cells = dict(zip(NAMES, first.split(","), strict=True))  # no commas in these values
+    assert csv_text.splitlines()[0] == ",".join(NAMES)
+    cells = next(csv.DictReader(io.StringIO(csv_text)))  # instructions hold commas: quoted
     assert (cells["left_is_first"], cells["left_segment"], cells["preferred"]) == (
         "false",
         "second",
@@ -332,7 +332,7 @@ def test_pandas_reads_the_same_rows_and_values_from_every_format(session: Sessio
     beta_cells = next(line for line in csv_text.splitlines() if ",beta," in line)
     assert '"[0.25, -1.0]"' in beta_cells
     data = written(session, "parquet")[0]
-    assert pq.read_schema(io.BytesIO(data)).metadata[PARQUET_VERSION_KEY.encode()] == b"1"
+    assert pq.read_schema(io.BytesIO(data)).metadata[PARQUET_VERSION_KEY.encode()] == b"2"
 
 
 def test_small_chunks_write_the_same_files(

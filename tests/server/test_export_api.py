@@ -124,7 +124,7 @@ def test_an_operator_downloads_every_label_in_each_format(
         assert response.content == library_bytes(session, fmt)
     else:
         table = pq.read_table(io.BytesIO(response.content))
-        assert table.schema.metadata[PARQUET_VERSION_KEY.encode()] == b"1"
+        assert table.schema.metadata[PARQUET_VERSION_KEY.encode()] == b"2"
         assert table.column_names == NAMES
         assert table.column("label_id").to_pylist() == [row["label_id"] for row in expected]
         assert table.column("answered_at").to_pylist() == [row["answered_at"] for row in expected]
