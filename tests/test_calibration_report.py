@@ -1,0 +1,90 @@
+"""`sepoa report --calibration EXPORT_FILE`: the figure, table and numbers of a label export,
+and every mistake a user can make one line of error with exit status 2."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from sepoa.cli import main
+
+ROW = {
+    "schema_version": 2, "label_id": 1, "run_id": 1, "round": 0, "algo": "sepoa",
+    "query_id": 1, "labeller_id": 4, "labeller_name": "ann", "choice": "left",
+    "preferred": "first", "first_trajectory": 0, "second_trajectory": 1,
+    "first_segment_return": 5.0, "second_segment_return": 4.0,
+    "first_trajectory_return": 110.0, "second_trajectory_return": 90.0,
+}
+
+
+def run_report(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
+    code = main(["report", *args])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_an_export_gives_a_figure_a_table_and_the_numbers(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    export = tmp_path / "labels-v2.jsonl"
+    rows = [ROW | {"label_id": i, "query_id": i} for i in range(1, 5)]
+    rows.append(ROW | {"label_id": 5, "query_id": 5, "choice": "cant_tell", "preferred": None,
+                       "future_column": "ignored"})
+    export.write_text("".join(json.dumps(row) + "\n" for row in rows))
+    code, out, err = run_report(capsys, "--calibration", str(export))
+    assert code == 0, err
+    folder = tmp_path / "labels-v2-calibration"  # beside the export by default
+    assert out.split() == [str(folder / f"calibration.{ext}") for ext in ("png", "md", "json")]
+    assert (folder / "calibration.png").read_bytes().startswith(b"\x89PNG")
+    numbers = json.loads((folder / "calibration.json").read_text())
+    [ann] = numbers["labellers"]
+    rates = ann["rates"]
+    assert (ann["name"], rates["answers"], rates["correct"], rates["cant_tell"]) == (
+        "ann", 5, 4, 1)
+    table = (folder / "calibration.md").read_text()
+    assert "| ann | 5 | 1.00 [0.51, 1.00] | 0.20 |" in table
+    assert "| sepoa | 1 | 5 | 5 |" in table
+
+
+def test_bins_and_an_empty_export(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    export = tmp_path / "empty.csv"
+    export.write_text(",".join(ROW) + "\n")  # a header, no rows
+    code, _, err = run_report(capsys, "--calibration", str(export), "--out",
+                              str(tmp_path / "out"), "--bins", "0,0.5,inf")
+    assert code == 0, err
+    numbers = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    assert numbers["edges"] == [0.0, 0.5, None] and numbers["rows"] == 0
+
+
+def test_every_mistake_is_one_line_and_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    no_columns = tmp_path / "other.jsonl"
+    no_columns.write_text(json.dumps({"label_id": 1, "choice": "left"}) + "\n")
+    picture = tmp_path / "labels.csv"
+    picture.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00")
+    notes = tmp_path / "notes.txt"
+    notes.write_text("some notes\n")
+    good = tmp_path / "good.jsonl"
+    good.write_text(json.dumps(ROW) + "\n")
+    blocked = tmp_path / "file"
+    blocked.write_text("")
+    cases = [
+        (["--calibration", str(tmp_path / "missing.jsonl")], "does not exist"),
+        (["--calibration", str(no_columns)], "lacks the columns a calibration report needs: "
+         "run_id, round, algo, query_id, labeller_id, labeller_name, preferred"),
+        (["--calibration", str(picture)], "not UTF-8"),
+        (["--calibration", str(notes)], "not a label export"),
+        (["--calibration", str(tmp_path)], "is a folder"),
+        (["--calibration", str(good), "--bins", "0.1,1"], "first edge must be 0"),
+        (["--calibration", str(good), "--out", str(blocked / "sub")], "cannot write"),
+        ([], "give a results folder, or --calibration EXPORT_FILE"),
+        (["results/x", "--calibration", str(good)], "not both"),
+        (["results/x", "--bins", "0,1"], "--bins goes with --calibration"),
+    ]
+    for args, message in cases:
+        code, out, err = run_report(capsys, *args)
+        assert code == 2, (args, out, err)
+        assert message in err and err.count("\n") == 1, (args, err)
