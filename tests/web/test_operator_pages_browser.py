@@ -105,6 +105,10 @@ def test_a_run_page_draws_curves_pauses_the_run_and_exports_its_labels(
     page.wait_for_function(
         "() => { const i = document.getElementById('peers-img');"
         " return !i.hidden && i.complete && i.naturalWidth > 300; }")
+    # The teacher-calibration figure of the run's answers (docs/QUALITY.md), the same way.
+    page.wait_for_function(
+        "() => { const i = document.getElementById('calibration-img');"
+        " return !i.hidden && i.complete && i.naturalWidth > 300; }")
 
     page.click("#controls button:text('Pause')")
     page.wait_for_selector("#run-status:text('paused')")

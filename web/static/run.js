@@ -26,6 +26,7 @@ const refresh = poller(async () => {
     drawCurves(run, episodes, evals, rounds);
     drawThroughput(throughput, run);
     await drawPeers(run, evals);
+    await drawCalibration(run);
     document.getElementById("updated").textContent =
       `updated ${new Date().toLocaleTimeString()}`;
   } catch (error) {
@@ -54,6 +55,20 @@ async function drawPeers(run, evals) {
   if (old.startsWith("blob:")) URL.revokeObjectURL(old);
   img.hidden = false;
   peersDrawnFor = key;
+}
+
+// The teacher-calibration figure (docs/QUALITY.md), drawn by the server; asked again only when
+// the run has new answers.
+let calibrationDrawnFor = null;
+async function drawCalibration(run) {
+  if (run.labels_used === calibrationDrawnFor) return;
+  const blob = await getBlob(`/api/quality/calibration.png?run_id=${runId}`);
+  const img = document.getElementById("calibration-img");
+  const old = img.src;
+  img.src = URL.createObjectURL(blob);
+  if (old.startsWith("blob:")) URL.revokeObjectURL(old);
+  img.hidden = false;
+  calibrationDrawnFor = run.labels_used;
 }
 
 function bucketFor(run) {

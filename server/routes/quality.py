@@ -1,0 +1,72 @@
+"""Operator endpoints: the teacher-calibration report of one run's labels or of all of them
+(docs/QUALITY.md), as data and as the figure the run page shows.
+
+The report is made from the same rows a label export holds (`export_rows`, read in short
+transactions of their own), so it equals `sepoa report --calibration` on an export of the same
+labels. Working it out takes a fraction of a second per labeller of CPU; drawing it about as
+much again, one figure at a time.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Annotated
+
+from fastapi import APIRouter, Query
+from fastapi.responses import Response
+from sqlalchemy.orm import Session
+
+from labelqueue import export_rows
+from labelqueue.calibration import (
+    DEFAULT_EDGES,
+    CalibrationReport,
+    calibration_report,
+    parse_edges,
+)
+from server.deps import OperatorDep, SessionDep
+from server.schemas import RunFilter, errors
+
+router = APIRouter(prefix="/api/quality", tags=["quality"])
+_drawing = threading.Lock()
+
+Bins = Annotated[
+    str | None,
+    Query(
+        max_length=2000,
+        description="bin edges of the normalised gap, comma-separated and increasing from 0, "
+        "e.g. 0,0.1,0.2,0.5,1,inf (default: 0, 0.05, 0.1, ..., 2, inf)",
+    ),
+]
+
+
+def report_of(session: Session, *, run_id: int | None, bins: str | None) -> CalibrationReport:
+    """The report of a run's labels (or all): NotFound for an unknown run, ValueError for bad
+    bins (checked first, before any row is read)."""
+    edges = DEFAULT_EDGES if bins is None else parse_edges(bins)
+    return calibration_report(export_rows(session, run_id=run_id), edges=edges)
+
+
+@router.get("/calibration", response_model=CalibrationReport,
+            responses=errors(401, 403, 404, 422))
+def get_calibration(
+    session: SessionDep, _: OperatorDep, run_id: RunFilter = None, bins: Bins = None
+) -> CalibrationReport:
+    """Match ratio and can't-tell rate against the true return gap over R_avg, the noisy
+    teacher's eps fitted to the answers, and position bias, per labeller and for everyone;
+    the share answered correctly per algorithm."""
+    return report_of(session, run_id=run_id, bins=bins)
+
+
+@router.get("/calibration.png", response_class=Response,
+            responses=errors(401, 403, 404, 422, also={200: {"content": {"image/png": {}}}}))
+def get_calibration_png(
+    session: SessionDep, _: OperatorDep, run_id: RunFilter = None, bins: Bins = None
+) -> Response:
+    """The report's figure, as `sepoa report --calibration` draws it."""
+    report = report_of(session, run_id=run_id, bins=bins)
+    from sepoa.calibration_report import calibration_png  # matplotlib: only when asked
+
+    title = "All runs" if run_id is None else f"Run {run_id}"
+    with _drawing:
+        png = calibration_png(report, title=f"Teacher calibration · {title}")
+    return Response(png, media_type="image/png", headers={"Cache-Control": "no-store"})

@@ -1,0 +1,130 @@
+"""The teacher-calibration report over REST: people's answers through the label API, the report
+of a run or of all runs (the same as `sepoa report --calibration` on the export), its figure,
+and refusals."""
+
+from __future__ import annotations
+
+import random
+from dataclasses import asdict
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from fastapi.testclient import TestClient
+from server_helpers import OPERATOR, bearer, new_labeller, new_run
+from sqlalchemy.orm import Session
+
+from labelqueue import claim_run, push_queries, set_clips
+from labelqueue.calibration import calibration_report
+from labelqueue.export_read import read_export
+from server.settings import Settings
+
+
+def human_run(client: TestClient, session: Session, settings: Settings, *, algo: str,
+              n: int, seed: int) -> int:
+    """A claimed human-taught run with `n` rendered queries of varied returns (R_avg near 100),
+    each wanting two answers."""
+    run_id: int = new_run(client, algo=algo)["id"]
+    claimed = claim_run(session, worker_id=f"worker-{run_id}")
+    assert claimed is not None and claimed.id == run_id
+    rng = random.Random(seed)
+    specs = []
+    for i in range(n):
+        first, second = 100 + rng.uniform(-50, 50), 100 + rng.uniform(-50, 50)
+        specs.append({"round": 0, "position": i, "segment_length": 50,
+                      "first_trajectory": 2 * i, "first_start": 0,
+                      "second_trajectory": 2 * i + 1, "second_start": 0,
+                      "first_segment_return": first / 20, "second_segment_return": second / 20,
+                      "first_trajectory_return": first, "second_trajectory_return": second,
+                      "needs_labels": 2})
+    for query_id in push_queries(session, run_id=run_id, queries=specs):
+        keys = [f"run{run_id}/q{query_id}-{side}.mp4" for side in ("a", "b")]
+        for key in keys:
+            path = settings.clips_root / key
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_bytes(b"fake mp4 " * 20)
+        set_clips(session, query_id=query_id, first_clip=keys[0], second_clip=keys[1])
+    return run_id
+
+
+def answer_all(client: TestClient, token: str, run_id: int, pick: Any) -> int:
+    """The labeller answers every query of the run it is given, `pick(shown)` choosing."""
+    answered = 0
+    while True:
+        shown = client.get(f"/api/label/next?run_id={run_id}", headers=bearer(token))
+        if shown.status_code == 204:
+            return answered
+        body = {"choice": pick(shown.json()), "left_is_first": shown.json()["left_is_first"],
+                "shown_at": datetime.now(UTC).isoformat()}
+        response = client.post(f"/api/label/{shown.json()['query_id']}", json=body,
+                               headers=bearer(token))
+        assert response.status_code == 201, response.text
+        answered += 1
+
+
+def test_the_report_of_a_run_and_of_all_runs_equals_the_exports(
+    client: TestClient, session: Session, settings: Settings, tmp_path: Path
+) -> None:
+    sepoa = human_run(client, session, settings, algo="sepoa", n=12, seed=1)
+    pebble = human_run(client, session, settings, algo="pebble", n=8, seed=2)
+    lefty, coin = new_labeller(client, "lefty"), new_labeller(client, "coin")
+    rng = random.Random(0)
+    for run_id in (sepoa, pebble):
+        assert answer_all(client, lefty, run_id, lambda _shown: "left") > 0
+        assert answer_all(client, coin, run_id,
+                          lambda _shown: rng.choice(["left", "right", "cant_tell"])) > 0
+
+    response = client.get(f"/api/quality/calibration?run_id={sepoa}", headers=OPERATOR)
+    assert response.status_code == 200, response.text
+    report = response.json()
+    assert report["runs"] == [sepoa] and report["rows"] == 24
+    assert [(g["name"], g["rates"]["answers"]) for g in report["labellers"]] == [
+        ("lefty", 12), ("coin", 12)]
+    assert report["labellers"][0]["position"]["left_share"] == 1.0
+    assert [a["algo"] for a in report["algos"]] == ["sepoa"]
+
+    everything = client.get("/api/quality/calibration", headers=OPERATOR).json()
+    assert everything["runs"] == [sepoa, pebble]
+    assert [(a["algo"], a["queries"], a["rates"]["answers"]) for a in everything["algos"]] == [
+        ("pebble", 8, 16), ("sepoa", 12, 24)]
+    # The same numbers as the report of the exported file.
+    exported = client.get("/api/export?format=csv", headers=OPERATOR)
+    path = tmp_path / "labels.csv"
+    path.write_bytes(exported.content)
+    from_file = calibration_report(read_export(str(path)))
+    assert everything["everyone"]["fit"]["eps"] == from_file.everyone.fit.eps
+    assert everything["labellers"][1]["rates"] == asdict(from_file.labellers[1].rates)
+
+    narrow = client.get(f"/api/quality/calibration?run_id={sepoa}&bins=0,0.5,inf",
+                        headers=OPERATOR).json()
+    assert narrow["edges"] == [0.0, 0.5, None]
+    assert sum(b["rates"]["answers"] for b in narrow["everyone"]["bins"]) == 24
+
+    png = client.get(f"/api/quality/calibration.png?run_id={sepoa}", headers=OPERATOR)
+    assert png.status_code == 200 and png.headers["content-type"] == "image/png"
+    assert png.content.startswith(b"\x89PNG")
+
+
+def test_an_empty_run_has_an_empty_report_and_a_figure(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    run_id = human_run(client, session, settings, algo="sepoa", n=1, seed=3)
+    report = client.get(f"/api/quality/calibration?run_id={run_id}", headers=OPERATOR).json()
+    assert report["rows"] == 0 and report["labellers"] == [] and report["algos"] == []
+    assert report["everyone"]["fit"]["eps"] is None
+    png = client.get(f"/api/quality/calibration.png?run_id={run_id}", headers=OPERATOR)
+    assert png.status_code == 200 and png.content.startswith(b"\x89PNG")
+
+
+def test_bad_requests_are_refused(client: TestClient) -> None:
+    labeller = new_labeller(client, "ann")
+    for path in ("/api/quality/calibration", "/api/quality/calibration.png"):
+        assert client.get(path).status_code == 401
+        assert client.get(path, headers=bearer(labeller)).status_code == 403
+        missing = client.get(f"{path}?run_id=99", headers=OPERATOR)
+        assert missing.status_code == 404 and "run 99 does not exist" in missing.json()["detail"]
+        assert client.get(f"{path}?run_id=0", headers=OPERATOR).status_code == 422
+        for bins, why in [("0.2,0.5", "first edge must be 0"), ("0,1,0.5", "must increase"),
+                          ("0,x", "comma-separated")]:
+            refused = client.get(f"{path}?bins={bins}", headers=OPERATOR)
+            assert refused.status_code == 422 and why in refused.json()["detail"], refused.text
