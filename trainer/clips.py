@@ -14,13 +14,23 @@ machine without a GPU) spends its time on the shadow pass and on the geometry's 
 At 128 px on 2 cores, MuJoCo's defaults (a 2048-4096 texel shadow map, 4x multisampling,
 capsules of 28 x 16 facets) render cheetah at 25-45 fps; a 512-texel shadow map without
 multisampling at 75-120 fps; and with 12 x 8 facets as well at 140-240 fps, with no difference
-to see at 128-256 px (`benchmarks/bench_clips.py`). A renderer reads these settings once, when
+to see at 128-256 px (`benchmarks/bench_clips.py`). At 256 px the floor's mirror image costs a
+third of the frame; clips leave it out (`reflections`). A renderer reads these settings once, when
 it is created: `iter_segment_frames()` sets them on the env first, and the env drops renderers
 made with other settings.
+
+Clips are 256 x 256 by default; a run may choose another size (`runs.clip_size`, one of
+`runvocab.clip_format.CLIP_SIZES`, 320 x 240 among them for the wide DMC scenes). They are
+encoded at `CLIP_FPS` (100/3), one frame per environment step, so 50 steps play in 1.5 s as the
+paper's labellers saw them; how that relates to a task's own time is
+`runvocab.clip_format.real_time_ratio` (cheetah, 10 ms a step: a third of real speed). Walkers,
+runners and swimmers are filmed by the camera that follows them (`CLIP_CAMERAS`), so the body
+stays in frame however far it goes.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import uuid
@@ -32,26 +42,42 @@ from typing import TYPE_CHECKING
 import imageio.v2 as imageio
 import numpy as np
 
+from runvocab.clip_format import CLIP_FPS, CLIP_SIZES, DEFAULT_CLIP_SIZE, dmc_domain
 from trainer.trajectories import Trajectory
 
 if TYPE_CHECKING:  # not at run time: the worker builds a ClipConfig before MuJoCo's import
     from trainer.envs import Env
 
 MIN_SIZE, MAX_SIZE = 64, 512
+DEFAULT_WIDTH, DEFAULT_HEIGHT = CLIP_SIZES[DEFAULT_CLIP_SIZE]
+CLIP_CAMERAS: dict[str, str] = {
+    "cheetah": "side",
+    "walker": "side",
+    "quadruped": "y",
+    "hopper": "cam0",
+    "humanoid": "side",
+    "humanoid_CMU": "side",
+    "dog": "y-axis",
+    "fish": "tracking_y",
+    "swimmer": "tracking1",
+}
+"""per DMC domain, the camera a clip is filmed by: the one that tracks the body's centre of mass
+from the side (quadruped's "y" keeps the whole body in view; "x" films it from behind), so a
+runner never leaves the frame. Other domains, and Metaworld, keep their env's default view."""
 
 
 @dataclass(frozen=True)
 class ClipConfig:
     """How segments are rendered and encoded."""
 
-    width: int = 128
+    width: int = DEFAULT_WIDTH
     """frame width in pixels: even, 64 to 512"""
-    height: int = 128
+    height: int = DEFAULT_HEIGHT
     """frame height in pixels: even, 64 to 512"""
-    fps: float = 30.0
-    """playback rate: at 30, a 50-step segment lasts 1.7 s"""
+    fps: float = CLIP_FPS
+    """playback rate, one frame per step: at 100/3, a 50-step segment lasts 1.5 s"""
     camera: int | str | None = None
-    """camera index or name; None: the env's default view"""
+    """camera index or name; None: the task's clip camera (`clip_camera`)"""
     shadow_size: int | None = 512
     """shadow-map side in texels (0: no shadows; None: the model's own, 2048 or 4096)"""
     multisamples: int | None = 0
@@ -60,6 +86,9 @@ class ClipConfig:
     """facets around built-in spheres, capsules and cylinders (None: the model's own, 28)"""
     stacks: int | None = 8
     """facets along built-in spheres and capsules (None: the model's own, 16)"""
+    reflections: bool = False
+    """mirror images in reflective floors; off, a 256 px cheetah pair renders about 30% faster
+    on a CPU, and only the floor's mirror image is lost"""
     crf: int = 23
     """x264 constant rate factor: 0 is lossless, 51 the worst; 23 is x264's default"""
     preset: str = "veryfast"
@@ -98,6 +127,20 @@ def render_quality(cfg: ClipConfig) -> dict[str, int]:
     return {k: v for k, v in fields.items() if v is not None}
 
 
+def clip_camera(task: str) -> str | None:
+    """The camera a task's clips are filmed by (`CLIP_CAMERAS`); None: the env's default."""
+    family, _, name = task.partition(":")
+    return CLIP_CAMERAS.get(dmc_domain(name)) if family == "dmc" else None
+
+
+def sized(cfg: ClipConfig, clip_size: str | None) -> ClipConfig:
+    """`cfg` at a run's clip size (a `CLIP_SIZES` name; None keeps cfg's own)."""
+    if clip_size is None:
+        return cfg
+    width, height = CLIP_SIZES[clip_size]
+    return dataclasses.replace(cfg, width=width, height=height)
+
+
 def iter_segment_frames(env: Env, traj_states: np.ndarray, context: int, start: int,
                         length: int, cfg: ClipConfig) -> Iterator[np.ndarray]:
     """Frames of steps start .. start+length-1, one at a time (uint8 (h, w, 3) each)."""
@@ -107,11 +150,13 @@ def iter_segment_frames(env: Env, traj_states: np.ndarray, context: int, start: 
                          f"{len(states)} stored states of shape {states.shape}")
     # Before the first render: a renderer takes these settings when it is created.
     env.set_render_quality(**render_quality(cfg))
+    env.set_reflections(cfg.reflections)
+    camera = cfg.camera if cfg.camera is not None else clip_camera(env.task)
 
     def frames() -> Iterator[np.ndarray]:
         for state in states[start:start + length]:
             env.restore(state, context)
-            yield env.render(cfg.width, cfg.height, cfg.camera)
+            yield env.render(cfg.width, cfg.height, camera)
 
     return frames()  # checked above now, rendered lazily
 

@@ -209,6 +209,7 @@ class Env(abc.ABC):
         self._default_camera = default_camera
         self._upside_down = _upside_down_cameras(model)
         self._renderers: dict[tuple[int, int], mujoco.Renderer] = {}
+        self._reflectance: np.ndarray | None = None  # the model's own, once reflections are set
         self._closed = False
 
     # -- the simulator-specific parts
@@ -291,6 +292,13 @@ class Env(abc.ABC):
             for renderer in self._renderers.values():
                 renderer.close()
             self._renderers.clear()
+
+    def set_reflections(self, on: bool) -> None:
+        """Mirror images in reflective floors (DMC's grid) in render(), or not. Off, a 256 px
+        frame renders about a third faster on a CPU; only the floor's mirror image is lost."""
+        if self._reflectance is None:
+            self._reflectance = self._model.mat_reflectance.copy()
+        self._model.mat_reflectance[:] = self._reflectance if on else 0.0
 
     def _camera_id(self, camera: int | str) -> int:
         names = [self._model.camera(i).name for i in range(self._model.ncam)]

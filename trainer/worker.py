@@ -66,7 +66,7 @@ from labelqueue import (
 )
 from runvocab.config import RunConfig, apply_overrides
 from runvocab.queued_run import queued_run_config
-from trainer.clips import ClipConfig, render_query_clips
+from trainer.clips import ClipConfig, render_query_clips, sized
 from trainer.envs import Env, make_env
 from trainer.feedback import Answer, PreferenceFeedback, Query
 from trainer.hooks import RunHooks
@@ -104,6 +104,7 @@ class WorkerConfig:
     threads: int | None = None
     """overrides every run's torch CPU threads"""
     clip: ClipConfig = field(default_factory=ClipConfig)
+    """how clips are rendered; a run's own `clip_size` replaces the width and height"""
 
     @property
     def clips_root(self) -> Path:
@@ -153,6 +154,8 @@ class QueueHooks(RunHooks):
         self.rendered: set[str] = set()
         """the open round's queries whose clips are attached"""
         self.render_env: Env | None = None
+        self.clip = sized(worker.clip, run.clip_size)
+        """how this run's clips are rendered: the worker's settings at the run's clip size"""
 
     # -- operator ------------------------------------------------------------------------------
     def beat(self, step: int, force: bool = False) -> RunStatus:
@@ -235,7 +238,7 @@ class QueueHooks(RunHooks):
                                                self.cfg.episode_length or None)
                 render_query_clips(self.render_env, by_id[q.trajectory0], q.start0,
                                    by_id[q.trajectory1], q.start1, q.segment_length,
-                                   root / folder, stem, self.worker.clip)
+                                   root / folder, stem, self.clip)
             with self.sessions() as session:
                 set_clips(session, query_id=self.query_ids[q.query_id], first_clip=keys[0],
                           second_clip=keys[1])

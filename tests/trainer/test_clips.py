@@ -13,12 +13,16 @@ import imageio_ffmpeg
 import numpy as np
 import pytest
 
+from runvocab.clip_format import CLIP_SIZES, METAWORLD_STEP_S, step_seconds
 from trainer.clips import (
+    CLIP_CAMERAS,
     ClipConfig,
+    clip_camera,
     encode_mp4,
     iter_segment_frames,
     render_query_clips,
     render_segment,
+    sized,
 )
 from trainer.envs import make_env
 from trainer.trajectories import Trajectory
@@ -69,15 +73,16 @@ def test_cheetah_clip_is_a_browser_mp4_of_the_segment(cheetah, tmp_path):
     env, traj = cheetah
     cfg = ClipConfig()
     frames = render_segment(env, traj.states, traj.context, 5, 50, cfg)
-    assert frames.shape == (50, 128, 128, 3) and frames.dtype == np.uint8
+    assert frames.shape == (50, 256, 256, 3) and frames.dtype == np.uint8  # the default size
     path = encode_mp4(frames, tmp_path / "clip.mp4", cfg)
 
     assert path == tmp_path / "clip.mp4"
     assert os.listdir(tmp_path) == ["clip.mp4"]  # no temporary file left behind
     info = probe(path)
     assert info["codec"] == "h264" and info["pix_fmt"] == "yuv420p"
-    assert info["size"] == (128, 128)  # not padded to a macro block
-    assert info["duration"] == pytest.approx(50 / cfg.fps, abs=0.05)
+    assert info["size"] == (256, 256)  # not padded to a macro block
+    # One frame per step at 100/3 fps: 50 steps in 1.5 s, as the paper's labellers saw them.
+    assert info["duration"] == pytest.approx(1.5, abs=0.05)
     data = path.read_bytes()
     assert data.index(b"moov") < data.index(b"mdat")  # faststart: playable while loading
 
@@ -111,6 +116,11 @@ def test_render_quality_settings_take_effect(cheetah):
     b = render_segment(env, traj.states, traj.context, 20, 3, no_shadow)
     c = render_segment(env, traj.states, traj.context, 20, 3, model_own)
     assert not np.array_equal(a, b) and not np.array_equal(a, c)
+    np.testing.assert_array_equal(render_segment(env, traj.states, traj.context, 20, 3, fast), a)
+    # The floor's mirror image is left out by default, and back when asked for.
+    mirrored = ClipConfig(width=64, height=64, reflections=True)
+    d = render_segment(env, traj.states, traj.context, 20, 3, mirrored)
+    assert not np.array_equal(a, d)
     np.testing.assert_array_equal(render_segment(env, traj.states, traj.context, 20, 3, fast), a)
 
 
@@ -186,3 +196,53 @@ def test_osmesa_renders_the_same_clip(cheetah, tmp_path):
     egl = render_segment(env, states, 0, 0, 10, ClipConfig(width=64, height=64))
     assert np.abs(osmesa.astype(np.int16) - egl).mean() < 2  # both Mesa's llvmpipe
     assert decode(tmp_path / "clip.mp4").shape == (10, 64, 64, 3)
+
+
+def test_a_runs_clip_size_sets_the_frame_size(cheetah, tmp_path):
+    env, traj = cheetah
+    for name, (width, height) in CLIP_SIZES.items():
+        cfg = sized(ClipConfig(), name)
+        names = render_query_clips(env, traj, 0, traj, 10, 8, tmp_path, f"s{name}", cfg)
+        assert {probe(tmp_path / n)["size"] for n in names} == {(width, height)}
+    assert sized(ClipConfig(width=64, height=64), None) == ClipConfig(width=64, height=64)
+
+
+@pytest.mark.parametrize("domain", sorted(CLIP_CAMERAS))
+def test_walkers_and_runners_are_filmed_by_a_camera_that_follows_them(domain):
+    """Each clip camera exists in its domain's model and tracks the body's centre of mass, so
+    the body stays in frame however far it runs."""
+    import mujoco
+    from dm_control import suite
+
+    task = next(t for d, t in suite.ALL_TASKS if d == domain)
+    physics = suite.load(domain, task).physics
+    model = physics.model.ptr
+    camera = model.camera(CLIP_CAMERAS[domain])
+    assert camera.mode[0] == mujoco.mjtCamLight.mjCAMLIGHT_TRACKCOM
+    assert clip_camera(f"dmc:{domain}_{task}") == CLIP_CAMERAS[domain]
+    assert clip_camera("dmc:cartpole_swingup") is None and clip_camera("metaworld:reach") is None
+
+
+def test_a_cheetah_that_runs_off_stays_in_the_clip(cheetah):
+    """Moved 20 m along its track, the cheetah is still in the middle of the frame."""
+    env, traj = cheetah
+    states = traj.states[:1].copy()
+    moved = states.copy()
+    moved[0, 0] += 20.0  # rootx: 20 m forward
+    frames = [render_segment(env, s, traj.context, 0, 1, ClipConfig(width=64, height=64))[0]
+              for s in (states, moved)]
+    # The camera moved with it: the two frames are alike (a fixed camera's differ by ~12.6 grey
+    # levels on average: the cheetah is gone from its view).
+    assert np.abs(frames[1].astype(np.int16) - frames[0]).mean() < 2
+
+
+def test_step_seconds_match_the_installed_suites():
+    from dm_control import suite
+
+    seen: dict[str, float] = {}
+    for domain, task in suite.ALL_TASKS:
+        if domain not in seen:
+            seen[domain] = suite.load(domain, task).control_timestep()
+            assert step_seconds(f"dmc:{domain}_{task}") == pytest.approx(seen[domain]), domain
+    with make_env("metaworld:door-open", 0) as env:
+        assert env._env.dt == pytest.approx(METAWORLD_STEP_S)
