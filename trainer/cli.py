@@ -11,6 +11,7 @@
                                                    # a spec's grid of runs, resumable
     sepoa experiment status specs/small/dmc-curves.toml --results results
     sepoa report results/dmc-curves-small        # figures + tables -> <folder>/report
+    sepoa report --calibration labels.jsonl        # match ratio and fitted eps per labeller
     sepoa doctor                                   # can this machine render clips? EGL, OSMesa
     sepoa tasks                                    # list valid task names
     sepoa presets                                  # show the presets as data
@@ -21,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import pathlib
 import sys
 
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -264,13 +266,56 @@ def _run_doctor(args: argparse.Namespace) -> int:
 
 
 def _report_parser(sub) -> argparse.ArgumentParser:
-    p = sub.add_parser("report", help="figures and tables of a spec's results")
-    p.add_argument("folder", help="<results>/<spec name>, the folder holding spec.toml")
-    p.add_argument("--out", default=None, help="default <folder>/report")
+    p = sub.add_parser("report", help="figures and tables of a spec's results, or the "
+                       "teacher-calibration report of a label export")
+    p.add_argument("folder", nargs="?", default=None,
+                   help="<results>/<spec name>, the folder holding spec.toml")
+    p.add_argument("--calibration", metavar="EXPORT_FILE", default=None,
+                   help="a label export (sepoa export: .jsonl, .csv or .parquet): match ratio, "
+                   "can't-tell rate and fitted eps per labeller (docs/QUALITY.md)")
+    p.add_argument("--bins", default=None, metavar="EDGES",
+                   help="with --calibration: gap bin edges, e.g. 0,0.1,0.2,0.5,1,inf")
+    p.add_argument("--out", default=None, help="default <folder>/report; with --calibration "
+                   "<export file without its suffix>-calibration")
     return p
 
 
+def _run_calibration_report(args: argparse.Namespace) -> int:
+    from labelqueue.calibration import DEFAULT_EDGES, parse_edges
+    from sepoa.calibration_report import (
+        default_folder,
+        read_calibration_rows,
+        write_calibration_report,
+    )
+
+    try:
+        edges = DEFAULT_EDGES if args.bins is None else parse_edges(args.bins)
+        rows = read_calibration_rows(args.calibration)  # ExportFileError: a ValueError
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    folder = pathlib.Path(args.out) if args.out else default_folder(args.calibration)
+    try:
+        files = write_calibration_report(rows, folder, source=os.path.basename(args.calibration),
+                                         edges=edges)
+    except OSError as err:
+        print(f"error: cannot write the report into {folder}: {err.strerror or err}",
+              file=sys.stderr)
+        return 2
+    print("\n".join(str(f) for f in files))
+    return 0
+
+
 def _run_report(args: argparse.Namespace) -> int:
+    if (args.folder is None) == (args.calibration is None):
+        print("error: give a results folder, or --calibration EXPORT_FILE (not both)",
+              file=sys.stderr)
+        return 2
+    if args.calibration is not None:
+        return _run_calibration_report(args)
+    if args.bins is not None:
+        print("error: --bins goes with --calibration", file=sys.stderr)
+        return 2
     from trainer.experiments.report import write_report
     from trainer.experiments.spec import SpecError
 
