@@ -27,6 +27,18 @@ from labelqueue.export import FORMATS as EXPORT_FORMATS
 from labelqueue.export import SCHEMA_VERSION as EXPORT_SCHEMA_VERSION
 from labelqueue.export import ExportFormat, export_rows, write_export
 from labelqueue.instructions import set_instruction
+from labelqueue.invites import (
+    InviteClosed,
+    Joined,
+    Progress,
+    create_invite,
+    invite_state,
+    join_invite,
+    labeller_progress,
+    list_invites,
+    read_invite,
+    revoke_invite,
+)
 from labelqueue.labellers import (
     authenticate,
     create_labeller,
@@ -39,6 +51,8 @@ from labelqueue.labels import consume_labels, labels_for_queries, preferred_segm
 from labelqueue.metrics import read_metrics, write_metrics
 from labelqueue.models import (
     Choice,
+    Invite,
+    Invitee,
     Label,
     Labeller,
     LabelSource,
@@ -137,4 +151,16 @@ __all__ = [
     "write_metrics",
     "RunInstruction",
     "set_instruction",
+    "Invite",
+    "InviteClosed",
+    "Invitee",
+    "Joined",
+    "Progress",
+    "create_invite",
+    "invite_state",
+    "join_invite",
+    "labeller_progress",
+    "list_invites",
+    "read_invite",
+    "revoke_invite",
 ]

@@ -210,6 +210,41 @@ class RunInstruction(Base):
     set_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
 
 
+class Invite(Base):
+    """A link that lets people join as labellers without a token from an operator."""
+
+    __tablename__ = "invites"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    code: Mapped[str] = mapped_column(String(64), unique=True)
+    """the secret part of the link `/join/<code>`"""
+    run_id: Mapped[int | None] = mapped_column(ForeignKey("runs.id"))
+    """the one run its labellers are sent to; none: all runs"""
+    note: Mapped[str | None] = mapped_column(String(200))
+    """the operator's name for it ("pilot study, batch 2")"""
+    expires_at: Mapped[datetime] = mapped_column(UTCDateTime)
+    max_uses: Mapped[int | None] = mapped_column(Integer)
+    """labellers it may create; none: no limit"""
+    uses: Mapped[int] = mapped_column(Integer, default=0)
+    target_answers: Mapped[int | None] = mapped_column(Integer)
+    """answers after which a labeller is shown `completion_code`; none: no target"""
+    completion_code: Mapped[str | None] = mapped_column(String(64))
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    revoked_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+
+
+class Invitee(Base):
+    """A labeller who joined by an invite link."""
+
+    __tablename__ = "invitees"
+
+    labeller_id: Mapped[int] = mapped_column(ForeignKey("labellers.id"), primary_key=True)
+    invite_id: Mapped[int] = mapped_column(ForeignKey("invites.id"), index=True)
+    participant: Mapped[str | None] = mapped_column(String(100))
+    """the `participant` the link was opened with (a crowdsourcing platform's worker id)"""
+    joined_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
 class Worker(Base):
     """A trainer process, as last seen: lets an operator tell idle workers from dead ones."""
 

@@ -13,7 +13,7 @@ from server.deps import TokenCache
 from server.errors import install_error_handlers
 from server.middleware import HardeningMiddleware
 from server.routes import export as export_routes
-from server.routes import instructions, label, labellers, pages, quality, runs, stats
+from server.routes import instructions, invites, label, labellers, pages, quality, runs, stats
 from server.settings import Settings, get_settings
 
 
@@ -43,6 +43,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(export_routes.router)
     app.include_router(stats.router)
     app.include_router(instructions.router)
+    app.include_router(invites.router)
     app.include_router(quality.router)
     app.include_router(pages.router)
     app.mount("/static", pages.static_files(), name="static")

@@ -12,13 +12,14 @@ from sqlalchemy.exc import DataError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import BaseRoute
 
-from labelqueue import Conflict, LeaseError, NotFound, Revoked
+from labelqueue import Conflict, InviteClosed, LeaseError, NotFound, Revoked
 
 STATUS_OF: dict[type[Exception], int] = {
     NotFound: 404,
     Revoked: 403,
     LeaseError: 409,
     Conflict: 409,  # InvalidTransition and RunClosed too: they are Conflicts
+    InviteClosed: 410,
     ValueError: 422,
 }
 OUT_OF_RANGE = "a number in the request is out of the range the database holds"

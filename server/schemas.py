@@ -128,7 +128,6 @@ AlgoName = Annotated[str, AfterValidator(_one_of("algo", lambda: ALGOS)),
                      Field(json_schema_extra={"enum": list(ALGOS)})]
 PresetName = Annotated[str, AfterValidator(_one_of("preset", lambda: SIZE_PRESETS)),
                        Field(json_schema_extra={"enum": list(SIZE_PRESETS)})]
-
 ClipSizeName = Annotated[str, AfterValidator(_one_of("clip_size", lambda: list(CLIP_SIZES))),
                          Field(json_schema_extra={"enum": list(CLIP_SIZES)})]
 InstructionText = Annotated[str, AfterValidator(clean_instruction),
@@ -188,7 +187,6 @@ class RunOut(Out):
     def instruction_text(self) -> str:
         """the instruction labellers are shown"""
         return run_instruction(self.task, self.instruction)
-
 
 
 class TeacherUpdate(Body):
@@ -312,3 +310,69 @@ class RunBrief(BaseModel):
     """simulated seconds per environment step of the task; null when not known"""
     real_time_ratio: float | None
     """how fast a clip plays at 1x against the task's own time (0.33: a third of real speed)"""
+
+
+InviteDays = Annotated[float, Field(gt=0, le=366)]
+
+
+class InviteCreate(Body):
+    """A new invite link. Opening it makes a new labeller, until it expires, is used up or is
+    revoked."""
+
+    run_id: Annotated[int, Field(ge=1, le=INT32_MAX)] | None = None
+    """the one run its labellers are sent to; null: all runs taught by people"""
+    expires_in_days: InviteDays = 7.0
+    """how long the link works, from now"""
+    max_uses: Annotated[int, Field(ge=1, le=INT32_MAX)] | None = None
+    """labellers it may make; null: no limit"""
+    target_answers: Annotated[int, Field(ge=1, le=INT32_MAX)] | None = None
+    """answers after which each labeller is shown the completion code; null: none"""
+    completion_code: str | None = Field(default=None, min_length=1, max_length=64,
+                                        pattern=r"^[A-Za-z0-9_-]+$")
+    """the code to show (a platform's study code); made up when left out and a target is set"""
+    note: str | None = Field(default=None, min_length=1, max_length=200)
+    """the operator's own name for the link"""
+
+
+class InviteOut(Out):
+    id: int
+    code: str
+    url: str
+    """the link to hand out (append `?participant=<id>` to name the labeller)"""
+    run_id: int | None
+    note: str | None
+    expires_at: datetime
+    max_uses: int | None
+    uses: int
+    target_answers: int | None
+    completion_code: str | None
+    created_at: datetime
+    revoked_at: datetime | None
+    state: Literal["open", "revoked", "expired", "used_up"]
+
+
+class JoinRequest(Body):
+    participant: str | None = Field(default=None, min_length=1, max_length=64,
+                                    pattern=r"^[A-Za-z0-9_.@+-]+$")
+    """a name or a crowdsourcing platform's worker id; the labeller is named after it"""
+
+
+class JoinedOut(BaseModel):
+    """A labeller made by an invite link, with its bearer token: shown this once."""
+
+    labeller_id: int
+    name: str
+    token: str
+    run_id: int | None
+    target_answers: int | None
+
+
+class ProgressOut(BaseModel):
+    """The caller's answers so far and, for an invite with a target, the completion code once
+    the target is reached."""
+
+    labels: int
+    target_answers: int | None
+    completion_code: str | None
+    run_id: int | None
+    """the run the caller's invite was for; null: all runs"""

@@ -19,6 +19,11 @@ export class ApiError extends Error {
 /** Thrown once the token was refused: the page should stop its loops (sign-in reloads it). */
 export class SignedOut extends Error {}
 
+/** Keeps a token for `role` in this browser (an invite link's new labeller). */
+export function keepToken(tokenRole, value) {
+  localStorage.setItem(STORAGE[tokenRole], value);
+}
+
 /** Reads the token and calls `ready()` once signed in; otherwise shows the sign-in form. */
 export function start(ready) {
   const fragment = new URLSearchParams(location.hash.slice(1)).get("token");

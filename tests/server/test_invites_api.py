@@ -1,0 +1,160 @@
+"""Invite links: an operator makes one for a run or all runs; opening it makes a labeller named
+after `participant`; a target shows a completion code once reached; revoked, expired and used-up
+links are refused with a page or a 410 that says why; bad input is a 4xx naming the problem."""
+
+from __future__ import annotations
+
+from datetime import timedelta
+from typing import Any
+
+from fastapi.testclient import TestClient
+from server_helpers import OPERATOR, bearer, new_labeller, new_run, running_run_with_queries
+from sqlalchemy import update
+from sqlalchemy.orm import Session
+
+from labelqueue import Invite, Invitee, find_labeller
+from labelqueue.models import utcnow
+from server.settings import Settings
+
+
+def new_invite(client: TestClient, **body: Any) -> dict[str, Any]:
+    response = client.post("/api/invites", json=body, headers=OPERATOR)
+    assert response.status_code == 201, response.text
+    invite: dict[str, Any] = response.json()
+    return invite
+
+
+def join(client: TestClient, code: str, **body: Any) -> Any:
+    return client.post(f"/api/join/{code}", json=body)
+
+
+def test_an_invite_link_makes_a_labeller_named_after_the_participant(
+    client: TestClient, session: Session
+) -> None:
+    run = new_run(client)
+    invite = new_invite(client, run_id=run["id"], max_uses=3, note="pilot")
+    assert invite["url"].endswith(f"/join/{invite['code']}")
+    assert invite["state"] == "open" and invite["uses"] == 0 and invite["run_id"] == run["id"]
+    assert len(invite["code"]) >= 24
+
+    page = client.get(f"/join/{invite['code']}?participant=P123")
+    assert page.status_code == 200
+    assert "forward" in page.text  # the run's instruction, on the page
+    assert "Can’t tell" in page.text or "Can't tell" in page.text
+
+    joined = join(client, invite["code"], participant="P123")
+    assert joined.status_code == 201, joined.text
+    body = joined.json()
+    assert body["name"] == "P123" and body["run_id"] == run["id"]
+    # The token works at once, for a labeller's calls.
+    me = client.get("/api/label/progress", headers=bearer(body["token"])).json()
+    assert me == {"labels": 0, "target_answers": None, "completion_code": None,
+                  "run_id": run["id"]}
+    # The same participant again (another browser): another labeller, another name.
+    again = join(client, invite["code"], participant="P123").json()
+    assert again["name"] == "P123-2" and again["labeller_id"] != body["labeller_id"]
+    nameless = join(client, invite["code"]).json()
+    assert nameless["name"].startswith("guest-")
+    with session.begin():
+        invitees = session.query(Invitee).order_by(Invitee.labeller_id).all()
+    assert [i.participant for i in invitees] == ["P123", "P123", None]
+
+    # Three uses, then it is used up: a clear page and a 410.
+    used = join(client, invite["code"], participant="late")
+    assert used.status_code == 410 and "used" in used.json()["detail"]
+    assert find_labeller(session, name="late") is None
+    page = client.get(f"/join/{invite['code']}")
+    assert page.status_code == 410 and "used as many times" in page.text
+    listed = client.get("/api/invites", headers=OPERATOR).json()
+    assert [(i["uses"], i["state"]) for i in listed] == [(3, "used_up")]
+
+
+def test_revoked_and_expired_links_are_refused_with_a_page_that_says_why(
+    client: TestClient, session: Session
+) -> None:
+    revoked = new_invite(client)
+    response = client.post(f"/api/invites/{revoked['id']}/revoke", headers=OPERATOR)
+    assert response.status_code == 200 and response.json()["state"] == "revoked"
+    refused = join(client, revoked["code"])
+    assert refused.status_code == 410 and "withdrawn" in refused.json()["detail"]
+    page = client.get(f"/join/{revoked['code']}")
+    assert page.status_code == 410 and "withdrawn" in page.text
+    assert "Traceback" not in page.text
+
+    expired = new_invite(client)
+    with session.begin():
+        session.execute(update(Invite).where(Invite.id == expired["id"])
+                        .values(expires_at=utcnow() - timedelta(seconds=1)))
+    assert join(client, expired["code"]).status_code == 410
+    page = client.get(f"/join/{expired['code']}")
+    assert page.status_code == 410 and "expired" in page.text
+
+    unknown = client.get("/join/not-a-code")
+    assert unknown.status_code == 404 and "not known" in unknown.text
+    assert join(client, "not-a-code").status_code == 404
+    assert client.get("/join/" + "x" * 500).status_code == 404
+
+
+def test_a_target_of_answers_shows_the_completion_code_once_reached(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    run_id, _ = running_run_with_queries(client, session, settings, n=3)
+    invite = new_invite(client, run_id=run_id, target_answers=2, completion_code="C0DE-42")
+    token = join(client, invite["code"], participant="worker7").json()["token"]
+    for given in (1, 2):
+        nxt = client.get(f"/api/label/next?run_id={run_id}", headers=bearer(token)).json()
+        body = {"choice": "skip", "left_is_first": nxt["left_is_first"],
+                "shown_at": "2026-01-01T00:00:00Z"}
+        assert client.post(f"/api/label/{nxt['query_id']}", json=body,
+                           headers=bearer(token)).status_code == 201
+        progress = client.get("/api/label/progress", headers=bearer(token)).json()
+        assert progress["labels"] == given and progress["target_answers"] == 2
+        assert progress["completion_code"] == (None if given < 2 else "C0DE-42")
+    # Without a code of the operator's, one is made up.
+    made = new_invite(client, target_answers=5)
+    assert made["completion_code"] and len(made["completion_code"]) >= 8
+
+
+def test_bad_invite_requests_are_a_4xx_naming_the_problem(client: TestClient) -> None:
+    token = new_labeller(client, "alice")
+    run = new_run(client)
+    cases = [
+        ({"run_id": 0}, "run_id"),
+        ({"run_id": 2**31}, "run_id"),
+        ({"expires_in_days": 0}, "expires_in_days"),
+        ({"expires_in_days": 1000}, "expires_in_days"),
+        ({"max_uses": 0}, "max_uses"),
+        ({"target_answers": -1}, "target_answers"),
+        ({"completion_code": "has space", "target_answers": 3}, "completion_code"),
+        ({"note": ""}, "note"),
+        ({"colour": "red"}, "colour"),
+    ]
+    for body, field in cases:
+        response = client.post("/api/invites", json=body, headers=OPERATOR)
+        assert response.status_code == 422, (body, response.text)
+        assert any(field in error["loc"] for error in response.json()["detail"]), body
+    response = client.post("/api/invites", json={"completion_code": "ABC"}, headers=OPERATOR)
+    assert response.status_code == 422 and "target_answers" in response.json()["detail"]
+    response = client.post("/api/invites", json={"run_id": 999}, headers=OPERATOR)
+    assert response.status_code == 404 and "999" in response.json()["detail"]
+    # Operators only; a labeller or no token is refused.
+    assert client.post("/api/invites", json={}, headers=bearer(token)).status_code == 403
+    assert client.post("/api/invites", json={}).status_code == 401
+    assert client.get("/api/invites", headers=bearer(token)).status_code == 403
+    assert client.post("/api/invites/5/revoke", headers=OPERATOR).status_code == 404
+    assert client.post("/api/invites/0/revoke", headers=OPERATOR).status_code == 422
+
+    invite = new_invite(client, run_id=run["id"])
+    for participant in ("", "x" * 65, "a b", "<script>", "名前"):
+        response = join(client, invite["code"], participant=participant)
+        assert response.status_code == 422, (participant, response.text)
+        assert any("participant" in error["loc"] for error in response.json()["detail"])
+    response = client.post(f"/api/join/{invite['code']}", content=b"{not json",
+                           headers={"Content-Type": "application/json"})
+    assert response.status_code in (400, 422)
+    assert client.post(f"/api/join/{invite['code']}", json={"extra": 1}).status_code == 422
+    assert client.get("/api/label/progress").status_code == 401
+    assert client.get("/api/label/progress", headers=OPERATOR).status_code == 403
+    # The page's participant is checked by the API when the page joins; a bad one is a 200
+    # page (whose join then says what is wrong), never a 500.
+    assert client.get(f"/join/{invite['code']}?participant=%3Cscript%3E").status_code == 200
