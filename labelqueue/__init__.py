@@ -87,6 +87,7 @@ from labelqueue.runs import (
     set_run_status,
     set_teacher,
 )
+from labelqueue.transaction import reading
 
 __all__ = [
     "DEAD_WORKER_AFTER_S",
@@ -138,6 +139,7 @@ __all__ = [
     "push_queries",
     "read_metrics",
     "read_run",
+    "reading",
     "rotate_token",
     "set_clips",
     "set_labeller_active",

@@ -1,16 +1,23 @@
 """Engines, sessions and schema migration for the queue database.
 
 SQLite (the default, one file under the data directory) and PostgreSQL (`postgresql+psycopg://`)
-run the same code. On SQLite every transaction starts with BEGIN IMMEDIATE: it takes the write
-lock up front, waiting up to the busy timeout, so two writers queue instead of one failing with
-"database is locked" when its read transaction tries to become a write. The price is that
-transactions do not overlap, so keep them short: every queue operation commits before it
-returns, and a session used for other reads should be committed or closed promptly.
+run the same code. On SQLite a transaction that may write starts with BEGIN IMMEDIATE: it takes
+the write lock up front, waiting up to the busy timeout, so two writers queue instead of one
+failing with "database is locked" when its read transaction tries to become a write. Writers do
+not overlap, so keep them short: every queue operation commits before it returns.
+
+Read-only work (`labelqueue.transaction.reading`) asks for the `READ_ONLY` execution option
+instead: on SQLite its transaction begins DEFERRED and `query_only`, and takes no lock at all,
+since WAL lets readers run beside the one writer on a snapshot of their own.
 """
 
 from __future__ import annotations
 
+import itertools
+import sqlite3
 import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -46,12 +53,81 @@ def check_url(url: str) -> str:
             f"{parsed.get_backend_name()} databases are not supported; use {VALID_URLS}"
         )
     return url
+
+
 BUSY_TIMEOUT_S = 30.0
+READ_ONLY = "labelqueue_read_only"
+"""the connection execution option that marks a read-only transaction (see `reading`)"""
 MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
 
 
+class _SQLiteConnection(sqlite3.Connection):
+    """A pysqlite connection that hands its engine's writer lock on after COMMIT or ROLLBACK.
+
+    SQLAlchemy's commit and rollback events fire before the statement; releasing the lock there
+    let the next writer's BEGIN IMMEDIATE meet SQLite's lock still held and sleep in SQLite's
+    busy handler (1, 2, 5, ... ms). Here the lock is handed on once SQLite has let go too.
+    """
+
+    writer: threading.Lock | None = None
+    holds_writer = False
+    query_only = False
+
+    def set_query_only(self, on: bool) -> None:
+        if self.query_only != on:
+            self.execute(f"PRAGMA query_only={'ON' if on else 'OFF'}")
+            self.query_only = on
+
+    def commit(self) -> None:
+        self._release_after(super().commit)
+
+    def rollback(self) -> None:
+        self._release_after(super().rollback)
+
+    def close(self) -> None:
+        self._release_after(super().close)
+
+    def _release_after(self, end: Callable[[], None]) -> None:
+        try:
+            end()
+        finally:
+            self.release_writer()
+
+    def release_writer(self) -> None:
+        if self.holds_writer and self.writer is not None:
+            self.holds_writer = False
+            self.writer.release()
+
+
+RETRY_S = (0.0002, 0.0005, 0.001, 0.002)
+"""the waits between tries of BEGIN IMMEDIATE while another process holds SQLite's write lock
+(then the last, over and over)"""
+
+
+def _begin_immediate(dbapi_connection: _SQLiteConnection) -> None:
+    """BEGIN IMMEDIATE, tried again after `RETRY_S` while another process (a worker) holds the
+    write lock, for up to `BUSY_TIMEOUT_S`. SQLite's own busy handler sleeps 1, 2, 5, 10, 15,
+    20, 25, ... 100 ms between tries, so a 5 ms transaction of the worker cost a waiting server
+    thread 8 ms, and a 30 ms one 53 ms, while this process's other writers queued behind it.
+    A try costs microseconds: it goes to the driver directly, not through SQLAlchemy."""
+    deadline = time.monotonic() + BUSY_TIMEOUT_S
+    dbapi_connection.execute("PRAGMA busy_timeout=0")
+    try:
+        for attempt in itertools.count():
+            try:
+                dbapi_connection.execute("BEGIN IMMEDIATE")
+                return
+            except sqlite3.OperationalError as error:
+                if "database is locked" not in str(error) or time.monotonic() > deadline:
+                    raise
+            time.sleep(RETRY_S[min(attempt, len(RETRY_S) - 1)])
+    finally:
+        dbapi_connection.execute(f"PRAGMA busy_timeout={int(BUSY_TIMEOUT_S * 1000)}")
+
+
 def make_engine(url: str, *, foreign_keys: bool = True) -> Engine:
-    """An engine for `url`; on SQLite with WAL, a busy timeout, foreign keys and BEGIN IMMEDIATE.
+    """An engine for `url`; on SQLite with WAL, a busy timeout, foreign keys, BEGIN IMMEDIATE for
+    transactions that may write and a deferred, lock-free BEGIN for `READ_ONLY` ones.
 
     `foreign_keys=False` is for migrations only: SQLite's batch mode recreates tables that
     others reference, which enforcement would refuse.
@@ -63,12 +139,18 @@ def make_engine(url: str, *, foreign_keys: bool = True) -> Engine:
     database = parsed.database
     if database and database != ":memory:" and not database.startswith("file:"):
         Path(database).parent.mkdir(parents=True, exist_ok=True)
-    engine = create_engine(parsed)
+    engine = create_engine(parsed, connect_args={"factory": _SQLiteConnection})
+    # Threads of one process queue for the write lock on a Python lock, which wakes the next
+    # one as soon as it is free; SQLite's busy handler would instead poll with sleeps of up to
+    # 100 ms, which made the label API's slowest requests. SQLite's own lock still decides (for
+    # other processes too), so a thread that waits too long here just goes on to it.
+    writer = threading.Lock()
 
     @event.listens_for(engine, "connect")
     def _on_connect(dbapi_connection: Any, _record: Any) -> None:
         # pysqlite would otherwise emit its own deferred BEGIN; the "begin" hook below does it.
         dbapi_connection.isolation_level = None
+        dbapi_connection.writer = writer
         cursor = dbapi_connection.cursor()
         cursor.execute("PRAGMA journal_mode=WAL")
         cursor.execute(f"PRAGMA busy_timeout={int(BUSY_TIMEOUT_S * 1000)}")
@@ -77,33 +159,22 @@ def make_engine(url: str, *, foreign_keys: bool = True) -> Engine:
         cursor.execute("PRAGMA synchronous=NORMAL")
         cursor.close()
 
-    # Threads of one process queue for the write lock on a Python lock, which wakes the next
-    # one as soon as it is free; SQLite's busy handler would instead poll with sleeps of up to
-    # 100 ms, which made the label API's slowest requests. SQLite's own lock still decides (for
-    # other processes too), so a thread that waits too long here just goes on to it.
-    writer = threading.Lock()
-
     @event.listens_for(engine, "begin")
     def _on_begin(connection: Connection) -> None:
-        connection.info["holds_writer"] = writer.acquire(timeout=BUSY_TIMEOUT_S)
+        dbapi_connection = connection.connection.dbapi_connection
+        assert isinstance(dbapi_connection, _SQLiteConnection)
+        if connection.get_execution_options().get(READ_ONLY):
+            # A write here fails at once, rather than racing for the lock mid-transaction.
+            dbapi_connection.set_query_only(True)
+            dbapi_connection.execute("BEGIN")
+            return
+        dbapi_connection.set_query_only(False)
+        dbapi_connection.holds_writer = writer.acquire(timeout=BUSY_TIMEOUT_S)
         try:
-            connection.exec_driver_sql("BEGIN IMMEDIATE")
+            _begin_immediate(dbapi_connection)
         except BaseException:
-            _release(connection)
+            dbapi_connection.release_writer()
             raise
-
-    def _release(connection: Connection) -> None:
-        if connection.info.pop("holds_writer", False):
-            writer.release()
-
-    event.listen(engine, "commit", _release)
-    event.listen(engine, "rollback", _release)
-
-    @event.listens_for(engine, "checkin")
-    def _on_checkin(_dbapi_connection: Any, record: Any) -> None:
-        # A safety net: a connection back in the pool never keeps the lock.
-        if record.info.pop("holds_writer", False):
-            writer.release()
 
     return engine
 

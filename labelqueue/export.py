@@ -31,7 +31,7 @@ from sqlalchemy.orm import Session
 from labelqueue.errors import NotFound
 from labelqueue.instructions import InstructionHistory, instructions_at
 from labelqueue.models import Label, Labeller, Query, Run
-from labelqueue.transaction import transaction
+from labelqueue.transaction import reading
 from runvocab.instructions import instruction_sha256, run_instruction
 
 SCHEMA_VERSION = 2
@@ -267,7 +267,7 @@ def export_rows(
     """
     limit = chunk_rows or CHUNK_ROWS
     condition = [] if run_id is None else [Label.run_id == run_id]
-    with transaction(session):
+    with reading(session):
         if run_id is not None and session.scalar(select(Run.id).where(Run.id == run_id)) is None:
             raise NotFound(f"run {run_id} does not exist")
         last = session.scalar(select(func.max(Label.id)).where(*condition))
@@ -275,7 +275,7 @@ def export_rows(
     def rows() -> Iterator[dict[str, Any]]:
         after = 0
         while last is not None and after < last:
-            with transaction(session):
+            with reading(session):
                 chunk = session.execute(
                     select(*(column.label(name) for name, column in _STORED.items()))
                     .join(Query, Query.id == Label.query_id)

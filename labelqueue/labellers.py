@@ -10,13 +10,21 @@ import hashlib
 import hmac
 import secrets
 
-from sqlalchemy import select, update
+from sqlalchemy import Integer, bindparam, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from labelqueue.errors import Conflict
-from labelqueue.models import Labeller, Query, QueryStatus, Role
-from labelqueue.transaction import changed, detach, get_row, transaction
+from labelqueue.models import LABELLERS, Labeller, Query, QueryStatus, Role
+from labelqueue.transaction import (
+    changed,
+    core_transaction,
+    detach,
+    get_row,
+    reading,
+    snapshot,
+    transaction,
+)
 
 
 def hash_token(token: str) -> str:
@@ -40,20 +48,21 @@ def create_labeller(
     return labeller, token
 
 
+_BY_ID = select(*LABELLERS.c).where(LABELLERS.c.id == bindparam("labeller", type_=Integer()))
+
+
 def authenticate(session: Session, *, token: str) -> Labeller | None:
-    """The active labeller whose token this is, or None."""
+    """The active labeller whose token this is, or None. Reads in a read-only transaction."""
     labeller_id, dot, _secret = token.partition(".")
     if not dot or not labeller_id.isdigit() or len(labeller_id) > 18:
         return None
-    with transaction(session):
-        labeller = session.get(Labeller, int(labeller_id), populate_existing=True)
-        if labeller is not None:
-            detach(session, labeller)
-    if labeller is None or not labeller.active:
+    with core_transaction(session, read_only=True) as connection:
+        row = connection.execute(_BY_ID, {"labeller": int(labeller_id)}).first()
+    if row is None or not row.active:
         return None
-    if not hmac.compare_digest(labeller.token_hash, hash_token(token)):
+    if not hmac.compare_digest(row.token_hash, hash_token(token)):
         return None
-    return labeller
+    return snapshot(Labeller, row._mapping)
 
 
 def set_labeller_active(session: Session, *, labeller_id: int, active: bool) -> Labeller:
@@ -115,7 +124,7 @@ def rotate_token(session: Session, *, labeller_id: int) -> tuple[Labeller, str]:
 
 def find_labeller(session: Session, *, name: str) -> Labeller | None:
     """The labeller named `name`, or None."""
-    with transaction(session):
+    with reading(session):
         labeller = session.scalars(
             select(Labeller)
             .where(Labeller.name == name)

@@ -11,24 +11,34 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from datetime import UTC, datetime
+from typing import Any
 
-from sqlalchemy import ColumnElement, case, select, update
+from sqlalchemy import ColumnElement, Connection, Integer, bindparam, case, insert, select, update
 from sqlalchemy.orm import Session
 
 from labelqueue.errors import LeaseError, NotFound, Revoked, RunClosed
 from labelqueue.models import (
+    LABELLERS,
+    LABELS,
+    QUERIES,
+    RUNS,
     Choice,
     Label,
-    Labeller,
     LabelSource,
     Preferred,
-    Query,
     QueryStatus,
     Run,
+    UTCDateTime,
     utcnow,
 )
-from labelqueue.queries import LABELLABLE
-from labelqueue.transaction import changed, detach, get_row, transaction
+from labelqueue.queries import LABELLABLE, one_of
+from labelqueue.transaction import (
+    core_transaction,
+    detach,
+    reading,
+    snapshot,
+    transaction,
+)
 
 
 def preferred_segment(choice: Choice | str, left_is_first: bool) -> Preferred | None:
@@ -41,33 +51,90 @@ def preferred_segment(choice: Choice | str, left_is_first: bool) -> Preferred | 
     return None
 
 
-def _stored_label(session: Session, *, query_id: int, labeller_id: int) -> Label | None:
-    return session.scalars(
-        select(Label)
-        .where(Label.query_id == query_id, Label.labeller_id == labeller_id)
-        .execution_options(populate_existing=True)
-    ).one_or_none()
+_LABELLER = bindparam("labeller", type_=Integer())
+_QUERY = bindparam("query", type_=Integer())
+_NOW = bindparam("at", type_=UTCDateTime())
+_STORED = select(*LABELS.c).where(LABELS.c.query_id == _QUERY, LABELS.c.labeller_id == _LABELLER)
+# The query as the submit needs it, and the id of this labeller's label of it if there is one.
+_ASKED = select(
+    QUERIES.c.run_id,
+    QUERIES.c.leased_at,
+    _STORED.with_only_columns(LABELS.c.id).scalar_subquery().label("stored"),
+).where(QUERIES.c.id == _QUERY)
+_TAKE_ANSWER = (
+    update(QUERIES)
+    .where(
+        QUERIES.c.id == _QUERY,
+        QUERIES.c.status == QueryStatus.LEASED,
+        QUERIES.c.lease_holder == _LABELLER,
+        QUERIES.c.lease_expires_at > _NOW,
+        select(LABELLERS.c.id)
+        .where(LABELLERS.c.id == _LABELLER, LABELLERS.c.active.is_(True))
+        .exists(),
+        select(RUNS.c.id)
+        .where(RUNS.c.id == QUERIES.c.run_id, one_of(RUNS.c.status, LABELLABLE))
+        .exists(),
+    )
+    .values(
+        label_count=QUERIES.c.label_count + 1,
+        status=case(
+            (QUERIES.c.label_count + 1 >= QUERIES.c.needs_labels, QueryStatus.LABELLED.value),
+            else_=QueryStatus.PENDING.value,
+        ),
+        lease_holder=None,
+        lease_expires_at=None,
+        leased_at=None,
+    )
+)
+_INSERT_LABEL = insert(LABELS)
+_COUNT_LABEL = (
+    update(RUNS)
+    .where(RUNS.c.id == bindparam("run", type_=Integer()))
+    .values(labels_used=RUNS.c.labels_used + 1)
+)
 
 
-def _why_no_lease(query: Query, *, labeller_id: int, now: datetime) -> str:
-    if query.status in (QueryStatus.LABELLED, QueryStatus.CANCELLED):
-        return f"query {query.id} is {query.status}"
-    if query.status is QueryStatus.LEASED and query.lease_holder == labeller_id:
-        return f"labeller {labeller_id}'s lease on query {query.id} has expired"
-    expires = query.lease_expires_at
-    if query.status is QueryStatus.LEASED and expires is not None and expires > now:
-        return f"query {query.id} is leased to another labeller"
-    return f"labeller {labeller_id} holds no lease on query {query.id}"
+def _stored_label(connection: Connection, params: dict[str, Any]) -> Label | None:
+    row = connection.execute(_STORED, params).first()
+    return None if row is None else snapshot(Label, row._mapping)
 
 
-def _why_refused(session: Session, query: Query, *, labeller_id: int, now: datetime) -> Exception:
+_REFUSAL = (
+    select(
+        LABELLERS.c.active,
+        RUNS.c.status.label("run_status"),
+        QUERIES.c.run_id,
+        QUERIES.c.status,
+        QUERIES.c.lease_holder,
+        QUERIES.c.lease_expires_at,
+    )
+    .select_from(QUERIES)
+    .join(RUNS, RUNS.c.id == QUERIES.c.run_id)
+    .join(LABELLERS, LABELLERS.c.id == _LABELLER)
+    .where(QUERIES.c.id == _QUERY)
+)
+
+
+def _why_refused(connection: Connection, params: dict[str, Any]) -> Exception:
     """Why the conditional update in submit_label changed nothing (read only on refusal)."""
-    if not get_row(session, Labeller, labeller_id).active:
+    labeller_id, query_id, now = params["labeller"], params["query"], params["at"]
+    row = connection.execute(_REFUSAL, params).first()
+    if row is None:
+        return NotFound(f"labeller {labeller_id} does not exist")
+    if not row.active:
         return Revoked(f"labeller {labeller_id} is deactivated")
-    status = get_row(session, Run, query.run_id).status
-    if status not in LABELLABLE:
-        return RunClosed(f"run {query.run_id} is {status}: it takes no more answers")
-    return LeaseError(_why_no_lease(query, labeller_id=labeller_id, now=now))
+    if row.run_status not in LABELLABLE:
+        return RunClosed(f"run {row.run_id} is {row.run_status}: it takes no more answers")
+    status, expires = QueryStatus(row.status), row.lease_expires_at
+    if status in (QueryStatus.LABELLED, QueryStatus.CANCELLED):
+        why = f"query {query_id} is {status}"
+    elif status is QueryStatus.LEASED and row.lease_holder == labeller_id:
+        why = f"labeller {labeller_id}'s lease on query {query_id} has expired"
+    elif status is QueryStatus.LEASED and expires is not None and expires > now:
+        why = f"query {query_id} is leased to another labeller"
+    else:
+        why = f"labeller {labeller_id} holds no lease on query {query_id}"
+    return LeaseError(why)
 
 
 def clamp_shown_at(
@@ -112,62 +179,37 @@ def submit_label(
     choice = Choice(choice)
     source = LabelSource(source)
     now = utcnow()
-    with transaction(session):
-        label = _stored_label(session, query_id=query_id, labeller_id=labeller_id)
-        if label is not None:
-            detach(session, label)
+    # Bound parameters are named apart from every column (see lease_next_query).
+    params: dict[str, Any] = {"query": query_id, "labeller": labeller_id, "at": now}
+    with core_transaction(session) as connection:
+        asked = connection.execute(_ASKED, params).first()
+        if asked is None:
+            raise NotFound(f"query {query_id} does not exist")
+        if asked.stored is not None:
+            label = _stored_label(connection, params)
+            assert label is not None
             return label, False
-        query = get_row(session, Query, query_id)
-        shown_at = clamp_shown_at(shown_at, leased_at=query.leased_at, now=now)
-        active = select(Labeller.id).where(Labeller.id == labeller_id, Labeller.active.is_(True))
-        open_run = select(Run.id).where(Run.id == query.run_id, Run.status.in_(LABELLABLE))
-        taken = changed(
-            session,
-            update(Query)
-            .where(
-                Query.id == query_id,
-                Query.status == QueryStatus.LEASED,
-                Query.lease_holder == labeller_id,
-                Query.lease_expires_at > now,
-                active.exists(),
-                open_run.exists(),
-            )
-            .values(
-                label_count=Query.label_count + 1,
-                status=case(
-                    (Query.label_count + 1 >= Query.needs_labels, QueryStatus.LABELLED.value),
-                    else_=QueryStatus.PENDING.value,
-                ),
-                lease_holder=None,
-                lease_expires_at=None,
-                leased_at=None,
-            ),
-        )
-        if not taken:
+        if not connection.execute(_TAKE_ANSWER, params).rowcount:
             # A concurrent twin of this very submit may have won (PostgreSQL).
-            label = _stored_label(session, query_id=query_id, labeller_id=labeller_id)
+            label = _stored_label(connection, params)
             if label is not None:
-                detach(session, label)
                 return label, False
-            raise _why_refused(session, query, labeller_id=labeller_id, now=now)
-        label = Label(
-            query_id=query_id,
-            run_id=query.run_id,
-            labeller_id=labeller_id,
-            choice=choice,
-            left_is_first=left_is_first,
-            preferred=preferred_segment(choice, left_is_first),
-            source=source,
-            shown_at=shown_at,
-            answered_at=now,
-        )
-        session.add(label)
-        changed(
-            session,
-            update(Run).where(Run.id == query.run_id).values(labels_used=Run.labels_used + 1),
-        )
-        detach(session, label)
-    return label, True
+            raise _why_refused(connection, params)
+        values: dict[str, Any] = {
+            "query_id": query_id,
+            "run_id": asked.run_id,
+            "labeller_id": labeller_id,
+            "choice": choice,
+            "left_is_first": left_is_first,
+            "preferred": preferred_segment(choice, left_is_first),
+            "source": source,
+            "shown_at": clamp_shown_at(shown_at, leased_at=asked.leased_at, now=now),
+            "answered_at": now,
+            "consumed_at": None,
+        }
+        [label_id] = connection.execute(_INSERT_LABEL, values).inserted_primary_key or [None]
+        connection.execute(_COUNT_LABEL, {"run": asked.run_id})
+    return snapshot(Label, {"id": label_id, **values}), True
 
 
 def consume_labels(session: Session, *, run_id: int) -> list[Label]:
@@ -192,7 +234,7 @@ def consume_labels(session: Session, *, run_id: int) -> list[Label]:
 
 def labels_for_queries(session: Session, *, query_ids: Sequence[int]) -> list[Label]:
     """Every stored label of these queries, consumed or not, oldest first."""
-    with transaction(session):
+    with reading(session):
         labels = _labels_where(session, Label.query_id.in_(query_ids)) if query_ids else []
     return labels
 

@@ -10,7 +10,7 @@ from sqlalchemy.orm import Session
 
 from labelqueue.coerce import json_object
 from labelqueue.models import Metric, MetricStream, Run
-from labelqueue.transaction import changed, detach, get_row, transaction
+from labelqueue.transaction import changed, detach, get_row, reading, transaction
 
 
 def write_metrics(
@@ -47,7 +47,7 @@ def read_metrics(
     condition = [Metric.run_id == run_id, Metric.stream == MetricStream(stream)]
     if after_step is not None:
         condition.append(Metric.step > after_step)
-    with transaction(session):
+    with reading(session):
         rows = list(
             session.scalars(
                 select(Metric)

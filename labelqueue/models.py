@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from datetime import UTC, datetime
 from enum import StrEnum
-from typing import Any
+from typing import Any, cast
 
 from sqlalchemy import (
     JSON,
@@ -24,6 +24,7 @@ from sqlalchemy import (
     Integer,
     MetaData,
     String,
+    Table,
     Text,
     TypeDecorator,
     UniqueConstraint,
@@ -357,3 +358,10 @@ class Metric(Base):
     stream: Mapped[MetricStream] = mapped_column(_enum(MetricStream, "stream"))
     step: Mapped[int] = mapped_column(Integer)
     values: Mapped[dict[str, Any]] = mapped_column(JSON)
+
+
+# The tables as SQLAlchemy Core sees them, for statements built once (the label API's hot path).
+LABELLERS = cast(Table, Labeller.__table__)
+RUNS = cast(Table, Run.__table__)
+QUERIES = cast(Table, Query.__table__)
+LABELS = cast(Table, Label.__table__)

@@ -11,24 +11,46 @@ from collections.abc import Mapping, Sequence
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import ColumnElement, and_, exists, or_, select, update
+from sqlalchemy import (
+    ColumnElement,
+    FromClause,
+    Integer,
+    Update,
+    and_,
+    bindparam,
+    exists,
+    insert,
+    or_,
+    select,
+    update,
+)
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from labelqueue.coerce import clip_key, finite
-from labelqueue.errors import Conflict, Revoked
+from labelqueue.errors import Conflict, NotFound, Revoked
 from labelqueue.models import (
-    Label,
-    Labeller,
+    LABELLERS,
+    LABELS,
+    QUERIES,
+    RUNS,
     Query,
     QueryStatus,
     Run,
     RunStatus,
     ShadowChoice,
     TeacherKind,
+    UTCDateTime,
     utcnow,
 )
-from labelqueue.transaction import changed, detach, get_row, transaction
+from labelqueue.transaction import (
+    changed,
+    core_transaction,
+    detach,
+    get_row,
+    snapshot,
+    transaction,
+)
 
 LEASE_SECONDS = 120.0
 LABELLABLE = (RunStatus.RUNNING, RunStatus.PAUSED)
@@ -112,33 +134,45 @@ def push_queries(
     raises Conflict.
     """
     specs = [_query_fields(spec) for spec in queries]
-    with transaction(session):
-        get_row(session, Run, run_id)
-        rounds = sorted({spec["round"] for spec in specs})
+    rounds = sorted({spec["round"] for spec in specs})
+    provenance = [QUERIES.c[name] for name in _PROVENANCE]
+    now = utcnow()
+    # One INSERT for the round, with rows built before the transaction: the worker holds the
+    # database's write lock, which every labeller's answer waits for, as briefly as it can.
+    with core_transaction(session) as connection:
+        if connection.execute(select(RUNS.c.id).where(RUNS.c.id == run_id)).first() is None:
+            raise NotFound(f"run {run_id} does not exist")
         stored = {
-            (query.round, query.position): query
-            for query in session.scalars(
-                select(Query).where(Query.run_id == run_id, Query.round.in_(rounds))
+            (row.round, row.position): row
+            for row in connection.execute(
+                select(QUERIES.c.id, QUERIES.c.round, QUERIES.c.position, *provenance).where(
+                    QUERIES.c.run_id == run_id, QUERIES.c.round.in_(rounds)
+                )
             )
         }
-        rows: list[Query] = []
+        new = []
         for spec in specs:
-            query = stored.get((spec["round"], spec["position"]))
-            if query is None:
-                query = Query(run_id=run_id, status=QueryStatus.PENDING, **spec)
-                session.add(query)
-            elif any(getattr(query, name) != spec[name] for name in _PROVENANCE):
+            row = stored.get((spec["round"], spec["position"]))
+            if row is None:
+                fresh = {"run_id": run_id, "status": QueryStatus.PENDING, "created_at": now}
+                new.append(spec | fresh)
+            elif any(getattr(row, name) != spec[name] for name in _PROVENANCE):
                 raise Conflict(
                     f"run {run_id} round {spec['round']} position {spec['position']} "
-                    f"already holds a different pair (query {query.id})"
+                    f"already holds a different pair (query {row.id})"
                 )
-            rows.append(query)
-        try:
-            session.flush()
-        except IntegrityError as error:
-            raise Conflict(f"run {run_id}: the same queries were pushed concurrently") from error
-        ids = [query.id for query in rows]
-    return ids
+        ids = {key: row.id for key, row in stored.items()}
+        if new:
+            try:
+                inserted = connection.execute(
+                    insert(QUERIES).returning(QUERIES.c.id, sort_by_parameter_order=True), new
+                ).scalars().all()
+            except IntegrityError as error:
+                pushed_twice = f"run {run_id}: the same queries were pushed concurrently"
+                raise Conflict(pushed_twice) from error
+            keys = [(row["round"], row["position"]) for row in new]
+            ids |= dict(zip(keys, inserted, strict=True))
+    return [ids[(spec["round"], spec["position"])] for spec in specs]
 
 
 def set_clips(
@@ -179,17 +213,99 @@ def cancel_queries(session: Session, *, run_id: int, query_ids: Sequence[int] | 
         )
 
 
-def _free(now: datetime) -> ColumnElement[bool]:
+def one_of(column: ColumnElement[Any], values: Sequence[Any]) -> ColumnElement[bool]:
+    """`column IN values` written as ORs of equalities (the same plan on SQLite and PostgreSQL):
+    SQLAlchemy renders an IN list anew at every execution, even in a statement built once."""
+    return or_(*(column == value for value in values))
+
+
+def _free(queries: FromClause, now: ColumnElement[datetime]) -> ColumnElement[bool]:
     """Still wanting labels, and pending or with its lease run out."""
     return and_(
         # Spelled out first so the (run_id, status, id) index skips a run's answered queries.
-        Query.status.in_((QueryStatus.PENDING, QueryStatus.LEASED)),
-        Query.label_count < Query.needs_labels,
+        one_of(queries.c.status, (QueryStatus.PENDING, QueryStatus.LEASED)),
+        queries.c.label_count < queries.c.needs_labels,
         or_(
-            Query.status == QueryStatus.PENDING,
-            and_(Query.status == QueryStatus.LEASED, Query.lease_expires_at <= now),
+            queries.c.status == QueryStatus.PENDING,
+            and_(queries.c.status == QueryStatus.LEASED, queries.c.lease_expires_at <= now),
         ),
     )
+
+
+# The lease's statements, built once: SQLAlchemy then reuses their compiled SQL and cache keys.
+# Parameters are named apart from every column: an UPDATE sets a column a parameter names.
+_NOW = bindparam("at", type_=UTCDateTime())
+_EXPIRES = bindparam("until", type_=UTCDateTime())
+_LABELLER = bindparam("labeller", type_=Integer())
+_MINE = and_(QUERIES.c.lease_holder == _LABELLER, QUERIES.c.status == QueryStatus.LEASED)
+# The labeller, with each live lease it holds (one row with no lease when it holds none).
+_HOLDER = (
+    select(LABELLERS.c.active, QUERIES.c.id, QUERIES.c.run_id, RUNS.c.status)
+    .select_from(LABELLERS)
+    .outerjoin(
+        QUERIES,
+        and_(
+            QUERIES.c.lease_holder == LABELLERS.c.id,
+            QUERIES.c.status == QueryStatus.LEASED,
+            QUERIES.c.lease_expires_at > _NOW,
+        ),
+    )
+    .outerjoin(RUNS, RUNS.c.id == QUERIES.c.run_id)
+    .where(LABELLERS.c.id == _LABELLER)
+)
+_RENEW = (
+    update(QUERIES)
+    .where(QUERIES.c.id == bindparam("query"), _MINE, QUERIES.c.lease_expires_at > _NOW)
+    .values(lease_expires_at=_EXPIRES)
+)
+_RENEW_RETURNING = _RENEW.returning(*QUERIES.c)
+_RELEASE = (
+    update(QUERIES)
+    .where(QUERIES.c.id.in_(bindparam("queries", expanding=True)), _MINE)
+    .values(status=QueryStatus.PENDING, lease_holder=None, lease_expires_at=None, leased_at=None)
+)
+
+
+def _take(*, of_run: bool) -> Update:
+    """Lease the oldest open query the labeller has not answered (of one run, or of any
+    human-taught run), returning its row. The candidate is locked with SKIP LOCKED on
+    PostgreSQL, so concurrent leases take different queries instead of queueing for one."""
+    candidate = QUERIES.alias("candidate")
+    answered = exists().where(
+        LABELS.c.query_id == candidate.c.id, LABELS.c.labeller_id == _LABELLER
+    )
+    servable = or_(
+        RUNS.c.teacher == TeacherKind.SCRIPTED,
+        and_(candidate.c.first_clip.is_not(None), candidate.c.second_clip.is_not(None)),
+    )
+    which = (
+        candidate.c.run_id == bindparam("run") if of_run else RUNS.c.teacher == TeacherKind.HUMAN
+    )
+    oldest = (
+        select(candidate.c.id)
+        .join(RUNS, RUNS.c.id == candidate.c.run_id)
+        .where(one_of(RUNS.c.status, LABELLABLE), _free(candidate, _NOW), ~answered, servable)
+        .where(which)
+        .order_by(candidate.c.id)
+        .limit(1)
+        .with_for_update(of=candidate, skip_locked=True)
+        .scalar_subquery()
+    )
+    return (
+        update(QUERIES)
+        .where(QUERIES.c.id == oldest, _free(QUERIES, _NOW))
+        .values(
+            status=QueryStatus.LEASED,
+            lease_holder=_LABELLER,
+            lease_expires_at=_EXPIRES,
+            leased_at=_NOW,
+        )
+        .returning(*QUERIES.c)
+    )
+
+
+_TAKE_OF_ANY_HUMAN_RUN = _take(of_run=False)
+_TAKE_OF_RUN = _take(of_run=True)
 
 
 def lease_next_query(
@@ -212,74 +328,34 @@ def lease_next_query(
     the same `ahead_of` returns the same second query.
     """
     now = utcnow()
-    expires = now + timedelta(seconds=lease_seconds)
-    mine = and_(Query.lease_holder == labeller_id, Query.status == QueryStatus.LEASED)
-    with transaction(session):
-        if not get_row(session, Labeller, labeller_id).active:
+    params: dict[str, Any] = {
+        "labeller": labeller_id,
+        "at": now,
+        "until": now + timedelta(seconds=lease_seconds),
+        "run": run_id,
+    }
+    with core_transaction(session) as connection:
+        holder = connection.execute(_HOLDER, params).all()
+        if not holder:
+            raise NotFound(f"labeller {labeller_id} does not exist")
+        if not holder[0].active:
             raise Revoked(f"labeller {labeller_id} is deactivated")
-        if ahead_of is not None:
-            changed(
-                session,
-                update(Query)
-                .where(Query.id == ahead_of, mine, Query.lease_expires_at > now)
-                .values(lease_expires_at=expires),
-            )
-            mine = and_(mine, Query.id != ahead_of)
-
-        held_query = (
-            select(Query.id)
-            .join(Run, Run.id == Query.run_id)
-            .where(mine, Query.lease_expires_at > now, Run.status.in_(LABELLABLE))
-        )
-        if run_id is not None:
-            held_query = held_query.where(Query.run_id == run_id)
-        held = session.scalars(held_query).first()
-        if held is not None and changed(
-            session, update(Query).where(Query.id == held, mine).values(lease_expires_at=expires)
-        ):
-            query = get_row(session, Query, held)
-            detach(session, query)
-            return query
-        changed(
-            session,
-            update(Query)
-            .where(mine, Query.lease_expires_at > now)
-            .values(
-                status=QueryStatus.PENDING,
-                lease_holder=None,
-                lease_expires_at=None,
-                leased_at=None,
-            ),
-        )
-
-        answered = exists().where(Label.query_id == Query.id, Label.labeller_id == labeller_id)
-        servable = or_(
-            Run.teacher == TeacherKind.SCRIPTED,
-            and_(Query.first_clip.is_not(None), Query.second_clip.is_not(None)),
-        )
-        candidates = (
-            select(Query.id)
-            .join(Run, Run.id == Query.run_id)
-            .where(Run.status.in_(LABELLABLE), _free(now), ~answered, servable)
-            .where(Run.teacher == TeacherKind.HUMAN if run_id is None else Query.run_id == run_id)
-            .order_by(Query.id)
-            .limit(20)
-        )
-        while ids := session.scalars(candidates).all():
-            for query_id in ids:
-                # Loses only to a concurrent lease of the same query (PostgreSQL); try the next.
-                if changed(
-                    session,
-                    update(Query)
-                    .where(Query.id == query_id, _free(now))
-                    .values(
-                        status=QueryStatus.LEASED,
-                        lease_holder=labeller_id,
-                        lease_expires_at=expires,
-                        leased_at=now,
-                    ),
-                ):
-                    query = get_row(session, Query, query_id)
-                    detach(session, query)
-                    return query
-    return None
+        # Its live leases: at most the one it is shown and the one ahead of it.
+        others = []
+        for _, held, held_run, status in holder:
+            if held is None:
+                continue
+            if held == ahead_of:
+                connection.execute(_RENEW, params | {"query": held})
+                continue
+            if status in LABELLABLE and run_id in (None, held_run):
+                # A reload: the same query, its lease renewed.
+                row = connection.execute(_RENEW_RETURNING, params | {"query": held}).first()
+                if row is not None:
+                    return snapshot(Query, row._mapping)
+            others.append(held)
+        if others:  # held for another run, or for a run that closed: free for others
+            connection.execute(_RELEASE, params | {"queries": others})
+        take = _TAKE_OF_ANY_HUMAN_RUN if run_id is None else _TAKE_OF_RUN
+        row = connection.execute(take, params).first()
+    return None if row is None else snapshot(Query, row._mapping)

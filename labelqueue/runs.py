@@ -24,7 +24,7 @@ from labelqueue.coerce import json_object
 from labelqueue.errors import Conflict, InvalidTransition
 from labelqueue.instructions import checked_instruction, record_instruction
 from labelqueue.models import Run, RunStatus, TeacherKind, Worker, utcnow
-from labelqueue.transaction import changed, detach, get_row, transaction
+from labelqueue.transaction import changed, detach, get_row, reading, transaction
 from runvocab.clip_format import parse_clip_size
 
 DEAD_WORKER_AFTER_S = 300.0
@@ -90,7 +90,7 @@ def create_run(
 
 def read_run(session: Session, *, run_id: int) -> Run:
     """The run as stored now (NotFound if there is none)."""
-    with transaction(session):
+    with reading(session):
         run = get_row(session, Run, run_id)
         detach(session, run)
     return run

@@ -7,19 +7,24 @@ touches the database again (so never reopens a transaction), and changing them c
 
 Races are decided by the database: each state change is a conditional UPDATE whose WHERE clause
 restates the condition it relies on, and the number of rows it changed says who won. On SQLite
-the transactions also run one at a time (see `labelqueue.db`); on PostgreSQL a losing UPDATE
-waits for the winner, re-checks its WHERE on the new row and changes nothing.
+the writing transactions also run one at a time (see `labelqueue.db`); on PostgreSQL a losing
+UPDATE waits for the winner, re-checks its WHERE on the new row and changes nothing.
+
+Operations that only read run in `reading(session)`: on SQLite a deferred, query-only
+transaction that takes no lock, so it runs beside a writer (WAL) and never makes one wait.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
+from functools import cache
 from typing import Any, TypeVar, cast
 
-from sqlalchemy import CursorResult, Update
-from sqlalchemy.orm import Session
+from sqlalchemy import Connection, CursorResult, Engine, Update
+from sqlalchemy.orm import ClassManager, Session, class_mapper
 
+from labelqueue.db import READ_ONLY
 from labelqueue.errors import NotFound
 from labelqueue.models import Base
 
@@ -35,6 +40,43 @@ def transaction(session: Session) -> Iterator[None]:
     except BaseException:
         session.rollback()
         raise
+
+
+@contextmanager
+def reading(session: Session) -> Iterator[None]:
+    """A read-only transaction for the block, ended when it ends (rows read stay readable).
+
+    On SQLite it begins DEFERRED, takes no lock and refuses writes (`PRAGMA query_only`); on
+    PostgreSQL it is a plain transaction. In a session whose transaction is already open, the
+    block joins it and commits it.
+    """
+    if not session.in_transaction():
+        session.connection(execution_options={READ_ONLY: True})
+    try:
+        yield
+    finally:
+        session.commit()
+
+
+@contextmanager
+def core_transaction(session: Session, *, read_only: bool = False) -> Iterator[Connection]:
+    """One transaction on a connection of the session's engine, for Core statements built once:
+    committed when the block ends, rolled back when it raises; read-only as in `reading`.
+
+    The session's own transaction machinery is skipped: on the label API's hot path it cost as
+    much as the statements. A session with a transaction open, or bound to a connection rather
+    than an engine, runs the block in its own transaction instead (so never waits on itself).
+    """
+    bind = session.get_bind()
+    if session.in_transaction() or not isinstance(bind, Engine):
+        with reading(session) if read_only else transaction(session):
+            yield session.connection()
+        return
+    with bind.connect() as connection:
+        if read_only:
+            connection.execution_options(**{READ_ONLY: True})
+        with connection.begin():
+            yield connection
 
 
 def detach(session: Session, *rows: Base) -> None:
@@ -57,4 +99,18 @@ def get_row(session: Session, model: type[M], ident: Any) -> M:
     row = session.get(model, ident, populate_existing=True)
     if row is None:
         raise NotFound(f"{model.__name__.lower()} {ident} does not exist")
+    return row
+
+
+@cache
+def _manager(model: type[Base]) -> ClassManager[Any]:
+    return class_mapper(model).class_manager  # configures the mappers once
+
+
+def snapshot(model: type[M], values: Mapping[Any, Any]) -> M:
+    """A `model` row holding `values` (column name -> value), in no session: a detached-style
+    snapshot built from a Core result the way the ORM loads rows, without per-attribute events.
+    """
+    row = cast(M, _manager(model).new_instance())
+    row.__dict__.update(values)
     return row

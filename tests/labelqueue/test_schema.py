@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import sqlite3
+import threading
+import time
 from contextlib import closing
 from pathlib import Path
 
@@ -12,9 +14,11 @@ from alembic import command
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
 from alembic.script import ScriptDirectory
-from sqlalchemy import CheckConstraint, Engine, event, inspect
+from sqlalchemy import CheckConstraint, Engine, func, inspect, select, update
+from sqlalchemy.exc import OperationalError
+from sqlalchemy.orm import Session
 
-from labelqueue import make_engine, migrate
+from labelqueue import Labeller, create_labeller, make_engine, migrate, reading
 from labelqueue.db import alembic_config
 from labelqueue.models import Base
 
@@ -71,17 +75,57 @@ def test_sqlite_uses_wal_busy_timeout_and_foreign_keys(tmp_path: Path) -> None:
         assert plain.execute("PRAGMA journal_mode").fetchone() == ("wal",)
 
 
+def other_writer(path: Path) -> sqlite3.Connection:
+    """A second client of the file (as another process would be) that never waits for a lock."""
+    return sqlite3.connect(path, timeout=0, isolation_level=None, check_same_thread=False)
+
+
 def test_sqlite_transactions_take_the_write_lock_when_they_begin(tmp_path: Path) -> None:
+    migrate(f"sqlite:///{tmp_path / 'queue.db'}")
     engine = make_engine(f"sqlite:///{tmp_path / 'queue.db'}")
-    statements: list[str] = []
+    with closing(other_writer(tmp_path / "queue.db")) as other:
+        with engine.begin():  # nothing executed yet: the lock is taken at BEGIN
+            with pytest.raises(sqlite3.OperationalError, match="database is locked"):
+                other.execute("BEGIN IMMEDIATE")
+        other.execute("BEGIN IMMEDIATE")  # and given back at COMMIT
+        other.execute("COMMIT")
+    engine.dispose()
 
-    @event.listens_for(engine, "before_cursor_execute")
-    def record(_conn: object, _cursor: object, statement: str, *_args: object) -> None:
-        statements.append(statement)
 
-    with engine.begin() as connection:
-        connection.exec_driver_sql("SELECT 1")
-    assert statements == ["BEGIN IMMEDIATE", "SELECT 1"]
+def test_sqlite_reads_take_no_lock_and_refuse_writes(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path / 'queue.db'}"
+    migrate(url)
+    engine = make_engine(url)
+    with closing(other_writer(tmp_path / "queue.db")) as other, Session(engine) as session:
+        with reading(session):
+            assert session.scalar(select(func.count()).select_from(Labeller)) == 0
+            # A writer elsewhere goes ahead at once; this read keeps its snapshot.
+            other.execute("BEGIN IMMEDIATE")
+            other.execute(
+                "INSERT INTO labellers (name, role, token_hash, active, created_at) "
+                "VALUES ('a', 'labeller', '', 1, '2026-01-01 00:00:00')"
+            )
+            other.execute("COMMIT")
+            assert session.scalar(select(func.count()).select_from(Labeller)) == 0
+        with reading(session), pytest.raises(OperationalError, match="readonly"):
+            session.execute(update(Labeller).values(name="b"))
+        with reading(session):
+            assert session.scalars(select(Labeller.name)).all() == ["a"]
+        create_labeller(session, name="c")  # the same connection writes again afterwards
+    engine.dispose()
+
+
+def test_a_writer_waits_for_another_process_then_goes_ahead(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path / 'queue.db'}"
+    migrate(url)
+    engine = make_engine(url)
+    with closing(other_writer(tmp_path / "queue.db")) as other:
+        other.execute("BEGIN IMMEDIATE")
+        threading.Timer(0.3, lambda: other.execute("COMMIT")).start()
+        start = time.monotonic()
+        with Session(engine) as session:
+            create_labeller(session, name="after")
+        assert time.monotonic() - start >= 0.25
     engine.dispose()
 
 
