@@ -17,6 +17,7 @@ from fastapi.templating import Jinja2Templates
 from starlette.responses import Response
 from starlette.types import Scope
 
+from runvocab.clip_format import CLIP_SIZES
 from runvocab.names import ALGOS, SIZE_PRESETS, all_tasks
 
 ALGO_TITLES = {"sepoa": "S-EPOA", "pebble": "PEBBLE", "surf": "SURF", "rune": "RUNE",
@@ -68,7 +69,7 @@ def label_page(request: Request) -> HTMLResponse:
 def runs_page(request: Request) -> HTMLResponse:
     """The runs list and the new-run form, whose choices are the run vocabulary's names."""
     return page(request, "runs.html", nav="runs", tasks=all_tasks(), algos=ALGO_TITLES,
-                presets=SIZE_PRESETS)
+                presets=SIZE_PRESETS, clip_sizes=CLIP_SIZES)
 
 
 @router.get("/runs/{run_id}", response_class=HTMLResponse)

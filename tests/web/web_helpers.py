@@ -17,7 +17,7 @@ from server.settings import Settings
 OPERATOR_TOKEN = "web-test-operator-token-0123456789"
 SECRET_KEY = "web-test-secret-key-0123456789"
 TASK = "dmc:cheetah_run"
-SEGMENT = 40  # steps per clip: 1.3 s at 30 fps, so a clip plays through quickly
+SEGMENT = 40  # steps per clip: 1.2 s at 100/3 fps, so a clip plays through quickly
 # Ground truth with values nothing else has, to look for in the page.
 SECRET_RETURNS = {
     "first_segment_return": 987.125,
@@ -54,12 +54,12 @@ class LiveServer:
         created = self.api("POST", "/api/labellers", json={"name": name})
         return Labeller(id=created["id"], token=created["token"])
 
-    def new_human_run(self) -> int:
+    def new_human_run(self, **fields: Any) -> int:
         """A human-taught run, claimed by a worker (so its queries can be labelled)."""
         run_id: int = self.api(
             "POST",
             "/api/runs",
-            json={"task": TASK, "algo": "sepoa", "budget": 10, "preset": "tiny"},
+            json={"task": TASK, "algo": "sepoa", "budget": 10, "preset": "tiny"} | fields,
         )["id"]
         with self.sessions() as session:
             claimed = claim_run(session, worker_id=f"web-test-worker-{run_id}")
@@ -93,3 +93,10 @@ class LiveServer:
                     shutil.copyfile(source, target)
                 set_clips(session, query_id=query_id, first_clip=keys[0], second_clip=keys[1])
         return ids
+
+    def stop_run(self, run_id: int) -> None:
+        """Out of the way of later tests: a stopped run's queries are offered to no one."""
+        if self.api("GET", f"/api/runs/{run_id}")["status"] in ("stopped", "finished", "failed"):
+            return
+        if self.api("POST", f"/api/runs/{run_id}/stop")["status"] == "stopping":
+            self.api("POST", f"/api/runs/{run_id}/stop?force=true")  # no worker to finish it

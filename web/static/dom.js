@@ -86,3 +86,9 @@ export function poller(load, ms) {
   document.addEventListener("visibilitychange", () => !document.hidden && refresh());
   return refresh;
 }
+
+/** A refused form's errors as list items in `list` (an API 422: one per field). */
+export function listErrors(list, error) {
+  list.replaceChildren(...error.message.split("\n").map((line) => el("li", {}, line)));
+  list.hidden = false;
+}

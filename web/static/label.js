@@ -1,4 +1,5 @@
-// The labeller's page: two clips side by side driven by one clock, answered by button or key.
+// The labeller's page: two clips side by side driven by one clock, answered by button or key,
+// under the instruction of the pair's run (it flashes when the next pair is another run's).
 //
 // The next pair is leased and loaded (hidden) while the current one is shown (`ahead_of`), and
 // swapped in the moment an answer is given; the answer is sent after the swap. With nothing to
@@ -20,6 +21,8 @@ const RETRY_MS = 5000; // after a failed request
 const SEEK_S = 0.3; // a clip this far off the clock is seeked; nearer, its rate is nudged
 const END_HOLD_S = 0.3; // both clips hold their last frame this long before looping
 const MAX_TICK_S = 0.1; // a long frame (a background tab) does not make the clock jump
+const MAX_ZOOM = 2; // a clip is shown at most twice its own size
+const NEW_TASK_MS = 4000; // how long "New task" stays up after the run changes
 
 const $ = (id) => document.getElementById(id);
 const runId = new URLSearchParams(location.search).get("run");
@@ -33,13 +36,18 @@ const state = {
   session: 0,
   total: null,
   clockOffsetMs: 0,
+  speed: 1, // playback speed of both clips: 0.5, 1 or 2
+  briefs: new Map(), // run id -> its instruction and clip timing (GET /api/label/runs/<id>)
+  shownRun: null, // the run whose instruction is on screen
+  target: null, // answers after which the caller's invite shows a completion code
 };
 const clock = { t: 0, passes: 0, last: performance.now() };
 
 /** One query's two clips, in a hidden element until shown. */
 class Pair {
-  constructor(query) {
+  constructor(query, brief) {
     this.query = query;
+    this.brief = brief;
     this.shownAt = null;
     this.broken = false;
     this.root = $("pair-template").content.firstElementChild.cloneNode(true);
@@ -50,6 +58,10 @@ class Pair {
     const urls = [query.left_clip_url, query.right_clip_url];
     this.videos.forEach((video, i) => {
       video.muted = true; // muted clips may play without a click
+      video.setAttribute("aria-label", i === 0 ? "Left (top) clip" : "Right (bottom) clip");
+      sizeVideo(video, brief.clip_width, brief.clip_height);
+      video.addEventListener("loadedmetadata", () =>
+        sizeVideo(video, video.videoWidth, video.videoHeight));
       video.addEventListener("error", () => this.failed());
       video.src = urls[i];
       video.load(); // start fetching now, even while hidden
@@ -75,6 +87,13 @@ class Pair {
   }
 }
 
+/** Its shape, and at most MAX_ZOOM times its own width on screen (CSS does the rest). */
+function sizeVideo(video, width, height) {
+  if (!(width > 0 && height > 0)) return;
+  video.style.setProperty("--aspect", `${width / height}`);
+  video.style.setProperty("--max-width", `${MAX_ZOOM * width}px`);
+}
+
 // ---- the clock: one master time for both clips ----------------------------------------------
 
 function playable(video) {
@@ -98,7 +117,7 @@ function advance(pair, dt) {
     return;
   }
   pair.shownAt ??= serverNow(); // first frame on screen: the answer time starts here
-  clock.t += dt;
+  clock.t += dt * state.speed;
   if (clock.t >= length + END_HOLD_S) {
     if (videos.every((v) => v.ended || v.currentTime >= v.duration - 0.1)) clock.passes += 1;
     clock.t = 0;
@@ -107,11 +126,11 @@ function advance(pair, dt) {
   for (const video of videos) {
     const target = Math.min(clock.t, video.duration);
     const drift = video.currentTime - target;
-    if (video.paused || Math.abs(drift) > SEEK_S) {
+    if (video.paused || Math.abs(drift) > SEEK_S * state.speed) {
       if (Math.abs(drift) > 0.04) video.currentTime = target;
-      video.playbackRate = 1;
-    } else {
-      video.playbackRate = Math.min(1.5, Math.max(0.5, 1 - 2 * drift)); // catch up smoothly
+      video.playbackRate = state.speed;
+    } else { // catch up smoothly, at the chosen speed
+      video.playbackRate = state.speed * Math.min(1.5, Math.max(0.5, 1 - (2 * drift) / state.speed));
     }
     if (video.paused && target < video.duration - 0.04) video.play().catch(() => {});
   }
@@ -122,6 +141,34 @@ function replay() {
   clock.t = 0;
   for (const video of state.current?.videos || []) video.currentTime = 0;
 }
+
+function setSpeed(speed) {
+  state.speed = speed;
+  for (const button of document.querySelectorAll("[data-speed]")) {
+    button.setAttribute("aria-pressed", String(Number(button.dataset.speed) === speed));
+  }
+  showSpeedNote();
+}
+
+/** How the clips' speed relates to the task's own time, at the chosen speed. */
+function showSpeedNote() {
+  const brief = state.current?.brief;
+  const note = $("speed-note");
+  if (!brief) return;
+  if (brief.real_time_ratio == null) {
+    note.textContent = `One frame per step, ${round(brief.fps * state.speed)} frames a second.`;
+    return;
+  }
+  const ratio = brief.real_time_ratio * state.speed;
+  const wide = (text) => Object.assign(document.createElement("span"), {
+    className: "wide", textContent: text, // left out on a phone
+  });
+  const how = ratio < 0.95 ? ", slow motion" : ratio > 1.05 ? ", sped up" : "";
+  note.replaceChildren(wide("Clips play at "), `${round(ratio)}× real time`,
+    wide(`${how} (${round(brief.step_seconds * 1000)} ms a step)`));
+}
+
+const round = (x) => Number(x.toPrecision(2));
 
 // ---- what is on screen ----------------------------------------------------------------------
 
@@ -134,8 +181,41 @@ function show(pair) {
   $("pair-id").textContent = `${pair.query.query_id} · run ${pair.query.run_id}`;
   $("waiting").hidden = true;
   $("stage").hidden = false;
+  showInstruction(pair.brief);
+  showSpeedNote();
   updateButtons();
   if (pair.broken) pair.failed();
+}
+
+/** The run's instruction above the clips; a change of run is made hard to miss. */
+function showInstruction(brief) {
+  const box = $("instruction");
+  const [goal, ...rest] = brief.instruction.split("\n");
+  $("instruction-body").replaceChildren(
+    Object.assign(document.createElement("p"), { className: "goal", textContent: goal }),
+    ...rest.filter((line) => line.trim()).map((line) =>
+      Object.assign(document.createElement("p"), { textContent: line })),
+  );
+  $("instruction-task").textContent = taskTitle(brief.task);
+  box.dataset.run = brief.run_id;
+  box.dataset.sha256 = brief.instruction_sha256;
+  const changed = state.shownRun !== null && state.shownRun !== brief.run_id;
+  state.shownRun = brief.run_id;
+  if (!changed) return;
+  box.classList.remove("changed");
+  void box.offsetWidth; // restart the flash
+  box.classList.add("changed");
+  $("instruction-new").hidden = false;
+  clearTimeout(showInstruction.timer);
+  showInstruction.timer = setTimeout(() => {
+    $("instruction-new").hidden = true;
+    box.classList.remove("changed");
+  }, NEW_TASK_MS);
+}
+
+/** "dmc:cheetah_run" -> "cheetah run"; "metaworld:door-open" -> "door open". */
+function taskTitle(task) {
+  return (task.split(":")[1] || task).replace(/[_-]+/g, " ");
 }
 
 function showWaiting() {
@@ -218,7 +298,17 @@ async function fetchNext(aheadOf) {
   if (aheadOf != null) params.set("ahead_of", aheadOf);
   const { data, response } = await request("GET", `/api/label/next?${params}`);
   noteServerClock(response);
+  if (data) data.brief = await runBrief(data.run_id);
   return data; // null: nothing to label (204)
+}
+
+/** The run's instruction and clip timing, asked once per run and page (a reload asks again). */
+async function runBrief(id) {
+  if (!state.briefs.has(id)) {
+    const { data } = await request("GET", `/api/label/runs/${id}`);
+    state.briefs.set(id, data);
+  }
+  return state.briefs.get(id);
 }
 
 /** Nothing on screen: lease a pair and show it, or wait and ask again. */
@@ -229,7 +319,7 @@ async function loadCurrent() {
     schedule(loadCurrent, POLL_MS);
     return;
   }
-  show(new Pair(query));
+  show(new Pair(query, query.brief));
   await preload();
 }
 
@@ -241,7 +331,8 @@ async function preload() {
   if (state.current !== shown || state.submitting) return; // answered meanwhile: stale
   if (query?.query_id !== state.next?.query.query_id) {
     state.next?.remove();
-    state.next = query && query.query_id !== shown.query.query_id ? new Pair(query) : null;
+    state.next =
+      query && query.query_id !== shown.query.query_id ? new Pair(query, query.brief) : null;
   }
   schedule(preload, state.next ? RENEW_MS : POLL_MS);
 }
@@ -283,6 +374,7 @@ async function submit(queryId, body) {
       state.session += 1;
       if (state.total != null) state.total += 1;
       showCounts();
+      if (state.target != null && state.total >= state.target) await loadProgress();
     }
   } catch (error) {
     if (error instanceof SignedOut) throw error;
@@ -291,10 +383,17 @@ async function submit(queryId, body) {
   }
 }
 
-/** The caller's labels over all runs, once; later answers are added as they are stored. */
-async function loadCount() {
-  const { data } = await request("GET", "/api/label/count");
+/** The caller's labels over all runs, once; later answers are added as they are stored. An
+ * invited labeller with a target also sees how far it is, and the completion code once there. */
+async function loadProgress() {
+  const { data } = await request("GET", "/api/label/progress");
   state.total = data.labels;
+  state.target = data.target_answers;
+  $("count-target").textContent = state.target == null ? "" : ` of ${state.target} asked for`;
+  if (data.completion_code) {
+    $("completion-code").textContent = data.completion_code;
+    $("completion").hidden = false;
+  }
   showCounts();
 }
 
@@ -338,6 +437,17 @@ start(() => {
   document.addEventListener("keydown", onKey);
   requestAnimationFrame(tick);
   showCounts();
-  serial(() => loadCount().catch(() => {})); // a nicety: "–" if it fails
+  for (const button of document.querySelectorAll("[data-speed]")) {
+    button.addEventListener("click", () => {
+      button.blur();
+      setSpeed(Number(button.dataset.speed));
+    });
+  }
+  $("instruction-more").addEventListener("click", () => {
+    const open = $("instruction").classList.toggle("open");
+    $("instruction-more").setAttribute("aria-expanded", String(open));
+    $("instruction-more").textContent = open ? "Show less" : "Show all";
+  });
+  serial(() => loadProgress().catch(() => {})); // a nicety: "–" if it fails
   schedule(loadCurrent, 0);
 });

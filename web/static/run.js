@@ -4,6 +4,7 @@
 import { SignedOut, download, get, getBlob, post, request, start } from "./api.js";
 import { drawChart } from "./chart.js";
 import { ago, el, notify, num, poller, runActions } from "./dom.js";
+import { showInstruction, startInstructionForm } from "./instruction_form.js";
 
 const runId = Number(document.body.dataset.runId);
 // Throughput buckets: the smallest of these that cuts the run's lifetime into at most 120 bars.
@@ -102,6 +103,7 @@ function showRun(run) {
       type: "button",
       onclick: () => control(run, label, action, ask),
     }, label)));
+  showInstruction(run);
   const form = document.getElementById("teacher-form");
   if (!form.contains(document.activeElement)) { // leave what the operator is typing alone
     form.elements.teacher.value = run.teacher;
@@ -209,6 +211,7 @@ function drawThroughput(stats, run) {
 
 start(() => {
   document.getElementById("teacher-form").addEventListener("submit", switchTeacher);
+  startInstructionForm(runId, refresh);
   for (const button of document.querySelectorAll("[data-export]")) {
     button.addEventListener("click", () => exportLabels(button.dataset.export));
   }

@@ -1,7 +1,8 @@
 // The runs table (refreshed every few seconds), its controls, and the new-run form.
 
-import { ApiError, SignedOut, get, post, start } from "./api.js";
-import { el, lastReturn, notify, num, poller, runActions } from "./dom.js";
+import { SignedOut, get, post, start } from "./api.js";
+import { el, lastReturn, listErrors, notify, num, poller, runActions } from "./dom.js";
+import { loadInvites, startInvites } from "./invites.js";
 import { loadLabellers } from "./labellers.js";
 
 const refresh = poller(async () => {
@@ -82,6 +83,8 @@ function runBody(form) {
     config,
   };
   if (text("name")) body.name = text("name");
+  if (text("clip_size")) body.clip_size = text("clip_size");
+  if (text("instruction")) body.instruction = text("instruction");
   return body;
 }
 
@@ -97,11 +100,10 @@ async function createRun(event) {
     result.textContent = `Created run ${run.id} (${run.name}).`;
     form.elements.name.value = "";
     refresh();
+    loadInvites();
   } catch (error) {
     if (error instanceof SignedOut) return;
-    const lines = error instanceof ApiError ? error.message.split("\n") : [error.message];
-    errors.replaceChildren(...lines.map((line) => el("li", {}, line)));
-    errors.hidden = false;
+    listErrors(errors, error);
   }
 }
 
@@ -109,4 +111,5 @@ start(() => {
   document.getElementById("new-run").addEventListener("submit", createRun);
   refresh();
   loadLabellers();
+  startInvites();
 });

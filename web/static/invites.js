@@ -1,0 +1,113 @@
+// The invite links panel on the runs page: make a link (for one run or all), copy it, revoke it.
+
+import { SignedOut, get, post } from "./api.js";
+import { ago, el, listErrors, notify } from "./dom.js";
+
+export function startInvites() {
+  document.getElementById("new-invite").addEventListener("submit", createInvite);
+  loadInvites();
+}
+
+export async function loadInvites() {
+  try {
+    const [invites, runs] = await Promise.all([get("/api/invites"), get("/api/runs")]);
+    fillRuns(runs);
+    render(invites, new Map(runs.map((run) => [run.id, run])));
+  } catch (error) {
+    if (!(error instanceof SignedOut)) notify(`Could not load the invite links: ${error.message}`, "error");
+  }
+}
+
+/** The runs a link may be for: those taught by people that have not ended. */
+function fillRuns(runs) {
+  const select = document.querySelector("#new-invite [name=run_id]");
+  const chosen = select.value;
+  const open = runs.filter((run) => run.teacher === "human"
+    && !["stopped", "finished", "failed"].includes(run.status));
+  select.replaceChildren(el("option", { value: "" }, "all runs taught by people"),
+    ...open.map((run) => el("option", { value: run.id }, `${run.id} · ${run.name}`)));
+  select.value = open.some((run) => String(run.id) === chosen) ? chosen : "";
+}
+
+function render(invites, runs) {
+  const body = document.getElementById("invites-body");
+  if (invites.length === 0) {
+    body.replaceChildren(el("tr", {}, el("td", { colspan: 8, class: "muted" },
+      "No invite links yet.")));
+    return;
+  }
+  body.replaceChildren(...invites.slice().reverse().map((invite) => el("tr",
+    { "data-invite": invite.id },
+    el("td", {}, String(invite.id)),
+    el("td", { class: "name" },
+      el("code", { class: "invite-url" }, invite.url),
+      invite.note ? el("div", { class: "muted small" }, invite.note) : null),
+    el("td", {}, invite.run_id == null ? "all"
+      : `${invite.run_id}${runs.has(invite.run_id) ? ` · ${runs.get(invite.run_id).task}` : ""}`),
+    el("td", { class: "num" }, `${invite.uses}${invite.max_uses == null ? "" : ` / ${invite.max_uses}`}`),
+    el("td", {}, invite.target_answers == null ? "–"
+      : `${invite.target_answers} · ${invite.completion_code}`),
+    el("td", {}, until(invite.expires_at)),
+    el("td", {}, el("span", { class: `badge ${invite.state === "open" ? "running" : "stopped"}` },
+      invite.state.replace("_", " "))),
+    el("td", { class: "actions" },
+      el("button", { type: "button", class: "small", onclick: () => copy(invite) }, "Copy link"),
+      invite.state === "revoked" ? null
+        : el("button", { type: "button", class: "small", onclick: () => revoke(invite) }, "Revoke")),
+  )));
+}
+
+function until(iso) {
+  const seconds = (Date.parse(iso) - Date.now()) / 1000;
+  if (seconds <= 0) return `expired ${ago(iso)}`;
+  if (seconds < 5400) return `in ${Math.round(seconds / 60)} min`;
+  if (seconds < 2 * 86400) return `in ${Math.round(seconds / 3600)} h`;
+  return `in ${Math.round(seconds / 86400)} days`;
+}
+
+async function copy(invite) {
+  try {
+    await navigator.clipboard.writeText(invite.url);
+    notify(`Link ${invite.id} copied.`);
+  } catch {
+    notify(`Copy it by hand: ${invite.url}`);
+  }
+}
+
+async function revoke(invite) {
+  if (!confirm(`Revoke link ${invite.id}? Nobody can join by it any more; those who did keep their access.`)) return;
+  try {
+    await post(`/api/invites/${invite.id}/revoke`);
+    notify(`Link ${invite.id} revoked.`);
+  } catch (error) {
+    if (!(error instanceof SignedOut)) notify(`Link ${invite.id}: ${error.message}`, "error");
+  }
+  loadInvites();
+}
+
+function inviteBody(form) {
+  const data = new FormData(form);
+  const text = (name) => String(data.get(name) || "").trim();
+  const body = {};
+  for (const name of ["run_id", "expires_in_days", "max_uses", "target_answers"]) {
+    if (text(name)) body[name] = Number(text(name));
+  }
+  for (const name of ["completion_code", "note"]) if (text(name)) body[name] = text(name);
+  return body;
+}
+
+async function createInvite(event) {
+  event.preventDefault();
+  const errors = document.getElementById("new-invite-errors");
+  const result = document.getElementById("new-invite-result");
+  errors.hidden = true;
+  result.textContent = "";
+  try {
+    const invite = await post("/api/invites", inviteBody(event.target));
+    result.replaceChildren("Created: ", el("code", {}, invite.url));
+    loadInvites();
+  } catch (error) {
+    if (error instanceof SignedOut) return;
+    listErrors(errors, error);
+  }
+}
