@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import AsyncIterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 
 from anyio import to_thread
@@ -11,6 +12,7 @@ from fastapi import FastAPI
 from labelqueue import make_engine, migrate, session_factory
 from server.deps import TokenCache
 from server.errors import install_error_handlers
+from server.export_job import ExportProcess
 from server.middleware import HardeningMiddleware
 from server.routes import export as export_routes
 from server.routes import instructions, invites, label, labellers, pages, quality, runs, stats
@@ -28,18 +30,24 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.sessions = session_factory(engine)
         app.state.token_cache = TokenCache(settings.auth_cache_seconds)
         to_thread.current_default_thread_limiter().total_tokens = settings.threadpool_size
+        # The label API's queue work (server.deps.LabellerCall.run); other routes use AnyIO's.
+        app.state.executor = ThreadPoolExecutor(settings.threadpool_size, "label-api")
         try:
             yield
         finally:
+            app.state.executor.shutdown()
+            app.state.export_process.close()
             engine.dispose()
 
     app = FastAPI(title="S-EPOA labelling", version="0.1.0", lifespan=lifespan)
     app.state.settings = settings
+    app.state.export_process = ExportProcess()  # started at the first export
     install_error_handlers(app)
     app.add_middleware(HardeningMiddleware, limit=settings.body_limit_bytes)
+    # The label API first: it is the busiest, and a request tries the routes in turn.
+    app.include_router(label.router)
     app.include_router(runs.router)
     app.include_router(labellers.router)
-    app.include_router(label.router)
     app.include_router(export_routes.router)
     app.include_router(stats.router)
     app.include_router(instructions.router)

@@ -4,18 +4,28 @@ Peers are the runs in the database with the same task, preset and teacher error 
 algorithm is one curve: the mean and standard deviation across its runs (seeds) of the
 evaluation return, on the steps all of them reached (sepoa/plots.py). The run
 itself is drawn alone as well, so it can be told from its group.
+
+Drawing takes a fraction of a second of the server's CPU, so figures are kept by their data:
+every open run page asks again after each new evaluation, and all but the first get the PNG
+drawn for the first (the data is read each time; only an unchanged figure is reused).
 """
 
 from __future__ import annotations
 
+import threading
 from collections import Counter
-from typing import Any
+from collections.abc import Callable
+from functools import lru_cache
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from labelqueue import Run, read_metrics
 from server.services import reading
+
+Figure = tuple[tuple[str, tuple[tuple[tuple[int, ...], tuple[float, ...]], ...]], ...]
+"""per curve label, the seeds' (steps, values): hashable, so a drawn figure is kept by it"""
+_drawing = threading.Lock()
 
 
 def _eps(run: Run) -> float:
@@ -31,8 +41,6 @@ def _series(session: Session, run_id: int, metric: str) -> tuple[list[int], list
 
 def peer_curves_png(session: Session, run: Run, metric: str) -> bytes:
     """PNG of `metric` from the evaluations of `run` and its peers, one curve per algorithm."""
-    from sepoa.plots import curves_png  # matplotlib: only when a figure is asked
-
     with reading(session):
         peers = [
             peer for peer in session.scalars(
@@ -43,7 +51,7 @@ def peer_curves_png(session: Session, run: Run, metric: str) -> bytes:
     # The run is one of its peers: each series is read once.
     series = {peer.id: _series(session, peer.id, metric) for peer in peers}
     counts = Counter(peer.algo for peer in peers)
-    curves: dict[str, Any] = {}
+    curves: dict[str, list[tuple[list[int], list[float]]]] = {}
     for peer in peers:
         if series[peer.id][0]:
             n = counts[peer.algo]
@@ -52,4 +60,18 @@ def peer_curves_png(session: Session, run: Run, metric: str) -> bytes:
     if series[run.id][0]:
         curves[f"this run ({run.algo}, seed {run.seed})"] = [series[run.id]]
     title = f"{run.task} · {run.preset} · ε = {_eps(run):g}"
-    return curves_png(curves, title=title, ylabel=f"evaluation {metric.replace('_', ' ')}")
+    figure = tuple(
+        (label, tuple((tuple(steps), tuple(values)) for steps, values in seeds))
+        for label, seeds in curves.items()
+    )
+    from sepoa.plots import curves_png  # matplotlib: only when a figure is asked
+
+    with _drawing:  # pages asking at once wait for one drawing, then reuse it
+        return _drawn(curves_png, figure, title, f"evaluation {metric.replace('_', ' ')}")
+
+
+@lru_cache(maxsize=64)
+def _drawn(draw: Callable[..., bytes], figure: Figure, title: str, ylabel: str) -> bytes:
+    curves = {label: [(list(steps), list(values)) for steps, values in seeds]
+              for label, seeds in figure}
+    return draw(curves, title=title, ylabel=ylabel)

@@ -3,35 +3,62 @@
 Auth is `Authorization: Bearer <token>`: a labeller's token (`labelqueue.authenticate`), or the
 settings' `operator_token`, which acts as an operator that is not a labeller (it can manage runs
 and labellers, not answer queries). Missing or unknown token: 401; wrong role: 403.
+
+Every dependency here is `async def` and does no blocking work on the event loop: FastAPI runs
+each plain `def` dependency in a thread of its own pool, a hand-off that cost more than the
+dependency itself. So a request makes one trip to the pool, for its route, and a second only
+when its token is not in the cache (the database check runs there).
 """
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import hmac
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import AsyncIterator, Callable
+from concurrent.futures import Executor
+from contextlib import asynccontextmanager
 from dataclasses import dataclass
-from typing import Annotated
+from functools import partial
+from typing import Annotated, Any, TypeVar
 
 from fastapi import Depends, HTTPException, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session, sessionmaker
+from starlette.concurrency import run_in_threadpool
 
 from labelqueue import Role, authenticate
 from server.settings import Settings
 
+T = TypeVar("T")
 
-def get_app_settings(request: Request) -> Settings:
+
+async def get_app_settings(request: Request) -> Settings:
     settings: Settings = request.app.state.settings
     return settings
 
 
-def get_session(request: Request) -> Iterator[Session]:
-    """A session for one request; queue operations commit their own transactions."""
+@asynccontextmanager
+async def request_session(request: Request) -> AsyncIterator[Session]:
+    """A session for one request; queue operations commit their own transactions.
+
+    Made and closed on the event loop: making one touches no database, and closing one whose
+    operations have all committed only drops it (a route's thread did the blocking work)."""
     sessions: sessionmaker[Session] = request.app.state.sessions
-    with sessions() as session:
+    session = sessions()
+    try:
+        yield session
+    finally:
+        if session.in_transaction():  # a route that left work open: end it off the loop
+            await run_in_threadpool(session.close)
+        else:
+            session.close()
+
+
+async def get_session(request: Request) -> AsyncIterator[Session]:
+    async with request_session(request) as session:
         yield session
 
 
@@ -63,7 +90,7 @@ def bearer_token(request: Request) -> str | None:
 
 class TokenCache:
     """Tokens checked in the last `seconds`, by their sha256: a labeller's every request would
-    otherwise take the database's write lock (SQLite) just to read its own row."""
+    otherwise read its own row, on a thread of the pool, before doing its work."""
 
     def __init__(self, seconds: float):
         self.seconds = seconds
@@ -95,18 +122,21 @@ class TokenCache:
             self._entries[key] = (now + self.seconds, caller)
 
 
-def caller_from_token(
-    *, session: Session, settings: Settings, token: str | None, cache: TokenCache | None = None
-) -> Caller:
-    """The caller a bearer token names; 401 when there is none or it is not valid."""
+def known_caller(
+    *, settings: Settings, token: str | None, cache: TokenCache | None = None
+) -> Caller | None:
+    """The caller a token names without asking the database (the operator token, or a token in
+    the cache); None when the database must say. 401 without a token."""
     if token is None:
         raise HTTPException(401, "missing bearer token (Authorization: Bearer <token>)", HEADERS)
     admin = settings.operator_token
     if admin is not None and hmac.compare_digest(token.encode(), admin.encode()):
         return Caller(role=Role.OPERATOR, labeller_id=None, name="operator-token")
-    cached = cache.get(token) if cache is not None else None
-    if cached is not None:
-        return cached
+    return cache.get(token) if cache is not None else None
+
+
+def checked_caller(*, session: Session, token: str, cache: TokenCache | None = None) -> Caller:
+    """The labeller a token names, from the database (blocking); 401 when it names none."""
     labeller = authenticate(session, token=token)
     if labeller is None:
         raise HTTPException(401, "invalid or revoked bearer token", HEADERS)
@@ -116,29 +146,92 @@ def caller_from_token(
     return caller
 
 
-def get_caller(
+def caller_from_token(
+    *, session: Session, settings: Settings, token: str | None, cache: TokenCache | None = None
+) -> Caller:
+    """The caller a bearer token names (blocking); 401 when there is none or it is not valid."""
+    caller = known_caller(settings=settings, token=token, cache=cache)
+    if caller is not None:
+        return caller
+    assert token is not None
+    return checked_caller(session=session, token=token, cache=cache)
+
+
+async def request_caller(request: Request, session: Session, settings: Settings) -> Caller:
+    """The caller of a request; 401 without a valid token. The database is asked (on a thread
+    of the pool) only when the token is neither the operator's nor in the cache."""
+    cache = get_token_cache(request)
+    token = bearer_token(request)
+    caller = known_caller(settings=settings, token=token, cache=cache)
+    if caller is not None:
+        return caller
+    assert token is not None
+    return await run_in_threadpool(checked_caller, session=session, token=token, cache=cache)
+
+
+async def get_caller(
     request: Request,
     session: SessionDep,
     settings: SettingsDep,
     _declared: Annotated[HTTPAuthorizationCredentials | None, Depends(BEARER)],
 ) -> Caller:
     """The caller (the `bearer` security scheme in OpenAPI); 401 without a valid token."""
-    cache = get_token_cache(request)
-    return caller_from_token(
-        session=session, settings=settings, token=bearer_token(request), cache=cache
-    )
+    return await request_caller(request, session, settings)
 
 
-def get_operator(caller: Annotated[Caller, Depends(get_caller)]) -> Caller:
+def must_be_operator(caller: Caller) -> Caller:
     if caller.role is not Role.OPERATOR:
         raise HTTPException(403, f"labeller {caller.name!r} is not an operator")
     return caller
 
 
-def get_labeller(caller: Annotated[Caller, Depends(get_caller)]) -> Caller:
+def must_be_labeller(caller: Caller) -> Caller:
     if caller.labeller_id is None:
         raise HTTPException(403, "the operator token is not a labeller; create a labeller first")
     return caller
+
+
+async def get_operator(caller: Annotated[Caller, Depends(get_caller)]) -> Caller:
+    return must_be_operator(caller)
+
+
+async def get_labeller(caller: Annotated[Caller, Depends(get_caller)]) -> Caller:
+    return must_be_labeller(caller)
+
+
+@dataclass(frozen=True)
+class LabellerCall:
+    """A labeller's request as the label API's hot path takes it: the settings, a session and
+    the labeller, from one dependency (FastAPI's work per dependency cost more than the
+    dependencies themselves: next and submit each had five), and `run` for its blocking work."""
+
+    settings: Settings
+    session: Session
+    labeller_id: int
+    executor: Executor | None
+
+    async def run(self, fn: Callable[..., T], /, *args: Any, **kwargs: Any) -> T:
+        """`fn(*args, **kwargs)` on the app's thread pool for queue work, awaited.
+
+        A plain executor hand-off costs about half of FastAPI's for a `def` route (AnyIO's
+        worker threads, capacity limiter and cancel scopes), on each of next and submit."""
+        if self.executor is None:  # an app whose lifespan did not run
+            return await run_in_threadpool(fn, *args, **kwargs)
+        loop = asyncio.get_running_loop()
+        return await loop.run_in_executor(self.executor, partial(fn, *args, **kwargs))
+
+
+async def get_labeller_call(
+    request: Request,
+    _declared: Annotated[HTTPAuthorizationCredentials | None, Depends(BEARER)],
+) -> AsyncIterator[LabellerCall]:
+    """`LabellerDep`, `SessionDep` and `SettingsDep` at once; 401/403 as `LabellerDep`."""
+    settings: Settings = request.app.state.settings
+    async with request_session(request) as session:
+        caller = must_be_labeller(await request_caller(request, session, settings))
+        assert caller.labeller_id is not None
+        executor: Executor | None = getattr(request.app.state, "executor", None)
+        yield LabellerCall(settings, session, caller.labeller_id, executor)
 
 
 def get_token_cache(request: Request) -> TokenCache | None:
@@ -146,7 +239,12 @@ def get_token_cache(request: Request) -> TokenCache | None:
     return cache
 
 
-TokenCacheDep = Annotated[TokenCache | None, Depends(get_token_cache)]
+async def token_cache_dep(request: Request) -> TokenCache | None:
+    return get_token_cache(request)
+
+
+TokenCacheDep = Annotated[TokenCache | None, Depends(token_cache_dep)]
 CallerDep = Annotated[Caller, Depends(get_caller)]
 OperatorDep = Annotated[Caller, Depends(get_operator)]
 LabellerDep = Annotated[Caller, Depends(get_labeller)]
+LabellerCallDep = Annotated[LabellerCall, Depends(get_labeller_call)]

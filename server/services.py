@@ -1,13 +1,11 @@
 """What the routes do, as keyword-only functions over a session: reads and small compositions
-of queue operations. Reads commit at once, so SQLite's write lock (every transaction begins
-IMMEDIATE) is never held for the rest of a request.
+of queue operations. Reads run in `reading` blocks: read-only transactions that end with the
+block and, on SQLite, take no lock (WAL runs them beside the writer).
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 from sqlalchemy import select
@@ -28,18 +26,10 @@ from labelqueue import (
     set_run_status,
     submit_label,
 )
+from labelqueue import reading as reading  # the routes' own reads (stats, curves) use it too
 from server import clips
 from server.schemas import LabelSubmit, NextQuery, RunCreate
 from server.settings import Settings
-
-
-@contextmanager
-def reading(session: Session) -> Iterator[None]:
-    """End the read transaction when the block ends (rows stay readable: no expiry on commit)."""
-    try:
-        yield
-    finally:
-        session.commit()
 
 
 def get_run(session: Session, *, run_id: int) -> Run:

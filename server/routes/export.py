@@ -1,22 +1,24 @@
 """Operator endpoint: the label database as a JSONL, CSV or Parquet file (docs/EXPORT.md).
 
-The file is built first, into a spooled temporary file (memory, then disk past a few MB), by
-`write_export`, which reads in short transactions of its own; only then is it sent. So an
-unknown run is a plain 404 rather than a broken download, and a slow client never keeps a
-transaction (on SQLite, the write lock) open.
+The file is built first, into a temporary file on disk, by `write_export` in the export process
+(`server.export_job`: a child process at a lower priority, so labellers' requests do not wait
+on it), which reads in short read-only transactions; only then is it sent. So an unknown run is
+a plain 404 rather than a broken download, and a slow client never keeps a transaction open.
 """
 
 from __future__ import annotations
 
+import os
 import tempfile
 from collections.abc import Iterator
 from typing import IO, Annotated
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Request
 from fastapi.responses import StreamingResponse
 
-from labelqueue import EXPORT_SCHEMA_VERSION, ExportFormat, write_export
-from server.deps import OperatorDep, SessionDep
+from labelqueue import EXPORT_SCHEMA_VERSION, ExportFormat
+from server.deps import OperatorDep, SettingsDep
+from server.export_job import ExportProcess
 from server.schemas import RunFilter, errors
 
 router = APIRouter(prefix="/api", tags=["export"])
@@ -26,7 +28,6 @@ MEDIA_TYPES: dict[ExportFormat, str] = {
     "csv": "text/csv",
     "parquet": "application/vnd.apache.parquet",
 }
-SPOOL_BYTES = 8 * 1024 * 1024
 BLOCK_BYTES = 64 * 1024
 
 
@@ -52,22 +53,24 @@ def _blocks(file: IO[bytes]) -> Iterator[bytes]:
     ),
 )
 def export_labels(
-    session: SessionDep,
+    request: Request,
+    settings: SettingsDep,
     _: OperatorDep,
     fmt: Annotated[ExportFormat, Query(alias="format")] = "jsonl",
     run_id: RunFilter = None,
 ) -> StreamingResponse:
     """Every label (or one run's), one row each, with ground truth: see docs/EXPORT.md."""
-    file = tempfile.SpooledTemporaryFile(max_size=SPOOL_BYTES)
+    export: ExportProcess = request.app.state.export_process
+    handle, path = tempfile.mkstemp(prefix="sepoa-export-", suffix=f".{fmt}")
+    os.close(handle)
     try:
-        write_export(session, fmt=fmt, out=file, run_id=run_id)
-        size = file.tell()
-    except BaseException:
-        file.close()
-        raise
+        export.write(database_url=settings.database_url, fmt=fmt, path=path, run_id=run_id)
+        file = open(path, "rb")  # closed by _blocks once sent
+    finally:
+        os.unlink(path)  # the open file stays readable; nothing is left behind
     filename = export_filename(fmt=fmt, run_id=run_id)
     headers = {
         "Content-Disposition": f'attachment; filename="{filename}"',
-        "Content-Length": str(size),
+        "Content-Length": str(os.fstat(file.fileno()).st_size),
     }
     return StreamingResponse(_blocks(file), media_type=MEDIA_TYPES[fmt], headers=headers)

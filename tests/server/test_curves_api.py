@@ -67,3 +67,24 @@ def test_the_figure_is_for_operators_of_existing_runs(client: TestClient) -> Non
     # A run without evaluations yet still gets a (blank) figure.
     empty = client.get(f"/api/runs/{run_id}/curves.png?metric=success_rate", headers=OPERATOR)
     assert empty.status_code == 200 and empty.content.startswith(plots.PNG_SIGNATURE)
+
+
+def test_open_run_pages_share_one_drawing_until_a_new_evaluation(
+    client: TestClient, session: Session, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    run_id = _evaluated_run(client, session, algo="rune", eps=0.2, returns=[4, 5])
+    drawings: list[Any] = []
+    draw = plots.curves_png
+
+    def counted(curves: Any, **kwargs: Any) -> bytes:
+        drawings.append(curves)
+        return draw(curves, **kwargs)
+
+    monkeypatch.setattr(plots, "curves_png", counted)
+    pages = [client.get(f"/api/runs/{run_id}/curves.png", headers=OPERATOR) for _ in range(3)]
+    assert len(drawings) == 1
+    assert all(page.content == pages[0].content for page in pages)
+    write_metrics(session, run_id=run_id, stream="eval", step=3000, values={"return": 6})
+    again = client.get(f"/api/runs/{run_id}/curves.png", headers=OPERATOR)
+    assert len(drawings) == 2 and again.content != pages[0].content
+    assert [list(values) for _, values in drawings[1]["this run (rune, seed 0)"]] == [[4, 5, 6]]
