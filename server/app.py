@@ -30,7 +30,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.sessions = session_factory(engine)
         app.state.token_cache = TokenCache(settings.auth_cache_seconds)
         to_thread.current_default_thread_limiter().total_tokens = settings.threadpool_size
-        # The label API's queue work (server.deps.LabellerCall.run); other routes use AnyIO's.
+        # The label API's queue work (server.deps.LabellerCall.serve); other routes use AnyIO's.
         app.state.executor = ThreadPoolExecutor(settings.threadpool_size, "label-api")
         try:
             yield

@@ -203,22 +203,25 @@ async def get_labeller(caller: Annotated[Caller, Depends(get_caller)]) -> Caller
 class LabellerCall:
     """A labeller's request as the label API's hot path takes it: the settings, a session and
     the labeller, from one dependency (FastAPI's work per dependency cost more than the
-    dependencies themselves: next and submit each had five), and `run` for its blocking work."""
+    dependencies themselves: next and submit each had five), and `serve` for its blocking work."""
 
     settings: Settings
     session: Session
     labeller_id: int
     executor: Executor | None
 
-    async def run(self, fn: Callable[..., T], /, *args: Any, **kwargs: Any) -> T:
-        """`fn(*args, **kwargs)` on the app's thread pool for queue work, awaited.
+    async def serve(self, service: Callable[..., T], /, **kwargs: Any) -> T:
+        """`service(session, settings=..., labeller_id=..., **kwargs)` on the app's thread pool
+        for queue work, awaited.
 
         A plain executor hand-off costs about half of FastAPI's for a `def` route (AnyIO's
         worker threads, capacity limiter and cancel scopes), on each of next and submit."""
+        work = partial(
+            service, self.session, settings=self.settings, labeller_id=self.labeller_id, **kwargs
+        )
         if self.executor is None:  # an app whose lifespan did not run
-            return await run_in_threadpool(fn, *args, **kwargs)
-        loop = asyncio.get_running_loop()
-        return await loop.run_in_executor(self.executor, partial(fn, *args, **kwargs))
+            return await run_in_threadpool(work)
+        return await asyncio.get_running_loop().run_in_executor(self.executor, work)
 
 
 async def get_labeller_call(

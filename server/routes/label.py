@@ -58,14 +58,7 @@ async def next_query(
 ) -> Response:
     """Lease the next query. `ahead_of=<query_id being shown>` keeps that lease and leases one
     more, so the page can preload the next pair."""
-    query = await call.run(
-        services.next_query,
-        call.session,
-        settings=call.settings,
-        labeller_id=call.labeller_id,
-        run_id=run_id,
-        ahead_of=ahead_of,
-    )
+    query = await call.serve(services.next_query, run_id=run_id, ahead_of=ahead_of)
     return Response(status_code=204) if query is None else json_response(query)
 
 
@@ -82,14 +75,7 @@ async def post_label(query_id: QueryId, body: LabelSubmit, call: LabellerCallDep
     """Answer a leased query. A revoked labeller: 403; a run no longer running or paused, an
     expired lease or another labeller's query: 409; a `left_is_first` other than next-query's:
     422. `shown_at` is stored within [the lease's start, now]."""
-    label, created = await call.run(
-        services.submit_answer,
-        call.session,
-        settings=call.settings,
-        labeller_id=call.labeller_id,
-        query_id=query_id,
-        body=body,
-    )
+    label, created = await call.serve(services.submit_answer, query_id=query_id, body=body)
     return json_response(LabelOut.model_validate(label), status_code=201 if created else 200)
 
 
