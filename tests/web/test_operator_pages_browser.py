@@ -30,8 +30,19 @@ def test_the_new_run_form_explains_refusals_and_creates_runs(live: LiveServer, p
     page.click("#new-run [type=submit]")
     page.wait_for_selector("#new-run-errors:not([hidden])")
     errors = page.inner_text("#new-run-errors")
-    assert "task: String should match pattern" in errors
+    assert "task: unknown task 'cheetah' (did you mean 'dmc:cheetah_run'?)" in errors
     assert "budget: Input should be greater than or equal to 0" in errors
+
+    # A whole-run refusal points at the config field and says what is valid.
+    page.fill("#new-run [name=task]", "dmc:walker_run")
+    page.fill("#new-run [name=budget]", "200")
+    page.fill("#new-run [name=config]", '{"feedback.per_rund": 10}')
+    page.click("#new-run [type=submit]")
+    page.wait_for_selector("#new-run-errors:has-text('per_rund')")
+    errors = page.inner_text("#new-run-errors")
+    assert ("config.feedback.per_rund: unknown config field 'feedback.per_rund' (did you mean "
+            "'feedback.per_round'?)") in errors
+    page.fill("#new-run [name=config]", "")
 
     page.fill("#new-run [name=task]", "dmc:walker_run")
     page.fill("#new-run [name=budget]", "200")

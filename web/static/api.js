@@ -121,7 +121,8 @@ export function describe(detail) {
     return detail
       .map((e) => {
         const where = (e.loc || []).filter((part) => part !== "body").join(".");
-        return where ? `${where}: ${e.msg}` : e.msg;
+        const msg = String(e.msg).replace(/^Value error, /, ""); // pydantic's prefix says nothing
+        return where ? `${where}: ${msg}` : msg;
       })
       .join("\n");
   }
