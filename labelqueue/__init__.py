@@ -88,6 +88,14 @@ from labelqueue.runs import (
     set_teacher,
 )
 from labelqueue.transaction import reading
+from labelqueue.undo import (
+    SETTLE_SECONDS,
+    UNDO_SECONDS,
+    UndoRefused,
+    Withdrawn,
+    settled,
+    withdraw_label,
+)
 
 __all__ = [
     "DEAD_WORKER_AFTER_S",
@@ -165,4 +173,10 @@ __all__ = [
     "list_invites",
     "read_invite",
     "revoke_invite",
+    "SETTLE_SECONDS",
+    "UNDO_SECONDS",
+    "UndoRefused",
+    "Withdrawn",
+    "settled",
+    "withdraw_label",
 ]

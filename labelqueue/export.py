@@ -155,6 +155,12 @@ COLUMNS: tuple[Column, ...] = (
         nullable=True,
     ),
     _c(
+        "withdrawn_at",
+        "timestamp",
+        "when the labeller took the answer back (undo); null for an answer that stands",
+        nullable=True,
+    ),
+    _c(
         "instruction",
         "string",
         "the run's instruction to labellers when the label was answered, as shown",
@@ -205,6 +211,7 @@ _STORED: dict[str, Any] = {
     "shown_at": Label.shown_at,
     "answered_at": Label.answered_at,
     "consumed_at": Label.consumed_at,
+    "withdrawn_at": Label.withdrawn_at,
 }
 _SEGMENT_ANSWERS = ("first", "second", "equal")
 

@@ -201,12 +201,14 @@ class Progress:
 
 
 def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
-    """How far the labeller is: its answers given by hand (skips included), and, for one who
-    joined by an invite with a target, the completion code once the target is reached."""
+    """How far the labeller is: its answers given by hand (skips included, answers taken back
+    not), and, for one who joined by an invite with a target, the completion code once the
+    target is reached."""
     with transaction(session):
         labels = session.scalar(
             select(func.count(Label.id)).where(
-                Label.labeller_id == labeller_id, Label.source == LabelSource.HUMAN
+                Label.labeller_id == labeller_id, Label.source == LabelSource.HUMAN,
+                Label.withdrawn_at.is_(None),
             )
         ) or 0
         invite = session.scalars(

@@ -54,7 +54,9 @@ def preferred_segment(choice: Choice | str, left_is_first: bool) -> Preferred | 
 _LABELLER = bindparam("labeller", type_=Integer())
 _QUERY = bindparam("query", type_=Integer())
 _NOW = bindparam("at", type_=UTCDateTime())
-_STORED = select(*LABELS.c).where(LABELS.c.query_id == _QUERY, LABELS.c.labeller_id == _LABELLER)
+_STORED = select(*LABELS.c).where(
+    LABELS.c.query_id == _QUERY, LABELS.c.labeller_id == _LABELLER, LABELS.c.withdrawn_at.is_(None)
+)
 # The query as the submit needs it, and the id of this labeller's label of it if there is one.
 _ASKED = select(
     QUERIES.c.run_id,
@@ -224,6 +226,7 @@ def consume_labels(session: Session, *, run_id: int) -> list[Label]:
         ids = session.scalars(
             update(Label)
             .where(Label.run_id == run_id, Label.consumed_at.is_(None))
+            .where(Label.withdrawn_at.is_(None))
             .values(consumed_at=now)
             .returning(Label.id),
             execution_options={"synchronize_session": False},
@@ -233,9 +236,10 @@ def consume_labels(session: Session, *, run_id: int) -> list[Label]:
 
 
 def labels_for_queries(session: Session, *, query_ids: Sequence[int]) -> list[Label]:
-    """Every stored label of these queries, consumed or not, oldest first."""
+    """Every standing label of these queries (not withdrawn), consumed or not, oldest first."""
+    standing = Label.query_id.in_(query_ids) & Label.withdrawn_at.is_(None)
     with reading(session):
-        labels = _labels_where(session, Label.query_id.in_(query_ids)) if query_ids else []
+        labels = _labels_where(session, standing) if query_ids else []
     return labels
 
 

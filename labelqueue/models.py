@@ -321,10 +321,10 @@ Index("ix_queries_run_id_status", Query.run_id, Query.status, Query.id)
 
 
 class Label(Base):
-    """One labeller's answer to one query."""
+    """One labeller's answer to one query. An answer taken back (undo) stays, withdrawn: the
+    labeller may answer the query again, and the trainer never takes a withdrawn label."""
 
     __tablename__ = "labels"
-    __table_args__ = (UniqueConstraint("query_id", "labeller_id"),)
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     query_id: Mapped[int] = mapped_column(ForeignKey("queries.id"))
@@ -341,9 +341,15 @@ class Label(Base):
     answered_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     consumed_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     """when the trainer took the label; none until then"""
+    withdrawn_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    """when the labeller took the answer back (`labelqueue.undo`); none for a standing label"""
 
 
 Index("ix_labels_run_id_consumed_at", Label.run_id, Label.consumed_at)
+# One standing answer per labeller and query; withdrawn ones beside it.
+_STANDING = Label.withdrawn_at.is_(None)
+Index("uq_labels_query_id_labeller_id_standing", Label.query_id, Label.labeller_id, unique=True,
+      sqlite_where=_STANDING, postgresql_where=_STANDING)
 
 
 class Metric(Base):

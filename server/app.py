@@ -15,7 +15,17 @@ from server.errors import install_error_handlers
 from server.export_job import ExportProcess
 from server.middleware import HardeningMiddleware
 from server.routes import export as export_routes
-from server.routes import instructions, invites, label, labellers, pages, quality, runs, stats
+from server.routes import (
+    instructions,
+    invites,
+    label,
+    labellers,
+    pages,
+    quality,
+    runs,
+    stats,
+    undo,
+)
 from server.settings import Settings, get_settings
 
 
@@ -52,6 +62,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(stats.router)
     app.include_router(instructions.router)
     app.include_router(invites.router)
+    app.include_router(undo.router)
     app.include_router(quality.router)
     app.include_router(pages.router)
     app.mount("/static", pages.static_files(), name="static")

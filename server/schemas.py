@@ -376,3 +376,17 @@ class ProgressOut(BaseModel):
     completion_code: str | None
     run_id: int | None
     """the run the caller's invite was for; null: all runs"""
+
+
+class TakeBack(Body):
+    keep: Annotated[int, Field(ge=1, le=INT32_MAX)] | None = None
+    """the query the page shows now: its lease is kept; the caller's other leases are released"""
+
+
+class TakenBack(BaseModel):
+    """An answer taken back: the label as withdrawn, and its query to show again."""
+
+    label_id: int
+    withdrawn_at: datetime
+    query: NextQuery
+    """the pair again, leased to the caller, as next-query describes it"""

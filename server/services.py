@@ -25,6 +25,7 @@ from labelqueue import (
     lease_next_query,
     set_run_status,
     submit_label,
+    withdraw_label,
 )
 from labelqueue import reading as reading  # the routes' own reads (stats, curves) use it too
 from server import clips
@@ -106,6 +107,12 @@ def next_query(
     )
     if query is None:
         return None
+    return shown_query(settings=settings, query=query, labeller_id=labeller_id)
+
+
+def shown_query(*, settings: Settings, query: Query, labeller_id: int) -> NextQuery:
+    """A query leased to the labeller as its page shows it: signed clip URLs in the labeller's
+    side order, and nothing that hints the answer."""
     assert query.lease_expires_at is not None
     first_left = clips.left_is_first(settings=settings, query_id=query.id, labeller_id=labeller_id)
     now = time.time()
@@ -146,6 +153,17 @@ def submit_answer(
         shown_at=body.shown_at,
         source=LabelSource.HUMAN,
     )
+
+
+def take_back_answer(
+    session: Session, *, settings: Settings, labeller_id: int, query_id: int, keep: int | None
+) -> tuple[Label, NextQuery]:
+    """Withdraw the labeller's answer to the query (`labelqueue.undo`); the label as withdrawn
+    and the query, leased to the labeller again, as its page shows it."""
+    withdrawn = withdraw_label(session, query_id=query_id, labeller_id=labeller_id, keep=keep,
+                               lease_seconds=settings.lease_seconds)
+    return withdrawn.label, shown_query(settings=settings, query=withdrawn.query,
+                                        labeller_id=labeller_id)
 
 
 def clip_path(session: Session, *, settings: Settings, query_id: int, side: str) -> Path:

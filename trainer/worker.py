@@ -20,7 +20,9 @@ resumes from the checkpoint in `<data dir>/runs/run-<id>` if there is one, and t
 A round's labels are read back by query id (`labels_for_queries`), which does not care whether a
 label was consumed before: a worker killed after labels arrived resumes from the checkpoint
 taken when the round opened, pushes the same queries again (the push is idempotent) and finds
-every label given meanwhile. Each query's first label is the one trained on.
+every label given meanwhile. Each query's first label is the one trained on. A person's label is
+used once it is older than `labelqueue.SETTLE_SECONDS`, when it can no longer be taken back
+(`labelqueue.undo`); a withdrawn label is never read.
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ from labelqueue import (
     Conflict,
     Label,
     Labeller,
+    LabelSource,
     Run,
     RunClosed,
     RunStatus,
@@ -61,6 +64,7 @@ from labelqueue import (
     read_run,
     session_factory,
     set_clips,
+    settled,
     submit_label,
     write_metrics,
 )
@@ -276,7 +280,11 @@ class QueueHooks(RunHooks):
                 labels = labels_for_queries(session, query_ids=ids)
             answered = {label.query_id for label in labels}
             self.progress["waiting_for"] = len(ids) - len(answered)
-            if len(answered) == len(ids):
+            # A person's answer is used once it can no longer be taken back (labelqueue.undo).
+            final_labels = [label for label in labels
+                            if label.source is not LabelSource.HUMAN or settled(label.answered_at)]
+            if len({label.query_id for label in final_labels}) == len(ids):
+                labels = final_labels
                 break
             if final:
                 with self.sessions() as session:

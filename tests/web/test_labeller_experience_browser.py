@@ -12,13 +12,16 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Iterator
+from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
 import pytest
+from sqlalchemy import update
 from web_helpers import OPERATOR_TOKEN, LiveServer
 
-from labelqueue import find_labeller, labels_for_queries
+from labelqueue import Label, find_labeller, labels_for_queries
+from labelqueue.models import utcnow
 from runvocab.instructions import default_instruction
 
 SHOWN = "#pairs .pair:not([hidden])"
@@ -358,4 +361,57 @@ def test_operators_set_instructions_and_clip_sizes_and_make_and_revoke_invite_li
     assert live.api("GET", f"/api/runs/{run['id']}")["instruction"] is None
     assert page.input_value("#instruction-text") == default_instruction("dmc:walker_run")
     screenshot(page, "run-page.png", full_page=True)
+    page.context.close()
+
+
+def test_undo_brings_the_last_pair_back_and_the_export_shows_the_withdrawal(
+    live: LiveServer, browser: Any, runs: list[int]
+) -> None:
+    labeller = live.new_labeller("gus")
+    runs.append(run_id := live.new_human_run())
+    first, second, _ = live.push_rendered_queries(run_id, 3)
+    page = context_page(browser, 1200, 900)
+    page.goto(f"{live.url}/label?run={run_id}#token={labeller.token}")
+    page.wait_for_function(DECODED, arg=SHOWN)
+    page.wait_for_selector(ANSWERABLE)
+    assert page.is_hidden("#undo")
+
+    page.keyboard.press("1")  # a mis-key: left
+    page.wait_for_selector(f'{SHOWN}[data-query-id="{second}"]')
+    assert page.is_visible("#undo")
+    deadline = time.monotonic() + 5
+    while not labels_for_queries_of(live, first) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    page.wait_for_function("document.querySelector('#count-session').textContent === '1'")
+    page.keyboard.press("Backspace")
+    # The pair comes back on screen, the one that replaced it waits, preloaded.
+    page.wait_for_selector(f'{SHOWN}[data-query-id="{first}"]')
+    page.wait_for_function(DECODED, arg=SHOWN)
+    assert "taken back" in page.inner_text("#notice")
+    assert page.get_attribute(f'#pairs .pair[data-query-id="{second}"]', "hidden") is not None
+    assert page.inner_text("#count-session") == "0"
+    assert labels_for_queries_of(live, first) == []  # the trainer will not see it
+
+    page.wait_for_selector(ANSWERABLE)
+    page.keyboard.press("2")  # the intended answer
+    page.wait_for_selector(f'{SHOWN}[data-query-id="{second}"]')
+    deadline = time.monotonic() + 5
+    while not labels_for_queries_of(live, first) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    [kept] = labels_for_queries_of(live, first)
+    assert kept.choice == "right"
+    rows = [row for row in live.api_text("GET", f"/api/export?format=jsonl&run_id={run_id}")
+            if row["query_id"] == first]
+    assert [(row["choice"], row["withdrawn_at"] is not None) for row in rows] == [
+        ("left", True), ("right", False)]
+
+    # Too late: the server says so, plainly, and the answer stands.
+    with live.sessions() as session, session.begin():
+        session.execute(update(Label).where(Label.id == kept.id)
+                        .values(answered_at=utcnow() - timedelta(seconds=30)))
+    page.keyboard.press("u")
+    page.wait_for_function("document.querySelector('#notice').textContent.includes('10 s only')")
+    assert "Undo refused" in page.inner_text("#notice")
+    assert int(page.get_attribute(SHOWN, "data-query-id")) == second
+    assert [label.id for label in labels_for_queries_of(live, first)] == [kept.id]
     page.context.close()

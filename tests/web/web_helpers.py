@@ -3,6 +3,7 @@ moves on it (fixtures are in conftest.py)."""
 
 from __future__ import annotations
 
+import json
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,6 +50,13 @@ class LiveServer:
         response = httpx.request(method, self.url + path, headers=headers, timeout=10, **kwargs)
         assert response.is_success, response.text
         return response.json()
+
+    def api_text(self, method: str, path: str) -> list[Any]:
+        """A JSON-lines answer (an export) as its rows."""
+        headers = {"Authorization": f"Bearer {OPERATOR_TOKEN}"}
+        response = httpx.request(method, self.url + path, headers=headers, timeout=10)
+        assert response.is_success, response.text
+        return [json.loads(line) for line in response.text.splitlines()]
 
     def new_labeller(self, name: str) -> Labeller:
         created = self.api("POST", "/api/labellers", json={"name": name})

@@ -23,6 +23,7 @@ const END_HOLD_S = 0.3; // both clips hold their last frame this long before loo
 const MAX_TICK_S = 0.1; // a long frame (a background tab) does not make the clock jump
 const MAX_ZOOM = 2; // a clip is shown at most twice its own size
 const NEW_TASK_MS = 4000; // how long "New task" stays up after the run changes
+const UNDO_MS = 10_000; // an answer can be taken back this long (the server has the last word)
 
 const $ = (id) => document.getElementById(id);
 const runId = new URLSearchParams(location.search).get("run");
@@ -40,6 +41,7 @@ const state = {
   briefs: new Map(), // run id -> its instruction and clip timing (GET /api/label/runs/<id>)
   shownRun: null, // the run whose instruction is on screen
   target: null, // answers after which the caller's invite shows a completion code
+  last: null, // the last answer, while it may be taken back: {pair, counted}
 };
 const clock = { t: 0, passes: 0, last: performance.now() };
 
@@ -353,6 +355,7 @@ function answer(choice) {
     state.next = null;
   }
   updateButtons();
+  offerUndo(done);
   serial(() => attempt(async () => {
     try {
       await submit(done.query.query_id, body);
@@ -370,6 +373,7 @@ function answer(choice) {
 async function submit(queryId, body) {
   try {
     const { status } = await request("POST", `/api/label/${queryId}`, body);
+    if (state.last?.pair.query.query_id === queryId) state.last.counted = status === 201;
     if (status === 201) {
       state.session += 1;
       if (state.total != null) state.total += 1;
@@ -397,6 +401,56 @@ async function loadProgress() {
   showCounts();
 }
 
+// ---- taking the last answer back --------------------------------------------------------------
+
+/** The Undo button, for UNDO_MS after an answer. */
+function offerUndo(pair) {
+  state.last = { pair, counted: false };
+  $("undo").hidden = false;
+  clearTimeout(offerUndo.timer);
+  offerUndo.timer = setTimeout(() => ($("undo").hidden = true), UNDO_MS);
+}
+
+/** Backspace, U or the button: the server withdraws the last answer (within its window and
+ * while the trainer has not taken it) and leases the pair back, which is shown again; the pair
+ * on screen waits, hidden, as the next one. Refusals are said as the server says them. */
+function undo() {
+  const last = state.last;
+  if (!last) {
+    notice("There is no answer to take back.");
+    return;
+  }
+  state.last = null;
+  $("undo").hidden = true;
+  serial(async () => {
+    const shown = state.current;
+    try {
+      const { data } = await request("POST", `/api/label/${last.pair.query.query_id}/withdraw`,
+        shown ? { keep: shown.query.query_id } : {});
+      data.query.brief = await runBrief(data.query.run_id);
+      if (last.counted) {
+        state.session -= 1;
+        if (state.total != null) state.total -= 1;
+        showCounts();
+      }
+      state.next?.remove(); // its lease was released
+      state.next = null;
+      if (shown) {
+        for (const video of shown.videos) video.pause();
+        shown.root.hidden = true;
+        state.current = null; // kept, not removed: it comes back next
+        state.next = shown;
+      }
+      show(new Pair(data.query, data.query.brief));
+      notice("Answer taken back: the pair is shown again.");
+      schedule(preload, RENEW_MS);
+    } catch (error) {
+      if (error instanceof SignedOut) throw error;
+      notice(`Undo refused: ${error.message}.`, "error");
+    }
+  }).catch(() => {});
+}
+
 // ---- input ----------------------------------------------------------------------------------
 
 function onKey(event) {
@@ -405,6 +459,11 @@ function onKey(event) {
   if (event.key === "r" || event.key === "R") {
     event.preventDefault();
     replay();
+    return;
+  }
+  if (event.key === "Backspace" || event.key === "u" || event.key === "U") {
+    event.preventDefault();
+    undo();
     return;
   }
   const choice = KEYS[event.key];
@@ -433,6 +492,10 @@ start(() => {
   $("replay").addEventListener("click", (event) => {
     event.currentTarget.blur();
     replay();
+  });
+  $("undo").addEventListener("click", (event) => {
+    event.currentTarget.blur();
+    undo();
   });
   document.addEventListener("keydown", onKey);
   requestAnimationFrame(tick);

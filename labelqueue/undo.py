@@ -1,0 +1,139 @@
+"""Taking an answer back: for `UNDO_SECONDS` after answering, and only while the trainer has not
+taken the answer, a labeller may withdraw it; the query is leased to that labeller again.
+
+The label is not deleted: it stays with its `withdrawn_at`, so the export shows what was
+answered and taken back. The trainer's reads (`consume_labels`, `labels_for_queries`) skip
+withdrawn labels, and the labeller may answer the query again (one standing answer per labeller
+and query). The query gets its label count back, the run its budget.
+
+Who wins between an undo and the trainer: the worker uses a person's label only once it is
+older than `SETTLE_SECONDS` (the undo window and a margin for the two hosts' clocks), and an
+undo is refused once the label is older than the window, taken by the trainer, or its query
+cancelled (the worker cancels a round's open queries before it closes the round early).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime, timedelta
+
+from sqlalchemy import and_, or_, select, update
+from sqlalchemy.orm import Session
+
+from labelqueue.errors import Conflict, NotFound, RunClosed
+from labelqueue.models import Label, Query, QueryStatus, Run, utcnow
+from labelqueue.queries import LABELLABLE, LEASE_SECONDS
+from labelqueue.transaction import changed, detach, get_row, transaction
+
+UNDO_SECONDS = 10.0
+"""how long after answering a labeller may take the answer back"""
+SETTLE_SECONDS = UNDO_SECONDS + 5.0
+"""how old a person's label must be before the trainer uses it"""
+
+
+class UndoRefused(Conflict):
+    """The answer can no longer be taken back: too late, or the trainer took it."""
+
+
+@dataclass(frozen=True)
+class Withdrawn:
+    """A label taken back, and its query leased to the labeller again."""
+
+    label: Label
+    query: Query
+
+
+def withdraw_label(
+    session: Session,
+    *,
+    query_id: int,
+    labeller_id: int,
+    keep: int | None = None,
+    lease_seconds: float = LEASE_SECONDS,
+    window_seconds: float = UNDO_SECONDS,
+) -> Withdrawn:
+    """Take back the labeller's standing answer to the query and lease the query to it again;
+    the labeller's other leases are released, but `keep`'s (the pair it is looking at now).
+
+    NotFound when it has no standing answer to the query; UndoRefused when the answer is older
+    than `window_seconds` or the trainer has taken it; RunClosed when the run takes no answers;
+    Conflict when the pair has been cancelled or another labeller holds it now. On refusal
+    nothing changes.
+    """
+    now = utcnow()
+    with transaction(session):
+        label = session.scalars(
+            select(Label)
+            .where(Label.query_id == query_id, Label.labeller_id == labeller_id,
+                   Label.withdrawn_at.is_(None))
+            .execution_options(populate_existing=True)
+        ).one_or_none()
+        if label is None:
+            raise NotFound(f"labeller {labeller_id} has no answer to query {query_id} to take "
+                           "back")
+        age = (now - label.answered_at).total_seconds()
+        if label.consumed_at is not None:
+            raise UndoRefused("the trainer has already taken that answer: it can no longer be "
+                              "taken back")
+        if age > window_seconds:
+            raise UndoRefused(f"that answer was given {age:.0f} s ago: answers can be taken "
+                              f"back for {window_seconds:.0f} s only")
+        withdrawn = changed(
+            session,
+            update(Label)
+            .where(Label.id == label.id, Label.withdrawn_at.is_(None),
+                   Label.consumed_at.is_(None))
+            .values(withdrawn_at=now),
+        )
+        if not withdrawn:  # the trainer took it meanwhile (PostgreSQL)
+            raise UndoRefused("the trainer has just taken that answer: it can no longer be "
+                              "taken back")
+        run = get_row(session, Run, label.run_id)
+        if run.status not in LABELLABLE:
+            raise RunClosed(f"run {run.id} is {run.status}: it takes no more answers, so the "
+                            "answer stands")
+        leased = changed(
+            session,
+            update(Query)
+            .where(
+                Query.id == query_id,
+                or_(
+                    Query.status.in_((QueryStatus.LABELLED, QueryStatus.PENDING)),
+                    and_(Query.status == QueryStatus.LEASED,
+                         or_(Query.lease_holder == labeller_id, Query.lease_expires_at <= now)),
+                ),
+            )
+            .values(
+                label_count=Query.label_count - 1,
+                status=QueryStatus.LEASED,
+                lease_holder=labeller_id,
+                lease_expires_at=now + timedelta(seconds=lease_seconds),
+                leased_at=now,
+            ),
+        )
+        if not leased:
+            query = get_row(session, Query, query_id)
+            raise Conflict(
+                f"query {query_id} was cancelled when its round closed: the answer stands"
+                if query.status is QueryStatus.CANCELLED
+                else f"another labeller is answering query {query_id} now: the answer stands"
+            )
+        changed(session, update(Run).where(Run.id == run.id)
+                .values(labels_used=Run.labels_used - 1))
+        changed(
+            session,
+            update(Query)
+            .where(Query.lease_holder == labeller_id, Query.status == QueryStatus.LEASED,
+                   Query.id != query_id, Query.id != (keep or 0))
+            .values(status=QueryStatus.PENDING, lease_holder=None, lease_expires_at=None,
+                    leased_at=None),
+        )
+        label = get_row(session, Label, label.id)
+        query = get_row(session, Query, query_id)
+        detach(session, label, query)
+    return Withdrawn(label=label, query=query)
+
+
+def settled(answered_at: datetime, now: datetime | None = None) -> bool:
+    """Whether a label answered then can no longer be taken back (the trainer may use it)."""
+    return ((now or utcnow()) - answered_at).total_seconds() >= SETTLE_SECONDS

@@ -1,0 +1,55 @@
+"""Taking an answer back, on each database: the label is kept withdrawn, the query leased back,
+the budget returned; the trainer never reads it; a second answer stands beside it; and the
+trainer consuming it first wins."""
+
+from __future__ import annotations
+
+import pytest
+from queue_helpers import query_spec, running_run
+from sqlalchemy.orm import Session
+
+from labelqueue import (
+    NotFound,
+    QueryStatus,
+    TeacherKind,
+    UndoRefused,
+    consume_labels,
+    create_labeller,
+    labels_for_queries,
+    lease_next_query,
+    push_queries,
+    read_run,
+    submit_label,
+    withdraw_label,
+)
+from labelqueue.models import Query
+
+
+def test_a_withdrawn_label_stays_and_a_new_answer_stands_beside_it(session: Session) -> None:
+    run = running_run(session, teacher=TeacherKind.HUMAN)
+    [query_id] = push_queries(session, run_id=run.id, queries=[query_spec(0)])
+    alice, _ = create_labeller(session, name="alice")
+    assert lease_next_query(session, labeller_id=alice.id, run_id=run.id) is not None
+    label, _ = submit_label(session, query_id=query_id, labeller_id=alice.id, choice="left",
+                            left_is_first=True)
+
+    back = withdraw_label(session, query_id=query_id, labeller_id=alice.id)
+    assert back.label.id == label.id and back.label.withdrawn_at is not None
+    assert back.query.status is QueryStatus.LEASED and back.query.lease_holder == alice.id
+    assert back.query.label_count == 0
+    assert read_run(session, run_id=run.id).labels_used == 0
+    assert labels_for_queries(session, query_ids=[query_id]) == []
+    assert consume_labels(session, run_id=run.id) == []
+    with pytest.raises(NotFound):  # nothing standing to take back
+        withdraw_label(session, query_id=query_id, labeller_id=alice.id)
+
+    again, created = submit_label(session, query_id=query_id, labeller_id=alice.id,
+                                  choice="right", left_is_first=True)
+    assert created and again.id != label.id
+    assert [x.id for x in labels_for_queries(session, query_ids=[query_id])] == [again.id]
+    assert [x.id for x in consume_labels(session, run_id=run.id)] == [again.id]
+    with pytest.raises(UndoRefused, match="already taken"):
+        withdraw_label(session, query_id=query_id, labeller_id=alice.id)
+    stored = session.get(Query, query_id)
+    assert stored is not None and stored.status is QueryStatus.LABELLED
+    session.commit()
