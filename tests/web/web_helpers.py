@@ -47,14 +47,14 @@ class LiveServer:
 
     def api(self, method: str, path: str, **kwargs: Any) -> Any:
         headers = {"Authorization": f"Bearer {OPERATOR_TOKEN}"}
-        response = httpx.request(method, self.url + path, headers=headers, timeout=10, **kwargs)
+        response = httpx.request(method, self.url + path, headers=headers, timeout=30, **kwargs)
         assert response.is_success, response.text
         return response.json()
 
     def api_text(self, method: str, path: str) -> list[Any]:
         """A JSON-lines answer (an export) as its rows."""
         headers = {"Authorization": f"Bearer {OPERATOR_TOKEN}"}
-        response = httpx.request(method, self.url + path, headers=headers, timeout=10)
+        response = httpx.request(method, self.url + path, headers=headers, timeout=30)
         assert response.is_success, response.text
         return [json.loads(line) for line in response.text.splitlines()]
 
