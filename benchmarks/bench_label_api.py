@@ -1,22 +1,36 @@
 """Label API round trip under concurrent labellers: GET /api/label/next + POST /api/label/{id}.
 
-The real server (`uvicorn server.app:app`, one worker process) runs as a subprocess on a fresh
-SQLite queue in a temporary folder and is reached over loopback. Labellers and a human-taught
-run are made over REST with the operator token; the run is then claimed, given its queries and
-their clips directly through `labelqueue`, as the trainer's worker does. N labellers (asyncio
-tasks, one httpx connection each, no pause unless --think-ms) loop next -> submit until the
-queue is drained: a warm-up round first, then the timed one. A round trip is next + submit,
-timed by the client. Afterwards the database is checked: one label per query, none twice, none
-lost; the script exits 1 otherwise.
+The real server (`uvicorn server.app:app`) runs as a subprocess on a fresh queue database (SQLite
+in a temporary folder, or a fresh database on PostgreSQL) and is reached over loopback. Labellers
+and a human-taught run are made over REST with the operator token; the run is claimed and given a
+warm-up round directly through `labelqueue`. Then, for the timed round, and all at once:
 
-    .venv/bin/python benchmarks/bench_label_api.py                          # 50 x 3000, ~1.5 min
-    .venv/bin/python benchmarks/bench_label_api.py --labellers 10 --queries 1000
-    .venv/bin/python benchmarks/bench_label_api.py --think-ms 2000 --queries 500   # paced people
-    .venv/bin/python benchmarks/bench_label_api.py --probe   # + where the server's time goes
+- N labellers (asyncio tasks, one keep-alive connection each) loop next -> submit (a pause of
+  --think-ms between them, exponential, if given) until the round is answered;
+- a worker process (this script again, as the trainer's worker would) pushes the round's queries
+  in rounds of --round-size as the labellers answer them (it reads their labels twice a second),
+  heartbeats every second, writes an episodes metric row every second and an eval row every
+  --eval-every-s, and consumes the labels every 5 s;
+- --pollers dashboard pages poll the run page's endpoints over HTTP every 5 s (run, three metric
+  streams and the label throughput, the curves figure when an evaluation is new), as run.js does;
+- with --export-labels N, an older run with N labels is seeded first, and the whole label
+  database is exported over HTTP (`/api/export?format=jsonl`) while the labellers work.
 
-`--probe` starts the same app through this script instead of `-m uvicorn`, with timers on every
-request, SQLite's BEGIN IMMEDIATE (the wait for the write lock), each transaction and each SQL
-statement; it prints them after the timed round. The probe's own cost is part of its figures.
+A round trip is next + submit, timed by the client. Afterwards the database is checked: one
+label per query, every 201's label stored, none twice, none lost; the script exits 1 otherwise.
+
+    PYTHONPATH=. .venv/bin/python benchmarks/bench_label_api.py --think-ms 2000 --queries 1500
+    PYTHONPATH=. .venv/bin/python benchmarks/bench_label_api.py                 # closed loop
+    PYTHONPATH=. .venv/bin/python benchmarks/bench_label_api.py --export-labels 100000
+    bash scripts/with_postgres.sh .venv/bin/python benchmarks/bench_label_api.py --database postgres
+    PYTHONPATH=. .venv/bin/python benchmarks/bench_label_api.py --probe --profile   # where it goes
+
+PYTHONPATH names the checkout whose server, worker and queue package are measured (the server and
+worker subprocesses are given it too), so an older checkout can be measured by the same script.
+`--probe` serves the same app through this script (one process) with timers on every request,
+SQLite's BEGIN IMMEDIATE (the wait for the write lock), each write transaction and statement;
+`--profile` adds cProfile (CPU time of each server thread) and prints the top entries. Both cost
+a little themselves.
 """
 
 from __future__ import annotations
@@ -24,8 +38,11 @@ from __future__ import annotations
 import argparse
 import asyncio
 import atexit
+import contextlib
+import cProfile
 import json
 import os
+import pstats
 import random
 import signal
 import socket
@@ -35,14 +52,15 @@ import sys
 import tempfile
 import threading
 import time
+import uuid
 from collections import Counter, defaultdict
+from collections.abc import Iterator
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
-import httpx
-from sqlalchemy import select
+from sqlalchemy import create_engine, insert, select
 
 from labelqueue import (
     Label,
@@ -50,10 +68,14 @@ from labelqueue import (
     QueryStatus,
     Run,
     claim_run,
+    consume_labels,
+    heartbeat,
+    labels_for_queries,
     make_engine,
+    migrate,
     push_queries,
     session_factory,
-    set_clips,
+    write_metrics,
 )
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -61,6 +83,9 @@ OPERATOR_TOKEN = "bench-operator-token-0123456789"
 SECRET_KEY = "bench-secret-key-0123456789"
 CHOICES = ("left", "right", "equal")
 TARGET_P99_MS = 50.0
+WORKER_ID = "bench-worker"
+PAGE_POLL_S = 5.0
+"""the run page's refresh period (web/static/run.js)"""
 
 
 def free_port() -> int:
@@ -70,9 +95,9 @@ def free_port() -> int:
         return port
 
 
-def query_spec(round_: int, position: int) -> dict[str, Any]:
+def query_spec(round_: int, position: int, clips: tuple[str, str] | None = None) -> dict[str, Any]:
     """A query as the worker pushes it (the fields of tests/server/server_helpers.query_spec)."""
-    return {
+    spec = {
         "round": round_,
         "position": position,
         "segment_length": 50,
@@ -87,12 +112,71 @@ def query_spec(round_: int, position: int) -> dict[str, Any]:
         "model_p": 0.5,
         "score": 0.1,
     }
+    if clips is not None:
+        spec["first_clip"], spec["second_clip"] = clips
+    return spec
 
 
-def cpu_seconds(pid: int) -> float:
-    """User + system CPU time of a process so far."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+def write_clips(clips_dir: Path, run_id: int, round_: int, position: int) -> tuple[str, str]:
+    """A pair of small clip files, as rendering would leave them; their storage keys."""
+    keys = (f"run{run_id}/r{round_}-{position}-a.mp4", f"run{run_id}/r{round_}-{position}-b.mp4")
+    for key in keys:
+        path = clips_dir / key
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(b"\x00\x00\x00\x18ftypmp42 fake clip " + key.encode())
+    return keys
+
+
+# ---------------------------------------------------------------------------------------------
+# Processes: CPU time and memory from /proc
+
+
+def _stat_fields(pid: int) -> list[str]:
+    return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+
+
+def process_tree(pid: int) -> list[int]:
+    """`pid` and its descendants (uvicorn's worker processes)."""
+    found, todo = [], [pid]
+    while todo:
+        current = todo.pop()
+        found.append(current)
+        with contextlib.suppress(OSError):
+            for task in Path(f"/proc/{current}/task").iterdir():
+                todo += [int(child) for child in (task / "children").read_text().split()]
+    return found
+
+
+def cpu_seconds(pids: list[int]) -> float:
+    """User + system CPU time of these processes so far (those that have exited count 0)."""
+    total = 0
+    for pid in pids:
+        with contextlib.suppress(OSError):
+            fields = _stat_fields(pid)
+            total += int(fields[11]) + int(fields[12])
+    return total / os.sysconf("SC_CLK_TCK")
+
+
+def postgres_pids() -> list[int]:
+    """Every PostgreSQL server process on the machine (the cluster's backends)."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            with contextlib.suppress(OSError):
+                if (entry / "comm").read_text().strip() == "postgres":
+                    pids.append(int(entry.name))
+    return pids
+
+
+def rss_mib(pids: list[int]) -> float:
+    """Resident memory of these processes now, MiB."""
+    total = 0
+    for pid in pids:
+        with contextlib.suppress(OSError):
+            for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    total += int(line.split()[1])
+    return total / 1024
 
 
 def machine_ticks() -> tuple[int, int, int]:
@@ -102,85 +186,283 @@ def machine_ticks() -> tuple[int, int, int]:
 
 
 # ---------------------------------------------------------------------------------------------
+# The database
+
+
+@contextlib.contextmanager
+def fresh_database(args: argparse.Namespace, tmp: Path) -> Iterator[str]:
+    """The URL of an empty, migrated queue database: SQLite in `tmp`, or a new PostgreSQL
+    database next to the one SEPOA_TEST_POSTGRES_URL names (dropped afterwards)."""
+    if args.database == "sqlite":
+        url = f"sqlite:///{tmp / 'queue.db'}"
+        migrate(url)
+        yield url
+        return
+    base = os.environ.get("SEPOA_TEST_POSTGRES_URL")
+    if not base:
+        raise SystemExit("--database postgres needs SEPOA_TEST_POSTGRES_URL: run it under "
+                         "scripts/with_postgres.sh")
+    name = f"bench_{uuid.uuid4().hex[:10]}"
+    admin = create_engine(base, isolation_level="AUTOCOMMIT")
+    with admin.connect() as connection:
+        connection.exec_driver_sql(f'CREATE DATABASE "{name}"')
+    url = base.replace("/sepoa_test", f"/{name}", 1)
+    try:
+        migrate(url)  # before the server starts: its worker processes would race to migrate
+        yield url
+    finally:
+        with admin.connect() as connection:
+            connection.exec_driver_sql(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+        admin.dispose()
+
+
+def seed_history(url: str, labeller_id: int, n: int) -> None:
+    """An older, finished run with `n` answered queries (one label each), for the export."""
+    engine = make_engine(url)
+    now = datetime.now(UTC)
+    with engine.begin() as connection:
+        run_id = connection.execute(insert(Run).values(
+            name="history", task="dmc:cheetah_run", algo="pebble", preset="small", seed=1,
+            config={}, teacher="human", teacher_params={}, budget=n, labels_used=n, step=0,
+            progress={}, status="finished", created_at=now)).inserted_primary_key[0]
+    for start in range(0, n, 10_000):
+        positions = range(start, min(n, start + 10_000))
+        with engine.begin() as connection:
+            rows = [query_spec(position // 100, position) | {
+                "run_id": run_id, "needs_labels": 1, "label_count": 1, "status": "labelled",
+                "created_at": now} for position in positions]
+            ids = connection.execute(
+                insert(Query).returning(Query.id, sort_by_parameter_order=True), rows
+            ).scalars().all()
+            labels = [{
+                "query_id": query_id, "run_id": run_id, "labeller_id": labeller_id,
+                "choice": CHOICES[query_id % 3], "left_is_first": bool(query_id % 2),
+                "preferred": ("first", "second", "equal")[query_id % 3], "source": "human",
+                "shown_at": now - timedelta(seconds=5), "answered_at": now,
+            } for query_id in ids]
+            connection.execute(insert(Label), labels)
+    engine.dispose()
+
+
+# ---------------------------------------------------------------------------------------------
 # The server
 
 
-def start_server(tmp: Path, port: int, *, probe: bool, stats_file: Path) -> subprocess.Popen[bytes]:
+def start_server(
+    args: argparse.Namespace, tmp: Path, url: str, port: int
+) -> subprocess.Popen[bytes]:
     env = os.environ | {
-        "SEPOA_DATABASE_URL": f"sqlite:///{tmp / 'queue.db'}",
+        "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
+        "SEPOA_DATABASE_URL": url,
         "SEPOA_DATA_DIR": str(tmp),
         "SEPOA_OPERATOR_TOKEN": OPERATOR_TOKEN,
-        "SEPOA_SECRET_KEY": SECRET_KEY,
+        "SEPOA_SECRET_KEY": SECRET_KEY,  # one side order across worker processes
     }
-    if probe:
+    if args.probe or args.profile:
         command = [sys.executable, __file__, "--serve-probe", "--port", str(port),
-                   "--stats-file", str(stats_file)]
+                   "--stats-file", str(tmp / "probe.json")]
+        if args.profile:
+            command.append("--profile")
     else:
         command = [sys.executable, "-m", "uvicorn", "server.app:app", "--host", "127.0.0.1",
-                   "--port", str(port), "--workers", "1", "--log-level", "warning",
-                   "--no-access-log"]
+                   "--port", str(port), "--workers", str(args.workers), "--log-level",
+                   "warning", "--no-access-log"]
     server = subprocess.Popen(command, cwd=ROOT, env=env)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
         if server.poll() is not None:
             raise SystemExit(f"the server exited with code {server.returncode} at start-up")
         try:
-            if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1).status_code == 200:
-                return server
-        except httpx.TransportError:
+            with socket.create_connection(("127.0.0.1", port), timeout=1) as sock:
+                sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: bench\r\nConnection: close\r\n\r\n")
+                if sock.recv(64).startswith(b"HTTP/1.1 200"):
+                    return server
+        except OSError:
             pass
         time.sleep(0.1)
     server.kill()
     raise SystemExit("the server did not answer /healthz within 60 s")
 
 
-def stop_server(server: subprocess.Popen[bytes]) -> None:
-    if server.poll() is None:
-        server.send_signal(signal.SIGINT)  # uvicorn's graceful shutdown: the probe writes stats
+def stop_process(process: subprocess.Popen[bytes]) -> None:
+    if process.poll() is None:
+        process.send_signal(signal.SIGINT)  # uvicorn's graceful shutdown: the probe writes stats
         try:
-            server.wait(timeout=30)
+            process.wait(timeout=30)
         except subprocess.TimeoutExpired:
-            server.kill()
-            server.wait()
+            process.kill()
+            process.wait()
 
 
 # ---------------------------------------------------------------------------------------------
-# Seeding: labellers and the run over REST, queries and clips as the worker would
+# A minimal keep-alive HTTP/1.1 client: httpx took 3-4 ms of CPU per request, as much as the
+# server, and the load generator shares the machine's two cores with it.
 
 
-def seed_rest(base: str, labellers: int, budget: int) -> tuple[list[str], int]:
-    operator = {"Authorization": f"Bearer {OPERATOR_TOKEN}"}
-    with httpx.Client(base_url=base, headers=operator, timeout=30) as client:
+class Http:
+    IDLE_S = 4.0
+    """uvicorn closes a keep-alive connection idle for 5 s: open a new one before that"""
+
+    def __init__(self, port: int, token: str):
+        self.port = port
+        self.auth = f"Host: 127.0.0.1\r\nAuthorization: Bearer {token}\r\n"
+        self.reader: asyncio.StreamReader | None = None
+        self.writer: asyncio.StreamWriter | None = None
+        self.used = 0.0
+
+    async def _send(self, method: str, path: str, body: bytes | None) -> asyncio.StreamReader:
+        idle = time.monotonic() - self.used > self.IDLE_S
+        if self.reader is None or self.writer is None or self.writer.is_closing() or idle:
+            await self.close()
+            self.reader, self.writer = await asyncio.open_connection("127.0.0.1", self.port)
+        self.used = time.monotonic()
+        head = f"{method} {path} HTTP/1.1\r\n{self.auth}"
+        if body is not None:
+            head += f"Content-Type: application/json\r\nContent-Length: {len(body)}\r\n"
+        self.writer.write(head.encode() + b"\r\n" + (body or b""))
+        return self.reader
+
+    async def _head(self, reader: asyncio.StreamReader) -> tuple[int, int | None]:
+        status = int((await reader.readline()).split()[1])
+        length: int | None = 0 if status in (204, 304) else None
+        while (line := await reader.readline()) not in (b"\r\n", b""):
+            name, _, value = line.partition(b":")
+            if name.strip().lower() == b"content-length":
+                length = int(value)
+        return status, length
+
+    async def request(self, method: str, path: str, body: Any = None) -> tuple[int, bytes]:
+        data = None if body is None else json.dumps(body).encode()
+        reader = await self._send(method, path, data)
+        status, length = await self._head(reader)
+        if length is None:
+            raise RuntimeError(f"{method} {path}: no Content-Length in the response")
+        body = await reader.readexactly(length)
+        self.used = time.monotonic()
+        return status, body
+
+    async def drain(self, path: str) -> tuple[int, int]:
+        """GET a large body, reading it in blocks and keeping none; (status, bytes read)."""
+        reader = await self._send("GET", path, None)
+        status, length = await self._head(reader)
+        assert length is not None
+        left = length
+        while left:
+            left -= len(await reader.read(min(left, 1 << 16)))
+        self.used = time.monotonic()
+        return status, length
+
+    async def close(self) -> None:
+        writer, self.reader, self.writer = self.writer, None, None
+        if writer is not None:
+            writer.close()
+            with contextlib.suppress(OSError):
+                await writer.wait_closed()
+
+
+def seed_rest(port: int, labellers: int, budget: int) -> tuple[list[str], int]:
+    async def seed() -> tuple[list[str], int]:
+        client = Http(port, OPERATOR_TOKEN)
         tokens = []
         for i in range(labellers):
-            response = client.post("/api/labellers", json={"name": f"labeller-{i:03d}"})
-            assert response.status_code == 201, response.text
-            tokens.append(response.json()["token"])
-        body = {"task": "dmc:cheetah_run", "algo": "pebble", "budget": budget,
+            status, body = await client.request("POST", "/api/labellers",
+                                                {"name": f"labeller-{i:03d}"})
+            assert status == 201, body
+            tokens.append(json.loads(body)["token"])
+        spec = {"task": "dmc:cheetah_run", "algo": "pebble", "budget": budget,
                 "preset": "small", "teacher": "human"}
-        response = client.post("/api/runs", json=body)
-        assert response.status_code == 201, response.text
-        run_id: int = response.json()["id"]
-    return tokens, run_id
+        status, body = await client.request("POST", "/api/runs", spec)
+        assert status == 201, body
+        await client.close()
+        return tokens, int(json.loads(body)["id"])
+
+    return asyncio.run(seed())
 
 
-def push_round(tmp: Path, url: str, run_id: int, round_: int, n: int) -> list[int]:
-    """Push a round of `n` queries and attach a pair of small clip files to each."""
+# ---------------------------------------------------------------------------------------------
+# The worker process: the trainer's side of the queue, as a second process on the database
+
+
+def serve_worker(args: argparse.Namespace) -> None:
+    """Push `--queries` queries (clips rendered first) in rounds as labellers answer them, keeping
+    at least `low_water` open; read the open queries' labels twice a second, as the trainer waits
+    for a round; heartbeat and write an episodes row every second and an eval row every
+    --eval-every-s; consume the labels every 5 s. Runs until SIGTERM; writes its timings."""
+    sessions = session_factory(make_engine(args.url))
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    timings: dict[str, list[float]] = defaultdict(list)
+    clips_dir = Path(args.clips_dir)
+    low_water = max(3 * args.labellers, 2 * args.round_size)
+    open_ids: set[int] = set()
+    pushed = step = 0
+    round_ = 1
+    last_beat = last_eval = last_consume = 0.0
+
+    def timed(name: str, op: Any, **kwargs: Any) -> Any:
+        with sessions() as session:
+            start = time.perf_counter()
+            result = op(session, **kwargs)
+            timings[name].append(time.perf_counter() - start)
+        return result
+
+    while not stop.is_set():
+        now = time.monotonic()
+        if open_ids:
+            answered = timed("labels_for_queries", labels_for_queries, query_ids=sorted(open_ids))
+            open_ids -= {label.query_id for label in answered}
+        if pushed < args.queries and len(open_ids) < low_water:
+            n = min(args.round_size, args.queries - pushed)
+            specs = [query_spec(round_, i, write_clips(clips_dir, args.run_id, round_, i))
+                     for i in range(n)]
+            open_ids |= set(timed("push_queries", push_queries, run_id=args.run_id,
+                                  queries=specs))
+            pushed += n
+            round_ += 1
+            if pushed == n or pushed == args.queries:
+                print("ready" if pushed == n else "all pushed", flush=True)
+        if now - last_beat >= 1.0:
+            step += 1000
+            timed("heartbeat", heartbeat, run_id=args.run_id, worker_id=WORKER_ID, step=step,
+                  progress={"round": round_, "pushed": pushed, "open": len(open_ids)})
+            timed("write_metrics", write_metrics, run_id=args.run_id, stream="episodes",
+                  step=step, values={"return": step / 1000, "length": 1000})
+            last_beat = now
+        if now - last_eval >= args.eval_every_s:
+            timed("write_metrics", write_metrics, run_id=args.run_id, stream="eval", step=step,
+                  values={"return": step / 1000})
+            last_eval = now
+        if now - last_consume >= 5.0:
+            timed("consume_labels", consume_labels, run_id=args.run_id)
+            last_consume = now
+        stop.wait(0.5 if pushed == args.queries else 0.2)
+    Path(args.stats_file).write_text(json.dumps(timings))
+
+
+def start_worker(args: argparse.Namespace, url: str, tmp: Path,
+                 run_id: int) -> subprocess.Popen[bytes]:
+    command = [sys.executable, __file__, "--serve-worker", "--url", url, "--run-id", str(run_id),
+               "--clips-dir", str(tmp / "clips"), "--queries", str(args.queries),
+               "--round-size", str(args.round_size), "--labellers", str(args.labellers),
+               "--eval-every-s", str(args.eval_every_s), "--stats-file",
+               str(tmp / "worker.json")]
+    env = os.environ | {
+        "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    worker = subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE)
+    assert worker.stdout is not None
+    if worker.stdout.readline().strip() != b"ready":
+        raise SystemExit(f"the worker process did not start (code {worker.wait()})")
+    return worker
+
+
+def push_warmup(url: str, tmp: Path, run_id: int, n: int) -> None:
     engine = make_engine(url)
-    try:
-        with session_factory(engine)() as session:
-            ids = push_queries(session, run_id=run_id,
-                               queries=[query_spec(round_, i) for i in range(n)])
-            for query_id in ids:
-                keys = [f"run{run_id}/q{query_id}-{side}.mp4" for side in ("a", "b")]
-                for key in keys:
-                    path = tmp / "clips" / key
-                    path.parent.mkdir(parents=True, exist_ok=True)
-                    path.write_bytes(b"\x00\x00\x00\x18ftypmp42 fake clip " + key.encode())
-                set_clips(session, query_id=query_id, first_clip=keys[0], second_clip=keys[1])
-    finally:
-        engine.dispose()
-    return ids
+    with session_factory(engine)() as session:
+        claimed = claim_run(session, worker_id=WORKER_ID)
+        assert claimed is not None and claimed.id == run_id, claimed
+        specs = [query_spec(0, i, write_clips(tmp / "clips", run_id, 0, i)) for i in range(n)]
+        push_queries(session, run_id=run_id, queries=specs)
+    engine.dispose()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -190,67 +472,137 @@ def push_round(tmp: Path, url: str, run_id: int, round_: int, n: int) -> list[in
 @dataclass
 class Tally:
     target: int
-    round_trips: list[float] = field(default_factory=list)
+    round_trips: list[tuple[float, float]] = field(default_factory=list)
+    """(start, seconds) of each answered round trip"""
     nexts: list[float] = field(default_factory=list)
     submits: list[float] = field(default_factory=list)
     label_ids: list[int] = field(default_factory=list)
     statuses: Counter[str] = field(default_factory=Counter)
     errors: list[str] = field(default_factory=list)
+    pages: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
+    """dashboard request times by endpoint"""
+    export: dict[str, float] = field(default_factory=dict)
+    done: asyncio.Event = field(default_factory=asyncio.Event)
 
 
-async def labeller(base: str, token: str, tally: Tally, rng: random.Random, think_s: float,
+async def labeller(port: int, token: str, tally: Tally, rng: random.Random, think_s: float,
                    poll_s: float, deadline: float) -> None:
-    headers = {"Authorization": f"Bearer {token}"}
-    limits = httpx.Limits(max_connections=1, max_keepalive_connections=1)
-    async with httpx.AsyncClient(base_url=base, headers=headers, limits=limits,
-                                 timeout=60) as client:
+    client = Http(port, token)
+    if think_s:
+        # People do not all click at once: spread the first requests over a think time.
+        await asyncio.sleep(rng.uniform(0, think_s))
+    while len(tally.label_ids) < tally.target and time.monotonic() < deadline:
+        t0 = time.perf_counter()
+        status, body = await client.request("GET", "/api/label/next")
+        t1 = time.perf_counter()
+        tally.statuses[f"next {status}"] += 1
+        if status == 204:
+            # Others hold the last leases, or the worker has not pushed more yet: poll.
+            await asyncio.sleep(poll_s)
+            continue
+        if status != 200:
+            tally.errors.append(f"next: {status} {body[:200]!r}")
+            await asyncio.sleep(0.02)
+            continue
+        query = json.loads(body)
         if think_s:
-            # People do not all click at once: spread the first requests over a think time.
-            await asyncio.sleep(rng.uniform(0, think_s))
-        while len(tally.label_ids) < tally.target and time.monotonic() < deadline:
-            t0 = time.perf_counter()
-            response = await client.get("/api/label/next")
-            t1 = time.perf_counter()
-            tally.statuses[f"next {response.status_code}"] += 1
-            if response.status_code == 204:
-                # Others hold the last leases: poll until they have answered.
-                await asyncio.sleep(poll_s)
-                continue
-            if response.status_code != 200:
-                tally.errors.append(f"next: {response.status_code} {response.text[:200]}")
-                await asyncio.sleep(0.02)
-                continue
-            query = response.json()
-            if think_s:
-                await asyncio.sleep(rng.expovariate(1 / think_s))
-            body = {
-                "choice": rng.choice(CHOICES),
-                "left_is_first": query["left_is_first"],
-                "shown_at": datetime.now(UTC).isoformat(),
-            }
-            t2 = time.perf_counter()
-            response = await client.post(f"/api/label/{query['query_id']}", json=body)
-            t3 = time.perf_counter()
-            tally.statuses[f"submit {response.status_code}"] += 1
-            if response.status_code != 201:
-                tally.errors.append(f"submit {query['query_id']}: {response.status_code} "
-                                    f"{response.text[:200]}")
-                continue
-            tally.label_ids.append(response.json()["id"])
-            tally.nexts.append(t1 - t0)
-            tally.submits.append(t3 - t2)
-            tally.round_trips.append((t1 - t0) + (t3 - t2))
+            await asyncio.sleep(rng.expovariate(1 / think_s))
+        answer = {
+            "choice": rng.choice(CHOICES),
+            "left_is_first": query["left_is_first"],
+            "shown_at": datetime.now(UTC).isoformat(),
+        }
+        t2 = time.perf_counter()
+        status, body = await client.request("POST", f"/api/label/{query['query_id']}", answer)
+        t3 = time.perf_counter()
+        tally.statuses[f"submit {status}"] += 1
+        if status != 201:
+            tally.errors.append(f"submit {query['query_id']}: {status} {body[:200]!r}")
+            continue
+        tally.label_ids.append(json.loads(body)["id"])
+        tally.nexts.append(t1 - t0)
+        tally.submits.append(t3 - t2)
+        tally.round_trips.append((t0, (t1 - t0) + (t3 - t2)))
+    await client.close()
 
 
-async def load(base: str, tokens: list[str], target: int, seed: int, think_s: float,
-               poll_s: float, timeout_s: float) -> Tally:
+async def dashboard(port: int, run_id: int, tally: Tally, offset_s: float) -> None:
+    """One open run page: what web/static/run.js fetches every 5 s."""
+    client = Http(port, OPERATOR_TOKEN)
+    evals_seen = -1
+    await asyncio.sleep(offset_s)
+
+    async def get(name: str, path: str) -> bytes:
+        start = time.perf_counter()
+        status, body = await client.request("GET", path)
+        tally.pages[name].append(time.perf_counter() - start)
+        if status != 200:
+            tally.errors.append(f"page {path}: {status} {body[:200]!r}")
+        return body
+
+    while not tally.done.is_set():
+        await get("run", f"/api/runs/{run_id}")
+        # The page's four reads go out together; one connection here sends them in turn.
+        for stream in ("episodes", "eval", "rounds"):
+            body = await get("metrics", f"/api/runs/{run_id}/metrics?stream={stream}")
+            if stream == "eval" and len(json.loads(body)) != evals_seen:
+                evals_seen = len(json.loads(body))
+                await get("curves.png", f"/api/runs/{run_id}/curves.png?metric=return")
+        await get("throughput", f"/api/runs/{run_id}/throughput?bucket_s=60")
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(tally.done.wait(), PAGE_POLL_S)
+    await client.close()
+
+
+async def exporter(port: int, tally: Tally, server_pids: list[int]) -> None:
+    """Export every label once, a second after the labellers started; note time, size, memory."""
+    await asyncio.sleep(1.0)
+    client = Http(port, OPERATOR_TOKEN)
+    peak = before = rss_mib(server_pids)
+
+    async def watch() -> None:
+        nonlocal peak
+        while True:
+            peak = max(peak, rss_mib(server_pids))
+            await asyncio.sleep(0.1)
+
+    watcher = asyncio.ensure_future(watch())
+    start = time.perf_counter()
+    status, size = await client.drain("/api/export?format=jsonl")
+    tally.export = {"start": start, "end": time.perf_counter(), "bytes": size,
+                    "status": status, "rss_before_mib": before, "rss_peak_mib": peak}
+    watcher.cancel()
+    await client.close()
+
+
+async def load(args: argparse.Namespace, port: int, tokens: list[str], target: int, seed: int,
+               *, run_id: int, pages: bool, server_pids: list[int]) -> Tally:
     tally = Tally(target=target)
-    deadline = time.monotonic() + timeout_s
+    deadline = time.monotonic() + args.timeout
+    think_s, poll_s = args.think_ms / 1000, args.poll_ms / 1000
+    side = []
+    if pages:
+        side += [
+            asyncio.ensure_future(dashboard(port, run_id, tally, i * PAGE_POLL_S / args.pollers))
+            for i in range(args.pollers)
+        ]
+        if args.export_labels:
+            side.append(asyncio.ensure_future(exporter(port, tally, server_pids)))
     await asyncio.gather(*(
-        labeller(base, token, tally, random.Random(seed * 1000 + i), think_s, poll_s, deadline)
+        labeller(port, token, tally, random.Random(seed * 1000 + i), think_s, poll_s, deadline)
         for i, token in enumerate(tokens)
     ))
+    tally.done.set()
+    await asyncio.gather(*side)
     return tally
+
+
+def run_load(*coroutine_args: Any, **kwargs: Any) -> Tally:
+    try:
+        import uvloop
+    except ImportError:
+        return asyncio.run(load(*coroutine_args, **kwargs))
+    return uvloop.run(load(*coroutine_args, **kwargs))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -301,59 +653,65 @@ def verify(url: str, run_id: int, label_ids: list[int], pushed: int) -> list[str
 
 
 # ---------------------------------------------------------------------------------------------
-# The probe: the same app, with timers (only with --probe)
+# The probe: the same app, with timers (only with --probe) and cProfile (--profile)
 
 
-def serve_probe(port: int, stats_file: Path) -> None:
-    """Run `server.app` with timers on requests, transactions and statements; dump them at exit."""
+def serve_probe(port: int, stats_file: Path, profile: bool) -> None:
+    """Run `server.app` with timers on requests, transactions and statements (and cProfile on
+    every thread); dump them at exit."""
     import uvicorn
     from sqlalchemy import Engine, event
-    from sqlalchemy.orm import Session
 
     from server.app import create_app
 
     samples: dict[str, list[float]] = defaultdict(list)
     local = threading.local()
     lock = threading.Lock()
+    profiles: list[cProfile.Profile] = []
 
     def add(key: str, value: float) -> None:
         with lock:
             samples[key].append(value)
 
+    if profile:
+        def start_profile(*_args: Any) -> None:  # the first event of each new thread
+            sys.setprofile(None)
+            thread_profile = cProfile.Profile(time.thread_time)
+            with lock:
+                profiles.append(thread_profile)
+            thread_profile.enable()
+
+        threading.setprofile(start_profile)
+        main_profile = cProfile.Profile(time.thread_time)
+        profiles.append(main_profile)
+        main_profile.enable()
+
+    @event.listens_for(Engine, "begin")  # class-level: runs before the engine's own BEGIN hook
+    def _begin(conn: Any) -> None:
+        read_only = conn.get_execution_options().get("labelqueue_read_only", False)
+        local.begin_at = None if read_only else time.perf_counter()
+
     @event.listens_for(Engine, "before_cursor_execute")
     def _before(conn: Any, _cursor: Any, statement: str, *_args: Any) -> None:
-        conn.info["probe_t0"] = time.perf_counter()
+        now = conn.info["probe_t0"] = time.perf_counter()
+        if getattr(local, "begin_at", None) is not None:  # the write transaction's first
+            add("BEGIN IMMEDIATE (write-lock wait)", now - local.begin_at)
+            local.tx_start, local.statements, local.begin_at = now, 0, None
 
     @event.listens_for(Engine, "after_cursor_execute")
     def _after(conn: Any, _cursor: Any, statement: str, *_args: Any) -> None:
         now = time.perf_counter()
-        took = now - conn.info.pop("probe_t0", now)
-        if statement.startswith("BEGIN"):
-            add("BEGIN IMMEDIATE (write-lock wait)", took)
-            local.tx_start = now
-        else:
-            add("SQL statement", took)
-            local.statements = getattr(local, "statements", 0) + 1
+        add("SQL statement", now - conn.info.pop("probe_t0", now))
+        local.statements = getattr(local, "statements", 0) + 1
 
-    @event.listens_for(Engine, "commit")
-    def _commit(_conn: Any) -> None:
-        local.commit_start = time.perf_counter()
-
-    @event.listens_for(Engine, "rollback")
-    def _rollback(_conn: Any) -> None:
-        local.commit_start = time.perf_counter()
-
-    @event.listens_for(Session, "after_transaction_end")
-    def _end(_session: Any, transaction: Any) -> None:
-        if transaction.parent is not None or getattr(local, "commit_start", None) is None:
-            return
-        now = time.perf_counter()
-        add("COMMIT", now - local.commit_start)
+    def _end(_conn: Any) -> None:
         if getattr(local, "tx_start", None) is not None:
-            add("transaction (lock held)", now - local.tx_start)
-            add("statements per transaction", getattr(local, "statements", 0))
-        local.commit_start = local.tx_start = None
-        local.statements = 0
+            add("write transaction, to its COMMIT", time.perf_counter() - local.tx_start)
+            add("statements per write transaction", local.statements)
+        local.tx_start = None
+
+    event.listen(Engine, "commit", _end)
+    event.listen(Engine, "rollback", _end)
 
     app = create_app()
 
@@ -371,13 +729,21 @@ def serve_probe(port: int, stats_file: Path) -> None:
     def dump() -> None:
         with lock:
             stats_file.write_text(json.dumps(samples))
+            if profiles:
+                for thread_profile in profiles:
+                    thread_profile.disable()
+                merged = pstats.Stats(profiles[0])
+                for thread_profile in profiles[1:]:
+                    with contextlib.suppress(TypeError):  # a thread that never ran code
+                        merged.add(thread_profile)
+                merged.dump_stats(str(stats_file.with_suffix(".prof")))
 
     atexit.register(dump)
     uvicorn.run(timed, host="127.0.0.1", port=port, log_level="warning", access_log=False,
                 lifespan="on")
 
 
-def print_probe(stats_file: Path, round_trips: int) -> None:
+def print_probe(stats_file: Path, round_trips: int, top: int) -> None:
     if not stats_file.exists():
         print("probe: no stats were written")
         return
@@ -388,13 +754,18 @@ def print_probe(stats_file: Path, round_trips: int) -> None:
     for key, values in sorted(samples.items()):
         if not values:
             continue
-        if key == "statements per transaction":
-            print(f"{key:<36} {len(values):>7} {statistics.median(values):>8.0f} "
-                  f"{sorted(values)[int(0.99 * (len(values) - 1))]:>8.0f}")
-            continue
         ordered = sorted(values)
+        if key.startswith("statements per"):
+            print(f"{key:<36} {len(values):>7} {statistics.median(values):>8.0f} "
+                  f"{ordered[int(0.99 * (len(values) - 1))]:>8.0f}")
+            continue
         print(f"{key:<36} {len(values):>7} {1000 * statistics.median(ordered):>8.2f} "
               f"{1000 * ordered[int(0.99 * (len(ordered) - 1))]:>8.2f} {sum(values):>8.2f}")
+    profile = stats_file.with_suffix(".prof")
+    if profile.exists():
+        print(f"\ncProfile of every server thread (CPU time of each thread; warm-up and timed "
+              f"rounds), top {top} by own time:")
+        pstats.Stats(str(profile)).strip_dirs().sort_stats("tottime").print_stats(top)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -402,6 +773,8 @@ def print_probe(stats_file: Path, round_trips: int) -> None:
 
 def percentile(ordered: list[float], q: float) -> float:
     """Nearest-rank percentile of an ascending list."""
+    if not ordered:
+        return float("nan")
     return ordered[max(0, min(len(ordered) - 1, round(q * len(ordered) + 0.5) - 1))]
 
 
@@ -425,77 +798,115 @@ class Measured:
     run_id: int
     seconds: float
     server_cpu_s: float
+    worker_cpu_s: float
+    database_cpu_s: float | None
     client_cpu_s: float
     machine_busy: float
     machine_steal: float
+    worker_timings: dict[str, list[float]]
 
 
 def run_rounds(args: argparse.Namespace, tmp: Path, url: str) -> Measured:
     """Start the server, seed it, run the warm-up and the timed round; stop the server."""
     port = free_port()
-    server = start_server(tmp, port, probe=args.probe, stats_file=tmp / "probe.json")
+    server = start_server(args, tmp, url, port)
+    worker = None
     try:
-        base = f"http://127.0.0.1:{port}"
-        tokens, run_id = seed_rest(base, args.labellers, args.warmup + args.queries)
-        engine = make_engine(url)
-        with session_factory(engine)() as session:
-            claimed = claim_run(session, worker_id="bench-worker")
-        engine.dispose()
-        assert claimed is not None and claimed.id == run_id, claimed
-
-        push_round(tmp, url, run_id, 0, args.warmup)
-        warm = asyncio.run(load(base, tokens, args.warmup, args.seed + 1, 0.0,
-                                args.poll_ms / 1000, args.timeout))
-        push_round(tmp, url, run_id, 1, args.queries)
-        server_cpu, client_cpu = cpu_seconds(server.pid), time.process_time()
+        tokens, run_id = seed_rest(port, args.labellers, args.warmup + args.queries)
+        if args.export_labels:
+            seed_history(url, labeller_id=1, n=args.export_labels)
+        push_warmup(url, tmp, run_id, args.warmup)
+        warm = run_load(args, port, tokens, args.warmup, args.seed + 1, run_id=run_id,
+                        pages=False, server_pids=[])
+        server_pids = process_tree(server.pid)
+        if args.worker:
+            worker = start_worker(args, url, tmp, run_id)
+        else:
+            specs = [query_spec(1, i, write_clips(tmp / "clips", run_id, 1, i))
+                     for i in range(args.queries)]
+            with session_factory(make_engine(url))() as session:
+                push_queries(session, run_id=run_id, queries=specs)
+        database = postgres_pids() if args.database == "postgres" else []
+        server_cpu, client_cpu = cpu_seconds(server_pids), time.process_time()
+        worker_cpu = cpu_seconds([worker.pid]) if worker else 0.0
+        database_cpu = {pid: cpu_seconds([pid]) for pid in database}
         ticks = machine_ticks()
         start = time.perf_counter()
-        tally = asyncio.run(load(base, tokens, args.queries, args.seed, args.think_ms / 1000,
-                                 args.poll_ms / 1000, args.timeout))
+        tally = run_load(args, port, tokens, args.queries, args.seed, run_id=run_id, pages=True,
+                         server_pids=server_pids)
         seconds = time.perf_counter() - start
         all_ticks, idle, steal = (b - a for a, b in zip(ticks, machine_ticks(), strict=True))
-        server_cpu = cpu_seconds(server.pid) - server_cpu
+        server_cpu = cpu_seconds(server_pids) - server_cpu
+        worker_cpu = (cpu_seconds([worker.pid]) if worker else 0.0) - worker_cpu
+        # Backends that started meanwhile count whole; one that ended meanwhile is not seen.
+        database_used = sum(cpu_seconds([pid]) - database_cpu.get(pid, 0.0)
+                            for pid in postgres_pids()) if database else 0.0
         client_cpu = time.process_time() - client_cpu
     finally:
-        stop_server(server)
+        if worker is not None:
+            worker.terminate()
+            worker.wait(timeout=60)
+        stop_process(server)
     tally.errors += [f"warm-up: {error}" for error in warm.errors]
-    return Measured(tally, warm.label_ids, run_id, seconds, server_cpu, client_cpu,
-                    1 - idle / max(1, all_ticks), steal / max(1, all_ticks))
+    worker_file = tmp / "worker.json"
+    worker_timings = json.loads(worker_file.read_text()) if worker_file.exists() else {}
+    return Measured(tally, warm.label_ids, run_id, seconds, server_cpu, worker_cpu,
+                    database_used if database else None, client_cpu,
+                    1 - idle / max(1, all_ticks), steal / max(1, all_ticks), worker_timings)
+
+
+def _row(name: str, values: list[float]) -> str:
+    ordered = sorted(values)
+    cells = [percentile(ordered, q) for q in (0.5, 0.9, 0.99)] + [ordered[-1] if ordered else 0]
+    return f"{name:<14} " + " ".join(f"{1000 * v:>8.1f}" for v in cells) + f" {len(values):>7}"
 
 
 def report(args: argparse.Namespace, m: Measured) -> None:
     tally, n = m.tally, max(1, len(m.tally.round_trips))
-    print(f"label round trip (GET /api/label/next + POST /api/label/{{id}}), SQLite, loopback: "
-          f"{args.labellers} labellers, {args.queries} queries (+{args.warmup} warm-up), "
-          f"think time {args.think_ms:g} ms")
-    print(f"server: 1 uvicorn worker process ({server_flavour()}"
-          f"{', probe' if args.probe else ', no access log'}); {os.cpu_count()} CPUs, "
-          f"load average {os.getloadavg()[0]:.2f}, machine busy {m.machine_busy:.0%}, "
-          f"CPU time stolen by the host {m.machine_steal:.0%}")
-    print(f"{'':<14} {'p50 ms':>8} {'p90 ms':>8} {'p99 ms':>8} {'max ms':>8}")
-    for name, values in (("round trip", tally.round_trips), ("next", tally.nexts),
-                         ("submit", tally.submits)):
-        ordered = sorted(values) or [float("nan")]
-        cells = [percentile(ordered, q) for q in (0.5, 0.9, 0.99)] + [ordered[-1]]
-        print(f"{name:<14} " + " ".join(f"{1000 * v:>8.1f}" for v in cells))
+    processes = "1 process" if args.probe or args.profile else f"{args.workers} process"
+    print(f"label round trip (GET /api/label/next + POST /api/label/{{id}}), {args.database}, "
+          f"loopback: {args.labellers} labellers, {args.queries} queries (+{args.warmup} "
+          f"warm-up), think time {args.think_ms:g} ms; {args.pollers} dashboard pages, worker "
+          f"process {'on' if args.worker else 'off'}"
+          + (f", export of {args.export_labels} labels" if args.export_labels else ""))
+    print(f"server: uvicorn, {processes}{'es' if processes[0] != '1' else ''} "
+          f"({server_flavour()}{', probe' if args.probe or args.profile else ''}); "
+          f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}, machine busy "
+          f"{m.machine_busy:.0%}, CPU time stolen by the host {m.machine_steal:.0%}")
+    print(f"{'':<14} {'p50 ms':>8} {'p90 ms':>8} {'p99 ms':>8} {'max ms':>8} {'count':>7}")
+    print(_row("round trip", [rt for _, rt in tally.round_trips]))
+    print(_row("next", tally.nexts))
+    print(_row("submit", tally.submits))
+    if tally.export:
+        during = [rt for t, rt in tally.round_trips
+                  if tally.export["start"] - rt <= t <= tally.export["end"]]
+        print(_row("  in export", during))
+    for name, values in sorted(tally.pages.items()):
+        print(_row(f"page {name}", values))
+    for name, values in sorted(m.worker_timings.items()):
+        print(_row(f"worker {name.split('_')[0] if name != 'labels_for_queries' else 'read'}",
+                   values))
     rate = len(tally.label_ids) / m.seconds
     conflicts = tally.statuses["next 409"] + tally.statuses["submit 409"]
     print(f"{rate:.0f} labels/s ({len(tally.label_ids)} in {m.seconds:.1f} s); "
           f"204s: {tally.statuses['next 204']}, 409s: {conflicts}, "
           f"other errors: {len(tally.errors) - conflicts}")
+    database = ("" if m.database_cpu_s is None else
+                f", PostgreSQL {1000 * m.database_cpu_s / n:.2f} ms")
     print(f"CPU per round trip: server {1000 * m.server_cpu_s / n:.2f} ms "
-          f"({m.server_cpu_s / m.seconds:.0%} of a core), client "
-          f"{1000 * m.client_cpu_s / n:.2f} ms ({m.client_cpu_s / m.seconds:.0%})")
-    if not args.think_ms and rate:
-        # Little's law for a closed loop: labellers = rate x (round trip + the client's gap).
-        print(f"closed loop, no think time: {args.labellers} labellers / {rate:.0f} per s = "
-              f"{1000 * args.labellers / rate:.0f} ms per cycle; p99 <= {TARGET_P99_MS:g} ms "
-              f"needs >= {1000 * args.labellers / TARGET_P99_MS:.0f} round trips/s")
-    p99 = 1000 * percentile(sorted(tally.round_trips) or [float("inf")], 0.99)
+          f"({m.server_cpu_s / m.seconds:.0%} of a core){database}, worker process "
+          f"{1000 * m.worker_cpu_s / n:.2f} ms, client {1000 * m.client_cpu_s / n:.2f} ms "
+          f"({m.client_cpu_s / m.seconds:.0%}); dashboards and export included")
+    if tally.export:
+        e = tally.export
+        print(f"export: {e['bytes'] / 2**20:.0f} MiB of JSONL (status {e['status']:.0f}) in "
+              f"{e['end'] - e['start']:.1f} s; server memory {e['rss_before_mib']:.0f} MiB "
+              f"before, {e['rss_peak_mib']:.0f} MiB at most during it")
+    p99 = 1000 * percentile(sorted(rt for _, rt in tally.round_trips), 0.99)
     print(f"target: p99 <= {TARGET_P99_MS:g} ms -> {'met' if p99 <= TARGET_P99_MS else 'missed'}")
 
 
-def main() -> int:
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
     parser.add_argument("--labellers", type=int, default=50)
     parser.add_argument("--queries", type=int, default=3000, help="timed round's queries")
@@ -505,31 +916,66 @@ def main() -> int:
     parser.add_argument("--poll-ms", type=float, default=2000.0,
                         help="wait after a 204 (nothing free: others hold the last leases); "
                         "the label page's POLL_MS")
+    parser.add_argument("--database", choices=("sqlite", "postgres"), default="sqlite",
+                        help="postgres: a fresh database beside SEPOA_TEST_POSTGRES_URL's")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="uvicorn worker processes (default: 1 on SQLite, 2 on PostgreSQL)")
+    parser.add_argument("--pollers", type=int, default=5,
+                        help="dashboard pages polling the run page's endpoints every 5 s")
+    parser.add_argument("--worker", action=argparse.BooleanOptionalAction, default=True,
+                        help="a worker process pushes the timed queries in rounds and "
+                        "heartbeats (--no-worker: all pushed before the timed round)")
+    parser.add_argument("--round-size", type=int, default=100, help="the worker's round size")
+    parser.add_argument("--eval-every-s", type=float, default=30.0,
+                        help="the worker writes an eval row this often (the pages then redraw "
+                        "the curves figure)")
+    parser.add_argument("--export-labels", type=int, default=0,
+                        help="seed this many labels of an older run and export every label "
+                        "over HTTP during the timed round")
     parser.add_argument("--timeout", type=float, default=600.0, help="seconds per round, at most")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--probe", action="store_true",
                         help="serve through the probe (timers on requests, lock waits, SQL)")
-    parser.add_argument("--serve-probe", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--profile", action="store_true",
+                        help="serve through the probe with cProfile on every server thread")
+    parser.add_argument("--profile-top", type=int, default=25)
+    for hidden in ("--serve-probe", "--serve-worker"):
+        parser.add_argument(hidden, action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--port", type=int, default=0, help=argparse.SUPPRESS)
     parser.add_argument("--stats-file", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--url", help=argparse.SUPPRESS)
+    parser.add_argument("--run-id", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--clips-dir", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.workers is None:
+        args.workers = 2 if args.database == "postgres" else 1
+    return args
+
+
+def main() -> int:
+    args = parse_args()
     if args.serve_probe:
-        serve_probe(args.port, args.stats_file)
+        serve_probe(args.port, args.stats_file, args.profile)
+        return 0
+    if args.serve_worker:
+        serve_worker(args)
         return 0
 
     with tempfile.TemporaryDirectory(prefix="bench-label-api-") as tmp_name:
         tmp = Path(tmp_name)
-        url = f"sqlite:///{tmp / 'queue.db'}"
-        m = run_rounds(args, tmp, url)
-        report(args, m)
-        if args.probe:
-            print_probe(tmp / "probe.json", len(m.tally.round_trips))
-        answered = m.warm_label_ids + m.tally.label_ids
-        problems = verify(url, m.run_id, answered, args.warmup + args.queries)
+        with fresh_database(args, tmp) as url:
+            m = run_rounds(args, tmp, url)
+            report(args, m)
+            if args.probe or args.profile:
+                print_probe(tmp / "probe.json", len(m.tally.round_trips), args.profile_top)
+            answered = m.warm_label_ids + m.tally.label_ids
+            problems = verify(url, m.run_id, answered, args.warmup + args.queries)
         problems += [f"request failed: {error}" for error in m.tally.errors[:20]]
         if len(m.warm_label_ids) != args.warmup or len(m.tally.label_ids) != args.queries:
             problems.append(f"rounds answered {len(m.warm_label_ids)} of {args.warmup} and "
                             f"{len(m.tally.label_ids)} of {args.queries} queries")
+        if args.export_labels and m.tally.export.get("status") != 200:
+            problems.append(f"the export answered {m.tally.export.get('status')}")
     if problems:
         print(f"FAILED: {len(problems)} problems with the labels:", file=sys.stderr)
         for problem in problems[:30]:
