@@ -205,7 +205,8 @@ class SkillConfig:
     """online: N_z, fresh random skills z_task is chosen from"""
     task_skill_draw: str = "refit"
     """online: when z_task is drawn anew: refit (when a round has refitted R_theta, held in
-    between) | episode (also at every episode start, as the authors' code)"""
+    between) | episode (also at every episode start, as the authors' code; behind on the
+    return in specs/small/sepoa-choices.toml)"""
     task_skill_update: bool = True
     """online: each update also trains on its batch with z_task in place of every stored skill
     (valid off-policy: r_hat does not depend on z), besides the update on the stored skills"""
@@ -214,7 +215,8 @@ class SkillConfig:
     reward_start_rollouts)"""
     reset_critic: bool = True
     """online: at the first round, reset the pretrained critic and its target (the actor is
-    kept), then run `reset_updates` updates on the learned reward"""
+    kept), then run `reset_updates` updates on the learned reward (kept, the agent waited
+    until 20-25 k steps to move in specs/small/sepoa-choices.toml)"""
     score_spread: str = "var"
     """online: spread of P in the selection score: var (the paper) | std (the authors' code)"""
     snapshot_dir: str = "snapshots"
