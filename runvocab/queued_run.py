@@ -13,6 +13,9 @@ from runvocab.validate import validate
 
 WORKER_FIELDS = ("run_dir",)
 """chosen by the worker that trains the run, never by the run's `config`"""
+TOP_LEVEL_FIELDS = {"task": "task", "algo": "algo", "preset": "preset", "seed": "seed",
+                    "feedback.budget": "budget"}
+"""config paths that a queued run also gives as top-level fields, and those fields' names"""
 
 
 def queued_run_config(*, task: str, algo: str, preset: str, seed: int, budget: int,
@@ -25,7 +28,8 @@ def queued_run_config(*, task: str, algo: str, preset: str, seed: int, budget: i
         if path in overrides:
             raise ConfigError(path, f"config sets {path}, which the worker that trains a queued "
                                     "run chooses; leave it out")
-    top = {"task": task, "algo": algo, "preset": preset, "seed": seed, "feedback.budget": budget}
+    given = {"task": task, "algo": algo, "preset": preset, "seed": seed, "budget": budget}
+    top = {path: given[name] for path, name in TOP_LEVEL_FIELDS.items()}
     for path, value in (top | teacher).items():
         if path in overrides and overrides[path] != value:
             where = "teacher_params" if path in teacher else "the run's top-level field"

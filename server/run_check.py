@@ -9,11 +9,7 @@ from typing import Any
 from fastapi.exceptions import RequestValidationError
 
 from runvocab.names import ConfigError
-from runvocab.queued_run import queued_run_config
-
-TOP_LEVEL = {"task": "task", "algo": "algo", "preset": "preset", "seed": "seed",
-             "feedback.budget": "budget"}
-"""config paths that are also top-level fields of a new run, and those fields' names"""
+from runvocab.queued_run import TOP_LEVEL_FIELDS, queued_run_config
 
 
 def check_run(*, task: str, algo: str, preset: str, seed: int, budget: int,
@@ -38,6 +34,6 @@ def _location(field: str, teacher_params: Mapping[str, Any], config: Mapping[str
         return ("body", "config", field)
     if field.startswith("teacher.") and param in teacher_params:
         return ("body", params_at, param)
-    if field in TOP_LEVEL:
-        return ("body", TOP_LEVEL[field])
+    if field in TOP_LEVEL_FIELDS:
+        return ("body", TOP_LEVEL_FIELDS[field])
     return ("body",)  # a preset's value the rest of the run contradicts; the message names it

@@ -111,24 +111,26 @@ class Out(BaseModel):
     model_config = ConfigDict(from_attributes=True)
 
 
-def _one_of(field: str, valid: Callable[[], Sequence[str]]) -> Callable[[str], str]:
+def _one_of(field: str, valid: Sequence[str],
+            refusal: Callable[[str], str] | None = None) -> Callable[[str], str]:
+    """A validator taking only `valid` values; a refusal names the field, the near miss and
+    what is valid (`refusal`: a message of the value's own)."""
     def check(value: str) -> str:
-        if value not in valid():
-            raise ValueError(unknown_task(value) if field == "task"
-                             else unknown(field, value, valid()))
+        if value not in valid:
+            raise ValueError(refusal(value) if refusal else unknown(field, value, valid))
         return value
 
     return check
 
 
-TaskName = Annotated[str, AfterValidator(_one_of("task", all_tasks)),
+TaskName = Annotated[str, AfterValidator(_one_of("task", all_tasks(), unknown_task)),
                      Field(json_schema_extra={"enum": list(all_tasks())},
                            examples=["dmc:cheetah_run"])]
-AlgoName = Annotated[str, AfterValidator(_one_of("algo", lambda: ALGOS)),
+AlgoName = Annotated[str, AfterValidator(_one_of("algo", ALGOS)),
                      Field(json_schema_extra={"enum": list(ALGOS)})]
-PresetName = Annotated[str, AfterValidator(_one_of("preset", lambda: SIZE_PRESETS)),
+PresetName = Annotated[str, AfterValidator(_one_of("preset", SIZE_PRESETS)),
                        Field(json_schema_extra={"enum": list(SIZE_PRESETS)})]
-ClipSizeName = Annotated[str, AfterValidator(_one_of("clip_size", lambda: list(CLIP_SIZES))),
+ClipSizeName = Annotated[str, AfterValidator(_one_of("clip_size", list(CLIP_SIZES))),
                          Field(json_schema_extra={"enum": list(CLIP_SIZES)})]
 InstructionText = Annotated[str, AfterValidator(clean_instruction),
                             Field(max_length=4 * MAX_INSTRUCTION_CHARS,
