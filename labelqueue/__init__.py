@@ -26,6 +26,14 @@ from labelqueue.export import COLUMNS as EXPORT_COLUMNS
 from labelqueue.export import FORMATS as EXPORT_FORMATS
 from labelqueue.export import SCHEMA_VERSION as EXPORT_SCHEMA_VERSION
 from labelqueue.export import ExportFormat, export_rows, write_export
+from labelqueue.gold import (
+    GOLD_NEEDS_LABELS,
+    GoldSettings,
+    Paused,
+    gold_answer,
+    lift_pause,
+    paused_labellers,
+)
 from labelqueue.instructions import set_instruction
 from labelqueue.invites import (
     InviteClosed,
@@ -47,25 +55,23 @@ from labelqueue.labellers import (
     set_labeller_active,
     update_labeller,
 )
-from labelqueue.labels import consume_labels, labels_for_queries, preferred_segment, submit_label
+from labelqueue.labels import consume_labels, labels_for_queries, submit_label
 from labelqueue.metrics import read_metrics, write_metrics
 from labelqueue.models import (
-    Choice,
     Invite,
     Invitee,
     Label,
     Labeller,
+    LabellerPause,
     LabelSource,
     Metric,
     MetricStream,
-    Preferred,
     Query,
     QueryStatus,
     Role,
     Run,
     RunInstruction,
     RunStatus,
-    ShadowChoice,
     TeacherKind,
     Worker,
 )
@@ -105,7 +111,6 @@ __all__ = [
     "EXPORT_SCHEMA_VERSION",
     "LEASE_SECONDS",
     "OPERATOR_MOVES",
-    "Choice",
     "Conflict",
     "ExportFormat",
     "InvalidTransition",
@@ -116,7 +121,6 @@ __all__ = [
     "Metric",
     "MetricStream",
     "NotFound",
-    "Preferred",
     "Query",
     "QueryStatus",
     "QueueError",
@@ -125,7 +129,6 @@ __all__ = [
     "Run",
     "RunClosed",
     "RunStatus",
-    "ShadowChoice",
     "TeacherKind",
     "Worker",
     "authenticate",
@@ -143,7 +146,6 @@ __all__ = [
     "lease_next_query",
     "make_engine",
     "migrate",
-    "preferred_segment",
     "push_queries",
     "read_metrics",
     "read_run",
@@ -179,4 +181,11 @@ __all__ = [
     "Withdrawn",
     "settled",
     "withdraw_label",
+    "GOLD_NEEDS_LABELS",
+    "GoldSettings",
+    "LabellerPause",
+    "Paused",
+    "gold_answer",
+    "lift_pause",
+    "paused_labellers",
 ]

@@ -46,7 +46,7 @@ REQUIRED_COLUMNS = (
     "labeller_id",
     "labeller_name",
     "choice",
-    "preferred",
+    "answer",
     "first_trajectory",
     "second_trajectory",
     "first_segment_return",
@@ -225,14 +225,12 @@ def normalised_gap(first_return: float, second_return: float, r_avg: float) -> f
 def _outcome(row: Mapping[str, Any]) -> str:
     first, second = float(row["first_segment_return"]), float(row["second_segment_return"])
     truth = "equal" if first == second else ("first" if first > second else "second")
-    preferred = row["preferred"]
-    if row["choice"] == "skip":
+    answer = row["answer"]
+    if answer == "skip":
         return "skip"
-    if preferred is None:  # can't tell
+    if answer == "cant_tell" or (answer == "equal" and truth != "equal"):
         return "unsure"
-    if preferred == "equal" and truth != "equal":
-        return "unsure"
-    return "correct" if preferred == truth else "wrong"
+    return "correct" if answer == truth else "wrong"
 
 
 def _answers(rows: Sequence[Mapping[str, Any]], recent: int) -> tuple[list[_Answer], int]:
@@ -356,9 +354,11 @@ def calibration_report(
     recent: int = RECENT_TRAJECTORIES,
 ) -> CalibrationReport:
     """The report of `rows` (export rows: dicts holding at least `REQUIRED_COLUMNS`; other keys
-    are ignored). ValueError for rows without those columns or for bad `edges`."""
+    are ignored; rows withdrawn by their labeller are left out). ValueError for rows without
+    those columns or for bad `edges`."""
     edges = check_edges(edges)
-    table = list(rows)
+    # An answer taken back (undo) is not an answer.
+    table = [row for row in rows if row.get("withdrawn_at") is None]
     if table and (missing := missing_columns(set().union(*(row.keys() for row in table)))):
         raise ValueError(f"the label rows lack the columns {', '.join(missing)}")
     answers, without_truth = _answers(table, recent)

@@ -32,9 +32,10 @@ from labelqueue.errors import NotFound
 from labelqueue.instructions import InstructionHistory, instructions_at
 from labelqueue.models import Label, Labeller, Query, Run
 from labelqueue.transaction import reading
+from runvocab.answers import Answer, aggregate
 from runvocab.instructions import instruction_sha256, run_instruction
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 PARQUET_VERSION_KEY = "sepoa.export.schema_version"
 """the key of the schema version in a Parquet file's key-value metadata"""
 CHUNK_ROWS = 2000
@@ -111,9 +112,17 @@ COLUMNS: tuple[Column, ...] = (
         "whether the scripted teacher can tell the pair apart",
         nullable=True,
     ),
+    _c("gold", "bool", "the pair is a gold pair: a known-answer pair that measures labellers, "
+       "never trained on (its answer is the segment with the larger true segment return)"),
+    _c("labels_per_query", "int64", "distinct labellers' answers the query asked for; null for "
+       "a gold pair, which every labeller may answer once", nullable=True),
+    _c("query_answers", "int64", "standing answers (not withdrawn) the query got in all"),
+    _c("aggregate", "string", "the query's answer by majority over its standing answers "
+       "(`runvocab.answers.aggregate`): what the reward model trains on; null for a gold pair",
+       nullable=True),
     _c("labeller_id", "int64", "who answered"),
     _c("labeller_name", "string", "who answered, by name"),
-    _c("source", "string", "what answered: human, scripted or gold"),
+    _c("source", "string", "what answered: human or scripted"),
     _c(
         "choice",
         "string",
@@ -122,22 +131,21 @@ COLUMNS: tuple[Column, ...] = (
     _c("left_is_first", "bool", "whether the first segment was shown on the left"),
     _c("left_segment", "string", "which segment was shown on the left: first or second"),
     _c(
-        "preferred",
+        "answer",
         "string",
-        "the answer in segment terms: first, second or equal; null for cant_tell and skip",
-        nullable=True,
+        "the answer in segment terms: first, second, equal, cant_tell or skip",
     ),
     _c(
         "agrees_with_shadow",
         "bool",
-        "`preferred` equals `shadow_choice`; null unless both are first, second or equal",
+        "`answer` equals `shadow_choice`; null unless both are first, second or equal",
         nullable=True,
     ),
     _c(
         "correct",
         "bool",
-        "`preferred` names the segment with the larger true segment return "
-        "(equal: the returns are exactly equal); null when `preferred` is null",
+        "`answer` names the segment with the larger true segment return "
+        "(equal: the returns are exactly equal); null unless `answer` is first, second or equal",
         nullable=True,
     ),
     _c("shown_at", "timestamp", "when the pair was shown (as the page reported it)", nullable=True),
@@ -202,12 +210,14 @@ _STORED: dict[str, Any] = {
     "score": Query.score,
     "shadow_choice": Query.shadow_choice,
     "distinguishable": Query.distinguishable,
+    "gold": Query.gold,
+    "needs_labels": Query.needs_labels,
     "labeller_id": Label.labeller_id,
     "labeller_name": Labeller.name,
     "source": Label.source,
     "choice": Label.choice,
     "left_is_first": Label.left_is_first,
-    "preferred": Label.preferred,
+    "answer": Label.answer,
     "shown_at": Label.shown_at,
     "answered_at": Label.answered_at,
     "consumed_at": Label.consumed_at,
@@ -236,17 +246,23 @@ def correct_answer(first_return: float | None, second_return: float | None) -> s
     return "first" if first_return > second_return else "second"
 
 
-def _row(stored: Mapping[str, Any], instructions: InstructionHistory) -> dict[str, Any]:
+def _row(stored: Mapping[str, Any], instructions: InstructionHistory,
+         answers: Mapping[int, list[Answer]]) -> dict[str, Any]:
     got = {name: _plain(value) for name, value in stored.items()}
     given = instructions.at(got["run_id"], got["answered_at"])
     # A run from before instructions were recorded showed its task's own until its first edit.
     text = given.text if given is not None else run_instruction(got["task"], None)
-    preferred, shadow = got["preferred"], got["shadow_choice"]
+    answer, shadow = got["answer"], got["shadow_choice"]
+    preferred = answer if answer in _SEGMENT_ANSWERS else None
+    given_to_query = answers.get(got["query_id"], [])
     truth = correct_answer(got["first_segment_return"], got["second_segment_return"])
     shown, answered = got["shown_at"], got["answered_at"]
     derived = {
         "schema_version": SCHEMA_VERSION,
         "left_segment": "first" if got["left_is_first"] else "second",
+        "labels_per_query": None if got["gold"] else got["needs_labels"],
+        "query_answers": len(given_to_query),
+        "aggregate": None if got["gold"] else aggregate(given_to_query).value,
         "agrees_with_shadow": (
             preferred == shadow
             if preferred in _SEGMENT_ANSWERS and shadow in _SEGMENT_ANSWERS
@@ -296,10 +312,22 @@ def export_rows(
                 return
             after = chunk[-1].label_id
             instructions = instructions_at(session, run_ids={row.run_id for row in chunk})
+            answers = standing_answers(session, query_ids={row.query_id for row in chunk})
             for stored in chunk:
-                yield _row(stored._asdict(), instructions)
+                yield _row(stored._asdict(), instructions, answers)
 
     return rows()
+
+
+def standing_answers(session: Session, *, query_ids: set[int]) -> dict[int, list[Answer]]:
+    """Each query's standing answers (not withdrawn), by query id."""
+    answers: dict[int, list[Answer]] = {}
+    with reading(session):
+        rows = session.execute(select(Label.query_id, Label.answer).where(
+            Label.query_id.in_(query_ids), Label.withdrawn_at.is_(None)).order_by(Label.id))
+        for query_id, answer in rows:
+            answers.setdefault(query_id, []).append(Answer(answer))
+    return answers
 
 
 def _chunks(rows: Iterator[dict[str, Any]], size: int) -> Iterator[list[dict[str, Any]]]:

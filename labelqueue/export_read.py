@@ -122,6 +122,14 @@ def _read_parquet(path: str) -> list[dict[str, Any]]:
 _READERS = {"jsonl": _read_jsonl, "csv": _read_csv, "parquet": _read_parquet}
 
 
+def _from_version_2(row: dict[str, Any]) -> dict[str, Any]:
+    """A schema-2 row with its answer as schema 3 names it: `preferred` (null for cant_tell and
+    skip, which `choice` then holds) became `answer`."""
+    if "answer" in row or "preferred" not in row:
+        return row
+    return row | {"answer": row["preferred"] or row.get("choice")}
+
+
 def read_export(path: str) -> list[dict[str, Any]]:
     """The rows of the export file at `path`; ExportFileError when it cannot be read."""
     if not os.path.exists(path):
@@ -129,7 +137,7 @@ def read_export(path: str) -> list[dict[str, Any]]:
     if os.path.isdir(path):
         raise ExportFileError(f"{path} is a folder; give an export file")
     try:
-        return _READERS[export_format(path)](path)
+        return [_from_version_2(row) for row in _READERS[export_format(path)](path)]
     except UnicodeDecodeError as error:
         raise ExportFileError(f"{path}: not UTF-8 text ({error.reason})") from error
     except OSError as error:

@@ -17,15 +17,14 @@ from sqlalchemy import ColumnElement, Connection, Integer, bindparam, case, inse
 from sqlalchemy.orm import Session
 
 from labelqueue.errors import LeaseError, NotFound, Revoked, RunClosed
+from labelqueue.gold import pause_if_below
 from labelqueue.models import (
     LABELLERS,
     LABELS,
     QUERIES,
     RUNS,
-    Choice,
     Label,
     LabelSource,
-    Preferred,
     QueryStatus,
     Run,
     UTCDateTime,
@@ -39,17 +38,7 @@ from labelqueue.transaction import (
     snapshot,
     transaction,
 )
-
-
-def preferred_segment(choice: Choice | str, left_is_first: bool) -> Preferred | None:
-    """The answer in segment terms: first, second or equal; None for cant_tell and skip."""
-    choice = Choice(choice)
-    if choice is Choice.EQUAL:
-        return Preferred.EQUAL
-    if choice in (Choice.LEFT, Choice.RIGHT):
-        return Preferred.FIRST if (choice is Choice.LEFT) == left_is_first else Preferred.SECOND
-    return None
-
+from runvocab.answers import Click, answer_of_click
 
 _LABELLER = bindparam("labeller", type_=Integer())
 _QUERY = bindparam("query", type_=Integer())
@@ -61,6 +50,7 @@ _STORED = select(*LABELS.c).where(
 _ASKED = select(
     QUERIES.c.run_id,
     QUERIES.c.leased_at,
+    QUERIES.c.gold,
     _STORED.with_only_columns(LABELS.c.id).scalar_subquery().label("stored"),
 ).where(QUERIES.c.id == _QUERY)
 _TAKE_ANSWER = (
@@ -161,7 +151,7 @@ def submit_label(
     *,
     query_id: int,
     labeller_id: int,
-    choice: Choice | str,
+    choice: Click | str,
     left_is_first: bool,
     shown_at: datetime | None = None,
     source: LabelSource | str = LabelSource.HUMAN,
@@ -176,9 +166,10 @@ def submit_label(
     conditional update that takes the answer. `shown_at` is stored within [the lease's start,
     now] (`clamp_shown_at`). The lease ends; the query becomes `labelled` once it has
     `needs_labels` answers, else pending again; the run's `labels_used` grows by one whatever the
-    answer (cant_tell and skip count against the budget too).
+    answer (cant_tell and skip count against the budget too), unless the query is a gold pair:
+    a gold answer costs no budget, and may pause the labeller on the run (`labelqueue.gold`).
     """
-    choice = Choice(choice)
+    choice = Click(choice)
     source = LabelSource(source)
     now = utcnow()
     # Bound parameters are named apart from every column (see lease_next_query).
@@ -201,16 +192,19 @@ def submit_label(
             "query_id": query_id,
             "run_id": asked.run_id,
             "labeller_id": labeller_id,
+            "answer": answer_of_click(choice, left_is_first),
             "choice": choice,
             "left_is_first": left_is_first,
-            "preferred": preferred_segment(choice, left_is_first),
             "source": source,
             "shown_at": clamp_shown_at(shown_at, leased_at=asked.leased_at, now=now),
             "answered_at": now,
             "consumed_at": None,
         }
         [label_id] = connection.execute(_INSERT_LABEL, values).inserted_primary_key or [None]
-        connection.execute(_COUNT_LABEL, {"run": asked.run_id})
+        if asked.gold:
+            pause_if_below(connection, labeller_id=labeller_id, run_id=asked.run_id)
+        else:
+            connection.execute(_COUNT_LABEL, {"run": asked.run_id})
     return snapshot(Label, {"id": label_id, **values}), True
 
 

@@ -31,6 +31,8 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
+from runvocab.answers import Answer, Click
+
 
 class Role(StrEnum):
     LABELLER = "labeller"
@@ -59,38 +61,11 @@ class QueryStatus(StrEnum):
     CANCELLED = "cancelled"
 
 
-class Choice(StrEnum):
-    """What the labeller clicked, in screen terms."""
-
-    LEFT = "left"
-    RIGHT = "right"
-    EQUAL = "equal"
-    CANT_TELL = "cant_tell"
-    SKIP = "skip"
-
-
-class Preferred(StrEnum):
-    """The answer in segment terms, as the trainer uses it."""
-
-    FIRST = "first"
-    SECOND = "second"
-    EQUAL = "equal"
-
-
-class ShadowChoice(StrEnum):
-    """The scripted teacher's answer in segment terms, recorded with each query."""
-
-    FIRST = "first"
-    SECOND = "second"
-    EQUAL = "equal"
-    CANT_TELL = "cant_tell"
-    SKIP = "skip"
-
-
 class LabelSource(StrEnum):
+    """Who answered: a person, or a scripted teacher (the run's own, or a simulated crowd)."""
+
     HUMAN = "human"
     SCRIPTED = "scripted"
-    GOLD = "gold"
 
 
 class MetricStream(StrEnum):
@@ -298,15 +273,19 @@ class Query(Base):
     """the selection score (none for uniform picks)"""
     rule: Mapped[str | None] = mapped_column(String(50))
     """the selection rule that picked the pair"""
-    shadow_choice: Mapped[ShadowChoice | None] = mapped_column(
-        _enum(ShadowChoice, "shadow_choice"), nullable=True
+    shadow_choice: Mapped[Answer | None] = mapped_column(
+        _enum(Answer, "shadow_choice"), nullable=True
     )
     """the run's scripted teacher's answer (hidden): compared with people's and the model's"""
     distinguishable: Mapped[bool | None] = mapped_column(Boolean)
     """whether the scripted teacher can tell the pair apart (hidden)"""
 
     needs_labels: Mapped[int] = mapped_column(Integer, default=1)
-    """distinct labellers' answers wanted"""
+    """distinct labellers' answers wanted: the run's `feedback.labels_per_query` (a gold pair
+    takes every labeller's, `GOLD_NEEDS_LABELS`)"""
+    gold: Mapped[bool] = mapped_column(Boolean, default=False)
+    """a known-answer pair (`labelqueue.gold`): answered to measure labellers, never trained on
+    and never counted against the budget; its answer is the segment with the larger return"""
     label_count: Mapped[int] = mapped_column(Integer, default=0)
     status: Mapped[QueryStatus] = mapped_column(_enum(QueryStatus, "status"))
     lease_holder: Mapped[int | None] = mapped_column(ForeignKey("labellers.id"), index=True)
@@ -331,11 +310,12 @@ class Label(Base):
     # Copied from the query so the trainer's consume scan needs no join.
     run_id: Mapped[int] = mapped_column(ForeignKey("runs.id"))
     labeller_id: Mapped[int] = mapped_column(ForeignKey("labellers.id"))
-    choice: Mapped[Choice] = mapped_column(_enum(Choice, "choice"))
+    answer: Mapped[Answer] = mapped_column(_enum(Answer, "answer"))
+    """the answer in segment terms (`runvocab.answers`)"""
+    choice: Mapped[Click] = mapped_column(_enum(Click, "choice"))
+    """what was clicked, in screen terms"""
     left_is_first: Mapped[bool] = mapped_column(Boolean)
-    """whether the first segment was shown on the left"""
-    preferred: Mapped[Preferred | None] = mapped_column(_enum(Preferred, "preferred"))
-    """the choice in segment terms; none for cant_tell and skip"""
+    """the sides the server chose: whether the first segment was shown on the left"""
     source: Mapped[LabelSource] = mapped_column(_enum(LabelSource, "source"))
     shown_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     answered_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
@@ -350,6 +330,21 @@ Index("ix_labels_run_id_consumed_at", Label.run_id, Label.consumed_at)
 _STANDING = Label.withdrawn_at.is_(None)
 Index("uq_labels_query_id_labeller_id_standing", Label.query_id, Label.labeller_id, unique=True,
       sqlite_where=_STANDING, postgresql_where=_STANDING)
+
+
+class LabellerPause(Base):
+    """A labeller kept from a run's queries because their accuracy on its gold pairs fell below
+    the run's threshold (`labelqueue.gold`); their answers stay stored. An operator lifts it."""
+
+    __tablename__ = "labeller_pauses"
+    __table_args__ = (UniqueConstraint("run_id", "labeller_id"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id"))
+    labeller_id: Mapped[int] = mapped_column(ForeignKey("labellers.id"))
+    gold_answers: Mapped[int] = mapped_column(Integer)
+    gold_correct: Mapped[int] = mapped_column(Integer)
+    paused_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
 
 
 class Metric(Base):
@@ -371,3 +366,4 @@ LABELLERS = cast(Table, Labeller.__table__)
 RUNS = cast(Table, Run.__table__)
 QUERIES = cast(Table, Query.__table__)
 LABELS = cast(Table, Label.__table__)
+PAUSES = cast(Table, LabellerPause.__table__)

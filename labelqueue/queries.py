@@ -13,8 +13,11 @@ from typing import Any
 
 from sqlalchemy import (
     ColumnElement,
+    Connection,
     FromClause,
     Integer,
+    Row,
+    Select,
     Update,
     and_,
     bindparam,
@@ -29,16 +32,17 @@ from sqlalchemy.orm import Session
 
 from labelqueue.coerce import clip_key, finite
 from labelqueue.errors import Conflict, NotFound, Revoked
+from labelqueue.gold import GOLD_NEEDS_LABELS, GoldSettings, Paused, gold_due, pause_notice
 from labelqueue.models import (
     LABELLERS,
     LABELS,
+    PAUSES,
     QUERIES,
     RUNS,
     Query,
     QueryStatus,
     Run,
     RunStatus,
-    ShadowChoice,
     TeacherKind,
     UTCDateTime,
     utcnow,
@@ -51,6 +55,7 @@ from labelqueue.transaction import (
     snapshot,
     transaction,
 )
+from runvocab.answers import Answer
 
 LEASE_SECONDS = 120.0
 LABELLABLE = (RunStatus.RUNNING, RunStatus.PAUSED)
@@ -80,6 +85,7 @@ _OPTIONAL = (
     "score",
     "rule",
     "needs_labels",
+    "gold",
     "shadow_choice",
     "distinguishable",
 )
@@ -110,10 +116,12 @@ def _query_fields(spec: Mapping[str, Any]) -> dict[str, Any]:
     fields["score"] = finite(spec.get("score"))
     fields["rule"] = spec.get("rule")
     shadow = spec.get("shadow_choice")
-    fields["shadow_choice"] = None if shadow is None else ShadowChoice(shadow)
+    fields["shadow_choice"] = None if shadow is None else Answer(shadow)
     distinguishable = spec.get("distinguishable")
     fields["distinguishable"] = None if distinguishable is None else bool(distinguishable)
-    fields["needs_labels"] = int(spec.get("needs_labels", 1))
+    fields["gold"] = bool(spec.get("gold", False))
+    wanted = GOLD_NEEDS_LABELS if fields["gold"] else spec.get("needs_labels", 1)
+    fields["needs_labels"] = int(wanted)
     if fields["needs_labels"] < 1:
         raise ValueError("needs_labels must be at least 1")
     return fields
@@ -127,8 +135,9 @@ def push_queries(
     Each dict holds `Query` columns by name: round, position, segment_length, the trajectory
     and start of both sides, the four ground-truth returns (`first_segment_return`, ...,
     `second_trajectory_return`), and optionally step, first/second_skill, first/second_clip,
-    model_p, score, rule, needs_labels, and the hidden shadow_choice (the run's scripted
-    teacher's answer: first, second, equal, cant_tell or skip) and distinguishable.
+    model_p, score, rule, needs_labels (distinct labellers' answers wanted), gold (a gold pair,
+    which every labeller may answer once: `labelqueue.gold`), and the hidden shadow_choice (the
+    run's scripted teacher's answer, a `runvocab.answers.Answer`) and distinguishable.
     Idempotent per (run, round, position): a run resumed from an older checkpoint that pushes
     the same round again gets the stored ids back; a different pair at a stored position
     raises Conflict.
@@ -266,13 +275,17 @@ _RELEASE = (
 )
 
 
-def _take(*, of_run: bool) -> Update:
-    """Lease the oldest open query the labeller has not answered (of one run, or of any
-    human-taught run), returning its row. The candidate is locked with SKIP LOCKED on
-    PostgreSQL, so concurrent leases take different queries instead of queueing for one."""
+def _oldest(*, of_run: bool, gold: bool, only_id: bool = False) -> Select[Any]:
+    """The oldest open query (gold pair or not) the labeller has not answered, of one run or of
+    any human-taught run, on a run that has not paused the labeller: its id, run and the run's
+    config. Locked with SKIP LOCKED on PostgreSQL, so concurrent leases take different queries
+    instead of queueing for one."""
     candidate = QUERIES.alias("candidate")
     answered = exists().where(
         LABELS.c.query_id == candidate.c.id, LABELS.c.labeller_id == _LABELLER
+    )
+    paused = exists().where(
+        PAUSES.c.run_id == candidate.c.run_id, PAUSES.c.labeller_id == _LABELLER
     )
     servable = or_(
         RUNS.c.teacher == TeacherKind.SCRIPTED,
@@ -281,19 +294,23 @@ def _take(*, of_run: bool) -> Update:
     which = (
         candidate.c.run_id == bindparam("run") if of_run else RUNS.c.teacher == TeacherKind.HUMAN
     )
-    oldest = (
-        select(candidate.c.id)
+    columns = (candidate.c.id,) if only_id else (candidate.c.id, candidate.c.run_id, RUNS.c.config)
+    return (
+        select(*columns)
         .join(RUNS, RUNS.c.id == candidate.c.run_id)
-        .where(one_of(RUNS.c.status, LABELLABLE), _free(candidate, _NOW), ~answered, servable)
-        .where(which)
+        .where(candidate.c.gold.is_(gold), one_of(RUNS.c.status, LABELLABLE))
+        .where(_free(candidate, _NOW), ~answered, ~paused, servable, which)
         .order_by(candidate.c.id)
         .limit(1)
         .with_for_update(of=candidate, skip_locked=True)
-        .scalar_subquery()
     )
+
+
+def _lease(which: ColumnElement[Any]) -> Update:
+    """Lease the query `which` names if it is still free, returning its row."""
     return (
         update(QUERIES)
-        .where(QUERIES.c.id == oldest, _free(QUERIES, _NOW))
+        .where(QUERIES.c.id == which, _free(QUERIES, _NOW))
         .values(
             status=QueryStatus.LEASED,
             lease_holder=_LABELLER,
@@ -304,8 +321,18 @@ def _take(*, of_run: bool) -> Update:
     )
 
 
-_TAKE_OF_ANY_HUMAN_RUN = _take(of_run=False)
-_TAKE_OF_RUN = _take(of_run=True)
+_TAKE_OF_ANY_HUMAN_RUN = _lease(_oldest(of_run=False, gold=False, only_id=True).scalar_subquery())
+_TAKE_OF_RUN = _lease(_oldest(of_run=True, gold=False, only_id=True).scalar_subquery())
+_GOLD_OF_ANY_HUMAN_RUN = _oldest(of_run=False, gold=True)
+_GOLD_OF_RUN = _oldest(of_run=True, gold=True)
+_TAKE_GOLD = _lease(bindparam("gold", type_=Integer()))
+# Why nothing was leased, when the labeller is paused on the runs asked about.
+_PAUSE = (
+    select(PAUSES.c.gold_answers, PAUSES.c.gold_correct, RUNS.c.config)
+    .join(RUNS, RUNS.c.id == PAUSES.c.run_id)
+    .where(PAUSES.c.labeller_id == _LABELLER, one_of(RUNS.c.status, LABELLABLE))
+)
+_PAUSE_ON_RUN = _PAUSE.where(PAUSES.c.run_id == bindparam("run"))
 
 
 def lease_next_query(
@@ -315,6 +342,7 @@ def lease_next_query(
     run_id: int | None = None,
     lease_seconds: float = LEASE_SECONDS,
     ahead_of: int | None = None,
+    gold: bool = True,
 ) -> Query | None:
     """Lease the oldest open query this labeller has not answered; None when there is none.
 
@@ -326,6 +354,10 @@ def lease_next_query(
     `ahead_of`: the query the labeller is looking at. Its lease is kept (and renewed) and a
     second query is leased besides it, so a page can preload the next pair; asking again with
     the same `ahead_of` returns the same second query.
+
+    Gold pairs (`labelqueue.gold`) are mixed in at their run's rate unless `gold` is false (the
+    run's own scripted teacher). A labeller paused on a run gets none of its queries; when that
+    leaves nothing to lease, Paused says why.
     """
     now = utcnow()
     params: dict[str, Any] = {
@@ -356,6 +388,24 @@ def lease_next_query(
             others.append(held)
         if others:  # held for another run, or for a run that closed: free for others
             connection.execute(_RELEASE, params | {"queries": others})
-        take = _TAKE_OF_ANY_HUMAN_RUN if run_id is None else _TAKE_OF_RUN
-        row = connection.execute(take, params).first()
+        row = _lease_gold(connection, params) if gold else None
+        if row is None:
+            take = _TAKE_OF_ANY_HUMAN_RUN if run_id is None else _TAKE_OF_RUN
+            row = connection.execute(take, params).first()
+        if row is None:
+            pause = connection.execute(_PAUSE if run_id is None else _PAUSE_ON_RUN, params).first()
+            if pause is not None:
+                raise Paused(pause_notice(pause.gold_answers, pause.gold_correct,
+                                          GoldSettings.of(pause.config)))
     return None if row is None else snapshot(Query, row._mapping)
+
+
+def _lease_gold(connection: Connection, params: dict[str, Any]) -> Row[Any] | None:
+    """A gold pair for the labeller when one is open and their share of gold answers is due."""
+    oldest = _GOLD_OF_ANY_HUMAN_RUN if params["run"] is None else _GOLD_OF_RUN
+    candidate = connection.execute(oldest, params).first()
+    if candidate is None or not gold_due(connection, labeller_id=params["labeller"],
+                                         run_id=candidate.run_id,
+                                         rate=GoldSettings.of(candidate.config).rate):
+        return None
+    return connection.execute(_TAKE_GOLD, params | {"gold": candidate.id}).first()

@@ -159,6 +159,16 @@ class FeedbackConfig:
     wait_for_labels: bool = True
     """people teaching: pause training until a round is answered (false: keep training on the
     current reward and use what arrived when the next round is due)"""
+    labels_per_query: int = 1
+    """people teaching: distinct labellers who answer each query (1-10); the reward model trains
+    on their majority (`runvocab.answers.aggregate`)"""
+    gold_rate: float = 0.0
+    """people teaching: the share of each labeller's answers given to gold pairs, known-answer
+    pairs that measure them and are never trained on (0-0.5; `labelqueue.gold`)"""
+    gold_min_accuracy: float = 0.0
+    """pause a labeller on the run whose accuracy on gold pairs falls below this (0: never)"""
+    gold_min_answers: int = 10
+    """gold answers a labeller gives before `gold_min_accuracy` can pause them"""
 
 
 @dataclass(frozen=True)

@@ -52,6 +52,12 @@ def _not_negative(values: dict[str, float]) -> None:
             raise ConfigError(name, f"{name} cannot be negative, got {value}")
 
 
+def _within(values: dict[str, tuple[float, float, float]]) -> None:
+    for name, (value, low, high) in values.items():
+        if not low <= value <= high:
+            raise ConfigError(name, f"{name} must be between {low} and {high}, got {value}")
+
+
 def _check_names(cfg: RunConfig) -> None:
     if cfg.task not in all_tasks():
         raise ConfigError("task", unknown_task(cfg.task))
@@ -108,6 +114,10 @@ def _check_feedback(cfg: RunConfig) -> None:
     })
     _not_negative({"feedback.budget": fb.budget,
                    "skill.initial_rollouts": cfg.skill.initial_rollouts})
+    _within({"feedback.labels_per_query": (fb.labels_per_query, 1, 10),
+             "feedback.gold_rate": (fb.gold_rate, 0.0, 0.5),
+             "feedback.gold_min_accuracy": (fb.gold_min_accuracy, 0.0, 1.0),
+             "feedback.gold_min_answers": (fb.gold_min_answers, 1, 10_000)})
     if fb.pool_trajectories < 2:
         raise ConfigError("feedback.pool_trajectories",
                           "feedback.pool_trajectories must be at least 2 (a query pairs two)")

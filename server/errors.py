@@ -12,11 +12,12 @@ from sqlalchemy.exc import DataError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import BaseRoute
 
-from labelqueue import Conflict, InviteClosed, LeaseError, NotFound, Revoked
+from labelqueue import Conflict, InviteClosed, LeaseError, NotFound, Paused, Revoked
 
 STATUS_OF: dict[type[Exception], int] = {
     NotFound: 404,
     Revoked: 403,
+    Paused: 403,
     LeaseError: 409,
     Conflict: 409,  # InvalidTransition and RunClosed too: they are Conflicts
     InviteClosed: 410,

@@ -15,6 +15,7 @@ from fastapi import Path
 from fastapi import Query as QueryParam
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, computed_field
 
+from runvocab.answers import Click
 from runvocab.clip_format import CLIP_SIZES
 from runvocab.instructions import MAX_CHARS as MAX_INSTRUCTION_CHARS
 from runvocab.instructions import clean_instruction, run_instruction
@@ -23,7 +24,6 @@ from runvocab.names import ALGOS, SIZE_PRESETS, all_tasks, unknown, unknown_task
 Teacher = Literal["human", "scripted"]
 RoleName = Literal["labeller", "operator"]
 StreamName = Literal["episodes", "eval", "rounds"]
-ChoiceName = Literal["left", "right", "equal", "cant_tell", "skip"]
 
 INT32_MAX = 2**31 - 1
 """the largest value an INTEGER column holds on PostgreSQL: ids, budgets, seeds and steps"""
@@ -241,14 +241,15 @@ class NextQuery(BaseModel):
     left_clip_url: str
     right_clip_url: str
     left_is_first: bool
-    """echo it back with the label: which segment was on the left"""
+    """the sides this server chose for the labeller: whether the first segment is on the left"""
     segment_length: int
 
 
 class LabelSubmit(Body):
-    choice: ChoiceName
-    left_is_first: bool
-    """the value next-query gave; a different one is refused (422)"""
+    choice: Click
+    """what was clicked; the server turns it into an answer with the sides it chose"""
+    left_is_first: bool | None = None
+    """optional: the value next-query gave, as a check; a different one is refused (422)"""
     shown_at: UTCTime
     """when the page showed the pair; stored clamped to [the lease's start, the answer's time]"""
 
@@ -260,7 +261,8 @@ class LabelOut(Out):
     labeller_id: int
     choice: str
     left_is_first: bool
-    preferred: str | None
+    answer: str
+    """the answer in segment terms: first, second, equal, cant_tell or skip"""
     shown_at: datetime | None
     answered_at: datetime
 

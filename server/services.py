@@ -134,11 +134,11 @@ def shown_query(*, settings: Settings, query: Query, labeller_id: int) -> NextQu
 def submit_answer(
     session: Session, *, settings: Settings, labeller_id: int, query_id: int, body: LabelSubmit
 ) -> tuple[Label, bool]:
-    """Store a person's answer; (label, created). The side order is the server's own: an answer
-    echoing another `left_is_first` than next-query gave is refused (ValueError, 422), since
-    storing it would flip which segment it prefers."""
+    """Store a person's answer; (label, created). The side order is the server's own; a page
+    that sends the `left_is_first` next-query gave as a check, and sends another, is refused
+    (ValueError, 422), since it showed the pair otherwise than the server records."""
     first_left = clips.left_is_first(settings=settings, query_id=query_id, labeller_id=labeller_id)
-    if body.left_is_first != first_left:
+    if body.left_is_first is not None and body.left_is_first != first_left:
         get_query(session, query_id=query_id)  # an unknown query is a 404 first
         raise ValueError(
             f"left_is_first={str(body.left_is_first).lower()} is not the side order this server "

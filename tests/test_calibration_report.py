@@ -13,7 +13,7 @@ from sepoa.cli import main
 ROW = {
     "schema_version": 2, "label_id": 1, "run_id": 1, "round": 0, "algo": "sepoa",
     "query_id": 1, "labeller_id": 4, "labeller_name": "ann", "choice": "left",
-    "preferred": "first", "first_trajectory": 0, "second_trajectory": 1,
+    "answer": "first", "first_trajectory": 0, "second_trajectory": 1,
     "first_segment_return": 5.0, "second_segment_return": 4.0,
     "first_trajectory_return": 110.0, "second_trajectory_return": 90.0,
 }
@@ -30,7 +30,7 @@ def test_an_export_gives_a_figure_a_table_and_the_numbers(
 ) -> None:
     export = tmp_path / "labels-v2.jsonl"
     rows = [ROW | {"label_id": i, "query_id": i} for i in range(1, 5)]
-    rows.append(ROW | {"label_id": 5, "query_id": 5, "choice": "cant_tell", "preferred": None,
+    rows.append(ROW | {"label_id": 5, "query_id": 5, "choice": "cant_tell", "answer": "cant_tell",
                        "future_column": "ignored"})
     export.write_text("".join(json.dumps(row) + "\n" for row in rows))
     code, out, err = run_report(capsys, "--calibration", str(export))
@@ -74,7 +74,7 @@ def test_every_mistake_is_one_line_and_exit_2(
     cases = [
         (["--calibration", str(tmp_path / "missing.jsonl")], "does not exist"),
         (["--calibration", str(no_columns)], "lacks the columns a calibration report needs: "
-         "run_id, round, algo, query_id, labeller_id, labeller_name, preferred"),
+         "run_id, round, algo, query_id, labeller_id, labeller_name, answer"),
         (["--calibration", str(picture)], "not UTF-8"),
         (["--calibration", str(notes)], "not a label export"),
         (["--calibration", str(tmp_path)], "is a folder"),

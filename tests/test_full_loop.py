@@ -66,7 +66,7 @@ def test_people_label_over_rest_and_the_run_learns_from_them(tmp_path: Path) -> 
                 "choice": choice, "left_is_first": query["left_is_first"],
                 "shown_at": "2026-11-21T12:00:00Z"})
             assert posted.status_code == 201, posted.text
-            assert posted.json()["preferred"] == shadow
+            assert posted.json()["answer"] == shadow
             answered += 1
         worker.join(timeout=60)
 

@@ -15,15 +15,17 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from labelqueue import Query, Run, RunStatus, make_engine, migrate, session_factory
+from runvocab.answers import click_of_answer
 from runvocab.config import build_config
 from trainer.clips import ClipConfig
 from trainer.loop import TrainingRun
-from trainer.worker import SCRIPTED_SCREEN, WorkerConfig, run_worker
+from trainer.worker import WorkerConfig, run_worker
 
 # Two rounds of 10 pairs in 1000 tiny steps (rounds at 400 and 800).
 RUN = {"task": "dmc:cheetah_run", "algo": "pebble", "preset": "tiny", "seed": 0, "budget": 20,
        "teacher_params": {"eps": 0.3}, "config": {"steps": 1000, "threads": 1}}
-SCREEN = SCRIPTED_SCREEN
+SCREEN = {answer: click_of_answer(answer, left_is_first=True).value
+          for answer in ("first", "second", "equal", "cant_tell", "skip")}
 """a shadow answer as a person shown the first segment on the left would click it"""
 
 

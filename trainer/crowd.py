@@ -34,7 +34,8 @@ from labelqueue import (
     submit_label,
 )
 from labelqueue.calibration import RECENT_TRAJECTORIES, estimate_r_avg
-from trainer.teachers import Choice, NoisyTeacher, QueryTruth
+from runvocab.answers import Answer
+from trainer.teachers import NoisyTeacher, QueryTruth
 
 RAvg = Callable[[Query], float]
 """R_avg for a query: the noisy teacher's band is eps * |R_avg|"""
@@ -82,8 +83,8 @@ class _Player:
         bias = self.spec.left_bias
         if lean < abs(2.0 * bias - 1.0):
             return ("left" if bias > 0.5 else "right"), left_is_first
-        if answer.choice in (Choice.FIRST, Choice.SECOND):
-            on_left = (answer.choice is Choice.FIRST) == left_is_first
+        if answer.choice in (Answer.FIRST, Answer.SECOND):
+            on_left = (answer.choice is Answer.FIRST) == left_is_first
             return ("left" if on_left else "right"), left_is_first
         return str(answer.choice), left_is_first
 

@@ -22,6 +22,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from runvocab.answers import Answer
 from runvocab.config import FeedbackConfig
 from trainer.query_selection import (
     Candidates,
@@ -33,7 +34,7 @@ from trainer.query_selection import (
 from trainer.return_estimator import ReturnEstimator
 from trainer.reward_model import LabelledPairs, RewardModel
 from trainer.surf import PairSampler
-from trainer.teachers import Choice, QueryTruth, choice_target, is_correct
+from trainer.teachers import QueryTruth, choice_target, is_correct
 from trainer.trajectories import Trajectory, TrajectoryPool
 
 
@@ -65,10 +66,10 @@ class Query:
 
 
 @dataclass(frozen=True)
-class Answer:
+class GivenAnswer:
     """An answer to a query, from a person or a scripted teacher."""
 
-    choice: Choice
+    choice: Answer
     labeller: str
     source: str
     """scripted | human | gold"""
@@ -78,7 +79,7 @@ class Answer:
 @dataclass(frozen=True)
 class Label:
     query: Query
-    choice: Choice
+    choice: Answer
     distinguishable: bool
     correct: bool | None
     labeller: str
@@ -225,13 +226,14 @@ class PreferenceFeedback:
         returns = rewards.trajectory_returns()
         return self.estimator.fit(np.stack([t.skill for t in trajectories]), returns)
 
-    def scripted_answers(self) -> dict[str, Answer]:
+    def scripted_answers(self) -> dict[str, GivenAnswer]:
         """The shadow answers of the open round, as the answers of a standalone run."""
         now = time.time()
-        return {q.query_id: Answer(Choice(q.shadow_choice), self.labeller, "scripted", now)
+        return {q.query_id: GivenAnswer(Answer(q.shadow_choice), self.labeller, "scripted", now)
                 for q in self.pending}
 
-    def finish_round(self, pool: TrajectoryPool, answers: Mapping[str, Answer]) -> dict[str, float]:
+    def finish_round(self, pool: TrajectoryPool,
+                     answers: Mapping[str, GivenAnswer]) -> dict[str, float]:
         """Close the open round with `answers` (by query id; a query without one is dropped and
         costs no budget), log the new ones, and train the reward model on every label so far."""
         queries, by_id = self.pending, {t.id: t for t in pool.trajectories}

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from trainer.feedback import Answer, PreferenceFeedback, Query
+from trainer.feedback import GivenAnswer, PreferenceFeedback, Query
 from trainer.trajectories import TrajectoryPool
 
 
@@ -32,7 +32,7 @@ class RunHooks:
         of a resumed run."""
 
     def answers(self, feedback: PreferenceFeedback, pool: TrajectoryPool,
-                final: bool) -> dict[str, Answer] | None:
+                final: bool) -> dict[str, GivenAnswer] | None:
         """The open round's answers by query id, or None to keep training and ask again at the
         next episode's end. `final`: the round must close now, with whatever answers exist."""
         return feedback.scripted_answers()

@@ -47,7 +47,7 @@ from runvocab.validate import validate
 from trainer.agent_reward import AgentReward
 from trainer.checkpoint import load_checkpoint, save_checkpoint
 from trainer.envs import make_env
-from trainer.feedback import Answer, LabelLog, PreferenceFeedback
+from trainer.feedback import GivenAnswer, LabelLog, PreferenceFeedback
 from trainer.hooks import RunHooks
 from trainer.metrics import Metrics
 from trainer.policies import Meta, make_policy
@@ -244,7 +244,7 @@ class TrainingRun:
                 # length depended on when people answered.
                 self._save()
 
-    def _finish_round(self, answers: dict[str, Answer]) -> None:
+    def _finish_round(self, answers: dict[str, GivenAnswer]) -> None:
         fb = self.feedback
         assert fb is not None
         first = fb.rounds == 0

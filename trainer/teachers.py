@@ -20,40 +20,26 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from enum import StrEnum
 
 import numpy as np
 
+from runvocab.answers import Answer
 from runvocab.config import TeacherConfig
 from runvocab.names import TEACHER_KINDS, TIES
 
-
-class Choice(StrEnum):
-    FIRST = "first"
-    """segment 0 preferred"""
-    SECOND = "second"
-    """segment 1 preferred"""
-    EQUAL = "equal"
-    """equally preferable"""
-    CANT_TELL = "cant_tell"
-    """kept on record, not trained on"""
-    SKIP = "skip"
-    """kept on record, not trained on"""
-
-
 # Training target: the probability that segment 1 is preferred.
-_TARGETS: dict[Choice, float | None] = {
-    Choice.FIRST: 0.0,
-    Choice.SECOND: 1.0,
-    Choice.EQUAL: 0.5,
-    Choice.CANT_TELL: None,
-    Choice.SKIP: None,
+_TARGETS: dict[Answer, float | None] = {
+    Answer.FIRST: 0.0,
+    Answer.SECOND: 1.0,
+    Answer.EQUAL: 0.5,
+    Answer.CANT_TELL: None,
+    Answer.SKIP: None,
 }
 
 
-def choice_target(choice: Choice) -> float | None:
+def choice_target(choice: Answer) -> float | None:
     """0.0 / 1.0 / 0.5 for FIRST / SECOND / EQUAL; None for answers that are not trained on."""
-    return _TARGETS[Choice(choice)]
+    return _TARGETS[Answer(choice)]
 
 
 @dataclass(frozen=True)
@@ -72,7 +58,7 @@ class QueryTruth:
 
 @dataclass(frozen=True)
 class TeacherAnswer:
-    choice: Choice
+    choice: Answer
     distinguishable: bool
     """could the teacher tell the pair apart"""
     correct: bool | None
@@ -92,22 +78,22 @@ def _recent_mean(recent_returns: Sequence[float], n: int) -> float:
 
 
 
-def _sum_choice(sum0: float, sum1: float, tie: str = "equal", u: float = 0.0) -> Choice:
+def _sum_choice(sum0: float, sum1: float, tie: str = "equal", u: float = 0.0) -> Answer:
     """The larger sum wins; an exact tie answers by `tie`: EQUAL, a coin (`u` a uniform), or
     FIRST (B-Pref's argmax)."""
     if sum1 > sum0:
-        return Choice.SECOND
+        return Answer.SECOND
     if sum0 > sum1:
-        return Choice.FIRST
+        return Answer.FIRST
     if tie == "random":
-        return Choice.SECOND if u < 0.5 else Choice.FIRST
-    return Choice.FIRST if tie == "first" else Choice.EQUAL
+        return Answer.SECOND if u < 0.5 else Answer.FIRST
+    return Answer.FIRST if tie == "first" else Answer.EQUAL
 
 
-def is_correct(choice: Choice, truth: QueryTruth) -> bool | None:
+def is_correct(choice: Answer, truth: QueryTruth) -> bool | None:
     """Agreement of a FIRST/SECOND choice with the plain segment-sum comparison."""
     best = _sum_choice(float(np.sum(truth.segment_rewards0)), float(np.sum(truth.segment_rewards1)))
-    if choice not in (Choice.FIRST, Choice.SECOND) or best is Choice.EQUAL:
+    if choice not in (Answer.FIRST, Answer.SECOND) or best is Answer.EQUAL:
         return None
     return choice is best
 
@@ -117,8 +103,8 @@ def _check_tie(tie: str) -> None:
         raise ValueError(f"unknown teacher.tie {tie!r}; valid: {', '.join(TIES)}")
 
 
-def _flip(choice: Choice) -> Choice:
-    return {Choice.FIRST: Choice.SECOND, Choice.SECOND: Choice.FIRST}.get(choice, choice)
+def _flip(choice: Answer) -> Answer:
+    return {Answer.FIRST: Answer.SECOND, Answer.SECOND: Answer.FIRST}.get(choice, choice)
 
 
 def _sigmoid(x: float) -> float:
@@ -178,7 +164,7 @@ class NoisyTeacher:
         for truth, u in zip(truths, coins, strict=True):
             gap = abs(float(truth.trajectory_return0) - float(truth.trajectory_return1))
             if gap < thres:  # strict: eps = 0 is never random, the boundary is distinguishable
-                choice = Choice.SECOND if u < 0.5 else Choice.FIRST
+                choice = Answer.SECOND if u < 0.5 else Answer.FIRST
                 distinguishable = False
             else:
                 choice = _sum_choice(float(np.sum(truth.segment_rewards0)),
@@ -256,10 +242,10 @@ class BPrefTeacher:
             sum0 = float(np.sum(truth.segment_rewards0))
             sum1 = float(np.sum(truth.segment_rewards1))
             if cfg.eps_skip > 0 and max(sum0, sum1) < thres_skip:
-                answers.append(TeacherAnswer(Choice.SKIP, False, None))
+                answers.append(TeacherAnswer(Answer.SKIP, False, None))
                 continue
             if cfg.eps_equal > 0 and abs(sum0 - sum1) < thres_equal:
-                answers.append(TeacherAnswer(Choice.EQUAL, False, None))
+                answers.append(TeacherAnswer(Answer.EQUAL, False, None))
                 continue
             my0 = _myopic_sum(truth.segment_rewards0, cfg.gamma)
             my1 = _myopic_sum(truth.segment_rewards1, cfg.gamma)
@@ -267,7 +253,7 @@ class BPrefTeacher:
                 choice = _sum_choice(my0, my1, cfg.tie, u_choice)
             else:
                 p_second = _sigmoid(cfg.beta * (my1 - my0))
-                choice = Choice.SECOND if u_choice < p_second else Choice.FIRST
+                choice = Answer.SECOND if u_choice < p_second else Answer.FIRST
             if u_mistake < cfg.eps_mistake:
                 choice = _flip(choice)
             answers.append(TeacherAnswer(choice, True, is_correct(choice, truth)))

@@ -20,9 +20,13 @@ resumes from the checkpoint in `<data dir>/runs/run-<id>` if there is one, and t
 A round's labels are read back by query id (`labels_for_queries`), which does not care whether a
 label was consumed before: a worker killed after labels arrived resumes from the checkpoint
 taken when the round opened, pushes the same queries again (the push is idempotent) and finds
-every label given meanwhile. Each query's first label is the one trained on. A person's label is
-used once it is older than `labelqueue.SETTLE_SECONDS`, when it can no longer be taken back
-(`labelqueue.undo`); a withdrawn label is never read.
+every label given meanwhile. A query is answered when `feedback.labels_per_query` people have
+answered it, and their majority is trained on (`runvocab.answers.aggregate`); when the scripted
+teacher answered it, its answer is. A round that must end early (the run's end) takes the
+answers that arrived. A person's label is used once it is older than `labelqueue.SETTLE_SECONDS`,
+when it can no longer be taken back (`labelqueue.undo`); a withdrawn label is never read. When
+people teach and `feedback.gold_rate` is above zero, each round also pushes gold pairs
+(`trainer.gold_pairs`, `labelqueue.gold`), which measure the labellers and are never trained on.
 """
 
 from __future__ import annotations
@@ -33,10 +37,13 @@ import socket
 import sys
 import time
 import traceback
+from collections import Counter
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -68,21 +75,18 @@ from labelqueue import (
     submit_label,
     write_metrics,
 )
+from runvocab.answers import aggregate, click_of_answer
 from runvocab.config import RunConfig, apply_overrides
 from runvocab.queued_run import queued_run_config
 from trainer.clips import ClipConfig, render_query_clips, sized
 from trainer.envs import Env, make_env
-from trainer.feedback import Answer, PreferenceFeedback, Query
+from trainer.feedback import GivenAnswer, PreferenceFeedback, Query
+from trainer.gold_pairs import gold_count, gold_pairs
 from trainer.hooks import RunHooks
 from trainer.loop import CHECKPOINT, TrainingRun
-from trainer.teachers import Choice
 from trainer.trajectories import TrajectoryPool
 
 SCRIPTED_LABELLER = "scripted-teacher"
-# The scripted teacher's answer in screen terms; it always sees the first segment on the left.
-SCRIPTED_SCREEN = {"first": "left", "second": "right", "equal": "equal",
-                   "cant_tell": "cant_tell", "skip": "skip"}
-PREFERRED_CHOICE = {"first": Choice.FIRST, "second": Choice.SECOND, "equal": Choice.EQUAL}
 
 
 @dataclass(frozen=True)
@@ -135,11 +139,46 @@ def run_config(run: Run, worker: WorkerConfig) -> RunConfig:
     return apply_overrides(cfg, local)
 
 
-def _answer(label: Label, labeller_names: dict[int, str]) -> Answer:
-    preferred = label.preferred.value if label.preferred is not None else None
-    choice = PREFERRED_CHOICE[preferred] if preferred else Choice(label.choice.value)
-    name = labeller_names.get(label.labeller_id, f"labeller-{label.labeller_id}")
-    return Answer(choice, name, label.source.value, label.answered_at.timestamp())
+def queue_fields(q: Query, position: int,
+                 skills: Mapping[int, np.ndarray | None]) -> dict[str, Any]:
+    """A trainer query as the queue stores it (`labelqueue.push_queries`)."""
+    def skill(trajectory: int) -> list[float] | None:
+        vector = skills.get(trajectory)
+        return None if vector is None else [float(x) for x in vector]
+
+    return {
+        "round": q.round, "position": position, "step": q.step,
+        "segment_length": q.segment_length,
+        "first_trajectory": q.trajectory0, "first_start": q.start0,
+        "first_skill": skill(q.trajectory0),
+        "second_trajectory": q.trajectory1, "second_start": q.start1,
+        "second_skill": skill(q.trajectory1),
+        "first_segment_return": q.segment_return0,
+        "second_segment_return": q.segment_return1,
+        "first_trajectory_return": q.trajectory_return0,
+        "second_trajectory_return": q.trajectory_return1,
+        "model_p": q.model_p, "score": q.score, "rule": q.rule,
+        "shadow_choice": q.shadow_choice, "distinguishable": q.distinguishable,
+    }
+
+
+def complete_queries(labels: Sequence[Label], labels_per_query: int) -> set[int]:
+    """The queries whose answers are all in: `labels_per_query` people's, or the scripted
+    teacher's (when it teaches, its one answer decides)."""
+    counts = Counter(label.query_id for label in labels)
+    scripted = {label.query_id for label in labels if label.source is LabelSource.SCRIPTED}
+    return scripted | {query for query, n in counts.items() if n >= labels_per_query}
+
+
+def _answer(given: Sequence[Label], labeller_names: dict[int, str]) -> GivenAnswer:
+    """One query's answer from its labels: the scripted teacher's if it answered, else the
+    majority of people's (`runvocab.answers.aggregate`)."""
+    scripted = [label for label in given if label.source is LabelSource.SCRIPTED]
+    used = scripted[:1] or list(given)
+    names = "+".join(labeller_names.get(label.labeller_id, f"labeller-{label.labeller_id}")
+                     for label in used)
+    return GivenAnswer(aggregate(label.answer for label in used), names, used[0].source.value,
+                       max(label.answered_at for label in used).timestamp())
 
 
 class QueueHooks(RunHooks):
@@ -155,6 +194,8 @@ class QueueHooks(RunHooks):
         self.progress: dict[str, Any] = {}
         self.next_beat = 0.0
         self.query_ids: dict[str, int] = {}
+        self.gold: list[Query] = []
+        """the open round's gold pairs (`labelqueue.gold`), pushed after its queries"""
         self.rendered: set[str] = set()
         """the open round's queries whose clips are attached"""
         self.render_env: Env | None = None
@@ -206,24 +247,26 @@ class QueueHooks(RunHooks):
 
     # -- queries -------------------------------------------------------------------------------
     def round_opened(self, queries: list[Query], pool: TrajectoryPool) -> None:
-        specs = [{
-            "round": q.round, "position": i, "step": q.step, "segment_length": q.segment_length,
-            "first_trajectory": q.trajectory0, "first_start": q.start0,
-            "second_trajectory": q.trajectory1, "second_start": q.start1,
-            "first_segment_return": q.segment_return0,
-            "second_segment_return": q.segment_return1,
-            "first_trajectory_return": q.trajectory_return0,
-            "second_trajectory_return": q.trajectory_return1,
-            "model_p": q.model_p, "score": q.score, "rule": q.rule,
-            "shadow_choice": q.shadow_choice, "distinguishable": q.distinguishable,
-        } for i, q in enumerate(queries)]
+        fb = self.cfg.feedback
+        # Gold pairs measure people; a round the scripted teacher answers gets none.
+        self.gold = [] if self.teacher is not TeacherKind.HUMAN else gold_pairs(
+            list(pool.trajectories), n=gold_count(len(queries), fb.gold_rate),
+            segment_length=fb.segment_length, eps=self.cfg.teacher.eps,
+            round_=queries[0].round if queries else 0, seed=self.cfg.seed,
+            step=queries[0].step if queries else 0)
+        skills = {t.id: t.skill for t in pool.trajectories}
+        specs = [queue_fields(q, i, skills) | {"needs_labels": fb.labels_per_query}
+                 for i, q in enumerate(queries)]
+        specs += [queue_fields(q, len(queries) + i, skills) | {"gold": True}
+                  for i, q in enumerate(self.gold)]
         with self.sessions() as session:
             ids = push_queries(session, run_id=self.run_id, queries=specs)
-        self.query_ids = {q.query_id: db_id for q, db_id in zip(queries, ids, strict=True)}
+        self.query_ids = {q.query_id: db_id
+                          for q, db_id in zip(queries + self.gold, ids, strict=True)}
         self.rendered = set()
         self.progress["waiting_for"] = len(queries)
         if self.teacher is TeacherKind.HUMAN:
-            self._render(queries, pool)
+            self._render(queries + self.gold, pool)
 
     def _render(self, queries: list[Query], pool: TrajectoryPool) -> None:
         """Clips for the queries that have none yet, attached one query at a time so people can
@@ -254,36 +297,36 @@ class QueueHooks(RunHooks):
         by_db_id = {self.query_ids[q.query_id]: q for q in queries}
         with self.sessions() as session:
             while (leased := lease_next_query(session, labeller_id=self.scripted_id,
-                                              run_id=self.run_id)) is not None:
+                                              run_id=self.run_id, gold=False)) is not None:
                 query = by_db_id.get(leased.id)
                 if query is None:  # an older round's query left open: not this round's to answer
                     cancel_queries(session, run_id=self.run_id, query_ids=[leased.id])
                     continue
                 try:
                     submit_label(session, query_id=leased.id, labeller_id=self.scripted_id,
-                                 choice=SCRIPTED_SCREEN[query.shadow_choice],
+                                 choice=click_of_answer(query.shadow_choice, left_is_first=True),
                                  left_is_first=True, source="scripted")
                 except RunClosed:  # stopped meanwhile; the caller's stop check ends the run
                     return
 
     def answers(self, feedback: PreferenceFeedback, pool: TrajectoryPool,
-                final: bool) -> dict[str, Answer] | None:
+                final: bool) -> dict[str, GivenAnswer] | None:
         queries = feedback.pending
         ids = [self.query_ids[q.query_id] for q in queries]
         wait = self.cfg.feedback.wait_for_labels
         while True:
             if self.teacher is TeacherKind.SCRIPTED:
                 self._answer_as_scripted(queries)
-            elif len(self.rendered) < len(queries):  # switched to people mid-round
-                self._render(queries, pool)
+            elif not self.rendered.issuperset(q.query_id for q in queries):
+                self._render(queries, pool)  # switched to people mid-round
             with self.sessions() as session:
                 labels = labels_for_queries(session, query_ids=ids)
-            answered = {label.query_id for label in labels}
-            self.progress["waiting_for"] = len(ids) - len(answered)
             # A person's answer is used once it can no longer be taken back (labelqueue.undo).
             final_labels = [label for label in labels
                             if label.source is not LabelSource.HUMAN or settled(label.answered_at)]
-            if len({label.query_id for label in final_labels}) == len(ids):
+            done = complete_queries(final_labels, self.cfg.feedback.labels_per_query)
+            self.progress["waiting_for"] = len(ids) - len(done)
+            if len(done) == len(ids):
                 labels = final_labels
                 break
             if final:
@@ -303,9 +346,10 @@ class QueueHooks(RunHooks):
             consume_labels(session, run_id=self.run_id)  # bookkeeping: the round has them
             names = self._labeller_names(session, {label.labeller_id for label in labels})
         by_db_id = {db_id: qid for qid, db_id in self.query_ids.items()}
-        out: dict[str, Answer] = {}
-        for label in labels:  # oldest first: a query's first label is the one used
-            out.setdefault(by_db_id[label.query_id], _answer(label, names))
+        by_query: dict[int, list[Label]] = {}
+        for label in labels:
+            by_query.setdefault(label.query_id, []).append(label)
+        out = {by_db_id[db_id]: _answer(given, names) for db_id, given in by_query.items()}
         self.progress["waiting_for"] = 0
         return out
 

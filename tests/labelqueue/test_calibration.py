@@ -117,7 +117,7 @@ def row(**values: Any) -> dict[str, Any]:
     """A label row with the columns a report reads; returns 110 vs 90 around R_avg 100."""
     base: dict[str, Any] = {
         "run_id": 1, "round": 0, "algo": "pebble", "query_id": 1, "labeller_id": 1,
-        "labeller_name": "ann", "choice": "left", "preferred": "first",
+        "labeller_name": "ann", "choice": "left", "answer": "first",
         "first_trajectory": 0, "second_trajectory": 1,
         "first_segment_return": 5.0, "second_segment_return": 4.0,
         "first_trajectory_return": 110.0, "second_trajectory_return": 90.0,
@@ -141,13 +141,13 @@ def test_r_avg_is_the_mean_of_the_rounds_ten_newest_trajectories() -> None:
 def test_outcomes_bins_and_rates_follow_the_definitions() -> None:
     rows = [
         row(query_id=1),  # correct, gap 0.2
-        row(query_id=2, choice="right", preferred="second"),  # wrong
-        row(query_id=3, choice="cant_tell", preferred=None),  # can't tell
-        row(query_id=4, choice="equal", preferred="equal"),  # unequal returns: can't tell
-        row(query_id=5, choice="equal", preferred="equal",  # equal segments: correct
+        row(query_id=2, choice="right", answer="second"),  # wrong
+        row(query_id=3, choice="cant_tell", answer="cant_tell"),  # can't tell
+        row(query_id=4, choice="equal", answer="equal"),  # unequal returns: can't tell
+        row(query_id=5, choice="equal", answer="equal",  # equal segments: correct
             second_segment_return=5.0),
-        row(query_id=6, choice="skip", preferred=None),  # counted, judged nowhere
-        row(query_id=7, choice="left", preferred="second",  # gap 1.0: correct
+        row(query_id=6, choice="skip", answer="skip"),  # counted, judged nowhere
+        row(query_id=7, choice="left", answer="second",  # gap 1.0: correct
             first_trajectory_return=50.0, second_trajectory_return=150.0,
             first_segment_return=1.0, second_segment_return=2.0),
         row(query_id=8, first_segment_return=None),  # no ground truth: left out
@@ -212,7 +212,7 @@ def synthetic_rows(eps: float, n: int, seed: int, *, lapse: float = 0.0,
         rows.append(row(query_id=i, first_trajectory=2 * i, second_trajectory=2 * i + 1,
                         first_trajectory_return=first, second_trajectory_return=second,
                         first_segment_return=first / 20, second_segment_return=second / 20,
-                        choice=choice, preferred=preferred))
+                        choice=choice, answer=preferred or "cant_tell"))
     return rows
 
 

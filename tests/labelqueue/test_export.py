@@ -53,7 +53,7 @@ class Answer(NamedTuple):
     left_is_first: bool
     source: str
     left_segment: str
-    preferred: str | None
+    answer: str
     agrees_with_shadow: bool | None
     correct: bool | None
 
@@ -66,10 +66,10 @@ ANSWERS = [
     Answer(0, "bob", "left", True, "human", "first", "first", False, False),
     Answer(1, "alice", "equal", False, "human", "second", "equal", None, True),
     Answer(1, "bob", "right", False, "human", "second", "first", None, False),
-    Answer(2, "alice", "cant_tell", True, "human", "first", None, None, None),
+    Answer(2, "alice", "cant_tell", True, "human", "first", "cant_tell", None, None),
     Answer(2, "bob", "right", False, "human", "second", "first", None, True),
     Answer(3, "teacher", "right", False, "scripted", "second", "first", True, True),
-    Answer(4, "teacher", "equal", True, "gold", "first", "equal", True, False),
+    Answer(4, "teacher", "equal", True, "scripted", "first", "equal", True, False),
 ]
 
 
@@ -224,11 +224,11 @@ def test_each_label_is_one_row_with_exact_derived_columns(session: Session) -> N
             row["left_is_first"],
             row["source"],
             row["left_segment"],
-            row["preferred"],
+            row["answer"],
             row["agrees_with_shadow"],
             row["correct"],
         ) == answer[2:], (row["label_id"], answer)
-        assert row["schema_version"] == EXPORT_SCHEMA_VERSION == 2
+        assert row["schema_version"] == EXPORT_SCHEMA_VERSION == 3
 
     alpha_row, beta_row = rows[0], rows[6]
     assert (alpha_row["run_id"], alpha_row["run_name"], alpha_row["task"]) == (
@@ -266,7 +266,7 @@ def test_each_label_is_one_row_with_exact_derived_columns(session: Session) -> N
 def test_a_run_filter_keeps_only_that_runs_labels(session: Session) -> None:
     seeded = seed(session)
     beta = list(export_rows(session, run_id=seeded.beta))
-    assert [row["source"] for row in beta] == ["scripted", "gold"]
+    assert [row["source"] for row in beta] == ["scripted", "scripted"]
     assert {row["run_id"] for row in beta} == {seeded.beta}
     alpha = list(export_rows(session, run_id=seeded.alpha))
     assert [row["labeller_name"] for row in alpha] == ["alice", "bob"] * 3
@@ -322,7 +322,7 @@ def test_pandas_reads_the_same_rows_and_values_from_every_format(session: Sessio
     csv_text = written(session, "csv")[0].decode()
     assert csv_text.splitlines()[0] == ",".join(NAMES)
     cells = next(csv.DictReader(io.StringIO(csv_text)))  # instructions hold commas: quoted
-    assert (cells["left_is_first"], cells["left_segment"], cells["preferred"]) == (
+    assert (cells["left_is_first"], cells["left_segment"], cells["answer"]) == (
         "false",
         "second",
         "second",
@@ -332,7 +332,7 @@ def test_pandas_reads_the_same_rows_and_values_from_every_format(session: Sessio
     beta_cells = next(line for line in csv_text.splitlines() if ",beta," in line)
     assert '"[0.25, -1.0]"' in beta_cells
     data = written(session, "parquet")[0]
-    assert pq.read_schema(io.BytesIO(data)).metadata[PARQUET_VERSION_KEY.encode()] == b"2"
+    assert pq.read_schema(io.BytesIO(data)).metadata[PARQUET_VERSION_KEY.encode()] == b"3"
 
 
 def test_small_chunks_write_the_same_files(

@@ -10,11 +10,9 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from labelqueue import (
-    Choice,
     Label,
     LabelSource,
     NotFound,
-    Preferred,
     Query,
     QueryStatus,
     Revoked,
@@ -32,26 +30,26 @@ from labelqueue import (
     set_run_status,
     submit_label,
 )
-from labelqueue.labels import preferred_segment
+from runvocab.answers import Answer, Click, answer_of_click
 
 
 @pytest.mark.parametrize(
     ("choice", "left_is_first", "preferred"),
     [
-        (Choice.LEFT, True, Preferred.FIRST),
-        (Choice.LEFT, False, Preferred.SECOND),
-        (Choice.RIGHT, True, Preferred.SECOND),
-        (Choice.RIGHT, False, Preferred.FIRST),
-        (Choice.EQUAL, True, Preferred.EQUAL),
-        (Choice.EQUAL, False, Preferred.EQUAL),
-        (Choice.CANT_TELL, True, None),
-        (Choice.SKIP, False, None),
+        (Click.LEFT, True, Answer.FIRST),
+        (Click.LEFT, False, Answer.SECOND),
+        (Click.RIGHT, True, Answer.SECOND),
+        (Click.RIGHT, False, Answer.FIRST),
+        (Click.EQUAL, True, Answer.EQUAL),
+        (Click.EQUAL, False, Answer.EQUAL),
+        (Click.CANT_TELL, True, Answer.CANT_TELL),
+        (Click.SKIP, False, Answer.SKIP),
     ],
 )
 def test_the_screen_choice_maps_to_the_preferred_segment(
-    session: Session, choice: Choice, left_is_first: bool, preferred: Preferred | None
+    session: Session, choice: Click, left_is_first: bool, preferred: Answer
 ) -> None:
-    assert preferred_segment(choice, left_is_first) == preferred
+    assert answer_of_click(choice, left_is_first) == preferred
     run = running_run(session)
     [query_id] = push_queries(session, run_id=run.id, queries=[query_spec(0)])
     alice, _ = create_labeller(session, name="alice")
@@ -63,9 +61,9 @@ def test_the_screen_choice_maps_to_the_preferred_segment(
         choice=choice,
         left_is_first=left_is_first,
     )
-    assert created and label.preferred == preferred and label.choice is choice
+    assert created and label.answer == preferred and label.choice is choice
     stored = session.get(Label, label.id)
-    assert stored is not None and stored.preferred == preferred
+    assert stored is not None and stored.answer == preferred
 
 
 def test_a_repeated_submit_returns_the_stored_label(session: Session) -> None:
@@ -88,7 +86,7 @@ def test_a_repeated_submit_returns_the_stored_label(session: Session) -> None:
     again, created = submit_label(
         session, query_id=query_id, labeller_id=alice.id, choice="left", left_is_first=True
     )
-    assert not created and again.id == first.id and again.choice is Choice.RIGHT
+    assert not created and again.id == first.id and again.choice is Click.RIGHT
     assert session.scalar(select(func.count()).select_from(Label)) == 1
     assert session.get(Run, run.id).labels_used == 1  # type: ignore[union-attr]
 
@@ -234,7 +232,7 @@ def test_an_answer_after_a_stop_is_refused_and_answers_before_it_are_used_on_req
     set_run_status(session, run_id=run.id, status=RunStatus.QUEUED)
     assert claim_run(session, worker_id="worker-b") is not None
     [kept] = labels_for_queries(session, query_ids=ids)
-    assert (kept.query_id, kept.labeller_id, kept.choice) == (ids[0], alice.id, Choice.LEFT)
+    assert (kept.query_id, kept.labeller_id, kept.choice) == (ids[0], alice.id, Click.LEFT)
 
 
 def test_shown_at_is_kept_between_the_lease_and_the_answer(session: Session) -> None:

@@ -107,7 +107,7 @@ def test_an_operator_downloads_every_label_in_each_format(
     expected = list(export_rows(session))
     assert [row["labeller_name"] for row in expected] == ["alice", "bob", "alice"]
     assert [row["run_name"] for row in expected] == ["first", "second", "second"]
-    assert [row["preferred"] for row in expected][1:] == [None, "equal"]
+    assert [row["answer"] for row in expected][1:] == ["cant_tell", "equal"]
 
     if fmt == "jsonl":
         lines = [json.loads(line) for line in response.text.splitlines()]
@@ -120,11 +120,11 @@ def test_an_operator_downloads_every_label_in_each_format(
         rows = list(csv.DictReader(io.StringIO(response.text)))
         assert list(rows[0]) == NAMES
         assert [row["choice"] for row in rows][1:] == ["cant_tell", "equal"]
-        assert rows[1]["preferred"] == "" and rows[1]["correct"] == ""
+        assert rows[1]["answer"] == "cant_tell" and rows[1]["correct"] == ""
         assert response.content == library_bytes(session, fmt)
     else:
         table = pq.read_table(io.BytesIO(response.content))
-        assert table.schema.metadata[PARQUET_VERSION_KEY.encode()] == b"2"
+        assert table.schema.metadata[PARQUET_VERSION_KEY.encode()] == b"3"
         assert table.column_names == NAMES
         assert table.column("label_id").to_pylist() == [row["label_id"] for row in expected]
         assert table.column("answered_at").to_pylist() == [row["answered_at"] for row in expected]

@@ -11,6 +11,7 @@ from fastapi.testclient import TestClient
 from server_helpers import OPERATOR, bearer, new_labeller, new_run, running_run_with_queries
 from sqlalchemy.orm import Session
 
+from labelqueue import EXPORT_SCHEMA_VERSION
 from runvocab.instructions import default_instruction, instruction_sha256
 from server.settings import Settings
 
@@ -81,7 +82,7 @@ def test_an_edited_instruction_is_shown_from_then_on_and_the_export_keeps_what_e
     default = default_instruction("dmc:cheetah_run")
     assert texts == [default, "Faster is better; nothing else counts.", default]
     assert [row["instruction_sha256"] for row in rows] == [instruction_sha256(t) for t in texts]
-    assert {row["schema_version"] for row in rows} == {2}
+    assert {row["schema_version"] for row in rows} == {EXPORT_SCHEMA_VERSION}
 
 
 def test_bad_instructions_and_clip_sizes_are_a_422_naming_the_field(client: TestClient) -> None:

@@ -82,7 +82,7 @@ def test_a_labeller_answers_each_query_once_and_then_has_nothing_to_do(
     assert first.status_code == 201, first.text
     label = first.json()
     assert label["choice"] == "left"
-    assert label["preferred"] == ("first" if shown["left_is_first"] else "second")
+    assert label["answer"] == ("first" if shown["left_is_first"] else "second")
 
     repeat = client.post(f"/api/label/{shown['query_id']}", json=body, headers=alice)
     assert repeat.status_code == 200 and repeat.json() == label
@@ -150,7 +150,7 @@ def test_malformed_or_misdirected_labels_are_refused_and_change_nothing(
 
     for body, field in [
         (good | {"choice": "top"}, "choice"),
-        ({k: v for k, v in good.items() if k != "left_is_first"}, "left_is_first"),
+        (good | {"left_is_first": "sometimes"}, "left_is_first"),
         (good | {"shown_at": "yesterday"}, "shown_at"),
         (good | {"score": 1.0}, "score"),
     ]:
@@ -304,11 +304,11 @@ def test_an_answer_with_another_side_order_than_shown_is_refused(
     response = client.post(f"/api/label/{shown['query_id']}", json=flipped, headers=alice)
     assert response.status_code == 422
     assert "side order" in response.json()["detail"] and "reload" in response.json()["detail"]
-    assert snapshot(session) == before  # nothing stored with `preferred` flipped
+    assert snapshot(session) == before  # nothing stored with its answer flipped
 
     honest = flipped | {"left_is_first": shown["left_is_first"]}
     stored = client.post(f"/api/label/{shown['query_id']}", json=honest, headers=alice).json()
-    assert stored["preferred"] == ("first" if shown["left_is_first"] else "second")
+    assert stored["answer"] == ("first" if shown["left_is_first"] else "second")
 
 
 def test_shown_at_outside_the_lease_is_clamped_and_an_overflowing_one_refused(
@@ -341,3 +341,17 @@ def test_shown_at_outside_the_lease_is_clamped_and_an_overflowing_one_refused(
     # So the median answer time stays a time a person took, not years or a negative time.
     stats = client.get(f"/api/runs/{run_id}/throughput", headers=OPERATOR).json()
     assert 0 <= stats["median_answer_s"] < 60
+
+
+def test_the_server_decides_the_sides_without_the_pages_echo(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    alice = bearer(new_labeller(client, "alice"))
+    running_run_with_queries(client, session, settings, n=1)
+    shown = client.get("/api/label/next", headers=alice).json()
+    posted = client.post(f"/api/label/{shown['query_id']}", headers=alice,
+                         json={"choice": "left", "shown_at": shown_at()})
+    assert posted.status_code == 201, posted.text
+    label = posted.json()
+    assert label["left_is_first"] == shown["left_is_first"]
+    assert label["answer"] == ("first" if shown["left_is_first"] else "second")

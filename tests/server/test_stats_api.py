@@ -75,7 +75,7 @@ def test_throughput_counts_labels_per_bucket_and_source_and_the_median_answer_ti
         (bob, "human", at(150), None),
         (teacher, "scripted", at(50), at(49.5)),
         (teacher, "scripted", at(3605), None),
-        (teacher, "gold", at(130), at(129)),
+        (teacher, "scripted", at(130), at(129)),
     ]:
         answer(
             session,
@@ -103,7 +103,7 @@ def test_throughput_counts_labels_per_bucket_and_source_and_the_median_answer_ti
     stats = response.json()
     assert stats["run_id"] == run_id and stats["bucket_s"] == 60
     assert stats["total"] == 7
-    assert stats["by_source"] == {"human": 4, "scripted": 2, "gold": 1}
+    assert stats["by_source"] == {"human": 4, "scripted": 3}
     assert stats["median_answer_s"] == 7.0
     buckets = [(datetime.fromisoformat(b["t"]), b["labels"]) for b in stats["buckets"]]
     assert buckets == [(at(0), 3), (at(120), 3), (at(3600), 1)]  # empty minutes left out
@@ -122,7 +122,7 @@ def test_a_run_without_labels_has_empty_throughput(client: TestClient) -> None:
         "run_id": run_id,
         "bucket_s": 60,
         "total": 0,
-        "by_source": {"human": 0, "scripted": 0, "gold": 0},
+        "by_source": {"human": 0, "scripted": 0},
         "median_answer_s": None,
         "buckets": [],
     }

@@ -3,10 +3,10 @@ import math
 import numpy as np
 import pytest
 
+from runvocab.answers import Answer
 from runvocab.config import TeacherConfig
 from trainer.teachers import (
     BPrefTeacher,
-    Choice,
     NoisyTeacher,
     QueryTruth,
     TeacherAnswer,
@@ -36,11 +36,11 @@ RECENT = [100.0] * 10  # R_avg = 100
 
 
 def test_choice_target_mapping():
-    assert choice_target(Choice.FIRST) == 0.0
-    assert choice_target(Choice.SECOND) == 1.0
-    assert choice_target(Choice.EQUAL) == 0.5
-    assert choice_target(Choice.CANT_TELL) is None
-    assert choice_target(Choice.SKIP) is None
+    assert choice_target(Answer.FIRST) == 0.0
+    assert choice_target(Answer.SECOND) == 1.0
+    assert choice_target(Answer.EQUAL) == 0.5
+    assert choice_target(Answer.CANT_TELL) is None
+    assert choice_target(Answer.SKIP) is None
     assert choice_target("second") == 1.0  # StrEnum: raw stored strings work too
 
 
@@ -67,31 +67,31 @@ def test_noisy_outside_band_segments_decide():
         RECENT,
     )
     assert out == [
-        TeacherAnswer(Choice.SECOND, distinguishable=True, correct=True),
-        TeacherAnswer(Choice.FIRST, distinguishable=True, correct=True),
+        TeacherAnswer(Answer.SECOND, distinguishable=True, correct=True),
+        TeacherAnswer(Answer.FIRST, distinguishable=True, correct=True),
     ]
 
 
 def test_noisy_equal_segment_sums_outside_band():
     t = NoisyTeacher(eps=0.3, seed=0)
     [a] = t.answer([truth([1, 2], [2, 1], ret0=0.0, ret1=100.0)], RECENT)
-    assert a == TeacherAnswer(Choice.EQUAL, distinguishable=True, correct=None)
+    assert a == TeacherAnswer(Answer.EQUAL, distinguishable=True, correct=None)
 
 
 def test_tied_segment_sums_answer_as_teacher_tie_says():
     tied = [truth([0, 0], [0, 0], ret0=0.0, ret1=100.0)] * 400  # outside the band
     first = NoisyTeacher(eps=0.3, seed=0, tie="first").answer(tied, RECENT)
-    assert {a.choice for a in first} == {Choice.FIRST}
+    assert {a.choice for a in first} == {Answer.FIRST}
     coin = [a.choice for a in NoisyTeacher(eps=0.3, seed=0, tie="random").answer(tied, RECENT)]
-    assert set(coin) == {Choice.FIRST, Choice.SECOND}
-    assert two_sided_ok(coin.count(Choice.SECOND), 400, 0.5)
+    assert set(coin) == {Answer.FIRST, Answer.SECOND}
+    assert two_sided_ok(coin.count(Answer.SECOND), 400, 0.5)
     assert all(a.distinguishable and a.correct is None
                for a in NoisyTeacher(0.3, 0, tie="random").answer(tied, RECENT))
     # B-Pref's rational teacher takes the same option; beyond ties nothing changes.
     untied = truth([0, 1], [0, 2])
-    for tie, expected in (("equal", Choice.EQUAL), ("first", Choice.FIRST)):
+    for tie, expected in (("equal", Answer.EQUAL), ("first", Answer.FIRST)):
         a = bpref(tie=tie).answer([tied[0], untied], RECENT)
-        assert [x.choice for x in a] == [expected, Choice.SECOND]
+        assert [x.choice for x in a] == [expected, Answer.SECOND]
     with pytest.raises(ValueError, match="unknown teacher.tie 'last'; valid: equal, random"):
         NoisyTeacher(eps=0.3, seed=0, tie="last")
     with pytest.raises(ValueError, match="teacher.tie"):
@@ -104,24 +104,24 @@ def test_noisy_inside_band_is_a_fair_coin():
     # |100 - 101| = 1 < 0.3 * 100; segment 1 is truly better.
     out = t.answer([truth([0, 0], [1, 1], 100.0, 101.0)] * n, RECENT)
     assert all(not a.distinguishable for a in out)
-    assert {a.choice for a in out} == {Choice.FIRST, Choice.SECOND}
-    n_second = sum(a.choice is Choice.SECOND for a in out)
+    assert {a.choice for a in out} == {Answer.FIRST, Answer.SECOND}
+    n_second = sum(a.choice is Answer.SECOND for a in out)
     assert 0.45 * n <= n_second <= 0.55 * n
     # A random label is correct exactly when it happens to match the segment sums.
-    assert all(a.correct == (a.choice is Choice.SECOND) for a in out)
+    assert all(a.correct == (a.choice is Answer.SECOND) for a in out)
 
 
 def test_noisy_inside_band_with_tied_segments_has_no_correctness():
     t = NoisyTeacher(eps=0.3, seed=0)
     out = t.answer([truth([1, 1], [1, 1], 100.0, 101.0)] * 20, RECENT)
-    assert all(a.choice in (Choice.FIRST, Choice.SECOND) and a.correct is None for a in out)
+    assert all(a.choice in (Answer.FIRST, Answer.SECOND) and a.correct is None for a in out)
 
 
 def test_noisy_boundary_is_distinguishable():
     t = NoisyTeacher(eps=0.5, seed=0)
     # |0 - 50| == 0.5 * 100 exactly: not strictly inside the band.
     out = t.answer([truth([0, 0], [1, 1], 0.0, 50.0)] * 50, RECENT)
-    assert all(a == TeacherAnswer(Choice.SECOND, True, True) for a in out)
+    assert all(a == TeacherAnswer(Answer.SECOND, True, True) for a in out)
     # Just inside: random.
     inside = t.answer([truth([0, 0], [1, 1], 0.0, 49.999)] * 50, RECENT)
     assert all(not a.distinguishable for a in inside)
@@ -130,13 +130,13 @@ def test_noisy_boundary_is_distinguishable():
 def test_noisy_eps_zero_is_ideal():
     t = NoisyTeacher(eps=0.0, seed=0)
     out = t.answer([truth([0, 0], [1, 1], 5.0, 5.0)] * 50, RECENT)  # identical returns
-    assert all(a == TeacherAnswer(Choice.SECOND, True, True) for a in out)
+    assert all(a == TeacherAnswer(Answer.SECOND, True, True) for a in out)
 
 
 def test_noisy_without_recent_returns_nothing_is_in_the_band():
     t = NoisyTeacher(eps=0.9, seed=0)
     out = t.answer([truth([2, 2], [1, 1], 5.0, 5.1)] * 20, [])
-    assert all(a == TeacherAnswer(Choice.FIRST, True, True) for a in out)
+    assert all(a == TeacherAnswer(Answer.FIRST, True, True) for a in out)
 
 
 def test_noisy_negative_returns_use_absolute_average():
@@ -204,22 +204,22 @@ def test_bpref_margin_scales_episode_return_to_segment():
 def test_bpref_skip_threshold():
     t = bpref(eps_skip=0.5)  # thres_skip = 10
     out = t.answer([truth([4, 5], [1, 2]), truth([5, 5], [1, 2]), truth([0, 0], [6, 4])], RECENT)
-    assert out[0] == TeacherAnswer(Choice.SKIP, False, None)  # max sum 9 < 10
-    assert out[1] == TeacherAnswer(Choice.FIRST, True, True)  # max sum 10: not skipped
-    assert out[2] == TeacherAnswer(Choice.SECOND, True, True)
+    assert out[0] == TeacherAnswer(Answer.SKIP, False, None)  # max sum 9 < 10
+    assert out[1] == TeacherAnswer(Answer.FIRST, True, True)  # max sum 10: not skipped
+    assert out[2] == TeacherAnswer(Answer.SECOND, True, True)
     assert choice_target(out[0].choice) is None
 
 
 def test_bpref_equal_threshold():
     t = bpref(eps_equal=0.1)  # thres_equal = 2
     out = t.answer([truth([5, 5], [6, 5.5]), truth([5, 5], [6, 6])], RECENT)
-    assert out[0] == TeacherAnswer(Choice.EQUAL, False, None)  # |diff| 1.5 < 2
-    assert out[1] == TeacherAnswer(Choice.SECOND, True, True)  # |diff| 2: a real choice
+    assert out[0] == TeacherAnswer(Answer.EQUAL, False, None)  # |diff| 1.5 < 2
+    assert out[1] == TeacherAnswer(Answer.SECOND, True, True)  # |diff| 2: a real choice
 
 
 def test_bpref_knobs_off_never_skip_or_equal():
     out = bpref().answer([truth([0, 0], [0, 1e-9])] * 10, RECENT)
-    assert all(a == TeacherAnswer(Choice.SECOND, True, True) for a in out)
+    assert all(a == TeacherAnswer(Answer.SECOND, True, True) for a in out)
 
 
 def test_bpref_myopic_gamma_changes_the_winner():
@@ -227,9 +227,9 @@ def test_bpref_myopic_gamma_changes_the_winner():
     q = truth([10, 0, 0, 0], [0, 0, 0, 8])
     [plain] = bpref(gamma=1.0).answer([q], RECENT)
     [myopic] = bpref(gamma=0.5).answer([q], RECENT)  # 10 * 0.125 = 1.25 vs 8
-    assert plain == TeacherAnswer(Choice.FIRST, True, True)
+    assert plain == TeacherAnswer(Answer.FIRST, True, True)
     # The myopic teacher prefers segment 1, which the plain sums say is wrong.
-    assert myopic == TeacherAnswer(Choice.SECOND, True, False)
+    assert myopic == TeacherAnswer(Answer.SECOND, True, False)
 
 
 def test_bpref_rational_is_deterministic_and_ties_are_equal():
@@ -237,7 +237,7 @@ def test_bpref_rational_is_deterministic_and_ties_are_equal():
     a = bpref(seed=0).answer(qs * 50, RECENT)
     b = bpref(seed=1).answer(qs * 50, RECENT)
     assert a == b
-    assert [x.choice for x in a[:3]] == [Choice.SECOND, Choice.EQUAL, Choice.FIRST]
+    assert [x.choice for x in a[:3]] == [Answer.SECOND, Answer.EQUAL, Answer.FIRST]
     assert a[1].correct is None
 
 
@@ -246,26 +246,26 @@ def test_bpref_finite_beta_matches_sigmoid():
     t = bpref(beta=beta)
     out = t.answer([truth([0, 0], [1, 1])] * n, RECENT)  # sum1 - sum0 = 2
     p = 1 / (1 + math.exp(-beta * 2))  # ~0.731
-    n_second = sum(a.choice is Choice.SECOND for a in out)
+    n_second = sum(a.choice is Answer.SECOND for a in out)
     assert two_sided_ok(n_second, n, p)
-    assert all(a.distinguishable and a.choice is not Choice.EQUAL for a in out)
+    assert all(a.distinguishable and a.choice is not Answer.EQUAL for a in out)
     assert sum(a.correct for a in out) == n_second
 
 
 def test_bpref_mistake_one_flips_every_answer():
     out = bpref(eps_mistake=1.0).answer([truth([0, 0], [1, 1]), truth([2, 0], [0, 1])], RECENT)
     assert out == [
-        TeacherAnswer(Choice.FIRST, True, False),
-        TeacherAnswer(Choice.SECOND, True, False),
+        TeacherAnswer(Answer.FIRST, True, False),
+        TeacherAnswer(Answer.SECOND, True, False),
     ]
 
 
 def test_bpref_mistake_rate():
     n = 4000
     out = bpref(eps_mistake=0.2, seed=3).answer([truth([0, 0], [1, 1])] * n, RECENT)
-    flipped = sum(a.choice is Choice.FIRST for a in out)
+    flipped = sum(a.choice is Answer.FIRST for a in out)
     assert two_sided_ok(flipped, n, 0.2)
-    assert all(a.correct == (a.choice is Choice.SECOND) for a in out)
+    assert all(a.correct == (a.choice is Answer.SECOND) for a in out)
 
 
 def test_bpref_state_dict_round_trip_and_seeds():

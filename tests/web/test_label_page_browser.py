@@ -95,7 +95,7 @@ def test_a_labeller_watches_both_clips_and_answers_with_the_keyboard(
     label = stored_label(live, first)
     assert (label.choice, label.labeller_id, label.source) == ("left", alice.id, "human")
     assert label.left_is_first == left_is_first
-    assert label.preferred == ("first" if left_is_first else "second")
+    assert label.answer == ("first" if left_is_first else "second")
     assert label.shown_at is not None
     assert timedelta(seconds=1) < label.answered_at - label.shown_at < timedelta(seconds=30)
     page.wait_for_function("document.querySelector('#count-session').textContent === '1'")

@@ -1,0 +1,145 @@
+"""Gold pairs: known-answer queries mixed into each labeller's stream to measure them.
+
+The worker pushes a few gold pairs per round when the run's `feedback.gold_rate` is above zero:
+pairs whose true segment returns differ by far more than the teacher's band, so their answer,
+the segment with the larger return, is beyond doubt. Every labeller may answer each gold pair
+once (`GOLD_NEEDS_LABELS`); the page cannot tell them from the others. A lease serves one when
+the labeller's share of gold answers on the run is below the rate (with a random offset per
+answer, so the positions of gold pairs in a stream follow no pattern). Gold answers are never
+trained on and never count against the budget.
+
+After each gold answer the labeller's gold accuracy on the run is checked against the run's
+`feedback.gold_min_accuracy` (0: off): below it, once they gave `feedback.gold_min_answers`
+gold answers, they are paused on the run (`LabellerPause`). A paused labeller's answers stay;
+they get no more of the run's queries until an operator lifts the pause.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from sqlalchemy import Connection, Integer, bindparam, delete, func, insert, select
+from sqlalchemy.orm import Session
+
+from labelqueue.errors import QueueError
+from labelqueue.models import LABELS, PAUSES, QUERIES, RUNS, LabellerPause
+from labelqueue.transaction import reading, transaction
+from runvocab.answers import Answer
+from runvocab.config import FeedbackConfig
+
+GOLD_NEEDS_LABELS = 1_000_000
+"""a gold pair's `needs_labels`: every labeller's answer"""
+
+
+class Paused(QueueError):
+    """The labeller is paused on the run: their gold accuracy fell below its threshold."""
+
+
+@dataclass(frozen=True)
+class GoldSettings:
+    """A run's gold settings, from its `config` overrides over the defaults."""
+
+    rate: float
+    min_accuracy: float
+    min_answers: int
+
+    @classmethod
+    def of(cls, config: Mapping[str, Any] | None) -> GoldSettings:
+        config, default = config or {}, FeedbackConfig()
+        return cls(float(config.get("feedback.gold_rate", default.gold_rate)),
+                   float(config.get("feedback.gold_min_accuracy", default.gold_min_accuracy)),
+                   int(config.get("feedback.gold_min_answers", default.gold_min_answers)))
+
+
+def gold_answer(first_return: float, second_return: float) -> Answer:
+    """A gold pair's answer: the segment with the larger true return."""
+    return Answer.FIRST if first_return > second_return else Answer.SECOND
+
+
+def _offset(labeller_id: int, run_id: int, answers: int) -> float:
+    """A uniform number in [0, 1), fixed per labeller, run and answer count."""
+    digest = hashlib.sha256(f"gold:{labeller_id}:{run_id}:{answers}".encode()).digest()
+    return int.from_bytes(digest[:8], "big") / 2.0**64
+
+
+_LABELLER = bindparam("labeller", type_=Integer())
+_RUN = bindparam("gold_run", type_=Integer())
+_SHARE = (
+    select(func.count(), func.coalesce(func.sum(QUERIES.c.gold.cast(Integer)), 0))
+    .select_from(LABELS.join(QUERIES, QUERIES.c.id == LABELS.c.query_id))
+    .where(LABELS.c.labeller_id == _LABELLER, LABELS.c.run_id == _RUN,
+           LABELS.c.withdrawn_at.is_(None))
+)
+
+
+def gold_due(connection: Connection, *, labeller_id: int, run_id: int, rate: float) -> bool:
+    """Whether the labeller's next query on the run should be a gold pair."""
+    if rate <= 0:
+        return False
+    answers, gold = connection.execute(_SHARE, {"labeller": labeller_id,
+                                                "gold_run": run_id}).one()
+    return int(gold) + _offset(labeller_id, run_id, int(answers)) < rate * (int(answers) + 1)
+
+
+_GOLD_ANSWERS = (
+    select(LABELS.c.answer, QUERIES.c.first_segment_return, QUERIES.c.second_segment_return)
+    .select_from(LABELS.join(QUERIES, QUERIES.c.id == LABELS.c.query_id))
+    .where(LABELS.c.labeller_id == _LABELLER, LABELS.c.run_id == _RUN,
+           LABELS.c.withdrawn_at.is_(None), QUERIES.c.gold.is_(True))
+)
+
+
+def gold_record(connection: Connection, *, labeller_id: int, run_id: int) -> tuple[int, int]:
+    """(gold answers, correct ones) of the labeller on the run; skips are not answers."""
+    rows = connection.execute(_GOLD_ANSWERS, {"labeller": labeller_id, "gold_run": run_id}).all()
+    answered = [row for row in rows if row.answer != Answer.SKIP]
+    correct = sum(row.answer == gold_answer(row.first_segment_return, row.second_segment_return)
+                  for row in answered)
+    return len(answered), correct
+
+
+_RUN_CONFIG = select(RUNS.c.config).where(RUNS.c.id == _RUN)
+_PAUSED = select(PAUSES.c.id).where(PAUSES.c.run_id == _RUN, PAUSES.c.labeller_id == _LABELLER)
+
+
+def pause_if_below(connection: Connection, *, labeller_id: int, run_id: int) -> bool:
+    """After a gold answer: pause the labeller on the run when their gold accuracy is below the
+    run's threshold; whether they are paused now."""
+    params = {"labeller": labeller_id, "gold_run": run_id}
+    if connection.execute(_PAUSED, params).first() is not None:
+        return True
+    settings = GoldSettings.of(connection.execute(_RUN_CONFIG, params).scalar())
+    if settings.min_accuracy <= 0:
+        return False
+    answers, correct = gold_record(connection, labeller_id=labeller_id, run_id=run_id)
+    if answers < settings.min_answers or correct >= settings.min_accuracy * answers:
+        return False
+    connection.execute(insert(PAUSES), {"run_id": run_id, "labeller_id": labeller_id,
+                                        "gold_answers": answers, "gold_correct": correct})
+    return True
+
+
+def pause_notice(answers: int, correct: int, settings: GoldSettings) -> str:
+    return (f"paused: {correct} of your {answers} answers on check pairs were right, below the "
+            f"{settings.min_accuracy:.0%} this run asks for; an operator can let you go on")
+
+
+def paused_labellers(session: Session, *, run_id: int) -> list[LabellerPause]:
+    """The run's pauses, oldest first."""
+    with reading(session):
+        pauses = list(session.scalars(select(LabellerPause).where(LabellerPause.run_id == run_id)
+                                      .order_by(LabellerPause.id)))
+        session.expunge_all()
+    return pauses
+
+
+def lift_pause(session: Session, *, run_id: int, labeller_id: int) -> bool:
+    """Let a paused labeller answer the run's queries again; whether a pause was lifted. Their
+    gold record is kept: a gold answer that leaves them below the threshold pauses them again."""
+    with transaction(session):
+        result = session.execute(delete(LabellerPause).where(
+            LabellerPause.run_id == run_id, LabellerPause.labeller_id == labeller_id))
+    return bool(getattr(result, "rowcount", 0))
