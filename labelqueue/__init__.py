@@ -26,6 +26,7 @@ from labelqueue.export import COLUMNS as EXPORT_COLUMNS
 from labelqueue.export import FORMATS as EXPORT_FORMATS
 from labelqueue.export import SCHEMA_VERSION as EXPORT_SCHEMA_VERSION
 from labelqueue.export import ExportFormat, export_rows, write_export
+from labelqueue.grid import enqueue_grid_run, find_grid_run, grid_runs, release_grid_key
 from labelqueue.instructions import set_instruction
 from labelqueue.invites import (
     InviteClosed,
@@ -179,4 +180,8 @@ __all__ = [
     "Withdrawn",
     "settled",
     "withdraw_label",
+    "enqueue_grid_run",
+    "find_grid_run",
+    "grid_runs",
+    "release_grid_key",
 ]
