@@ -69,6 +69,13 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child before e
         pass
 
 
+def _missing_sqlite(url: str) -> bool:
+    from sqlalchemy.engine import make_url
+
+    parsed = make_url(url)
+    return parsed.get_backend_name() == "sqlite" and not Path(parsed.database or "").exists()
+
+
 def worker_argv(database_url: str, results: Path, worker_id: str, threads: int) -> list[str]:
     return [sys.executable, "-m", "trainer.cli", "worker", "--database-url", database_url,
             "--data-dir", str(results), "--results", str(results), "--worker-id", worker_id,
@@ -84,6 +91,10 @@ def run_experiment(spec: Spec, *, results: Path, database_url: str | None = None
     results = Path(results)
     url = database_url or default_database(results)
     threads = threads or spec.threads
+    if dry_run and _missing_sqlite(url):  # nothing enqueued yet, and nothing to create
+        echo(f"{spec.name}: {len(spec.runs())} runs; {len(spec.runs())} enqueued (no database "
+             f"yet at {url}; dry run, nothing written)")
+        return 0
     if not dry_run:
         results.mkdir(parents=True, exist_ok=True)
     migrate(url)

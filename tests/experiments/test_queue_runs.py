@@ -82,11 +82,14 @@ def test_enqueueing_a_spec_twice_adds_each_run_once(tmp_path: Path) -> None:
     assert run_experiment(spec, results=results, workers=0, dry_run=True,
                           echo=lines.append) == 0
     assert "4 enqueued" in lines[0] and "dry run, nothing written" in lines[0]
-    assert not (results / "tiny").exists()
+    assert not results.exists()
     assert run_experiment(spec, results=results, workers=0, echo=lines.append) == 0
     assert "4 enqueued" in lines[-2] and "sepoa worker --database-url" in lines[-1]
     assert run_experiment(spec, results=results, workers=0, echo=lines.append) == 0
     assert "0 enqueued" in lines[-2] and "0 finished, 4 queued or running" in lines[-2]
+    assert run_experiment(spec, results=results, workers=0, dry_run=True,
+                          echo=lines.append) == 0
+    assert "0 enqueued" in lines[-1] and "dry run, nothing written" in lines[-1]
     assert (results / "tiny" / "spec.toml").read_text() == spec.source
     _, sessions = sessions_for(results)
     with sessions() as session:
