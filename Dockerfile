@@ -38,6 +38,8 @@ print('\n'.join(p['dependencies'] + p['optional-dependencies']['postgres']))" \
     && rm /tmp/requirements.txt
 
 COPY sepoa ./sepoa
+COPY experiments ./experiments
+COPY figures ./figures
 COPY trainer ./trainer
 COPY labelqueue ./labelqueue
 COPY server ./server

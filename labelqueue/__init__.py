@@ -34,6 +34,7 @@ from labelqueue.gold import (
     lift_pause,
     paused_labellers,
 )
+from labelqueue.grid import enqueue_grid_run, find_grid_run, grid_runs, release_grid_key
 from labelqueue.instructions import set_instruction
 from labelqueue.invites import (
     InviteClosed,
@@ -188,4 +189,8 @@ __all__ = [
     "gold_answer",
     "lift_pause",
     "paused_labellers",
+    "enqueue_grid_run",
+    "find_grid_run",
+    "grid_runs",
+    "release_grid_key",
 ]

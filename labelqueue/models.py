@@ -169,6 +169,9 @@ class Run(Base):
     """the operator's instruction to labellers; none: the task's own (`runvocab.instructions`)"""
     clip_size: Mapped[str | None] = mapped_column(String(16))
     """the size clips are rendered at ("256x256", `runvocab.clip_format`); none: the default"""
+    grid_key: Mapped[str | None] = mapped_column(String(300), unique=True, index=True)
+    """an experiment's run: `<spec name>/<run folder>` (`experiments.spec`), unique, so a grid
+    enqueued again adds nothing; its worker trains it in `<results>/<grid key>`"""
 
 
 class RunInstruction(Base):

@@ -59,10 +59,12 @@ def create_run(
     config: Mapping[str, Any] | None = None,
     instruction: str | None = None,
     clip_size: str | None = None,
+    grid_key: str | None = None,
 ) -> Run:
     """A queued run, for the next free worker to claim. `instruction`: the operator's text for
     labellers (None: the task's own); `clip_size`: a `runvocab.clip_format.CLIP_SIZES` name
-    (None: the default). ValueError for a bad instruction or clip size."""
+    (None: the default); `grid_key`: an experiment's key for the run (`labelqueue.grid`).
+    ValueError for a bad instruction or clip size."""
     stored_instruction = checked_instruction(instruction)
     if clip_size is not None:
         parse_clip_size(clip_size)
@@ -80,6 +82,7 @@ def create_run(
             status=RunStatus.QUEUED,
             instruction=stored_instruction,
             clip_size=clip_size,
+            grid_key=grid_key,
         )
         session.add(run)
         session.flush()

@@ -6,7 +6,7 @@ the others import only the server or the queue package, so they start fast.
     sepoa worker                      # a trainer worker only
     sepoa train --task dmc:cheetah_run --algo pebble --preset small   # one run, no server
     sepoa pretrain --task dmc:cheetah_run --skills aps --preset small # skill snapshot
-    sepoa experiment run specs/small/dmc-curves.toml --parallel 2    # a grid of runs
+    sepoa experiment run specs/small/dmc-curves.toml --workers 2     # a grid of runs
     sepoa report results/dmc-curves-small                            # its figures and tables
     sepoa export --format parquet --run 3 --out labels.parquet
     sepoa labeller create alice [--role operator]
@@ -26,11 +26,13 @@ TRAINER_COMMANDS = {
     "train": "train one run standalone, answered by a scripted teacher",
     "pretrain": "pretrain skills (APS, DIAYN, CIC) for a task; writes a reusable snapshot",
     "worker": "train the runs queued in the queue database",
-    "experiment": "run a spec's grid of runs as resumable processes (docs/EXPERIMENTS.md)",
-    "report": "figures and tables of an experiment's results",
     "doctor": "check off-screen rendering: EGL and OSMesa, GL strings, fps, upright frames",
     "tasks": "list valid task names",
     "presets": "print the presets",
+}
+EXPERIMENT_COMMANDS = {
+    "experiment": "a spec's grid of runs in the queue, trained by workers (docs/EXPERIMENTS.md)",
+    "report": "figures and tables of an experiment's results, or of labellers' calibration",
 }
 
 
@@ -117,6 +119,8 @@ def _parser() -> argparse.ArgumentParser:
 
     for name, text in TRAINER_COMMANDS.items():
         sub.add_parser(name, help=text, add_help=False)  # parsed by trainer.cli
+    for name, text in EXPERIMENT_COMMANDS.items():
+        sub.add_parser(name, help=text, add_help=False)  # parsed by experiments.cli
     return parser
 
 
@@ -240,6 +244,10 @@ def main(argv: list[str] | None = None) -> int:
         from trainer.cli import main as trainer_main
 
         return trainer_main(argv)
+    if argv and argv[0] in EXPERIMENT_COMMANDS:
+        from experiments.cli import main as experiments_main
+
+        return experiments_main(argv)
     args = _parser().parse_args(argv)
     try:
         if args.command == "up":

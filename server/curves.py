@@ -2,7 +2,7 @@
 
 Peers are the runs in the database with the same task, preset and teacher error rate. Each
 algorithm is one curve: the mean and standard deviation across its runs (seeds) of the
-evaluation return, on the steps all of them reached (sepoa/plots.py). The run
+evaluation return, on the steps all of them reached (figures/curves.py). The run
 itself is drawn alone as well, so it can be told from its group.
 
 Drawing takes a fraction of a second of the server's CPU, so figures are kept by their data:
@@ -64,7 +64,7 @@ def peer_curves_png(session: Session, run: Run, metric: str) -> bytes:
         (label, tuple((tuple(steps), tuple(values)) for steps, values in seeds))
         for label, seeds in curves.items()
     )
-    from sepoa.plots import curves_png  # matplotlib: only when a figure is asked
+    from figures.curves import curves_png  # matplotlib: only when a figure is asked
 
     with _drawing:  # pages asking at once wait for one drawing, then reuse it
         return _drawn(curves_png, figure, title, f"evaluation {metric.replace('_', ' ')}")

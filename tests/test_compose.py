@@ -115,3 +115,12 @@ def test_dockerfile_copies_every_package_the_install_needs() -> None:
     assert not missing, f"the Dockerfile does not copy {sorted(missing)}"
     assert re.search(r"pip install .*-e \"?\.\[postgres\]", dockerfile)
     assert re.search(r"^ENTRYPOINT \[\"sepoa\"\]", dockerfile, re.M)
+
+
+def test_workers_scale_and_share_one_results_folder(tmp_path: Path) -> None:
+    # `docker-compose up --scale worker=N`: no fixed name or published port on the worker, and
+    # every replica writes experiments' runs where `sepoa report` reads them.
+    worker = compose_config(tmp_path)["services"]["worker"]
+    assert "container_name" not in worker and not worker.get("ports")
+    assert worker["environment"]["SEPOA_RESULTS_DIR"] == "/data/results"
+    assert ("data", "/data") in mounts(worker)

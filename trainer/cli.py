@@ -1,4 +1,5 @@
-"""The `sepoa` command line.
+"""The `sepoa` command line's trainer commands (`sepoa experiment` and `sepoa report` live in
+`experiments.cli`, above the trainer).
 
     sepoa train --task dmc:cheetah_run --algo pebble --teacher noisy --eps 0.3 \
                 --preset small --seed 0 --steps 100000
@@ -7,11 +8,6 @@
                                                    # skill pretraining -> snapshots/*.pt
     sepoa worker --database-url sqlite:///data/queue.db --data-dir data
                                                    # train runs queued in the database
-    sepoa experiment run specs/small/dmc-curves.toml --results results --parallel 2
-                                                   # a spec's grid of runs, resumable
-    sepoa experiment status specs/small/dmc-curves.toml --results results
-    sepoa report results/dmc-curves-small        # figures + tables -> <folder>/report
-    sepoa report --calibration labels.jsonl        # match ratio and fitted eps per labeller
     sepoa doctor                                   # can this machine render clips? EGL, OSMesa
     sepoa tasks                                    # list valid task names
     sepoa presets                                  # show the presets as data
@@ -22,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import pathlib
 import sys
 
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -116,6 +111,9 @@ def _worker_parser(sub) -> argparse.ArgumentParser:
                    help="runs and clips go under it (env SEPOA_DATA_DIR)")
     p.add_argument("--clips-dir", default=env("SEPOA_CLIPS_DIR"),
                    help="where clips go; <data-dir>/clips when unset (env SEPOA_CLIPS_DIR)")
+    p.add_argument("--results", default=env("SEPOA_RESULTS_DIR"),
+                   help="experiments' runs go to <results>/<spec name>/<run>; "
+                   "<data-dir>/results when unset (env SEPOA_RESULTS_DIR)")
     p.add_argument("--worker-id", default=env("SEPOA_WORKER_ID"),
                    help="name in the database (env SEPOA_WORKER_ID; host-pid if unset); a "
                    "worker restarted under the same id takes its runs back at once")
@@ -182,6 +180,7 @@ def _run_worker(args: argparse.Namespace) -> int:
     worker = WorkerConfig(
         database_url=url, data_dir=Path(args.data_dir),
         clips_dir=Path(args.clips_dir) if args.clips_dir else None, once=args.once,
+        results_dir=Path(args.results) if args.results else None,
         poll_seconds=args.poll_seconds, device=args.device, threads=threads, clip=clip,
         **extra,
     )
@@ -194,50 +193,6 @@ def _run_worker(args: argparse.Namespace) -> int:
         print(f"error: queue database {url.split('@')[-1]}: {first}", file=sys.stderr)
         return 2
     return 0
-
-
-def _experiment_parser(sub) -> argparse.ArgumentParser:
-    p = sub.add_parser("experiment", help="run a spec's grid of runs (docs/EXPERIMENTS.md)")
-    actions = p.add_subparsers(dest="action", required=True)
-    run = actions.add_parser("run", help="train the spec's runs; finished ones are skipped, "
-                             "partial ones resumed",
-                             formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    run.add_argument("spec", help="the spec file (TOML)")
-    run.add_argument("--results", default="results", help="runs go to <results>/<spec name>")
-    run.add_argument("--parallel", type=int, default=None,
-                     help="processes at a time; default the cores // threads")
-    run.add_argument("--threads", type=int, default=None,
-                     help="torch threads per process, instead of the spec's threads")
-    run.add_argument("--dry-run", action="store_true", help="print the plan, start nothing")
-    run.add_argument("--only-pretrain", action="store_true",
-                     help="only pretrain the skill snapshots the runs need")
-    run.add_argument("--force", action="store_true", help="delete and retrain runs whose "
-                     "stored definition differs from the spec's")
-    status = actions.add_parser("status", help="a table of the spec's runs and their state")
-    status.add_argument("spec", help="the spec file (TOML)")
-    status.add_argument("--results", default="results")
-    return p
-
-
-def _run_experiment(args: argparse.Namespace) -> int:
-    from trainer.experiments.runner import run_spec, status_table
-    from trainer.experiments.spec import SpecError, load_spec
-
-    try:
-        spec = load_spec(args.spec, check=args.action == "run")
-        if args.action == "status":
-            print(status_table(spec, args.results))
-            return 0
-        for flag in ("parallel", "threads"):
-            if getattr(args, flag) is not None and getattr(args, flag) < 1:
-                raise SpecError(f"--{flag} must be at least 1")
-        outcome = run_spec(spec, args.results, args.parallel, dry_run=args.dry_run,
-                           only_pretrain=args.only_pretrain, force=args.force,
-                           threads=args.threads)
-    except SpecError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    return outcome.exit_code
 
 
 def _doctor_parser(sub) -> argparse.ArgumentParser:
@@ -263,69 +218,6 @@ def _run_doctor(args: argparse.Namespace) -> int:
         return 2
     return run_doctor(args.backend or BACKENDS, args.task or TASKS, size=args.size,
                       frames=args.frames)
-
-
-def _report_parser(sub) -> argparse.ArgumentParser:
-    p = sub.add_parser("report", help="figures and tables of a spec's results, or the "
-                       "teacher-calibration report of a label export")
-    p.add_argument("folder", nargs="?", default=None,
-                   help="<results>/<spec name>, the folder holding spec.toml")
-    p.add_argument("--calibration", metavar="EXPORT_FILE", default=None,
-                   help="a label export (sepoa export: .jsonl, .csv or .parquet): match ratio, "
-                   "can't-tell rate and fitted eps per labeller (docs/QUALITY.md)")
-    p.add_argument("--bins", default=None, metavar="EDGES",
-                   help="with --calibration: gap bin edges, e.g. 0,0.1,0.2,0.5,1,inf")
-    p.add_argument("--out", default=None, help="default <folder>/report; with --calibration "
-                   "<export file without its suffix>-calibration")
-    return p
-
-
-def _run_calibration_report(args: argparse.Namespace) -> int:
-    from labelqueue.calibration import DEFAULT_EDGES, parse_edges
-    from sepoa.calibration_report import (
-        default_folder,
-        read_calibration_rows,
-        write_calibration_report,
-    )
-
-    try:
-        edges = DEFAULT_EDGES if args.bins is None else parse_edges(args.bins)
-        rows = read_calibration_rows(args.calibration)  # ExportFileError: a ValueError
-    except ValueError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    folder = pathlib.Path(args.out) if args.out else default_folder(args.calibration)
-    try:
-        files = write_calibration_report(rows, folder, source=os.path.basename(args.calibration),
-                                         edges=edges)
-    except OSError as err:
-        print(f"error: cannot write the report into {folder}: {err.strerror or err}",
-              file=sys.stderr)
-        return 2
-    print("\n".join(str(f) for f in files))
-    return 0
-
-
-def _run_report(args: argparse.Namespace) -> int:
-    if (args.folder is None) == (args.calibration is None):
-        print("error: give a results folder, or --calibration EXPORT_FILE (not both)",
-              file=sys.stderr)
-        return 2
-    if args.calibration is not None:
-        return _run_calibration_report(args)
-    if args.bins is not None:
-        print("error: --bins goes with --calibration", file=sys.stderr)
-        return 2
-    from trainer.experiments.report import write_report
-    from trainer.experiments.spec import SpecError
-
-    try:
-        files = write_report(args.folder, args.out)
-    except SpecError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    print("\n".join(str(f) for f in files))
-    return 0
 
 
 def _config_from_args(args: argparse.Namespace):
@@ -359,8 +251,6 @@ def main(argv: list[str] | None = None) -> int:
     _train_parser(sub)
     _pretrain_parser(sub)
     _worker_parser(sub)
-    _experiment_parser(sub)
-    _report_parser(sub)
     _doctor_parser(sub)
     sub.add_parser("tasks", help="list valid task names")
     sub.add_parser("presets", help="print the presets")
@@ -381,10 +271,6 @@ def main(argv: list[str] | None = None) -> int:
         return _run_worker(args)
     if args.command == "pretrain":
         return _run_pretrain(args)
-    if args.command == "experiment":
-        return _run_experiment(args)
-    if args.command == "report":
-        return _run_report(args)
     if args.command == "doctor":
         return _run_doctor(args)
 

@@ -21,7 +21,12 @@ from trainer.replay_buffer import ReplayBuffer
 from trainer.return_estimator import ReturnEstimator
 from trainer.sac import SAC
 from trainer.skills import SkillAgent, SkillBackend, SkillReplayBuffer
-from trainer.skills.pretrain import build_skill_agent, load_snapshot, pretrain, snapshot_path
+from trainer.skills.pretrain import (
+    build_skill_agent,
+    load_snapshot,
+    pretrain_once,
+    snapshot_path,
+)
 from trainer.utils import set_seed
 
 Meta = tuple[np.ndarray, ...]
@@ -162,8 +167,9 @@ def _skill_agent(cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.devic
     if not os.path.exists(path):
         print(f"no skill snapshot at {path}: pretraining {cfg.skill.backend} for "
               f"{cfg.skill.pretrain_steps} steps first", file=sys.stderr, flush=True)
-        pretrain(dataclasses.replace(cfg, seed=cfg.skill.snapshot_seed), out=path,
-                 progress=False, tick=hooks.pretraining)
+        # Once per snapshot: other runs needing it (other workers too) wait, heartbeating.
+        pretrain_once(dataclasses.replace(cfg, seed=cfg.skill.snapshot_seed), path,
+                      tick=hooks.pretraining, waiting=lambda: hooks.pretraining(0))
         set_seed(cfg.seed)  # the online run starts from the same state as with a snapshot at hand
     snapshot = load_snapshot(path, cfg.task, cfg.skill.backend)
     return build_skill_agent(cfg, obs_dim, act_dim, device, snapshot)

@@ -5,8 +5,12 @@
 A worker trains one run at a time; any number of workers may share one database. For each run
 it claims (a queued one, or one whose worker stopped heartbeating), it builds the run's config
 from the row (task, algorithm, preset, seed, budget, teacher parameters, config overrides),
-resumes from the checkpoint in `<data dir>/runs/run-<id>` if there is one, and trains with
-`QueueHooks`, which:
+resumes from the checkpoint in the run's folder if there is one, and trains with `QueueHooks`.
+A run's folder is `<data dir>/runs/run-<id>`; an experiment's run (one with a grid key) goes to
+`<results>/<grid key>`, i.e. `<results>/<spec name>/<run folder>`, with its skill snapshots in
+`<results>/snapshots`, so every worker given the same (shared) results folder writes the grid
+where `sepoa experiment status` and `sepoa report` read it. The worker marks the folder's end:
+`done.json` (the run's summary) or `failed.json` (the error). `QueueHooks`:
 
 - heartbeat every few seconds with the run's progress, and obey the operator between steps:
   paused -> wait, stopping/stopped -> end at the episode's end after a checkpoint;
@@ -31,6 +35,7 @@ people teach and `feedback.gold_rate` is above zero, each round also pushes gold
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import socket
@@ -87,6 +92,8 @@ from trainer.loop import CHECKPOINT, TrainingRun
 from trainer.trajectories import TrajectoryPool
 
 SCRIPTED_LABELLER = "scripted-teacher"
+DONE, FAILED = "done.json", "failed.json"
+"""a run folder's end, as the worker marks it"""
 
 
 @dataclass(frozen=True)
@@ -113,10 +120,16 @@ class WorkerConfig:
     """overrides every run's torch CPU threads"""
     clip: ClipConfig = field(default_factory=ClipConfig)
     """how clips are rendered; a run's own `clip_size` replaces the width and height"""
+    results_dir: Path | None = None
+    """experiments' runs go to <results_dir>/<grid key> (default <data_dir>/results)"""
 
     @property
     def clips_root(self) -> Path:
         return self.clips_dir or self.data_dir / "clips"
+
+    @property
+    def results_root(self) -> Path:
+        return self.results_dir or self.data_dir / "results"
 
 
 class LostRun(Exception):
@@ -128,10 +141,15 @@ def run_config(run: Run, worker: WorkerConfig) -> RunConfig:
     cfg = queued_run_config(task=run.task, algo=run.algo, preset=run.preset, seed=run.seed,
                             budget=run.budget, teacher_params=run.teacher_params,
                             config=run.config)
-    local: dict[str, object] = {"run_dir": str(worker.data_dir / "runs" / f"run-{run.id}")}
-    # S-EPOA's skill snapshots are shared by the runs of a data folder (made on first use).
+    if run.grid_key is not None:  # an experiment's run: in the shared results folder
+        root, folder = worker.results_root, worker.results_root / run.grid_key
+    else:
+        root, folder = worker.data_dir, worker.data_dir / "runs" / f"run-{run.id}"
+    snapshots = root / "snapshots"
+    local: dict[str, object] = {"run_dir": str(folder)}
+    # S-EPOA's skill snapshots are shared by the runs of a folder (made on first use, once).
     if "skill.snapshot_dir" not in run.config:
-        local["skill.snapshot_dir"] = str(worker.data_dir / "snapshots")
+        local["skill.snapshot_dir"] = str(snapshots)
     if worker.device is not None:
         local["device"] = worker.device
     if worker.threads is not None:
@@ -383,6 +401,8 @@ def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerC
         resume = os.path.exists(os.path.join(cfg.run_dir, CHECKPOINT))
         if not resume and os.path.isdir(cfg.run_dir):
             shutil.rmtree(cfg.run_dir)  # an attempt that died before its first checkpoint
+        for marker in (DONE, FAILED):
+            Path(cfg.run_dir, marker).unlink(missing_ok=True)
         hooks = QueueHooks(sessions, run, worker, cfg, scripted_id)
         print(f"{log}: {'resuming' if resume else 'starting'} {run.task} {run.algo} "
               f"in {cfg.run_dir}", file=sys.stderr, flush=True)
@@ -395,10 +415,28 @@ def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerC
         return None
     except Exception as err:  # noqa: BLE001 - any failure ends the run as failed, with why
         traceback.print_exc()
-        return _end(sessions, run.id, worker, RunStatus.FAILED, f"{type(err).__name__}: {err}")
+        error = f"{type(err).__name__}: {err}"
+        if "cfg" in locals():
+            _mark(cfg.run_dir, FAILED, {"reason": error})
+        return _end(sessions, run.id, worker, RunStatus.FAILED, error)
     status = RunStatus.STOPPED if summary.get("stopped") else RunStatus.FINISHED
     print(f"{log}: {status} at step {summary['step']}", file=sys.stderr, flush=True)
+    if status is RunStatus.FINISHED:
+        _mark(cfg.run_dir, DONE, summary)
     return _end(sessions, run.id, worker, status, None)
+
+
+def _mark(run_dir: str, name: str, data: dict[str, Any]) -> None:
+    """`done.json` / `failed.json` in the run's folder, for reports that read folders only."""
+    path = Path(run_dir, name)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(data | {"at": time.strftime("%Y-%m-%d %H:%M:%S")},
+                                  default=str) + "\n")
+        os.replace(tmp, path)
+    except OSError as err:
+        print(f"cannot write {path}: {err}", file=sys.stderr, flush=True)
 
 
 def _end(sessions: sessionmaker[Session], run_id: int, worker: WorkerConfig, status: RunStatus,

@@ -64,7 +64,7 @@ def get_calibration_png(
 ) -> Response:
     """The report's figure, as `sepoa report --calibration` draws it."""
     report = report_of(session, run_id=run_id, bins=bins)
-    from sepoa.calibration_report import calibration_png  # matplotlib: only when asked
+    from figures.calibration import calibration_png  # matplotlib: only when asked
 
     title = "All runs" if run_id is None else f"Run {run_id}"
     with _drawing:

@@ -10,8 +10,8 @@ from fastapi.testclient import TestClient
 from server_helpers import OPERATOR, bearer, new_labeller, new_run
 from sqlalchemy.orm import Session
 
+from figures import curves as plots
 from labelqueue import write_metrics
-from sepoa import plots
 
 
 def _evaluated_run(client: TestClient, session: Session, *, algo: str, eps: float,

@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -32,9 +34,42 @@ def test_the_server_imports_neither_the_trainer_nor_torch() -> None:
         [sys.executable, "-c", probe], capture_output=True, text=True, check=True, cwd=ROOT
     )
     assert result.stdout.strip() == "[]"
-    # Nor does any server module later, e.g. when drawing a figure (sepoa.plots is shared).
+    # Nor does any server module later, e.g. when drawing a figure (figures is shared); nor
+    # does it reach up into the command line's layers.
     for path in (ROOT / "server").rglob("*.py"):
-        assert not imported_packages(path) & {"trainer", "torch"}, path
+        assert not imported_packages(path) & {"trainer", "torch", "experiments", "sepoa"}, path
+
+
+# Who may import whom, by top-level package: a package imports only those listed for it (and
+# third-party code). runvocab and labelqueue are the bottom; figures draws for the server and
+# the reports; the trainer and the server sit beside each other; experiments and the `sepoa`
+# command line are on top.
+LAYERS = {
+    "runvocab": set(),
+    "labelqueue": {"runvocab"},
+    "figures": {"runvocab", "labelqueue"},
+    "server": {"runvocab", "labelqueue", "figures"},
+    "trainer": {"runvocab", "labelqueue"},
+    "experiments": {"runvocab", "labelqueue", "figures", "trainer"},
+    "sepoa": {"runvocab", "labelqueue", "figures", "trainer", "server", "experiments"},
+}
+
+
+@pytest.mark.parametrize("package", sorted(LAYERS))
+def test_each_package_imports_only_the_layers_below_it(package: str) -> None:
+    others = set(LAYERS) - LAYERS[package] - {package}
+    for path in (ROOT / package).rglob("*.py"):
+        wrong = imported_packages(path) & others
+        assert not wrong, f"{path.relative_to(ROOT)} imports {sorted(wrong)}"
+
+
+def test_figures_draw_without_torch_or_the_trainer() -> None:
+    probe = ("import sys, figures.curves, figures.calibration; print(sorted(m for m in "
+             "sys.modules if m == 'torch' or m.split('.')[0] in ('trainer', 'server')))")
+    result = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, check=True, cwd=ROOT
+    )
+    assert result.stdout.strip() == "[]"
 
 
 def test_the_trainer_never_imports_the_server() -> None:

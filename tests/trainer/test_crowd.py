@@ -13,6 +13,7 @@ import pytest
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from figures.calibration import read_calibration_rows
 from labelqueue import (
     Query,
     TeacherKind,
@@ -26,7 +27,6 @@ from labelqueue import (
     write_export,
 )
 from labelqueue.calibration import calibration_report
-from sepoa.calibration_report import read_calibration_rows
 from sepoa.cli import main
 from trainer.crowd import SimulatedLabeller, answer_as_crowd, estimated_r_avg
 

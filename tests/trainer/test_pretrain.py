@@ -171,3 +171,43 @@ def test_a_run_that_must_pretrain_first_reports_each_pretraining_step(tmp_path):
     # A worker heartbeats from these, so a long pretraining keeps its run.
     assert hooks.steps == list(range(1, cfg.skill.pretrain_steps + 1))
     assert os.path.exists(tmp_path / "skills.pt")
+
+
+def test_runs_needing_one_snapshot_pretrain_it_once(tmp_path, monkeypatch) -> None:
+    """Workers starting S-EPOA runs of one task at once: one pretrains, the others wait for its
+    snapshot (heartbeating meanwhile) and load it."""
+    import threading
+    import time
+
+    from trainer.skills import pretrain as module
+
+    made: list[str] = []
+
+    def slow_pretrain(cfg, out, progress, tick):
+        made.append(out)
+        time.sleep(0.5)
+        with open(out, "w") as f:
+            f.write("snapshot")
+        return out
+
+    monkeypatch.setattr(module, "pretrain", slow_pretrain)
+    cfg = build_config("dmc:cheetah_run", "tiny", {"algo": "sepoa",
+                                                   "skill.snapshot_dir": str(tmp_path)})
+    path = module.snapshot_path(cfg)
+    waits: list[int] = []
+    results: list[bool] = []
+    start = threading.Barrier(3)
+
+    def worker() -> None:
+        start.wait()
+        results.append(module.pretrain_once(cfg, path, waiting=lambda: waits.append(1),
+                                            poll_seconds=0.05))
+
+    threads = [threading.Thread(target=worker) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(10)
+    assert made == [path] and sorted(results) == [False, False, True]
+    assert waits  # the others waited, calling back (a worker's heartbeat)
+    assert module.pretrain_once(cfg, path) is False and made == [path]

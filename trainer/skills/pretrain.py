@@ -14,6 +14,7 @@ online runs of the task load it with `load_snapshot` and `build_skill_agent`.
 from __future__ import annotations
 
 import dataclasses
+import fcntl
 import hashlib
 import json
 import os
@@ -276,3 +277,30 @@ def pretrain(cfg: RunConfig, out: str | None = None, progress: bool = True,
     default `default_snapshot_path(cfg)`). Refuses to overwrite an existing snapshot. `tick`
     is called with the step after every step."""
     return SkillPretraining(cfg, out, progress, tick).run()
+
+
+def pretrain_once(cfg: RunConfig, path: str, tick: Callable[[int], None] | None = None,
+                  waiting: Callable[[], None] | None = None, poll_seconds: float = 1.0) -> bool:
+    """Make the snapshot at `path` unless it exists: under a lock on `<path>.lock`, so that of
+    the processes (workers, hosts sharing the folder) needing one snapshot, one pretrains it and
+    the others wait for it, calling `waiting` every `poll_seconds` (a worker heartbeats there).
+    True when this call pretrained it."""
+    if os.path.exists(path):
+        return False
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with open(f"{path}.lock", "a") as lock:
+        while True:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if waiting is not None:
+                    waiting()
+                time.sleep(poll_seconds)
+        try:
+            if os.path.exists(path):  # made by the process that held the lock before
+                return False
+            pretrain(cfg, out=path, progress=False, tick=tick)
+            return True
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)

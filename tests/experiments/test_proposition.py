@@ -13,17 +13,17 @@ import pandas as pd
 import pytest
 import torch
 
-from runvocab.config import build_config
-from sepoa.plots import PNG_SIGNATURE
-from trainer.experiments.proposition import (
+from experiments.proposition import (
     binned,
     measured_disagreement,
     proposition_png,
     simulated_disagreement,
     spearman,
 )
-from trainer.experiments.report import write_report
-from trainer.experiments.spec import load_spec
+from experiments.report import write_report
+from experiments.spec import load_spec
+from figures.curves import PNG_SIGNATURE
+from runvocab.config import build_config
 from trainer.loop import TrainingRun
 
 torch.set_num_threads(1)

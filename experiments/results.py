@@ -16,7 +16,7 @@ from typing import Any
 
 import pandas as pd
 
-from trainer.experiments.spec import Spec, load_spec
+from experiments.spec import Spec, load_spec
 
 KEYS = ["task", "variant", "eps", "budget", "seed"]
 STATES = ("done", "partial", "failed", "not started")

@@ -32,13 +32,13 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from sepoa.plots import Band, align, grid_png
-from trainer.experiments.proposition import (
+from experiments.proposition import (
     measured_disagreement,
     proposition_png,
     simulated_disagreement,
 )
-from trainer.experiments.results import KEYS, STATES, Results, load_results
+from experiments.results import KEYS, STATES, Results, load_results
+from figures.curves import Band, align, grid_png
 
 GROUP = ["task", "eps", "budget"]
 

@@ -14,10 +14,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from sepoa.plots import PNG_SIGNATURE, Band, align, curves_png
-from trainer.experiments.report import curve_panels, mean_std, write_report
-from trainer.experiments.results import load_results
-from trainer.experiments.spec import SpecError
+from experiments.report import curve_panels, mean_std, write_report
+from experiments.results import load_results
+from experiments.spec import SpecError
+from figures.curves import PNG_SIGNATURE, Band, align, curves_png
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -84,7 +84,7 @@ def results(tmp_path_factory: pytest.TempPathFactory) -> Path:
                        [f"{200 * (i + 1)},{i},{r}" for i, r in enumerate(ratios)])
         if evals[-1][0] == 600:
             (run / "done.json").write_text(json.dumps({"step": 600}))
-    from trainer.cli import main
+    from experiments.cli import main
 
     assert main(["report", str(folder)]) == 0
     return folder
@@ -170,7 +170,7 @@ def test_figures_and_index(results: Path) -> None:
 
 
 def test_report_of_a_folder_without_spec_is_an_error(tmp_path: Path, capsys) -> None:
-    from trainer.cli import main
+    from experiments.cli import main
 
     assert main(["report", str(tmp_path)]) == 2
     assert "spec.toml: cannot read the spec" in capsys.readouterr().err
@@ -183,7 +183,7 @@ def test_plots_draw_plain_data_without_torch() -> None:
                       "b": Band(np.array([0, 2]), np.array([1.0, 1.0]),
                                 np.array([0.1, 0.1]), 3)}, title="t")
     assert png.startswith(PNG_SIGNATURE)
-    probe = ("import sys, sepoa.plots; "
+    probe = ("import sys, figures.curves; "
              "print('torch' in sys.modules, 'matplotlib.pyplot' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
                          check=True, cwd=ROOT)

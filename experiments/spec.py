@@ -27,7 +27,7 @@ OPTIONAL = ("title", "kind", "budgets", "threads", "overrides")
 # Fields the spec sets through its own keys: an override of one would contradict the grid.
 RESERVED = {
     "task": "tasks", "algo": "a variant's algo", "preset": "preset", "seed": "seeds",
-    "steps": "steps", "teacher.eps": "eps", "threads": "threads", "run_dir": "the runner",
+    "steps": "steps", "teacher.eps": "eps", "threads": "threads", "run_dir": "the worker",
 }
 
 
@@ -74,8 +74,7 @@ class Run:
         return build_config(self.task, self.preset, self.config_overrides())
 
     def identity(self) -> dict[str, Any]:
-        """What defines the run's results, as JSON gives it back; the runner stores it in the
-        run's folder to notice a spec that changed under existing results."""
+        """What defines the run's results, as JSON gives it back."""
         ident = {"task": self.task, "variant": self.variant, "algo": self.algo,
                  "eps": self.eps, "budget": self.budget, "seed": self.seed,
                  "preset": self.preset, "steps": self.steps, "overrides": self.overrides}

@@ -1,0 +1,180 @@
+"""A spec's grid as runs in the queue database: enqueued once each, trained by any worker.
+
+Each run of the grid is a queued run with the scripted teacher (`teacher.eps` from the grid) and
+the grid key `<spec name>/<run folder>`; the key is unique in the database, so enqueueing the
+spec again adds nothing, and two launchers on one spec enqueue each run once (the queue's claim
+then gives each run to one worker). A worker trains a keyed run in `<results>/<grid key>`
+(`trainer.worker`), so the grid lands in `<results>/<spec name>/<run folder>/`.
+
+The row is the run's definition: a spec that would give an existing run another one (a changed
+override, more steps) is refused, listing the runs, unless forced; forcing lets the old rows go
+(`labelqueue.release_grid_key`), deletes their folders and enqueues the new definition. Runs
+that failed or were stopped are queued again; a worker resumes them from their checkpoint.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from experiments.spec import Run as GridRun
+from experiments.spec import Spec, SpecError
+from labelqueue import (
+    Conflict,
+    Run,
+    RunStatus,
+    enqueue_grid_run,
+    grid_runs,
+    release_grid_key,
+    set_run_status,
+)
+from runvocab.queued_run import TOP_LEVEL_FIELDS
+
+RETRIED = (RunStatus.FAILED, RunStatus.STOPPED)
+"""statuses a run is queued again from when its spec is run again"""
+
+
+def grid_key(spec: Spec, run: GridRun) -> str:
+    """`<spec name>/<run folder>`: the run's key in the database and its folder under results."""
+    return f"{spec.name}/{run.dir.as_posix()}"
+
+
+def queued_fields(spec: Spec, run: GridRun) -> dict[str, Any]:
+    """`create_run`'s arguments for a grid run: scripted teacher, the grid's eps, the budget as
+    the run's own (the budgets axis, else the task's and preset's), the rest as config."""
+    config = {path: value for path, value in run.config_overrides().items()
+              if path not in TOP_LEVEL_FIELDS and path != "teacher.eps"}
+    return {"name": f"{spec.name}: {run.dir.as_posix()}", "task": run.task, "algo": run.algo,
+            "preset": run.preset, "seed": run.seed,
+            "budget": run.budget if run.budget is not None else run.config().feedback.budget,
+            "teacher": "scripted", "teacher_params": {"eps": run.eps},
+            "config": json.loads(json.dumps(config, default=str))}
+
+
+DEFINING = ("task", "algo", "preset", "seed", "budget", "teacher_params", "config")
+
+
+def definition(fields: dict[str, Any] | Run) -> str:
+    """The fields that define a run's results, as comparable text."""
+    get = fields.get if isinstance(fields, dict) else lambda name: getattr(fields, name)
+    return json.dumps({name: get(name) for name in DEFINING}, sort_keys=True, default=str)
+
+
+@dataclass
+class Enqueued:
+    """What enqueueing a spec did, by grid key."""
+
+    created: list[str] = field(default_factory=list)
+    requeued: list[str] = field(default_factory=list)
+    """failed or stopped before: queued again (a worker resumes from the checkpoint)"""
+    replaced: list[str] = field(default_factory=list)
+    """redefined with --force: the old run let go of its key, its folder was deleted"""
+    present: dict[str, RunStatus] = field(default_factory=dict)
+    """already queued, running or finished: left as they are"""
+
+
+def conflicts(spec: Spec, sessions: sessionmaker[Session]) -> dict[str, Run]:
+    """The spec's runs whose row in the database has another definition, by grid key."""
+    with sessions() as session:
+        rows = grid_runs(session, prefix=f"{spec.name}/")
+    out = {}
+    for run in spec.runs():
+        key = grid_key(spec, run)
+        if key in rows and definition(rows[key]) != definition(queued_fields(spec, run)):
+            out[key] = rows[key]
+    return out
+
+
+def _describe(row: Run, fields: dict[str, Any]) -> str:
+    stored = json.loads(definition(row))
+    new = json.loads(definition(fields))
+    diffs = [f"{name} {stored[name]!r} -> {new[name]!r}" for name in DEFINING
+             if stored[name] != new[name]]
+    return f"run {row.id}, {row.status}: " + "; ".join(diffs)
+
+
+def enqueue_spec(spec: Spec, sessions: sessionmaker[Session], results: Path,
+                 force: bool = False, dry_run: bool = False) -> Enqueued:
+    """Put the spec's grid in the queue (see the module docstring); SpecError for a redefined
+    run without `force`, or one a worker still owns. Nothing is written on a dry run."""
+    clash = conflicts(spec, sessions)
+    fields = {grid_key(spec, run): queued_fields(spec, run) for run in spec.runs()}
+    if clash and not force:
+        lines = [f"{key}: {_describe(row, fields[key])}" for key, row in clash.items()]
+        shown = "\n  ".join(lines[:5]) + (f"\n  ... {len(lines) - 5} more"
+                                          if len(lines) > 5 else "")
+        raise SpecError(f"the queue holds {len(clash)} run(s) of spec {spec.name!r} with "
+                        f"another definition:\n  {shown}\nuse another spec name, or --force to "
+                        "delete those runs and train them again")
+    out = Enqueued()
+    if dry_run:
+        with sessions() as session:
+            rows = grid_runs(session, prefix=f"{spec.name}/")
+        for key in fields:
+            if key in clash:
+                out.replaced.append(key)
+            elif key not in rows:
+                out.created.append(key)
+            elif rows[key].status in RETRIED:
+                out.requeued.append(key)
+            else:
+                out.present[key] = rows[key].status
+        return out
+    with sessions() as session:
+        for key, row in clash.items():
+            try:
+                release_grid_key(session, run_id=row.id)
+            except Conflict as err:
+                raise SpecError(f"cannot redefine {key}: {err}") from None
+            shutil.rmtree(results / key, ignore_errors=True)
+            out.replaced.append(key)
+        for key, values in fields.items():
+            row, created = enqueue_grid_run(session, grid_key=key, **values)
+            if created:
+                if key not in clash:
+                    out.created.append(key)
+            elif row.status in RETRIED:
+                set_run_status(session, run_id=row.id, status=RunStatus.QUEUED)
+                out.requeued.append(key)
+            else:
+                out.present[key] = row.status
+    return out
+
+
+def spec_rows(spec: Spec, sessions: sessionmaker[Session]) -> dict[str, Run]:
+    with sessions() as session:
+        return grid_runs(session, prefix=f"{spec.name}/")
+
+
+def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> str:
+    """A table of the spec's runs: their status in the database (or "not queued"), the step
+    reached of the planned steps, the worker, and whether the folder holds a checkpoint."""
+    rows = spec_rows(spec, sessions)
+    header = ("task", "variant", "eps", "budget", "seed", "status", "step", "worker", "folder")
+    lines, counts = [], {}
+    for run in spec.runs():
+        key = grid_key(spec, run)
+        row = rows.get(key)
+        status = str(row.status) if row is not None else "not queued"
+        counts[status] = counts.get(status, 0) + 1
+        folder = results / key
+        held = ("done" if (folder / "done.json").exists() else
+                "checkpoint" if (folder / "checkpoint.pt").exists() else
+                "-" if not folder.exists() else "started")
+        lines.append((run.task, run.variant, f"{run.eps:g}",
+                      "-" if run.budget is None else str(run.budget), str(run.seed), status,
+                      f"{row.step if row is not None else 0}/{run.steps}",
+                      (row.worker_id or "-") if row is not None else "-", held))
+    widths = [max(len(r[i]) for r in [header, *lines]) for i in range(len(header))]
+    text = ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip()
+            for r in [header, *lines]]
+    summary = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
+    errors = [f"  {key}: {row.error}" for key, row in sorted(rows.items())
+              if row.status is RunStatus.FAILED and row.error]
+    return "\n".join([f"{spec.name}: {len(lines)} runs: {summary}", *text]
+                     + (["failed:", *errors] if errors else []))

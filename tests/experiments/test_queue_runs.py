@@ -1,0 +1,339 @@
+"""Experiments as queue runs: a spec's grid enqueued once per grid key, trained by workers into
+`<results>/<spec>/<run>/`; a changed grid refused without --force; two launchers never train a
+run twice; a failing run is reported while the others finish; a killed launch resumes; the
+one-command launch with local workers; the Slurm recipe's script."""
+
+from __future__ import annotations
+
+import json
+import shlex
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from sqlalchemy import func, select
+from worker_helpers import wait_for, worker_config
+
+from experiments.cli import main
+from experiments.launch import run_experiment
+from experiments.queue import enqueue_spec, grid_key
+from experiments.spec import Spec, SpecError, load_spec
+from labelqueue import (
+    Run,
+    RunStatus,
+    claim_run,
+    finish_run,
+    grid_runs,
+    make_engine,
+    migrate,
+    session_factory,
+)
+from trainer.worker import run_worker
+
+ROOT = Path(__file__).resolve().parents[2]
+
+TINY = """
+name = "tiny"
+preset = "tiny"
+steps = {steps}
+tasks = ["dmc:cheetah_run"]
+eps = [0.3]
+seeds = {seeds}
+
+[overrides]
+eval_every = 200
+"skill.pretrain_steps" = 200
+"feedback.per_round" = 10
+"""
+
+
+def write(folder: Path, text: str, name: str = "spec.toml") -> Path:
+    path = folder / name
+    path.write_text(text)
+    return path
+
+
+def quiet(line: str) -> None:
+    pass
+
+
+def sessions_for(results: Path):  # noqa: ANN201
+    url = f"sqlite:///{results / 'queue.db'}"
+    migrate(url)
+    return url, session_factory(make_engine(url))
+
+
+def grid_spec(tmp_path: Path, seeds: str = "[0, 1]", steps: int = 400) -> Spec:
+    return load_spec(write(tmp_path, TINY.format(steps=steps, seeds=seeds) + """
+[variants.PEBBLE]
+algo = "pebble"
+[variants.S-EPOA]
+algo = "sepoa"
+"""), check=False)
+
+
+def test_enqueueing_a_spec_twice_adds_each_run_once(tmp_path: Path) -> None:
+    spec, results = grid_spec(tmp_path), tmp_path / "results"
+    lines: list[str] = []
+    assert run_experiment(spec, results=results, workers=0, dry_run=True,
+                          echo=lines.append) == 0
+    assert "4 enqueued" in lines[0] and "dry run, nothing written" in lines[0]
+    assert not results.exists()
+    assert run_experiment(spec, results=results, workers=0, echo=lines.append) == 0
+    assert "4 enqueued" in lines[-2] and "sepoa worker --database-url" in lines[-1]
+    assert run_experiment(spec, results=results, workers=0, echo=lines.append) == 0
+    assert "0 enqueued" in lines[-2] and "0 finished, 4 queued or running" in lines[-2]
+    assert run_experiment(spec, results=results, workers=0, dry_run=True,
+                          echo=lines.append) == 0
+    assert "0 enqueued" in lines[-1] and "dry run, nothing written" in lines[-1]
+    assert (results / "tiny" / "spec.toml").read_text() == spec.source
+    _, sessions = sessions_for(results)
+    with sessions() as session:
+        rows = grid_runs(session, prefix="tiny/")
+        assert session.scalar(select(func.count()).select_from(Run)) == 4
+    assert sorted(rows) == sorted(grid_key(spec, run) for run in spec.runs())
+    row = rows["tiny/dmc-cheetah_run/S-EPOA/eps0.3/s1"]
+    assert (row.algo, row.seed, row.teacher, row.teacher_params) == ("sepoa", 1, "scripted",
+                                                                     {"eps": 0.3})
+    assert row.config == {"steps": 400, "eval_every": 200, "skill.pretrain_steps": 200,
+                          "feedback.per_round": 10}
+    # A grown grid adds only its new runs.
+    bigger = grid_spec(tmp_path, seeds="[0, 1, 2]")
+    assert run_experiment(bigger, results=results, workers=0, echo=lines.append) == 0
+    assert "2 enqueued" in lines[-2]
+
+
+def _finish_all(sessions, worker: str = "w") -> list[int]:  # noqa: ANN001
+    ids = []
+    with sessions() as session:
+        while (run := claim_run(session, worker_id=worker)) is not None:
+            finish_run(session, run_id=run.id, worker_id=worker)
+            ids.append(run.id)
+    return ids
+
+
+def test_a_changed_grid_is_refused_unless_forced(tmp_path: Path) -> None:
+    spec, results = grid_spec(tmp_path, seeds="[0]"), tmp_path / "results"
+    run_experiment(spec, results=results, workers=0, echo=quiet)
+    _, sessions = sessions_for(results)
+    old = _finish_all(sessions)
+    folder = results / "tiny" / "dmc-cheetah_run" / "PEBBLE" / "eps0.3" / "s0"
+    folder.mkdir(parents=True)
+    (folder / "done.json").write_text("{}")
+    changed = load_spec(write(tmp_path, spec.source.replace("eval_every = 200",
+                                                            "eval_every = 100"), "changed.toml"))
+    with pytest.raises(SpecError) as err:
+        run_experiment(changed, results=results, workers=0, echo=quiet)
+    message = str(err.value)
+    assert "2 run(s) of spec 'tiny' with another definition" in message
+    assert "tiny/dmc-cheetah_run/PEBBLE/eps0.3/s0: run 1, finished: config" in message
+    assert "--force" in message
+    assert (folder / "done.json").exists()
+    # More steps redefine finished runs too.
+    longer = load_spec(write(tmp_path, spec.source.replace("steps = 400", "steps = 800"),
+                             "longer.toml"))
+    with pytest.raises(SpecError, match="with another definition"):
+        run_experiment(longer, results=results, workers=0, echo=quiet)
+
+    lines: list[str] = []
+    assert run_experiment(changed, results=results, workers=0, force=True,
+                          echo=lines.append) == 0
+    assert "2 redefined" in lines[0]
+    assert not folder.exists()
+    with sessions() as session:
+        rows = grid_runs(session, prefix="tiny/")
+        kept = [session.get(Run, run_id) for run_id in old]
+    assert all(row.status is RunStatus.QUEUED and row.id not in old for row in rows.values())
+    assert all(row.grid_key is None and row.status is RunStatus.FINISHED for row in kept)
+    assert all(row.config["eval_every"] == 100 for row in rows.values())
+
+    # A redefined run a worker is training is not taken from it.
+    with sessions() as session:
+        claim_run(session, worker_id="busy")
+    with pytest.raises(SpecError, match="is running on worker 'busy'; stop it first"):
+        run_experiment(spec, results=results, workers=0, force=True, echo=quiet)
+
+
+def test_two_launchers_on_one_spec_enqueue_and_train_each_run_once(tmp_path: Path) -> None:
+    spec, results = grid_spec(tmp_path, seeds="[0, 1, 2, 3, 4]"), tmp_path / "results"
+    results.mkdir()
+    _, sessions = sessions_for(results)
+    start = threading.Barrier(4)
+    errors: list[BaseException] = []
+
+    def launcher() -> None:
+        start.wait()
+        try:
+            enqueue_spec(spec, sessions, results)
+        except BaseException as err:  # noqa: BLE001
+            errors.append(err)
+
+    claimed: dict[str, list[int]] = {}
+
+    def worker(name: str) -> None:
+        start.wait()
+        claimed[name] = []
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            got = _finish_all(sessions, name)
+            claimed[name] += got
+            if got == [] and len(sum(claimed.values(), [])) == 10:
+                return
+            time.sleep(0.01)
+
+    threads = [threading.Thread(target=launcher), threading.Thread(target=launcher),
+               threading.Thread(target=worker, args=("a",)),
+               threading.Thread(target=worker, args=("b",))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    assert not errors
+    with sessions() as session:
+        assert session.scalar(select(func.count()).select_from(Run)) == 10
+    trained = claimed["a"] + claimed["b"]
+    assert sorted(trained) == list(range(1, 11))  # every run once, none twice
+
+
+@pytest.mark.slow
+def test_a_worker_trains_the_grid_into_the_results_folder_and_reports_a_failure(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    broken = tmp_path / "not-a-snapshot.pt"
+    broken.write_text("not a snapshot")
+    spec_path = write(tmp_path, TINY.format(steps=400, seeds="[0, 1]") + f"""
+[variants.S-EPOA]
+algo = "sepoa"
+[variants.broken]
+algo = "sepoa"
+"skill.snapshot" = "{broken}"
+""")
+    results = tmp_path / "results"
+    assert main(["experiment", "run", str(spec_path), "--results", str(results),
+                 "--no-workers"]) == 0
+    url, sessions = sessions_for(results)
+    run_worker(worker_config(url, tmp_path / "data", results_dir=results, threads=1))
+
+    root = results / "tiny" / "dmc-cheetah_run"
+    for seed in (0, 1):
+        folder = root / "S-EPOA" / "eps0.3" / f"s{seed}"
+        assert json.loads((folder / "done.json").read_text())["step"] == 400
+        assert (folder / "eval.csv").read_text().splitlines()[-1].startswith("400,")
+        config = json.loads((folder / "config.json").read_text())
+        assert config["skill"]["snapshot_dir"] == str(results / "snapshots")
+    # The two S-EPOA runs shared one snapshot, pretrained once under the results folder.
+    assert len(list((results / "snapshots").glob("*.pt"))) == 1
+    assert "is not a readable skill snapshot" in json.loads(
+        (root / "broken" / "eps0.3" / "s0" / "failed.json").read_text())["reason"]
+    with sessions() as session:
+        rows = grid_runs(session, prefix="tiny/")
+    assert sorted(str(r.status) for r in rows.values()) == ["failed"] * 2 + ["finished"] * 2
+    assert not list((tmp_path / "data").glob("runs/*"))  # nothing outside the results folder
+
+    capsys.readouterr()
+    assert main(["experiment", "status", str(spec_path), "--results", str(results)]) == 0
+    table = capsys.readouterr().out
+    assert "tiny: 4 runs: 2 failed, 2 finished" in table
+    assert "S-EPOA   0.3  -       1     finished  400/400" in table
+    assert "tiny/dmc-cheetah_run/broken/eps0.3/s1: ValueError" in table
+    assert main(["report", str(results / "tiny")]) == 0
+    report = (results / "tiny" / "report" / "final.md").read_text()
+    assert "S-EPOA" in report and "2/2" in report
+
+    # Run again: the finished runs stay, the failed ones are queued again.
+    assert main(["experiment", "run", str(spec_path), "--results", str(results),
+                 "--no-workers"]) == 0
+    assert "0 enqueued, 2 queued again" in capsys.readouterr().out
+    with sessions() as session:
+        rows = grid_runs(session, prefix="tiny/")
+    assert sorted(str(r.status) for r in rows.values()) == ["finished"] * 2 + ["queued"] * 2
+
+
+@pytest.mark.slow
+def test_one_command_trains_with_local_workers_and_a_killed_launch_resumes(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    spec_path = write(tmp_path, TINY.format(steps=600, seeds="[0]")
+                      + '[variants.PEBBLE]\nalgo = "pebble"\n')
+    results = tmp_path / "results"
+    folder = results / "tiny" / "dmc-cheetah_run" / "PEBBLE" / "eps0.3" / "s0"
+    launcher = subprocess.Popen(
+        [sys.executable, "-m", "sepoa.cli", "experiment", "run", str(spec_path), "--results",
+         str(results), "--workers", "1", "--threads", "1"],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    wait_for(lambda: (folder / "checkpoint.pt").exists() or launcher.poll() is not None,
+             timeout=90, what="the first checkpoint")
+    launcher.send_signal(signal.SIGTERM)
+    out, _ = launcher.communicate(timeout=60)
+    assert launcher.returncode == 128 + signal.SIGTERM, out
+    assert "worker " in out and "-exp-0 started" in out and "stopping 1 worker(s)" in out
+    assert not (folder / "done.json").exists()
+
+    capsys.readouterr()
+    assert main(["experiment", "run", str(spec_path), "--results", str(results),
+                 "--threads", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "0 enqueued" in out and "tiny: 1 finished" in out
+    assert json.loads((folder / "done.json").read_text())["step"] == 600
+    steps = [int(line.split(",")[0]) for line in
+             (folder / "episodes.csv").read_text().splitlines()[1:]]
+    assert steps == sorted(set(steps)) and steps[-1] == 600
+    log = (results / "workers.log").read_text()
+    assert "resuming dmc:cheetah_run pebble" in log  # from the killed launch's checkpoint
+
+
+def test_the_slurm_recipe_prints_an_sbatch_array_of_workers(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    spec_path = write(tmp_path, TINY.format(steps=400, seeds="[0, 1]")
+                      + '[variants.PEBBLE]\nalgo = "pebble"\n')
+    url = "postgresql+psycopg://sepoa:pw@db.cluster:5432/sepoa"
+    assert main(["experiment", "slurm", str(spec_path), "--workers", "8", "--database-url",
+                 url, "--results", "/shared/results", "--threads", "2", "--gpus", "1",
+                 "--partition", "gpu"]) == 0
+    script = capsys.readouterr().out
+    assert script.startswith("#!/bin/bash\n")
+    for option in ("--array=0-7", "--cpus-per-task=2", "--gres=gpu:1", "--partition=gpu",
+                   "--job-name=sepoa-tiny", "--output=/shared/results/slurm-%A_%a.log"):
+        assert f"#SBATCH {option}\n" in script
+    assert subprocess.run(["bash", "-n"], input=script, text=True).returncode == 0
+    # The worker command it runs is one `sepoa worker` accepts.
+    command = script[script.index("exec ") + 5:].replace("\\\n", " ")
+    argv = shlex.split(command.replace('"slurm-${SLURM_ARRAY_JOB_ID}-${SLURM_ARRAY_TASK_ID}"',
+                                       "slurm-1-0"))
+    assert argv[:2] == ["sepoa", "worker"]
+    import argparse
+
+    from trainer.cli import _worker_parser
+
+    parser = argparse.ArgumentParser()
+    args = _worker_parser(parser.add_subparsers()).parse_args(argv[2:])
+    assert (args.database_url, args.results, args.data_dir) == (url, "/shared/results",
+                                                                "/shared/results")
+    assert (args.threads, args.once, args.device, args.worker_id) == (2, True, "cuda",
+                                                                      "slurm-1-0")
+    # A SQLite file cannot be reached from other nodes.
+    assert main(["experiment", "slurm", str(spec_path), "--workers", "2", "--database-url",
+                 "sqlite:///q.db"]) == 2
+    assert capsys.readouterr().err.startswith("error: --database-url: workers on other nodes")
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["experiment", "run", "missing.toml"], "error: missing.toml: cannot read the spec"),
+    (["experiment", "run", "{spec}", "--workers", "0"], "error: --workers must be at least 1"),
+    (["experiment", "run", "{spec}", "--database-url", "mysql://x/y"], "error: "),
+    (["experiment", "status", "{spec}", "--results", "{tmp}/nothing"],
+     "error: no queue database at"),
+    (["experiment", "slurm", "{spec}", "--workers", "0", "--database-url", "postgresql://h/d"],
+     "error: --workers and --threads must be at least 1"),
+])
+def test_bad_input_gets_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                 argv: list[str], message: str) -> None:
+    spec_path = write(tmp_path, TINY.format(steps=400, seeds="[0]")
+                      + '[variants.PEBBLE]\nalgo = "pebble"\n')
+    argv = [a.format(spec=spec_path, tmp=tmp_path) for a in argv]
+    assert main(argv + ["--results", str(tmp_path / "r")] if "--results" not in argv
+                and argv[1] == "run" else argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(message) and err.count("\n") == 1, err

@@ -1,0 +1,90 @@
+"""Experiment specs: expansion into run folders, clear errors for bad specs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from experiments.spec import SpecError, load_spec
+
+ROOT = Path(__file__).resolve().parents[2]
+
+GRID = """
+name = "grid"
+preset = "tiny"
+steps = 600
+tasks = ["dmc:cheetah_run", "dmc:walker_run"]
+eps = [0.1, 0.3]
+seeds = [0, 1, 2]
+budgets = [20, 30]
+
+[overrides]
+"feedback.per_round" = 10
+eval_every = 200
+
+[variants.PEBBLE]
+algo = "pebble"
+
+[variants."S-EPOA w/o pretraining"]
+algo = "sepoa"
+"feedback.per_round" = 5
+skill.pretrain_steps = 0
+"""
+
+
+def write(tmp_path: Path, text: str, name: str = "spec.toml") -> Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def test_a_grid_expands_into_one_folder_per_run(tmp_path: Path) -> None:
+    spec = load_spec(write(tmp_path, GRID), check=False)
+    runs = spec.runs()
+    assert len(runs) == 2 * 2 * 2 * 2 * 3
+    assert len({r.dir for r in runs}) == len(runs)
+    run = next(r for r in runs if r.variant == "S-EPOA w/o pretraining" and r.seed == 2
+               and r.eps == 0.1 and r.budget == 30 and r.task == "dmc:walker_run")
+    assert run.dir == Path("dmc-walker_run/S-EPOA_w-o_pretraining/eps0.1/budget30/s2")
+    # Shared overrides reach every run; the variant's win; the budget axis sets the budget.
+    assert run.overrides == {"feedback.per_round": 5, "eval_every": 200,
+                             "skill.pretrain_steps": 0, "feedback.budget": 30}
+    cfg = run.config()
+    assert (cfg.algo, cfg.seed, cfg.teacher.eps, cfg.feedback.budget) == ("sepoa", 2, 0.1, 30)
+    assert cfg.feedback.per_round == 5 and cfg.skill.pretrain_steps == 0
+    pebble = next(r for r in runs if r.variant == "PEBBLE")
+    assert pebble.config().feedback.per_round == 10
+
+
+BAD_SPECS = [
+    ('[variants.PEBBLE]\nalgo = "pebble"', '[variants.X]\nalgo = "nope"',
+     "[variants.\"X\"]: unknown algo 'nope'"),
+    ('eval_every = 200', 'sac.width = 3', "[overrides]: unknown config field 'sac.width'"),
+    ("seeds = [0, 1, 2]", "seeds = []", "'seeds' is empty"),
+    ('tasks = ["dmc:cheetah_run", "dmc:walker_run"]\n', "", "missing required key 'tasks'"),
+    ("eval_every = 200", "eval_every = 0.5", "'eval_every' takes int"),
+    ("eval_every = 200", '"teacher.eps" = 0.1', "'teacher.eps' is set by the spec's eps"),
+    ("seeds = [0, 1, 2]", "seeds = [0, 1, 1]", "'seeds' lists 1 twice"),
+    ('tasks = ["dmc:cheetah_run", "dmc:walker_run"]', 'tasks = ["dmc:cheetah_rum"]',
+     "unknown task 'dmc:cheetah_rum'"),
+    ('[variants.PEBBLE]\nalgo = "pebble"', '[variants.PEBBLE]\nsteps = 3',
+     '[variants."PEBBLE"]: missing required key \'algo\''),
+]
+
+
+@pytest.mark.parametrize(("old", "new", "message"), BAD_SPECS)
+def test_a_bad_spec_is_refused_with_a_message_naming_the_problem(
+        tmp_path: Path, old: str, new: str, message: str) -> None:
+    assert old in GRID
+    path = write(tmp_path, GRID.replace(old, new, 1), "bad.toml")
+    with pytest.raises(SpecError) as err:
+        load_spec(path)
+    assert str(err.value).startswith(f"{path}: ")
+    assert message in str(err.value)
+
+
+def test_a_bad_run_config_is_refused_before_anything_runs(tmp_path: Path) -> None:
+    path = write(tmp_path, GRID.replace("eval_every = 200", '"feedback.selection" = "best"'))
+    with pytest.raises(SpecError, match="unknown feedback.selection 'best'"):
+        load_spec(path)
