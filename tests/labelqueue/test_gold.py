@@ -1,0 +1,264 @@
+"""Gold pairs: every labeller may answer each once, they never end and never cost budget, a
+labeller gets them at the run's rate, and one who answers them badly is paused on the run."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+from queue_helpers import query_spec
+from sqlalchemy.orm import Session
+
+from labelqueue import (
+    GOLD_NEEDS_LABELS,
+    Paused,
+    Query,
+    QueryStatus,
+    Run,
+    TeacherKind,
+    claim_run,
+    create_labeller,
+    create_run,
+    gold_answer,
+    labels_for_queries,
+    lease_next_query,
+    lift_pause,
+    paused_labellers,
+    push_queries,
+    read_run,
+    submit_label,
+    withdraw_label,
+)
+from runvocab.answers import Answer, click_of_answer
+
+# query_spec's returns: first 1.5, second 2.5, so a gold pair's answer is the second segment.
+RIGHT, WRONG = Answer.SECOND, Answer.FIRST
+
+
+def gold_run(session: Session, *, worker_id: str = "worker-a", **config: Any) -> Run:
+    """A running human-taught run with these `feedback.*` settings."""
+    run = create_run(
+        session, name="r", task="dmc:cheetah_run", algo="pebble", budget=1000,
+        teacher=TeacherKind.HUMAN, config={f"feedback.{k}": v for k, v in config.items()},
+    )
+    claimed = claim_run(session, worker_id=worker_id)
+    assert claimed is not None and claimed.id == run.id
+    return claimed
+
+
+def push(session: Session, run: Run, *, plain: int, gold: int) -> tuple[list[int], list[int]]:
+    """`plain` ordinary queries, then `gold` gold pairs; their ids."""
+    specs = [query_spec(i) for i in range(plain)]
+    specs += [query_spec(plain + i, gold=True) for i in range(gold)]
+    ids = push_queries(session, run_id=run.id, queries=specs)
+    return ids[:plain], ids[plain:]
+
+
+def answer_next(
+    session: Session, labeller_id: int, run_id: int | None, gold_ids: list[int],
+    gold_answer: Answer = RIGHT, **lease: Any,
+) -> Query | None:
+    """Lease the next query and answer it (a gold pair with `gold_answer`, others "first")."""
+    query = lease_next_query(session, labeller_id=labeller_id, run_id=run_id, **lease)
+    if query is None:
+        return None
+    answer = gold_answer if query.id in gold_ids else Answer.FIRST
+    _, created = submit_label(
+        session, query_id=query.id, labeller_id=labeller_id,
+        choice=click_of_answer(answer, left_is_first=True), left_is_first=True,
+    )
+    assert created
+    return query
+
+
+def fresh(session: Session, query_id: int) -> Query:
+    query = session.get(Query, query_id, populate_existing=True)
+    assert query is not None
+    session.commit()
+    return query
+
+
+def test_the_gold_answer_is_the_segment_with_the_larger_true_return() -> None:
+    assert gold_answer(1.5, 2.5) is Answer.SECOND
+    assert gold_answer(-1.0, -3.0) is Answer.FIRST
+
+
+def test_a_gold_pair_is_answered_by_everyone_once_and_costs_no_budget(session: Session) -> None:
+    run = gold_run(session, gold_rate=0.5)
+    plain, [gold] = push(session, run, plain=20, gold=1)
+    assert fresh(session, gold).needs_labels == GOLD_NEEDS_LABELS and fresh(session, gold).gold
+    people = [create_labeller(session, name=f"p{i}")[0] for i in range(6)]
+    plain_answers = 0
+    for person in people:
+        served = []
+        while (query := answer_next(session, person.id, run.id, [gold])) is not None:
+            served.append(query.id)
+            if query.id == gold:
+                break
+        # At half the answers, the gold pair comes at the first or second lease.
+        assert served[-1] == gold and len(served) <= 2, person.name
+        plain_answers += len(served) - 1
+        # Never twice to one labeller: the next lease is an ordinary query or nothing.
+        again = lease_next_query(session, labeller_id=person.id, run_id=run.id)
+        assert again is None or again.id != gold
+    query = fresh(session, gold)
+    assert query.status is QueryStatus.PENDING and query.label_count == len(people)
+    assert len(labels_for_queries(session, query_ids=[gold])) == len(people)
+    assert read_run(session, run_id=run.id).labels_used == plain_answers
+
+
+def test_gold_pairs_are_never_served_to_the_scripted_teacher_nor_at_rate_zero(
+    session: Session,
+) -> None:
+    run = gold_run(session, gold_rate=0.5)
+    plain, gold = push(session, run, plain=3, gold=3)
+    teacher, _ = create_labeller(session, name="teacher")
+    served = []
+    while (query := answer_next(session, teacher.id, run.id, gold, gold=False)) is not None:
+        served.append(query.id)
+    assert served == plain  # then nothing, though gold pairs are open
+
+    other = gold_run(session, worker_id="worker-b")  # gold_rate left at its default, 0
+    plain, gold = push(session, other, plain=3, gold=3)
+    ann, _ = create_labeller(session, name="ann")
+    served = []
+    while (query := answer_next(session, ann.id, other.id, gold)) is not None:
+        served.append(query.id)
+    assert served == plain
+
+
+def test_ordinary_queries_are_served_when_no_gold_pair_is_open(session: Session) -> None:
+    run = gold_run(session, gold_rate=0.5)
+    plain, _ = push(session, run, plain=5, gold=0)
+    ann, _ = create_labeller(session, name="ann")
+    served = [q.id for q in iter(lambda: answer_next(session, ann.id, run.id, []), None)]
+    assert served == plain
+    assert read_run(session, run_id=run.id).labels_used == 5
+
+
+@pytest.mark.parametrize("run_id_given", [True, False])
+def test_a_labeller_gets_gold_pairs_at_the_runs_rate(session: Session, run_id_given: bool) -> None:
+    run = gold_run(session, gold_rate=0.2)
+    plain, gold = push(session, run, plain=100, gold=15)  # enough of both for two people
+    counts = []
+    for name in ("ann", "bob"):
+        person, _ = create_labeller(session, name=name)
+        got = 0
+        for n in range(1, 51):
+            query = answer_next(session, person.id, run.id if run_id_given else None, gold)
+            assert query is not None
+            got += query.id in gold
+            # Spread over the stream, never bunched: within one and a half of the rate's share.
+            assert abs(got - 0.2 * n) <= 1.5, (name, n, got)
+        counts.append(got)
+        answered = {label.query_id for label in labels_for_queries(session, query_ids=gold)
+                    if label.labeller_id == person.id}
+        assert len(answered) == got  # each a different gold pair
+    assert all(9 <= got <= 11 for got in counts), counts
+
+
+def pause_settings(**overrides: Any) -> dict[str, Any]:
+    return {"gold_rate": 0.5, "gold_min_accuracy": 0.5, "gold_min_answers": 4} | overrides
+
+
+def answer_gold(session: Session, labeller_id: int, run: Run, gold: list[int],
+                answers: list[Answer]) -> None:
+    """Answer ordinary queries and gold pairs until the gold pairs got `answers`, in order."""
+    todo = list(answers)
+    while todo:
+        query = lease_next_query(session, labeller_id=labeller_id, run_id=run.id)
+        assert query is not None
+        answer = todo.pop(0) if query.id in gold else Answer.FIRST
+        submit_label(session, query_id=query.id, labeller_id=labeller_id,
+                     choice=click_of_answer(answer, left_is_first=True), left_is_first=True)
+
+
+def test_a_labeller_below_the_gold_accuracy_is_paused_until_an_operator_lifts_it(
+    session: Session,
+) -> None:
+    run = gold_run(session, **pause_settings())
+    plain, gold = push(session, run, plain=40, gold=10)
+    ann, _ = create_labeller(session, name="ann")
+    bob, _ = create_labeller(session, name="bob")
+
+    # Three wrong of three: fewer than gold_min_answers, so not yet.
+    answer_gold(session, ann.id, run, gold, [WRONG, WRONG, WRONG])
+    assert paused_labellers(session, run_id=run.id) == []
+    answer_gold(session, ann.id, run, gold, [RIGHT])  # 1 of 4 right, below half
+    [pause] = paused_labellers(session, run_id=run.id)
+    assert (pause.labeller_id, pause.gold_answers, pause.gold_correct) == (ann.id, 4, 1)
+
+    stored = len(labels_for_queries(session, query_ids=plain + gold))
+    with pytest.raises(Paused, match="1 of your 4"):
+        lease_next_query(session, labeller_id=ann.id, run_id=run.id)
+    with pytest.raises(Paused, match="50%"):
+        lease_next_query(session, labeller_id=ann.id)  # any human-taught run: only this one
+    # Others go on; the paused labeller's answers stay.
+    assert lease_next_query(session, labeller_id=bob.id, run_id=run.id) is not None
+    assert len(labels_for_queries(session, query_ids=plain + gold)) == stored
+
+    assert lift_pause(session, run_id=run.id, labeller_id=ann.id)
+    assert not lift_pause(session, run_id=run.id, labeller_id=ann.id)  # nothing left to lift
+    assert paused_labellers(session, run_id=run.id) == []
+    assert lease_next_query(session, labeller_id=ann.id, run_id=run.id) is not None
+
+
+def test_the_pause_threshold_is_strictly_below_and_skips_do_not_count(session: Session) -> None:
+    run = gold_run(session, **pause_settings())
+    plain, gold = push(session, run, plain=40, gold=10)
+    ann, _ = create_labeller(session, name="ann")
+    # Two skips are no gold answers; then 2 of 4 right is exactly half: not below it.
+    answer_gold(session, ann.id, run, gold,
+                [Answer.SKIP, WRONG, Answer.SKIP, RIGHT, WRONG, RIGHT])
+    assert paused_labellers(session, run_id=run.id) == []
+    answer_gold(session, ann.id, run, gold, [WRONG])  # 2 of 5
+    [pause] = paused_labellers(session, run_id=run.id)
+    assert (pause.gold_answers, pause.gold_correct) == (5, 2)
+
+
+def test_a_lifted_pause_comes_back_with_the_next_bad_gold_answer(session: Session) -> None:
+    run = gold_run(session, **pause_settings())
+    plain, gold = push(session, run, plain=40, gold=10)
+    ann, _ = create_labeller(session, name="ann")
+    answer_gold(session, ann.id, run, gold, [WRONG] * 4)
+    assert lift_pause(session, run_id=run.id, labeller_id=ann.id)
+    answer_gold(session, ann.id, run, gold, [WRONG])  # the record is kept: 0 of 5
+    [pause] = paused_labellers(session, run_id=run.id)
+    assert (pause.gold_answers, pause.gold_correct) == (5, 0)
+
+
+def test_no_pause_without_a_minimum_accuracy(session: Session) -> None:
+    run = gold_run(session, **pause_settings(gold_min_accuracy=0.0))
+    plain, gold = push(session, run, plain=40, gold=10)
+    ann, _ = create_labeller(session, name="ann")
+    answer_gold(session, ann.id, run, gold, [WRONG] * 6)
+    assert paused_labellers(session, run_id=run.id) == []
+    assert lease_next_query(session, labeller_id=ann.id, run_id=run.id) is not None
+
+
+def test_a_pause_on_one_run_leaves_the_labeller_the_other_runs(session: Session) -> None:
+    run = gold_run(session, **pause_settings())
+    plain, gold = push(session, run, plain=20, gold=5)
+    other = gold_run(session, worker_id="worker-b")
+    [other_query] = push_queries(session, run_id=other.id, queries=[query_spec(0)])
+    ann, _ = create_labeller(session, name="ann")
+    answer_gold(session, ann.id, run, gold, [WRONG] * 4)
+    # The oldest open query overall is the first run's, but ann is paused there.
+    leased = lease_next_query(session, labeller_id=ann.id)
+    assert leased is not None and leased.id == other_query
+
+
+def test_taking_back_a_gold_answer_leaves_the_budget_as_it_was(session: Session) -> None:
+    run = gold_run(session, gold_rate=0.5)
+    plain, [gold] = push(session, run, plain=5, gold=1)
+    ann, _ = create_labeller(session, name="ann")
+    served = []
+    while not served or served[-1] != gold:
+        query = answer_next(session, ann.id, run.id, [gold])
+        assert query is not None
+        served.append(query.id)
+    used = len(served) - 1  # the ordinary answers only
+    assert read_run(session, run_id=run.id).labels_used == used
+    withdraw_label(session, query_id=gold, labeller_id=ann.id)
+    # The gold answer never cost budget, so taking it back gives none back.
+    assert read_run(session, run_id=run.id).labels_used == used

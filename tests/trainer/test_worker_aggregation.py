@@ -1,0 +1,139 @@
+"""The worker takes a query as answered when k people answered it (or the scripted teacher did),
+trains on their majority, and pushes each query wanting k answers and gold pairs wanting all."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+
+import numpy as np
+import pytest
+from sqlalchemy import select
+
+from labelqueue import (
+    GOLD_NEEDS_LABELS,
+    Label,
+    LabelSource,
+    Query,
+    claim_run,
+    create_run,
+    make_engine,
+    migrate,
+    session_factory,
+)
+from runvocab.answers import Answer
+from runvocab.config import build_config
+from trainer.clips import ClipConfig
+from trainer.feedback import Query as PairQuery
+from trainer.trajectories import Trajectory, TrajectoryPool
+from trainer.worker import QueueHooks, WorkerConfig, _answer, complete_queries
+
+T0 = datetime(2026, 11, 23, 12, 0, tzinfo=UTC)
+NAMES = {1: "ann", 2: "bob", 3: "cy", 9: "scripted-teacher"}
+
+
+def label(query_id: int, labeller_id: int, answer: Answer, *, seconds: int = 0,
+          source: LabelSource = LabelSource.HUMAN) -> Label:
+    return Label(query_id=query_id, run_id=1, labeller_id=labeller_id, answer=answer,
+                 source=source, answered_at=T0 + timedelta(seconds=seconds))
+
+
+def test_a_query_is_complete_with_k_answers_or_the_scripted_teachers() -> None:
+    labels = [
+        label(10, 1, Answer.FIRST), label(10, 2, Answer.SECOND), label(10, 3, Answer.SKIP),
+        label(11, 1, Answer.FIRST), label(11, 2, Answer.FIRST),
+        label(12, 9, Answer.SECOND, source=LabelSource.SCRIPTED),
+    ]
+    assert complete_queries(labels, 3) == {10, 12}
+    assert complete_queries(labels, 2) == {10, 11, 12}
+    assert complete_queries(labels, 1) == {10, 11, 12}
+    assert complete_queries([], 3) == set()
+
+
+@pytest.mark.parametrize(
+    ("answers", "expected"),
+    [
+        ([Answer.FIRST, Answer.SECOND, Answer.FIRST], Answer.FIRST),
+        ([Answer.SECOND, Answer.SECOND, Answer.EQUAL], Answer.SECOND),
+        ([Answer.FIRST, Answer.SECOND], Answer.CANT_TELL),
+        ([Answer.CANT_TELL, Answer.CANT_TELL, Answer.FIRST], Answer.CANT_TELL),
+        ([Answer.SKIP, Answer.EQUAL, Answer.SKIP], Answer.EQUAL),
+        ([Answer.SKIP, Answer.SKIP, Answer.SKIP], Answer.SKIP),
+    ],
+)
+def test_the_trained_answer_is_the_peoples_majority(answers: list[Answer],
+                                                     expected: Answer) -> None:
+    given = [label(10, i + 1, a, seconds=10 - i) for i, a in enumerate(answers)]
+    out = _answer(given, NAMES)
+    assert out.choice is expected
+    assert out.labeller == "+".join(NAMES[i + 1] for i in range(len(answers)))
+    assert out.source == "human"
+    assert out.answered_at == (T0 + timedelta(seconds=10)).timestamp()  # the latest answer
+
+
+def test_the_scripted_teachers_answer_decides_over_peoples() -> None:
+    given = [label(10, 1, Answer.FIRST), label(10, 2, Answer.FIRST),
+             label(10, 9, Answer.SECOND, seconds=3, source=LabelSource.SCRIPTED)]
+    out = _answer(given, NAMES)
+    assert (out.choice, out.labeller, out.source) == (Answer.SECOND, "scripted-teacher",
+                                                      "scripted")
+    assert out.answered_at == (T0 + timedelta(seconds=3)).timestamp()
+
+
+def test_a_labeller_without_a_name_is_named_by_id() -> None:
+    assert _answer([label(10, 7, Answer.EQUAL)], {}).labeller == "labeller-7"
+
+
+def trajectory(id: int, reward: float, length: int = 60) -> Trajectory:
+    return Trajectory(id=id, obs=np.zeros((length, 3), np.float32),
+                      actions=np.zeros((length, 2), np.float32),
+                      true_rewards=np.full(length, reward, np.float32),
+                      states=np.zeros((length, 4)), context=0, success=False)
+
+
+def pair(i: int) -> PairQuery:
+    return PairQuery(query_id=f"r0-{i}", round=0, step=400, trajectory0=0, start0=i,
+                     trajectory1=1, start1=i, segment_length=20, segment_return0=20.0,
+                     segment_return1=22.0, trajectory_return0=60.0, trajectory_return1=66.0,
+                     model_p=0.5, score=0.1, rule="disagreement", shadow_choice="second",
+                     distinguishable=True)
+
+
+@pytest.mark.parametrize("teacher", ["human", "scripted"])
+def test_a_round_is_pushed_wanting_k_answers_and_gold_pairs_wanting_all(
+    tmp_path: Path, teacher: str
+) -> None:
+    url = f"sqlite:///{tmp_path / 'queue.db'}"
+    migrate(url)
+    sessions = session_factory(make_engine(url))
+    overrides = {"feedback.labels_per_query": 3, "feedback.gold_rate": 0.25,
+                 "feedback.segment_length": 20}
+    with sessions() as session:
+        create_run(session, name="r", task="dmc:cheetah_run", algo="pebble", budget=100,
+                   teacher=teacher, config=overrides)
+        run = claim_run(session, worker_id="w")
+    assert run is not None
+    worker = WorkerConfig(database_url=url, data_dir=tmp_path, worker_id="w",
+                          clip=ClipConfig(width=64, height=64))
+    cfg = build_config("dmc:cheetah_run", "tiny", overrides)
+    hooks = QueueHooks(sessions, run, worker, cfg, scripted_labeller_id=0)
+    trajectories = TrajectoryPool(10)
+    for t in (trajectory(0, 1.0), trajectory(1, 1.1), trajectory(2, 5.0)):
+        trajectories.add(t)
+    # Every clip already on disk, so nothing is rendered.
+    folder = worker.clips_root / f"run-{run.id}"
+    folder.mkdir(parents=True)
+    for stem in [f"r0-{i}" for i in range(4)] + ["r0-g0"]:
+        for side in (0, 1):
+            (folder / f"{stem}-{side}.mp4").write_bytes(b"")
+
+    hooks.round_opened([pair(i) for i in range(4)], trajectories)
+    with sessions() as session:
+        stored = session.scalars(select(Query).order_by(Query.position)).all()
+        rows = [(q.gold, q.needs_labels) for q in stored]
+    if teacher == "human":  # 4 queries at rate 0.25: one gold pair, after them
+        assert rows == [(False, 3)] * 4 + [(True, GOLD_NEEDS_LABELS)]
+        gold = stored[-1]
+        assert 2 in (gold.first_trajectory, gold.second_trajectory)
+    else:  # the scripted teacher is not measured
+        assert rows == [(False, 3)] * 4
