@@ -7,6 +7,7 @@ pyplot state, no torch). docs/QUALITY.md explains how to read them.
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import io
 import json
@@ -15,6 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from labelqueue.agreement import agreement_report
 from labelqueue.calibration import (
     DEFAULT_EDGES,
     Bin,
@@ -25,6 +27,7 @@ from labelqueue.calibration import (
     missing_columns,
 )
 from labelqueue.export_read import ExportFileError, read_export
+from labelqueue.labeller_quality import LabellerQuality, labeller_quality
 
 MAX_LABELLERS_DRAWN = 8
 """labellers drawn in the figure (those with the most answers); the tables list all"""
@@ -235,11 +238,35 @@ def write_calibration_report(
     edges: Sequence[float] = DEFAULT_EDGES,
 ) -> list[Path]:
     """Write calibration.png, .md and .json of `rows` (from `source`, a file name) into
-    `folder`; the files written."""
+    `folder`, with each labeller's quality (labellers.csv, `labelqueue.labeller_quality`) and the
+    agreement between labellers (agreement.json); the files written."""
     report = calibration_report(rows, edges=edges)
     folder.mkdir(parents=True, exist_ok=True)
-    files = [folder / "calibration.png", folder / "calibration.md", folder / "calibration.json"]
+    files = [folder / "calibration.png", folder / "calibration.md", folder / "calibration.json",
+             folder / "labellers.csv", folder / "agreement.json"]
     files[0].write_bytes(calibration_png(report, title=f"Teacher calibration · {source}"))
     files[1].write_text(report_markdown(report, source=f"`{source}`"))
     files[2].write_text(json.dumps(report_dict(report), indent=1, allow_nan=False) + "\n")
+    files[3].write_text(labellers_csv(labeller_quality(rows)))
+    agreement = dataclasses.asdict(agreement_report(rows))
+    files[4].write_text(json.dumps(agreement, indent=1, allow_nan=False) + "\n")
     return files
+
+
+def labellers_csv(qualities: Sequence[LabellerQuality]) -> str:
+    """One row per labeller; a share's columns are `<name>_k`, `_n`, `_rate`, `_low`, `_high`."""
+    flat = []
+    for quality in qualities:
+        row: dict[str, Any] = {}
+        for name, value in dataclasses.asdict(quality).items():
+            if isinstance(value, dict):
+                row |= {f"{name}_{key}": part for key, part in value.items()}
+            else:
+                row[name] = value
+        flat.append(row)
+    out = io.StringIO()
+    if flat:
+        writer = csv.DictWriter(out, fieldnames=list(flat[0]), lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(flat)
+    return out.getvalue()

@@ -325,7 +325,7 @@ _TAKE_OF_ANY_HUMAN_RUN = _lease(_oldest(of_run=False, gold=False, only_id=True).
 _TAKE_OF_RUN = _lease(_oldest(of_run=True, gold=False, only_id=True).scalar_subquery())
 _GOLD_OF_ANY_HUMAN_RUN = _oldest(of_run=False, gold=True)
 _GOLD_OF_RUN = _oldest(of_run=True, gold=True)
-_TAKE_GOLD = _lease(bindparam("gold", type_=Integer()))
+_TAKE_GOLD = _lease(bindparam("gold_pair", type_=Integer()))
 # Why nothing was leased, when the labeller is paused on the runs asked about.
 _PAUSE = (
     select(PAUSES.c.gold_answers, PAUSES.c.gold_correct, RUNS.c.config)
@@ -408,4 +408,4 @@ def _lease_gold(connection: Connection, params: dict[str, Any]) -> Row[Any] | No
                                          run_id=candidate.run_id,
                                          rate=GoldSettings.of(candidate.config).rate):
         return None
-    return connection.execute(_TAKE_GOLD, params | {"gold": candidate.id}).first()
+    return connection.execute(_TAKE_GOLD, params | {"gold_pair": candidate.id}).first()

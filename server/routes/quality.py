@@ -1,5 +1,6 @@
-"""Operator endpoints: the teacher-calibration report of one run's labels or of all of them
-(docs/QUALITY.md), as data and as the figure the run page shows.
+"""Operator endpoints of label quality (docs/QUALITY.md), for one run's labels or all of them:
+the teacher-calibration report, as data and as the figure the run page shows; agreement between
+labellers; each labeller's reliability; lifting a gold-threshold pause.
 
 The report is made from the same rows a label export holds (`export_rows`, read in short
 transactions of their own), so it equals `sepoa report --calibration` on an export of the same
@@ -16,15 +17,17 @@ from fastapi import APIRouter, Query
 from fastapi.responses import Response
 from sqlalchemy.orm import Session
 
-from labelqueue import export_rows
+from labelqueue import NotFound, export_rows, lift_pause, paused_labellers
+from labelqueue.agreement import AgreementReport, agreement_report
 from labelqueue.calibration import (
     DEFAULT_EDGES,
     CalibrationReport,
     calibration_report,
     parse_edges,
 )
+from labelqueue.labeller_quality import LabellerQuality, labeller_quality
 from server.deps import OperatorDep, SessionDep
-from server.schemas import RunFilter, errors
+from server.schemas import LabellerId, RunFilter, RunId, errors
 
 router = APIRouter(prefix="/api/quality", tags=["quality"])
 _drawing = threading.Lock()
@@ -70,3 +73,36 @@ def get_calibration_png(
     with _drawing:
         png = calibration_png(report, title=f"Teacher calibration · {title}")
     return Response(png, media_type="image/png", headers={"Cache-Control": "no-store"})
+
+
+@router.get("/agreement", response_model=AgreementReport, responses=errors(401, 403, 404, 422))
+def get_agreement(session: SessionDep, _: OperatorDep, run_id: RunFilter = None) -> AgreementReport:
+    """Agreement between labellers who answered the same queries (a run's
+    `feedback.labels_per_query` above 1, and gold pairs): pairwise agreement and Fleiss' κ for
+    all queries and per round, and each labeller's agreement with the others."""
+    return agreement_report(export_rows(session, run_id=run_id))
+
+
+@router.get("/labellers", response_model=list[LabellerQuality],
+            responses=errors(401, 403, 404, 422))
+def get_labeller_quality(
+    session: SessionDep, _: OperatorDep, run_id: RunFilter = None
+) -> list[LabellerQuality]:
+    """Per labeller: answers, pace, accuracy against the hidden truth and the scripted teacher,
+    gold accuracy, can't-tell and skip rates, position bias, agreement with others, and (for one
+    run) whether the gold threshold paused them."""
+    rows = export_rows(session, run_id=run_id)
+    paused = [] if run_id is None else [p.labeller_id
+                                        for p in paused_labellers(session, run_id=run_id)]
+    return labeller_quality(rows, paused=paused)
+
+
+@router.delete("/runs/{run_id}/pauses/{labeller_id}", status_code=204,
+               responses=errors(401, 403, 404, 422))
+def delete_pause(run_id: RunId, labeller_id: LabellerId, session: SessionDep,
+                 _: OperatorDep) -> Response:
+    """Let a labeller the gold threshold paused answer the run's queries again (their answers
+    and gold record stay). 404 when the labeller is not paused on the run."""
+    if not lift_pause(session, run_id=run_id, labeller_id=labeller_id):
+        raise NotFound(f"labeller {labeller_id} is not paused on run {run_id}")
+    return Response(status_code=204)

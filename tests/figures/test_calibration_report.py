@@ -3,6 +3,7 @@ and every mistake a user can make one line of error with exit status 2."""
 
 from __future__ import annotations
 
+import csv
 import json
 from pathlib import Path
 
@@ -36,7 +37,9 @@ def test_an_export_gives_a_figure_a_table_and_the_numbers(
     code, out, err = run_report(capsys, "--calibration", str(export))
     assert code == 0, err
     folder = tmp_path / "labels-v2-calibration"  # beside the export by default
-    assert out.split() == [str(folder / f"calibration.{ext}") for ext in ("png", "md", "json")]
+    assert out.split() == [str(folder / name) for name in (
+        "calibration.png", "calibration.md", "calibration.json", "labellers.csv",
+        "agreement.json")]
     assert (folder / "calibration.png").read_bytes().startswith(b"\x89PNG")
     numbers = json.loads((folder / "calibration.json").read_text())
     [ann] = numbers["labellers"]
@@ -46,6 +49,11 @@ def test_an_export_gives_a_figure_a_table_and_the_numbers(
     table = (folder / "calibration.md").read_text()
     assert "| ann | 5 | 1.00 [0.51, 1.00] | 0.20 |" in table
     assert "| sepoa | 1 | 5 | 5 |" in table
+    [quality] = list(csv.DictReader((folder / "labellers.csv").open()))
+    assert (quality["labeller_name"], quality["answers"], quality["cant_tell_k"]) == (
+        "ann", "5", "1")
+    agreement = json.loads((folder / "agreement.json").read_text())
+    assert agreement["everyone"]["queries"] == 0  # one labeller: nothing shared
 
 
 def test_bins_and_an_empty_export(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -14,7 +14,7 @@ from fastapi.testclient import TestClient
 from server_helpers import OPERATOR, bearer, new_labeller, new_run
 from sqlalchemy.orm import Session
 
-from labelqueue import claim_run, push_queries, set_clips
+from labelqueue import claim_run, export_rows, push_queries, set_clips
 from labelqueue.calibration import calibration_report
 from labelqueue.export_read import read_export
 from server.settings import Settings
@@ -128,3 +128,103 @@ def test_bad_requests_are_refused(client: TestClient) -> None:
                           ("0,x", "comma-separated")]:
             refused = client.get(f"{path}?bins={bins}", headers=OPERATOR)
             assert refused.status_code == 422 and why in refused.json()["detail"], refused.text
+
+
+def _crowd_run(client: TestClient, session: Session, settings: Settings) -> tuple[int, dict]:
+    """A human-taught run asking 3 answers per query, with 6 queries and 4 gold pairs (gold rate
+    0.5, a labeller paused below 20% on 3 gold answers); the true answer of each query id."""
+    config = {"feedback.labels_per_query": 3, "feedback.gold_rate": 0.5,
+              "feedback.gold_min_accuracy": 0.2, "feedback.gold_min_answers": 3}
+    run_id: int = new_run(client, algo="pebble", config=config)["id"]
+    assert claim_run(session, worker_id="worker-crowd") is not None
+    rng = random.Random(3)
+    specs = []
+    for i in range(10):
+        first, second = 100 + rng.uniform(-50, 50), 100 + rng.uniform(-50, 50)
+        spec = {"round": 0, "position": i, "segment_length": 50, "first_trajectory": 2 * i,
+                "first_start": 0, "second_trajectory": 2 * i + 1, "second_start": 0,
+                "first_segment_return": first / 20, "second_segment_return": second / 20,
+                "first_trajectory_return": first, "second_trajectory_return": second,
+                "distinguishable": True}
+        specs.append(spec | ({"gold": True} if i >= 6 else {"needs_labels": 3}))
+    truth = {}
+    for query_id, spec in zip(push_queries(session, run_id=run_id, queries=specs), specs,
+                              strict=True):
+        keys = [f"run{run_id}/q{query_id}-{side}.mp4" for side in ("a", "b")]
+        for key in keys:
+            (settings.clips_root / key).parent.mkdir(parents=True, exist_ok=True)
+            (settings.clips_root / key).write_bytes(b"fake mp4 " * 20)
+        set_clips(session, query_id=query_id, first_clip=keys[0], second_clip=keys[1])
+        truth[query_id] = ("first" if spec["first_segment_return"] > spec["second_segment_return"]
+                           else "second")
+    return run_id, truth
+
+
+def test_three_labellers_per_query_their_agreement_gold_accuracy_and_a_pause(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    run_id, truth = _crowd_run(client, session, settings)
+
+    def side(shown: dict, answer: str) -> str:
+        return "left" if (answer == "first") == shown["left_is_first"] else "right"
+
+    def flip(answer: str) -> str:
+        return "second" if answer == "first" else "first"
+
+    right, lefty, wrong = (new_labeller(client, name) for name in ("right", "lefty", "wrong"))
+    given = {
+        "right": answer_all(client, right, run_id, lambda s: side(s, truth[s["query_id"]])),
+        "lefty": answer_all(client, lefty, run_id, lambda _s: "left"),
+    }
+    # The labeller who is always wrong is paused once 3 gold answers are in, all wrong.
+    answered = 0
+    while (shown := client.get(f"/api/label/next?run_id={run_id}", headers=bearer(wrong))
+           ).status_code == 200:
+        body = {"choice": side(shown.json(), flip(truth[shown.json()["query_id"]])),
+                "shown_at": datetime.now(UTC).isoformat()}
+        posted = client.post(f"/api/label/{shown.json()['query_id']}", json=body,
+                             headers=bearer(wrong))
+        assert posted.status_code == 201, posted.text
+        answered += 1
+    assert shown.status_code == 403 and "paused" in shown.json()["detail"]
+    assert "0 of your 3 answers on check pairs were right" in shown.json()["detail"]
+    # Every query went to each labeller once at most: 6 queries + 4 gold pairs for the others.
+    assert given == {"right": 10, "lefty": 10}
+
+    rows = list(export_rows(session, run_id=run_id))
+    per_query: dict[int, list[str]] = {}
+    for row in rows:
+        per_query.setdefault(row["query_id"], []).append(row["labeller_name"])
+    assert all(len(names) == len(set(names)) for names in per_query.values())
+    run = client.get(f"/api/runs/{run_id}", headers=OPERATOR).json()
+    # Gold answers cost no budget: the run counts the answers to its 6 queries only.
+    assert run["labels_used"] == sum(not row["gold"] for row in rows) >= 12
+    assert sum(row["gold"] for row in rows) == 8 + 3  # right's and lefty's 4, wrong's 3
+
+    agreement = client.get(f"/api/quality/agreement?run_id={run_id}", headers=OPERATOR)
+    assert agreement.status_code == 200, agreement.text
+    report = agreement.json()
+    assert report["everyone"]["queries"] == 10
+    by_name = {a["labeller_name"]: a for a in report["labellers"]}
+    assert by_name["right"]["shared_queries"] == 10
+
+    quality = client.get(f"/api/quality/labellers?run_id={run_id}", headers=OPERATOR)
+    assert quality.status_code == 200, quality.text
+    people = {q["labeller_name"]: q for q in quality.json()}
+    assert people["right"]["gold_accuracy"]["rate"] == 1.0
+    assert people["right"]["gold_accuracy"]["n"] == 4
+    assert people["wrong"]["gold_accuracy"] == people["wrong"]["gold_accuracy"] | {"k": 0, "n": 3}
+    assert people["wrong"]["paused"] and not people["right"]["paused"]
+    assert people["lefty"]["left"]["rate"] == 1.0 and people["lefty"]["left_p_value"] < 0.01
+    assert people["right"]["accuracy"]["rate"] == 1.0
+
+    # The operator lifts the pause: the labeller gets the run's queries again (none are left
+    # for them here but the gold pair they have not seen), and their answers stayed.
+    lifted = client.delete(f"/api/quality/runs/{run_id}/pauses/{people['wrong']['labeller_id']}",
+                           headers=OPERATOR)
+    assert lifted.status_code == 204, lifted.text
+    again = client.get(f"/api/label/next?run_id={run_id}", headers=bearer(wrong))
+    assert again.status_code in (200, 204)
+    missing = client.delete(f"/api/quality/runs/{run_id}/pauses/{people['wrong']['labeller_id']}",
+                            headers=OPERATOR)
+    assert missing.status_code == 404 and "not paused" in missing.json()["detail"]
