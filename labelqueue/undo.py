@@ -118,7 +118,9 @@ def withdraw_label(
                 if query.status is QueryStatus.CANCELLED
                 else f"another labeller is answering query {query_id} now: the answer stands"
             )
-        changed(session, update(Run).where(Run.id == run.id)
+        # A gold pair's answer never counted against the budget (labelqueue.gold).
+        gold = select(Query.gold).where(Query.id == query_id).scalar_subquery()
+        changed(session, update(Run).where(Run.id == run.id, gold.is_(False))
                 .values(labels_used=Run.labels_used - 1))
         changed(
             session,
