@@ -193,6 +193,14 @@ def test_a_malformed_run_is_422_naming_the_field(
          ["body", "config", "teacher.eps"], ["teacher_params says 0.1"]),
         ({"config": {"feedback.per_round": 0}}, ["body", "config", "feedback.per_round"],
          ["must be positive"]),
+        ({"config": {"feedback.labels_per_query": 0}},
+         ["body", "config", "feedback.labels_per_query"], ["between 1 and 10, got 0"]),
+        ({"config": {"feedback.labels_per_query": 11}},
+         ["body", "config", "feedback.labels_per_query"], ["between 1 and 10, got 11"]),
+        ({"config": {"feedback.gold_rate": 0.6}}, ["body", "config", "feedback.gold_rate"],
+         ["between 0.0 and 0.5, got 0.6"]),
+        ({"config": {"feedback.gold_rate": -0.1}}, ["body", "config", "feedback.gold_rate"],
+         ["between 0.0 and 0.5"]),
     ],
 )
 def test_a_run_no_worker_could_train_is_422_naming_the_field_and_what_is_valid(
@@ -353,3 +361,21 @@ def test_settings_come_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> 
         assert settings.database_url == "sqlite:///data/queue.db"
     finally:
         get_settings.cache_clear()
+
+
+def test_a_live_runs_answers_per_query_and_gold_rate_cannot_be_changed(
+    client: TestClient, session: Session
+) -> None:
+    """They are fixed when the run is created: counts of answers and of gold answers stay true
+    to the run's one setting."""
+    run = new_run(client, algo="pebble", config={"feedback.labels_per_query": 3})
+    before = snapshot(session)
+    for method in ("PATCH", "PUT"):
+        response = client.request(method, f"/api/runs/{run['id']}", headers=OPERATOR,
+                                   json={"config": {"feedback.labels_per_query": 1}})
+        assert response.status_code == 405, response.text
+        assert "GET" in response.headers["allow"]
+    switched = client.put(f"/api/runs/{run['id']}/teacher", headers=OPERATOR,
+                          json={"teacher": "human", "teacher_params": {"labels_per_query": 1}})
+    assert switched.status_code == 422 and "labels_per_query" in switched.text
+    assert snapshot(session) == before
