@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import random
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +27,9 @@ from labelqueue import (
     session_factory,
     write_export,
 )
+from labelqueue.agreement import agreement_report
 from labelqueue.calibration import calibration_report
+from labelqueue.labeller_quality import labeller_quality
 from sepoa.cli import main
 from trainer.crowd import SimulatedLabeller, answer_as_crowd, estimated_r_avg
 
@@ -141,3 +144,41 @@ def test_a_crowd_of_one_eps_zero_labeller_is_always_right(session: Session) -> N
         answer_as_crowd(session, run_id=run_id, crowd=[CROWD[0], CROWD[0]])
     with pytest.raises(ValueError, match="left_bias"):
         SimulatedLabeller("x", 0.1, left_bias=1.5)
+
+
+def test_a_crowd_with_gold_pairs_gives_agreement_gold_accuracy_and_bias_back(
+    session: Session,
+) -> None:
+    """Three answers per query and gold pairs at a rate of 0.1, answered through the queue by
+    the crowd: the labeller quality and agreement made from the export find each one's bias,
+    the exact labeller right on every gold pair, and the two careful ones agreeing most."""
+    run = create_run(session, name="crowd", task="dmc:cheetah_run", algo="sepoa",
+                     budget=10_000, teacher=TeacherKind.SCRIPTED,
+                     config={"feedback.gold_rate": 0.1})
+    assert claim_run(session, worker_id="w") is not None
+    queries = symmetric_queries(300, seed=12)
+    gold = [spec | {"position": 300 + i, "gold": True} for i, spec in
+            enumerate(symmetric_queries(300, seed=13)) if abs(
+                spec["first_segment_return"] - spec["second_segment_return"]) > 2.5][:40]
+    push_queries(session, run_id=run.id, queries=queries + gold)
+    given = answer_as_crowd(session, run_id=run.id, crowd=CROWD, r_avg=R_AVG)
+    rows = list(export_rows(session, run_id=run.id))
+    assert sum(given.values()) == len(rows)
+
+    quality = {q.labeller_name: q for q in labeller_quality(rows, level=0.999)}
+    for spec in CROWD:
+        mine = quality[spec.name]
+        share = mine.gold_accuracy.n / mine.answers  # the rate, within a few answers
+        assert abs(share - 0.1) < 0.02, (spec.name, share)
+        assert mine.left.low is not None and mine.left.high is not None
+        assert mine.left.low <= spec.left_bias <= mine.left.high, (spec, mine.left)
+    assert quality["ann"].gold_accuracy.rate == 1.0
+    assert quality["cat"].left_p_value is not None and quality["cat"].left_p_value < 1e-3
+
+    report = agreement_report(rows)
+    answers_per_query = Counter(row["query_id"] for row in rows)
+    assert report.everyone.queries == sum(n >= 2 for n in answers_per_query.values()) >= 300
+    assert max(answers_per_query.values()) == 3
+    assert report.everyone.fleiss_kappa is not None and 0.2 < report.everyone.fleiss_kappa < 1
+    pairs = {a.labeller_name: a.agreement for a in report.labellers}
+    assert pairs["ann"] is not None and pairs["cat"] is not None and pairs["ann"] > pairs["cat"]
