@@ -10,6 +10,7 @@ from anyio import to_thread
 from fastapi import FastAPI
 
 from labelqueue import make_engine, migrate, session_factory
+from server import curves
 from server.deps import TokenCache
 from server.errors import install_error_handlers
 from server.export_job import ExportProcess
@@ -47,6 +48,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         finally:
             app.state.executor.shutdown()
             app.state.export_process.close()
+            curves.close()
             engine.dispose()
 
     app = FastAPI(title="S-EPOA labelling", version="0.1.0", lifespan=lifespan)

@@ -5,27 +5,40 @@ algorithm is one curve: the mean and standard deviation across its runs (seeds) 
 evaluation return, on the steps all of them reached (figures/curves.py). The run
 itself is drawn alone as well, so it can be told from its group.
 
-Drawing takes a fraction of a second of the server's CPU, so figures are kept by their data:
-every open run page asks again after each new evaluation, and all but the first get the PNG
-drawn for the first (the data is read each time; only an unchanged figure is reused).
+Drawing a figure takes about a second of CPU (matplotlib), so it is done by a process of its own
+at a lower priority (`server.export_job.NICENESS`), started at the first figure and kept: in the
+server's process it held the interpreter's lock against the labellers' requests all that time.
+Figures are kept by their data: every open run page asks again after each new evaluation, and
+all but the first get the PNG drawn for the first (the data is read each time; only an unchanged
+figure is reused).
 """
 
 from __future__ import annotations
 
+import multiprocessing
+import os
 import threading
 from collections import Counter
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from functools import lru_cache
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from labelqueue import Run, read_metrics
+from server.export_job import NICENESS
 from server.services import reading
 
 Figure = tuple[tuple[str, tuple[tuple[tuple[int, ...], tuple[float, ...]], ...]], ...]
 """per curve label, the seeds' (steps, values): hashable, so a drawn figure is kept by it"""
 _drawing = threading.Lock()
+_pool: ProcessPoolExecutor | None = None
+"""the drawing process, once a figure has been asked for (`close` ends it)"""
+
+
+def _lower_priority() -> None:
+    os.nice(NICENESS)
 
 
 def _eps(run: Run) -> float:
@@ -64,14 +77,41 @@ def peer_curves_png(session: Session, run: Run, metric: str) -> bytes:
         (label, tuple((tuple(steps), tuple(values)) for steps, values in seeds))
         for label, seeds in curves.items()
     )
-    from figures.curves import curves_png  # matplotlib: only when a figure is asked
-
     with _drawing:  # pages asking at once wait for one drawing, then reuse it
-        return _drawn(curves_png, figure, title, f"evaluation {metric.replace('_', ' ')}")
+        return _drawn(figure, title, f"evaluation {metric.replace('_', ' ')}")
 
 
 @lru_cache(maxsize=64)
-def _drawn(draw: Callable[..., bytes], figure: Figure, title: str, ylabel: str) -> bytes:
+def _drawn(figure: Figure, title: str, ylabel: str) -> bytes:
+    return _in_drawing_process(draw, figure, title, ylabel)
+
+
+def _in_drawing_process(function: Callable[..., bytes], *args: object) -> bytes:
+    """`function(*args)` in the drawing process, started at the first call (blocking)."""
+    global _pool
+    if _pool is None:
+        _pool = ProcessPoolExecutor(
+            max_workers=1,
+            # Not forked: the server has threads (and a database pool) to not copy.
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=_lower_priority,
+        )
+    return _pool.submit(function, *args).result()
+
+
+def draw(figure: Figure, title: str, ylabel: str) -> bytes:
+    """The PNG of `figure` (run in the drawing process)."""
+    from figures.curves import curves_png  # matplotlib: only in the process that draws
+
     curves = {label: [(list(steps), list(values)) for steps, values in seeds]
               for label, seeds in figure}
-    return draw(curves, title=title, ylabel=ylabel)
+    return curves_png(curves, title=title, ylabel=ylabel)
+
+
+def close() -> None:
+    """End the drawing process, if one was started (the server's shutdown)."""
+    global _pool
+    with _drawing:
+        if _pool is not None:
+            _pool.shutdown(cancel_futures=True)
+            _pool = None

@@ -282,9 +282,11 @@ class Throughput(BaseModel):
     by_source: dict[str, int]
     """labels per source: human, scripted, gold (every source present, 0 if none)"""
     median_answer_s: float | None
-    """median of answered_at - shown_at over human labels that record shown_at; None if none"""
+    """median of answered_at - shown_at over the latest 1000 standing human labels that record
+    shown_at; None if none"""
     buckets: list[ThroughputBucket]
-    """labels answered per bucket, oldest first; buckets without labels are left out"""
+    """labels answered per bucket, oldest first; buckets without labels are left out; labels
+    taken back (withdrawn) count nowhere"""
 
 
 class LabelCount(BaseModel):

@@ -3,6 +3,7 @@ plotting code."""
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import pytest
@@ -12,6 +13,14 @@ from sqlalchemy.orm import Session
 
 from figures import curves as plots
 from labelqueue import write_metrics
+from server import curves
+from server.export_job import NICENESS
+
+
+@pytest.fixture
+def drawn_here(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Figures drawn in the test's process, where `plots.curves_png` can be watched."""
+    monkeypatch.setattr(curves, "_in_drawing_process", lambda function, *args: function(*args))
 
 
 def _evaluated_run(client: TestClient, session: Session, *, algo: str, eps: float,
@@ -25,7 +34,7 @@ def _evaluated_run(client: TestClient, session: Session, *, algo: str, eps: floa
 
 
 def test_the_figure_groups_peers_by_algorithm_and_draws_the_run_itself(
-    client: TestClient, session: Session, monkeypatch: pytest.MonkeyPatch
+    client: TestClient, session: Session, monkeypatch: pytest.MonkeyPatch, drawn_here: None
 ) -> None:
     mine = _evaluated_run(client, session, algo="pebble", eps=0.3, returns=[1, 2, 3])
     _evaluated_run(client, session, algo="pebble", eps=0.3, returns=[3, 4])
@@ -55,6 +64,22 @@ def test_the_figure_groups_peers_by_algorithm_and_draws_the_run_itself(
     assert list(band.steps) == [1000, 2000] and list(band.mean) == [2, 3]
 
 
+def test_figures_are_drawn_by_a_process_of_lower_priority_than_the_server(
+    client: TestClient, session: Session
+) -> None:
+    run_id = _evaluated_run(client, session, algo="pebble", eps=0.25, returns=[1.5, 2.5])
+    response = client.get(f"/api/runs/{run_id}/curves.png", headers=OPERATOR)
+    assert response.status_code == 200 and response.content.startswith(plots.PNG_SIGNATURE)
+    # The same PNG as drawn here, but not drawn by the server's process.
+    figure = (("pebble (1 run)", (((1000, 2000), (1.5, 2.5)),)),
+              ("this run (pebble, seed 0)", (((1000, 2000), (1.5, 2.5)),)))
+    title = "dmc:cheetah_run · tiny · ε = 0.25"
+    assert response.content == curves.draw(figure, title, "evaluation return")
+    assert curves._pool is not None
+    assert curves._pool.submit(os.getpid).result() != os.getpid()
+    assert curves._pool.submit(os.nice, 0).result() == os.nice(0) + NICENESS
+
+
 def test_the_figure_is_for_operators_of_existing_runs(client: TestClient) -> None:
     run_id = new_run(client)["id"]
     labeller = new_labeller(client, "ann")
@@ -70,7 +95,7 @@ def test_the_figure_is_for_operators_of_existing_runs(client: TestClient) -> Non
 
 
 def test_open_run_pages_share_one_drawing_until_a_new_evaluation(
-    client: TestClient, session: Session, monkeypatch: pytest.MonkeyPatch
+    client: TestClient, session: Session, monkeypatch: pytest.MonkeyPatch, drawn_here: None
 ) -> None:
     run_id = _evaluated_run(client, session, algo="rune", eps=0.2, returns=[4, 5])
     drawings: list[Any] = []

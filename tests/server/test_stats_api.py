@@ -24,6 +24,7 @@ from labelqueue import (
     push_queries,
     submit_label,
 )
+from labelqueue.models import utcnow
 from server.settings import Settings
 
 T0 = datetime(2025, 3, 1, 12, 0, 0, tzinfo=UTC)
@@ -164,3 +165,40 @@ def test_a_labeller_sees_how_many_labels_they_have_given(
     assert client.get("/api/label/count").status_code == 401
     # The operator token is not a labeller: it has given no labels and cannot.
     assert client.get("/api/label/count", headers=OPERATOR).status_code == 403
+
+
+def test_an_answer_taken_back_counts_nowhere_and_the_median_of_an_even_count_is_the_mean(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    run_id, _ = running_run_with_queries(client, session, settings, n=4)
+    token = new_labeller(client, "alice")
+    alice = bearer(token)
+    path = f"/api/runs/{run_id}/throughput"
+    shown = []
+    for _ in range(3):
+        pair = client.get("/api/label/next", headers=alice).json()
+        body = {"choice": "left", "left_is_first": pair["left_is_first"],
+                "shown_at": T0.isoformat()}
+        assert client.post(f"/api/label/{pair['query_id']}", json=body,
+                           headers=alice).status_code == 201
+        shown.append(pair["query_id"])
+    # Answer times of 4, 10 and 6 s (then 4 and 10 once the last is taken back).
+    for query_id, seconds in zip(shown, (4, 10, 6), strict=True):
+        session.execute(update(Label).where(Label.query_id == query_id)
+                        .values(shown_at=at(0), answered_at=at(seconds)))
+    session.commit()
+    before = client.get(path, headers=OPERATOR).json()
+    assert before["total"] == 3 and before["median_answer_s"] == 6.0
+    assert before["buckets"] == [{"t": at(0).isoformat().replace("+00:00", "Z"), "labels": 3}]
+    assert client.get("/api/label/count", headers=alice).json() == {"labels": 3}
+
+    # Taken back within the undo window: the label stays, withdrawn, and counts no more.
+    session.execute(update(Label).where(Label.query_id == shown[2]).values(answered_at=utcnow()))
+    session.commit()
+    taken = client.post(f"/api/label/{shown[2]}/withdraw", json={}, headers=alice)
+    assert taken.status_code == 200, taken.text
+    after = client.get(path, headers=OPERATOR).json()
+    assert after["total"] == 2 and after["by_source"]["human"] == 2
+    assert after["median_answer_s"] == 7.0  # (4 + 10) / 2
+    assert [b["labels"] for b in after["buckets"]] == [2]
+    assert client.get("/api/label/count", headers=alice).json() == {"labels": 2}
