@@ -264,11 +264,12 @@ async function attempt(task) {
   try {
     await task();
   } catch (error) {
-    if (error instanceof SignedOut) {
+    if (error instanceof SignedOut || error instanceof Paused) {
       clearTimeout(state.timer);
       state.next?.remove();
       state.current?.remove();
       state.current = state.next = null;
+      if (error instanceof Paused) showPaused(error.message);
       return;
     }
     notice(`${error.message} (retrying)`, "error");
@@ -298,10 +299,36 @@ async function fetchNext(aheadOf) {
   const params = new URLSearchParams();
   if (runId) params.set("run_id", runId);
   if (aheadOf != null) params.set("ahead_of", aheadOf);
-  const { data, response } = await request("GET", `/api/label/next?${params}`);
+  const { data, response } = await leaseNext(`/api/label/next?${params}`);
   noteServerClock(response);
   if (data) data.brief = await runBrief(data.run_id);
   return data; // null: nothing to label (204)
+}
+
+/** A labeller the run's check pairs paused (403 "paused: …") keeps their token: the answer is
+ * read here, not by api.js (which signs out on 403); any other failure goes through api.js. */
+class Paused extends Error {}
+
+async function leaseNext(path) {
+  const token = localStorage.getItem("sepoa.labeller-token");
+  const response = await fetch(path, { headers: { Authorization: `Bearer ${token}` } });
+  if (response.status === 403) {
+    const detail = (await response.clone().json().catch(() => null))?.detail;
+    if (typeof detail === "string" && detail.startsWith("paused")) throw new Paused(detail);
+  }
+  if (!response.ok) return request("GET", path);
+  return { data: response.status === 204 ? null : await response.json(), response };
+}
+
+function showPaused(message) {
+  const box = $("notice");
+  clearTimeout(notice.timer);
+  box.textContent = message.charAt(0).toUpperCase() + message.slice(1);
+  box.className = "notice error paused";
+  box.setAttribute("role", "alert");
+  box.hidden = false;
+  $("waiting").hidden = true;
+  $("stage").hidden = true;
 }
 
 /** The run's instruction and clip timing, asked once per run and page (a reload asks again). */

@@ -1,9 +1,12 @@
-// The labellers table on the runs page: revoke or restore access, switch role, give a new token.
+// The labellers table on the runs page: revoke or restore access, switch role, give a new token;
+// below it, each labeller's quality for all runs or one (quality.js).
 
 import { SignedOut, get, request } from "./api.js";
 import { el, notify } from "./dom.js";
+import { startQuality } from "./quality.js";
 
 export async function loadLabellers() {
+  startQuality();
   try {
     render(await get("/api/labellers"));
   } catch (error) {
