@@ -95,9 +95,12 @@ def free_port() -> int:
         return port
 
 
-def query_spec(round_: int, position: int, clips: tuple[str, str] | None = None) -> dict[str, Any]:
-    """A query as the worker pushes it (the fields of tests/server/server_helpers.query_spec)."""
+def query_spec(round_: int, position: int, clips: tuple[str, str] | None = None,
+               needs: int = 1) -> dict[str, Any]:
+    """A query as the worker pushes it (the fields of tests/server/server_helpers.query_spec),
+    wanting `needs` labellers' answers."""
     spec = {
+        "needs_labels": needs,
         "round": round_,
         "position": position,
         "segment_length": 50,
@@ -410,11 +413,12 @@ def serve_worker(args: argparse.Namespace) -> None:
         now = time.monotonic()
         if open_ids:
             answered = timed("labels_for_queries", labels_for_queries, query_ids=sorted(open_ids))
-            open_ids -= {label.query_id for label in answered}
+            counts = Counter(label.query_id for label in answered)
+            open_ids -= {query for query, n in counts.items() if n >= args.labels_per_query}
         if pushed < args.queries and len(open_ids) < low_water:
             n = min(args.round_size, args.queries - pushed)
-            specs = [query_spec(round_, i, write_clips(clips_dir, args.run_id, round_, i))
-                     for i in range(n)]
+            specs = [query_spec(round_, i, write_clips(clips_dir, args.run_id, round_, i),
+                                args.labels_per_query) for i in range(n)]
             open_ids |= set(timed("push_queries", push_queries, run_id=args.run_id,
                                   queries=specs))
             pushed += n
@@ -444,7 +448,8 @@ def start_worker(args: argparse.Namespace, url: str, tmp: Path,
     command = [sys.executable, __file__, "--serve-worker", "--url", url, "--run-id", str(run_id),
                "--clips-dir", str(tmp / "clips"), "--queries", str(args.queries),
                "--round-size", str(args.round_size), "--labellers", str(args.labellers),
-               "--eval-every-s", str(args.eval_every_s), "--stats-file",
+               "--eval-every-s", str(args.eval_every_s),
+               "--labels-per-query", str(args.labels_per_query), "--stats-file",
                str(tmp / "worker.json")]
     env = os.environ | {
         "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
@@ -455,12 +460,13 @@ def start_worker(args: argparse.Namespace, url: str, tmp: Path,
     return worker
 
 
-def push_warmup(url: str, tmp: Path, run_id: int, n: int) -> None:
+def push_warmup(url: str, tmp: Path, run_id: int, n: int, needs: int) -> None:
     engine = make_engine(url)
     with session_factory(engine)() as session:
         claimed = claim_run(session, worker_id=WORKER_ID)
         assert claimed is not None and claimed.id == run_id, claimed
-        specs = [query_spec(0, i, write_clips(tmp / "clips", run_id, 0, i)) for i in range(n)]
+        specs = [query_spec(0, i, write_clips(tmp / "clips", run_id, 0, i), needs)
+                 for i in range(n)]
         push_queries(session, run_id=run_id, queries=specs)
     engine.dispose()
 
@@ -609,8 +615,9 @@ def run_load(*coroutine_args: Any, **kwargs: Any) -> Tally:
 # Checks
 
 
-def verify(url: str, run_id: int, label_ids: list[int], pushed: int) -> list[str]:
-    """What is wrong with the run's queries and labels after the load; empty when all is well.
+def verify(url: str, run_id: int, label_ids: list[int], pushed: int, k: int) -> list[str]:
+    """What is wrong with the run's queries and labels after the load; empty when all is well:
+    every query answered by exactly `k` labellers, none twice by one, every 201 stored once.
 
     `label_ids`: the ids of every 201 response; `pushed`: how many queries the run was given.
     """
@@ -631,9 +638,9 @@ def verify(url: str, run_id: int, label_ids: list[int], pushed: int) -> list[str
     pairs = Counter((label.query_id, label.labeller_id) for label in labels)
     stored = {label.id for label in labels}
     for query in queries:
-        if query.needs_labels != 1:
-            problems.append(f"query {query.id} wants {query.needs_labels} labels, not 1")
-        if per_query[query.id] != 1:
+        if query.needs_labels != k:
+            problems.append(f"query {query.id} wants {query.needs_labels} labels, not {k}")
+        if per_query[query.id] != k:
             problems.append(f"query {query.id} has {per_query[query.id]} labels")
         if query.label_count != per_query[query.id]:
             problems.append(f"query {query.id} counts {query.label_count} labels, "
@@ -815,14 +822,15 @@ def run_rounds(args: argparse.Namespace, tmp: Path, url: str) -> Measured:
         tokens, run_id = seed_rest(port, args.labellers, args.warmup + args.queries)
         if args.export_labels:
             seed_history(url, labeller_id=1, n=args.export_labels)
-        push_warmup(url, tmp, run_id, args.warmup)
-        warm = run_load(args, port, tokens, args.warmup, args.seed + 1, run_id=run_id,
+        k = args.labels_per_query
+        push_warmup(url, tmp, run_id, args.warmup, k)
+        warm = run_load(args, port, tokens, args.warmup * k, args.seed + 1, run_id=run_id,
                         pages=False, server_pids=[])
         server_pids = process_tree(server.pid)
         if args.worker:
             worker = start_worker(args, url, tmp, run_id)
         else:
-            specs = [query_spec(1, i, write_clips(tmp / "clips", run_id, 1, i))
+            specs = [query_spec(1, i, write_clips(tmp / "clips", run_id, 1, i), k)
                      for i in range(args.queries)]
             with session_factory(make_engine(url))() as session:
                 push_queries(session, run_id=run_id, queries=specs)
@@ -832,7 +840,7 @@ def run_rounds(args: argparse.Namespace, tmp: Path, url: str) -> Measured:
         database_cpu = {pid: cpu_seconds([pid]) for pid in database}
         ticks = machine_ticks()
         start = time.perf_counter()
-        tally = run_load(args, port, tokens, args.queries, args.seed, run_id=run_id, pages=True,
+        tally = run_load(args, port, tokens, args.queries * k, args.seed, run_id=run_id, pages=True,
                          server_pids=server_pids)
         seconds = time.perf_counter() - start
         all_ticks, idle, steal = (b - a for a, b in zip(ticks, machine_ticks(), strict=True))
@@ -932,6 +940,9 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--export-labels", type=int, default=0,
                         help="seed this many labels of an older run and export every label "
                         "over HTTP during the timed round")
+    parser.add_argument("--labels-per-query", type=int, default=1,
+                        help="distinct labellers' answers each query wants (a run's "
+                        "feedback.labels_per_query); the rounds take that many labels per query")
     parser.add_argument("--timeout", type=float, default=600.0, help="seconds per round, at most")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--probe", action="store_true",
@@ -969,11 +980,13 @@ def main() -> int:
             if args.probe or args.profile:
                 print_probe(tmp / "probe.json", len(m.tally.round_trips), args.profile_top)
             answered = m.warm_label_ids + m.tally.label_ids
-            problems = verify(url, m.run_id, answered, args.warmup + args.queries)
+            problems = verify(url, m.run_id, answered, args.warmup + args.queries,
+                              args.labels_per_query)
         problems += [f"request failed: {error}" for error in m.tally.errors[:20]]
-        if len(m.warm_label_ids) != args.warmup or len(m.tally.label_ids) != args.queries:
-            problems.append(f"rounds answered {len(m.warm_label_ids)} of {args.warmup} and "
-                            f"{len(m.tally.label_ids)} of {args.queries} queries")
+        k = args.labels_per_query
+        if len(m.warm_label_ids) != args.warmup * k or len(m.tally.label_ids) != args.queries * k:
+            problems.append(f"rounds took {len(m.warm_label_ids)} of {args.warmup * k} and "
+                            f"{len(m.tally.label_ids)} of {args.queries * k} labels")
         if args.export_labels and m.tally.export.get("status") != 200:
             problems.append(f"the export answered {m.tally.export.get('status')}")
     if problems:
@@ -981,9 +994,10 @@ def main() -> int:
         for problem in problems[:30]:
             print(f"  {problem}", file=sys.stderr)
         return 1
-    print(f"verified in the database: {len(answered)} queries with exactly one label each, "
-          f"every 201's label stored, labels_used {len(answered)}, none left leased or "
-          "pending: no duplicated or lost labels")
+    queries = args.warmup + args.queries
+    print(f"verified in the database: {queries} queries with exactly {k} label(s) each, by "
+          f"{k} different labellers, every 201's label stored, labels_used {len(answered)}, "
+          "none left leased or pending: no duplicated or lost labels")
     return 0
 
 
