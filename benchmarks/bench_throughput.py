@@ -2,7 +2,7 @@
 
 A fresh queue database (SQLite in a temporary folder, or with --database postgres a new database
 in the cluster of `scripts/with_postgres.sh`) gets one run with --labels labels answered over
---hours hours: 70 % human with an answer time of 2-20 s, 25 % scripted, 5 % gold, 1 % of them
+--hours hours: 75 % human with an answer time of 2-20 s, 25 % scripted, 1 % of them
 taken back (withdrawn), and all others but the last minute's taken by the trainer. Three ways
 of answering the endpoint are timed in this process, alternating, --repeats times each, with
 the CPU time of the process (SQLite's work included):
@@ -103,13 +103,13 @@ def seed(url: str, n: int, hours: float, rng: random.Random) -> int:
             for position, query_id in zip(positions, ids, strict=True):
                 answered = start + timedelta(seconds=hours * 3600 * position / n
                                              + rng.random())
-                source = rng.choices(("human", "scripted", "gold"), (70, 25, 5))[0]
+                source = rng.choices(("human", "scripted"), (75, 25))[0]
                 shown = answered - timedelta(seconds=rng.uniform(2, 20) if source == "human"
                                              else rng.uniform(0, 0.5))
                 withdrawn = answered + timedelta(seconds=3) if rng.random() < 0.01 else None
                 labels.append({
                     "query_id": query_id, "run_id": run_id, "labeller_id": labeller_id,
-                    "choice": "left", "left_is_first": True, "preferred": "first",
+                    "choice": "left", "left_is_first": True, "answer": "first",
                     "source": source, "shown_at": shown, "answered_at": answered,
                     "withdrawn_at": withdrawn,
                     # The trainer has taken every standing label but the last minute's.
