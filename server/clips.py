@@ -38,7 +38,8 @@ def signature_is_valid(
     if expires < now:
         return False
     expected = signature(secret=settings.secret_key, query_id=query_id, side=side, expires=expires)
-    return hmac.compare_digest(expected, sig)
+    # As bytes: compare_digest refuses str with non-ASCII characters, which a URL can hold.
+    return hmac.compare_digest(expected.encode(), sig.encode("utf-8", "surrogatepass"))
 
 
 def left_is_first(*, settings: Settings, query_id: int, labeller_id: int) -> bool:

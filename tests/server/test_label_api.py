@@ -194,6 +194,8 @@ def test_clips_need_a_valid_signature_or_token_and_never_leave_the_clips_folder(
     assert client.get(f"{other_side}?expires={expires}&sig={sig}").status_code == 403
     past = client.get(f"{path}?expires=1000&sig={sig}")
     assert past.status_code == 403
+    foreign = client.get(f"{path}?expires={expires}&sig=%C2%80{sig[2:]}")  # a non-ASCII sig
+    assert foreign.status_code == 403 and "signature" in foreign.json()["detail"]
 
     assert client.get(path).status_code == 401
     assert client.get(path, headers=bearer("1.wrong")).status_code == 401
