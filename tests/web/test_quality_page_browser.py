@@ -5,47 +5,17 @@ threshold paused sees why on the label page, and an operator lets them go on fro
 
 from __future__ import annotations
 
-import shutil
 import time
 from datetime import UTC, datetime
 from typing import Any
 
 import httpx
-from web_helpers import OPERATOR_TOKEN, SECRET_RETURNS, SEGMENT, Labeller, LiveServer
+from web_helpers import OPERATOR_TOKEN, Labeller, LiveServer
 
-from labelqueue import labels_for_queries, push_queries, set_clips
+from labelqueue import labels_for_queries
 from labelqueue.models import LabellerPause
 
 SHOWN = "#pairs .pair:not([hidden])"
-
-
-def push_queries_needing(live: LiveServer, run_id: int, n: int, needs: int) -> list[int]:
-    """`n` queries with real clips, each wanting `needs` labellers' answers (as the worker
-    pushes them for `feedback.labels_per_query`)."""
-    specs = [
-        {
-            "round": 0,
-            "position": i,
-            "segment_length": SEGMENT,
-            "first_trajectory": 0,
-            "first_start": 10 * i,
-            "second_trajectory": 1,
-            "second_start": 40 + 10 * i,
-            "needs_labels": needs,
-            **SECRET_RETURNS,
-        }
-        for i in range(n)
-    ]
-    with live.sessions() as session:
-        ids = push_queries(session, run_id=run_id, queries=specs)
-        for k, query_id in enumerate(ids):
-            keys = [f"run{run_id}/q{query_id}-{side}.mp4" for side in ("first", "second")]
-            for key, source in zip(keys, live.clips[k % len(live.clips)], strict=True):
-                target = live.settings.clips_root / key
-                target.parent.mkdir(parents=True, exist_ok=True)
-                shutil.copyfile(source, target)
-            set_clips(session, query_id=query_id, first_clip=keys[0], second_clip=keys[1])
-    return ids
 
 
 def as_labeller(
@@ -98,7 +68,7 @@ def test_two_labellers_answer_one_query_and_the_operator_sees_their_agreement(
     bob, carol = live.new_labeller("bob-k2"), live.new_labeller("carol-k2")
     run_id = live.new_human_run(config={"feedback.labels_per_query": 2})
     try:
-        first, second = push_queries_needing(live, run_id, 2, needs=2)
+        first, second = live.push_rendered_queries(run_id, 2, needs=2)
 
         # Bob answers the first pair on the label page, once both clips have played.
         page.goto(f"{live.url}/label?run={run_id}#token={bob.token}")
@@ -157,7 +127,7 @@ def test_a_paused_labeller_is_told_why_and_an_operator_lets_them_go_on(
     dave = live.new_labeller("dave-gold")
     run_id = live.new_human_run(config={"feedback.gold_min_accuracy": 0.8})
     try:
-        first, second = push_queries_needing(live, run_id, 2, needs=1)
+        first, second = live.push_rendered_queries(run_id, 2)
         answer_by_rest(live, dave, run_id, first, "second")
         with live.sessions() as session:  # as three wrong gold answers would have done
             session.add(

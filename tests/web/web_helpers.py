@@ -75,8 +75,9 @@ class LiveServer:
         assert claimed is not None and claimed.id == run_id, "another run is still queued"
         return run_id
 
-    def push_rendered_queries(self, run_id: int, n: int) -> list[int]:
-        """`n` queries pushed as a worker would, each with two real clips; their ids."""
+    def push_rendered_queries(self, run_id: int, n: int, needs: int = 1) -> list[int]:
+        """`n` queries pushed as a worker would, each with two real clips and wanting `needs`
+        labellers' answers (the run's `feedback.labels_per_query`); their ids."""
         specs = [
             {
                 "round": 0,
@@ -86,6 +87,7 @@ class LiveServer:
                 "first_start": 10 * i,
                 "second_trajectory": 1,
                 "second_start": 40 + 10 * i,
+                "needs_labels": needs,
                 **SECRET_RETURNS,
             }
             for i in range(n)
