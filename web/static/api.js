@@ -19,6 +19,9 @@ export class ApiError extends Error {
 /** Thrown once the token was refused: the page should stop its loops (sign-in reloads it). */
 export class SignedOut extends Error {}
 
+/** A labeller the run's check pairs paused (403 "paused: …"): still signed in, just not served. */
+export class Paused extends Error {}
+
 /** Keeps a token for `role` in this browser (an invite link's new labeller). */
 export function keepToken(tokenRole, value) {
   localStorage.setItem(STORAGE[tokenRole], value);
@@ -82,7 +85,9 @@ async function send(method, path, body) {
   });
   if (response.status === 401 || response.status === 403) {
     const data = await response.json().catch(() => null);
-    signOut(describe(data && data.detail) || `HTTP ${response.status}`);
+    const detail = describe(data && data.detail);
+    if (response.status === 403 && detail.startsWith("paused")) throw new Paused(detail);
+    signOut(detail || `HTTP ${response.status}`);
     throw new SignedOut();
   }
   if (!response.ok) {

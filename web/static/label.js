@@ -6,7 +6,7 @@
 // label the page polls until the trainer pushes work. API calls run one at a time, in order, so
 // an answer is stored before the next preload asks the server what this labeller holds.
 
-import { SignedOut, request, start } from "./api.js";
+import { Paused, SignedOut, request, start } from "./api.js";
 
 const KEYS = {
   ArrowLeft: "left", 1: "left",
@@ -299,25 +299,10 @@ async function fetchNext(aheadOf) {
   const params = new URLSearchParams();
   if (runId) params.set("run_id", runId);
   if (aheadOf != null) params.set("ahead_of", aheadOf);
-  const { data, response } = await leaseNext(`/api/label/next?${params}`);
+  const { data, response } = await request("GET", `/api/label/next?${params}`);
   noteServerClock(response);
   if (data) data.brief = await runBrief(data.run_id);
   return data; // null: nothing to label (204)
-}
-
-/** A labeller the run's check pairs paused (403 "paused: …") keeps their token: the answer is
- * read here, not by api.js (which signs out on 403); any other failure goes through api.js. */
-class Paused extends Error {}
-
-async function leaseNext(path) {
-  const token = localStorage.getItem("sepoa.labeller-token");
-  const response = await fetch(path, { headers: { Authorization: `Bearer ${token}` } });
-  if (response.status === 403) {
-    const detail = (await response.clone().json().catch(() => null))?.detail;
-    if (typeof detail === "string" && detail.startsWith("paused")) throw new Paused(detail);
-  }
-  if (!response.ok) return request("GET", path);
-  return { data: response.status === 204 ? null : await response.json(), response };
 }
 
 function showPaused(message) {
