@@ -1,7 +1,8 @@
 """Export of the label database: one row per label, as JSONL, CSV or Parquet.
 
-The columns are declared once, in `COLUMNS`; docs/EXPORT.md lists the same table (a test keeps
-the two equal). `SCHEMA_VERSION` is written into every row and into the Parquet file's metadata.
+The columns are declared once, in `COLUMNS`; a query's own columns come from its fields'
+declaration (`runvocab.query_fields`). docs/EXPORT.md lists the same table (a test keeps the
+two equal). `SCHEMA_VERSION` is written into every row and into the Parquet file's metadata.
 Additive changes (a new column) keep the version; renaming or removing a column, or changing
 its type or meaning, bumps it.
 
@@ -34,6 +35,7 @@ from labelqueue.models import Label, Labeller, Query, Run
 from labelqueue.transaction import reading
 from runvocab.answers import Answer, aggregate
 from runvocab.instructions import instruction_sha256, run_instruction
+from runvocab.query_fields import QUERY_FIELDS, FieldType
 
 SCHEMA_VERSION = 3
 PARQUET_VERSION_KEY = "sepoa.export.schema_version"
@@ -59,6 +61,23 @@ def _c(name: str, type_: ColumnType, description: str, *, nullable: bool = False
     return Column(name, type_, nullable, description)
 
 
+# The query's own columns, as `runvocab.query_fields` declares them.
+_TYPES: dict[FieldType, ColumnType] = {
+    "int": "int64",
+    "float": "float64",
+    "bool": "bool",
+    "str": "string",
+    "floats": "list<float64>",
+    "answer": "string",
+    "clip": "string",
+}
+QUERY_COLUMNS: tuple[Column, ...] = tuple(
+    Column(field.name, _TYPES[field.type], field.nullable, field.description)
+    for field in QUERY_FIELDS
+    if field.exported
+)
+"""the columns each exported query field gives, in the declaration's order"""
+
 COLUMNS: tuple[Column, ...] = (
     _c("schema_version", "int64", "version of this column schema (see below)"),
     _c("label_id", "int64", "the label's id; rows are ordered by it"),
@@ -69,51 +88,7 @@ COLUMNS: tuple[Column, ...] = (
     _c("algo", "string", "the run's algorithm: sac, pebble, surf, rune, rime or sepoa"),
     _c("preset", "string", "the run's configuration preset"),
     _c("seed", "int64", "the run's seed"),
-    _c("round", "int64", "the feedback round that asked the query"),
-    _c("position", "int64", "the query's index within its round"),
-    _c("step", "int64", "training step at which the query was selected", nullable=True),
-    _c("segment_length", "int64", "steps per segment"),
-    _c("rule", "string", "the selection rule that picked the pair", nullable=True),
-    _c("first_trajectory", "int64", "the first segment's trajectory index"),
-    _c("first_start", "int64", "the first segment's start step within its trajectory"),
-    _c("first_skill", "list<float64>", "the first segment's skill vector", nullable=True),
-    _c("second_trajectory", "int64", "the second segment's trajectory index"),
-    _c("second_start", "int64", "the second segment's start step within its trajectory"),
-    _c("second_skill", "list<float64>", "the second segment's skill vector", nullable=True),
-    _c("first_segment_return", "float64", "ground truth: the first segment's true return"),
-    _c("second_segment_return", "float64", "ground truth: the second segment's true return"),
-    _c(
-        "first_trajectory_return",
-        "float64",
-        "ground truth: the first segment's whole trajectory's return",
-    ),
-    _c(
-        "second_trajectory_return",
-        "float64",
-        "ground truth: the second segment's whole trajectory's return",
-    ),
-    _c(
-        "model_p",
-        "float64",
-        "the reward model's P[second preferred] when the pair was selected",
-        nullable=True,
-    ),
-    _c("score", "float64", "the selection score (null for uniform picks)", nullable=True),
-    _c(
-        "shadow_choice",
-        "string",
-        "the run's scripted teacher's answer in segment terms: "
-        "first, second, equal, cant_tell or skip",
-        nullable=True,
-    ),
-    _c(
-        "distinguishable",
-        "bool",
-        "whether the scripted teacher can tell the pair apart",
-        nullable=True,
-    ),
-    _c("gold", "bool", "the pair is a gold pair: a known-answer pair that measures labellers, "
-       "never trained on (its answer is the segment with the larger true segment return)"),
+    *QUERY_COLUMNS,
     _c("labels_per_query", "int64", "distinct labellers' answers the query asked for; null for "
        "a gold pair, which every labeller may answer once", nullable=True),
     _c("query_answers", "int64", "standing answers (not withdrawn) the query got in all"),
@@ -191,26 +166,7 @@ _STORED: dict[str, Any] = {
     "algo": Run.algo,
     "preset": Run.preset,
     "seed": Run.seed,
-    "round": Query.round,
-    "position": Query.position,
-    "step": Query.step,
-    "segment_length": Query.segment_length,
-    "rule": Query.rule,
-    "first_trajectory": Query.first_trajectory,
-    "first_start": Query.first_start,
-    "first_skill": Query.first_skill,
-    "second_trajectory": Query.second_trajectory,
-    "second_start": Query.second_start,
-    "second_skill": Query.second_skill,
-    "first_segment_return": Query.first_segment_return,
-    "second_segment_return": Query.second_segment_return,
-    "first_trajectory_return": Query.first_trajectory_return,
-    "second_trajectory_return": Query.second_trajectory_return,
-    "model_p": Query.model_p,
-    "score": Query.score,
-    "shadow_choice": Query.shadow_choice,
-    "distinguishable": Query.distinguishable,
-    "gold": Query.gold,
+    **{column.name: getattr(Query, column.name) for column in QUERY_COLUMNS},
     "needs_labels": Query.needs_labels,
     "labeller_id": Label.labeller_id,
     "labeller_name": Labeller.name,

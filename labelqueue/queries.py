@@ -7,7 +7,7 @@ expired lease needs no sweeper: the next lease simply takes the query over.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from datetime import datetime, timedelta
 from typing import Any
 
@@ -56,72 +56,44 @@ from labelqueue.transaction import (
     transaction,
 )
 from runvocab.answers import Answer
+from runvocab.query_fields import PROVENANCE, QUERY_FIELD_NAMES, QUERY_FIELDS, FieldType, QueryField
 
 LEASE_SECONDS = 120.0
 LABELLABLE = (RunStatus.RUNNING, RunStatus.PAUSED)
 
-_INTS = (
-    "round",
-    "position",
-    "segment_length",
-    "first_trajectory",
-    "first_start",
-    "second_trajectory",
-    "second_start",
-)
-_FLOATS = (
-    "first_segment_return",
-    "second_segment_return",
-    "first_trajectory_return",
-    "second_trajectory_return",
-)
-_OPTIONAL = (
-    "step",
-    "first_skill",
-    "second_skill",
-    "first_clip",
-    "second_clip",
-    "model_p",
-    "score",
-    "rule",
-    "needs_labels",
-    "gold",
-    "shadow_choice",
-    "distinguishable",
-)
-# What makes a stored query the same pair as a pushed one.
-_PROVENANCE = (
-    "segment_length",
-    "first_trajectory",
-    "first_start",
-    "second_trajectory",
-    "second_start",
-)
+# How a pushed value is stored, by declared type (`runvocab.query_fields`). int() and float()
+# also turn the trainer's NumPy scalars into values every driver takes.
+_STORE: dict[FieldType, Callable[[Any], Any]] = {
+    "int": int,
+    "float": float,
+    "bool": bool,
+    "str": str,
+    "floats": lambda values: [float(x) for x in values],
+    "answer": Answer,
+    "clip": clip_key,
+}
+_REQUIRED = frozenset(field.name for field in QUERY_FIELDS if not field.optional)
+
+
+def _stored(field: QueryField, value: Any) -> Any:
+    if value is None:
+        if not field.nullable:
+            raise ValueError(f"query field {field.name} may not be null")
+        return None
+    if field.type == "float" and field.nullable:
+        return finite(value)  # "no value" (a uniform pick's NaN score) is stored as null
+    return _STORE[field.type](value)
 
 
 def _query_fields(spec: Mapping[str, Any]) -> dict[str, Any]:
-    unknown = set(spec) - set(_INTS) - set(_FLOATS) - set(_OPTIONAL)
-    missing = (set(_INTS) | set(_FLOATS)) - set(spec)
+    unknown = set(spec) - set(QUERY_FIELD_NAMES)
+    missing = _REQUIRED - set(spec)
     if unknown or missing:
         raise ValueError(f"query fields: unknown {sorted(unknown)}, missing {sorted(missing)}")
-    # int()/float() also turn the trainer's NumPy scalars into values every driver takes.
-    fields: dict[str, Any] = {name: int(spec[name]) for name in _INTS}
-    fields |= {name: float(spec[name]) for name in _FLOATS}
-    for side in ("first", "second"):
-        skill = spec.get(f"{side}_skill")
-        fields[f"{side}_skill"] = None if skill is None else [float(x) for x in skill]
-        fields[f"{side}_clip"] = clip_key(spec.get(f"{side}_clip"))
-    fields["step"] = None if spec.get("step") is None else int(spec["step"])
-    fields["model_p"] = finite(spec.get("model_p"))
-    fields["score"] = finite(spec.get("score"))
-    fields["rule"] = spec.get("rule")
-    shadow = spec.get("shadow_choice")
-    fields["shadow_choice"] = None if shadow is None else Answer(shadow)
-    distinguishable = spec.get("distinguishable")
-    fields["distinguishable"] = None if distinguishable is None else bool(distinguishable)
-    fields["gold"] = bool(spec.get("gold", False))
-    wanted = GOLD_NEEDS_LABELS if fields["gold"] else spec.get("needs_labels", 1)
-    fields["needs_labels"] = int(wanted)
+    fields = {field.name: _stored(field, spec.get(field.name, field.default))
+              for field in QUERY_FIELDS}
+    if fields["gold"]:
+        fields["needs_labels"] = GOLD_NEEDS_LABELS
     if fields["needs_labels"] < 1:
         raise ValueError("needs_labels must be at least 1")
     return fields
@@ -132,19 +104,18 @@ def push_queries(
 ) -> list[int]:
     """Store a round's queries as pending; their ids, in order.
 
-    Each dict holds `Query` columns by name: round, position, segment_length, the trajectory
-    and start of both sides, the four ground-truth returns (`first_segment_return`, ...,
-    `second_trajectory_return`), and optionally step, first/second_skill, first/second_clip,
-    model_p, score, rule, needs_labels (distinct labellers' answers wanted), gold (a gold pair,
-    which every labeller may answer once: `labelqueue.gold`), and the hidden shadow_choice (the
-    run's scripted teacher's answer, a `runvocab.answers.Answer`) and distinguishable.
+    Each dict holds the fields `runvocab.query_fields.QUERY_FIELDS` declares, by name: the
+    required ones (round, position, segment_length, the trajectory and start of both sides, the
+    four ground-truth returns) and any optional ones; a gold pair (`labelqueue.gold`) takes
+    every labeller's answer whatever its needs_labels says. ValueError for an unknown or
+    missing field, a null where the field takes none, or a clip key outside the clips folder.
     Idempotent per (run, round, position): a run resumed from an older checkpoint that pushes
     the same round again gets the stored ids back; a different pair at a stored position
     raises Conflict.
     """
     specs = [_query_fields(spec) for spec in queries]
     rounds = sorted({spec["round"] for spec in specs})
-    provenance = [QUERIES.c[name] for name in _PROVENANCE]
+    provenance = [QUERIES.c[name] for name in PROVENANCE]
     now = utcnow()
     # One INSERT for the round, with rows built before the transaction: the worker holds the
     # database's write lock, which every labeller's answer waits for, as briefly as it can.
@@ -165,7 +136,7 @@ def push_queries(
             if row is None:
                 fresh = {"run_id": run_id, "status": QueryStatus.PENDING, "created_at": now}
                 new.append(spec | fresh)
-            elif any(getattr(row, name) != spec[name] for name in _PROVENANCE):
+            elif any(getattr(row, name) != spec[name] for name in PROVENANCE):
                 raise Conflict(
                     f"run {run_id} round {spec['round']} position {spec['position']} "
                     f"already holds a different pair (query {row.id})"

@@ -40,7 +40,11 @@ from trainer.trajectories import Trajectory, TrajectoryPool
 
 @dataclass(frozen=True)
 class Query:
-    """One segment pair put to the teacher, with its provenance and hidden ground truth."""
+    """One segment pair put to the teacher, with its provenance and hidden ground truth.
+
+    The attributes the queue stores are declared in `runvocab.query_fields` (each field's
+    `trainer` names its attribute here); a new one needs a default, so older checkpoints load.
+    """
 
     query_id: str
     round: int

@@ -82,6 +82,7 @@ from labelqueue import (
 )
 from runvocab.answers import aggregate, click_of_answer
 from runvocab.config import RunConfig, apply_overrides
+from runvocab.query_fields import QUERY_FIELDS
 from runvocab.queued_run import queued_run_config
 from trainer.clips import ClipConfig, render_query_clips, sized
 from trainer.envs import Env, make_env
@@ -159,25 +160,17 @@ def run_config(run: Run, worker: WorkerConfig) -> RunConfig:
 
 def queue_fields(q: Query, position: int,
                  skills: Mapping[int, np.ndarray | None]) -> dict[str, Any]:
-    """A trainer query as the queue stores it (`labelqueue.push_queries`)."""
+    """A trainer query as the queue stores it (`labelqueue.push_queries`): each field that
+    `runvocab.query_fields` reads from a trainer attribute, its position in the round, and the
+    skill of each side's trajectory (`skills`, by trajectory id)."""
     def skill(trajectory: int) -> list[float] | None:
         vector = skills.get(trajectory)
         return None if vector is None else [float(x) for x in vector]
 
-    return {
-        "round": q.round, "position": position, "step": q.step,
-        "segment_length": q.segment_length,
-        "first_trajectory": q.trajectory0, "first_start": q.start0,
-        "first_skill": skill(q.trajectory0),
-        "second_trajectory": q.trajectory1, "second_start": q.start1,
-        "second_skill": skill(q.trajectory1),
-        "first_segment_return": q.segment_return0,
-        "second_segment_return": q.segment_return1,
-        "first_trajectory_return": q.trajectory_return0,
-        "second_trajectory_return": q.trajectory_return1,
-        "model_p": q.model_p, "score": q.score, "rule": q.rule,
-        "shadow_choice": q.shadow_choice, "distinguishable": q.distinguishable,
-    }
+    made = {declared.name: getattr(q, declared.trainer)
+            for declared in QUERY_FIELDS if declared.trainer}
+    return made | {"position": position, "first_skill": skill(q.trajectory0),
+                   "second_skill": skill(q.trajectory1)}
 
 
 def complete_queries(labels: Sequence[Label], labels_per_query: int) -> set[int]:

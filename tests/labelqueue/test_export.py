@@ -37,6 +37,11 @@ from labelqueue import (
 )
 from labelqueue.export import PARQUET_VERSION_KEY, parquet_schema
 from labelqueue.models import Query, utcnow
+from runvocab.query_fields import QUERY_FIELDS
+
+# How a declared query field's type is exported (docs/EXPORT.md's types).
+EXPORT_TYPES = {"int": "int64", "float": "float64", "bool": "bool", "str": "string",
+                "floats": "list<float64>", "answer": "string", "clip": "string"}
 
 DOCS = Path(__file__).resolve().parents[2] / "docs" / "EXPORT.md"
 NAMES = [column.name for column in EXPORT_COLUMNS]
@@ -263,6 +268,27 @@ def test_each_label_is_one_row_with_exact_derived_columns(session: Session) -> N
     assert beta_row["consumed_at"].utcoffset() == timedelta(0)
 
 
+def test_the_query_columns_are_the_declared_query_fields_with_their_stored_values(
+    session: Session,
+) -> None:
+    exported = [field for field in QUERY_FIELDS if field.exported]
+    declared = [
+        (field.name, EXPORT_TYPES[field.type], field.nullable, field.description)
+        for field in exported
+    ]
+    start = NAMES.index(exported[0].name)
+    columns = EXPORT_COLUMNS[start : start + len(exported)]
+    assert [(c.name, c.type, c.nullable, c.description) for c in columns] == declared
+    assert not {field.name for field in QUERY_FIELDS if not field.exported} & set(NAMES)
+
+    seed(session)
+    for row in export_rows(session):
+        query = session.get(Query, row["query_id"])
+        assert query is not None
+        for field in exported:
+            assert row[field.name] == getattr(query, field.name), field.name
+
+
 def test_a_run_filter_keeps_only_that_runs_labels(session: Session) -> None:
     seeded = seed(session)
     beta = list(export_rows(session, run_id=seeded.beta))
@@ -380,5 +406,6 @@ def test_docs_list_exactly_the_declared_columns() -> None:
         (f"`{c.name}`", c.type + (" or null" if c.nullable else ""), c.description)
         for c in EXPORT_COLUMNS
     ]
-    assert documented == declared
+    rows = "\n".join(f"| {' | '.join(row)} |" for row in declared if row not in documented)
+    assert documented == declared, f"docs/EXPORT.md's table, in COLUMNS' order, needs:\n{rows}"
     assert re.search(rf"`SCHEMA_VERSION` .*now {EXPORT_SCHEMA_VERSION}\)", text)

@@ -27,6 +27,8 @@ from labelqueue import (
     submit_label,
 )
 from labelqueue.models import utcnow
+from runvocab.answers import Answer
+from runvocab.query_fields import QUERY_FIELDS
 
 
 def expire_lease(session: Session, query_id: int) -> None:
@@ -101,6 +103,35 @@ def test_bad_query_fields_and_clip_keys_are_refused(session: Session) -> None:
         set_clips(session, query_id=query_id, first_clip="/abs.mp4", second_clip="b.mp4")
     query = set_clips(session, query_id=query_id, first_clip="r0/a.mp4", second_clip="r0/b.mp4")
     assert (query.first_clip, query.second_clip) == ("r0/a.mp4", "r0/b.mp4")
+
+
+def test_a_push_stores_each_declared_field_and_the_defaults_of_those_left_out(
+    session: Session,
+) -> None:
+    run = running_run(session)
+    required = {field.name for field in QUERY_FIELDS if not field.optional}
+    spec = {name: value for name, value in query_spec(0).items() if name in required}
+    # NumPy scalars, as the trainer's may be, are stored as plain numbers.
+    spec |= {"first_trajectory": np.int64(4), "first_segment_return": np.float32(0.5)}
+    full = query_spec(1, first_skill=[np.float32(0.25)], shadow_choice="first",
+                      distinguishable=np.bool_(True), score=float("nan"), needs_labels=2)
+    bare_id, full_id = push_queries(session, run_id=run.id, queries=[spec, full])
+    bare, stored = session.get(Query, bare_id), session.get(Query, full_id)
+    assert bare is not None and stored is not None
+    for field in QUERY_FIELDS:
+        value = getattr(bare, field.name)
+        if field.optional:
+            assert value == field.default, field.name
+        else:
+            assert value == spec[field.name], field.name
+    assert (stored.first_skill, stored.shadow_choice, stored.distinguishable) == (
+        [0.25], Answer.FIRST, True)
+    assert (stored.score, stored.needs_labels, stored.gold) == (None, 2, False)
+    for name in sorted(required):
+        with pytest.raises(ValueError, match=f"query field {name} may not be null"):
+            push_queries(session, run_id=run.id, queries=[query_spec(2) | {name: None}])
+    with pytest.raises(ValueError, match="may not be null"):
+        push_queries(session, run_id=run.id, queries=[query_spec(2, gold=None)])
 
 
 def test_lease_takes_the_oldest_and_a_reload_returns_the_same_query(session: Session) -> None:

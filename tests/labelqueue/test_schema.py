@@ -1,4 +1,5 @@
-"""The schema comes from the migrations and matches the models; SQLite is set up for concurrency."""
+"""The schema comes from the migrations and matches the models, whose query columns are the
+declared query fields; SQLite is set up for concurrency."""
 
 from __future__ import annotations
 
@@ -14,19 +15,55 @@ from alembic import command
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
 from alembic.script import ScriptDirectory
-from sqlalchemy import CheckConstraint, Engine, func, inspect, select, update
+from sqlalchemy import (
+    JSON,
+    Boolean,
+    CheckConstraint,
+    Engine,
+    Enum,
+    Float,
+    Integer,
+    String,
+    func,
+    inspect,
+    select,
+    update,
+)
 from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session
 
 from labelqueue import Labeller, create_labeller, make_engine, migrate, reading
 from labelqueue.db import alembic_config
-from labelqueue.models import Base
+from labelqueue.models import QUERIES, Base
+from runvocab.answers import Answer
+from runvocab.query_fields import QUERY_FIELD_NAMES, QUERY_FIELDS, FieldType
+
+# The queue's own bookkeeping of a query, which the worker never pushes.
+QUEUE_COLUMNS = {"id", "run_id", "label_count", "status", "lease_holder", "lease_expires_at",
+                 "leased_at", "created_at"}
+SQL_TYPES: dict[FieldType, type] = {"int": Integer, "float": Float, "bool": Boolean,
+                                    "str": String, "floats": JSON, "answer": Enum, "clip": String}
 
 
 def test_migrations_create_exactly_the_models_schema(engine: Engine) -> None:
     with engine.connect() as connection:
         context = MigrationContext.configure(connection, opts={"compare_type": True})
         assert compare_metadata(context, Base.metadata) == []
+
+
+def test_the_queries_table_holds_each_declared_query_field_as_declared() -> None:
+    # Adding a query field: `runvocab.query_fields`, a `labelqueue.models.Query` column and a
+    # migration (the test above keeps the migrations and the models equal).
+    assert set(QUERIES.c.keys()) - QUEUE_COLUMNS == set(QUERY_FIELD_NAMES)
+    for field in QUERY_FIELDS:
+        column = QUERIES.c[field.name]
+        assert type(column.type) is SQL_TYPES[field.type], field.name
+        assert column.nullable == field.nullable, field.name
+        if field.default is not None:
+            assert column.default is not None, field.name
+            assert column.default.arg == field.default, field.name  # type: ignore[attr-defined]
+        if field.type == "answer":
+            assert column.type.enum_class is Answer, field.name  # type: ignore[attr-defined]
 
 
 def test_migrations_create_the_models_check_constraints(engine: Engine) -> None:

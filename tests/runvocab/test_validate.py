@@ -32,9 +32,10 @@ def queued(**fields) -> dict:
 
 def test_the_package_imports_neither_torch_nor_mujoco_nor_the_trainer() -> None:
     probe = ("import sys, runvocab.config, runvocab.names, runvocab.validate, "
-             "runvocab.queued_run; runvocab.names.all_tasks(); print(sorted(m for m in "
-             "sys.modules if m.split('.')[0] in ('torch', 'mujoco', 'dm_control', 'metaworld', "
-             "'numpy', 'trainer', 'server', 'labelqueue')))")
+             "runvocab.queued_run, runvocab.answers, runvocab.query_fields; "
+             "runvocab.names.all_tasks(); print(sorted(m for m in sys.modules if m.split('.')[0] "
+             "in ('torch', 'mujoco', 'dm_control', 'metaworld', 'numpy', 'sqlalchemy', "
+             "'trainer', 'server', 'labelqueue')))")
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
                             check=True, cwd=ROOT)
     assert result.stdout.strip() == "[]"
@@ -42,7 +43,8 @@ def test_the_package_imports_neither_torch_nor_mujoco_nor_the_trainer() -> None:
         tree = ast.parse(path.read_text())
         modules = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
         modules |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
-        assert not {m.split(".")[0] for m in modules} & {"torch", "mujoco", "trainer", "server"}
+        banned = {"torch", "mujoco", "numpy", "sqlalchemy", "trainer", "server", "labelqueue"}
+        assert not {m.split(".")[0] for m in modules} & banned, path.name
 
 
 def test_the_size_presets_are_the_named_ones() -> None:
