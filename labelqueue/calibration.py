@@ -6,11 +6,12 @@ It reads label rows as the export writes them (`export_rows`, or a file through
 the same. Definitions:
 
 - gap: |first_trajectory_return - second_trajectory_return| / |R_avg|, the whole trajectories'
-  gap, as the paper's noisy teacher measures it (`trainer/teachers.py`). The export does not
-  record R_avg (the mean return of the run's last ten trajectories when the round opened), so
-  it is estimated per (run, round): the mean trajectory return of the ten newest trajectories
-  (by index) that the round's queries show. An R_avg of 0 makes every gap infinite (the
-  noisy teacher's band is then empty).
+  gap, as the paper's noisy teacher measures it (`trainer/teachers.py`). R_avg is the one the
+  trainer recorded with the query (the export's `r_avg`: the mean return of the run's newest
+  trajectories when the round opened). Where it is missing (queries stored before it was
+  recorded, schema-2 files) it is estimated per (run, round): the mean trajectory return of the
+  ten newest trajectories (by index) that the round's queries show. An R_avg of 0 makes every
+  gap infinite (the noisy teacher's band is then empty).
 - outcome, judged on the *segment* returns (what the noisy teacher answers by, and the
   export's `correct`): "correct" or "wrong" for first/second; "equal" is correct on exactly
   equal segment returns and otherwise "unsure", like "can't tell"; "skip" is left out of
@@ -248,7 +249,8 @@ def _answers(rows: Sequence[Mapping[str, Any]], recent: int) -> tuple[list[_Answ
             query_id=int(row["query_id"]),
             gap=normalised_gap(float(row["first_trajectory_return"]),
                                float(row["second_trajectory_return"]),
-                               r_avg[(int(row["run_id"]), int(row["round"]))]),
+                               recorded if (recorded := row.get("r_avg")) is not None
+                               else r_avg[(int(row["run_id"]), int(row["round"]))]),
             outcome=_outcome(row),
             click=str(row["choice"]),
         )

@@ -282,6 +282,8 @@ class Query(Base):
     """the run's scripted teacher's answer (hidden): compared with people's and the model's"""
     distinguishable: Mapped[bool | None] = mapped_column(Boolean)
     """whether the scripted teacher can tell the pair apart (hidden)"""
+    r_avg: Mapped[float | None] = mapped_column(Float)
+    """R_avg when the pair was selected, the scale of the noisy teacher's band (hidden)"""
 
     needs_labels: Mapped[int] = mapped_column(Integer, default=1)
     """distinct labellers' answers wanted: the run's `feedback.labels_per_query` (a gold pair

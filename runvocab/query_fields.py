@@ -98,6 +98,10 @@ QUERY_FIELDS: tuple[QueryField, ...] = (
                trainer="shadow_choice"),
     QueryField("distinguishable", "bool", "whether the scripted teacher can tell the pair apart",
                optional=True, trainer="distinguishable"),
+    QueryField("r_avg", "float", "R_avg when the pair was selected: the mean return of the run's "
+               "newest trajectories (the teacher's `recent_trajectories`); the noisy teacher's "
+               "band is eps times its size. Null for queries stored before it was recorded",
+               optional=True, trainer="r_avg"),
     QueryField("gold", "bool", "the pair is a gold pair: a known-answer pair that measures "
                "labellers, never trained on (its answer is the segment with the larger true "
                "segment return)", optional=True, default=False),

@@ -34,7 +34,7 @@ from trainer.query_selection import (
 from trainer.return_estimator import ReturnEstimator
 from trainer.reward_model import LabelledPairs, RewardModel
 from trainer.surf import PairSampler
-from trainer.teachers import QueryTruth, choice_target, is_correct
+from trainer.teachers import QueryTruth, choice_target, is_correct, recent_mean
 from trainer.trajectories import Trajectory, TrajectoryPool
 
 
@@ -67,6 +67,9 @@ class Query:
     """the run's scripted teacher's answer, given when the round opened"""
     distinguishable: bool
     """whether the scripted teacher could tell the pair apart"""
+    r_avg: float = float("nan")
+    """R_avg when the round opened: the mean of the teacher's recent trajectory returns, the
+    scale of the noisy teacher's band (nan in checkpoints from before it was recorded)"""
 
 
 @dataclass(frozen=True)
@@ -174,6 +177,7 @@ class PreferenceFeedback:
         # then depends only on the queries, and it takes R_avg from the latest returns.
         shadow = self.teacher.answer([_truth(t0, s0, t1, s1, h) for t0, s0, t1, s1 in pairs],
                                      pool.returns)
+        r_avg = recent_mean(pool.returns, self.teacher.recent_trajectories)
         queries = []
         for i, ((t0, s0, t1, s1), answer) in enumerate(zip(pairs, shadow, strict=True)):
             queries.append(Query(
@@ -184,7 +188,7 @@ class PreferenceFeedback:
                 trajectory_return0=t0.true_return, trajectory_return1=t1.true_return,
                 model_p=float(selection.probability[i]), score=float(selection.score[i]),
                 rule=rule, shadow_choice=str(answer.choice),
-                distinguishable=answer.distinguishable,
+                distinguishable=answer.distinguishable, r_avg=r_avg,
             ))
         self.pending = queries
         return queries

@@ -70,12 +70,10 @@ class TeacherAnswer:
 # Shared helpers
 
 
-def _recent_mean(recent_returns: Sequence[float], n: int) -> float:
+def recent_mean(recent_returns: Sequence[float], n: int) -> float:
     """Mean of the last `n` returns (oldest first); 0 when there are none yet."""
     last = list(recent_returns)[-n:]
     return float(np.mean(last)) if last else 0.0
-
-
 
 
 def _sum_choice(sum0: float, sum1: float, tie: str = "equal", u: float = 0.0) -> Answer:
@@ -152,7 +150,7 @@ class NoisyTeacher:
     def threshold(self, recent_returns: Sequence[float]) -> float:
         """eps * |R_avg|. The paper writes eps * R_avg; |.| keeps the band non-empty for tasks
         with negative returns. No finished trajectory yet -> R_avg = 0 -> empty band."""
-        return self.eps * abs(_recent_mean(recent_returns, self.recent_trajectories))
+        return self.eps * abs(recent_mean(recent_returns, self.recent_trajectories))
 
     def answer(
         self, truths: Sequence[QueryTruth], recent_returns: Sequence[float]
@@ -218,13 +216,15 @@ class BPrefTeacher:
             raise ValueError(f"recent_trajectories must be >= 1, got {cfg.recent_trajectories}")
         _check_tie(cfg.tie)
         self.cfg = cfg
+        self.recent_trajectories = cfg.recent_trajectories
+        """the newest episode returns the thresholds' scale is the mean of"""
         self.segment_length = segment_length
         self.episode_length = episode_length
         self.rng = np.random.default_rng(seed)
 
     def margin(self, recent_returns: Sequence[float]) -> float:
         """Mean recent episode return scaled to one segment, as B-Pref sets its thresholds."""
-        mean = _recent_mean(recent_returns, self.cfg.recent_trajectories)
+        mean = recent_mean(recent_returns, self.cfg.recent_trajectories)
         return mean * self.segment_length / self.episode_length
 
     def answer(

@@ -138,6 +138,15 @@ def test_r_avg_is_the_mean_of_the_rounds_ten_newest_trajectories() -> None:
     assert normalised_gap(1, 1, 0) == math.inf
 
 
+def test_a_recorded_r_avg_is_used_instead_of_the_estimate() -> None:
+    # Returns 110 and 90: the estimate is R_avg 100 (gap 0.2); the trainer recorded 40 (gap 0.5).
+    edges = parse_edges("0, 0.3, inf")
+    estimated = calibration_report([row()], edges=edges).everyone.bins
+    recorded = calibration_report([row(r_avg=40.0)], edges=edges).everyone.bins
+    assert [b.rates.answers for b in estimated] == [1, 0]
+    assert [b.rates.answers for b in recorded] == [0, 1]
+
+
 def test_outcomes_bins_and_rates_follow_the_definitions() -> None:
     rows = [
         row(query_id=1),  # correct, gap 0.2

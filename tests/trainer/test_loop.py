@@ -44,6 +44,12 @@ def test_budget_counts_every_label_including_the_first_round(tmp_path):
         if lab["distinguishable"] and lab["choice"] in ("first", "second"):
             better = "second" if lab["segment_return1"] > lab["segment_return0"] else "first"
             assert lab["choice"] == better
+    # each query records the R_avg it was selected under: the mean return of the 10 newest
+    # episodes (200 steps each) when its round opened, which the noisy teacher's band scales
+    episodes = _rows(tmp_path / "episodes.csv")
+    for lab in labels:
+        returns = [float(e["return"]) for e in episodes if int(e["step"]) <= lab["step"]]
+        assert lab["r_avg"] == pytest.approx(sum(returns[-10:]) / len(returns[-10:]))
     # every round logs the distinguishable ratio, equal to the fraction in the label record
     for r in rounds:
         in_round = [lab for lab in labels if lab["round"] == int(r["round"])]

@@ -42,7 +42,7 @@ def test_a_pushed_query_holds_each_declared_trainer_attribute(tmp_path: Path) ->
                   trajectory1=8, start1=11, segment_length=25, segment_return0=np.float32(1.5),
                   segment_return1=-2.25, trajectory_return0=40.0, trajectory_return1=38.5,
                   model_p=0.75, score=float("nan"), rule="entropy", shadow_choice="first",
-                  distinguishable=np.bool_(False))
+                  distinguishable=np.bool_(False), r_avg=97.5)
     skills = {7: np.array([0.5, -1.0], np.float32), 8: None}
     with sessions() as session:
         run = create_run(session, name="r", task="dmc:cheetah_run", algo="pebble", budget=10)
