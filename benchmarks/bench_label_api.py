@@ -44,6 +44,7 @@ import json
 import os
 import pstats
 import random
+import shutil
 import signal
 import socket
 import statistics
@@ -950,6 +951,8 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--profile", action="store_true",
                         help="serve through the probe with cProfile on every server thread")
     parser.add_argument("--profile-top", type=int, default=25)
+    parser.add_argument("--profile-out", type=Path,
+                        help="keep the merged cProfile stats in this file (pstats format)")
     for hidden in ("--serve-probe", "--serve-worker"):
         parser.add_argument(hidden, action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--port", type=int, default=0, help=argparse.SUPPRESS)
@@ -979,6 +982,8 @@ def main() -> int:
             report(args, m)
             if args.probe or args.profile:
                 print_probe(tmp / "probe.json", len(m.tally.round_trips), args.profile_top)
+                if args.profile_out and (tmp / "probe.prof").exists():
+                    shutil.copyfile(tmp / "probe.prof", args.profile_out)
             answered = m.warm_label_ids + m.tally.label_ids
             problems = verify(url, m.run_id, answered, args.warmup + args.queries,
                               args.labels_per_query)

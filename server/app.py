@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
+from typing import TYPE_CHECKING
 
 from anyio import to_thread
 from fastapi import FastAPI
@@ -29,6 +30,12 @@ from server.routes import (
 )
 from server.settings import Settings, get_settings
 
+if TYPE_CHECKING:
+    from fastapi.telemetry import TelemetryConfig
+
+
+TELEMETRY_OFF: TelemetryConfig = {"tracing": False, "metrics": False, "logs": False}
+
 
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The API over the queue database `settings.database_url`, migrated at start-up."""
@@ -42,7 +49,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.token_cache = TokenCache(settings.auth_cache_seconds)
         to_thread.current_default_thread_limiter().total_tokens = settings.threadpool_size
         # The label API's queue work (server.deps.LabellerCall.serve); other routes use AnyIO's.
-        app.state.executor = ThreadPoolExecutor(settings.threadpool_size, "label-api")
+        app.state.executor = ThreadPoolExecutor(settings.label_thread_count, "label-api")
         try:
             yield
         finally:
@@ -51,7 +58,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             curves.close()
             engine.dispose()
 
-    app = FastAPI(title="S-EPOA labelling", version="0.1.0", lifespan=lifespan)
+    app = FastAPI(
+        title="S-EPOA labelling",
+        version="0.1.0",
+        lifespan=lifespan,
+        # FastAPI's native OpenTelemetry asks the global providers on every request whether
+        # anyone listens; the app configures none, so it is off (settings.opentelemetry).
+        telemetry=None if settings.opentelemetry else TELEMETRY_OFF,
+    )
     app.state.settings = settings
     app.state.export_process = ExportProcess()  # started at the first export
     install_error_handlers(app)

@@ -10,7 +10,8 @@ at a lower priority (`server.export_job.NICENESS`), started at the first figure 
 server's process it held the interpreter's lock against the labellers' requests all that time.
 Figures are kept by their data: every open run page asks again after each new evaluation, and
 all but the first get the PNG drawn for the first (the data is read each time; only an unchanged
-figure is reused).
+figure is reused). The teacher-calibration figure (`GET /api/quality/calibration.png`, asked for
+by the run page whenever the run's label count changes) is drawn there too, kept by its report.
 """
 
 from __future__ import annotations
@@ -18,10 +19,10 @@ from __future__ import annotations
 import multiprocessing
 import os
 import threading
-from collections import Counter
-from collections.abc import Callable
+from collections import Counter, OrderedDict
+from collections.abc import Callable, Hashable
 from concurrent.futures import ProcessPoolExecutor
-from functools import lru_cache
+from typing import TYPE_CHECKING
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -30,11 +31,17 @@ from labelqueue import Run, read_metrics
 from server.export_job import NICENESS
 from server.services import reading
 
+if TYPE_CHECKING:
+    from labelqueue.calibration import CalibrationReport
+
 Figure = tuple[tuple[str, tuple[tuple[tuple[int, ...], tuple[float, ...]], ...]], ...]
 """per curve label, the seeds' (steps, values): hashable, so a drawn figure is kept by it"""
+KEPT = 64
+"""drawn figures kept, the least recently asked for dropped first"""
 _drawing = threading.Lock()
 _pool: ProcessPoolExecutor | None = None
 """the drawing process, once a figure has been asked for (`close` ends it)"""
+_kept: OrderedDict[Hashable, bytes] = OrderedDict()
 
 
 def _lower_priority() -> None:
@@ -77,13 +84,28 @@ def peer_curves_png(session: Session, run: Run, metric: str) -> bytes:
         (label, tuple((tuple(steps), tuple(values)) for steps, values in seeds))
         for label, seeds in curves.items()
     )
-    with _drawing:  # pages asking at once wait for one drawing, then reuse it
-        return _drawn(figure, title, f"evaluation {metric.replace('_', ' ')}")
+    ylabel = f"evaluation {metric.replace('_', ' ')}"
+    return drawn_once(("curves", figure, title, ylabel), draw, figure, title, ylabel)
 
 
-@lru_cache(maxsize=64)
-def _drawn(figure: Figure, title: str, ylabel: str) -> bytes:
-    return _in_drawing_process(draw, figure, title, ylabel)
+def calibration_png(report: CalibrationReport, *, title: str) -> bytes:
+    """PNG of a teacher-calibration report (`figures.calibration`), drawn in the drawing
+    process; a report equal to one drawn before gets that PNG."""
+    return drawn_once(("calibration", title, repr(report)), draw_calibration, report, title)
+
+
+def drawn_once(key: Hashable, function: Callable[..., bytes], *args: object) -> bytes:
+    """`function(*args)` drawn in the drawing process, or the PNG drawn before for `key` (the
+    figure's data). Callers asking at once wait for one drawing, then reuse it."""
+    with _drawing:
+        png = _kept.get(key)
+        if png is None:
+            png = _kept[key] = _in_drawing_process(function, *args)
+            if len(_kept) > KEPT:
+                _kept.popitem(last=False)
+        else:
+            _kept.move_to_end(key)
+        return png
 
 
 def _in_drawing_process(function: Callable[..., bytes], *args: object) -> bytes:
@@ -108,10 +130,19 @@ def draw(figure: Figure, title: str, ylabel: str) -> bytes:
     return curves_png(curves, title=title, ylabel=ylabel)
 
 
+def draw_calibration(report: CalibrationReport, title: str) -> bytes:
+    """The PNG of a calibration report (run in the drawing process)."""
+    from figures.calibration import calibration_png as draw_report  # matplotlib: only here
+
+    return draw_report(report, title=title)
+
+
 def close() -> None:
-    """End the drawing process, if one was started (the server's shutdown)."""
+    """End the drawing process, if one was started, and forget the figures (the server's
+    shutdown)."""
     global _pool
     with _drawing:
+        _kept.clear()
         if _pool is not None:
             _pool.shutdown(cancel_futures=True)
             _pool = None

@@ -201,40 +201,62 @@ async def get_labeller(caller: Annotated[Caller, Depends(get_caller)]) -> Caller
 
 @dataclass(frozen=True)
 class LabellerCall:
-    """A labeller's request as the label API's hot path takes it: the settings, a session and
-    the labeller, from one dependency (FastAPI's work per dependency cost more than the
-    dependencies themselves: next and submit each had five), and `serve` for its blocking work."""
+    """A labeller's request as the label API's hot path takes it: the settings, the session
+    factory and the labeller, from one plain `async` dependency (FastAPI's work per dependency,
+    and more so per generator dependency, cost more than the dependencies themselves), and
+    `serve` for its blocking work."""
 
     settings: Settings
-    session: Session
+    sessions: sessionmaker[Session]
     labeller_id: int
     executor: Executor | None
 
+    def _in_session(self, service: Callable[..., T], kwargs: dict[str, Any]) -> T:
+        with self.sessions() as session:
+            return service(
+                session, settings=self.settings, labeller_id=self.labeller_id, **kwargs
+            )
+
     async def serve(self, service: Callable[..., T], /, **kwargs: Any) -> T:
-        """`service(session, settings=..., labeller_id=..., **kwargs)` on the app's thread pool
-        for queue work, awaited.
+        """`service(session, settings=..., labeller_id=..., **kwargs)` in a session of its own
+        on the app's executor for queue work, awaited.
 
         A plain executor hand-off costs about half of FastAPI's for a `def` route (AnyIO's
-        worker threads, capacity limiter and cancel scopes), on each of next and submit."""
-        work = partial(
-            service, self.session, settings=self.settings, labeller_id=self.labeller_id, **kwargs
-        )
+        worker threads, capacity limiter and cancel scopes), on each of next and submit. On
+        SQLite the executor has one thread (`Settings.label_threads`)."""
+        work = partial(self._in_session, service, kwargs)
         if self.executor is None:  # an app whose lifespan did not run
             return await run_in_threadpool(work)
         return await asyncio.get_running_loop().run_in_executor(self.executor, work)
 
 
-async def get_labeller_call(
-    request: Request,
-    _declared: Annotated[HTTPAuthorizationCredentials | None, Depends(BEARER)],
-) -> AsyncIterator[LabellerCall]:
-    """`LabellerDep`, `SessionDep` and `SettingsDep` at once; 401/403 as `LabellerDep`."""
-    settings: Settings = request.app.state.settings
-    async with request_session(request) as session:
-        caller = must_be_labeller(await request_caller(request, session, settings))
-        assert caller.labeller_id is not None
-        executor: Executor | None = getattr(request.app.state, "executor", None)
-        yield LabellerCall(settings, session, caller.labeller_id, executor)
+def _checked_in_session(
+    sessions: sessionmaker[Session], token: str, cache: TokenCache | None
+) -> Caller:
+    with sessions() as session:
+        return checked_caller(session=session, token=token, cache=cache)
+
+
+async def get_labeller_call(request: Request) -> LabellerCall:
+    """`LabellerDep`, `SessionDep` and `SettingsDep` at once; 401/403 as `LabellerDep`. The
+    routes that take it declare the `bearer` scheme in OpenAPI (`BEARER_SECURITY`)."""
+    state = request.app.state
+    settings: Settings = state.settings
+    sessions: sessionmaker[Session] = state.sessions
+    cache = get_token_cache(request)
+    token = bearer_token(request)
+    caller = known_caller(settings=settings, token=token, cache=cache)
+    if caller is None:
+        assert token is not None
+        caller = await run_in_threadpool(_checked_in_session, sessions, token, cache)
+    must_be_labeller(caller)
+    assert caller.labeller_id is not None
+    executor: Executor | None = getattr(state, "executor", None)
+    return LabellerCall(settings, sessions, caller.labeller_id, executor)
+
+
+BEARER_SECURITY: dict[str, Any] = {"security": [{"bearer": []}]}
+"""`openapi_extra` of a route whose dependency checks the bearer token without `BEARER`"""
 
 
 def get_token_cache(request: Request) -> TokenCache | None:

@@ -19,6 +19,9 @@ SECURITY_HEADERS = {
 }
 
 
+_SECURITY_PAIRS = [(name.encode(), value.encode()) for name, value in SECURITY_HEADERS.items()]
+
+
 def too_large_detail(limit: int) -> str:
     return f"request body is larger than {limit} bytes ({limit // 1024} KiB), the most accepted"
 
@@ -50,17 +53,13 @@ class HardeningMiddleware:
             return
         async def send_with_headers(message: Message) -> None:
             if message["type"] == "http.response.start":
-                headers = [(k, v) for k, v in message.get("headers", [])]
+                headers = list(message.get("headers", ()))
                 present = {k.lower() for k, _ in headers}
-                headers += [
-                    (name.encode(), value.encode())
-                    for name, value in SECURITY_HEADERS.items()
-                    if name.encode() not in present
-                ]
+                headers += [pair for pair in _SECURITY_PAIRS if pair[0] not in present]
                 message = {**message, "headers": headers}
             await send(message)
 
-        declared = dict(scope.get("headers", [])).get(b"content-length")
+        declared = next((v for k, v in scope["headers"] if k == b"content-length"), None)
         if declared is not None and (not declared.isdigit() or int(declared) > self.limit):
             for message in _too_large(self.limit):
                 await send_with_headers(message)

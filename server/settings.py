@@ -36,8 +36,15 @@ class Settings(BaseSettings):
     revoked labeller can still read for this long, but cannot lease or answer"""
     body_limit_bytes: int = Field(default=64 * 1024, ge=1024)
     """the largest request body read; a larger one is refused with 413"""
+    opentelemetry: bool = False
+    """FastAPI's native OpenTelemetry spans and metrics, through the global providers (off: it
+    cost every request a look at them)"""
     threadpool_size: int = Field(default=8, ge=1)
     """threads serving requests: more only queue on the database's one write lock"""
+    label_threads: int | None = Field(default=None, ge=1)
+    """threads doing the label API's queue work (next, submit, withdraw); unset: one on SQLite,
+    whose writes run one at a time anyway (more threads only hand its lock and the interpreter's
+    to each other), `threadpool_size` on PostgreSQL"""
 
     @model_validator(mode="after")
     def _default_clips_dir(self) -> Settings:
@@ -45,6 +52,13 @@ class Settings(BaseSettings):
             # frozen: set through the object's dict, once, while validating.
             object.__setattr__(self, "clips_dir", self.data_dir / "clips")
         return self
+
+    @property
+    def label_thread_count(self) -> int:
+        """`label_threads`, or its default for the database."""
+        if self.label_threads is not None:
+            return self.label_threads
+        return 1 if self.database_url.startswith("sqlite") else self.threadpool_size
 
     @property
     def clips_root(self) -> Path:

@@ -17,6 +17,7 @@ from pydantic import BaseModel
 
 from server import clips, services
 from server.deps import (
+    BEARER_SECURITY,
     LabellerCallDep,
     SessionDep,
     SettingsDep,
@@ -52,6 +53,7 @@ BEARER_OR_SIGNED: dict[str, Any] = {"security": [{}, {"bearer": []}]}
     responses=errors(
         401, 403, 404, 409, 422, also={204: {"description": "nothing to label now; poll again"}}
     ),
+    openapi_extra=BEARER_SECURITY,
 )
 async def next_query(
     call: LabellerCallDep, run_id: RunFilter = None, ahead_of: AheadOf = None
@@ -70,6 +72,7 @@ async def next_query(
         400, 401, 403, 404, 409, 413, 422,
         also={200: {"model": LabelOut, "description": "a repeat: the label already stored"}},
     ),
+    openapi_extra=BEARER_SECURITY,
 )
 async def post_label(query_id: QueryId, body: LabelSubmit, call: LabellerCallDep) -> Response:
     """Answer a leased query. A revoked labeller: 403; a run no longer running or paused, an

@@ -5,12 +5,12 @@ labellers; each labeller's reliability; lifting a gold-threshold pause.
 The report is made from the same rows a label export holds (`export_rows`, read in short
 transactions of their own), so it equals `sepoa report --calibration` on an export of the same
 labels. Working it out takes a fraction of a second per labeller of CPU; drawing it about as
-much again, one figure at a time.
+much again, so the figure is drawn by the run page's drawing process (`server.curves`), once per
+report: pages asking again for unchanged labels get the PNG drawn before.
 """
 
 from __future__ import annotations
 
-import threading
 from typing import Annotated
 
 from fastapi import APIRouter, Query
@@ -26,11 +26,11 @@ from labelqueue.calibration import (
     parse_edges,
 )
 from labelqueue.labeller_quality import LabellerQuality, labeller_quality
+from server import curves
 from server.deps import OperatorDep, SessionDep
 from server.schemas import LabellerId, RunFilter, RunId, errors
 
 router = APIRouter(prefix="/api/quality", tags=["quality"])
-_drawing = threading.Lock()
 
 Bins = Annotated[
     str | None,
@@ -67,11 +67,8 @@ def get_calibration_png(
 ) -> Response:
     """The report's figure, as `sepoa report --calibration` draws it."""
     report = report_of(session, run_id=run_id, bins=bins)
-    from figures.calibration import calibration_png  # matplotlib: only when asked
-
     title = "All runs" if run_id is None else f"Run {run_id}"
-    with _drawing:
-        png = calibration_png(report, title=f"Teacher calibration · {title}")
+    png = curves.calibration_png(report, title=f"Teacher calibration · {title}")
     return Response(png, media_type="image/png", headers={"Cache-Control": "no-store"})
 
 

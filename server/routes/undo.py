@@ -6,7 +6,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Response
 
 from server import services
-from server.deps import LabellerCallDep
+from server.deps import BEARER_SECURITY, LabellerCallDep
 from server.routes.label import json_response
 from server.schemas import QueryId, TakeBack, TakenBack, errors
 
@@ -17,6 +17,7 @@ router = APIRouter(prefix="/api", tags=["label"])
     "/label/{query_id:int}/withdraw",
     response_model=TakenBack,
     responses=errors(400, 401, 403, 404, 409, 413, 422),
+    openapi_extra=BEARER_SECURITY,
 )
 async def withdraw(
     query_id: QueryId, call: LabellerCallDep, body: TakeBack | None = None

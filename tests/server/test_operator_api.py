@@ -10,7 +10,7 @@ from server_helpers import OPERATOR, bearer, new_labeller, new_run, snapshot
 from sqlalchemy.orm import Session
 
 from labelqueue import Run, RunStatus, claim_run, write_metrics
-from server.settings import get_settings
+from server.settings import Settings, get_settings
 
 
 def stored_run(session: Session, run_id: int) -> Run:
@@ -361,6 +361,14 @@ def test_settings_come_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> 
         assert settings.database_url == "sqlite:///data/queue.db"
     finally:
         get_settings.cache_clear()
+
+
+def test_the_label_api_works_on_one_thread_on_sqlite_and_on_the_pool_on_postgres() -> None:
+    """SQLite's writes run one at a time, so more threads would only pass its lock around."""
+    assert Settings(database_url="sqlite:///q.db", threadpool_size=6).label_thread_count == 1
+    postgres = Settings(database_url="postgresql+psycopg://u@h/db", threadpool_size=6)
+    assert postgres.label_thread_count == 6
+    assert Settings(database_url="sqlite:///q.db", label_threads=3).label_thread_count == 3
 
 
 def test_a_live_runs_answers_per_query_and_gold_rate_cannot_be_changed(

@@ -4,12 +4,14 @@ and refusals."""
 
 from __future__ import annotations
 
+import os
 import random
 from dataclasses import asdict
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import pytest
 from fastapi.testclient import TestClient
 from server_helpers import OPERATOR, bearer, new_labeller, new_run
 from sqlalchemy.orm import Session
@@ -17,6 +19,8 @@ from sqlalchemy.orm import Session
 from labelqueue import claim_run, export_rows, push_queries, set_clips
 from labelqueue.calibration import calibration_report
 from labelqueue.export_read import read_export
+from server import curves
+from server.export_job import NICENESS
 from server.settings import Settings
 
 
@@ -228,3 +232,49 @@ def test_three_labellers_per_query_their_agreement_gold_accuracy_and_a_pause(
     missing = client.delete(f"/api/quality/runs/{run_id}/pauses/{people['wrong']['labeller_id']}",
                             headers=OPERATOR)
     assert missing.status_code == 404 and "not paused" in missing.json()["detail"]
+
+
+def test_the_figure_is_drawn_by_the_run_pages_drawing_process(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    run_id = human_run(client, session, settings, algo="sepoa", n=4, seed=5)
+    assert answer_all(client, new_labeller(client, "lefty"), run_id, lambda _shown: "left") == 4
+    png = client.get(f"/api/quality/calibration.png?run_id={run_id}", headers=OPERATOR)
+    assert png.status_code == 200 and png.headers["content-type"] == "image/png"
+    # The figure of the run's report, drawn by a process of lower priority than the server's.
+    report = calibration_report(export_rows(session, run_id=run_id))
+    assert png.content == curves.draw_calibration(report, f"Teacher calibration · Run {run_id}")
+    assert curves._pool is not None
+    assert curves._pool.submit(os.getpid).result() != os.getpid()
+    assert curves._pool.submit(os.nice, 0).result() == os.nice(0) + NICENESS
+
+
+def test_pages_share_one_drawing_until_the_labels_change(
+    client: TestClient, session: Session, settings: Settings, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from figures import calibration as plots
+
+    # Drawn in the test's process, where `plots.calibration_png` can be watched.
+    monkeypatch.setattr(curves, "_in_drawing_process", lambda function, *args: function(*args))
+    drawings: list[int] = []
+    draw = plots.calibration_png
+
+    def counted(report: Any, **kwargs: Any) -> bytes:
+        drawings.append(report.rows)
+        return draw(report, **kwargs)
+
+    monkeypatch.setattr(plots, "calibration_png", counted)
+    run_id = human_run(client, session, settings, algo="pebble", n=3, seed=6)
+    answer_all(client, new_labeller(client, "lefty"), run_id, lambda _shown: "left")
+    path = f"/api/quality/calibration.png?run_id={run_id}"
+    pages = [client.get(path, headers=OPERATOR) for _ in range(3)]
+    assert drawings == [3]
+    assert all(page.content == pages[0].content for page in pages)
+    # Another run's figure, then this one's after new labels: each drawn once.
+    assert client.get("/api/quality/calibration.png", headers=OPERATOR).status_code == 200
+    assert drawings == [3, 3]
+    answer_all(client, new_labeller(client, "coin"), run_id, lambda _shown: "right")
+    again = client.get(path, headers=OPERATOR)
+    assert drawings == [3, 3, 6] and again.content != pages[0].content
+    assert client.get(path, headers=OPERATOR).content == again.content
+    assert drawings == [3, 3, 6]
