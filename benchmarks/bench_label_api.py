@@ -78,6 +78,7 @@ from labelqueue import (
     session_factory,
     write_metrics,
 )
+from runvocab.answers import answer_of_click
 
 ROOT = Path(__file__).resolve().parent.parent
 OPERATOR_TOKEN = "bench-operator-token-0123456789"
@@ -241,7 +242,8 @@ def seed_history(url: str, labeller_id: int, n: int) -> None:
             labels = [{
                 "query_id": query_id, "run_id": run_id, "labeller_id": labeller_id,
                 "choice": CHOICES[query_id % 3], "left_is_first": bool(query_id % 2),
-                "preferred": ("first", "second", "equal")[query_id % 3], "source": "human",
+                "answer": answer_of_click(CHOICES[query_id % 3], bool(query_id % 2)),
+                "source": "human",
                 "shown_at": now - timedelta(seconds=5), "answered_at": now,
             } for query_id in ids]
             connection.execute(insert(Label), labels)
