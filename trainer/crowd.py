@@ -34,7 +34,7 @@ from labelqueue import (
     submit_label,
 )
 from labelqueue.calibration import RECENT_TRAJECTORIES, estimate_r_avg
-from runvocab.answers import Answer
+from runvocab.answers import click_of_answer
 from trainer.teachers import NoisyTeacher, QueryTruth
 
 RAvg = Callable[[Query], float]
@@ -83,10 +83,7 @@ class _Player:
         bias = self.spec.left_bias
         if lean < abs(2.0 * bias - 1.0):
             return ("left" if bias > 0.5 else "right"), left_is_first
-        if answer.choice in (Answer.FIRST, Answer.SECOND):
-            on_left = (answer.choice is Answer.FIRST) == left_is_first
-            return ("left" if on_left else "right"), left_is_first
-        return str(answer.choice), left_is_first
+        return click_of_answer(answer.choice, left_is_first).value, left_is_first
 
 
 def crowd_labeller_id(session: Session, name: str) -> int:
