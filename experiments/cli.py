@@ -20,13 +20,15 @@ from typing import NoReturn
 
 
 class OneLineParser(argparse.ArgumentParser):
-    """An argument error is one line naming the problem, exit status 2."""
+    """An argument error is one line on stderr, naming what is wrong (and where help is), with
+    exit status 2; not the whole usage. `sepoa`'s own commands use it too."""
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
-def _fail(message: str) -> int:
+def fail(message: str) -> int:
+    """Print `error: message` on stderr; the exit status of a user's mistake."""
     print(f"error: {message}", file=sys.stderr)
     return 2
 
@@ -114,12 +116,12 @@ def _run_experiment(args: argparse.Namespace) -> int:
                               threads=args.threads, force=args.force, dry_run=args.dry_run,
                               echo=lambda line: print(line, flush=True))
     except (SpecError, ValueError) as err:
-        return _fail(str(err))
+        return fail(str(err))
     except DBAPIError as err:
         first = str(err.orig or err).strip().splitlines()[0]
-        return _fail(f"queue database: {first}")
+        return fail(f"queue database: {first}")
     except OSError as err:
-        return _fail(f"{err.filename or results}: {err.strerror or err}")
+        return fail(f"{err.filename or results}: {err.strerror or err}")
 
 
 def _status(spec, results: pathlib.Path, url: str | None) -> int:  # type: ignore[no-untyped-def]
@@ -132,7 +134,7 @@ def _status(spec, results: pathlib.Path, url: str | None) -> int:  # type: ignor
     url = url or default_database(results)
     parsed = make_url(url)
     if parsed.get_backend_name() == "sqlite" and not os.path.exists(parsed.database or ""):
-        return _fail(f"no queue database at {parsed.database}: nothing enqueued yet "
+        return fail(f"no queue database at {parsed.database}: nothing enqueued yet "
                      "(sepoa experiment run), or give --database-url / --results")
     engine = make_engine(url)
     try:
@@ -148,10 +150,10 @@ def _slurm(args: argparse.Namespace) -> int:
     from labelqueue import check_url
 
     if args.workers < 1 or (args.threads is not None and args.threads < 1) or args.gpus < 0:
-        return _fail("--workers and --threads must be at least 1, --gpus at least 0")
+        return fail("--workers and --threads must be at least 1, --gpus at least 0")
     url = check_url(args.database_url)
     if url.startswith("sqlite"):
-        return _fail("--database-url: workers on other nodes need a database server "
+        return fail("--database-url: workers on other nodes need a database server "
                      "(postgresql+psycopg://...), not a SQLite file")
     spec = load_spec(args.spec, check=False)
     print(sbatch_script(spec, workers=args.workers, database_url=url,
@@ -173,31 +175,31 @@ def _run_calibration_report(args: argparse.Namespace) -> int:
         edges = DEFAULT_EDGES if args.bins is None else parse_edges(args.bins)
         rows = read_calibration_rows(args.calibration)  # ExportFileError: a ValueError
     except ValueError as err:
-        return _fail(str(err))
+        return fail(str(err))
     folder = pathlib.Path(args.out) if args.out else default_folder(args.calibration)
     try:
         files = write_calibration_report(rows, folder, source=os.path.basename(args.calibration),
                                          edges=edges)
     except OSError as err:
-        return _fail(f"cannot write the report into {folder}: {err.strerror or err}")
+        return fail(f"cannot write the report into {folder}: {err.strerror or err}")
     print("\n".join(str(f) for f in files))
     return 0
 
 
 def _run_report(args: argparse.Namespace) -> int:
     if (args.folder is None) == (args.calibration is None):
-        return _fail("give a results folder, or --calibration EXPORT_FILE (not both)")
+        return fail("give a results folder, or --calibration EXPORT_FILE (not both)")
     if args.calibration is not None:
         return _run_calibration_report(args)
     if args.bins is not None:
-        return _fail("--bins goes with --calibration")
+        return fail("--bins goes with --calibration")
     from experiments.report import write_report
     from experiments.spec import SpecError
 
     try:
         files = write_report(args.folder, args.out)
     except SpecError as err:
-        return _fail(str(err))
+        return fail(str(err))
     print("\n".join(str(f) for f in files))
     return 0
 

@@ -20,7 +20,8 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from typing import NoReturn
+
+from experiments.cli import OneLineParser, fail
 
 TRAINER_COMMANDS = {
     "train": "train one run standalone, answered by a scripted teacher",
@@ -34,20 +35,6 @@ EXPERIMENT_COMMANDS = {
     "experiment": "a spec's grid of runs in the queue, trained by workers (docs/EXPERIMENTS.md)",
     "report": "figures and tables of an experiment's results, or of labellers' calibration",
 }
-
-
-class OneLineParser(argparse.ArgumentParser):
-    """An argument error is one line on stderr, naming what is wrong (and where help is), with
-    exit status 2; not the whole usage."""
-
-    def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
-
-
-def fail(message: str) -> int:
-    """Print `error: message` on stderr; the exit status of a user's mistake."""
-    print(f"error: {message}", file=sys.stderr)
-    return 2
 
 
 def _database_args(p: argparse.ArgumentParser, inherit: bool = False) -> None:
