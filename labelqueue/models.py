@@ -302,6 +302,9 @@ class Query(Base):
 
 # The lease scan: open queries of a run, oldest first.
 Index("ix_queries_run_id_status", Query.run_id, Query.status, Query.id)
+# The lease's two looks, for a gold pair and for any other: every lease makes both, and most
+# runs have no gold pairs, which without `gold` in the index meant reading every open query.
+Index("ix_queries_run_id_gold_status", Query.run_id, Query.gold, Query.status, Query.id)
 
 
 class Label(Base):

@@ -252,8 +252,12 @@ def _oldest(*, of_run: bool, gold: bool, only_id: bool = False) -> Select[Any]:
     config. Locked with SKIP LOCKED on PostgreSQL, so concurrent leases take different queries
     instead of queueing for one."""
     candidate = QUERIES.alias("candidate")
+    # A standing answer: one taken back lets the labeller answer again (and the partial
+    # unique index on standing labels makes this a lookup, not a scan of every label).
     answered = exists().where(
-        LABELS.c.query_id == candidate.c.id, LABELS.c.labeller_id == _LABELLER
+        LABELS.c.query_id == candidate.c.id,
+        LABELS.c.labeller_id == _LABELLER,
+        LABELS.c.withdrawn_at.is_(None),
     )
     paused = exists().where(
         PAUSES.c.run_id == candidate.c.run_id, PAUSES.c.labeller_id == _LABELLER

@@ -7,7 +7,7 @@ from datetime import timedelta
 import numpy as np
 import pytest
 from queue_helpers import query_spec, running_run
-from sqlalchemy import func, select, update
+from sqlalchemy import Engine, func, select, update
 from sqlalchemy.orm import Session
 
 from labelqueue import (
@@ -26,6 +26,7 @@ from labelqueue import (
     set_run_status,
     submit_label,
 )
+from labelqueue import queries as queries_module
 from labelqueue.models import utcnow
 from runvocab.answers import Answer
 from runvocab.query_fields import QUERY_FIELDS
@@ -328,3 +329,24 @@ def test_cancelled_queries_are_not_served_and_their_leases_end(session: Session)
     assert got is not None and got.id == ids[2]
     assert cancel_queries(session, run_id=run.id) == 1
     assert lease_next_query(session, labeller_id=alice.id, run_id=run.id) is None
+
+
+@pytest.mark.parametrize("name", ["_TAKE_OF_ANY_HUMAN_RUN", "_TAKE_OF_RUN",
+                                  "_GOLD_OF_ANY_HUMAN_RUN", "_GOLD_OF_RUN"])
+def test_the_lease_reads_by_index_not_every_label_or_query(engine: Engine, name: str) -> None:
+    """A lease's cost must not grow with the labels stored: SQLite's plan for each of its
+    looks searches an index for the labeller's answers and for the run's open queries (gold
+    pairs apart from the others), and scans no table."""
+    if engine.dialect.name != "sqlite":
+        pytest.skip("SQLite's query plan")
+    statement = getattr(queries_module, name)
+    sql = str(statement.compile(dialect=engine.dialect))
+    with engine.connect() as connection:
+        plan = [row[-1] for row in connection.exec_driver_sql(
+            "EXPLAIN QUERY PLAN " + sql, tuple([None] * sql.count("?"))
+        )]
+    assert not [step for step in plan if step.startswith("SCAN")], plan
+    assert any("labels USING INDEX uq_labels_query_id_labeller_id_standing" in step
+               for step in plan), plan
+    assert any("candidate USING INDEX ix_queries_run_id_gold_status" in step
+               for step in plan), plan

@@ -53,3 +53,20 @@ def test_a_withdrawn_label_stays_and_a_new_answer_stands_beside_it(session: Sess
     stored = session.get(Query, query_id)
     assert stored is not None and stored.status is QueryStatus.LABELLED
     session.commit()
+
+
+def test_a_query_whose_answer_was_taken_back_is_leased_to_that_labeller_again(
+    session: Session,
+) -> None:
+    """The lease skips queries the labeller answered, but not one whose answer it took back."""
+    run = running_run(session, teacher=TeacherKind.HUMAN)
+    [query_id] = push_queries(session, run_id=run.id, queries=[query_spec(0)])
+    alice, _ = create_labeller(session, name="alice")
+    assert lease_next_query(session, labeller_id=alice.id, run_id=run.id) is not None
+    submit_label(session, query_id=query_id, labeller_id=alice.id, choice="left",
+                 left_is_first=True)
+    assert lease_next_query(session, labeller_id=alice.id, run_id=run.id) is None
+
+    withdraw_label(session, query_id=query_id, labeller_id=alice.id, lease_seconds=-1)
+    again = lease_next_query(session, labeller_id=alice.id, run_id=run.id)
+    assert again is not None and again.id == query_id
