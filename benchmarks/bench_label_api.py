@@ -823,8 +823,8 @@ def run_rounds(args: argparse.Namespace, tmp: Path, url: str) -> Measured:
     worker = None
     try:
         tokens, run_id = seed_rest(port, args.labellers, args.warmup + args.queries)
-        if args.export_labels:
-            seed_history(url, labeller_id=1, n=args.export_labels)
+        if args.export_labels or args.history_labels:
+            seed_history(url, labeller_id=1, n=args.export_labels or args.history_labels)
         k = args.labels_per_query
         push_warmup(url, tmp, run_id, args.warmup, k)
         warm = run_load(args, port, tokens, args.warmup * k, args.seed + 1, run_id=run_id,
@@ -879,7 +879,8 @@ def report(args: argparse.Namespace, m: Measured) -> None:
           f"loopback: {args.labellers} labellers, {args.queries} queries (+{args.warmup} "
           f"warm-up), think time {args.think_ms:g} ms; {args.pollers} dashboard pages, worker "
           f"process {'on' if args.worker else 'off'}"
-          + (f", export of {args.export_labels} labels" if args.export_labels else ""))
+          + (f", export of {args.export_labels} labels" if args.export_labels else "")
+          + (f", {args.history_labels} older labels stored" if args.history_labels else ""))
     print(f"server: uvicorn, {processes}{'es' if processes[0] != '1' else ''} "
           f"({server_flavour()}{', probe' if args.probe or args.profile else ''}); "
           f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}, machine busy "
@@ -943,6 +944,9 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--export-labels", type=int, default=0,
                         help="seed this many labels of an older run and export every label "
                         "over HTTP during the timed round")
+    parser.add_argument("--history-labels", type=int, default=0,
+                        help="seed this many labels of an older run first, as a server that "
+                        "has been labelling for a while holds (no export)")
     parser.add_argument("--labels-per-query", type=int, default=1,
                         help="distinct labellers' answers each query wants (a run's "
                         "feedback.labels_per_query); the rounds take that many labels per query")

@@ -319,7 +319,8 @@ def lease_next_query(
     ahead_of: int | None = None,
     gold: bool = True,
 ) -> Query | None:
-    """Lease the oldest open query this labeller has not answered; None when there is none.
+    """Lease the oldest open query this labeller has no standing answer to (one it took back
+    counts as unanswered); None when there is none.
 
     Without `run_id` only human-taught runs are served; a human-taught run's queries are served
     once both clips exist (a scripted teacher needs none). A query is leased to one labeller at
