@@ -218,9 +218,13 @@ _NOW = bindparam("at", type_=UTCDateTime())
 _EXPIRES = bindparam("until", type_=UTCDateTime())
 _LABELLER = bindparam("labeller", type_=Integer())
 _MINE = and_(QUERIES.c.lease_holder == _LABELLER, QUERIES.c.status == QueryStatus.LEASED)
-# The labeller, with each live lease it holds (one row with no lease when it holds none).
+# The labeller, with each live lease it holds (one row with no lease when it holds none), and
+# the teacher of the run asked for (none when no run is asked for, or it does not exist).
+_ASKED_TEACHER = (
+    select(RUNS.c.teacher).where(RUNS.c.id == bindparam("run")).scalar_subquery().label("teacher")
+)
 _HOLDER = (
-    select(LABELLERS.c.active, QUERIES.c.id, QUERIES.c.run_id, RUNS.c.status)
+    select(LABELLERS.c.active, QUERIES.c.id, QUERIES.c.run_id, RUNS.c.status, _ASKED_TEACHER)
     .select_from(LABELLERS)
     .outerjoin(
         QUERIES,
@@ -318,6 +322,7 @@ def lease_next_query(
     lease_seconds: float = LEASE_SECONDS,
     ahead_of: int | None = None,
     gold: bool = True,
+    for_people: bool = False,
 ) -> Query | None:
     """Lease the oldest open query this labeller has no standing answer to (one it took back
     counts as unanswered); None when there is none.
@@ -334,6 +339,9 @@ def lease_next_query(
     Gold pairs (`labelqueue.gold`) are mixed in at their run's rate unless `gold` is false (the
     run's own scripted teacher). A labeller paused on a run gets none of its queries; when that
     leaves nothing to lease, Paused says why.
+
+    `for_people`: a person asks, so the run asked for must exist (else NotFound) and be taught
+    by people (else Conflict).
     """
     now = utcnow()
     params: dict[str, Any] = {
@@ -348,9 +356,14 @@ def lease_next_query(
             raise NotFound(f"labeller {labeller_id} does not exist")
         if not holder[0].active:
             raise Revoked(f"labeller {labeller_id} is deactivated")
+        if for_people and run_id is not None:
+            if holder[0].teacher is None:
+                raise NotFound(f"run {run_id} does not exist")
+            if holder[0].teacher != TeacherKind.HUMAN:
+                raise Conflict(f"run {run_id} is taught by a scripted teacher, not by people")
         # Its live leases: at most the one it is shown and the one ahead of it.
         others = []
-        for _, held, held_run, status in holder:
+        for _, held, held_run, status, _ in holder:
             if held is None:
                 continue
             if held == ahead_of:

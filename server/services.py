@@ -12,7 +12,6 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from labelqueue import (
-    Conflict,
     Label,
     Labeller,
     LabelSource,
@@ -20,7 +19,6 @@ from labelqueue import (
     Query,
     Run,
     RunStatus,
-    TeacherKind,
     create_run,
     lease_next_query,
     set_run_status,
@@ -95,15 +93,15 @@ def next_query(
     run_id: int | None,
     ahead_of: int | None = None,
 ) -> NextQuery | None:
-    """Lease the labeller's next query and describe it without ground truth; None if none."""
-    if run_id is not None and get_run(session, run_id=run_id).teacher is not TeacherKind.HUMAN:
-        raise Conflict(f"run {run_id} is taught by a scripted teacher, not by people")
+    """Lease the labeller's next query and describe it without ground truth; None if none. A
+    run asked for must exist and be taught by people (checked in the lease's transaction)."""
     query = lease_next_query(
         session,
         labeller_id=labeller_id,
         run_id=run_id,
         lease_seconds=settings.lease_seconds,
         ahead_of=ahead_of,
+        for_people=True,
     )
     if query is None:
         return None

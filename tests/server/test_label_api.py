@@ -357,3 +357,20 @@ def test_the_server_decides_the_sides_without_the_pages_echo(
     label = posted.json()
     assert label["left_is_first"] == shown["left_is_first"]
     assert label["answer"] == ("first" if shown["left_is_first"] else "second")
+
+
+def test_asking_for_a_run_that_is_missing_or_scripted_says_so_and_leases_nothing(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    alice = bearer(new_labeller(client, "alice"))
+    scripted = new_run(client, teacher="scripted")["id"]
+    before = snapshot(session)
+
+    missing = client.get("/api/label/next?run_id=999", headers=alice)
+    assert missing.status_code == 404 and missing.json()["detail"] == "run 999 does not exist"
+    refused = client.get(f"/api/label/next?run_id={scripted}", headers=alice)
+    assert refused.status_code == 409
+    assert refused.json()["detail"] == (
+        f"run {scripted} is taught by a scripted teacher, not by people"
+    )
+    assert snapshot(session) == before
