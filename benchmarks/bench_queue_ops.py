@@ -10,6 +10,7 @@ with it. Each history size is timed on a database of its own; the table gives CP
 round trip (median of `--repeats`).
 
     PYTHONPATH=. .venv/bin/python benchmarks/bench_queue_ops.py
+    PYTHONPATH=. .venv/bin/python benchmarks/bench_queue_ops.py --page --history 0
     PYTHONPATH=$OLDER_TREE .venv/bin/python benchmarks/bench_queue_ops.py --history 0 100000
 
 PYTHONPATH names the checkout whose queue package and services are measured (run the script
@@ -39,7 +40,7 @@ from server.schemas import LabelSubmit  # noqa: E402
 from server.settings import Settings  # noqa: E402
 
 
-def per_round_trip(history: int, round_trips: int, repeats: int) -> list[float]:
+def per_round_trip(history: int, round_trips: int, repeats: int, page: bool) -> list[float]:
     """CPU seconds per round trip, one figure per repeat, on a fresh database."""
     tmp = Path(tempfile.mkdtemp(prefix="bench-queue-ops-"))
     url = f"sqlite:///{tmp / 'queue.db'}"
@@ -54,16 +55,27 @@ def per_round_trip(history: int, round_trips: int, repeats: int) -> list[float]:
     if history:
         seed_history(url, labellers[0], history)
     warmup = 100
-    push_warmup(url, tmp, run.id, warmup + round_trips * repeats, 1)
+    push_warmup(url, tmp, run.id, warmup + round_trips * repeats + 10, 1)
+    shown: dict[int, int] = {}  # --page: the query each labeller's page shows
 
-    def round_trip(labeller_id: int) -> None:
+    def lease(labeller_id: int, ahead_of: int | None) -> int:
         with sessions() as session:
             query = services.next_query(session, settings=settings, labeller_id=labeller_id,
-                                        run_id=None)
+                                        run_id=run.id if page else None, ahead_of=ahead_of)
         assert query is not None, "the run ran out of queries"
+        return query.query_id
+
+    def round_trip(labeller_id: int) -> None:
+        if page:  # lease the next pair ahead of the one shown, then answer the one shown
+            if labeller_id not in shown:
+                shown[labeller_id] = lease(labeller_id, None)
+            answered, shown[labeller_id] = shown[labeller_id], lease(labeller_id,
+                                                                     shown[labeller_id])
+        else:
+            answered = lease(labeller_id, None)
         with sessions() as session:
             services.submit_answer(session, settings=settings, labeller_id=labeller_id,
-                                   query_id=query.query_id,
+                                   query_id=answered,
                                    body=LabelSubmit(choice="left", shown_at=datetime.now(UTC)))
 
     try:
@@ -87,15 +99,20 @@ def main() -> int:
                         help="labels of an older run stored before timing, one database each")
     parser.add_argument("--round-trips", type=int, default=500, help="per repeat")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--page", action="store_true",
+                        help="as the label page asks: next with the run's id and ahead_of the "
+                        "pair shown (its preload), then the answer to the pair shown")
     args = parser.parse_args()
     if min(args.history) < 0 or args.round_trips < 1 or args.repeats < 1:
         parser.error("--history must be >= 0, --round-trips and --repeats >= 1")
-    print(f"queue work per round trip (lease + submit, one thread, SQLite), "
+    print(f"queue work per round trip (lease + submit{', as the page asks' if args.page else ''}"
+          f", one thread, SQLite), "
           f"{args.round_trips} round trips x {args.repeats}; load average "
           f"{os.getloadavg()[0]:.2f}; checkout {os.environ.get('PYTHONPATH', '.')}")
     print(f"{'older labels':>13} {'CPU ms per round trip (median)':>32} {'range':>16}")
     for history in args.history:
-        figures = [1000 * f for f in per_round_trip(history, args.round_trips, args.repeats)]
+        seconds = per_round_trip(history, args.round_trips, args.repeats, args.page)
+        figures = [1000 * f for f in seconds]
         print(f"{history:>13} {statistics.median(figures):>32.3f} "
               f"{min(figures):>7.3f}-{max(figures):<8.3f}")
     return 0
