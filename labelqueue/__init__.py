@@ -7,11 +7,13 @@ sessions and migrations in `db`. Import what you need from here.
 
 from labelqueue.db import (
     DEFAULT_URL,
+    WriterBusy,
     check_url,
     make_engine,
     migrate,
     session_factory,
     sqlite_url,
+    without_waiting,
 )
 from labelqueue.errors import (
     Conflict,
@@ -132,6 +134,7 @@ __all__ = [
     "RunStatus",
     "TeacherKind",
     "Worker",
+    "WriterBusy",
     "authenticate",
     "check_url",
     "cancel_queries",
@@ -147,6 +150,7 @@ __all__ = [
     "lease_next_query",
     "make_engine",
     "migrate",
+    "without_waiting",
     "push_queries",
     "read_metrics",
     "read_run",

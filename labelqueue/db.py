@@ -17,7 +17,9 @@ import itertools
 import sqlite3
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Any
 
@@ -99,9 +101,43 @@ class _SQLiteConnection(sqlite3.Connection):
             self.writer.release()
 
 
+class WriterBusy(Exception):
+    """Another thread or process holds SQLite's write lock, and the caller asked not to wait
+    (`without_waiting`): nothing has run in the transaction, so the work can go elsewhere."""
+
+
+_NO_WAIT: ContextVar[bool] = ContextVar("labelqueue_no_wait", default=False)
+
+
+@contextmanager
+def without_waiting() -> Iterator[None]:
+    """In the block, a transaction that may write begins only if SQLite's write lock is free at
+    once, and raises WriterBusy otherwise (on PostgreSQL it begins as usual). For callers that
+    must not block, such as an event loop, which then hand the work to a thread that may."""
+    token = _NO_WAIT.set(True)
+    try:
+        yield
+    finally:
+        _NO_WAIT.reset(token)
+
+
 RETRY_S = (0.0002, 0.0005, 0.001, 0.002)
 """the waits between tries of BEGIN IMMEDIATE while another process holds SQLite's write lock
 (then the last, over and over)"""
+
+
+def _try_begin_immediate(dbapi_connection: _SQLiteConnection) -> bool:
+    """BEGIN IMMEDIATE once, without waiting: False when another process holds the lock."""
+    dbapi_connection.execute("PRAGMA busy_timeout=0")
+    try:
+        dbapi_connection.execute("BEGIN IMMEDIATE")
+        return True
+    except sqlite3.OperationalError as error:
+        if "database is locked" not in str(error):
+            raise
+        return False
+    finally:
+        dbapi_connection.execute(f"PRAGMA busy_timeout={int(BUSY_TIMEOUT_S * 1000)}")
 
 
 def _begin_immediate(dbapi_connection: _SQLiteConnection) -> None:
@@ -169,6 +205,14 @@ def make_engine(url: str, *, foreign_keys: bool = True) -> Engine:
             dbapi_connection.execute("BEGIN")
             return
         dbapi_connection.set_query_only(False)
+        if _NO_WAIT.get():
+            dbapi_connection.holds_writer = writer.acquire(blocking=False)
+            if not dbapi_connection.holds_writer:
+                raise WriterBusy("another thread of this process is writing")
+            if not _try_begin_immediate(dbapi_connection):
+                dbapi_connection.release_writer()
+                raise WriterBusy("another process holds SQLite's write lock")
+            return
         dbapi_connection.holds_writer = writer.acquire(timeout=BUSY_TIMEOUT_S)
         try:
             _begin_immediate(dbapi_connection)

@@ -46,6 +46,11 @@ class Settings(BaseSettings):
     whose writes run one at a time anyway (more threads only hand its lock and the interpreter's
     to each other), `threadpool_size` on PostgreSQL"""
 
+    label_inline: bool | None = None
+    """the label API's queue work on the event loop itself when SQLite's write lock is free at
+    once (a hand-off to the label thread otherwise); unset: on SQLite. The hand-off, and the two
+    threads taking the interpreter's lock in turn, cost more CPU than the work"""
+
     @model_validator(mode="after")
     def _default_clips_dir(self) -> Settings:
         if self.clips_dir is None:
@@ -59,6 +64,13 @@ class Settings(BaseSettings):
         if self.label_threads is not None:
             return self.label_threads
         return 1 if self.database_url.startswith("sqlite") else self.threadpool_size
+
+    @property
+    def label_work_inline(self) -> bool:
+        """`label_inline`, or its default for the database."""
+        if self.label_inline is not None:
+            return self.label_inline
+        return self.database_url.startswith("sqlite")
 
     @property
     def clips_root(self) -> Path:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import threading
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
@@ -374,3 +375,26 @@ def test_asking_for_a_run_that_is_missing_or_scripted_says_so_and_leases_nothing
         f"run {scripted} is taught by a scripted teacher, not by people"
     )
     assert snapshot(session) == before
+
+
+def test_a_label_request_waits_for_a_worker_writing_while_the_server_serves_others(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    """The label API's work runs on the event loop only when SQLite's write lock is free at
+    once; while another process (here an engine of its own) writes, it waits on the label
+    thread, and the loop goes on serving."""
+    alice = bearer(new_labeller(client, "alice"))
+    run_id, query_ids = running_run_with_queries(client, session, settings)
+    answers: dict[str, Any] = {}
+    asking = threading.Thread(
+        target=lambda: answers.update(next=client.get("/api/label/next", headers=alice))
+    )
+    with session.get_bind().connect() as worker, worker.begin():  # type: ignore[union-attr]
+        asking.start()
+        asking.join(timeout=0.5)
+        assert asking.is_alive()  # waiting for the write lock
+        assert client.get("/healthz").status_code == 200
+        assert client.get(f"/api/runs/{run_id}", headers=OPERATOR).status_code == 200
+    asking.join(timeout=30)
+    assert answers["next"].status_code == 200, answers["next"].text
+    assert answers["next"].json()["query_id"] == query_ids[0]
