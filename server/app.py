@@ -71,6 +71,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
     app.add_middleware(HardeningMiddleware, limit=settings.body_limit_bytes)
     # The label API first: it is the busiest, and a request tries the routes in turn.
+    app.include_router(label.hot_router)
     app.include_router(label.router)
     app.include_router(runs.router)
     app.include_router(labellers.router)
