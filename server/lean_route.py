@@ -8,7 +8,7 @@ request. A LeanRoute prepares once, when the app is built, one pydantic model fo
 query parameters and one validator for the JSON body, and on each request calls the
 dependencies with the request, validates, and calls the endpoint. Its refusals are FastAPI's:
 a 422 `RequestValidationError` whose `loc` starts with "path", "query" or "body", a 400 for a
-body that is not JSON text, and the dependencies' own HTTP errors first, as FastAPI orders them.
+body that is not UTF-8, and the dependencies' own HTTP errors, in the order FastAPI gives them.
 
 It serves the endpoints FastAPI would, within limits that are checked when the route is made:
 - each dependency is an `async def` of the request alone, with no dependencies of its own;
@@ -113,23 +113,29 @@ class LeanRoute(APIRoute):
                     for e in error.errors(include_url=False)
                 ]
 
-        async def parsed_body(request: Request) -> tuple[Any, list[dict[str, Any]]]:
-            assert body_field is not None
+        async def decoded_body(request: Request) -> Any:
+            """The body as FastAPI reads it before anything else: decoded JSON for a JSON
+            content type (refused at once if it is not JSON), else the bytes; None if empty."""
             raw = await request.body()
             if not raw:
+                return None
+            if not _is_json(request.headers.get("content-type", "")):
+                return raw  # validated as bytes, so refused as FastAPI does
+            try:
+                return json.loads(raw)
+            except json.JSONDecodeError as error:
+                raise RequestValidationError([{
+                    "type": "json_invalid", "loc": ("body", error.pos),
+                    "msg": "JSON decode error", "input": {}, "ctx": {"error": error.msg},
+                }]) from None
+            except ValueError:  # not UTF-8 text
+                raise HTTPException(400, "There was an error parsing the body") from None
+
+        def validated_body(value: Any) -> tuple[Any, list[dict[str, Any]]]:
+            assert body_field is not None
+            if value is None:
                 return None, [{"type": "missing", "loc": ("body",), "msg": "Field required",
                                "input": None}]
-            value: Any = raw  # not JSON: validated as bytes, so refused as FastAPI does
-            if _is_json(request.headers.get("content-type", "")):
-                try:
-                    value = json.loads(raw)
-                except json.JSONDecodeError as error:
-                    raise RequestValidationError([{
-                        "type": "json_invalid", "loc": ("body", error.pos),
-                        "msg": "JSON decode error", "input": {}, "ctx": {"error": error.msg},
-                    }]) from None
-                except ValueError:  # not UTF-8 text
-                    raise HTTPException(400, "There was an error parsing the body") from None
             parsed, errors = body_field.validate(value, loc=("body",))
             for refusal in errors:  # FastAPI sends bytes as text, failing on invalid UTF-8
                 if isinstance(refusal.get("input"), bytes):
@@ -137,6 +143,9 @@ class LeanRoute(APIRoute):
             return parsed, errors
 
         async def handle(request: Request) -> Response:
+            # FastAPI's order: the body is read and decoded, the dependencies are called, then
+            # every parameter is validated and all refusals are reported together.
+            raw_body = await decoded_body(request) if body_field is not None else None
             kwargs: dict[str, Any] = {name: await call(request) for name, call in dependencies}
             if request_name is not None:
                 kwargs[request_name] = request
@@ -145,7 +154,7 @@ class LeanRoute(APIRoute):
                 values, errors = parameters(request)
                 kwargs.update(values)
             if body_field is not None:
-                kwargs[body_name], body_errors = await parsed_body(request)  # type: ignore[index]
+                kwargs[body_name], body_errors = validated_body(raw_body)  # type: ignore[index]
                 errors += body_errors
             if errors:
                 raise RequestValidationError(errors)

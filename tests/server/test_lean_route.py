@@ -87,6 +87,7 @@ REQUESTS: list[tuple[str, str, dict[str, Any]]] = [
 def test_the_same_answer_as_fastapis_route(
     method: str, url: str, extra: dict[str, Any], token: str
 ) -> None:
+    extra = dict(extra)
     headers = {"Authorization": f"Bearer {token}", **extra.pop("headers", {})}
     with TestClient(app_with(LeanRoute)) as lean, TestClient(app_with(APIRouter().route_class)) \
             as plain:
