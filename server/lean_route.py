@@ -1,8 +1,8 @@
 """`LeanRoute`: a route documented from its endpoint's signature like any FastAPI route, but
 served without FastAPI's per-request machinery.
 
-The label API's hot routes (next, submit) spent more CPU in FastAPI's request handling than in
-their own work: solving the dependency tree, validating each parameter group in turn, parsing
+The label API's hot routes (next, submit) spent nearly as much CPU in FastAPI's request handling
+as in their queue work (`benchmarks/bench_queue_ops.py --app`): solving the dependency tree, validating each parameter group in turn, parsing
 the content type with the `email` package, and building the endpoint's error context, on every
 request. A LeanRoute prepares once, when the app is built, one pydantic model for the path and
 query parameters and one validator for the JSON body, and on each request calls the
