@@ -2,13 +2,14 @@
 served without FastAPI's per-request machinery.
 
 The label API's hot routes (next, submit) spent nearly as much CPU in FastAPI's request handling
-as in their queue work (`benchmarks/bench_queue_ops.py --app`): solving the dependency tree, validating each parameter group in turn, parsing
-the content type with the `email` package, and building the endpoint's error context, on every
-request. A LeanRoute prepares once, when the app is built, one pydantic model for the path and
-query parameters and one validator for the JSON body, and on each request calls the
-dependencies with the request, validates, and calls the endpoint. Its refusals are FastAPI's:
-a 422 `RequestValidationError` whose `loc` starts with "path", "query" or "body", a 400 for a
-body that is not UTF-8, and the dependencies' own HTTP errors, in the order FastAPI gives them.
+as in their queue work (`benchmarks/bench_queue_ops.py --app`): solving the dependency tree,
+validating each parameter group in turn, parsing the content type with the `email` package, and
+building the endpoint's error context, on every request. A LeanRoute prepares once, when the app
+is built, one pydantic model for the path and query parameters and one validator for the JSON
+body, and on each request calls the dependencies with the request, validates, and calls the
+endpoint. Its refusals are FastAPI's: a 422 `RequestValidationError` whose `loc` starts with
+"path", "query" or "body", a 400 for a body that is not UTF-8, and the dependencies' own HTTP
+errors, in the order FastAPI gives them.
 
 It serves the endpoints FastAPI would, within limits that are checked when the route is made:
 - each dependency is an `async def` of the request alone, with no dependencies of its own;
