@@ -12,7 +12,7 @@ from fastapi import FastAPI
 
 from labelqueue import make_engine, migrate, session_factory
 from server import curves
-from server.deps import TokenCache
+from server.deps import LabelThreads, TokenCache
 from server.errors import install_error_handlers
 from server.export_job import ExportProcess
 from server.middleware import HardeningMiddleware
@@ -49,11 +49,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.token_cache = TokenCache(settings.auth_cache_seconds)
         to_thread.current_default_thread_limiter().total_tokens = settings.threadpool_size
         # The label API's queue work (server.deps.LabellerCall.serve); other routes use AnyIO's.
-        app.state.executor = ThreadPoolExecutor(settings.label_thread_count, "label-api")
+        app.state.label_threads = LabelThreads(
+            ThreadPoolExecutor(settings.label_thread_count, "label-api")
+        )
         try:
             yield
         finally:
-            app.state.executor.shutdown()
+            app.state.label_threads.executor.shutdown()
             app.state.export_process.close()
             curves.close()
             engine.dispose()
