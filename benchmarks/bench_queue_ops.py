@@ -8,11 +8,12 @@ its ASGI callable, called directly with each request (no sockets, no HTTP parsin
 routing, token check, validation and JSON included; the difference from the plain figure is
 what the web framework adds to the queue work. `--calls` also counts the Python function calls
 per round trip under cProfile (its timing is not used), a figure the machine's load does not
-move. Ten labellers take turns on one human-taught run whose queries
-were pushed up front. Before timing, an older finished run with `--history N` answered queries
-is seeded, as a server that has been labelling for a while holds: a lease's cost must not grow
-with it. Each history size is timed on a database of its own; the table gives CPU time per
-round trip (median of `--repeats`).
+move.
+
+Ten labellers take turns on one human-taught run whose queries were pushed up front. Before
+timing, an older finished run with `--history N` answered queries is seeded, as a server that
+has been labelling for a while holds: a lease's cost must not grow with it. Each history size is
+timed on a database of its own; the table gives CPU time per round trip (median of `--repeats`).
 
     PYTHONPATH=. .venv/bin/python benchmarks/bench_queue_ops.py
     PYTHONPATH=. .venv/bin/python benchmarks/bench_queue_ops.py --page --history 0
