@@ -30,6 +30,7 @@ from labelqueue.models import (
     UTCDateTime,
     utcnow,
 )
+from labelqueue.prepared import Prepared
 from labelqueue.queries import LABELLABLE, one_of
 from labelqueue.transaction import (
     core_transaction,
@@ -46,14 +47,15 @@ _NOW = bindparam("at", type_=UTCDateTime())
 _STORED = select(*LABELS.c).where(
     LABELS.c.query_id == _QUERY, LABELS.c.labeller_id == _LABELLER, LABELS.c.withdrawn_at.is_(None)
 )
+_STORED_LABEL = Prepared(_STORED)
 # The query as the submit needs it, and the id of this labeller's label of it if there is one.
-_ASKED = select(
+_ASKED = Prepared(select(
     QUERIES.c.run_id,
     QUERIES.c.leased_at,
     QUERIES.c.gold,
     _STORED.with_only_columns(LABELS.c.id).scalar_subquery().label("stored"),
-).where(QUERIES.c.id == _QUERY)
-_TAKE_ANSWER = (
+).where(QUERIES.c.id == _QUERY))
+_TAKE_ANSWER = Prepared(
     update(QUERIES)
     .where(
         QUERIES.c.id == _QUERY,
@@ -78,8 +80,13 @@ _TAKE_ANSWER = (
         leased_at=None,
     )
 )
-_INSERT_LABEL = insert(LABELS)
-_COUNT_LABEL = (
+_LABEL_COLUMNS = [column for column in LABELS.c if not column.primary_key]
+_INSERT_LABEL = Prepared(
+    insert(LABELS)
+    .values({column.name: bindparam(column.name, type_=column.type) for column in _LABEL_COLUMNS})
+    .returning(LABELS.c.id)
+)
+_COUNT_LABEL = Prepared(
     update(RUNS)
     .where(RUNS.c.id == bindparam("run", type_=Integer()))
     .values(labels_used=RUNS.c.labels_used + 1)
@@ -87,11 +94,11 @@ _COUNT_LABEL = (
 
 
 def _stored_label(connection: Connection, params: dict[str, Any]) -> Label | None:
-    row = connection.execute(_STORED, params).first()
-    return None if row is None else snapshot(Label, row._mapping)
+    row = _STORED_LABEL.first(connection, params)
+    return None if row is None else snapshot(Label, row._asdict())
 
 
-_REFUSAL = (
+_REFUSAL = Prepared(
     select(
         LABELLERS.c.active,
         RUNS.c.status.label("run_status"),
@@ -110,7 +117,7 @@ _REFUSAL = (
 def _why_refused(connection: Connection, params: dict[str, Any]) -> Exception:
     """Why the conditional update in submit_label changed nothing (read only on refusal)."""
     labeller_id, query_id, now = params["labeller"], params["query"], params["at"]
-    row = connection.execute(_REFUSAL, params).first()
+    row = _REFUSAL.first(connection, params)
     if row is None:
         return NotFound(f"labeller {labeller_id} does not exist")
     if not row.active:
@@ -175,14 +182,14 @@ def submit_label(
     # Bound parameters are named apart from every column (see lease_next_query).
     params: dict[str, Any] = {"query": query_id, "labeller": labeller_id, "at": now}
     with core_transaction(session) as connection:
-        asked = connection.execute(_ASKED, params).first()
+        asked = _ASKED.first(connection, params)
         if asked is None:
             raise NotFound(f"query {query_id} does not exist")
         if asked.stored is not None:
             label = _stored_label(connection, params)
             assert label is not None
             return label, False
-        if not connection.execute(_TAKE_ANSWER, params).rowcount:
+        if not _TAKE_ANSWER.count(connection, params):
             # A concurrent twin of this very submit may have won (PostgreSQL).
             label = _stored_label(connection, params)
             if label is not None:
@@ -199,13 +206,14 @@ def submit_label(
             "shown_at": clamp_shown_at(shown_at, leased_at=asked.leased_at, now=now),
             "answered_at": now,
             "consumed_at": None,
+            "withdrawn_at": None,
         }
-        [label_id] = connection.execute(_INSERT_LABEL, values).inserted_primary_key or [None]
+        [inserted] = _INSERT_LABEL.rows(connection, values)
         if asked.gold:
             pause_if_below(connection, labeller_id=labeller_id, run_id=asked.run_id)
         else:
-            connection.execute(_COUNT_LABEL, {"run": asked.run_id})
-    return snapshot(Label, {"id": label_id, **values}), True
+            _COUNT_LABEL.count(connection, {"run": asked.run_id})
+    return snapshot(Label, {"id": inserted.id, **values}), True
 
 
 def consume_labels(session: Session, *, run_id: int) -> list[Label]:

@@ -16,9 +16,7 @@ from sqlalchemy import (
     Connection,
     FromClause,
     Integer,
-    Row,
     Select,
-    Update,
     and_,
     bindparam,
     exists,
@@ -47,6 +45,7 @@ from labelqueue.models import (
     UTCDateTime,
     utcnow,
 )
+from labelqueue.prepared import Prepared
 from labelqueue.transaction import (
     changed,
     core_transaction,
@@ -223,7 +222,7 @@ _MINE = and_(QUERIES.c.lease_holder == _LABELLER, QUERIES.c.status == QueryStatu
 _ASKED_TEACHER = (
     select(RUNS.c.teacher).where(RUNS.c.id == bindparam("run")).scalar_subquery().label("teacher")
 )
-_HOLDER = (
+_HOLDER = Prepared(
     select(LABELLERS.c.active, QUERIES.c.id, QUERIES.c.run_id, RUNS.c.status, _ASKED_TEACHER)
     .select_from(LABELLERS)
     .outerjoin(
@@ -237,15 +236,17 @@ _HOLDER = (
     .outerjoin(RUNS, RUNS.c.id == QUERIES.c.run_id)
     .where(LABELLERS.c.id == _LABELLER)
 )
-_RENEW = (
+_HELD = bindparam("query", type_=Integer())
+_RENEW_STATEMENT = (
     update(QUERIES)
-    .where(QUERIES.c.id == bindparam("query"), _MINE, QUERIES.c.lease_expires_at > _NOW)
+    .where(QUERIES.c.id == _HELD, _MINE, QUERIES.c.lease_expires_at > _NOW)
     .values(lease_expires_at=_EXPIRES)
 )
-_RENEW_RETURNING = _RENEW.returning(*QUERIES.c)
-_RELEASE = (
+_RENEW = Prepared(_RENEW_STATEMENT)
+_RENEW_RETURNING = Prepared(_RENEW_STATEMENT.returning(*QUERIES.c))
+_RELEASE = Prepared(
     update(QUERIES)
-    .where(QUERIES.c.id.in_(bindparam("queries", expanding=True)), _MINE)
+    .where(QUERIES.c.id == _HELD, _MINE)
     .values(status=QueryStatus.PENDING, lease_holder=None, lease_expires_at=None, leased_at=None)
 )
 
@@ -285,9 +286,9 @@ def _oldest(*, of_run: bool, gold: bool, only_id: bool = False) -> Select[Any]:
     )
 
 
-def _lease(which: ColumnElement[Any]) -> Update:
+def _lease(which: ColumnElement[Any]) -> Prepared:
     """Lease the query `which` names if it is still free, returning its row."""
-    return (
+    return Prepared(
         update(QUERIES)
         .where(QUERIES.c.id == which, _free(QUERIES, _NOW))
         .values(
@@ -302,16 +303,17 @@ def _lease(which: ColumnElement[Any]) -> Update:
 
 _TAKE_OF_ANY_HUMAN_RUN = _lease(_oldest(of_run=False, gold=False, only_id=True).scalar_subquery())
 _TAKE_OF_RUN = _lease(_oldest(of_run=True, gold=False, only_id=True).scalar_subquery())
-_GOLD_OF_ANY_HUMAN_RUN = _oldest(of_run=False, gold=True)
-_GOLD_OF_RUN = _oldest(of_run=True, gold=True)
+_GOLD_OF_ANY_HUMAN_RUN = Prepared(_oldest(of_run=False, gold=True))
+_GOLD_OF_RUN = Prepared(_oldest(of_run=True, gold=True))
 _TAKE_GOLD = _lease(bindparam("gold_pair", type_=Integer()))
 # Why nothing was leased, when the labeller is paused on the runs asked about.
-_PAUSE = (
+_PAUSE_STATEMENT = (
     select(PAUSES.c.gold_answers, PAUSES.c.gold_correct, RUNS.c.config)
     .join(RUNS, RUNS.c.id == PAUSES.c.run_id)
     .where(PAUSES.c.labeller_id == _LABELLER, one_of(RUNS.c.status, LABELLABLE))
 )
-_PAUSE_ON_RUN = _PAUSE.where(PAUSES.c.run_id == bindparam("run"))
+_PAUSE = Prepared(_PAUSE_STATEMENT)
+_PAUSE_ON_RUN = Prepared(_PAUSE_STATEMENT.where(PAUSES.c.run_id == bindparam("run")))
 
 
 def lease_next_query(
@@ -351,7 +353,7 @@ def lease_next_query(
         "run": run_id,
     }
     with core_transaction(session) as connection:
-        holder = connection.execute(_HOLDER, params).all()
+        holder = _HOLDER.rows(connection, params)
         if not holder:
             raise NotFound(f"labeller {labeller_id} does not exist")
         if not holder[0].active:
@@ -367,34 +369,34 @@ def lease_next_query(
             if held is None:
                 continue
             if held == ahead_of:
-                connection.execute(_RENEW, params | {"query": held})
+                _RENEW.count(connection, params | {"query": held})
                 continue
             if status in LABELLABLE and run_id in (None, held_run):
                 # A reload: the same query, its lease renewed.
-                row = connection.execute(_RENEW_RETURNING, params | {"query": held}).first()
+                row = _RENEW_RETURNING.first(connection, params | {"query": held})
                 if row is not None:
-                    return snapshot(Query, row._mapping)
+                    return snapshot(Query, row._asdict())
             others.append(held)
-        if others:  # held for another run, or for a run that closed: free for others
-            connection.execute(_RELEASE, params | {"queries": others})
+        for other in others:  # held for another run, or for a run that closed: free for others
+            _RELEASE.count(connection, params | {"query": other})
         row = _lease_gold(connection, params) if gold else None
         if row is None:
             take = _TAKE_OF_ANY_HUMAN_RUN if run_id is None else _TAKE_OF_RUN
-            row = connection.execute(take, params).first()
+            row = take.first(connection, params)
         if row is None:
-            pause = connection.execute(_PAUSE if run_id is None else _PAUSE_ON_RUN, params).first()
+            pause = (_PAUSE if run_id is None else _PAUSE_ON_RUN).first(connection, params)
             if pause is not None:
                 raise Paused(pause_notice(pause.gold_answers, pause.gold_correct,
                                           GoldSettings.of(pause.config)))
-    return None if row is None else snapshot(Query, row._mapping)
+    return None if row is None else snapshot(Query, row._asdict())
 
 
-def _lease_gold(connection: Connection, params: dict[str, Any]) -> Row[Any] | None:
+def _lease_gold(connection: Connection, params: dict[str, Any]) -> Any | None:
     """A gold pair for the labeller when one is open and their share of gold answers is due."""
     oldest = _GOLD_OF_ANY_HUMAN_RUN if params["run"] is None else _GOLD_OF_RUN
-    candidate = connection.execute(oldest, params).first()
+    candidate = oldest.first(connection, params)
     if candidate is None or not gold_due(connection, labeller_id=params["labeller"],
                                          run_id=candidate.run_id,
                                          rate=GoldSettings.of(candidate.config).rate):
         return None
-    return connection.execute(_TAKE_GOLD, params | {"gold_pair": candidate.id}).first()
+    return _TAKE_GOLD.first(connection, params | {"gold_pair": candidate.id})

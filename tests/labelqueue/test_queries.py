@@ -339,7 +339,7 @@ def test_the_lease_reads_by_index_not_every_label_or_query(engine: Engine, name:
     pairs apart from the others), and scans no table."""
     if engine.dialect.name != "sqlite":
         pytest.skip("SQLite's query plan")
-    statement = getattr(queries_module, name)
+    statement = getattr(queries_module, name).statement
     sql = str(statement.compile(dialect=engine.dialect))
     with engine.connect() as connection:
         plan = [row[-1] for row in connection.exec_driver_sql(
