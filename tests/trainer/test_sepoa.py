@@ -70,9 +70,15 @@ def test_skill_score_prefers_the_largest_spread_when_gaps_tie():
         skill_scores(value0, value1, p, "mad")
 
 
+# A SAC update every 4 steps and a small R_theta: the same episodes, rounds and skills, in a
+# third of the time (the updates and R_theta's fits are most of a tiny run's time).
+FAST = {"update_every": 4, "skill.estimator_hidden_dim": 32, "skill.estimator_steps": 50}
+
+
 def _tiny(tmp_path, **overrides):
     base = {"algo": "sepoa", "steps": 1200, "threads": 1, "teacher.eps": 0.3,
-            "skill.snapshot_dir": str(tmp_path / "snapshots"), "run_dir": str(tmp_path / "run")}
+            "skill.snapshot_dir": str(tmp_path / "snapshots"),
+            "run_dir": str(tmp_path / "run")} | FAST
     return build_config("dmc:cheetah_run", "tiny", base | overrides)
 
 
@@ -100,6 +106,7 @@ def test_a_tiny_sepoa_run_pretrains_once_then_learns_from_labels_by_the_skill_ru
                "--algo", "sepoa", "--preset", "tiny", "--steps", "1200", "--eps", "0.3",
                "--threads", "1", "--no-progress",
                "--skill.snapshot_dir", str(tmp_path / "snapshots")]
+    command += [f"--{field}={value}" for field, value in FAST.items()]
     env = os.environ | {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     first = subprocess.run(command + ["--run-dir", str(tmp_path / "a")], env=env,
                            capture_output=True, text=True, timeout=300)
@@ -115,11 +122,13 @@ def test_a_tiny_sepoa_run_pretrains_once_then_learns_from_labels_by_the_skill_ru
     assert [lab["rule"] for lab in labels] == ["uniform"] * 10 + ["skill"] * 10
     assert json.loads(first.stdout.splitlines()[-1])["labels_used"] == 20
 
-    # Another seed loads the same snapshot instead of pretraining again.
-    second = subprocess.run(command + ["--run-dir", str(tmp_path / "b"), "--seed", "1"],
+    # Another seed loads the same snapshot instead of pretraining again (one episode shows it).
+    second = subprocess.run(command + ["--run-dir", str(tmp_path / "b"), "--seed", "1",
+                                       "--steps", "200"],
                             env=env, capture_output=True, text=True, timeout=300)
     assert second.returncode == 0, second.stderr
     assert "pretraining" not in second.stderr
+    assert json.loads(second.stdout.splitlines()[-1])["step"] == 200
 
 
 def test_a_sepoa_run_stopped_inside_a_round_resumes_like_an_uninterrupted_one(tmp_path,
