@@ -15,6 +15,7 @@ from worker_helpers import (
     decisions,
     round_accuracies,
     run_row,
+    settle_labels,
     shadow_choices,
     standalone_run,
     start_worker,
@@ -67,6 +68,7 @@ def test_people_label_over_rest_and_the_run_learns_from_them(tmp_path: Path) -> 
                 "shown_at": "2026-11-21T12:00:00Z"})
             assert posted.status_code == 201, posted.text
             assert posted.json()["answer"] == shadow
+            settle_labels(sessions, run_id)  # as if bob's undo window had passed
             answered += 1
         worker.join(timeout=60)
 

@@ -8,22 +8,35 @@ import os
 import threading
 import time
 from collections.abc import Callable
+from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from labelqueue import Query, Run, RunStatus, make_engine, migrate, session_factory
+from labelqueue import (
+    SETTLE_SECONDS,
+    Label,
+    Query,
+    Run,
+    RunStatus,
+    make_engine,
+    migrate,
+    session_factory,
+)
+from labelqueue.models import utcnow
 from runvocab.answers import click_of_answer
 from runvocab.config import build_config
 from trainer.clips import ClipConfig
 from trainer.loop import TrainingRun
 from trainer.worker import WorkerConfig, run_worker
 
-# Two rounds of 10 pairs in 1000 tiny steps (rounds at 400 and 800).
+# Two rounds of 10 pairs in 1000 tiny steps (rounds at 400 and 800), a SAC update every 4
+# steps (the updates are most of a tiny run's time).
 RUN = {"task": "dmc:cheetah_run", "algo": "pebble", "preset": "tiny", "seed": 0, "budget": 20,
-       "teacher_params": {"eps": 0.3}, "config": {"steps": 1000, "threads": 1}}
+       "teacher_params": {"eps": 0.3},
+       "config": {"steps": 1000, "threads": 1, "update_every": 4}}
 SCREEN = {answer: click_of_answer(answer, left_is_first=True).value
           for answer in ("first", "second", "equal", "cant_tell", "skip")}
 """a shadow answer as a person shown the first segment on the left would click it"""
@@ -33,7 +46,8 @@ def standalone_run(run_dir: Path) -> Path:
     """The same run as RUN, trained without the queue, answered by its scripted teacher."""
     cfg = build_config(RUN["task"], RUN["preset"], {
         "algo": RUN["algo"], "seed": RUN["seed"], "feedback.budget": RUN["budget"],
-        "teacher.eps": 0.3, "steps": 1000, "threads": 1, "run_dir": str(run_dir)})
+        "teacher.eps": 0.3, "steps": 1000, "threads": 1, "update_every": 4,
+        "run_dir": str(run_dir)})
     TrainingRun(cfg, progress=False).train()
     return run_dir
 
@@ -82,6 +96,20 @@ def shadow_choices(sessions: sessionmaker[Session], run_id: int) -> dict[int, st
     with sessions() as session:
         rows = session.execute(select(Query.id, Query.shadow_choice).where(Query.run_id == run_id))
         return {query_id: str(choice) for query_id, choice in rows}
+
+
+def settle_labels(sessions: sessionmaker[Session], run_id: int) -> None:
+    """Date the run's unsettled labels back by SETTLE_SECONDS, as if their undo window had
+    passed: the worker uses a person's label only then (`labelqueue.undo`)."""
+    back = timedelta(seconds=SETTLE_SECONDS)
+    with sessions() as session:
+        labels = session.scalars(select(Label).join(Query).where(Query.run_id == run_id))
+        for label in labels:
+            if label.answered_at > utcnow() - back:
+                label.answered_at -= back
+                if label.shown_at is not None:
+                    label.shown_at -= back
+        session.commit()
 
 
 def labels_jsonl(run_dir: Path) -> list[dict]:
