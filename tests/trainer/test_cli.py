@@ -12,11 +12,27 @@ import pytest
 
 SEPOA = [sys.executable, "-m", "trainer.cli"]
 TINY = ["train", "--task", "dmc:cheetah_run", "--algo", "pebble", "--teacher", "noisy",
-        "--eps", "0.3", "--preset", "tiny", "--seed", "3", "--threads", "1", "--no-progress"]
+        "--eps", "0.3", "--preset", "tiny", "--seed", "3", "--threads", "1", "--no-progress",
+        "--update_every", "4"]  # a SAC update every 4 steps: the updates are most of the time
 
 
 def _run(args: list[str], **kw) -> subprocess.CompletedProcess:
     return subprocess.run(SEPOA + args, capture_output=True, text=True, timeout=300, **kw)
+
+
+def _in_process(args: list[str], capsys) -> subprocess.CompletedProcess:
+    """`sepoa` run by its main() in this interpreter, with the exit status and stderr a process
+    would have (a SystemExit with a message exits 1 and prints it)."""
+    from trainer.cli import main
+
+    try:
+        code = main(args)
+    except SystemExit as exited:
+        code = 1 if isinstance(exited.code, str) else int(exited.code or 0)
+        if isinstance(exited.code, str):
+            print(exited.code, file=sys.stderr)
+    captured = capsys.readouterr()
+    return subprocess.CompletedProcess(args, code, captured.out, captured.err)
 
 
 def _rows(path) -> list[dict]:
@@ -50,12 +66,13 @@ def test_cli_smoke_run_uses_labels_and_writes_metrics(tmp_path):
     assert config["teacher"]["eps"] == 0.3 and config["sac"]["hidden_dim"] == 32
 
 
-def test_cli_rejects_bad_input_with_a_clear_message(tmp_path):
-    out = _run(TINY + ["--task", "dmc:cheetah_fly", "--run-dir", str(tmp_path / "a")])
+def test_cli_rejects_bad_input_with_a_clear_message(tmp_path, capsys):
+    out = _in_process(TINY + ["--task", "dmc:cheetah_fly", "--run-dir", str(tmp_path / "a")],
+                      capsys)
     assert out.returncode == 2 and "cheetah_fly" in out.stderr and "dmc:cheetah_run" in out.stderr
-    out = _run(TINY + ["--algo", "dqn", "--run-dir", str(tmp_path / "b")])
+    out = _in_process(TINY + ["--algo", "dqn", "--run-dir", str(tmp_path / "b")], capsys)
     assert out.returncode == 2 and "dqn" in out.stderr and "pebble" in out.stderr
-    out = _run(["train", "--resume", "--run-dir", str(tmp_path / "nothing")])
+    out = _in_process(["train", "--resume", "--run-dir", str(tmp_path / "nothing")], capsys)
     assert out.returncode != 0 and "holds no run" in out.stderr
 
 
@@ -71,10 +88,10 @@ def _wait_for_rounds(run_dir, n: int, proc: subprocess.Popen, timeout: float = 2
     pytest.fail(f"no round {n} within {timeout} s")
 
 
-def test_resume_after_sigkill_continues_identically_and_loses_no_label(tmp_path):
+def test_resume_after_sigkill_continues_identically_and_loses_no_label(tmp_path, capsys):
     steps = ["--steps", "1600"]
-    reference = tmp_path / "reference"
-    out = _run(TINY + steps + ["--run-dir", str(reference)])
+    reference = tmp_path / "reference"  # never killed: it needs no process of its own
+    out = _in_process(TINY + steps + ["--run-dir", str(reference)], capsys)
     assert out.returncode == 0, out.stderr
 
     killed = tmp_path / "killed"
