@@ -26,6 +26,7 @@ def test_budget_counts_every_label_including_the_first_round(tmp_path):
     cfg = build_config("dmc:cheetah_run", "tiny", {
         "algo": "pebble", "steps": 1600, "threads": 1, "run_dir": str(tmp_path),
         "feedback.budget": 25, "teacher.eps": 0.3,
+        "update_every": 4,  # fewer SAC updates (most of a tiny run's time), the same rounds
     })
     summary = TrainingRun(cfg, progress=False).train()
     rounds = _rows(tmp_path / "rounds.csv")
@@ -83,7 +84,7 @@ def test_an_existing_run_directory_is_not_overwritten(tmp_path):
 def test_pebble_on_metaworld_records_success_and_contexts(tmp_path):
     cfg = build_config("metaworld:door-open", "tiny", {
         "algo": "pebble", "steps": 1000, "threads": 1, "run_dir": str(tmp_path),
-        "eval_every": 1000, "episode_length": 200,
+        "eval_every": 1000, "episode_length": 200, "update_every": 4,
     })
     assert cfg.sac.hidden_layers == 2 and cfg.feedback.per_round == 10  # tiny beats the family
     run = TrainingRun(cfg, progress=False)
@@ -119,7 +120,8 @@ def test_bad_configuration_is_rejected_before_training(tmp_path, override, messa
 
 def test_a_run_stopped_between_choosing_queries_and_answering_them_resumes(tmp_path,
                                                                            monkeypatch):
-    overrides = {"algo": "pebble", "steps": 1200, "threads": 1, "teacher.eps": 0.3}
+    overrides = {"algo": "pebble", "steps": 1200, "threads": 1, "teacher.eps": 0.3,
+                 "update_every": 4}
     reference = build_config("dmc:cheetah_run", "tiny",
                              overrides | {"run_dir": str(tmp_path / "reference")})
     TrainingRun(reference, progress=False).train()
