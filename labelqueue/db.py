@@ -199,28 +199,39 @@ def make_engine(url: str, *, foreign_keys: bool = True) -> Engine:
     def _on_begin(connection: Connection) -> None:
         dbapi_connection = connection.connection.dbapi_connection
         assert isinstance(dbapi_connection, _SQLiteConnection)
-        if connection.get_execution_options().get(READ_ONLY):
-            # A write here fails at once, rather than racing for the lock mid-transaction.
-            dbapi_connection.set_query_only(True)
-            dbapi_connection.execute("BEGIN")
-            return
-        dbapi_connection.set_query_only(False)
-        if _NO_WAIT.get():
-            dbapi_connection.holds_writer = writer.acquire(blocking=False)
-            if not dbapi_connection.holds_writer:
-                raise WriterBusy("another thread of this process is writing")
-            if not _try_begin_immediate(dbapi_connection):
-                dbapi_connection.release_writer()
-                raise WriterBusy("another process holds SQLite's write lock")
-            return
-        dbapi_connection.holds_writer = writer.acquire(timeout=BUSY_TIMEOUT_S)
-        try:
-            _begin_immediate(dbapi_connection)
-        except BaseException:
-            dbapi_connection.release_writer()
-            raise
+        read_only = bool(connection.get_execution_options().get(READ_ONLY))
+        begin_sqlite(dbapi_connection, read_only=read_only)
 
     return engine
+
+
+def begin_sqlite(dbapi_connection: _SQLiteConnection, *, read_only: bool) -> None:
+    """Begin a transaction on a connection of `make_engine`'s SQLite engines: deferred and
+    query-only when `read_only`, else BEGIN IMMEDIATE behind the engine's writer lock (at once
+    or WriterBusy inside `without_waiting`). SQLAlchemy's begin runs it; so does
+    `labelqueue.transaction.driver_transaction`, which begins on the driver's connection."""
+    if read_only:
+        # A write here fails at once, rather than racing for the lock mid-transaction.
+        dbapi_connection.set_query_only(True)
+        dbapi_connection.execute("BEGIN")
+        return
+    dbapi_connection.set_query_only(False)
+    writer = dbapi_connection.writer
+    assert writer is not None, "a connection of make_engine's engines"
+    if _NO_WAIT.get():
+        dbapi_connection.holds_writer = writer.acquire(blocking=False)
+        if not dbapi_connection.holds_writer:
+            raise WriterBusy("another thread of this process is writing")
+        if not _try_begin_immediate(dbapi_connection):
+            dbapi_connection.release_writer()
+            raise WriterBusy("another process holds SQLite's write lock")
+        return
+    dbapi_connection.holds_writer = writer.acquire(timeout=BUSY_TIMEOUT_S)
+    try:
+        _begin_immediate(dbapi_connection)
+    except BaseException:
+        dbapi_connection.release_writer()
+        raise
 
 
 def session_factory(engine: Engine) -> sessionmaker[Session]:

@@ -21,11 +21,12 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from sqlalchemy import Connection, Integer, bindparam, delete, func, insert, select
+from sqlalchemy import Integer, bindparam, delete, func, insert, select
 from sqlalchemy.orm import Session
 
 from labelqueue.errors import QueueError
-from labelqueue.models import LABELS, PAUSES, QUERIES, RUNS, LabellerPause
+from labelqueue.models import LABELS, PAUSES, QUERIES, RUNS, LabellerPause, utcnow
+from labelqueue.prepared import DriverConnection, Prepared
 from labelqueue.transaction import reading, transaction
 from runvocab.answers import Answer
 from runvocab.config import FeedbackConfig
@@ -67,24 +68,25 @@ def _offset(labeller_id: int, run_id: int, answers: int) -> float:
 
 _LABELLER = bindparam("labeller", type_=Integer())
 _RUN = bindparam("gold_run", type_=Integer())
-_SHARE = (
-    select(func.count(), func.coalesce(func.sum(QUERIES.c.gold.cast(Integer)), 0))
+_SHARE = Prepared(
+    select(func.count().label("answers"),
+           func.coalesce(func.sum(QUERIES.c.gold.cast(Integer)), 0).label("gold"))
     .select_from(LABELS.join(QUERIES, QUERIES.c.id == LABELS.c.query_id))
     .where(LABELS.c.labeller_id == _LABELLER, LABELS.c.run_id == _RUN,
            LABELS.c.withdrawn_at.is_(None))
 )
 
 
-def gold_due(connection: Connection, *, labeller_id: int, run_id: int, rate: float) -> bool:
+def gold_due(connection: DriverConnection, *, labeller_id: int, run_id: int,
+             rate: float) -> bool:
     """Whether the labeller's next query on the run should be a gold pair."""
     if rate <= 0:
         return False
-    answers, gold = connection.execute(_SHARE, {"labeller": labeller_id,
-                                                "gold_run": run_id}).one()
+    [(answers, gold)] = _SHARE.rows(connection, {"labeller": labeller_id, "gold_run": run_id})
     return int(gold) + _offset(labeller_id, run_id, int(answers)) < rate * (int(answers) + 1)
 
 
-_GOLD_ANSWERS = (
+_GOLD_ANSWERS = Prepared(
     select(LABELS.c.answer, QUERIES.c.first_segment_return, QUERIES.c.second_segment_return)
     .select_from(LABELS.join(QUERIES, QUERIES.c.id == LABELS.c.query_id))
     .where(LABELS.c.labeller_id == _LABELLER, LABELS.c.run_id == _RUN,
@@ -92,33 +94,39 @@ _GOLD_ANSWERS = (
 )
 
 
-def gold_record(connection: Connection, *, labeller_id: int, run_id: int) -> tuple[int, int]:
+def gold_record(connection: DriverConnection, *, labeller_id: int,
+                run_id: int) -> tuple[int, int]:
     """(gold answers, correct ones) of the labeller on the run; skips are not answers."""
-    rows = connection.execute(_GOLD_ANSWERS, {"labeller": labeller_id, "gold_run": run_id}).all()
+    rows = _GOLD_ANSWERS.rows(connection, {"labeller": labeller_id, "gold_run": run_id})
     answered = [row for row in rows if row.answer != Answer.SKIP]
     correct = sum(row.answer == gold_answer(row.first_segment_return, row.second_segment_return)
                   for row in answered)
     return len(answered), correct
 
 
-_RUN_CONFIG = select(RUNS.c.config).where(RUNS.c.id == _RUN)
-_PAUSED = select(PAUSES.c.id).where(PAUSES.c.run_id == _RUN, PAUSES.c.labeller_id == _LABELLER)
+_RUN_CONFIG = Prepared(select(RUNS.c.config).where(RUNS.c.id == _RUN))
+_PAUSED = Prepared(
+    select(PAUSES.c.id).where(PAUSES.c.run_id == _RUN, PAUSES.c.labeller_id == _LABELLER)
+)
+_PAUSE = Prepared(insert(PAUSES).values(
+    run_id=_RUN, labeller_id=_LABELLER, gold_answers=bindparam("answers", type_=Integer()),
+    gold_correct=bindparam("correct", type_=Integer()),
+    paused_at=bindparam("at", type_=PAUSES.c.paused_at.type)))
 
 
-def pause_if_below(connection: Connection, *, labeller_id: int, run_id: int) -> bool:
+def pause_if_below(connection: DriverConnection, *, labeller_id: int, run_id: int) -> bool:
     """After a gold answer: pause the labeller on the run when their gold accuracy is below the
     run's threshold; whether they are paused now."""
     params = {"labeller": labeller_id, "gold_run": run_id}
-    if connection.execute(_PAUSED, params).first() is not None:
+    if _PAUSED.first(connection, params) is not None:
         return True
-    settings = GoldSettings.of(connection.execute(_RUN_CONFIG, params).scalar())
+    settings = GoldSettings.of(_RUN_CONFIG.rows(connection, params)[0].config)
     if settings.min_accuracy <= 0:
         return False
     answers, correct = gold_record(connection, labeller_id=labeller_id, run_id=run_id)
     if answers < settings.min_answers or correct >= settings.min_accuracy * answers:
         return False
-    connection.execute(insert(PAUSES), {"run_id": run_id, "labeller_id": labeller_id,
-                                        "gold_answers": answers, "gold_correct": correct})
+    _PAUSE.count(connection, params | {"answers": answers, "correct": correct, "at": utcnow()})
     return True
 
 

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from datetime import UTC, datetime
 from typing import Any
 
-from sqlalchemy import ColumnElement, Connection, Integer, bindparam, case, insert, select, update
+from sqlalchemy import ColumnElement, Integer, bindparam, case, insert, select, update
 from sqlalchemy.orm import Session
 
 from labelqueue.errors import LeaseError, NotFound, Revoked, RunClosed
@@ -30,11 +30,11 @@ from labelqueue.models import (
     UTCDateTime,
     utcnow,
 )
-from labelqueue.prepared import Prepared
+from labelqueue.prepared import DriverConnection, Prepared
 from labelqueue.queries import LABELLABLE, one_of
 from labelqueue.transaction import (
-    core_transaction,
     detach,
+    driver_transaction,
     reading,
     snapshot,
     transaction,
@@ -93,7 +93,7 @@ _COUNT_LABEL = Prepared(
 )
 
 
-def _stored_label(connection: Connection, params: dict[str, Any]) -> Label | None:
+def _stored_label(connection: DriverConnection, params: dict[str, Any]) -> Label | None:
     row = _STORED_LABEL.first(connection, params)
     return None if row is None else snapshot(Label, row._asdict())
 
@@ -114,7 +114,7 @@ _REFUSAL = Prepared(
 )
 
 
-def _why_refused(connection: Connection, params: dict[str, Any]) -> Exception:
+def _why_refused(connection: DriverConnection, params: dict[str, Any]) -> Exception:
     """Why the conditional update in submit_label changed nothing (read only on refusal)."""
     labeller_id, query_id, now = params["labeller"], params["query"], params["at"]
     row = _REFUSAL.first(connection, params)
@@ -181,7 +181,7 @@ def submit_label(
     now = utcnow()
     # Bound parameters are named apart from every column (see lease_next_query).
     params: dict[str, Any] = {"query": query_id, "labeller": labeller_id, "at": now}
-    with core_transaction(session) as connection:
+    with driver_transaction(session) as connection:
         asked = _ASKED.first(connection, params)
         if asked is None:
             raise NotFound(f"query {query_id} does not exist")

@@ -1,4 +1,4 @@
-"""Core statements run on the driver's cursor, inside a transaction SQLAlchemy began.
+"""Core statements run on the driver's own connection (`DriverConnection`).
 
 A `Prepared` statement is compiled once per dialect. Each execution then converts the caller's
 values with the column types' own bind processors, hands the SQL to the driver, and converts the
@@ -10,7 +10,7 @@ own work (benchmarks/README.md), on SQLite and PostgreSQL alike.
 Only plain statements are taken, checked when first compiled: every parameter is either a
 literal of the statement or one the caller must give (no expanding IN lists, no values rendered
 at execution time). The driver's errors reach callers as SQLAlchemy's own (`DataError`,
-`IntegrityError`, ...); the transaction, its BEGIN and COMMIT stay SQLAlchemy's.
+`IntegrityError`, ...). Transactions are `labelqueue.transaction.driver_transaction`'s.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from sqlalchemy import Connection, Dialect, Select
+from sqlalchemy import Connection, Dialect, PoolProxiedConnection, Select
 from sqlalchemy.exc import DBAPIError
 from sqlalchemy.sql.compiler import Compiled
 from sqlalchemy.sql.dml import UpdateBase
@@ -51,6 +51,10 @@ def _plan(statement: Statement, dialect: Dialect) -> _Plan:
     ):
         raise TypeError("a Prepared statement takes no values rendered at execution time "
                         "(expanding IN lists, literal_execute)")
+    computed = [column.name for kind in ("insert_prefetch", "update_prefetch")
+                for column in getattr(compiled, kind, ())]
+    if computed:  # SQLAlchemy's execution would compute their defaults
+        raise TypeError(f"a Prepared statement computes no column defaults: give {computed}")
     literals: dict[str, Any] = {}
     given: dict[str, Processor] = {}
     for bind, name in compiled.bind_names.items():  # type: ignore[attr-defined]
@@ -73,9 +77,36 @@ def _plan(statement: Statement, dialect: Dialect) -> _Plan:
     return _Plan(compiled.string, order, literals, given, row)
 
 
+class DriverConnection:
+    """A driver's connection in a transaction, as `Prepared` statements run on it: from the
+    engine's pool (`pooled`, invalidated when an error says the database went away), or the one
+    under a SQLAlchemy `Connection` (whose own error handling then applies)."""
+
+    def __init__(self, dbapi: Any, dialect: Dialect, pooled: PoolProxiedConnection | None = None):
+        self.dbapi = dbapi
+        self.dialect = dialect
+        self.pooled = pooled
+
+    @classmethod
+    def under(cls, connection: Connection) -> DriverConnection:
+        return cls(connection.connection.dbapi_connection, connection.dialect)
+
+    def wrapped(self, error: Exception, sql: str, params: Any) -> DBAPIError:
+        """A driver's error as SQLAlchemy raises it; a lost connection leaves the pool."""
+        dbapi_error = self.dialect.loaded_dbapi.Error
+        lost = self.dialect.is_disconnect(error, self.dbapi, None)  # type: ignore[arg-type]
+        if lost and self.pooled is not None:
+            self.pooled.invalidate(error)
+        wrapped = DBAPIError.instance(
+            sql, params, error, dbapi_error, dialect=self.dialect, connection_invalidated=lost
+        )
+        assert isinstance(wrapped, DBAPIError)
+        return wrapped
+
+
 class Prepared:
     """A Core statement (select, or insert/update/delete with or without RETURNING) that runs on
-    the driver's cursor of a SQLAlchemy `Connection`, in the transaction it holds.
+    a `DriverConnection`, in the transaction it holds.
 
     Rows come back as named tuples (`row.status`, `row._asdict()`), their values converted as
     SQLAlchemy converts them. A missing parameter raises KeyError before anything runs."""
@@ -104,7 +135,7 @@ class Prepared:
             ]
         return readers
 
-    def _run(self, connection: Connection, params: Mapping[str, Any]) -> tuple[Any, _Plan]:
+    def _run(self, connection: DriverConnection, params: Mapping[str, Any]) -> tuple[Any, _Plan]:
         dialect = connection.dialect
         plan = self._plan_for(dialect)
         values = dict(plan.literals)
@@ -114,17 +145,15 @@ class Prepared:
         driver_params: Any = (
             values if plan.order is None else tuple(values[name] for name in plan.order)
         )
-        cursor = connection.connection.dbapi_connection.cursor()  # type: ignore[union-attr]
+        cursor = connection.dbapi.cursor()
         try:
             cursor.execute(plan.sql, driver_params)
         except dialect.loaded_dbapi.Error as error:
             cursor.close()
-            raise DBAPIError.instance(
-                plan.sql, driver_params, error, dialect.loaded_dbapi.Error, dialect=dialect
-            ) from error
+            raise connection.wrapped(error, plan.sql, driver_params) from error
         return cursor, plan
 
-    def rows(self, connection: Connection, params: Mapping[str, Any]) -> list[Any]:
+    def rows(self, connection: DriverConnection, params: Mapping[str, Any]) -> list[Any]:
         """Every row the statement returns."""
         cursor, plan = self._run(connection, params)
         try:
@@ -139,12 +168,12 @@ class Prepared:
         finally:
             cursor.close()
 
-    def first(self, connection: Connection, params: Mapping[str, Any]) -> Any | None:
+    def first(self, connection: DriverConnection, params: Mapping[str, Any]) -> Any | None:
         """The first row the statement returns, or None."""
         rows = self.rows(connection, params)
         return rows[0] if rows else None
 
-    def count(self, connection: Connection, params: Mapping[str, Any]) -> int:
+    def count(self, connection: DriverConnection, params: Mapping[str, Any]) -> int:
         """Run a statement that returns no rows; how many rows it changed."""
         cursor, _ = self._run(connection, params)
         try:

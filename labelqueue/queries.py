@@ -13,7 +13,6 @@ from typing import Any
 
 from sqlalchemy import (
     ColumnElement,
-    Connection,
     FromClause,
     Integer,
     Select,
@@ -45,11 +44,12 @@ from labelqueue.models import (
     UTCDateTime,
     utcnow,
 )
-from labelqueue.prepared import Prepared
+from labelqueue.prepared import DriverConnection, Prepared
 from labelqueue.transaction import (
     changed,
     core_transaction,
     detach,
+    driver_transaction,
     get_row,
     snapshot,
     transaction,
@@ -352,7 +352,7 @@ def lease_next_query(
         "until": now + timedelta(seconds=lease_seconds),
         "run": run_id,
     }
-    with core_transaction(session) as connection:
+    with driver_transaction(session) as connection:
         holder = _HOLDER.rows(connection, params)
         if not holder:
             raise NotFound(f"labeller {labeller_id} does not exist")
@@ -391,7 +391,7 @@ def lease_next_query(
     return None if row is None else snapshot(Query, row._asdict())
 
 
-def _lease_gold(connection: Connection, params: dict[str, Any]) -> Any | None:
+def _lease_gold(connection: DriverConnection, params: dict[str, Any]) -> Any | None:
     """A gold pair for the labeller when one is open and their share of gold answers is due."""
     oldest = _GOLD_OF_ANY_HUMAN_RUN if params["run"] is None else _GOLD_OF_RUN
     candidate = oldest.first(connection, params)

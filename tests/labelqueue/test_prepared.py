@@ -11,7 +11,8 @@ from sqlalchemy.exc import DataError, IntegrityError
 
 from labelqueue import create_labeller, create_run, push_queries
 from labelqueue.models import LABELLERS, QUERIES, RUNS, QueryStatus, RunStatus
-from labelqueue.prepared import Prepared
+from labelqueue.prepared import DriverConnection, Prepared
+from labelqueue.transaction import driver_transaction
 
 LEASED_UNTIL = datetime(2031, 5, 6, 7, 8, 9, 123456, tzinfo=UTC)
 LEASED_ROW = (
@@ -45,8 +46,9 @@ def test_rows_and_their_types_match_sqlalchemy(engine: Engine, stored) -> None:
     params = {"query": stored["query"], "holder": stored["labeller"], "until": LEASED_UNTIL}
     with engine.connect() as connection:
         with connection.begin():
-            [leased] = Prepared(LEASED_ROW).rows(connection, params)
-            ours = Prepared(JOINED).rows(connection, {"run": stored["run"]})
+            driver = DriverConnection.under(connection)
+            [leased] = Prepared(LEASED_ROW).rows(driver, params)
+            ours = Prepared(JOINED).rows(driver, {"run": stored["run"]})
             theirs = connection.execute(JOINED, {"run": stored["run"]}).all()
     assert leased.status == QueryStatus.LEASED and leased.lease_holder == stored["labeller"]
     assert leased.lease_expires_at == LEASED_UNTIL and leased.lease_expires_at.tzinfo is not None
@@ -68,8 +70,9 @@ def test_count_says_how_many_rows_changed(engine: Engine, stored) -> None:
     )
     with engine.connect() as connection:
         with connection.begin():
-            assert pending.count(connection, {"run": stored["run"]}) == 3
-            assert pending.count(connection, {"run": stored["run"]}) == 0
+            driver = DriverConnection.under(connection)
+            assert pending.count(driver, {"run": stored["run"]}) == 3
+            assert pending.count(driver, {"run": stored["run"]}) == 0
         with connection.begin():  # committed with the transaction SQLAlchemy began
             left = connection.execute(
                 select(func.count()).where(QUERIES.c.status == QueryStatus.PENDING)).scalar()
@@ -82,19 +85,21 @@ def test_driver_errors_come_back_as_sqlalchemys_and_roll_back(engine: Engine, st
         created_at=bindparam("at", type_=LABELLERS.c.created_at.type)))
     with engine.connect() as connection:
         with pytest.raises(IntegrityError), connection.begin():  # a name already taken
-            twin.count(connection, {"name": "alice", "hash": "x" * 64, "at": datetime.now(UTC)})
+            twin.count(DriverConnection.under(connection),
+                       {"name": "alice", "hash": "x" * 64, "at": datetime.now(UTC)})
         assert connection.execute(select(func.count()).select_from(LABELLERS)).scalar() == 1
         connection.rollback()
         if engine.dialect.name == "postgresql":  # a number the column cannot hold
             big = Prepared(select(bindparam("n", type_=Integer()).label("n")))
             with pytest.raises(DataError), connection.begin():
-                big.rows(connection, {"n": 2**40})
+                big.rows(DriverConnection.under(connection), {"n": 2**40})
 
 
 def test_a_missing_parameter_runs_nothing(engine: Engine, stored) -> None:
     with engine.connect() as connection, connection.begin():
         with pytest.raises(KeyError, match="until"):
-            Prepared(LEASED_ROW).rows(connection, {"query": stored["query"], "holder": 1})
+            Prepared(LEASED_ROW).rows(DriverConnection.under(connection),
+                                      {"query": stored["query"], "holder": 1})
         row = connection.execute(select(QUERIES.c.status)
                                  .where(QUERIES.c.id == stored["query"])).one()
     assert row.status == QueryStatus.PENDING
@@ -104,11 +109,16 @@ def test_statements_it_cannot_run_are_refused_when_first_compiled(engine: Engine
     expanding = Prepared(select(QUERIES.c.id).where(
         QUERIES.c.id.in_(bindparam("ids", expanding=True))))
     unnamed = Prepared(select(func.count() + 1))
+    # The labeller's created_at and active have defaults SQLAlchemy computes at execution.
+    defaulted = Prepared(insert(LABELLERS).values(name="x", token_hash="y", role="labeller"))
     with engine.connect() as connection:
+        driver = DriverConnection.under(connection)
         with pytest.raises(TypeError, match="expanding"):
-            expanding.rows(connection, {"ids": [1]})
+            expanding.rows(driver, {"ids": [1]})
         with pytest.raises(TypeError, match="needs a name"):
-            unnamed.rows(connection, {})
+            unnamed.rows(driver, {})
+        with pytest.raises(TypeError, match="no column defaults.*created_at"):
+            defaulted.count(driver, {})
 
 
 def test_times_are_compared_in_sql_as_sqlalchemy_stores_them(engine: Engine, stored) -> None:
@@ -117,8 +127,27 @@ def test_times_are_compared_in_sql_as_sqlalchemy_stores_them(engine: Engine, sto
     later = Prepared(select(QUERIES.c.id).where(
         QUERIES.c.created_at < bindparam("at", type_=QUERIES.c.created_at.type)))
     with engine.connect() as connection, connection.begin():
+        driver = DriverConnection.under(connection)
         now = datetime.now(UTC)
-        assert len(later.rows(connection, {"at": now + timedelta(seconds=1)})) == 3
-        assert later.rows(connection, {"at": now - timedelta(hours=1)}) == []
-        elsewhere = now.astimezone(UTC).replace(tzinfo=None)  # a naive time is taken as UTC
-        assert len(later.rows(connection, {"at": elsewhere + timedelta(seconds=1)})) == 3
+        assert len(later.rows(driver, {"at": now + timedelta(seconds=1)})) == 3
+        assert later.rows(driver, {"at": now - timedelta(hours=1)}) == []
+        naive = now.replace(tzinfo=None)  # a naive time is taken as UTC
+        assert len(later.rows(driver, {"at": naive + timedelta(seconds=1)})) == 3
+
+
+def test_a_driver_transaction_commits_at_the_end_and_rolls_back_on_error(sessions, stored) -> None:
+    cancel = Prepared(update(QUERIES).where(QUERIES.c.id == bindparam("query", type_=Integer()))
+                      .values(status=QueryStatus.CANCELLED))
+    status = Prepared(select(QUERIES.c.status).where(
+        QUERIES.c.id == bindparam("query", type_=Integer())))
+    query = {"query": stored["query"]}
+    with sessions() as session:
+        with pytest.raises(RuntimeError), driver_transaction(session) as connection:
+            assert cancel.count(connection, query) == 1
+            raise RuntimeError("the operation fails after its update")
+        with driver_transaction(session) as connection:
+            assert status.first(connection, query).status == QueryStatus.PENDING
+            cancel.count(connection, query)
+        with driver_transaction(session) as connection:
+            assert status.first(connection, query).status == QueryStatus.CANCELLED
+        assert not session.in_transaction()
