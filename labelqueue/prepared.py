@@ -22,7 +22,6 @@ from typing import Any
 
 from sqlalchemy import Connection, Dialect, PoolProxiedConnection, Select
 from sqlalchemy.exc import DBAPIError
-from sqlalchemy.sql.compiler import Compiled
 from sqlalchemy.sql.dml import UpdateBase
 
 Processor = Callable[[Any], Any] | None
@@ -34,18 +33,29 @@ class _Plan:
     """A statement as one dialect runs it."""
 
     sql: str
-    order: tuple[str, ...] | None
-    """the parameters' names in the driver's positional order; None for named parameters"""
-    literals: dict[str, Any]
-    """the statement's own values, already converted for the driver"""
-    given: dict[str, Processor]
-    """the parameters the caller gives, with their converters"""
+    slots: tuple[tuple[str, bool, Any], ...]
+    """each parameter in the driver's order: its name, whether the caller gives it, and then
+    its converter (or None), else the statement's own value, already converted"""
+    positional: bool
+    """the driver takes the values as a tuple, in `slots`' order (else a dict by name)"""
     row: type[tuple[Any, ...]] | None
     """the result's row type (a named tuple); None for a statement that returns no rows"""
 
+    def driver_values(self, params: Mapping[str, Any]) -> Any:
+        values = []
+        for name, given, fixed in self.slots:
+            if given:
+                value = params[name]
+                values.append(value if fixed is None or value is None else fixed(value))
+            else:
+                values.append(fixed)
+        if self.positional:
+            return tuple(values)
+        return {name: value for (name, _, _), value in zip(self.slots, values, strict=True)}
+
 
 def _plan(statement: Statement, dialect: Dialect) -> _Plan:
-    compiled: Compiled = statement.compile(dialect=dialect)
+    compiled = statement.compile(dialect=dialect)
     if getattr(compiled, "literal_execute_params", None) or getattr(
         compiled, "post_compile_params", None
     ):
@@ -55,17 +65,17 @@ def _plan(statement: Statement, dialect: Dialect) -> _Plan:
                 for column in getattr(compiled, kind, ())]
     if computed:  # SQLAlchemy's execution would compute their defaults
         raise TypeError(f"a Prepared statement computes no column defaults: give {computed}")
-    literals: dict[str, Any] = {}
-    given: dict[str, Processor] = {}
-    for bind, name in compiled.bind_names.items():  # type: ignore[attr-defined]
+    slot: dict[str, tuple[str, bool, Any]] = {}
+    for bind, name in compiled.bind_names.items():
         if bind.expanding:
             raise TypeError(f"a Prepared statement takes no expanding parameter ({name})")
         convert = bind.type.dialect_impl(dialect).bind_processor(dialect)
         if bind.required:
-            given[name] = convert
+            slot[name] = (name, True, convert)
         else:
             value = bind.effective_value
-            literals[name] = value if convert is None or value is None else convert(value)
+            slot[name] = (name, False, value if convert is None or value is None
+                          else convert(value))
     names = [str(name) for name in statement.exported_columns.keys()]
     if len(set(names)) != len(names) or not all(
         name.isidentifier() and not name.startswith("_") for name in names
@@ -73,8 +83,8 @@ def _plan(statement: Statement, dialect: Dialect) -> _Plan:
         raise TypeError(f"every column of a Prepared statement needs a name of its own (got "
                         f"{names}): label them")
     row = namedtuple("Row", names) if names else None
-    order = tuple(compiled.positiontup) if compiled.positional else None  # type: ignore[attr-defined]
-    return _Plan(compiled.string, order, literals, given, row)
+    order = compiled.positiontup if compiled.positional and compiled.positiontup else slot
+    return _Plan(compiled.string, tuple(slot[name] for name in order), compiled.positional, row)
 
 
 class DriverConnection:
@@ -114,7 +124,7 @@ class Prepared:
     def __init__(self, statement: Statement):
         self.statement = statement
         self._plans: dict[tuple[str, str], _Plan] = {}
-        self._readers: dict[tuple[str, str, tuple[Any, ...]], list[Processor]] = {}
+        self._readers: dict[tuple[str, str], list[tuple[int, Callable[[Any], Any]]]] = {}
 
     def _plan_for(self, dialect: Dialect) -> _Plan:
         key = (dialect.name, dialect.driver)
@@ -123,28 +133,28 @@ class Prepared:
             plan = self._plans[key] = _plan(self.statement, dialect)
         return plan
 
-    def _readers_for(self, dialect: Dialect, description: Sequence[Any]) -> list[Processor]:
-        codes = tuple(column[1] for column in description)
-        key = (dialect.name, dialect.driver, codes)
+    def _readers_for(
+        self, dialect: Dialect, description: Sequence[Any]
+    ) -> list[tuple[int, Callable[[Any], Any]]]:
+        """The columns whose values are converted, with their converters, from the driver's
+        first description of the result (as SQLAlchemy caches them per compiled statement)."""
+        key = (dialect.name, dialect.driver)
         readers = self._readers.get(key)
         if readers is None:
             types = [column.type for column in self.statement.exported_columns]
+            converters = [
+                type_.dialect_impl(dialect).result_processor(dialect, column[1])
+                for type_, column in zip(types, description, strict=True)
+            ]
             readers = self._readers[key] = [
-                type_.dialect_impl(dialect).result_processor(dialect, code)
-                for type_, code in zip(types, codes, strict=True)
+                (i, read) for i, read in enumerate(converters) if read is not None
             ]
         return readers
 
     def _run(self, connection: DriverConnection, params: Mapping[str, Any]) -> tuple[Any, _Plan]:
         dialect = connection.dialect
         plan = self._plan_for(dialect)
-        values = dict(plan.literals)
-        for name, convert in plan.given.items():
-            value = params[name]
-            values[name] = value if convert is None or value is None else convert(value)
-        driver_params: Any = (
-            values if plan.order is None else tuple(values[name] for name in plan.order)
-        )
+        driver_params = plan.driver_values(params)
         cursor = connection.dbapi.cursor()
         try:
             cursor.execute(plan.sql, driver_params)
@@ -160,11 +170,13 @@ class Prepared:
             assert plan.row is not None, "the statement returns no rows"
             readers = self._readers_for(connection.dialect, cursor.description)
             make = plan.row._make  # type: ignore[attr-defined]
-            return [
-                make([value if read is None else read(value)
-                      for read, value in zip(readers, raw, strict=True)])
-                for raw in cursor.fetchall()
-            ]
+            rows = []
+            for raw in cursor.fetchall():
+                values = list(raw)
+                for i, read in readers:
+                    values[i] = read(values[i])
+                rows.append(make(values))
+            return rows
         finally:
             cursor.close()
 

@@ -218,6 +218,19 @@ class LabelThreads:
         finally:
             self.waiting -= 1
 
+    async def serve(self, work: Callable[[], T], *, inline: bool) -> T:
+        """`work()`, on the event loop itself when `inline`, no request waits for the executor
+        and SQLite's write lock is free at once (a read takes no lock); else on the executor.
+        When another writer holds the lock, nothing has run yet (`WriterBusy` comes at the
+        transaction's start), and the executor's thread waits for it instead of the loop."""
+        if inline and self.waiting == 0:
+            try:
+                with without_waiting():
+                    return work()
+            except WriterBusy:
+                pass
+        return await self.run(work)
+
 
 @dataclass(frozen=True)
 class LabellerCall:
@@ -246,21 +259,12 @@ class LabellerCall:
         A plain executor hand-off costs about half of FastAPI's for a `def` route (AnyIO's
         worker threads, capacity limiter and cancel scopes), on each of next and submit. On
         SQLite the executor has one thread (`Settings.label_threads`), and with `inline` the
-        work runs on the event loop itself when no request waits for the executor and SQLite's
-        write lock is free at once: it takes a few hundred microseconds, less than the
-        hand-off. When another writer holds the lock, nothing has run yet (`WriterBusy` comes
-        at the transaction's start), and the label thread waits for it instead of the loop."""
-        threads = self.threads
-        if self.inline and threads is not None and threads.waiting == 0:
-            try:
-                with without_waiting():
-                    return self._in_session(service, kwargs)
-            except WriterBusy:
-                pass
+        work runs on the event loop itself when it can (`LabelThreads.serve`): it takes a few
+        hundred microseconds, less than the hand-off."""
         work = partial(self._in_session, service, kwargs)
-        if threads is None:  # an app whose lifespan did not run
+        if self.threads is None:  # an app whose lifespan did not run
             return await run_in_threadpool(work)
-        return await threads.run(work)
+        return await self.threads.serve(work, inline=self.inline)
 
 
 def _checked_in_session(
@@ -279,13 +283,19 @@ async def get_labeller_call(request: Request) -> LabellerCall:
     cache = get_token_cache(request)
     token = bearer_token(request)
     caller = known_caller(settings=settings, token=token, cache=cache)
+    threads: LabelThreads | None = getattr(state, "label_threads", None)
+    inline = settings.label_work_inline
     if caller is None:
+        # A token not in the cache (every labeller's, each time its entry runs out) is read
+        # where the queue work runs: on AnyIO's threads, behind a busy event loop, these reads
+        # made the label API's slowest requests (benchmarks/README.md).
         assert token is not None
-        caller = await run_in_threadpool(_checked_in_session, sessions, token, cache)
+        check = partial(_checked_in_session, sessions, token, cache)
+        caller = await (run_in_threadpool(check) if threads is None
+                        else threads.serve(check, inline=inline))
     must_be_labeller(caller)
     assert caller.labeller_id is not None
-    threads: LabelThreads | None = getattr(state, "label_threads", None)
-    return LabellerCall(settings, sessions, caller.labeller_id, threads, settings.label_work_inline)
+    return LabellerCall(settings, sessions, caller.labeller_id, threads, inline)
 
 
 BEARER_SECURITY: dict[str, Any] = {"security": [{"bearer": []}]}

@@ -12,9 +12,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from fastapi.testclient import TestClient
+from server_helpers import bearer, new_labeller
 from sqlalchemy.orm import Session, sessionmaker
 
-from labelqueue import make_engine, migrate, session_factory
+from labelqueue import authenticate, make_engine, migrate, session_factory
+from server.app import create_app
 from server.deps import LabellerCall, LabelThreads
 from server.settings import Settings
 
@@ -89,3 +92,31 @@ def test_without_inline_the_work_always_runs_on_the_label_thread(
     with ThreadPoolExecutor(1, "label-api") as executor:
         [second] = serve_twice(labeller_call(sessions, LabelThreads(executor), inline=False))
     assert second.startswith("label-api")
+
+
+@pytest.mark.parametrize("inline", [True, False])
+def test_a_token_not_in_the_cache_is_checked_where_the_queue_work_runs(
+    settings: Settings, monkeypatch: pytest.MonkeyPatch, inline: bool
+) -> None:
+    """Not on AnyIO's threads: behind a busy event loop, those checks made the slowest
+    requests. Inline, the check (a read, which takes no lock) runs on the event loop."""
+    checked_on: list[str] = []
+
+    def recording(session: Session, *, token: str) -> Any:
+        checked_on.append(threading.current_thread().name)
+        return authenticate(session, token=token)
+
+    monkeypatch.setattr("server.deps.authenticate", recording)
+    settings = settings.model_copy(update={"label_inline": inline, "auth_cache_seconds": 0})
+    with TestClient(create_app(settings)) as client:
+        token = new_labeller(client, "alice")
+
+        async def loop_thread() -> str:
+            return threading.current_thread().name
+
+        loop_name = client.portal.call(loop_thread)  # type: ignore[union-attr]
+        for _ in range(2):  # no cache: each request checks the token
+            assert client.get("/api/label/next", headers=bearer(token)).status_code == 204
+    assert len(checked_on) == 2
+    expected = loop_name if inline else "label-api_0"
+    assert checked_on == [expected, expected]
