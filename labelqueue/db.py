@@ -161,12 +161,19 @@ def _begin_immediate(dbapi_connection: _SQLiteConnection) -> None:
         dbapi_connection.execute(f"PRAGMA busy_timeout={int(BUSY_TIMEOUT_S * 1000)}")
 
 
-def make_engine(url: str, *, foreign_keys: bool = True) -> Engine:
+def make_engine(
+    url: str, *, foreign_keys: bool = True, background_checkpoints: bool = False
+) -> Engine:
     """An engine for `url`; on SQLite with WAL, a busy timeout, foreign keys, BEGIN IMMEDIATE for
     transactions that may write and a deferred, lock-free BEGIN for `READ_ONLY` ones.
 
     `foreign_keys=False` is for migrations only: SQLite's batch mode recreates tables that
     others reference, which enforcement would refuse.
+
+    `background_checkpoints` (SQLite): the engine's commits never copy the WAL back into the
+    database file; a thread of its own does, twice a second (`Checkpointer`). Otherwise SQLite
+    does it in whichever commit finds the WAL over 1 000 pages: 13 ms of copying and syncing
+    that the server's event loop spent blocked, every 70 labels or so (benchmarks/README.md).
     """
     parsed = make_url(url)
     if parsed.get_backend_name() != "sqlite":
@@ -193,7 +200,15 @@ def make_engine(url: str, *, foreign_keys: bool = True) -> Engine:
         cursor.execute(f"PRAGMA foreign_keys={'ON' if foreign_keys else 'OFF'}")
         # Durable at every checkpoint of the WAL, and much faster than FULL; safe in WAL mode.
         cursor.execute("PRAGMA synchronous=NORMAL")
+        if background_checkpoints:
+            cursor.execute("PRAGMA wal_autocheckpoint=0")
         cursor.close()
+
+    if background_checkpoints and database and database != ":memory:" and not database.startswith(
+        "file:"
+    ):
+        checkpointer = Checkpointer(database)
+        event.listen(engine, "engine_disposed", lambda _engine: checkpointer.stop())
 
     @event.listens_for(engine, "begin")
     def _on_begin(connection: Connection) -> None:
@@ -203,6 +218,41 @@ def make_engine(url: str, *, foreign_keys: bool = True) -> Engine:
         begin_sqlite(dbapi_connection, read_only=read_only)
 
     return engine
+
+
+class Checkpointer:
+    """A daemon thread that copies a SQLite database's WAL back into its file every `seconds`,
+    with PASSIVE checkpoints: they wait for no reader or writer, and their copying and syncing
+    run in SQLite's C code, outside the GIL. Other processes' engines keep SQLite's own
+    checkpoints at commit."""
+
+    def __init__(self, database: str, seconds: float = 0.5):
+        self.database = database
+        self.seconds = seconds
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="sqlite-checkpoint", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        connection: sqlite3.Connection | None = None
+        try:
+            while not self._stop.wait(self.seconds):
+                try:
+                    if connection is None:
+                        connection = sqlite3.connect(self.database, check_same_thread=False)
+                        connection.execute(f"PRAGMA busy_timeout={int(BUSY_TIMEOUT_S * 1000)}")
+                    connection.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchall()
+                except sqlite3.Error:  # e.g. the file went away; try again on a new connection
+                    if connection is not None:
+                        connection.close()
+                    connection = None
+        finally:
+            if connection is not None:
+                connection.close()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
 
 
 def begin_sqlite(dbapi_connection: _SQLiteConnection, *, read_only: bool) -> None:

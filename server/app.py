@@ -44,7 +44,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         migrate(settings.database_url)
-        engine = make_engine(settings.database_url)
+        engine = make_engine(settings.database_url, background_checkpoints=True)
         app.state.sessions = session_factory(engine)
         app.state.token_cache = TokenCache(settings.auth_cache_seconds)
         to_thread.current_default_thread_limiter().total_tokens = settings.threadpool_size
