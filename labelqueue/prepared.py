@@ -24,7 +24,6 @@ from sqlalchemy import Connection, Dialect, PoolProxiedConnection, Select
 from sqlalchemy.exc import DBAPIError
 from sqlalchemy.sql.dml import UpdateBase
 
-Processor = Callable[[Any], Any] | None
 Statement = Select[Any] | UpdateBase
 
 
@@ -45,8 +44,8 @@ class _Plan:
         values = []
         for name, given, fixed in self.slots:
             if given:
-                value = params[name]
-                values.append(value if fixed is None or value is None else fixed(value))
+                value = params[name]  # converted even when None, as SQLAlchemy does
+                values.append(value if fixed is None else fixed(value))
             else:
                 values.append(fixed)
         if self.positional:
@@ -74,8 +73,7 @@ def _plan(statement: Statement, dialect: Dialect) -> _Plan:
             slot[name] = (name, True, convert)
         else:
             value = bind.effective_value
-            slot[name] = (name, False, value if convert is None or value is None
-                          else convert(value))
+            slot[name] = (name, False, value if convert is None else convert(value))
     names = [str(name) for name in statement.exported_columns.keys()]
     if len(set(names)) != len(names) or not all(
         name.isidentifier() and not name.startswith("_") for name in names
