@@ -151,3 +151,18 @@ def test_a_driver_transaction_commits_at_the_end_and_rolls_back_on_error(session
         with driver_transaction(session) as connection:
             assert status.first(connection, query).status == QueryStatus.CANCELLED
         assert not session.in_transaction()
+
+
+def test_a_none_value_is_converted_as_sqlalchemy_converts_it(engine: Engine, stored) -> None:
+    """Its type's processor sees None too: a JSON column stores JSON null, not SQL NULL."""
+    statement = (update(RUNS).where(RUNS.c.id == bindparam("run", type_=Integer()))
+                 .values(config=bindparam("config", type_=RUNS.c.config.type)))
+    stored_as = select(RUNS.c.config.is_(None).label("sql_null")).where(RUNS.c.id == stored["run"])
+    with engine.connect() as connection:
+        with connection.begin():
+            connection.execute(statement, {"run": stored["run"], "config": None})
+            theirs = connection.execute(stored_as).scalar()
+            Prepared(statement).count(DriverConnection.under(connection),
+                                      {"run": stored["run"], "config": None})
+            ours = connection.execute(stored_as).scalar()
+    assert ours == theirs
