@@ -179,8 +179,9 @@ def make_engine(
     if parsed.get_backend_name() != "sqlite":
         return create_engine(parsed, pool_pre_ping=True)
 
-    database = parsed.database
-    if database and database != ":memory:" and not database.startswith("file:"):
+    database = parsed.database or ""
+    a_file = database not in ("", ":memory:") and not database.startswith("file:")
+    if a_file:
         Path(database).parent.mkdir(parents=True, exist_ok=True)
     engine = create_engine(parsed, connect_args={"factory": _SQLiteConnection})
     # Threads of one process queue for the write lock on a Python lock, which wakes the next
@@ -204,9 +205,7 @@ def make_engine(
             cursor.execute("PRAGMA wal_autocheckpoint=0")
         cursor.close()
 
-    if background_checkpoints and database and database != ":memory:" and not database.startswith(
-        "file:"
-    ):
+    if background_checkpoints and a_file:
         checkpointer = Checkpointer(database)
         event.listen(engine, "engine_disposed", lambda _engine: checkpointer.stop())
 

@@ -204,8 +204,8 @@ class LabelThreads:
 
     The count keeps the requests in order: a request does its work on the event loop only when
     none is waiting for the executor, so it never overtakes one queued there. (Measured: this
-    did not shorten inline work's closed-loop tail, whose cause is still open; see
-    benchmarks/README.md.)"""
+    did not shorten inline work's closed-loop tail; the token checks sent to AnyIO's threads
+    did, and now go through `serve` too; see benchmarks/README.md.)"""
 
     def __init__(self, executor: Executor):
         self.executor = executor
@@ -230,6 +230,14 @@ class LabelThreads:
             except WriterBusy:
                 pass
         return await self.run(work)
+
+
+async def label_work(threads: LabelThreads | None, work: Callable[[], T], *, inline: bool) -> T:
+    """`work()` where the label API's queue work runs (`LabelThreads.serve`); on AnyIO's
+    threads in an app whose lifespan did not run (no label threads)."""
+    if threads is None:
+        return await run_in_threadpool(work)
+    return await threads.serve(work, inline=inline)
 
 
 @dataclass(frozen=True)
@@ -262,9 +270,7 @@ class LabellerCall:
         work runs on the event loop itself when it can (`LabelThreads.serve`): it takes a few
         hundred microseconds, less than the hand-off."""
         work = partial(self._in_session, service, kwargs)
-        if self.threads is None:  # an app whose lifespan did not run
-            return await run_in_threadpool(work)
-        return await self.threads.serve(work, inline=self.inline)
+        return await label_work(self.threads, work, inline=self.inline)
 
 
 def _checked_in_session(
@@ -291,8 +297,7 @@ async def get_labeller_call(request: Request) -> LabellerCall:
         # made the label API's slowest requests (benchmarks/README.md).
         assert token is not None
         check = partial(_checked_in_session, sessions, token, cache)
-        caller = await (run_in_threadpool(check) if threads is None
-                        else threads.serve(check, inline=inline))
+        caller = await label_work(threads, check, inline=inline)
     must_be_labeller(caller)
     assert caller.labeller_id is not None
     return LabellerCall(settings, sessions, caller.labeller_id, threads, inline)
