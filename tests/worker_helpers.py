@@ -46,8 +46,7 @@ def standalone_run(run_dir: Path) -> Path:
     """The same run as RUN, trained without the queue, answered by its scripted teacher."""
     cfg = build_config(RUN["task"], RUN["preset"], {
         "algo": RUN["algo"], "seed": RUN["seed"], "feedback.budget": RUN["budget"],
-        "teacher.eps": 0.3, "steps": 1000, "threads": 1, "update_every": 4,
-        "run_dir": str(run_dir)})
+        "teacher.eps": RUN["teacher_params"]["eps"], **RUN["config"], "run_dir": str(run_dir)})
     TrainingRun(cfg, progress=False).train()
     return run_dir
 
