@@ -9,10 +9,14 @@ from labelqueue.db import (
     DEFAULT_URL,
     WriterBusy,
     check_url,
+    database_url,
     make_engine,
+    mask_url,
     migrate,
+    read_url_file,
     session_factory,
     sqlite_url,
+    url_has_secret,
     without_waiting,
 )
 from labelqueue.errors import (
@@ -42,14 +46,19 @@ from labelqueue.invites import (
     InviteClosed,
     Joined,
     Progress,
+    Verified,
     create_invite,
+    invite_runs_open,
     invite_state,
     join_invite,
     labeller_progress,
     list_invites,
+    participant_code,
     read_invite,
     revoke_invite,
+    verify_code,
 )
+from labelqueue.keys import server_key
 from labelqueue.labellers import (
     authenticate,
     create_labeller,
@@ -75,6 +84,7 @@ from labelqueue.models import (
     Run,
     RunInstruction,
     RunStatus,
+    ServerKey,
     TeacherKind,
     Worker,
 )
@@ -88,13 +98,17 @@ from labelqueue.queries import (
 from labelqueue.runs import (
     DEAD_WORKER_AFTER_S,
     OPERATOR_MOVES,
+    SILENT_WORKER_AFTER_S,
     claim_run,
     create_run,
     finish_run,
     heartbeat,
+    heartbeat_age,
     read_run,
+    release_run,
     set_run_status,
     set_teacher,
+    silent_holders,
 )
 from labelqueue.transaction import reading
 from labelqueue.undo import (
@@ -167,6 +181,7 @@ __all__ = [
     "write_export",
     "write_metrics",
     "RunInstruction",
+    "ServerKey",
     "set_instruction",
     "Invite",
     "InviteClosed",
@@ -177,6 +192,11 @@ __all__ = [
     "invite_state",
     "join_invite",
     "labeller_progress",
+    "Verified",
+    "invite_runs_open",
+    "participant_code",
+    "verify_code",
+    "server_key",
     "list_invites",
     "read_invite",
     "revoke_invite",
@@ -197,4 +217,12 @@ __all__ = [
     "find_grid_run",
     "grid_runs",
     "release_grid_key",
+    "SILENT_WORKER_AFTER_S",
+    "database_url",
+    "heartbeat_age",
+    "mask_url",
+    "read_url_file",
+    "release_run",
+    "silent_holders",
+    "url_has_secret",
 ]

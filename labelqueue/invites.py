@@ -2,51 +2,88 @@
 uses); whoever opens it joins as a new labeller, without a token from the operator.
 
 Joining is one transaction: a conditional UPDATE takes one use of a live invite (not revoked,
-not expired, not used up), then the labeller and its token are made. Two people opening the
-last use at once: one joins, the other is told the link is used up. An invite may carry a target
-number of answers and a completion code, shown to its labellers once they reach the target
-(for paid studies).
+not expired, not used up, its runs not over), then the labeller and its token are made. Two
+people opening the last use at once: one joins, the other is told the link is used up.
+
+An invite is a study: its state follows its runs (`closed` once none of them can give pairs
+any more), it may carry a consent text (nobody joins without agreeing), a target number of
+answers, a completion redirect URL and what a participant paused by check pairs is told. Each
+participant's study ends with their own completion code (`participant_code`: derived from the
+invite and the labeller with a key the server keeps, so it cannot be guessed or shared), shown
+once the target is reached, once the invite's runs are over, or on a pause; an operator checks
+a code with `verify_code`. Only decisive answers (`runvocab.answers.DECISIVE`) on the invite's
+own runs count towards the target: skips, can't-tells and answers on other runs do not.
 """
 
 from __future__ import annotations
 
+import hashlib
+import hmac
 import re
 import secrets
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import datetime
 from typing import Literal
+from urllib.parse import parse_qsl, quote, urlencode, urlsplit, urlunsplit
 
-from sqlalchemy import func, or_, select, update
+from sqlalchemy import Exists, exists, func, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from labelqueue.errors import Conflict, NotFound, QueueError
+from labelqueue.keys import server_key
 from labelqueue.labellers import hash_token
-from labelqueue.models import Invite, Invitee, Label, Labeller, LabelSource, Role, Run, utcnow
-from labelqueue.transaction import changed, detach, get_row, transaction
+from labelqueue.models import (
+    Invite,
+    Invitee,
+    Label,
+    Labeller,
+    LabellerPause,
+    LabelSource,
+    Role,
+    Run,
+    RunStatus,
+    TeacherKind,
+    utcnow,
+)
+from labelqueue.transaction import changed, detach, get_row, reading, transaction
+from runvocab.answers import DECISIVE
 
 PARTICIPANT = re.compile(r"[A-Za-z0-9_.@+-]{1,64}")
 """what a `participant` may be: a crowdsourcing platform's worker id, or a plain name"""
 CODE_BYTES = 18
 """random bytes in an invite's code (24 URL-safe characters)"""
+RUN_OPEN = (RunStatus.QUEUED, RunStatus.RUNNING, RunStatus.PAUSED)
+"""a run in one of these may still give pairs to label; stopping, stopped, finished and failed
+runs never will (a requeued run opens its invites again)"""
+REDIRECT_MAX = 2000
+CODE_ALPHABET = "0123456789ABCDEFGHJKMNPQRSTVWXYZ"
+"""Crockford's base 32: no I, L, O or U, so a code read aloud or retyped survives"""
+CODE_GROUPS = 3
+"""a participant's own part: three groups of four characters (60 bits of an HMAC)"""
 
 
 class InviteClosed(QueueError):
-    """The invite link no longer admits anyone: revoked, expired or used up (`reason`)."""
+    """The invite link no longer admits anyone: revoked, expired, used up or its runs are over
+    (`reason`)."""
 
     def __init__(self, message: str, reason: str):
         super().__init__(message)
         self.reason = reason
 
 
-InviteState = Literal["open", "revoked", "expired", "used_up"]
+InviteState = Literal["open", "revoked", "expired", "used_up", "closed"]
 
 
-def invite_state(invite: Invite, now: datetime | None = None) -> InviteState:
-    """"open", or why it no longer admits anyone: "revoked", "expired" or "used_up"."""
+def invite_state(invite: Invite, now: datetime | None = None,
+                 runs_open: bool = True) -> InviteState:
+    """"open", or why it no longer admits anyone: "revoked", "expired", "used_up", or "closed"
+    when its runs are over (`runs_open`, from `invite_runs_open`)."""
     now = now or utcnow()
     if invite.revoked_at is not None:
         return "revoked"
+    if not runs_open:
+        return "closed"
     if invite.expires_at <= now:
         return "expired"
     if invite.max_uses is not None and invite.uses >= invite.max_uses:
@@ -58,7 +95,44 @@ CLOSED_TEXT = {
     "revoked": "This invite link has been withdrawn by the study's organisers.",
     "expired": "This invite link has expired.",
     "used_up": "This invite link has been used as many times as it allows.",
+    "closed": "This study has ended: its training run is over, so there are no more clips to "
+              "label.",
 }
+
+
+def _open_runs_of(run_id: int | None) -> Exists:
+    """A condition: the run `run_id` is open; for an all-runs invite, some run taught by people
+    is."""
+    if run_id is not None:
+        return exists().where(Run.id == run_id, Run.status.in_(RUN_OPEN))
+    return exists().where(Run.teacher == TeacherKind.HUMAN, Run.status.in_(RUN_OPEN))
+
+
+def invite_runs_open(session: Session, invites: list[Invite]) -> dict[int, bool]:
+    """Whether each invite's runs may still give pairs: its run is queued, running or paused
+    (for an all-runs invite: some run taught by people is), by invite id."""
+    with reading(session):
+        run_ids = {invite.run_id for invite in invites if invite.run_id is not None}
+        open_ids = set(session.scalars(
+            select(Run.id).where(Run.id.in_(run_ids), Run.status.in_(RUN_OPEN))
+        )) if run_ids else set()
+        any_open = (any(invite.run_id is None for invite in invites)
+                    and bool(session.scalar(select(_open_runs_of(None)))))
+    return {invite.id: (any_open if invite.run_id is None else invite.run_id in open_ids)
+            for invite in invites}
+
+
+def check_redirect_url(url: str | None) -> str | None:
+    """The URL as stored; ValueError unless it is an absolute http(s) URL of at most 2000
+    characters."""
+    if url is None:
+        return None
+    url = url.strip()
+    parts = urlsplit(url)
+    if parts.scheme not in ("http", "https") or not parts.netloc or len(url) > REDIRECT_MAX:
+        raise ValueError("redirect_url must be an absolute http:// or https:// URL of at most "
+                         f"{REDIRECT_MAX} characters (got {url[:80]!r})")
+    return url
 
 
 def create_invite(
@@ -70,27 +144,28 @@ def create_invite(
     target_answers: int | None = None,
     completion_code: str | None = None,
     note: str | None = None,
+    redirect_url: str | None = None,
+    consent_text: str | None = None,
+    pause_message: str | None = None,
 ) -> Invite:
     """A new invite with a random code. NotFound for an unknown run; ValueError for an expiry
-    in the past, a limit below 1, or a completion code without a target answer count. With a
-    target and no code, a random code is made."""
+    in the past, a limit below 1 or a redirect URL that is not http(s). `completion_code`: the
+    study's code, the prefix of each participant's own (`participant_code`)."""
     if expires_at <= utcnow():
         raise ValueError("expires_at is in the past: an invite must expire in the future")
     for name, value in (("max_uses", max_uses), ("target_answers", target_answers)):
         if value is not None and value < 1:
             raise ValueError(f"{name} must be at least 1 (or left out), got {value}")
-    if completion_code is not None and target_answers is None:
-        raise ValueError("completion_code needs target_answers: the number of answers after "
-                         "which it is shown")
-    if target_answers is not None and completion_code is None:
-        completion_code = secrets.token_hex(4).upper()
+    redirect_url = check_redirect_url(redirect_url)
     with transaction(session):
         if run_id is not None:
             get_row(session, Run, run_id)
         invite = Invite(
             code=secrets.token_urlsafe(CODE_BYTES), run_id=run_id, note=note,
             expires_at=expires_at, max_uses=max_uses, uses=0, target_answers=target_answers,
-            completion_code=completion_code,
+            completion_code=completion_code, redirect_url=redirect_url,
+            consent_text=(consent_text or "").strip() or None,
+            pause_message=(pause_message or "").strip() or None,
         )
         session.add(invite)
         detach(session, invite)
@@ -133,16 +208,26 @@ class Joined:
     invite: Invite
 
 
-def join_invite(session: Session, *, code: str, participant: str | None = None) -> Joined:
+def join_invite(session: Session, *, code: str, participant: str | None = None,
+                consent: bool = False) -> Joined:
     """A new labeller, named after `participant` (else "guest-<hex>"; "-2", "-3", ... when the
     name is taken). NotFound for an unknown code; InviteClosed when the invite is revoked,
-    expired or used up; ValueError for a `participant` that is not 1-64 of A-Z a-z 0-9 _ . @ + -.
+    expired, used up or its runs are over; ValueError for a `participant` that is not 1-64 of
+    A-Z a-z 0-9 _ . @ + -, or without `consent` to an invite that has a consent text.
     """
     if participant is not None and not PARTICIPANT.fullmatch(participant):
         raise ValueError("participant must be 1 to 64 letters, digits or _ . @ + - "
                          f"(got {participant[:80]!r})")
     now = utcnow()
     with transaction(session):
+        invite = session.scalars(
+            select(Invite).where(Invite.code == code).execution_options(populate_existing=True)
+        ).one_or_none()
+        if invite is None:
+            raise NotFound("no such invite link: check that it was copied whole")
+        if invite.consent_text and not consent:
+            raise ValueError("this study asks for consent first: read its consent text on the "
+                             "invite's page and agree to it (consent: true)")
         took = changed(
             session,
             update(Invite)
@@ -151,16 +236,14 @@ def join_invite(session: Session, *, code: str, participant: str | None = None) 
                 Invite.revoked_at.is_(None),
                 Invite.expires_at > now,
                 or_(Invite.max_uses.is_(None), Invite.uses < Invite.max_uses),
+                _open_runs_of(invite.run_id),
             )
             .values(uses=Invite.uses + 1),
         )
-        invite = session.scalars(
-            select(Invite).where(Invite.code == code).execution_options(populate_existing=True)
-        ).one_or_none()
-        if invite is None:
-            raise NotFound("no such invite link: check that it was copied whole")
+        session.refresh(invite)
         if not took:
-            state = invite_state(invite, now)
+            runs_open = bool(session.scalar(select(_open_runs_of(invite.run_id))))
+            state = invite_state(invite, now, runs_open)
             reason = "used_up" if state == "open" else state  # the last use went meanwhile
             raise InviteClosed(CLOSED_TEXT[reason], reason)
         name = _free_name(session, participant or f"guest-{secrets.token_hex(3)}")
@@ -188,35 +271,163 @@ def _free_name(session: Session, base: str) -> str:
     return next(f"{base}-{n}" for n in range(2, len(taken) + 3) if f"{base}-{n}" not in taken)
 
 
+# ---- completion codes ------------------------------------------------------------------------
+
+def _own_part(key: bytes, invite_id: int, labeller_id: int) -> str:
+    digest = hmac.new(key, f"completion:{invite_id}:{labeller_id}".encode(),
+                      hashlib.sha256).digest()
+    bits = int.from_bytes(digest[:8], "big") >> 4  # 60 bits
+    chars = "".join(CODE_ALPHABET[(bits >> (5 * i)) & 31] for i in range(4 * CODE_GROUPS))
+    return "-".join(chars[i:i + 4] for i in range(0, len(chars), 4))
+
+
+def participant_code(key: bytes, invite: Invite, labeller_id: int) -> str:
+    """The participant's own completion code: the invite's study code (if it has one), then
+    twelve characters of an HMAC of the invite and the labeller under the server's key
+    (`labelqueue.keys`). Nobody without the key can make another participant's code, and two
+    participants never share one."""
+    own = _own_part(key, invite.id, labeller_id)
+    return f"{invite.completion_code}-{own}" if invite.completion_code else own
+
+
+def _normalised(code: str) -> str:
+    code = re.sub(r"\s+", "", code).upper()
+    return code.translate(str.maketrans("OIL", "011"))
+
+
+@dataclass(frozen=True)
+class Verified:
+    """A completion code an operator checked: whose it is and how far they got."""
+
+    invite_id: int
+    labeller_id: int
+    labeller: str
+    participant: str | None
+    run_id: int | None
+    counted: int
+    """decisive answers on the invite's runs (what the target counts)"""
+    target_answers: int | None
+    complete: bool
+    why: str | None
+    """"target", "runs_over" or "paused" (see `Progress.why`)"""
+
+
+def verify_code(session: Session, code: str) -> Verified | None:
+    """Whose completion code this is, or None when it is no participant's. The study-code prefix
+    may be left out; case, spaces, and O/0, I/L/1 confusions do not matter."""
+    given = _normalised(code)
+    groups = given.split("-")
+    if len(groups) < CODE_GROUPS:
+        return None
+    own = "-".join(groups[-CODE_GROUPS:])
+    prefix = "-".join(groups[:-CODE_GROUPS])
+    key = server_key(session)
+    with reading(session):
+        rows = session.execute(
+            select(Invitee.labeller_id, Invite)
+            .join(Invite, Invite.id == Invitee.invite_id)
+            .order_by(Invitee.labeller_id)
+        ).all()
+        session.expunge_all()
+    for labeller_id, invite in rows:
+        if not hmac.compare_digest(_own_part(key, invite.id, labeller_id), own):
+            continue
+        if prefix and _normalised(invite.completion_code or "") != prefix:
+            return None
+        progress = labeller_progress(session, labeller_id=labeller_id)
+        with reading(session):
+            name = session.scalar(select(Labeller.name).where(Labeller.id == labeller_id))
+        return Verified(invite.id, labeller_id, name or "", progress.participant, invite.run_id,
+                        progress.counted, invite.target_answers, progress.complete, progress.why)
+    return None
+
+
+def completion_redirect(url: str, *, code: str, participant: str | None) -> str:
+    """The invite's redirect URL for one participant: `{code}` and `{participant}` in it filled
+    in (URL-encoded); a URL without either gets `participant` (when known) added to its query,
+    so a platform learns whose session ended."""
+    if "{code}" in url or "{participant}" in url:
+        return url.replace("{code}", quote(code, safe="")).replace(
+            "{participant}", quote(participant or "", safe=""))
+    if participant is None:
+        return url
+    parts = urlsplit(url)
+    query = parse_qsl(parts.query, keep_blank_values=True) + [("participant", participant)]
+    return urlunsplit(parts._replace(query=urlencode(query)))
+
+
+# ---- a participant's progress ------------------------------------------------------------------
+
 @dataclass(frozen=True)
 class Progress:
-    """A labeller's answers so far, against its invite's target (if any)."""
+    """A labeller's answers so far and, for one who joined by an invite, where their study
+    stands."""
 
     labels: int
+    """answers given by hand on any run (skips included, answers taken back not)"""
     target_answers: int | None
     completion_code: str | None
-    """shown only once `labels` reaches the target"""
+    """the participant's own code, once their study is complete (none before, and none for a
+    paused participant whose invite has a `pause_message`)"""
     run_id: int | None
     """the run its invite was for; none: all runs, or no invite"""
+    counted: int = 0
+    """what the target counts: decisive answers on the invite's runs (`labels` without one)"""
+    invited: bool = False
+    complete: bool = False
+    why: str | None = None
+    """why the study is complete: "target" (reached), "runs_over" (its runs ended, or the run's
+    budget is spent) or "paused" (check pairs paused the participant)"""
+    participant: str | None = None
+    redirect_url: str | None = None
+    """where to send the participant now, filled in for them; none until complete"""
+    pause_message: str | None = None
+    """the operator's words for a paused participant (given instead of the code)"""
 
 
 def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
-    """How far the labeller is: its answers given by hand (skips included, answers taken back
-    not), and, for one who joined by an invite with a target, the completion code once the
-    target is reached."""
-    with transaction(session):
-        labels = session.scalar(
-            select(func.count(Label.id)).where(
-                Label.labeller_id == labeller_id, Label.source == LabelSource.HUMAN,
-                Label.withdrawn_at.is_(None),
-            )
-        ) or 0
-        invite = session.scalars(
-            select(Invite).join(Invitee, Invitee.invite_id == Invite.id)
+    """How far the labeller is. For one who joined by an invite: decisive answers on the
+    invite's runs against its target, and whether the study is complete for them (target
+    reached, runs over or budget spent, or paused by check pairs), with their own code."""
+    with reading(session):
+        standing = (Label.labeller_id == labeller_id, Label.source == LabelSource.HUMAN,
+                    Label.withdrawn_at.is_(None))
+        labels = session.scalar(select(func.count(Label.id)).where(*standing)) or 0
+        row = session.execute(
+            select(Invite, Invitee.participant).join(Invitee, Invitee.invite_id == Invite.id)
             .where(Invitee.labeller_id == labeller_id)
         ).one_or_none()
-    if invite is None:
-        return Progress(labels, None, None, None)
-    reached = invite.target_answers is not None and labels >= invite.target_answers
-    return Progress(labels, invite.target_answers, invite.completion_code if reached else None,
-                    invite.run_id)
+        if row is None:
+            return Progress(labels, None, None, None, counted=labels)
+        invite, participant = row
+        on_runs = [Label.run_id == invite.run_id] if invite.run_id is not None else []
+        counted = session.scalar(select(func.count(Label.id)).where(
+            *standing, Label.answer.in_(DECISIVE), *on_runs)) or 0
+        if invite.run_id is not None:
+            run = session.get(Run, invite.run_id)
+            assert run is not None
+            over = run.status not in RUN_OPEN or run.labels_used >= run.budget
+            paused = session.scalar(select(exists().where(
+                LabellerPause.run_id == run.id, LabellerPause.labeller_id == labeller_id)))
+        else:
+            over = not session.scalar(select(_open_runs_of(None)))
+            # Paused on every open run: nothing more for them anywhere.
+            unpaused = exists().where(
+                Run.teacher == TeacherKind.HUMAN, Run.status.in_(RUN_OPEN),
+                ~exists().where(LabellerPause.run_id == Run.id,
+                                LabellerPause.labeller_id == labeller_id))
+            paused = not over and not session.scalar(select(unpaused))
+        session.expunge_all()
+    reached = invite.target_answers is not None and counted >= invite.target_answers
+    why = "target" if reached else "runs_over" if over else "paused" if paused else None
+    progress = Progress(labels, invite.target_answers, None, invite.run_id, counted=counted,
+                        invited=True, complete=why is not None, why=why,
+                        participant=participant)
+    if why is None:
+        return progress
+    if why == "paused" and invite.pause_message:
+        return replace(progress, pause_message=invite.pause_message)
+    code = participant_code(server_key(session), invite, labeller_id)
+    redirect = (completion_redirect(invite.redirect_url, code=code, participant=participant)
+                if invite.redirect_url else None)
+    return replace(progress, completion_code=code, redirect_url=redirect)

@@ -208,8 +208,18 @@ class Invite(Base):
     target_answers: Mapped[int | None] = mapped_column(Integer)
     """answers after which a labeller is shown `completion_code`; none: no target"""
     completion_code: Mapped[str | None] = mapped_column(String(64))
+    """the study's code (a platform's): the prefix of each participant's own completion code
+    (`labelqueue.invites.participant_code`); none: their own part alone"""
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     revoked_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    redirect_url: Mapped[str | None] = mapped_column(String(2000))
+    """where a participant is sent once their study is complete (a platform's completion URL);
+    `{participant}` and `{code}` in it are filled in"""
+    consent_text: Mapped[str | None] = mapped_column(Text)
+    """shown on the invite's page before joining: nobody joins without agreeing to it"""
+    pause_message: Mapped[str | None] = mapped_column(Text)
+    """what a participant paused by check pairs is told instead of being given their code;
+    none: they get their code"""
 
 
 class Invitee(Base):
@@ -231,8 +241,21 @@ class Worker(Base):
 
     id: Mapped[str] = mapped_column(String(200), primary_key=True)
     run_id: Mapped[int | None] = mapped_column(ForeignKey("runs.id"))
+    host: Mapped[str | None] = mapped_column(String(200))
+    """the host the worker last reported from"""
     first_seen_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     last_seen_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class ServerKey(Base):
+    """A secret the server keeps in its database, made on first use, so every process and host
+    sharing the database uses the same one (`labelqueue.keys`): never shown to labellers."""
+
+    __tablename__ = "server_keys"
+
+    name: Mapped[str] = mapped_column(String(64), primary_key=True)
+    value: Mapped[str] = mapped_column(String(128))
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
 
 
 class Query(Base):

@@ -8,27 +8,35 @@
                stopped | failed -> queued (requeue)
 
 A worker that stops heartbeating loses its running run to the next worker that claims one; the
-newcomer resumes from the run's last checkpoint.
+newcomer resumes from the run's last checkpoint. A worker told to go (SIGTERM, a scheduler's
+preemption) checkpoints and gives its run back at once (release_run), so the next worker need
+not wait for the heartbeat to age.
 """
 
 from __future__ import annotations
 
+import socket
 from collections.abc import Mapping
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import and_, case, or_, select, update
+from sqlalchemy import and_, case, literal, or_, select, update
 from sqlalchemy.orm import Session
 
 from labelqueue.coerce import json_object
 from labelqueue.errors import Conflict, InvalidTransition
 from labelqueue.instructions import checked_instruction, record_instruction
-from labelqueue.models import Run, RunStatus, TeacherKind, Worker, utcnow
+from labelqueue.models import Run, RunStatus, TeacherKind, UTCDateTime, Worker, utcnow
 from labelqueue.transaction import changed, detach, get_row, reading, transaction
 from runvocab.clip_format import parse_clip_size
 
+HOST = socket.gethostname()[:200]
+"""this process's host, recorded on its worker row (`workers.host`)"""
 DEAD_WORKER_AFTER_S = 300.0
 """a running run whose heartbeat is older than this may be claimed by another worker"""
+SILENT_WORKER_AFTER_S = 60.0
+"""a running run whose heartbeat is older than this has a worker that may be dead: a training
+worker beats every few seconds (a long evaluation or reward-model fit can hold it longer)"""
 
 # Which statuses an operator may move a run to, and from where.
 OPERATOR_MOVES: dict[RunStatus, tuple[RunStatus, ...]] = {
@@ -100,13 +108,16 @@ def read_run(session: Session, *, run_id: int) -> Run:
 
 
 def _saw_worker(session: Session, *, worker_id: str, now: datetime, run_id: int | None) -> None:
-    # Only the worker itself writes its row, so get-then-add races with no other writer.
+    # Only the worker itself writes its row (these run in its process, so the host is its
+    # own), so get-then-add races with no other writer.
     worker = session.get(Worker, worker_id, populate_existing=True)
     if worker is None:
-        session.add(Worker(id=worker_id, run_id=run_id, first_seen_at=now, last_seen_at=now))
+        session.add(Worker(id=worker_id, run_id=run_id, first_seen_at=now, last_seen_at=now,
+                           host=HOST))
     else:
         worker.last_seen_at = now
         worker.run_id = run_id
+        worker.host = HOST
 
 
 def claim_run(
@@ -124,6 +135,8 @@ def claim_run(
     claimable = or_(
         Run.status == RunStatus.QUEUED,
         and_(Run.status == RunStatus.RUNNING, Run.heartbeat_at < dead),
+        # Released while paused, then resumed by the operator: nobody holds it.
+        and_(Run.status == RunStatus.RUNNING, Run.worker_id.is_(None)),
         and_(Run.status.in_(OWNED), Run.worker_id == worker_id),
     )
     mine_first = case((Run.worker_id == worker_id, 0), else_=1)
@@ -192,6 +205,69 @@ def heartbeat(
             raise _not_owner(session, run_id=run_id, worker_id=worker_id)
         _saw_worker(session, worker_id=worker_id, now=now, run_id=run_id)
     return RunStatus(status)
+
+
+def release_run(session: Session, *, run_id: int, worker_id: str) -> Run:
+    """The owning worker gives its run back at once, after a checkpoint (it was told to go:
+    SIGTERM, a scheduler's preemption or time limit). The run keeps its step and progress and
+    loses its worker: a running run is queued again, for the next worker to claim and resume
+    from the checkpoint; a paused one stays paused (the operator's resume queues it for any
+    worker); a stopping one, whose checkpoint is written, becomes stopped.
+
+    Conflict when the run belongs to another worker (it was requeued or taken over meanwhile).
+    """
+    now = utcnow()
+    with transaction(session):
+        released = changed(
+            session,
+            update(Run)
+            .where(Run.id == run_id, Run.worker_id == worker_id, Run.status.in_(OWNED))
+            .values(
+                status=case(
+                    (Run.status == RunStatus.RUNNING, RunStatus.QUEUED.value),
+                    (Run.status == RunStatus.STOPPING, RunStatus.STOPPED.value),
+                    else_=Run.status,
+                ),
+                finished_at=case(
+                    (Run.status == RunStatus.STOPPING, literal(now, UTCDateTime())),
+                    else_=Run.finished_at,
+                ),
+                worker_id=None,
+                heartbeat_at=None,
+            ),
+        )
+        if not released:
+            raise _not_owner(session, run_id=run_id, worker_id=worker_id)
+        run = get_row(session, Run, run_id)
+        _saw_worker(session, worker_id=worker_id, now=now, run_id=None)
+        detach(session, run)
+    return run
+
+
+def heartbeat_age(run: Run, now: datetime | None = None) -> float | None:
+    """Seconds since the run's worker last heartbeat (None: no worker holds it)."""
+    if run.heartbeat_at is None or run.worker_id is None:
+        return None
+    return ((now or utcnow()) - run.heartbeat_at).total_seconds()
+
+
+def silent_holders(
+    session: Session, *, worker_id: str, silent_after: float = SILENT_WORKER_AFTER_S
+) -> list[Run]:
+    """The running runs held by another worker that has not heartbeat for `silent_after`
+    seconds (it may be dead; another worker may claim the run once the heartbeat is
+    `DEAD_WORKER_AFTER_S` old), oldest heartbeat first."""
+    quiet = utcnow() - timedelta(seconds=silent_after)
+    with reading(session):
+        runs = list(session.scalars(
+            select(Run)
+            .where(Run.status == RunStatus.RUNNING, Run.worker_id.is_not(None),
+                   Run.worker_id != worker_id, Run.heartbeat_at < quiet)
+            .order_by(Run.heartbeat_at, Run.id)
+            .execution_options(populate_existing=True)
+        ).all())
+        detach(session, *runs)
+    return runs
 
 
 def set_run_status(session: Session, *, run_id: int, status: RunStatus | str) -> Run:

@@ -43,7 +43,7 @@ import sys
 import time
 import traceback
 from collections import Counter
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -212,6 +212,9 @@ class QueueHooks(RunHooks):
         self.render_env: Env | None = None
         self.clip = sized(worker.clip, run.clip_size)
         """how this run's clips are rendered: the worker's settings at the run's clip size"""
+        self.pretrain_start: tuple[float, int] | None = None
+        self.next_round_step: Callable[[], int] | None = None
+        """the step the training loop opens its next round at (set once it is built)"""
 
     # -- operator ------------------------------------------------------------------------------
     def beat(self, step: int, force: bool = False) -> RunStatus:
@@ -223,9 +226,12 @@ class QueueHooks(RunHooks):
         self.next_beat = now + self.worker.heartbeat_seconds
         with self.sessions() as session:
             try:
+                schedule = ({} if self.next_round_step is None
+                            else {"next_round_step": self.next_round_step()})
                 self.status = heartbeat(session, run_id=self.run_id,
                                         worker_id=self.worker.worker_id, step=step,
-                                        progress=self.progress | {"teacher": self.teacher})
+                                        progress=self.progress | schedule
+                                        | {"teacher": self.teacher})
             except Conflict as err:
                 raise LostRun(str(err)) from err
             self.teacher = read_run(session, run_id=self.run_id).teacher
@@ -240,8 +246,16 @@ class QueueHooks(RunHooks):
 
     def pretraining(self, step: int) -> None:
         # Heartbeats keep the run ours while its skill snapshot is made (minutes to hours);
-        # pause and stop wait for the online phase, which can checkpoint.
-        self.progress["pretraining_step"] = step
+        # pause and stop wait for the online phase, which can checkpoint. Its pace, for the
+        # estimate the run page and the label page show (`labelqueue.activity`).
+        now = time.monotonic()
+        if step > 0 and self.pretrain_start is None:
+            self.pretrain_start = (now, step)
+        self.progress |= {"pretraining_step": step,
+                          "pretraining_steps": self.cfg.skill.pretrain_steps}
+        if self.pretrain_start is not None and now > self.pretrain_start[0] + 1:
+            self.progress["pretraining_fps"] = ((step - self.pretrain_start[1])
+                                                / (now - self.pretrain_start[0]))
         self.beat(0)
 
     def metrics(self, stream: str, row: dict[str, Any]) -> None:
@@ -400,6 +414,7 @@ def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerC
         print(f"{log}: {'resuming' if resume else 'starting'} {run.task} {run.algo} "
               f"in {cfg.run_dir}", file=sys.stderr, flush=True)
         training = TrainingRun(cfg, resume=resume, progress=False, hooks=hooks)
+        hooks.next_round_step = lambda: training.next_round_step
         hooks.step = training.step  # a resumed run reports its step before taking one
         summary = training.train()
         hooks.beat(int(summary["step"]), force=True)  # the final step and progress, on record

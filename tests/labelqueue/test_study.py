@@ -1,0 +1,222 @@
+"""A study around an invite: its state follows its runs, only decisive answers on its own run
+count towards the target, each participant has their own completion code (checkable, not
+guessable, not shared), and the study completes when the target is met, the run is over or
+check pairs pause the participant. Also: why a run waits, and the workers as last seen."""
+
+from __future__ import annotations
+
+from datetime import timedelta
+
+import pytest
+from queue_helpers import query_spec, running_run
+from sqlalchemy import update
+from sqlalchemy.orm import Session
+
+from labelqueue import (
+    InviteClosed,
+    LabellerPause,
+    Run,
+    RunStatus,
+    TeacherKind,
+    Worker,
+    claim_run,
+    create_invite,
+    create_run,
+    heartbeat,
+    invite_runs_open,
+    invite_state,
+    join_invite,
+    labeller_progress,
+    lease_next_query,
+    list_invites,
+    push_queries,
+    set_run_status,
+    submit_label,
+    verify_code,
+)
+from labelqueue.activity import labeller_waiting, list_workers, runs_activity
+from labelqueue.invites import completion_redirect
+from labelqueue.models import utcnow
+
+
+def week() -> object:
+    return utcnow() + timedelta(days=7)
+
+
+def answer(session: Session, labeller_id: int, run_id: int, choice: str) -> None:
+    query = lease_next_query(session, labeller_id=labeller_id, run_id=run_id)
+    assert query is not None
+    submit_label(session, query_id=query.id, labeller_id=labeller_id, choice=choice,
+                 left_is_first=True)
+
+
+def test_only_decisive_answers_on_the_invites_run_count_and_codes_are_each_participants_own(
+    session: Session,
+) -> None:
+    run = running_run(session, teacher=TeacherKind.HUMAN)
+    other = create_run(session, name="o", task="dmc:cheetah_run", algo="pebble", budget=100)
+    assert claim_run(session, worker_id="worker-b") is not None
+    push_queries(session, run_id=run.id, queries=[query_spec(i) for i in range(6)])
+    push_queries(session, run_id=other.id, queries=[query_spec(i) for i in range(3)])
+    invite = create_invite(session, expires_at=week(), run_id=run.id, target_answers=2,
+                           completion_code="PILOT")
+    ann = join_invite(session, code=invite.code, participant="ann").labeller
+    bob = join_invite(session, code=invite.code, participant="bob").labeller
+
+    # Skips, can't-tells and another run's answers count for nothing.
+    answer(session, ann.id, run.id, "skip")
+    answer(session, ann.id, run.id, "cant_tell")
+    answer(session, ann.id, other.id, "left")
+    progress = labeller_progress(session, labeller_id=ann.id)
+    assert (progress.labels, progress.counted, progress.complete) == (3, 0, False)
+    assert progress.completion_code is None
+    answer(session, ann.id, run.id, "left")
+    answer(session, ann.id, run.id, "equal")
+    done = labeller_progress(session, labeller_id=ann.id)
+    assert (done.counted, done.complete, done.why) == (2, True, "target")
+    assert done.completion_code is not None and done.completion_code.startswith("PILOT-")
+
+    # Bob's code is another; before he finishes he has none, and nobody can derive it.
+    assert labeller_progress(session, labeller_id=bob.id).completion_code is None
+    answer(session, bob.id, run.id, "right")
+    answer(session, bob.id, run.id, "left")
+    bobs = labeller_progress(session, labeller_id=bob.id).completion_code
+    assert bobs is not None and bobs != done.completion_code
+
+    checked = verify_code(session, done.completion_code.lower().replace("-", " - "))
+    assert checked is not None
+    assert (checked.labeller_id, checked.participant, checked.counted, checked.why) == (
+        ann.id, "ann", 2, "target")
+    # The prefix may be left out; a code off by one character, or the study code with another
+    # participant's part, is nobody's.
+    assert verify_code(session, done.completion_code.removeprefix("PILOT-")) is not None
+    forged = done.completion_code[:-1] + ("0" if done.completion_code[-1] != "0" else "1")
+    assert verify_code(session, forged) is None
+    assert verify_code(session, "PILOT") is None
+    assert verify_code(session, "OTHER-" + bobs.removeprefix("PILOT-")) is None
+
+
+def test_the_study_closes_with_its_run_and_completes_for_those_who_joined(
+    session: Session,
+) -> None:
+    run = running_run(session, teacher=TeacherKind.HUMAN)
+    invite = create_invite(session, expires_at=week(), run_id=run.id, target_answers=50,
+                           redirect_url="https://example.org/done?cc=ABC")
+    joined = join_invite(session, code=invite.code, participant="P9").labeller
+    assert invite_runs_open(session, [invite]) == {invite.id: True}
+    assert labeller_progress(session, labeller_id=joined.id).complete is False
+
+    set_run_status(session, run_id=run.id, status=RunStatus.STOPPING)
+    [stored] = list_invites(session)
+    assert invite_state(stored, runs_open=invite_runs_open(session, [stored])[stored.id]) \
+        == "closed"
+    with pytest.raises(InviteClosed) as refused:
+        join_invite(session, code=invite.code, participant="late")
+    assert refused.value.reason == "closed" and "ended" in str(refused.value)
+
+    progress = labeller_progress(session, labeller_id=joined.id)
+    assert (progress.complete, progress.why, progress.counted) == (True, "runs_over", 0)
+    assert progress.completion_code is not None
+    assert progress.redirect_url == "https://example.org/done?cc=ABC&participant=P9"
+
+    # A requeued run opens its invite again.
+    set_run_status(session, run_id=run.id, status=RunStatus.STOPPED)
+    set_run_status(session, run_id=run.id, status=RunStatus.QUEUED)
+    assert invite_runs_open(session, [stored]) == {invite.id: True}
+
+
+def test_a_spent_budget_or_a_pause_completes_the_study_with_a_code_or_the_operators_message(
+    session: Session,
+) -> None:
+    run = running_run(session, teacher=TeacherKind.HUMAN)
+    coded = create_invite(session, expires_at=week(), run_id=run.id)
+    told = create_invite(session, expires_at=week(), run_id=run.id,
+                         pause_message="Please return the study on Prolific.")
+    one = join_invite(session, code=coded.code).labeller
+    two = join_invite(session, code=told.code).labeller
+    for labeller in (one, two):
+        session.add(LabellerPause(run_id=run.id, labeller_id=labeller.id, gold_answers=4,
+                                  gold_correct=1))
+    session.commit()
+    paused = labeller_progress(session, labeller_id=one.id)
+    assert (paused.why, paused.pause_message) == ("paused", None)
+    assert paused.completion_code is not None
+    message = labeller_progress(session, labeller_id=two.id)
+    assert (message.why, message.completion_code) == ("paused", None)
+    assert message.pause_message == "Please return the study on Prolific."
+
+    with session.begin():
+        session.execute(update(Run).where(Run.id == run.id).values(labels_used=100))
+    assert labeller_progress(session, labeller_id=one.id).why == "runs_over"
+
+
+def test_consent_is_required_when_the_invite_has_a_text(session: Session) -> None:
+    run = running_run(session, teacher=TeacherKind.HUMAN)
+    invite = create_invite(session, expires_at=week(), run_id=run.id,
+                           consent_text="Your answers are kept for research.")
+    with pytest.raises(ValueError, match="consent"):
+        join_invite(session, code=invite.code)
+    assert join_invite(session, code=invite.code, consent=True).labeller.id > 0
+    with pytest.raises(ValueError, match="redirect_url"):
+        create_invite(session, expires_at=week(), redirect_url="javascript:alert(1)")
+
+
+def test_redirects_fill_in_the_code_and_the_participant() -> None:
+    url = "https://x.test/end?pid={participant}&code={code}"
+    assert completion_redirect(url, code="A-B", participant="w 1") == \
+        "https://x.test/end?pid=w%201&code=A-B"
+    assert completion_redirect("https://x.test/end", code="A", participant=None) == \
+        "https://x.test/end"
+
+
+def test_a_run_says_what_it_waits_for(session: Session) -> None:
+    run = running_run(session, teacher=TeacherKind.HUMAN)
+    queued = create_run(session, name="q", task="dmc:cheetah_run", algo="pebble", budget=10)
+    [activity, waiting] = runs_activity(session, [run, queued])
+    assert activity.phase == "starting"
+    assert waiting.phase == "queued" and "all busy" in waiting.text
+
+    push_queries(session, run_id=run.id, queries=[query_spec(i) for i in range(10)])
+    invite = create_invite(session, expires_at=week(), run_id=run.id)
+    one = join_invite(session, code=invite.code).labeller
+    session.add(LabellerPause(run_id=run.id, labeller_id=one.id, gold_answers=4,
+                              gold_correct=1))
+    session.commit()
+    fresh = session.get(Run, run.id)
+    session.commit()
+    assert fresh is not None
+    [activity] = runs_activity(session, [fresh])
+    assert activity.phase == "labelling"
+    assert activity.text == "waiting for 10 answers from 0 active labellers (1 paused by " \
+                            "check pairs)"
+
+    heartbeat(session, run_id=run.id, worker_id="worker-a", step=0,
+              progress={"pretraining_step": 1000, "pretraining_steps": 11_000,
+                        "pretraining_fps": 100.0})
+    other = create_run(session, name="p", task="dmc:walker_run", algo="sepoa", budget=10)
+    set_run_status(session, run_id=queued.id, status=RunStatus.STOPPED)
+    assert claim_run(session, worker_id="worker-c") is not None
+    heartbeat(session, run_id=other.id, worker_id="worker-c", step=0,
+              progress={"pretraining_step": 1000, "pretraining_steps": 11_000,
+                        "pretraining_fps": 100.0})
+    stored = session.get(Run, other.id)
+    session.commit()
+    assert stored is not None
+    [pre] = runs_activity(session, [stored])
+    assert pre.phase == "pretraining" and pre.eta_s == pytest.approx(100.0)
+    assert "about 2 min left" in pre.text
+    assert labeller_waiting(session, run_id=other.id).text.startswith(
+        "The trainer is first pretraining its skills")
+
+
+def test_workers_are_listed_with_their_host_and_dead_ones_as_dead(session: Session) -> None:
+    running_run(session, teacher=TeacherKind.HUMAN, worker_id="worker-a")
+    assert claim_run(session, worker_id="worker-idle") is None
+    with session.begin():
+        session.add(Worker(id="worker-gone", host="elsewhere", first_seen_at=utcnow(),
+                           last_seen_at=utcnow() - timedelta(minutes=10)))
+    states = {w.id: w for w in list_workers(session)}
+    assert states["worker-a"].state == "training" and states["worker-a"].run_id is not None
+    assert states["worker-a"].host
+    assert states["worker-idle"].state == "idle"
+    assert states["worker-gone"].state == "dead" and states["worker-gone"].silent_s > 500
