@@ -26,6 +26,15 @@ paper's labellers saw them; how that relates to a task's own time is
 `runvocab.clip_format.real_time_ratio` (cheetah, 10 ms a step: a third of real speed). Walkers,
 runners and swimmers are filmed by the camera that follows them (`CLIP_CAMERAS`), so the body
 stays in frame however far it goes.
+
+Motion cues (`ClipConfig.motion_cues`, on by default): a following camera alone shows no speed
+and no direction once the body is past the end of the drawn floor (DMC's floors end 2 m behind
+the start and 50-250 m ahead; cheetah's whole view is then the skybox, which moves with the
+camera). Clips draw each floor moved under the body by whole periods of its grid, so the grid
+stays fixed in the world and the ground is in every frame, and the planar runners (cheetah,
+walker, hopper: `MARKER_ROWS`) get a row of posts behind the track, one a metre, yellow every
+5 m, red at the start. `ground_fractions()` measures the ground in each frame; tests and
+`benchmarks/bench_ground.py` check that no frame is without it.
 """
 
 from __future__ import annotations
@@ -46,7 +55,7 @@ from runvocab.clip_format import CLIP_FPS, CLIP_SIZES, DEFAULT_CLIP_SIZE, dmc_do
 from trainer.trajectories import Trajectory
 
 if TYPE_CHECKING:  # not at run time: the worker builds a ClipConfig before MuJoCo's import
-    from trainer.envs import Env
+    from trainer.envs import Env, MotionCues
 
 MIN_SIZE, MAX_SIZE = 64, 512
 DEFAULT_WIDTH, DEFAULT_HEIGHT = CLIP_SIZES[DEFAULT_CLIP_SIZE]
@@ -64,6 +73,11 @@ CLIP_CAMERAS: dict[str, str] = {
 """per DMC domain, the camera a clip is filmed by: the one that tracks the body's centre of mass
 from the side (quadruped's "y" keeps the whole body in view; "x" films it from behind), so a
 runner never leaves the frame. Other domains, and Metaworld, keep their env's default view."""
+MARKER_ROWS: dict[str, float] = {"cheetah": 0.7, "walker": 0.7, "hopper": 0.9}
+"""per planar DMC runner, the y (m) of the row of distance posts: behind the body as its side
+camera sees it, on the far half of the floor"""
+GROUND_MIN_FRACTION = 0.01
+"""a frame with less than this share of its pixels on a floor counts as one without ground"""
 
 
 @dataclass(frozen=True)
@@ -86,6 +100,9 @@ class ClipConfig:
     """facets around built-in spheres, capsules and cylinders (None: the model's own, 28)"""
     stacks: int | None = 8
     """facets along built-in spheres and capsules (None: the model's own, 16)"""
+    motion_cues: bool = True
+    """the floor drawn under the body wherever it is, and distance posts beside planar runners'
+    track (`motion_cues()`); off: the model's scene as it is"""
     reflections: bool = False
     """mirror images in reflective floors; off, a 256 px cheetah pair renders about 30% faster
     on a CPU, and only the floor's mirror image is lost"""
@@ -133,6 +150,18 @@ def clip_camera(task: str) -> str | None:
     return CLIP_CAMERAS.get(dmc_domain(name)) if family == "dmc" else None
 
 
+def motion_cues(task: str) -> MotionCues | None:
+    """What a task's clips draw to show motion (`trainer.envs.MotionCues`): on DMC, the floor
+    that follows the camera and, for planar runners (`MARKER_ROWS`), distance posts; None on
+    Metaworld, whose cameras are fixed."""
+    family, _, name = task.partition(":")
+    if family != "dmc":
+        return None
+    from trainer.envs import MotionCues  # here: the worker imports this module before MuJoCo
+
+    return MotionCues(marker_row=MARKER_ROWS.get(dmc_domain(name)))
+
+
 def sized(cfg: ClipConfig, clip_size: str | None) -> ClipConfig:
     """`cfg` at a run's clip size (a `CLIP_SIZES` name; None keeps cfg's own)."""
     if clip_size is None:
@@ -151,6 +180,7 @@ def iter_segment_frames(env: Env, traj_states: np.ndarray, context: int, start: 
     # Before the first render: a renderer takes these settings when it is created.
     env.set_render_quality(**render_quality(cfg))
     env.set_reflections(cfg.reflections)
+    env.set_motion_cues(motion_cues(env.task) if cfg.motion_cues else None)
     camera = cfg.camera if cfg.camera is not None else clip_camera(env.task)
 
     def frames() -> Iterator[np.ndarray]:
@@ -168,6 +198,42 @@ def render_segment(env: Env, traj_states: np.ndarray, context: int, start: int, 
     for i, frame in enumerate(iter_segment_frames(env, traj_states, context, start, length, cfg)):
         frames[i] = frame
     return frames
+
+
+def ground_fractions(env: Env, traj_states: np.ndarray, context: int, start: int, length: int,
+                     cfg: ClipConfig) -> np.ndarray:
+    """float (length,): per frame of the clip `iter_segment_frames` renders, the share of its
+    pixels that show a floor (MuJoCo's segmentation render of the same scene, motion cues
+    included). Below `GROUND_MIN_FRACTION`, a frame has no ground to see motion against."""
+    # Sets the env up exactly as for the clip (and checks the segment).
+    iter_segment_frames(env, traj_states, context, start, length, cfg)
+    camera = cfg.camera if cfg.camera is not None else clip_camera(env.task)
+    out = np.empty(length)
+    for i, state in enumerate(np.asarray(traj_states)[start:start + length]):
+        env.restore(state, context)
+        out[i] = env.ground_fraction(cfg.width, cfg.height, camera)
+    return out
+
+
+def moved_states(env: Env, traj_states: np.ndarray, dx: float, dy: float = 0.0) -> np.ndarray:
+    """The stored DMC states with the body moved dx m along x (and dy along y where it has a
+    free joint): the same motion further along the run, as a long-running agent would be. DMC's
+    floors collide as infinite planes, so the physics is the same there."""
+    import mujoco
+
+    model = env._model  # the joint layout, read only
+    states = np.array(traj_states, np.float64, copy=True)
+    for j in range(model.njnt):
+        if model.jnt_bodyid[j] == 0 or model.body_parentid[model.jnt_bodyid[j]] != 0:
+            continue  # only the root joints of bodies hanging off the world
+        adr = int(model.jnt_qposadr[j])
+        if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE:
+            states[:, adr] += dx
+            states[:, adr + 1] += dy
+        elif (model.jnt_type[j] == mujoco.mjtJoint.mjJNT_SLIDE
+              and np.allclose(model.jnt_axis[j], [1, 0, 0])):
+            states[:, adr] += dx
+    return states
 
 
 def encode_mp4(frames: Iterable[np.ndarray], path: str | os.PathLike, cfg: ClipConfig) -> Path:

@@ -180,6 +180,88 @@ def _upside_down_cameras(model: mujoco.MjModel) -> frozenset[int]:
     )
 
 
+@dataclass(frozen=True, slots=True)
+class MotionCues:
+    """What a clip's frames show besides the model, so that speed and direction can be seen
+    however far the agent has gone (`Env.set_motion_cues`). MuJoCo's planes collide as if
+    infinite but are drawn at their `size`: DMC's floors end 2 m behind the start (cheetah,
+    walker, hopper) and 15-200 m ahead, and a tracking camera past either end films the body in
+    front of the skybox, which moves with the camera, so no motion shows at all."""
+
+    ground_follows: bool = True
+    """each floor plane of the world is drawn moved under the camera's subject by a whole number
+    of its texture's periods: the same grid, fixed in the world, in every frame"""
+    marker_row: float | None = None
+    """y (m) of a row of posts beside the track, one every `marker_spacing` m along x, fixed in
+    the world (None: no posts; for planar runners filmed from the side)"""
+    marker_spacing: float = 1.0
+    """metres between two posts; every 5th post is taller and yellow, the one at x = 0 (where
+    every episode starts) tallest and red"""
+    marker_span: float = 8.0
+    """posts are drawn this far (m) either side of the camera's subject"""
+
+
+@dataclass(frozen=True, slots=True)
+class _Floor:
+    geom: int
+    center: np.ndarray
+    """(x, y) of the plane's centre in the model"""
+    half: np.ndarray
+    """(x, y) half sizes, as drawn"""
+    period: np.ndarray
+    """(x, y) distances the plane can move by and look the same"""
+
+
+def _floor_planes(model: mujoco.MjModel) -> tuple[_Floor, ...]:
+    """Finite, horizontal, unrotated planes of the world body: the floors."""
+    floors = []
+    for i in range(model.ngeom):
+        if (model.geom_type[i] != mujoco.mjtGeom.mjGEOM_PLANE or model.geom_bodyid[i] != 0
+                or not np.all(model.geom_size[i, :2] > 0)):
+            continue
+        quat = model.geom_quat[i]
+        if not np.allclose(np.abs(quat), [1, 0, 0, 0]):
+            continue
+        size = model.geom_size[i, :2]
+        mat = int(model.geom_matid[i])
+        if mat >= 0:
+            repeat = np.maximum(model.mat_texrepeat[mat], 1e-9)
+            # A uniform texture repeats `texrepeat` times per 2 m of plane (one checker square
+            # per metre at texrepeat 1); otherwise it is stretched over the whole plane.
+            period = 2 / repeat if model.mat_texuniform[mat] else 2 * size / repeat
+        else:
+            period = np.array([1.0, 1.0])
+        floors.append(_Floor(i, model.geom_pos[i, :2].copy(), size.copy(),
+                             np.asarray(period, np.float64)))
+    return tuple(floors)
+
+
+_POST_RGBA = {"metre": (0.85, 0.85, 0.85, 1.0), "five": (1.0, 0.85, 0.1, 1.0),
+              "start": (0.9, 0.2, 0.2, 1.0)}
+_POST_HALF_HEIGHT = {"metre": 0.08, "five": 0.16, "start": 0.3}
+
+
+def _add_distance_markers(scene: mujoco.MjvScene, focus_x: float, cues: MotionCues) -> None:
+    """Posts every `cues.marker_spacing` m along x at y = `cues.marker_row`, within
+    `cues.marker_span` of focus_x, added to the scene as decoration."""
+    step = cues.marker_spacing
+    first = int(np.floor((focus_x - cues.marker_span) / step))
+    last = int(np.ceil((focus_x + cues.marker_span) / step))
+    eye = np.eye(3).ravel()
+    for k in range(first, last + 1):
+        if scene.ngeom >= scene.maxgeom:
+            return
+        kind = "start" if k == 0 else "five" if k % 5 == 0 else "metre"
+        half = _POST_HALF_HEIGHT[kind]
+        geom = scene.geoms[scene.ngeom]
+        mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_BOX, np.array([0.02, 0.02, half]),
+                            np.array([k * step, cues.marker_row, half]), eye,
+                            np.array(_POST_RGBA[kind], np.float32))
+        geom.category = mujoco.mjtCatBit.mjCAT_DECOR
+        geom.segid = scene.ngeom  # as mjv_updateScene numbers its own
+        scene.ngeom += 1
+
+
 # ---------------------------------------------------------------------------------------------
 # Environments
 
@@ -208,8 +290,10 @@ class Env(abc.ABC):
         self._action_offset = None if unit else (high + low) / 2
         self._default_camera = default_camera
         self._upside_down = _upside_down_cameras(model)
-        self._renderers: dict[tuple[int, int], mujoco.Renderer] = {}
+        self._renderers: dict[tuple[int, int] | tuple[int, int, str], mujoco.Renderer] = {}
         self._reflectance: np.ndarray | None = None  # the model's own, once reflections are set
+        self._floors = _floor_planes(model)
+        self._cues: MotionCues | None = None  # set_motion_cues()
         self._closed = False
 
     # -- the simulator-specific parts
@@ -275,10 +359,76 @@ class Env(abc.ABC):
             _close_renderers_at_exit()
             self._renderers[(height, width)] = renderer
         renderer.update_scene(self._data, camera=camera_id)
+        if self._cues is not None:
+            self._add_motion_cues(renderer.scene, camera_id)
         frame = renderer.render()
         if camera_id in self._upside_down:
             frame = np.ascontiguousarray(frame[::-1, ::-1])
         return frame
+
+    def ground_fraction(self, width: int, height: int, camera: int | str | None = None) -> float:
+        """The share of render()'s frame of the current state that shows a floor plane (with
+        the motion cues set, as render() draws them), from MuJoCo's segmentation render: what
+        the no-ground check (`trainer.clips.ground_fractions`) counts."""
+        camera_id = self._camera_id(self._default_camera if camera is None else camera)
+        key = (height, width, "segmentation")
+        renderer = self._renderers.get(key)
+        if renderer is None:
+            vis = self._model.vis.global_
+            vis.offwidth, vis.offheight = max(vis.offwidth, width), max(vis.offheight, height)
+            renderer = mujoco.Renderer(self._model, height, width)
+            renderer.enable_segmentation_rendering()
+            _open_renderers.add(renderer)
+            _close_renderers_at_exit()
+            self._renderers[key] = renderer
+        renderer.update_scene(self._data, camera=camera_id)
+        if self._cues is not None:
+            self._add_motion_cues(renderer.scene, camera_id)
+        ids = renderer.render()
+        floor = np.isin(ids[..., 0], [f.geom for f in self._floors]) & (
+            ids[..., 1] == mujoco.mjtObj.mjOBJ_GEOM)
+        return float(floor.mean())
+
+    def set_motion_cues(self, cues: MotionCues | None) -> None:
+        """What render() adds so that a clip shows motion wherever the agent is (`MotionCues`);
+        None: the model's scene as it is."""
+        self._cues = cues
+
+    def _focus(self, camera_id: int) -> np.ndarray | None:
+        """The world point a camera follows (the centre of mass of the subtree it tracks or is
+        attached to); None for the free camera and fixed world cameras, which never move."""
+        m = self._model
+        if camera_id < 0:
+            return None
+        mode, body = int(m.cam_mode[camera_id]), int(m.cam_bodyid[camera_id])
+        if mode in (mujoco.mjtCamLight.mjCAMLIGHT_TARGETBODY,
+                    mujoco.mjtCamLight.mjCAMLIGHT_TARGETBODYCOM):
+            body = int(m.cam_targetbodyid[camera_id])
+        elif mode == mujoco.mjtCamLight.mjCAMLIGHT_FIXED and body == 0:
+            return None
+        return self._data.subtree_com[body]
+
+    def _add_motion_cues(self, scene: mujoco.MjvScene, camera_id: int) -> None:
+        cues = self._cues
+        focus = self._focus(camera_id)
+        if cues is None or focus is None:
+            return
+        if cues.ground_follows:
+            # Each floor is moved under the camera's subject by a whole number of its texture's
+            # periods, so its grid stays where it was in the world: the floor looks infinite.
+            # Only along an axis where the floor is at least a period wide, so that the shifted
+            # floor still reaches half a period either side of the subject: fish's 1 m tank
+            # floor (2 m period) stays where it is, and so do the runners' 1.6-2 m wide tracks
+            # across (they run along x). mjvGeom's size is not what a plane is drawn at.
+            floors = {f.geom: f for f in self._floors}
+            for g in scene.geoms[:scene.ngeom]:
+                if g.objtype != mujoco.mjtObj.mjOBJ_GEOM or g.objid not in floors:
+                    continue
+                f = floors[g.objid]
+                shift = np.round((focus[:2] - f.center) / f.period) * f.period
+                g.pos[:2] += np.where(2 * f.half >= f.period, shift, 0.0)
+        if cues.marker_row is not None:
+            _add_distance_markers(scene, float(focus[0]), cues)
 
     def set_render_quality(self, **quality: int) -> None:
         """Sets fields of the model's `vis.quality` (shadowsize, offsamples, numslices, ...)
