@@ -26,7 +26,7 @@ from datetime import datetime
 from typing import Literal
 from urllib.parse import parse_qsl, quote, urlencode, urlsplit, urlunsplit
 
-from sqlalchemy import Exists, exists, func, or_, select, update
+from sqlalchemy import ColumnElement, exists, func, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -55,7 +55,8 @@ CODE_BYTES = 18
 """random bytes in an invite's code (24 URL-safe characters)"""
 RUN_OPEN = (RunStatus.QUEUED, RunStatus.RUNNING, RunStatus.PAUSED)
 """a run in one of these may still give pairs to label; stopping, stopped, finished and failed
-runs never will (a requeued run opens its invites again)"""
+runs never will (a requeued run opens its invites again). An all-runs invite closes once every
+run taught by people is over."""
 REDIRECT_MAX = 2000
 CODE_ALPHABET = "0123456789ABCDEFGHJKMNPQRSTVWXYZ"
 """Crockford's base 32: no I, L, O or U, so a code read aloud or retyped survives"""
@@ -82,12 +83,12 @@ def invite_state(invite: Invite, now: datetime | None = None,
     now = now or utcnow()
     if invite.revoked_at is not None:
         return "revoked"
-    if not runs_open:
-        return "closed"
     if invite.expires_at <= now:
         return "expired"
     if invite.max_uses is not None and invite.uses >= invite.max_uses:
         return "used_up"
+    if not runs_open:
+        return "closed"
     return "open"
 
 
@@ -100,12 +101,13 @@ CLOSED_TEXT = {
 }
 
 
-def _open_runs_of(run_id: int | None) -> Exists:
+def _open_runs_of(run_id: int | None) -> ColumnElement[bool]:
     """A condition: the run `run_id` is open; for an all-runs invite, some run taught by people
-    is."""
+    is, or none was ever made (an operator may make the link before the runs)."""
     if run_id is not None:
         return exists().where(Run.id == run_id, Run.status.in_(RUN_OPEN))
-    return exists().where(Run.teacher == TeacherKind.HUMAN, Run.status.in_(RUN_OPEN))
+    return or_(exists().where(Run.teacher == TeacherKind.HUMAN, Run.status.in_(RUN_OPEN)),
+               ~exists().where(Run.teacher == TeacherKind.HUMAN))
 
 
 def invite_runs_open(session: Session, invites: list[Invite]) -> dict[int, bool]:

@@ -79,6 +79,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.router.routes[0:0] = label.hot_router.routes
     app.include_router(label.router)
     app.include_router(runs.router)
+    app.include_router(runs.workers_router)
     app.include_router(labellers.router)
     app.include_router(export_routes.router)
     app.include_router(stats.router)

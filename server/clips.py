@@ -29,7 +29,7 @@ def signed_clip_url(*, settings: Settings, query_id: int, side: str, now: float)
     """A URL for one clip, valid for `clip_url_seconds` from `now` (unix seconds)."""
     expires = int(now + settings.clip_url_seconds)
     sig = signature(secret=settings.secret_key, query_id=query_id, side=side, expires=expires)
-    return f"/api/clips/{query_id}/{side}?expires={expires}&sig={sig}"
+    return settings.public(f"/api/clips/{query_id}/{side}?expires={expires}&sig={sig}")
 
 
 def signature_is_valid(

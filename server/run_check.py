@@ -8,6 +8,8 @@ from typing import Any
 
 from fastapi.exceptions import RequestValidationError
 
+from runvocab.clip_format import CLIP_FPS, step_seconds
+from runvocab.config import build_config, typed_overrides
 from runvocab.names import ConfigError
 from runvocab.queued_run import TOP_LEVEL_FIELDS, queued_run_config
 
@@ -37,3 +39,43 @@ def _location(field: str, teacher_params: Mapping[str, Any], config: Mapping[str
     if field in TOP_LEVEL_FIELDS:
         return ("body", TOP_LEVEL_FIELDS[field])
     return ("body",)  # a preset's value the rest of the run contradicts; the message names it
+
+
+DEFAULT_PRETRAIN_STEPS_PER_S = 230.0
+"""APS skill pretraining's pace with the small preset on 2 CPU cores, the estimate's fallback
+when no worker of this server has reported its own"""
+
+
+def run_defaults(*, task: str, algo: str, preset: str, config: Mapping[str, Any],
+                 measured_pace: float | None) -> dict[str, Any]:
+    """What a run of this task, algorithm and preset gets unless `config` says otherwise
+    (`RunDefaults`); a 422 naming the field for a config no worker could use."""
+    try:
+        cfg = build_config(task, preset, {"algo": algo} | typed_overrides(dict(config)))
+    except ConfigError as err:
+        raise RequestValidationError([{
+            "type": "value_error", "msg": str(err), "loc": ("query", "config", err.field),
+        }]) from None
+    episode = cfg.episode_length or (500 if task.startswith("metaworld:") else 1000)
+    if algo == "sac":
+        first = 0
+    elif algo == "sepoa":
+        first = max(cfg.seed_steps, max(2, cfg.skill.initial_rollouts) * episode)
+    else:
+        first = max(-(-(cfg.seed_steps + cfg.unsup_steps) // episode), 2) * episode
+    pretrain = cfg.skill.pretrain_steps if algo == "sepoa" else 0
+    pace = measured_pace or DEFAULT_PRETRAIN_STEPS_PER_S
+    step_s = step_seconds(task)
+    segment = cfg.feedback.segment_length
+    return {
+        "budget": cfg.feedback.budget,
+        "per_round": cfg.feedback.per_round,
+        "segment_length": segment,
+        "clip_seconds": round(segment / CLIP_FPS, 3),
+        "task_seconds": None if step_s is None else round(segment * step_s, 3),
+        "first_round_steps": first,
+        "pretrain_steps": pretrain,
+        "pretrain_seconds": round(pretrain / pace, 1) if pretrain else None,
+        "pretrain_steps_per_s": round(pace, 1) if pretrain else None,
+        "pretrain_pace_measured": bool(pretrain and measured_pace),
+    }

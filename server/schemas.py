@@ -144,7 +144,8 @@ class RunCreate(Body):
 
     task: TaskName
     algo: AlgoName
-    budget: StoredInt
+    budget: StoredInt | None = None
+    """answers the run may ask for in all; defaults to its preset's (`GET /api/runs/defaults`)"""
     preset: PresetName = "small"
     seed: StoredInt = 0
     teacher: Teacher = "human"
@@ -243,6 +244,9 @@ class NextQuery(BaseModel):
     left_is_first: bool
     """the sides this server chose for the labeller: whether the first segment is on the left"""
     segment_length: int
+    left_start_step: int
+    """the step of its episode the left clip starts at (the player shows it)"""
+    right_start_step: int
 
 
 class LabelSubmit(Body):
@@ -332,12 +336,25 @@ class InviteCreate(Body):
     max_uses: Annotated[int, Field(ge=1, le=INT32_MAX)] | None = None
     """labellers it may make; null: no limit"""
     target_answers: Annotated[int, Field(ge=1, le=INT32_MAX)] | None = None
-    """answers after which each labeller is shown the completion code; null: none"""
-    completion_code: str | None = Field(default=None, min_length=1, max_length=64,
+    """decisive answers (not skips or can't-tells) on the invite's run after which a
+    participant's study is complete; null: it completes when the run is over"""
+    completion_code: str | None = Field(default=None, min_length=1, max_length=40,
                                         pattern=r"^[A-Za-z0-9_-]+$")
-    """the code to show (a platform's study code); made up when left out and a target is set"""
+    """the study's code (a platform's): the prefix of every participant's own completion code
+    (`<this>-XXXX-XXXX-XXXX`); null: their own part alone"""
     note: str | None = Field(default=None, min_length=1, max_length=200)
     """the operator's own name for the link"""
+    redirect_url: str | None = Field(default=None, min_length=1, max_length=2000,
+                                     pattern=r"^https?://",
+                                     examples=["https://app.prolific.com/submissions/complete"
+                                               "?cc=C1234"])
+    """where a participant is sent when their study is complete (a platform's completion URL):
+    `{code}` and `{participant}` in it are filled in; without either, `participant=<id>` is
+    added when the link was opened with one"""
+    consent_text: str | None = Field(default=None, min_length=1, max_length=8000)
+    """shown on the invite's page: nobody joins without agreeing to it"""
+    pause_message: str | None = Field(default=None, min_length=1, max_length=2000)
+    """what a participant paused by check pairs is told instead of being given their code"""
 
 
 class InviteOut(Out):
@@ -352,15 +369,23 @@ class InviteOut(Out):
     uses: int
     target_answers: int | None
     completion_code: str | None
+    """the study's code, the prefix of each participant's own"""
     created_at: datetime
     revoked_at: datetime | None
-    state: Literal["open", "revoked", "expired", "used_up"]
+    redirect_url: str | None
+    consent_text: str | None
+    pause_message: str | None
+    state: Literal["open", "revoked", "expired", "used_up", "closed"]
+    """closed: its run is over (stopping, stopped, finished or failed; for an all-runs link, no
+    run taught by people is queued, running or paused)"""
 
 
 class JoinRequest(Body):
     participant: str | None = Field(default=None, min_length=1, max_length=64,
                                     pattern=r"^[A-Za-z0-9_.@+-]+$")
     """a name or a crowdsourcing platform's worker id; the labeller is named after it"""
+    consent: bool = False
+    """the person agreed to the invite's consent text (required when it has one)"""
 
 
 class JoinedOut(BaseModel):
@@ -374,14 +399,121 @@ class JoinedOut(BaseModel):
 
 
 class ProgressOut(BaseModel):
-    """The caller's answers so far and, for an invite with a target, the completion code once
-    the target is reached."""
+    """The caller's answers so far and, for one who joined by an invite, where their study
+    stands: complete once the target is reached, the run is over (or its budget spent), or
+    check pairs paused them; then their own completion code."""
 
     labels: int
+    """answers given on any run, skips included"""
     target_answers: int | None
     completion_code: str | None
+    """the caller's own code, once their study is complete (null before, and for a paused
+    participant whose invite gives a message instead)"""
     run_id: int | None
     """the run the caller's invite was for; null: all runs"""
+    counted: int = 0
+    """what the target counts: decisive answers on the invite's run (`labels` for others)"""
+    invited: bool = False
+    complete: bool = False
+    why: Literal["target", "runs_over", "paused"] | None = None
+    participant: str | None = None
+    redirect_url: str | None = None
+    """where to go now that the study is complete, filled in for the caller"""
+    pause_message: str | None = None
+
+
+class WaitingOut(BaseModel):
+    """Why there is nothing to label now."""
+
+    reason: str
+    """the run's phase (`queued`, `starting`, `pretraining`, `exploring`, `training`,
+    `labelling`: the rest of the round is with others, `paused`, `silent`, `stopping`) or
+    `no_run`"""
+    text: str
+    run_id: int | None
+    eta_s: float | None
+    """seconds until pairs may come, when known"""
+
+
+class StatusOut(BaseModel):
+    """The label page's look when it has nothing to show: the caller's progress, and why it
+    waits (null once the study is complete)."""
+
+    progress: ProgressOut
+    waiting: WaitingOut | None
+
+
+class ActivityOut(BaseModel):
+    """What a run is doing or waiting for now (`labelqueue.activity`)."""
+
+    run_id: int
+    phase: str
+    text: str
+    answers_needed: int
+    pairs_open: int
+    pairs_unrendered: int
+    labellers_active: int
+    labellers_paused: int
+    eta_s: float | None
+    workers_alive: int
+    workers_idle: int
+    queued_ahead: int
+
+
+class WorkerOut(BaseModel):
+    """A trainer worker as last seen."""
+
+    id: str
+    host: str | None
+    run_id: int | None
+    first_seen_at: datetime
+    last_seen_at: datetime
+    silent_s: float
+    """seconds since it last reported"""
+    state: Literal["training", "idle", "silent", "dead"]
+    """silent: no word for over a minute; dead: for over five (its run may be taken over)"""
+
+
+class RunDefaults(BaseModel):
+    """What a new run of this task, algorithm and preset gets unless told otherwise, and how long
+    its first pairs take (`GET /api/runs/defaults`)."""
+
+    budget: int
+    per_round: int
+    segment_length: int
+    """steps per clip"""
+    clip_seconds: float
+    """a clip's length on the label page at 1x"""
+    task_seconds: float | None
+    """the same clip in the task's own simulated time"""
+    first_round_steps: int
+    """environment steps before the first round of pairs"""
+    pretrain_steps: int
+    """S-EPOA's skill pretraining before anything else (0 for other algorithms)"""
+    pretrain_seconds: float | None
+    """its estimate, at `pretrain_steps_per_s`"""
+    pretrain_steps_per_s: float | None
+    pretrain_pace_measured: bool
+    """whether the pace is this server's workers' own (else the small preset's on 2 CPU cores)"""
+
+
+class VerifyRequest(Body):
+    code: str = Field(min_length=1, max_length=120)
+
+
+class VerifiedOut(BaseModel):
+    """Whose completion code it is and how far they got."""
+
+    invite_id: int
+    labeller_id: int
+    labeller: str
+    participant: str | None
+    run_id: int | None
+    counted: int
+    """decisive answers on the invite's run"""
+    target_answers: int | None
+    complete: bool
+    why: Literal["target", "runs_over", "paused"] | None
 
 
 class TakeBack(Body):

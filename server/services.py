@@ -58,6 +58,7 @@ def get_query(session: Session, *, query_id: int) -> Query:
 
 
 def new_run(session: Session, *, spec: RunCreate) -> Run:
+    assert spec.budget is not None, "the route fills in the preset's budget"
     return create_run(
         session,
         name=spec.name or f"{spec.task}-{spec.algo}-s{spec.seed}",
@@ -126,6 +127,8 @@ def shown_query(*, settings: Settings, query: Query, labeller_id: int) -> NextQu
         right_clip_url=urls["second" if first_left else "first"],
         left_is_first=first_left,
         segment_length=query.segment_length,
+        left_start_step=query.first_start if first_left else query.second_start,
+        right_start_step=query.second_start if first_left else query.first_start,
     )
 
 

@@ -5,8 +5,9 @@ from __future__ import annotations
 import secrets
 from functools import lru_cache
 from pathlib import Path
+from urllib.parse import urlsplit
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from labelqueue import DEFAULT_URL, LEASE_SECONDS
@@ -29,6 +30,10 @@ class Settings(BaseSettings):
     """a bearer token that acts as an operator (bootstraps the first labellers); unset: none"""
     secret_key: str = Field(default_factory=lambda: secrets.token_urlsafe(32), min_length=16)
     """signs clip URLs; random per process unless set (set it when several servers share a DB)"""
+    public_url: str | None = None
+    """the address people reach this server at (`https://label.example.org`, or with a path
+    prefix behind a reverse proxy): invite links and clip URLs are made with it. Unset: invite
+    links use the address the operator's request came to, clip URLs are relative"""
     clip_url_seconds: float = Field(default=900.0, gt=0)
     """how long a signed clip URL stays valid"""
     auth_cache_seconds: float = Field(default=5.0, ge=0)
@@ -50,6 +55,23 @@ class Settings(BaseSettings):
     """the label API's queue work on the event loop itself when SQLite's write lock is free at
     once (a hand-off to the label thread otherwise); unset: on SQLite. The hand-off, and the two
     threads taking the interpreter's lock in turn, cost more CPU than the work"""
+
+    @field_validator("public_url")
+    @classmethod
+    def _public_url(cls, value: str | None) -> str | None:
+        if value is None or not value.strip():
+            return None
+        value = value.strip().rstrip("/")
+        parts = urlsplit(value)
+        if parts.scheme not in ("http", "https") or not parts.netloc or parts.query \
+                or parts.fragment:
+            raise ValueError("must be an absolute http:// or https:// URL without a query, "
+                             f"e.g. https://label.example.org (got {value!r})")
+        return value
+
+    def public(self, path: str) -> str:
+        """`path` (starting with /) under `public_url`; unchanged when it is unset."""
+        return path if self.public_url is None else self.public_url + path
 
     @model_validator(mode="after")
     def _default_clips_dir(self) -> Settings:

@@ -1,9 +1,12 @@
-"""Invite links: operators make, list and revoke them; whoever opens one joins as a labeller.
+"""Invite links: operators make, list, revoke them and check completion codes; whoever opens
+one joins as a labeller.
 
-`/join/<code>` is a page: an open link shows the run's instruction and a short how-to while the
-page's script joins (`POST /api/join/<code>`), keeps the new labeller's token in the browser and
-offers the label page. A link that no longer admits anyone answers a page that says why (410),
-an unknown one a page that says so (404): never a stack trace.
+`/join/<code>` is a page: an open link shows the run's instruction, a short how-to and the
+study's consent text (if any); the page's script joins (`POST /api/join/<code>`; with a consent
+text, only once the person agrees), keeps the new labeller's token in the browser and offers
+the label page. A link that no longer admits anyone answers a page that says why (410: revoked,
+expired, used up, or its run is over), an unknown one a page that says so (404): never a stack
+trace. Links are made with the server's `public_url` when it is set.
 """
 
 from __future__ import annotations
@@ -18,14 +21,17 @@ from labelqueue import (
     Invite,
     NotFound,
     create_invite,
+    invite_runs_open,
     invite_state,
     join_invite,
     labeller_progress,
     list_invites,
     read_invite,
     revoke_invite,
+    verify_code,
 )
-from labelqueue.invites import CLOSED_TEXT
+from labelqueue.activity import labeller_waiting
+from labelqueue.invites import CLOSED_TEXT, Progress
 from labelqueue.models import utcnow
 from runvocab.instructions import run_instruction
 from server import services
@@ -39,6 +45,11 @@ from server.schemas import (
     JoinedOut,
     JoinRequest,
     ProgressOut,
+    RunFilter,
+    StatusOut,
+    VerifiedOut,
+    VerifyRequest,
+    WaitingOut,
     errors,
 )
 
@@ -48,11 +59,28 @@ InviteId = Annotated[int, Path(ge=1, le=INT32_MAX, description="the invite's id"
 InviteCode = Annotated[str, Path(max_length=64, description="the code in the invite link")]
 
 
-def invite_out(request: Request, invite: Invite) -> InviteOut:
-    fields = {column: getattr(invite, column) for column in InviteOut.model_fields
-              if column not in ("url", "state")}
-    return InviteOut(**fields, url=str(request.url_for("join_page", code=invite.code)),
-                     state=invite_state(invite))
+def invite_url(request: Request, invite: Invite) -> str:
+    """The link to hand out: under the server's `public_url` when set, else at the address the
+    operator's request came to."""
+    public_url = request.app.state.settings.public_url
+    if public_url is not None:
+        return f"{public_url}/join/{invite.code}"
+    return str(request.url_for("join_page", code=invite.code))
+
+
+def invite_outs(request: Request, session: SessionDep, invites: list[Invite]) -> list[InviteOut]:
+    runs_open = invite_runs_open(session, invites)
+    return [
+        InviteOut(**{column: getattr(invite, column) for column in InviteOut.model_fields
+                     if column not in ("url", "state")},
+                  url=invite_url(request, invite),
+                  state=invite_state(invite, runs_open=runs_open[invite.id]))
+        for invite in invites
+    ]
+
+
+def invite_out(request: Request, session: SessionDep, invite: Invite) -> InviteOut:
+    return invite_outs(request, session, [invite])[0]
 
 
 @router.post(
@@ -65,9 +93,11 @@ def invite_out(request: Request, invite: Invite) -> InviteOut:
 def post_invite(
     body: InviteCreate, request: Request, session: SessionDep, _: OperatorDep
 ) -> InviteOut:
-    """A new invite link, for one run or all; it works until it expires, is used up or is
-    revoked. With `target_answers`, each labeller it makes is shown `completion_code` (made up
-    when left out) once they have given that many answers."""
+    """A new invite link, for one run or all; it works until it expires, is used up, is revoked
+    or its run is over. Each participant's study ends with their own completion code (prefixed
+    with `completion_code`, checked with `POST /api/invites/verify`) once they give
+    `target_answers` decisive answers on the run, the run is over, or check pairs pause them;
+    then they are sent to `redirect_url` if it is set."""
     invite = create_invite(
         session,
         run_id=body.run_id,
@@ -76,15 +106,35 @@ def post_invite(
         target_answers=body.target_answers,
         completion_code=body.completion_code,
         note=body.note,
+        redirect_url=body.redirect_url,
+        consent_text=body.consent_text,
+        pause_message=body.pause_message,
     )
-    return invite_out(request, invite)
+    return invite_out(request, session, invite)
 
 
 @router.get(
     "/api/invites", tags=["invites"], response_model=list[InviteOut], responses=errors(401, 403)
 )
 def get_invites(request: Request, session: SessionDep, _: OperatorDep) -> list[InviteOut]:
-    return [invite_out(request, invite) for invite in list_invites(session)]
+    return invite_outs(request, session, list_invites(session))
+
+
+@router.post(
+    "/api/invites/verify",
+    tags=["invites"],
+    response_model=VerifiedOut,
+    responses=errors(400, 401, 403, 404, 413, 422),
+)
+def post_verify(body: VerifyRequest, session: SessionDep, _: OperatorDep) -> VerifiedOut:
+    """Whose completion code this is, and how far they got: decisive answers on the invite's
+    run against its target, and whether (and why) their study is complete. 404 for a code that
+    is no participant's (a typo, or made up). The study-code prefix may be left out; case and
+    spaces do not matter."""
+    verified = verify_code(session, body.code)
+    if verified is None:
+        raise NotFound("no participant has this completion code: check it was copied whole")
+    return VerifiedOut(**vars(verified))
 
 
 @router.post(
@@ -98,7 +148,7 @@ def post_revoke(
 ) -> InviteOut:
     """The link stops admitting anyone at once; labellers who joined by it keep their access
     (revoke them on the labellers list)."""
-    return invite_out(request, revoke_invite(session, invite_id=invite_id))
+    return invite_out(request, session, revoke_invite(session, invite_id=invite_id))
 
 
 @router.post(
@@ -116,7 +166,8 @@ def post_join(code: InviteCode, session: SessionDep, body: JoinRequest | None = 
     """Join by an invite link: a new labeller and its bearer token (shown this once). No token
     needed: the link is the permission. 404 for an unknown link; 410 when it was revoked, has
     expired or is used up."""
-    joined = join_invite(session, code=code, participant=body.participant if body else None)
+    joined = join_invite(session, code=code, participant=body.participant if body else None,
+                         consent=body.consent if body else False)
     return JoinedOut(
         labeller_id=joined.labeller.id,
         name=joined.labeller.name,
@@ -133,16 +184,36 @@ def post_join(code: InviteCode, session: SessionDep, body: JoinRequest | None = 
     responses=errors(401, 403),
 )
 def get_progress(session: SessionDep, caller: LabellerDep) -> ProgressOut:
-    """The caller's answers so far; for a labeller invited with a target, the completion code
-    once the target is reached (null before)."""
+    """The caller's answers so far; for a labeller who joined by an invite, where their study
+    stands and, once it is complete, their own completion code (null before)."""
+    assert caller.labeller_id is not None
+    return progress_out(labeller_progress(session, labeller_id=caller.labeller_id))
+
+
+def progress_out(progress: Progress) -> ProgressOut:
+    return ProgressOut(**vars(progress))
+
+
+@router.get(
+    "/api/label/status",
+    tags=["label"],
+    response_model=StatusOut,
+    responses=errors(401, 403, 422),
+)
+def get_status(session: SessionDep, caller: LabellerDep, run_id: RunFilter = None) -> StatusOut:
+    """What the label page shows when it has no pair: the caller's progress and, unless their
+    study is complete, why nothing is there (the run waits for a worker, pretrains, explores or
+    trains, with an estimate; the round's pairs are with others; no run is open). For one who
+    joined by an invite for one run, that run is asked about whatever `run_id` says."""
     assert caller.labeller_id is not None
     progress = labeller_progress(session, labeller_id=caller.labeller_id)
-    return ProgressOut(
-        labels=progress.labels,
-        target_answers=progress.target_answers,
-        completion_code=progress.completion_code,
-        run_id=progress.run_id,
-    )
+    waiting = None
+    if not progress.complete:
+        scope = progress.run_id if progress.run_id is not None else run_id
+        why = labeller_waiting(session, run_id=scope)
+        waiting = WaitingOut(reason=why.reason, text=why.text, run_id=why.run_id,
+                             eta_s=why.eta_s)
+    return StatusOut(progress=progress_out(progress), waiting=waiting)
 
 
 @router.get("/join/{code}", response_class=HTMLResponse, include_in_schema=False)
@@ -152,10 +223,14 @@ def join_page(code: str, request: Request, session: SessionDep) -> HTMLResponse:
     if invite is None:
         return closed_page(request, "This invite link is not known: check that it was copied "
                                     "whole, or ask the study's organisers for a new one.", 404)
-    state = invite_state(invite)
+    state = invite_state(invite, runs_open=invite_runs_open(session, [invite])[invite.id])
+    if state == "closed":
+        return closed_page(request, CLOSED_TEXT[state] + " Thank you for your interest: "
+                           "there is nothing left to do here.", 410, code=code,
+                           title="This study has ended")
     if state != "open":
         return closed_page(request, CLOSED_TEXT[state] + " Ask the study's organisers for a "
-                                                          "new link.", 410)
+                                                          "new link.", 410, code=code)
     instruction = None
     if invite.run_id is not None:
         try:
@@ -164,10 +239,13 @@ def join_page(code: str, request: Request, session: SessionDep) -> HTMLResponse:
         except NotFound:
             instruction = None
     return page(request, "join.html", nav="label", code=code, run_id=invite.run_id,
-                instruction=instruction, target=invite.target_answers)
+                instruction=instruction, target=invite.target_answers,
+                consent=invite.consent_text, redirect=invite.redirect_url is not None)
 
 
-def closed_page(request: Request, message: str, status_code: int) -> HTMLResponse:
-    response = page(request, "join_closed.html", nav="label", message=message)
+def closed_page(request: Request, message: str, status_code: int, code: str | None = None,
+                title: str = "This link cannot be used") -> HTMLResponse:
+    response = page(request, "join_closed.html", nav="label", message=message, code=code,
+                    title=title)
     response.status_code = status_code
     return response

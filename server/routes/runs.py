@@ -1,23 +1,34 @@
-"""Operator endpoints for runs: create, list, status, metrics, pause/resume/stop, teacher."""
+"""Operator endpoints for runs: create, list, status, what each waits for, metrics,
+pause/resume/stop, teacher; a new run's defaults; the workers."""
 
 from __future__ import annotations
 
-from typing import Literal
+import json
+from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Response
+from fastapi import APIRouter, Query, Response
+from fastapi.exceptions import RequestValidationError
+from sqlalchemy import select
 
-from labelqueue import RunStatus, read_metrics, set_run_status, set_teacher
+from labelqueue import Run, RunStatus, read_metrics, reading, set_run_status, set_teacher
+from labelqueue.activity import list_workers, runs_activity
 from server import curves, services
 from server.deps import OperatorDep, SessionDep
-from server.run_check import check_run
+from server.run_check import check_run, run_defaults
 from server.schemas import (
+    ActivityOut,
     AfterStep,
+    AlgoName,
     MetricOut,
+    PresetName,
     RunCreate,
+    RunDefaults,
     RunId,
     RunOut,
     StreamName,
+    TaskName,
     TeacherUpdate,
+    WorkerOut,
     errors,
 )
 
@@ -26,11 +37,58 @@ MOVE_ERRORS = errors(404, 409, 422)
 router = APIRouter(prefix="/api/runs", tags=["runs"], responses=errors(401, 403))
 
 
+workers_router = APIRouter(prefix="/api/workers", tags=["runs"], responses=errors(401, 403))
+
+
 @router.post("", status_code=201, response_model=RunOut, responses=errors(400, 413, 422))
 def create_run(spec: RunCreate, session: SessionDep, _: OperatorDep) -> RunOut:
+    """A queued run; without `budget`, its preset's (or its config's `feedback.budget`)."""
+    if spec.budget is None:
+        given = spec.config.get("feedback.budget")
+        budget = given if isinstance(given, int) and not isinstance(given, bool) else \
+            run_defaults(task=spec.task, algo=spec.algo, preset=spec.preset, config={},
+                         measured_pace=None)["budget"]
+        spec = spec.model_copy(update={"budget": budget})
+    assert spec.budget is not None
     check_run(task=spec.task, algo=spec.algo, preset=spec.preset, seed=spec.seed,
               budget=spec.budget, teacher_params=spec.teacher_params, config=spec.config)
     return RunOut.model_validate(services.new_run(session, spec=spec))
+
+
+@router.get("/defaults", response_model=RunDefaults, responses=errors(422))
+def get_defaults(
+    session: SessionDep,
+    _: OperatorDep,
+    task: Annotated[TaskName, Query()],
+    algo: Annotated[AlgoName, Query()] = "pebble",
+    preset: Annotated[PresetName, Query()] = "small",
+    config: Annotated[str, Query(max_length=16 * 1024,
+                                 description="the run's config overrides, as JSON")] = "{}",
+) -> RunDefaults:
+    """What a new run of this task, algorithm and preset gets unless told otherwise (budget,
+    round size, clip length), when its first pairs come, and for S-EPOA how long its skill
+    pretraining takes: at the pace this server's workers last reported, else the small
+    preset's on 2 CPU cores."""
+    try:
+        overrides = json.loads(config)
+    except ValueError:
+        overrides = None
+    if not isinstance(overrides, dict):
+        raise RequestValidationError([{"type": "value_error", "loc": ("query", "config"),
+                                       "msg": "config must be a JSON object"}])
+    return RunDefaults(**run_defaults(task=task, algo=algo, preset=preset, config=overrides,
+                                      measured_pace=_pretraining_pace(session)))
+
+
+def _pretraining_pace(session: Any) -> float | None:
+    """The skill pretraining pace (steps/s) the latest worker that pretrained reported."""
+    with reading(session):
+        progresses = session.scalars(select(Run.progress).order_by(Run.id.desc()).limit(200))
+        for progress in progresses:
+            pace = (progress or {}).get("pretraining_fps")
+            if isinstance(pace, int | float) and pace > 0:
+                return float(pace)
+    return None
 
 
 @router.get("", response_model=list[RunOut])
@@ -41,6 +99,16 @@ def list_runs(session: SessionDep, _: OperatorDep) -> list[RunOut]:
 @router.get("/{run_id}", response_model=RunOut, responses=errors(404, 422))
 def get_run(run_id: RunId, session: SessionDep, _: OperatorDep) -> RunOut:
     return RunOut.model_validate(services.get_run(session, run_id=run_id))
+
+
+@router.get("/{run_id}/activity", response_model=ActivityOut, responses=errors(404, 422))
+def get_activity(run_id: RunId, session: SessionDep, _: OperatorDep) -> ActivityOut:
+    """What the run is doing or waiting for now: a free worker, pretraining (with an estimate),
+    N answers from K active labellers (and how many are paused by check pairs), exploring or
+    training until the next round (with an estimate), or a worker gone silent."""
+    run = services.get_run(session, run_id=run_id)
+    [activity] = runs_activity(session, [run])
+    return ActivityOut(**vars(activity))
 
 
 @router.get("/{run_id}/metrics", response_model=list[MetricOut], responses=errors(404, 422))
@@ -103,3 +171,11 @@ def put_teacher(run_id: RunId, body: TeacherUpdate, session: SessionDep, _: Oper
               teacher_params=body.params, config=run.config, params_at="params")
     run = set_teacher(session, run_id=run_id, teacher=body.teacher, params=body.params)
     return RunOut.model_validate(run)
+
+
+@workers_router.get("", response_model=list[WorkerOut])
+def get_workers(session: SessionDep, _: OperatorDep) -> list[WorkerOut]:
+    """Every trainer worker that ever reported, the most recently seen first: its host, its
+    run, when it last reported, and whether it trains, idles, went silent (no word for a
+    minute) or is dead (five minutes: another worker may take its run)."""
+    return [WorkerOut(**vars(worker)) for worker in list_workers(session)]

@@ -1,6 +1,8 @@
 """Invite links: an operator makes one for a run or all runs; opening it makes a labeller named
-after `participant`; a target shows a completion code once reached; revoked, expired and used-up
-links are refused with a page or a 410 that says why; bad input is a 4xx naming the problem."""
+after `participant`; a target of decisive answers on the run shows each participant their own
+completion code once reached, which the operator can check; revoked, expired, used-up and
+closed links (their run is over) are refused with a page or a 410 that says why; bad input is a
+4xx naming the problem."""
 
 from __future__ import annotations
 
@@ -48,8 +50,10 @@ def test_an_invite_link_makes_a_labeller_named_after_the_participant(
     assert body["name"] == "P123" and body["run_id"] == run["id"]
     # The token works at once, for a labeller's calls.
     me = client.get("/api/label/progress", headers=bearer(body["token"])).json()
-    assert me == {"labels": 0, "target_answers": None, "completion_code": None,
-                  "run_id": run["id"]}
+    assert {key: me[key] for key in ("labels", "target_answers", "completion_code", "run_id",
+                                     "invited", "complete", "participant")} == {
+        "labels": 0, "target_answers": None, "completion_code": None, "run_id": run["id"],
+        "invited": True, "complete": False, "participant": "P123"}
     # The same participant again (another browser): another labeller, another name.
     again = join(client, invite["code"], participant="P123").json()
     assert again["name"] == "P123-2" and again["labeller_id"] != body["labeller_id"]
@@ -95,24 +99,81 @@ def test_revoked_and_expired_links_are_refused_with_a_page_that_says_why(
     assert client.get("/join/" + "x" * 500).status_code == 404
 
 
-def test_a_target_of_answers_shows_the_completion_code_once_reached(
+def answer(client: TestClient, token: str, run_id: int, choice: str) -> None:
+    nxt = client.get(f"/api/label/next?run_id={run_id}", headers=bearer(token)).json()
+    body = {"choice": choice, "left_is_first": nxt["left_is_first"],
+            "shown_at": "2026-01-01T00:00:00Z"}
+    assert client.post(f"/api/label/{nxt['query_id']}", json=body,
+                       headers=bearer(token)).status_code == 201
+
+
+def test_a_target_of_decisive_answers_gives_each_participant_their_own_code(
     client: TestClient, session: Session, settings: Settings
 ) -> None:
-    run_id, _ = running_run_with_queries(client, session, settings, n=3)
-    invite = new_invite(client, run_id=run_id, target_answers=2, completion_code="C0DE-42")
-    token = join(client, invite["code"], participant="worker7").json()["token"]
-    for given in (1, 2):
-        nxt = client.get(f"/api/label/next?run_id={run_id}", headers=bearer(token)).json()
-        body = {"choice": "skip", "left_is_first": nxt["left_is_first"],
-                "shown_at": "2026-01-01T00:00:00Z"}
-        assert client.post(f"/api/label/{nxt['query_id']}", json=body,
-                           headers=bearer(token)).status_code == 201
+    run_id, _ = running_run_with_queries(client, session, settings, n=8)
+    invite = new_invite(client, run_id=run_id, target_answers=2, completion_code="C0DE-42",
+                        redirect_url="https://study.test/end?pid={participant}&code={code}")
+    tokens = [join(client, invite["code"], participant=who).json()["token"]
+              for who in ("worker7", "worker8")]
+    # Skips and can't-tells do not count: before, two skips gave everyone the one code.
+    for choice in ("skip", "cant_tell"):
+        answer(client, tokens[0], run_id, choice)
+    progress = client.get("/api/label/progress", headers=bearer(tokens[0])).json()
+    assert (progress["labels"], progress["counted"], progress["completion_code"]) == (2, 0, None)
+    codes = []
+    for token in tokens:
+        for choice in ("left", "equal"):
+            answer(client, token, run_id, choice)
         progress = client.get("/api/label/progress", headers=bearer(token)).json()
-        assert progress["labels"] == given and progress["target_answers"] == 2
-        assert progress["completion_code"] == (None if given < 2 else "C0DE-42")
-    # Without a code of the operator's, one is made up.
-    made = new_invite(client, target_answers=5)
-    assert made["completion_code"] and len(made["completion_code"]) >= 8
+        assert (progress["counted"], progress["complete"], progress["why"]) == (2, True, "target")
+        codes.append(progress["completion_code"])
+        assert progress["redirect_url"] == (f"https://study.test/end?pid={progress['participant']}"
+                                            f"&code={progress['completion_code']}")
+    assert codes[0] != codes[1] and all(code.startswith("C0DE-42-") for code in codes)
+
+    # The operator checks a code: whose it is, and how far they got.
+    checked = client.post("/api/invites/verify", json={"code": codes[1]}, headers=OPERATOR)
+    assert checked.status_code == 200, checked.text
+    assert {key: checked.json()[key] for key in ("invite_id", "participant", "counted",
+                                                 "target_answers", "complete", "why")} == {
+        "invite_id": invite["id"], "participant": "worker8", "counted": 2,
+        "target_answers": 2, "complete": True, "why": "target"}
+    made_up = client.post("/api/invites/verify", json={"code": "C0DE-42-AAAA-BBBB-CCCC"},
+                          headers=OPERATOR)
+    assert made_up.status_code == 404 and "no participant" in made_up.json()["detail"]
+    assert client.post("/api/invites/verify", json={"code": codes[0]},
+                       headers=bearer(tokens[0])).status_code == 403
+
+
+def test_an_invite_closes_when_its_run_is_over_and_its_participants_get_their_code(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    run_id, _ = running_run_with_queries(client, session, settings, n=2)
+    invite = new_invite(client, run_id=run_id, target_answers=10)
+    token = join(client, invite["code"], participant="early").json()["token"]
+    answer(client, token, run_id, "left")
+    assert client.post(f"/api/runs/{run_id}/stop", headers=OPERATOR).status_code == 200
+    [listed] = client.get("/api/invites", headers=OPERATOR).json()
+    assert listed["state"] == "closed"
+    late = join(client, invite["code"], participant="late")
+    assert late.status_code == 410 and "ended" in late.json()["detail"]
+    page = client.get(f"/join/{invite['code']}")
+    assert page.status_code == 410 and "This study has ended" in page.text
+
+    status = client.get("/api/label/status", headers=bearer(token)).json()
+    assert status["waiting"] is None
+    assert (status["progress"]["complete"], status["progress"]["why"]) == (True, "runs_over")
+    assert status["progress"]["completion_code"]
+
+
+def test_consent_is_asked_before_joining(client: TestClient) -> None:
+    run = new_run(client)
+    invite = new_invite(client, run_id=run["id"], consent_text="We keep your answers.")
+    page = client.get(f"/join/{invite['code']}")
+    assert page.status_code == 200 and "We keep your answers." in page.text
+    refused = join(client, invite["code"])
+    assert refused.status_code == 422 and "consent" in refused.json()["detail"]
+    assert join(client, invite["code"], consent=True).status_code == 201
 
 
 def test_bad_invite_requests_are_a_4xx_naming_the_problem(client: TestClient) -> None:
@@ -127,14 +188,15 @@ def test_bad_invite_requests_are_a_4xx_naming_the_problem(client: TestClient) ->
         ({"target_answers": -1}, "target_answers"),
         ({"completion_code": "has space", "target_answers": 3}, "completion_code"),
         ({"note": ""}, "note"),
+        ({"redirect_url": "javascript:alert(1)"}, "redirect_url"),
+        ({"redirect_url": "https://x.test/" + "a" * 2000}, "redirect_url"),
+        ({"consent_text": ""}, "consent_text"),
         ({"colour": "red"}, "colour"),
     ]
     for body, field in cases:
         response = client.post("/api/invites", json=body, headers=OPERATOR)
         assert response.status_code == 422, (body, response.text)
         assert any(field in error["loc"] for error in response.json()["detail"]), body
-    response = client.post("/api/invites", json={"completion_code": "ABC"}, headers=OPERATOR)
-    assert response.status_code == 422 and "target_answers" in response.json()["detail"]
     response = client.post("/api/invites", json={"run_id": 999}, headers=OPERATOR)
     assert response.status_code == 404 and "999" in response.json()["detail"]
     # Operators only; a labeller or no token is refused.

@@ -1,5 +1,8 @@
 // The invite link's page: join once (a new labeller, signed in in this browser), then offer the
 // label page. A reload, or opening the link again in this browser, keeps the labeller it made.
+// A study with a consent text joins only once the person agrees to it. The participant's id
+// comes from `?participant=`, or a platform's own parameter (Prolific's PROLIFIC_PID, MTurk's
+// workerId).
 
 import { describe, keepToken } from "./api.js";
 
@@ -7,10 +10,19 @@ const $ = (id) => document.getElementById(id);
 const code = document.body.dataset.code;
 const joinedKey = `sepoa.invite.${code}`;
 
+const PARTICIPANT_PARAMS = ["participant", "PROLIFIC_PID", "workerId"];
+
 function ready(name) {
-  $("join-status").textContent = `You are signed in as “${name}”. Read the above, then start.`;
+  $("join-status").textContent =
+    `You are signed in as “${name}”. Read how it works below, then start.`;
+  if ($("consent")) $("consent").hidden = true;
   $("join-start").hidden = false;
   $("join-start").focus();
+}
+
+function participantId() {
+  const params = new URLSearchParams(location.search);
+  return PARTICIPANT_PARAMS.map((name) => params.get(name)).find((value) => value) || null;
 }
 
 async function join() {
@@ -19,11 +31,21 @@ async function join() {
     ready(earlier);
     return;
   }
-  const participant = new URLSearchParams(location.search).get("participant");
+  if (document.body.dataset.consent === "required") {
+    $("consent-agree").addEventListener("click", () => joinNow(true).catch(failed), { once: true });
+    return;
+  }
+  await joinNow(false);
+}
+
+async function joinNow(consent) {
+  const participant = participantId();
+  const body = participant ? { participant } : {};
+  if (consent) body.consent = true;
   const response = await fetch(`/api/join/${encodeURIComponent(code)}`, {
     method: "POST",
     headers: { "Content-Type": "application/json" },
-    body: JSON.stringify(participant ? { participant } : {}),
+    body: JSON.stringify(body),
   });
   const data = await response.json().catch(() => null);
   if (!response.ok) {
@@ -37,8 +59,10 @@ async function join() {
   ready(data.name);
 }
 
-join().catch((error) => {
+function failed(error) {
   $("join-status").hidden = true;
   $("join-error").textContent = `Could not join: ${error.message}. Reload the page to try again.`;
   $("join-error").hidden = false;
-});
+}
+
+join().catch(failed);

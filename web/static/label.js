@@ -7,6 +7,7 @@
 // an answer is stored before the next preload asks the server what this labeller holds.
 
 import { Paused, SignedOut, request, start } from "./api.js";
+import { explainPause, explainWait, showProgress, startStudy, study } from "./study.js";
 
 const KEYS = {
   ArrowLeft: "left", 1: "left",
@@ -26,7 +27,7 @@ const NEW_TASK_MS = 4000; // how long "New task" stays up after the run changes
 const UNDO_MS = 10_000; // an answer can be taken back this long (the server has the last word)
 
 const $ = (id) => document.getElementById(id);
-const runId = new URLSearchParams(location.search).get("run");
+let runId = new URLSearchParams(location.search).get("run"); // an invite's run replaces it
 
 const state = {
   current: null, // the Pair on screen
@@ -265,16 +266,25 @@ async function attempt(task) {
     await task();
   } catch (error) {
     if (error instanceof SignedOut || error instanceof Paused) {
-      clearTimeout(state.timer);
-      state.next?.remove();
-      state.current?.remove();
-      state.current = state.next = null;
-      if (error instanceof Paused) showPaused(error.message);
+      stopLabelling();
+      if (error instanceof Paused) {
+        showPaused(error.message);
+        // One who joined by an invite: the study's end, with their code or the operator's word.
+        if (await explainPause().catch(() => false)) $("notice").hidden = true;
+      }
       return;
     }
     notice(`${error.message} (retrying)`, "error");
     schedule(task, RETRY_MS);
   }
+}
+
+/** No more pairs: the loops stop and the pairs in hand are let go (their leases run out). */
+function stopLabelling() {
+  clearTimeout(state.timer);
+  state.next?.remove();
+  state.current?.remove();
+  state.current = state.next = null;
 }
 
 function schedule(task, ms) {
@@ -327,9 +337,11 @@ async function runBrief(id) {
 
 /** Nothing on screen: lease a pair and show it, or wait and ask again. */
 async function loadCurrent() {
+  if (study.complete) return;
   const query = await fetchNext(null);
   if (!query) {
     showWaiting();
+    if (await explainWait(runId)) return; // the study is complete: nothing more to ask for
     schedule(loadCurrent, POLL_MS);
     return;
   }
@@ -340,7 +352,7 @@ async function loadCurrent() {
 /** A pair on screen: keep its lease and lease (or renew) the next one, loaded hidden. */
 async function preload() {
   const shown = state.current;
-  if (!shown || state.submitting) return; // the answer's task preloads after it is stored
+  if (!shown || state.submitting || study.complete) return; // the answer's task preloads later
   const query = await fetchNext(shown.query.query_id);
   if (state.current !== shown || state.submitting) return; // answered meanwhile: stale
   if (query?.query_id !== state.next?.query.query_id) {
@@ -390,7 +402,7 @@ async function submit(queryId, body) {
       state.session += 1;
       if (state.total != null) state.total += 1;
       showCounts();
-      if (state.target != null && state.total >= state.target) await loadProgress();
+      if (state.target != null) await loadProgress(); // decisive answers on the run count
     }
   } catch (error) {
     if (error instanceof SignedOut) throw error;
@@ -400,17 +412,20 @@ async function submit(queryId, body) {
 }
 
 /** The caller's labels over all runs, once; later answers are added as they are stored. An
- * invited labeller with a target also sees how far it is, and the completion code once there. */
+ * invited labeller labels their invite's run, sees how far they are towards its target, and
+ * the study's end once there (study.js). */
 async function loadProgress() {
   const { data } = await request("GET", "/api/label/progress");
   state.total = data.labels;
   state.target = data.target_answers;
-  $("count-target").textContent = state.target == null ? "" : ` of ${state.target} asked for`;
-  if (data.completion_code) {
-    $("completion-code").textContent = data.completion_code;
-    $("completion").hidden = false;
+  $("count-target").textContent = state.target == null ? ""
+    : ` · ${data.counted} of ${state.target} towards the study`;
+  if (data.invited) {
+    if (data.run_id != null) runId = String(data.run_id);
+    $("scope").textContent = runId ? `Run ${runId}` : "All runs";
   }
   showCounts();
+  if (showProgress(data)) stopLabelling();
 }
 
 // ---- taking the last answer back --------------------------------------------------------------
@@ -523,6 +538,7 @@ start(() => {
     $("instruction-more").setAttribute("aria-expanded", String(open));
     $("instruction-more").textContent = open ? "Show less" : "Show all";
   });
+  startStudy(() => schedule(loadCurrent, 0));
   serial(() => loadProgress().catch(() => {})); // a nicety: "–" if it fails
   schedule(loadCurrent, 0);
 });

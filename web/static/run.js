@@ -14,6 +14,7 @@ const MIN_SPAN_MS = 30 * 60_000; // the throughput chart shows at least the last
 const refresh = poller(async () => {
   try {
     const run = await get(`/api/runs/${runId}`);
+    showActivity(await get(`/api/runs/${runId}/activity`));
     const bucket = bucketFor(run);
     const [episodes, evals, rounds, throughput] = await Promise.all([
       get(`/api/runs/${runId}/metrics?stream=episodes`),
@@ -72,6 +73,32 @@ async function drawCalibration(run) {
   calibrationDrawnFor = run.labels_used;
 }
 
+/** People teach a run with a scripted shadow teacher beside them; its ε is the shadow's. */
+function teacherText(run) {
+  const eps = run.teacher_params?.eps;
+  if (run.teacher === "human") {
+    return `people${eps != null ? ` (scripted shadow teacher ε=${eps})` : ""}`;
+  }
+  return `scripted${eps != null ? ` (ε=${eps})` : ""}`;
+}
+
+const PHASES = {
+  queued: "Queued:", starting: "Starting:", pretraining: "Pretraining:",
+  labelling: "Waiting for answers:", exploring: "Exploring:", training: "Training:",
+  paused: "Paused:", stopping: "Stopping:", silent: "Worker silent:",
+};
+
+/** The line under the title: what the run does or waits for, and why. */
+function showActivity(activity) {
+  const line = document.getElementById("run-activity");
+  const phase = PHASES[activity.phase];
+  line.hidden = !phase;
+  if (!phase) return;
+  line.dataset.phase = activity.phase;
+  document.getElementById("activity-phase").textContent = phase;
+  document.getElementById("activity-text").textContent = activity.text;
+}
+
 function bucketFor(run) {
   const spanS = (Date.now() - Date.parse(run.created_at)) / 1000;
   return BUCKETS_S.find((b) => spanS / b <= 120) ?? BUCKETS_S.at(-1);
@@ -85,7 +112,7 @@ function showRun(run) {
   badge.className = `badge ${run.status}`;
   const facts = [
     ["Task", run.task], ["Algorithm", run.algo], ["Preset", run.preset], ["Seed", run.seed],
-    ["Teacher", run.teacher + (run.teacher_params?.eps != null ? ` (ε=${run.teacher_params.eps})` : "")],
+    ["Teacher", teacherText(run)],
     ["Step", num(run.step)], ["Labels", `${num(run.labels_used)} / ${num(run.budget)}`],
     ["Last return", `${num(run.progress?.last_return, 4)} (episode) · `
       + `${num(run.progress?.eval_return, 4)} (evaluation)`],
