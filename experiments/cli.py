@@ -3,11 +3,14 @@
     sepoa experiment run SPEC [--results results] [--workers N | --no-workers]
                               [--database-url URL] [--threads N] [--force] [--dry-run]
     sepoa experiment status SPEC [--results results] [--database-url URL]
-    sepoa experiment slurm SPEC --workers N --database-url URL [--results DIR] ...
+    sepoa experiment slurm SPEC --workers N [--results DIR] ...   # an sbatch array script
     sepoa report <results>/<spec name>           # figures + tables -> <folder>/report
     sepoa report --calibration labels.jsonl      # match ratio and fitted eps per labeller
 
-The database defaults to SEPOA_DATABASE_URL, else `<results>/queue.db` (SQLite).
+The database: --database-url or --database-url-file, else SEPOA_DATABASE_URL, else the file
+named by SEPOA_DATABASE_URL_FILE, else `<results>/queue.db` (SQLite; not for `slurm`). A URL
+is shown with its password masked wherever it is printed. A closed standard output (`| head`)
+is not an error: the command does its work without printing.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from __future__ import annotations
 import argparse
 import os
 import pathlib
+import shlex
 import sys
 from typing import NoReturn
 
@@ -33,10 +37,24 @@ def fail(message: str) -> int:
     return 2
 
 
-def _database(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--database-url", default=os.environ.get("SEPOA_DATABASE_URL"),
-                   help="the queue database (env SEPOA_DATABASE_URL; default "
-                   "sqlite:///<results>/queue.db)")
+def _database(p: argparse.ArgumentParser, default: str = "sqlite:///<results>/queue.db") -> None:
+    p.add_argument("--database-url", default=None,
+                   help=f"the queue database (env SEPOA_DATABASE_URL; default {default})")
+    p.add_argument("--database-url-file", default=None, metavar="FILE",
+                   help="a file (mode 600) holding the queue database's URL, to keep a "
+                   "password out of commands and scripts (env SEPOA_DATABASE_URL_FILE)")
+
+
+def say(line: str) -> None:
+    """Print a line of the command's output; once the reader has gone (`| head -1`), the rest
+    goes nowhere and the command carries on."""
+    try:
+        print(line, flush=True)
+    except BrokenPipeError:
+        # Whatever is still buffered, and every later line, goes to /dev/null.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
 
 
 def _experiment_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -67,17 +85,26 @@ def _experiment_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore
                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     slurm.add_argument("spec", help="the spec file (TOML)")
     slurm.add_argument("--workers", type=int, required=True, help="array tasks, one worker each")
-    slurm.add_argument("--database-url", required=True,
-                       help="a database every node reaches (PostgreSQL)")
+    _database(slurm, default="none: a PostgreSQL server every node reaches")
     slurm.add_argument("--results", default="results",
                        help="a results folder every node reaches (shared filesystem)")
     slurm.add_argument("--threads", type=int, default=None,
                        help="CPUs and torch threads per task (default: the spec's threads)")
+    slurm.add_argument("--mem", default=None, help="memory per task (default by the spec's "
+                       "preset: tiny 2G, small 3G, paper 8G)")
     slurm.add_argument("--time", default="24:00:00", help="each task's time limit")
+    slurm.add_argument("--signal-before", type=int, default=None, metavar="SECONDS",
+                       help="warn each worker (SIGUSR1) this long before the time limit, to "
+                       "checkpoint and release its run (default 300, at most a quarter of --time)")
+    slurm.add_argument("--requeue", action="store_true",
+                       help="let Slurm requeue a task on preemption or node failure (and allow "
+                       "`scontrol requeue`); the requeued task takes its run back at once")
     slurm.add_argument("--partition", default=None)
     slurm.add_argument("--gpus", type=int, default=0, help="GPUs per task (--gres=gpu:N)")
-    slurm.add_argument("--mem", default="16G", help="memory per task")
-    slurm.add_argument("--sepoa", default="sepoa", help="the sepoa command on the nodes")
+    slurm.add_argument("--node", default=None, help="run every task on this node "
+                       "(--nodelist); allows a SQLite queue on that node's own disk")
+    slurm.add_argument("--sepoa", default=None, help="the sepoa command on the nodes "
+                       "(default: this one, by absolute path)")
 
 
 def _report_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -98,14 +125,15 @@ def _run_experiment(args: argparse.Namespace) -> int:
     from sqlalchemy.exc import DBAPIError
 
     from experiments.spec import SpecError, load_spec
-    from labelqueue import check_url
+    from labelqueue import check_url, database_url
 
     results = pathlib.Path(args.results)
     try:
+        url = database_url(args.database_url, args.database_url_file)
+        url = check_url(url) if url else None
         if args.action == "slurm":
-            return _slurm(args)
+            return _slurm(args, url)
         spec = load_spec(args.spec, check=args.action == "run")
-        url = check_url(args.database_url) if args.database_url else None
         if args.action == "status":
             return _status(spec, results, url)
         from experiments.launch import check_counts, run_experiment
@@ -114,7 +142,7 @@ def _run_experiment(args: argparse.Namespace) -> int:
         workers = 0 if args.no_workers else args.workers
         return run_experiment(spec, results=results, database_url=url, workers=workers,
                               threads=args.threads, force=args.force, dry_run=args.dry_run,
-                              echo=lambda line: print(line, flush=True))
+                              echo=say)
     except (SpecError, ValueError) as err:
         return fail(str(err))
     except DBAPIError as err:
@@ -138,28 +166,69 @@ def _status(spec, results: pathlib.Path, url: str | None) -> int:  # type: ignor
                      "(sepoa experiment run), or give --database-url / --results")
     engine = make_engine(url)
     try:
-        print(status_table(spec, session_factory(engine), results))
+        say(status_table(spec, session_factory(engine), results))
     finally:
         engine.dispose()
     return 0
 
 
-def _slurm(args: argparse.Namespace) -> int:
-    from experiments.slurm import sbatch_script
+SQLITE_ON_SLURM = (
+    "a SQLite queue is a file, and the array's tasks are separate jobs that Slurm may place "
+    "on any node, where SQLite's locking is not safe on the network filesystem they share "
+    "(two workers could take one run, or corrupt the file): use a PostgreSQL server every "
+    "node reaches (docs/EXPERIMENTS.md), or --node NAME to run every task on one node with "
+    "the file on that node's own disk")
+
+
+def _slurm(args: argparse.Namespace, url: str | None) -> int:
+    from sqlalchemy.engine import make_url
+
+    from experiments.launch import default_database
+    from experiments.slurm import (
+        QueueAccess,
+        default_signal_before,
+        sbatch_script,
+        write_url_file,
+    )
     from experiments.spec import load_spec
-    from labelqueue import check_url
+    from labelqueue import mask_url, url_has_secret
 
     if args.workers < 1 or (args.threads is not None and args.threads < 1) or args.gpus < 0:
         return fail("--workers and --threads must be at least 1, --gpus at least 0")
-    url = check_url(args.database_url)
-    if url.startswith("sqlite"):
-        return fail("--database-url: workers on other nodes need a database server "
-                     "(postgresql+psycopg://...), not a SQLite file")
+    if args.signal_before is not None and args.signal_before < 1:
+        return fail("--signal-before must be at least 1 second")
+    default_signal_before(args.time)  # SlurmError (a ValueError) for a bad --time
+    results = pathlib.Path(args.results).absolute()
+    if url is None:
+        if args.node is None:
+            return fail("no queue database: give --database-url, --database-url-file or "
+                        "SEPOA_DATABASE_URL (a PostgreSQL server every node reaches)")
+        url = default_database(results)
+    parsed = make_url(url)
+    if parsed.get_backend_name() == "sqlite":
+        if args.node is None:
+            return fail(f"--database-url: {SQLITE_ON_SLURM}")
+        url = parsed.set(database=str(pathlib.Path(parsed.database or "").absolute())) \
+            .render_as_string(hide_password=False)
     spec = load_spec(args.spec, check=False)
-    print(sbatch_script(spec, workers=args.workers, database_url=url,
-                        results=pathlib.Path(args.results).absolute(), threads=args.threads,
-                        time_limit=args.time, partition=args.partition, gpus=args.gpus,
-                        memory=args.mem, python=args.sepoa), end="")
+    # The file the URL was read from, if any (labelqueue.database_url's order).
+    file = args.database_url_file
+    if not (file or args.database_url or os.environ.get("SEPOA_DATABASE_URL")):
+        file = os.environ.get("SEPOA_DATABASE_URL_FILE") or None
+    if file:
+        queue = QueueAccess(mask_url(url), url_file=pathlib.Path(file).absolute())
+    elif url_has_secret(url):
+        queue = QueueAccess(mask_url(url), url_file=write_url_file(results, url))
+        print(f"note: the queue's password is not in the script: its tasks read the URL from "
+              f"{queue.url_file} (mode 600)", file=sys.stderr)
+    else:
+        queue = QueueAccess(mask_url(url), url=url)
+    say(sbatch_script(spec, workers=args.workers, queue=queue, results=results,
+                      threads=args.threads, time_limit=args.time, partition=args.partition,
+                      gpus=args.gpus, memory=args.mem,
+                      sepoa=shlex.split(args.sepoa) if args.sepoa else None,
+                      requeue=args.requeue, node=args.node,
+                      signal_before=args.signal_before).rstrip("\n"))
     return 0
 
 

@@ -10,7 +10,9 @@ Local workers get stable names, `<host>-exp-<slot>`, each slot held by a lock fi
 `<results>/.workers/` while its launcher lives: a launcher started again after a kill takes the
 same names, so its workers take their unfinished runs back at once and resume them from their
 checkpoints; a second launcher on the same host gets other slots, never a live worker's name.
-The workers die with their launcher (SIGTERM), leaving each run to be resumed.
+The workers die with their launcher (SIGTERM): each checkpoints its run and releases it, to
+be resumed by the next launch. The database URL reaches them in their environment, never on
+their command line (where `ps` would show a password).
 """
 
 from __future__ import annotations
@@ -30,7 +32,14 @@ from typing import IO, Any
 
 from experiments.queue import enqueue_spec, grid_key, spec_rows
 from experiments.spec import Spec, SpecError
-from labelqueue import RunStatus, make_engine, migrate, session_factory
+from labelqueue import (
+    RunStatus,
+    make_engine,
+    mask_url,
+    migrate,
+    session_factory,
+    url_has_secret,
+)
 
 STOP_GRACE_S = 30.0
 PR_SET_PDEATHSIG = 1
@@ -76,10 +85,12 @@ def _missing_sqlite(url: str) -> bool:
     return parsed.get_backend_name() == "sqlite" and not Path(parsed.database or "").exists()
 
 
-def worker_argv(database_url: str, results: Path, worker_id: str, threads: int) -> list[str]:
-    return [sys.executable, "-m", "trainer.cli", "worker", "--database-url", database_url,
-            "--data-dir", str(results), "--results", str(results), "--worker-id", worker_id,
-            "--threads", str(threads), "--once", "--poll-seconds", "1"]
+def worker_argv(results: Path, worker_id: str, threads: int) -> list[str]:
+    """A local worker's command line; the database URL goes in its environment
+    (SEPOA_DATABASE_URL)."""
+    return [sys.executable, "-m", "trainer.cli", "worker", "--data-dir", str(results),
+            "--results", str(results), "--worker-id", worker_id, "--threads", str(threads),
+            "--once", "--poll-seconds", "1"]
 
 
 def run_experiment(spec: Spec, *, results: Path, database_url: str | None = None,
@@ -102,7 +113,7 @@ def run_experiment(spec: Spec, *, results: Path, database_url: str | None = None
     sessions = session_factory(engine)
     try:
         done = enqueue_spec(spec, sessions, results, force=force, dry_run=dry_run)
-        where = url.split("@")[-1]
+        where = mask_url(url)
         finished = sum(s is RunStatus.FINISHED for s in done.present.values())
         echo(f"{spec.name}: {len(spec.runs())} runs; {len(done.created)} enqueued, "
              f"{len(done.requeued)} queued again, {len(done.replaced)} redefined, "
@@ -114,8 +125,15 @@ def run_experiment(spec: Spec, *, results: Path, database_url: str | None = None
         folder.mkdir(parents=True, exist_ok=True)
         (folder / "spec.toml").write_text(spec.source)  # the report reads the grid from it
         if workers == 0:
-            echo(f"no local workers: start `sepoa worker --database-url {url} --results "
-                 f"{results}` on hosts that reach the database and the results folder")
+            if url_has_secret(url):  # the hint must not print the password
+                echo(f"no local workers: start `sepoa worker --results {results}` on hosts that "
+                     f"reach the database and the results folder, with the queue's URL "
+                     f"({where}) in SEPOA_DATABASE_URL or in a file named by "
+                     "--database-url-file; or `sepoa experiment slurm` for a Slurm array")
+            else:
+                echo(f"no local workers: start `sepoa worker --database-url {url} --results "
+                     f"{results}` on hosts that reach the database and the results folder; or "
+                     "`sepoa experiment slurm` for a Slurm array")
             return 0
         echo(f"{workers} local worker(s), {threads} torch thread(s) each -> {folder}")
         stopped = _train(url, results, workers, threads, echo)
@@ -139,7 +157,7 @@ def _train(url: str, results: Path, workers: int, threads: int,
         except ValueError:  # not the main thread
             pass
     env = os.environ | {"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
-                        "PYTHONUNBUFFERED": "1"}
+                        "PYTHONUNBUFFERED": "1", "SEPOA_DATABASE_URL": url}
     log = (results / "workers.log").open("a")
     children: list[subprocess.Popen[bytes]] = []
     try:
@@ -147,15 +165,16 @@ def _train(url: str, results: Path, workers: int, threads: int,
             for name in names:
                 # Own session: a Ctrl-C reaches the launcher, which stops its workers itself.
                 children.append(subprocess.Popen(
-                    worker_argv(url, results, name, threads), stdout=log,
+                    worker_argv(results, name, threads), stdout=log,
                     stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
                     start_new_session=True, preexec_fn=_die_with_parent))
                 echo(f"worker {name} started (pid {children[-1].pid}; log {log.name})")
             while not stop and any(c.poll() is None for c in children):
                 time.sleep(0.2)
             if stop:
-                echo(f"stopping {sum(c.poll() is None for c in children)} worker(s); their "
-                     "runs resume from their checkpoints on the next call")
+                echo(f"stopping {sum(c.poll() is None for c in children)} worker(s): each "
+                     "checkpoints its run and releases it; the runs resume from there on the "
+                     "next call")
             for child in children:
                 if child.poll() is None:
                     child.terminate()

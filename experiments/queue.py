@@ -15,8 +15,10 @@ that failed or were stopped are queued again; a worker resumes them from their c
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -25,14 +27,18 @@ from sqlalchemy.orm import Session, sessionmaker
 from experiments.spec import Run as GridRun
 from experiments.spec import Spec, SpecError
 from labelqueue import (
+    DEAD_WORKER_AFTER_S,
+    SILENT_WORKER_AFTER_S,
     Conflict,
     Run,
     RunStatus,
     enqueue_grid_run,
     grid_runs,
+    heartbeat_age,
     release_grid_key,
     set_run_status,
 )
+from labelqueue.models import utcnow
 from runvocab.queued_run import TOP_LEVEL_FIELDS
 
 RETRIED = (RunStatus.FAILED, RunStatus.STOPPED)
@@ -151,12 +157,45 @@ def spec_rows(spec: Spec, sessions: sessionmaker[Session]) -> dict[str, Run]:
         return grid_runs(session, prefix=f"{spec.name}/")
 
 
+def age_text(seconds: float) -> str:
+    """`42s`, `5m07s`, `2h03m`: how long ago, in a table cell."""
+    s = max(0, int(seconds))
+    if s < 60:
+        return f"{s}s"
+    if s < 3600:
+        return f"{s // 60}m{s % 60:02d}s"
+    return f"{s // 3600}h{s % 3600 // 60:02d}m"
+
+
+def _heartbeat(row: Run | None, now: datetime) -> tuple[str, str | None]:
+    """A run's heartbeat cell, and a line about its worker when that worker has gone silent
+    (it may be dead) or is presumed dead (another worker may take the run over)."""
+    age = None if row is None else heartbeat_age(row, now)
+    if row is None or age is None:
+        return "-", None
+    cell = age_text(age)
+    if row.status is not RunStatus.RUNNING or age <= SILENT_WORKER_AFTER_S:
+        return cell, None
+    if age > DEAD_WORKER_AFTER_S:
+        return f"{cell} DEAD", (f"  {row.grid_key}: worker {row.worker_id} silent for "
+                                f"{cell}, presumed dead: the next worker to look takes the run "
+                                "over from its checkpoint")
+    left = age_text(math.ceil(DEAD_WORKER_AFTER_S - age))
+    return f"{cell} silent", (f"  {row.grid_key}: worker {row.worker_id} silent for {cell}: "
+                              f"stopped or dead? Another worker may take the run over in "
+                              f"{left} unless it comes back")
+
+
 def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> str:
     """A table of the spec's runs: their status in the database (or "not queued"), the step
-    reached of the planned steps, the worker, and whether the folder holds a checkpoint."""
+    reached of the planned steps, the worker and how long ago it heartbeat (flagged `silent`
+    past `SILENT_WORKER_AFTER_S`, `DEAD` past `DEAD_WORKER_AFTER_S`), and whether the folder
+    holds a checkpoint."""
     rows = spec_rows(spec, sessions)
-    header = ("task", "variant", "eps", "budget", "seed", "status", "step", "worker", "folder")
-    lines, counts = [], {}
+    now = utcnow()
+    header = ("task", "variant", "eps", "budget", "seed", "status", "step", "worker",
+              "heartbeat", "folder")
+    lines, counts, silent = [], {}, []
     for run in spec.runs():
         key = grid_key(spec, run)
         row = rows.get(key)
@@ -166,10 +205,13 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> 
         held = ("done" if (folder / "done.json").exists() else
                 "checkpoint" if (folder / "checkpoint.pt").exists() else
                 "-" if not folder.exists() else "started")
+        beat, note = _heartbeat(row, now)
+        if note is not None:
+            silent.append(note)
         lines.append((run.task, run.variant, f"{run.eps:g}",
                       "-" if run.budget is None else str(run.budget), str(run.seed), status,
                       f"{row.step if row is not None else 0}/{run.steps}",
-                      (row.worker_id or "-") if row is not None else "-", held))
+                      (row.worker_id or "-") if row is not None else "-", beat, held))
     widths = [max(len(r[i]) for r in [header, *lines]) for i in range(len(header))]
     text = ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip()
             for r in [header, *lines]]
@@ -177,4 +219,5 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> 
     errors = [f"  {key}: {row.error}" for key, row in sorted(rows.items())
               if row.status is RunStatus.FAILED and row.error]
     return "\n".join([f"{spec.name}: {len(lines)} runs: {summary}", *text]
-                     + (["failed:", *errors] if errors else []))
+                     + (["failed:", *errors] if errors else [])
+                     + (["workers gone silent:", *silent] if silent else []))

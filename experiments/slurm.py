@@ -1,52 +1,200 @@
 """`sepoa experiment slurm`: an sbatch array script whose tasks are `sepoa worker --once`.
 
-    sepoa experiment run SPEC --no-workers --database-url postgresql+psycopg://...  # enqueue
-    sepoa experiment slurm SPEC --workers 8 --database-url postgresql+psycopg://... \\
-        --results /shared/results > workers.sbatch && sbatch workers.sbatch
+    sepoa experiment run SPEC --no-workers --results /shared/results      # enqueue
+    sepoa experiment slurm SPEC --workers 8 --results /shared/results > workers.sbatch
+    sbatch workers.sbatch
 
-Each array task is one worker named after the job and its index; it claims the queue's runs
-until none is waiting and exits. A task killed by the scheduler (time limit, preemption) leaves
-its run to the next worker that claims it once its heartbeat is old (`DEAD_WORKER_AFTER_S`),
-which resumes it from the run's checkpoint in the shared results folder. No Slurm module is
-needed to write the script: the cluster runs it.
+(the queue's URL in SEPOA_DATABASE_URL, or --database-url / --database-url-file, for both.)
+
+The script runs as printed on a node that sees the same files: it calls this very `sepoa` by
+its absolute path (`--sepoa` to name another), asks for the CPUs of the spec's `threads` and
+the memory its preset needs (`PRESET_MEMORY`; `--threads`, `--mem` to change), appends to its
+log on a requeue (`--open-mode=append`), and is requeued by Slurm on preemption or node failure
+when asked (`--requeue`). Each array task is one worker named after the job and its index; it
+claims the queue's runs until none is waiting and exits. On SIGTERM (`scancel`, preemption) or
+SIGUSR1 (sent `signal_before` seconds ahead of the time limit, `--signal=B:USR1@...`), the
+worker checkpoints its run at the end of the episode and releases it: the next worker, or the
+task requeued under the same name, resumes it from that checkpoint at once.
+
+No secret is written into the script: a URL without a password is written as it is; a URL with
+one is read by the tasks from a file of mode 600 (the one given with --database-url-file, or
+`<results>/.sepoa-database-url`, written by the command), so it shows neither in the script nor
+in `ps` on the nodes; every log line shows the URL masked.
+
+The queue must be a database server every node reaches (PostgreSQL). A SQLite file is refused,
+since array tasks are separate jobs placed on any node and SQLite's locking is not safe on the
+network filesystems nodes share, unless every task is pinned to one node (`node`): then the
+file must be on that node's own disk. No Slurm module is needed to write the script: the
+cluster runs it.
 """
 
 from __future__ import annotations
 
+import os
+import re
 import shlex
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 from experiments.spec import Spec
 
+PRESET_MEMORY = {"tiny": "2G", "small": "3G", "paper": "8G"}
+"""memory per task by the spec's preset: a tiny run's worker peaks at about 0.5 GB (measured),
+a small one's replay buffer of 200 k transitions adds tens of MB, the paper's 1 M transitions
+up to 0.7 GB per copy on quadruped (a checkpoint writes a second one), with CUDA's host memory"""
+SIGNAL_BEFORE_S = 300
+"""how long before the time limit Slurm warns a worker (SIGUSR1), at most; a quarter of a
+shorter time limit. An episode ends and a checkpoint is written well within it."""
+URL_FILE = ".sepoa-database-url"
+"""where `sepoa experiment slurm` keeps a URL that holds a password, under the results folder"""
 
-def sbatch_script(spec: Spec, *, workers: int, database_url: str, results: Path,
+
+class SlurmError(ValueError):
+    """An option the script cannot be written with; the message says which and why."""
+
+
+@dataclass(frozen=True)
+class QueueAccess:
+    """How the array's tasks reach the queue, with no secret in the script."""
+
+    shown: str
+    """the URL with its password masked, for the script's comment"""
+    url: str | None = None
+    """a URL without a password, passed to the workers as it is"""
+    url_file: Path | None = None
+    """a file (mode 600) holding the URL, passed to the workers by its path"""
+
+
+def seconds(time_limit: str) -> int | None:
+    """A Slurm time limit in seconds (None for infinite / unlimited): minutes, MM:SS, HH:MM:SS,
+    D-HH, D-HH:MM or D-HH:MM:SS. SlurmError for anything else."""
+    text = time_limit.strip()
+    if text.lower() in ("infinite", "unlimited"):
+        return None
+    days, hours, minutes, secs = 0, 0, 0, 0
+    match = re.fullmatch(r"(?:(\d+)-)?(\d+)(?::(\d+))?(?::(\d+))?", text)
+    if match is None:
+        raise SlurmError(f"--time {time_limit!r}: use minutes, MM:SS, HH:MM:SS or D-HH:MM:SS")
+    d, a, b, c = match.groups()
+    if d is not None:  # D-HH[:MM[:SS]]
+        days, hours, minutes, secs = int(d), int(a), int(b or 0), int(c or 0)
+    elif c is not None:  # HH:MM:SS
+        hours, minutes, secs = int(a), int(b), int(c)
+    elif b is not None:  # MM:SS
+        minutes, secs = int(a), int(b)
+    else:  # minutes
+        minutes = int(a)
+    total = ((days * 24 + hours) * 60 + minutes) * 60 + secs
+    if total <= 0:
+        raise SlurmError(f"--time {time_limit!r}: the time limit must be above zero")
+    return total
+
+
+def default_memory(spec: Spec) -> str:
+    return PRESET_MEMORY.get(spec.preset, PRESET_MEMORY["paper"])
+
+
+def default_signal_before(time_limit: str) -> int:
+    limit = seconds(time_limit)
+    return SIGNAL_BEFORE_S if limit is None else max(1, min(SIGNAL_BEFORE_S, limit // 4))
+
+
+def running_sepoa() -> list[str]:
+    """The command that runs this `sepoa`, by absolute path: the script it was started as, else
+    the `sepoa` beside this Python (a virtual environment's bin folder, not activated), else
+    this Python with `-m sepoa.cli`."""
+    started = Path(sys.argv[0]) if sys.argv and sys.argv[0] else None
+    if started is not None and started.name == "sepoa" and os.access(started, os.X_OK):
+        return [str(started.absolute())]
+    beside = Path(sys.executable).parent / "sepoa"  # not resolved: a venv's python is a link
+    if beside.is_file() and os.access(beside, os.X_OK):
+        return [str(beside.absolute())]
+    return [str(Path(sys.executable).absolute()), "-m", "sepoa.cli"]
+
+
+def write_url_file(results: Path, url: str) -> Path:
+    """Keep `url` in `<results>/.sepoa-database-url`, readable by its owner only."""
+    results.mkdir(parents=True, exist_ok=True)
+    path = results / URL_FILE
+    tmp = path.with_name(f"{URL_FILE}.{os.getpid()}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as handle:
+        handle.write(url + "\n")
+    os.replace(tmp, path)
+    return path
+
+
+def sbatch_script(spec: Spec, *, workers: int, queue: QueueAccess, results: Path,
                   threads: int | None = None, time_limit: str = "24:00:00",
-                  partition: str | None = None, gpus: int = 0, memory: str = "16G",
-                  python: str = "sepoa") -> str:
+                  partition: str | None = None, gpus: int = 0, memory: str | None = None,
+                  sepoa: Sequence[str] | None = None, requeue: bool = False,
+                  node: str | None = None, signal_before: int | None = None) -> str:
     """The script's text: an array of `workers` tasks of one worker each, `threads` CPUs and
-    torch threads per task (default the spec's), `gpus` GPUs per task."""
+    torch threads per task (default the spec's), `memory` per task (default by the spec's
+    preset), `gpus` GPUs per task, `node` to pin every task to one node."""
     threads = threads or spec.threads
+    memory = memory or default_memory(spec)
+    before = signal_before if signal_before is not None else default_signal_before(time_limit)
+    sepoa = list(sepoa) if sepoa else running_sepoa()
+    results = results.absolute()
     options = [f"--job-name=sepoa-{spec.name}", f"--array=0-{workers - 1}",
                "--ntasks=1", f"--cpus-per-task={threads}", f"--mem={memory}",
-               f"--time={time_limit}",
-               f"--output={results / 'slurm-%A_%a.log'}"]
+               f"--time={time_limit}", f"--signal=B:USR1@{before}",
+               f"--output={results / 'slurm-%A_%a.log'}", "--open-mode=append"]
+    if requeue:
+        options.append("--requeue")
     if partition:
         options.append(f"--partition={partition}")
     if gpus:
         options.append(f"--gres=gpu:{gpus}")
-    command = [python, "worker", "--database-url", database_url, "--data-dir", str(results),
-               "--results", str(results), "--threads", str(threads), "--once"]
+    if node:
+        options.append(f"--nodelist={node}")
+    if queue.url_file is not None:
+        where = ["--database-url-file", str(queue.url_file)]
+        told = f"the tasks read it from {queue.url_file}, mode 600"
+    else:
+        assert queue.url is not None
+        where = ["--database-url", queue.url]
+        told = "it holds no password"
+    command = [*sepoa, "worker", *where, "--data-dir", str(results), "--results", str(results),
+               "--threads", str(threads), "--once"]
     if gpus:
         command += ["--device", "cuda"]
     worker = " ".join(shlex.quote(part) for part in command)
-    lines = ["#!/bin/bash",
-             f"# Workers for the experiment {spec.name!r} ({len(spec.runs())} runs), made by",
-             "# `sepoa experiment slurm`. Enqueue the grid first (sepoa experiment run SPEC",
-             "# --no-workers with the same --database-url); submit with `sbatch <this file>`.",
+    memory_note = ("--mem" if memory != default_memory(spec) else
+                   f"the {spec.preset!r} preset's; --mem to change it")
+    runs = len(spec.runs())
+    counted = f"{runs} run{'s' if runs != 1 else ''}, preset {spec.preset!r}"
+    header = f"""\
+# Workers for the experiment {spec.name!r} ({counted}),
+# made by `sepoa experiment slurm`. Enqueue the grid first (`sepoa experiment run SPEC
+# --no-workers`, same queue and --results), submit with `sbatch <this file>`, and follow it
+# with `sepoa experiment status SPEC --results {results}`.
+# Each task is one worker, `sepoa worker --once` named slurm-<job>-<task>: it trains queued
+# runs until none is left. On SIGTERM (scancel, preemption) or SIGUSR1 ({before} s before the
+# time limit) it checkpoints its run at the end of the episode and releases it at once: the
+# next worker, or this task requeued, resumes it from there.
+# Queue: {queue.shown}
+# ({told}).
+# Memory per task: {memory} ({memory_note})."""
+    pinned = f"""\
+# Every task runs on {node} (--nodelist): the SQLite queue must be on a disk of {node}'s own
+# (SQLite's locking is not safe on a network filesystem)."""
+    lines = ["#!/bin/bash", header, *([pinned] if node else []),
              *(f"#SBATCH {option}" for option in options),
              "set -euo pipefail",
+             f"if ! [ -x {shlex.quote(sepoa[0])} ]; then",
+             f"    echo \"error: {sepoa[0]} is not on $(hostname): install the project at the "
+             "same path on every node, or give --sepoa\" >&2",
+             "    exit 127",
+             "fi",
              f"export OMP_NUM_THREADS={threads} MKL_NUM_THREADS={threads}",
              "export MUJOCO_GL=${MUJOCO_GL:-egl}",
+             'echo "[slurm] job ${SLURM_JOB_ID}, array task ${SLURM_ARRAY_JOB_ID}_'
+             '${SLURM_ARRAY_TASK_ID} on $(hostname), start $((${SLURM_RESTART_COUNT:-0} + 1)),'
+             ' $(date -u +%FT%TZ)"',
              f"exec {worker} \\",
              '    --worker-id "slurm-${SLURM_ARRAY_JOB_ID}-${SLURM_ARRAY_TASK_ID}"',
              ""]

@@ -104,9 +104,13 @@ def _worker_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser("worker", help="train the runs queued in the queue database",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     env = os.environ.get
-    p.add_argument("--database-url", default=env("SEPOA_DATABASE_URL"),
+    p.add_argument("--database-url", default=None,
                    help="the queue database (env SEPOA_DATABASE_URL; default "
-                   "sqlite:///<data-dir>/queue.db)")
+                   "sqlite:///<data-dir>/queue.db); a URL here shows in `ps`: keep a password in "
+                   "the environment, a --database-url-file or a libpq password file")
+    p.add_argument("--database-url-file", default=None, metavar="FILE",
+                   help="a file (mode 600) holding the queue database's URL (env "
+                   "SEPOA_DATABASE_URL_FILE)")
     p.add_argument("--data-dir", default=env("SEPOA_DATA_DIR", "data"),
                    help="runs and clips go under it (env SEPOA_DATA_DIR)")
     p.add_argument("--clips-dir", default=env("SEPOA_CLIPS_DIR"),
@@ -143,7 +147,7 @@ def _run_worker(args: argparse.Namespace) -> int:
 
     from sqlalchemy.exc import DBAPIError
 
-    from labelqueue import check_url, sqlite_url
+    from labelqueue import check_url, database_url, mask_url, sqlite_url
     from trainer.clips import ClipConfig  # no MuJoCo yet: the rendering check comes first
 
     try:
@@ -160,7 +164,8 @@ def _run_worker(args: argparse.Namespace) -> int:
     threads = args.threads or max(1, cpu_cores() // args.host_processes)
     extra = {"worker_id": args.worker_id} if args.worker_id else {}
     try:
-        url = check_url(args.database_url or sqlite_url(args.data_dir))
+        url = check_url(database_url(args.database_url, args.database_url_file)
+                        or sqlite_url(args.data_dir))
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -190,7 +195,7 @@ def _run_worker(args: argparse.Namespace) -> int:
         return 130
     except DBAPIError as err:  # the database cannot be reached (or went away)
         first = str(err.orig or err).strip().splitlines()[0]
-        print(f"error: queue database {url.split('@')[-1]}: {first}", file=sys.stderr)
+        print(f"error: queue database {mask_url(url)}: {first}", file=sys.stderr)
         return 2
     return 0
 

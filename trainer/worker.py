@@ -21,6 +21,14 @@ where `sepoa experiment status` and `sepoa report` read it. The worker marks the
   people and the scripted teacher, and the switch applies to the open round's unanswered
   queries at once.
 
+A worker told to go (SIGTERM: `kill`, `scancel`, a scheduler's preemption, its launcher's stop;
+SIGUSR1: the warning Slurm sends before the time limit with `--signal`) ends its run at the end
+of the current episode, after a checkpoint, and releases it (`labelqueue.release_run`): the run
+is queued again at once, and the next worker resumes it from that checkpoint without waiting
+for the heartbeat timeout. A second such signal ends the worker at once. A worker with `once`
+that finds nothing to claim but a run held by a worker that has gone silent says so, and when
+the run may be taken over, and waits for it rather than exit.
+
 A round's labels are read back by query id (`labels_for_queries`), which does not care whether a
 label was consumed before: a worker killed after labels arrived resumes from the checkpoint
 taken when the round opened, pushes the same queries again (the push is idempotent) and finds
@@ -38,6 +46,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import socket
 import sys
 import time
@@ -45,6 +54,7 @@ import traceback
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +63,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from labelqueue import (
+    DEAD_WORKER_AFTER_S,
     Conflict,
     Label,
     Labeller,
@@ -68,15 +79,19 @@ from labelqueue import (
     find_labeller,
     finish_run,
     heartbeat,
+    heartbeat_age,
     labels_for_queries,
     lease_next_query,
     make_engine,
+    mask_url,
     migrate,
     push_queries,
     read_run,
+    release_run,
     session_factory,
     set_clips,
     settled,
+    silent_holders,
     submit_label,
     write_metrics,
 )
@@ -135,6 +150,36 @@ class WorkerConfig:
 
 class LostRun(Exception):
     """The run was given to another worker (requeued, or this one was declared dead)."""
+
+
+LEAVE_SIGNALS = (signal.SIGTERM, signal.SIGUSR1)
+"""the signals that tell a worker to checkpoint, release its run and exit"""
+
+
+class Departure:
+    """Whether, and by which signal, this worker was told to go (`LEAVE_SIGNALS`)."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+        self.announced = False
+
+    @property
+    def due(self) -> bool:
+        return self.signum is not None
+
+    @property
+    def name(self) -> str:
+        return signal.Signals(self.signum).name if self.signum is not None else "none"
+
+    def on_signal(self, signum: int, _frame: Any) -> None:
+        # Nothing printed here: the signal may have interrupted a print to the same stream.
+        self.signum = signum
+        for sig in LEAVE_SIGNALS:  # a second one ends the worker at once
+            signal.signal(sig, signal.SIG_DFL)
+
+
+class Interrupted(Exception):
+    """Told to go where no checkpoint can be written (while a skill snapshot is pretrained)."""
 
 
 def run_config(run: Run, worker: WorkerConfig) -> RunConfig:
@@ -196,8 +241,9 @@ class QueueHooks(RunHooks):
     """Connects one training run to the queue database (see the module's docstring)."""
 
     def __init__(self, sessions: sessionmaker[Session], run: Run, worker: WorkerConfig,
-                 cfg: RunConfig, scripted_labeller_id: int):
+                 cfg: RunConfig, scripted_labeller_id: int, departure: Departure | None = None):
         self.sessions, self.worker, self.cfg = sessions, worker, cfg
+        self.departure = departure or Departure()
         self.run_id, self.teacher = run.id, run.teacher
         self.scripted_id = scripted_labeller_id
         self.status = RunStatus.RUNNING
@@ -239,15 +285,22 @@ class QueueHooks(RunHooks):
 
     def stop_requested(self, step: int) -> bool:
         status = self.beat(step)
-        while status is RunStatus.PAUSED:
+        while status is RunStatus.PAUSED and not self.departure.due:
             time.sleep(self.worker.poll_seconds)
             status = self.beat(step, force=True)
-        return status in (RunStatus.STOPPING, RunStatus.STOPPED)
+        if self.departure.due and not self.departure.announced:
+            self.departure.announced = True
+            print(f"[worker {self.worker.worker_id}] run {self.run_id}: {self.departure.name} "
+                  f"at step {step}: checkpointing at the end of this episode, then releasing "
+                  "the run", file=sys.stderr, flush=True)
+        return self.departure.due or status in (RunStatus.STOPPING, RunStatus.STOPPED)
 
     def pretraining(self, step: int) -> None:
         # Heartbeats keep the run ours while its skill snapshot is made (minutes to hours);
         # pause and stop wait for the online phase, which can checkpoint. Its pace, for the
         # estimate the run page and the label page show (`labelqueue.activity`).
+        if self.departure.due:
+            raise Interrupted(f"{self.departure.name} while pretraining the skill snapshot")
         now = time.monotonic()
         if step > 0 and self.pretrain_start is None:
             self.pretrain_start = (now, step)
@@ -400,9 +453,11 @@ def scripted_labeller_id(sessions: sessionmaker[Session]) -> int:
 
 
 def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerConfig,
-                      scripted_id: int) -> RunStatus | None:
-    """Train a run this worker has claimed, and end it; its final status (None if lost)."""
+                      scripted_id: int, departure: Departure | None = None) -> RunStatus | None:
+    """Train a run this worker has claimed, and end it; its final status (None if lost). Told
+    to go (`departure`), the worker releases the run after its checkpoint: queued again."""
     log = f"[worker {worker.worker_id}] run {run.id}"
+    departure = departure or Departure()
     try:
         cfg = run_config(run, worker)
         resume = os.path.exists(os.path.join(cfg.run_dir, CHECKPOINT))
@@ -410,7 +465,7 @@ def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerC
             shutil.rmtree(cfg.run_dir)  # an attempt that died before its first checkpoint
         for marker in (DONE, FAILED):
             Path(cfg.run_dir, marker).unlink(missing_ok=True)
-        hooks = QueueHooks(sessions, run, worker, cfg, scripted_id)
+        hooks = QueueHooks(sessions, run, worker, cfg, scripted_id, departure)
         print(f"{log}: {'resuming' if resume else 'starting'} {run.task} {run.algo} "
               f"in {cfg.run_dir}", file=sys.stderr, flush=True)
         training = TrainingRun(cfg, resume=resume, progress=False, hooks=hooks)
@@ -421,12 +476,18 @@ def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerC
     except LostRun as err:
         print(f"{log}: lost ({err})", file=sys.stderr, flush=True)
         return None
+    except Interrupted as err:
+        return _release(sessions, run.id, worker, f"{log}: {err}; released without a new "
+                        "checkpoint")
     except Exception as err:  # noqa: BLE001 - any failure ends the run as failed, with why
         traceback.print_exc()
         error = f"{type(err).__name__}: {err}"
         if "cfg" in locals():
             _mark(cfg.run_dir, FAILED, {"reason": error})
         return _end(sessions, run.id, worker, RunStatus.FAILED, error)
+    if departure.due and summary.get("stopped"):
+        return _release(sessions, run.id, worker, f"{log}: {departure.name}: checkpointed at "
+                        f"step {summary['step']} and released; the next worker resumes it")
     status = RunStatus.STOPPED if summary.get("stopped") else RunStatus.FINISHED
     print(f"{log}: {status} at step {summary['step']}", file=sys.stderr, flush=True)
     if status is RunStatus.FINISHED:
@@ -457,8 +518,54 @@ def _end(sessions: sessionmaker[Session], run_id: int, worker: WorkerConfig, sta
             return read_run(session, run_id=run_id).status
 
 
-def run_worker(worker: WorkerConfig) -> int:
-    """Claim and train runs until interrupted (or, with `once`, until none is waiting)."""
+def _release(sessions: sessionmaker[Session], run_id: int, worker: WorkerConfig,
+             message: str) -> RunStatus | None:
+    with sessions() as session:
+        try:
+            status = release_run(session, run_id=run_id, worker_id=worker.worker_id).status
+        except Conflict:  # requeued or taken over meanwhile: not ours to release
+            return read_run(session, run_id=run_id).status
+    print(f"{message} (now {status})", file=sys.stderr, flush=True)
+    return status
+
+
+def _report_silent(sessions: sessionmaker[Session], worker: WorkerConfig,
+                   told: set[tuple[int, str]]) -> bool:
+    """Say which runs are held by workers gone silent, and when each may be taken over (once
+    per run and holder); whether there are any."""
+    with sessions() as session:
+        held = silent_holders(session, worker_id=worker.worker_id)
+    for run in held:
+        if (run.id, str(run.worker_id)) in told or run.heartbeat_at is None:
+            continue
+        told.add((run.id, str(run.worker_id)))
+        age = heartbeat_age(run) or 0.0
+        free_at = run.heartbeat_at + timedelta(seconds=DEAD_WORKER_AFTER_S)
+        left = max(0.0, DEAD_WORKER_AFTER_S - age)
+        print(f"[worker {worker.worker_id}] run {run.id} ({run.grid_key or run.name}) is held "
+              f"by worker {run.worker_id}, silent for {age:.0f} s (stopped or dead?); it can "
+              f"be taken over at {free_at:%H:%M:%S} UTC, in {left:.0f} s, unless that worker "
+              f"comes back{': waiting for it' if worker.once else ''}",
+              file=sys.stderr, flush=True)
+    return bool(held)
+
+
+def _leave_on_signals(departure: Departure) -> dict[int, Any]:
+    """Install `departure`'s handler for `LEAVE_SIGNALS`; the handlers it replaced (none
+    outside the main thread, where signals cannot be handled)."""
+    previous: dict[int, Any] = {}
+    for sig in LEAVE_SIGNALS:
+        try:
+            previous[sig] = signal.signal(sig, departure.on_signal)
+        except ValueError:  # not the main thread
+            break
+    return previous
+
+
+def run_worker(worker: WorkerConfig, departure: Departure | None = None) -> int:
+    """Claim and train runs until interrupted (or, with `once`, until none is waiting and none
+    is held by a worker gone silent). Told to go (SIGTERM, SIGUSR1), it checkpoints and releases
+    its run, and returns."""
     for attempt in range(5):  # the server may be migrating the same database right now
         try:
             migrate(worker.database_url)
@@ -467,22 +574,32 @@ def run_worker(worker: WorkerConfig) -> int:
             if attempt == 4:
                 raise
             time.sleep(1.0)
+    departure = departure or Departure()
+    previous = _leave_on_signals(departure)
     engine = make_engine(worker.database_url)
     sessions = session_factory(engine)
-    scripted_id = scripted_labeller_id(sessions)
-    print(f"[worker {worker.worker_id}] waiting for runs in {worker.database_url}",
-          file=sys.stderr, flush=True)
-    trained = 0
+    told: set[tuple[int, str]] = set()
     try:
-        while True:
+        scripted_id = scripted_labeller_id(sessions)
+        print(f"[worker {worker.worker_id}] waiting for runs in {mask_url(worker.database_url)}",
+              file=sys.stderr, flush=True)
+        trained = 0
+        while not departure.due:
             with sessions() as session:
                 run = claim_run(session, worker_id=worker.worker_id)
             if run is None:
-                if worker.once:
+                if not _report_silent(sessions, worker, told) and worker.once:
+                    print(f"[worker {worker.worker_id}] no run left to claim: exiting",
+                          file=sys.stderr, flush=True)
                     return trained
                 time.sleep(worker.poll_seconds)
                 continue
-            train_claimed_run(sessions, run, worker, scripted_id)
+            train_claimed_run(sessions, run, worker, scripted_id, departure)
             trained += 1
+        print(f"[worker {worker.worker_id}] {departure.name}: exiting", file=sys.stderr,
+              flush=True)
+        return trained
     finally:
         engine.dispose()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

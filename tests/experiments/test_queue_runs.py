@@ -1,12 +1,11 @@
 """Experiments as queue runs: a spec's grid enqueued once per grid key, trained by workers into
 `<results>/<spec>/<run>/`; a changed grid refused without --force; two launchers never train a
 run twice; a failing run is reported while the others finish; a killed launch resumes; the
-one-command launch with local workers; the Slurm recipe's script."""
+one-command launch with local workers. The Slurm script: test_slurm.py, test_slurm_cluster.py."""
 
 from __future__ import annotations
 
 import json
-import shlex
 import signal
 import subprocess
 import sys
@@ -283,41 +282,6 @@ def test_one_command_trains_with_local_workers_and_a_killed_launch_resumes(
     assert steps == sorted(set(steps)) and steps[-1] == 600
     log = (results / "workers.log").read_text()
     assert "resuming dmc:cheetah_run pebble" in log  # from the killed launch's checkpoint
-
-
-def test_the_slurm_recipe_prints_an_sbatch_array_of_workers(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    spec_path = write(tmp_path, TINY.format(steps=400, seeds="[0, 1]")
-                      + '[variants.PEBBLE]\nalgo = "pebble"\n')
-    url = "postgresql+psycopg://sepoa:pw@db.cluster:5432/sepoa"
-    assert main(["experiment", "slurm", str(spec_path), "--workers", "8", "--database-url",
-                 url, "--results", "/shared/results", "--threads", "2", "--gpus", "1",
-                 "--partition", "gpu"]) == 0
-    script = capsys.readouterr().out
-    assert script.startswith("#!/bin/bash\n")
-    for option in ("--array=0-7", "--cpus-per-task=2", "--gres=gpu:1", "--partition=gpu",
-                   "--job-name=sepoa-tiny", "--output=/shared/results/slurm-%A_%a.log"):
-        assert f"#SBATCH {option}\n" in script
-    assert subprocess.run(["bash", "-n"], input=script, text=True).returncode == 0
-    # The worker command it runs is one `sepoa worker` accepts.
-    command = script[script.index("exec ") + 5:].replace("\\\n", " ")
-    argv = shlex.split(command.replace('"slurm-${SLURM_ARRAY_JOB_ID}-${SLURM_ARRAY_TASK_ID}"',
-                                       "slurm-1-0"))
-    assert argv[:2] == ["sepoa", "worker"]
-    import argparse
-
-    from trainer.cli import _worker_parser
-
-    parser = argparse.ArgumentParser()
-    args = _worker_parser(parser.add_subparsers()).parse_args(argv[2:])
-    assert (args.database_url, args.results, args.data_dir) == (url, "/shared/results",
-                                                                "/shared/results")
-    assert (args.threads, args.once, args.device, args.worker_id) == (2, True, "cuda",
-                                                                      "slurm-1-0")
-    # A SQLite file cannot be reached from other nodes.
-    assert main(["experiment", "slurm", str(spec_path), "--workers", "2", "--database-url",
-                 "sqlite:///q.db"]) == 2
-    assert capsys.readouterr().err.startswith("error: --database-url: workers on other nodes")
 
 
 @pytest.mark.parametrize(("argv", "message"), [
