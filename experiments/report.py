@@ -32,12 +32,14 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from experiments import preregistered
 from experiments.proposition import (
     measured_disagreement,
     proposition_png,
     simulated_disagreement,
 )
 from experiments.results import KEYS, STATES, Results, load_results
+from experiments.spec import METRICS
 from figures.curves import Band, align, grid_png
 
 GROUP = ["task", "eps", "budget"]
@@ -464,6 +466,67 @@ PROPOSITION_DOC = (
     "over all pairs (negative: the proposition holds).")
 
 
+PREREGISTERED_DOC = (
+    "The spec's `[analysis]`, fixed before its runs: the primary metric of a run is "
+    "{metric}. Per variant, the interquartile mean (IQM) and the mean over its finished runs "
+    "with 95 % stratified-bootstrap intervals; then the probability that a run of the first "
+    "variant scores above a run of the second (ties count half), with its 95 % interval "
+    "(rliable). The figure shows the IQM of the evaluation return over the finished runs at "
+    "each evaluation, with its 95 % interval.")
+MECHANISM_DOC = (
+    "Per variant, the mean over its runs (finished or not: what they logged) with a 95 % "
+    "bootstrap interval and the runs counted. SAC updates and those on r̂: episodes.csv's last "
+    "row (every algorithm makes one SAC update per update step). Pretraining steps: S-EPOA's "
+    "skill snapshot, the PEBBLE family's unsupervised phase. Distinguishable ratio: rounds.csv "
+    "`distinguishable_ratio` over the rounds after the first; same agent, compared rule: "
+    "`compare_distinguishable_ratio`, the compared rule's picks on the same pool and model over "
+    "the same rounds. Held-out accuracy: `model_agreement`, the reward model before a round "
+    "scored on that round's new labels, which it has not trained on (rounds after the first).")
+ROUNDS_DOC = ("Per variant and round: the mean across runs of the distinguishable ratio of the "
+              "selected queries (and of the compared rule's picks on the same agent).")
+RUNS_DOC = ("Every planned run with its state (done, stopped by an operator, failed, partial "
+            "or not started), the step it reached, its primary metric (finished runs only) "
+            "and its counts.")
+
+
+def preregistered_sections(results: Results, out: Path
+                           ) -> tuple[list[str], dict[str, pd.DataFrame],
+                                      dict[str, tuple[str, str, str]]]:
+    """For a spec with `[analysis]`: the report's opening lines on it, its tables and its
+    sections (see experiments/preregistered.py)."""
+    analysis = results.spec.analysis
+    assert analysis is not None
+    runs = preregistered.per_run(results)
+    primary = preregistered.primary_table(results, runs)
+    improvement = preregistered.improvement_table(results, runs)
+    mechanism = preregistered.mechanism_table(results, runs)
+    rounds = preregistered.rounds_table(results)
+    bands = preregistered.iqm_bands(results, runs)
+    rows = [f"eps {e:g}" for e in results.spec.eps]
+    (out / "iqm-curves.png").write_bytes(grid_png(
+        {(rows[0], results.spec.tasks[0]): bands}, rows[:1], list(results.spec.tasks[:1]),
+        title=results.spec.title + ": IQM, 95 % CI", ylabel="evaluation return"))
+    metric = METRICS[analysis.metric]
+    lines = ["## Pre-registered comparison", "", preregistered.status_line(runs), "",
+             PREREGISTERED_DOC.format(metric=metric), "",
+             preregistered.primary_markdown(primary, improvement), "",
+             "![IQM curves](iqm-curves.png)", "",
+             "Tables: [preregistered.md](preregistered.md), [primary.csv](primary.csv), "
+             "[improvement.csv](improvement.csv), [runs.md](runs.md), [runs.csv](runs.csv).",
+             ""]
+    tables = {"primary": primary, "improvement": improvement, "runs": runs,
+              "mechanism": mechanism, "rounds-distinguishability": rounds}
+    sections = {
+        "mechanism": ("Mechanism", MECHANISM_DOC, preregistered.mechanism_markdown(mechanism)),
+        "rounds-distinguishability": ("Distinguishable ratio per round", ROUNDS_DOC,
+                                      preregistered.rounds_markdown(rounds)),
+        "runs": ("Every run", RUNS_DOC, preregistered.runs_markdown(runs)),
+    }
+    (out / "preregistered.md").write_text("\n".join(
+        [f"# Pre-registered comparison — {results.spec.title}", "", *lines[2:]]) + "\n")
+    return lines, tables, sections
+
+
 def _grid_markdown(results: Results) -> list[str]:
     """The report's opening: the grid, the variants and how many runs are where."""
     spec = results.spec
@@ -524,13 +587,19 @@ def write_report(folder: str | Path, out: str | Path | None = None) -> list[Path
         sections["proposition1"] = ("Proposition 1: disagreement against the return gap",
                                     PROPOSITION_DOC, body)
         figures_extra.append(out / "proposition1.png")
+    opening: list[str] = []
+    if spec.analysis is not None:
+        opening, more_tables, more_sections = preregistered_sections(results, out)
+        tables |= more_tables
+        sections = more_sections | sections
+        figures_extra += [out / "iqm-curves.png", out / "preregistered.md"]
     for name, table in tables.items():
         table.to_csv(out / f"{name}.csv", index=False)
     for name, (heading, doc, body) in sections.items():
         (out / f"{name}.md").write_text(f"# {heading} — {spec.title}\n\n{doc}\n\n{body}\n")
     figures = write_figures(results, out)
 
-    lines = _grid_markdown(results) + ["## Learning curves", "", CURVES_DOC, ""]
+    lines = _grid_markdown(results) + opening + ["## Learning curves", "", CURVES_DOC, ""]
     for name, caption, panels in figures:
         lines += [f"![{caption}]({name})", ""]
         notes = _short_curves(panels, seeds, spec.steps)

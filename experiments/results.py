@@ -19,7 +19,7 @@ import pandas as pd
 from experiments.spec import Spec, load_spec
 
 KEYS = ["task", "variant", "eps", "budget", "seed"]
-STATES = ("done", "partial", "failed", "not started")
+STATES = ("done", "stopped", "partial", "failed", "not started")
 
 
 @dataclass(frozen=True)
@@ -56,13 +56,16 @@ def _last_step(csv_path: Path) -> int | None:
 
 def run_state(folder: Path) -> tuple[str, int | None]:
     """(state, last step reached): done (done.json), failed (failed.json, the last attempt
-    exited non-zero), partial (a checkpoint or metrics, no done.json), or not started."""
+    exited non-zero), stopped (stopped.json: an operator stopped it; it resumes when queued
+    again), partial (a checkpoint or metrics, no marker: running or killed), or not started."""
     done = _json(folder / "done.json")
     step = _last_step(folder / "episodes.csv")
     if done is not None:
         return "done", done.get("step", step)
     if (folder / "failed.json").exists():
         return "failed", step
+    if (folder / "stopped.json").exists():
+        return "stopped", step
     if (folder / "checkpoint.pt").exists() or step is not None:
         return "partial", step
     return "not started", None

@@ -32,6 +32,10 @@ class Band(NamedTuple):
     """sample standard deviation across seeds (zeros for one seed)"""
     n: int
     """seeds averaged"""
+    low: np.ndarray | None = None
+    """the band's lower edge when it is not mean - std (an interval estimate)"""
+    high: np.ndarray | None = None
+    """its upper edge"""
 
 
 Series = tuple[ArrayLike, ArrayLike]
@@ -91,8 +95,9 @@ def grid_png(panels: Mapping[tuple[str, str], Curves], rows: Sequence[str],
                 if not len(band.steps):
                     continue
                 ax.plot(band.steps, band.mean, color=colours[label], label=label, lw=1.5)
-                ax.fill_between(band.steps, band.mean - band.std, band.mean + band.std,
-                                color=colours[label], alpha=0.2, lw=0)
+                low = band.mean - band.std if band.low is None else band.low
+                high = band.mean + band.std if band.high is None else band.high
+                ax.fill_between(band.steps, low, high, color=colours[label], alpha=0.2, lw=0)
     handles = [Line2D([], [], color=colours[label], label=label) for label in labels]
     if handles:
         fig.legend(handles=handles, loc="outside lower center", ncol=min(len(labels), 4),

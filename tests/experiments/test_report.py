@@ -159,7 +159,7 @@ def test_figures_and_index(results: Path) -> None:
         assert (out / name).read_bytes().startswith(PNG_SIGNATURE)
     index = (out / "report.md").read_text()
     assert "![evaluation return, 100 queries](curves_budget100.png)" in index
-    assert "Runs: 8 planned: 7 done, 1 partial, 0 failed, 0 not started." in index
+    assert "Runs: 8 planned: 7 done, 0 stopped, 1 partial, 0 failed, 0 not started." in index
     assert "- dmc:cheetah_run, eps 0.3: B: 2 of 2 seeds, up to step 400" in index
     res = load_results(results)
     assert len(res.runs) == 8 and set(res.evals["budget"]) == {100, 200}
@@ -305,3 +305,113 @@ def test_round_diagnostics(diagnosed: Path) -> None:
     index = (out / "report.md").read_text()
     assert "## Round diagnostics" in index
     assert "[round-diagnostics.csv](round-diagnostics.csv)" in index
+
+
+ANALYSED = """
+name = "analysed"
+preset = "tiny"
+steps = 800
+tasks = ["dmc:cheetah_run"]
+eps = [0.3]
+seeds = [0, 1, 2, 3]
+
+[analysis]
+metric = "final_quarter"
+reference = "R"
+compare_to = ["X"]
+
+[variants.R]
+algo = "sepoa"
+
+[variants.X]
+algo = "surf"
+
+[variants.O]
+algo = "sac"
+seeds = [0, 1]
+"""
+# Evaluations at 200, 400, 600, 800: the primary metric averages those at >= 600.
+LAST_TWO = {("R", 0): (10, 12), ("R", 1): (20, 22), ("R", 2): (30, 32), ("R", 3): (100, 102),
+            ("X", 0): (5, 7), ("X", 1): (15, 17), ("X", 2): (25, 27), ("X", 3): (0, 0),
+            ("O", 0): (50, 50)}
+
+
+@pytest.fixture(scope="module")
+def analysed(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """R and X at 4 seeds (X s3 stopped by an operator at step 400), O at 2 (s1 not
+    started), with episodes.csv update counts and rounds.csv held-out accuracy."""
+    from experiments import preregistered
+
+    # Fewer resamples than a real report's: the same estimates, intervals a little coarser.
+    patch = pytest.MonkeyPatch()
+    patch.setattr(preregistered, "REPS", 300)
+    patch.setattr(preregistered, "CURVE_REPS", 50)
+    folder = tmp_path_factory.mktemp("results") / "analysed"
+    folder.mkdir()
+    (folder / "spec.toml").write_text(ANALYSED)
+    algos = {"R": "sepoa", "X": "surf", "O": "sac"}
+    for (variant, seed), (a, b) in LAST_TWO.items():
+        run = folder / "dmc-cheetah_run" / variant / "eps0.3" / f"s{seed}"
+        run.mkdir(parents=True)
+        config = {"algo": algos[variant], "unsup_steps": 200, "skill": {"pretrain_steps": 5000},
+                  "feedback": {"budget": 30, "selection": "skill" if variant == "R"
+                               else "disagreement"}}
+        (run / "config.json").write_text(json.dumps(config))
+        stopped = (variant, seed) == ("X", 3)
+        evals = [(200, 0), (400, 1)] + ([] if stopped else [(600, a), (800, b)])
+        _write_csv(run / "eval.csv", "step,return", [f"{s},{r}" for s, r in evals])
+        updates = 400 if stopped else 800
+        _write_csv(run / "episodes.csv", "step,episode,return,updates,reward_updates",
+                   [f"{updates},1,0,{updates},{updates - 200}"])
+        if variant != "O":
+            _write_csv(run / "rounds.csv",
+                       "step,round,labels_used,distinguishable_ratio,model_agreement,reward_corr",
+                       ["200,0,10,0.5,,0.1", f"400,1,20,{0.6 + 0.1 * (variant == 'R')},0.7,0.2",
+                        "600,2,30,0.8,0.9,0.3"][:2 if stopped else 3])
+        marker = "stopped.json" if stopped else "done.json"
+        (run / marker).write_text(json.dumps({"step": 400 if stopped else 800}))
+    write_report(folder)
+    patch.undo()
+    return folder
+
+
+def test_the_preregistered_comparison_uses_finished_runs_and_rliable_intervals(
+        analysed: Path) -> None:
+    out = analysed / "report"
+    runs = pd.read_csv(out / "runs.csv").set_index(["variant", "seed"])
+    # The primary metric: the mean of the evaluations in the last quarter (steps 600 and 800).
+    assert runs.loc[("R", 0), "score"] == 11.0 and runs.loc[("R", 3), "score"] == 101.0
+    # A stopped run is shown as stopped, with no score; a run never started as not started.
+    assert runs.loc[("X", 3), "state"] == "stopped" and math.isnan(runs.loc[("X", 3), "score"])
+    assert runs.loc[("O", 1), "state"] == "not started"
+
+    primary = pd.read_csv(out / "primary.csv").set_index("variant")
+    r = primary.loc["R"]
+    # IQM of 11, 21, 31, 101: the mean of the middle half, 21 and 31.
+    assert (r.finished, r.planned) == (4, 4) and r.iqm == pytest.approx(26.0)
+    assert r["mean"] == pytest.approx(41.0) and r.iqm_low <= r.iqm <= r.iqm_high
+    assert (primary.loc["X", "finished"], primary.loc["X", "planned"]) == (3, 4)
+    assert (primary.loc["O", "finished"], primary.loc["O", "planned"]) == (1, 2)
+
+    improvement = pd.read_csv(out / "improvement.csv").iloc[0]
+    # R: 11, 21, 31, 101 against X: 6, 16, 26. R is higher in 9 of the 12 pairs.
+    assert (improvement.reference, improvement.other) == ("R", "X")
+    assert improvement.probability == pytest.approx(9 / 12)
+    assert improvement.low <= improvement.probability <= improvement.high <= 1.0
+
+    mechanism = pd.read_csv(out / "mechanism.csv").set_index("variant")
+    assert mechanism.loc["R", "updates"] == 800 and mechanism.loc["R", "reward_updates"] == 600
+    assert mechanism.loc["X", "updates"] == pytest.approx((3 * 800 + 400) / 4)
+    assert mechanism.loc["R", "pretraining_steps"] == 5000
+    assert mechanism.loc["X", "pretraining_steps"] == 200
+    assert mechanism.loc["O", "pretraining_steps"] == 0
+    # Rounds after the first: R (0.7 + 0.8) / 2; held-out accuracy (0.7 + 0.9) / 2.
+    assert mechanism.loc["R", "distinguishable"] == pytest.approx(0.75)
+    assert mechanism.loc["R", "heldout_accuracy"] == pytest.approx(0.8)
+
+    index = (out / "report.md").read_text()
+    assert "## Pre-registered comparison" in index
+    assert "**Partial**: 8 of 10 planned runs finished" in index
+    assert "| R | X | 4 vs 3 | 0.75 [" in index
+    assert (out / "iqm-curves.png").read_bytes().startswith(PNG_SIGNATURE)
+    assert "| R | 0 | done | 800 | 11.0 | 800 | 600 | 30 |" in (out / "runs.md").read_text()
