@@ -2,7 +2,8 @@
 # Installs everything the project needs on a fresh Debian machine: the system libraries for
 # off-screen MuJoCo rendering, the tools the tests use (headless Chromium for the browser tests,
 # PostgreSQL for the queue's PostgreSQL variants, docker-compose v1 to validate the compose
-# file), a virtual environment in .venv, torch, and the project itself.
+# file, Slurm and MUNGE for the Slurm test, which configures and starts its own daemons), a
+# virtual environment in .venv, torch, and the project itself.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -11,6 +12,7 @@ apt_packages=(
     chromium        # headless browser tests (Python playwright, executable_path=/usr/bin/chromium)
     postgresql      # scripts/test.sh starts a throwaway cluster for the PostgreSQL test variants
     docker-compose  # v1: `docker-compose config` validates docker-compose.yml without an engine
+    slurm-wlm munge # tests/experiments/test_slurm_cluster.py starts a throwaway one-node cluster
 )
 missing=()
 for pkg in "${apt_packages[@]}"; do
