@@ -458,6 +458,9 @@ def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerC
     to go (`departure`), the worker releases the run after its checkpoint: queued again."""
     log = f"[worker {worker.worker_id}] run {run.id}"
     departure = departure or Departure()
+    if departure.due:  # told to go as it claimed the run: hand it on untouched
+        return _release(sessions, run.id, worker, f"{log}: {departure.name}: released "
+                        "before training")
     try:
         cfg = run_config(run, worker)
         resume = os.path.exists(os.path.join(cfg.run_dir, CHECKPOINT))
