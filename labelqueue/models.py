@@ -123,6 +123,10 @@ class Base(DeclarativeBase):
     )
 
 
+SCRIPTED_TEACHER = "scripted-teacher"
+"""the labeller the runs' scripted teacher answers as (made by the first worker that needs it)"""
+
+
 class Labeller(Base):
     """A person (or a scripted teacher) who answers queries; operators also manage runs."""
 

@@ -11,6 +11,7 @@ the others import only the server or the queue package, so they start fast.
     sepoa export --format parquet --run 3 --out labels.parquet
     sepoa labeller create alice [--role operator]
     sepoa labeller revoke alice | activate alice | token alice | list
+    sepoa invite verify PILOT-7KQ3-M9XD-2WPA   # whose completion code is it, how far did they get
     sepoa doctor                      # can this machine render clips? (EGL, OSMesa, fps, upright)
     sepoa tasks | presets
 """
@@ -79,11 +80,13 @@ def _parser() -> argparse.ArgumentParser:
                     "workers and the server")
     up.add_argument("--no-demo", action="store_true",
                     help="do not queue the demo run on a fresh database")
+    _public_url_arg(up)
 
     serve = sub.add_parser("serve", help="run the web server (API, label page, dashboard)")
     _database_args(serve)
     serve.add_argument("--host", default="127.0.0.1")
     serve.add_argument("--port", type=int, default=8000)
+    _public_url_arg(serve)
 
     export = sub.add_parser("export", help="write the labels as JSONL, CSV or Parquet")
     _database_args(export)
@@ -104,11 +107,73 @@ def _parser() -> argparse.ArgumentParser:
         one.add_argument("name")
         _database_args(one, inherit=True)
 
+    invite = sub.add_parser("invite", help="check a participant's completion code")
+    _database_args(invite)
+    invite_sub = invite.add_subparsers(dest="action", required=True)
+    verify = invite_sub.add_parser(
+        "verify", help="whose completion code it is and how far they got (exit 1: nobody's)")
+    verify.add_argument("code")
+    _database_args(verify, inherit=True)
+
     for name, text in TRAINER_COMMANDS.items():
         sub.add_parser(name, help=text, add_help=False)  # parsed by trainer.cli
     for name, text in EXPERIMENT_COMMANDS.items():
         sub.add_parser(name, help=text, add_help=False)  # parsed by experiments.cli
     return parser
+
+
+def _public_url_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--public-url", default=os.environ.get("SEPOA_PUBLIC_URL"),
+                   help="the address people outside reach the server at (https://label.example."
+                   "org, behind a reverse proxy): invite links and clip URLs use it (env "
+                   "SEPOA_PUBLIC_URL)")
+
+
+def _public_url(args: argparse.Namespace) -> str | None:
+    """--public-url as the server will use it; ValueError naming the flag for a bad one."""
+    if not args.public_url:
+        return None
+    from pydantic import ValidationError
+
+    from server.settings import Settings
+
+    try:
+        return Settings(public_url=args.public_url).public_url
+    except ValidationError as err:
+        raise ValueError(f"--public-url {args.public_url!r}: {err.errors()[0]['msg']}") from None
+
+
+def _invite(args: argparse.Namespace) -> int:
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import DBAPIError
+
+    from labelqueue import make_engine, session_factory, verify_code
+
+    url = _database_url(args)
+    parsed = make_url(url)
+    if parsed.get_backend_name() == "sqlite" and not os.path.exists(parsed.database or ""):
+        return fail(f"no queue database at {parsed.database} (--data-dir / --database-url)")
+    engine = make_engine(url)
+    try:
+        with session_factory(engine)() as session:
+            verified = verify_code(session, args.code)
+    except DBAPIError as err:
+        return fail(f"cannot read the queue database: "
+                    f"{str(err.orig or err).strip().splitlines()[0]}")
+    finally:
+        engine.dispose()
+    if verified is None:
+        print(f"{args.code!r} is no participant's completion code (check it was copied whole)",
+              file=sys.stderr)
+        return 1
+    why = {"target": "complete: reached the target", "runs_over": "complete: the run ended",
+           "paused": "complete: paused by check pairs", None: "not complete yet"}[verified.why]
+    target = "" if verified.target_answers is None else f" of {verified.target_answers}"
+    print(f"valid: {verified.participant or '-'} (labeller {verified.labeller!r}, id "
+          f"{verified.labeller_id}), invite {verified.invite_id}, run "
+          f"{verified.run_id if verified.run_id is not None else 'all'}: "
+          f"{verified.counted}{target} decisive answers; {why}")
+    return 0
 
 
 def _serve(args: argparse.Namespace) -> int:
@@ -121,6 +186,9 @@ def _serve(args: argparse.Namespace) -> int:
         return fail(f"{args.host}:{args.port} is in use; pick another with --port")
     os.environ["SEPOA_DATABASE_URL"] = _database_url(args)
     os.environ["SEPOA_DATA_DIR"] = args.data_dir
+    public_url = _public_url(args)
+    if public_url is not None:
+        os.environ["SEPOA_PUBLIC_URL"] = public_url
     uvicorn.run("server.app:app", host=args.host, port=args.port)
     return 0
 
@@ -244,14 +312,19 @@ def main(argv: list[str] | None = None) -> int:
                 return fail("--workers and --threads must be at least 1")
             return up(database_url=_database_url(args), data_dir=args.data_dir, host=args.host,
                       port=args.port, workers=args.workers, demo=not args.no_demo,
-                      threads=args.threads)
+                      threads=args.threads, public_url=_public_url(args))
         if args.command == "serve":
             return _serve(args)
         if args.command == "export":
             return _export(args)
+        if args.command == "invite":
+            return _invite(args)
         return _labeller(args)
     except ValueError as err:  # a database URL that cannot be opened, among others
         return fail(str(err))
+    except KeyboardInterrupt:  # Ctrl-C while starting up: no traceback
+        print("interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -72,7 +72,7 @@ def port_free(host: str, port: int) -> bool:
 
 
 def up(*, database_url: str, data_dir: str, host: str, port: int, workers: int,
-       demo: bool, threads: int | None = None) -> int:
+       demo: bool, threads: int | None = None, public_url: str | None = None) -> int:
     if not port_free(host, port):
         print(f"error: {host}:{port} is in use; pick another with --port", file=sys.stderr)
         return 2
@@ -85,19 +85,29 @@ def up(*, database_url: str, data_dir: str, host: str, port: int, workers: int,
 
     env = os.environ | {"SEPOA_DATABASE_URL": database_url, "SEPOA_DATA_DIR": data_dir,
                         "SEPOA_SECRET_KEY": creds["secret_key"]}
+    if public_url is not None:
+        env["SEPOA_PUBLIC_URL"] = public_url
     env.setdefault("MUJOCO_GL", "egl")
     python = sys.executable
-    children = [subprocess.Popen([python, "-m", "uvicorn", "server.app:app", "--host", host,
-                                  "--port", str(port), "--log-level", "warning"], env=env)]
-    for i in range(workers):
-        # A stable id: a worker restarted by the next `sepoa up` takes its runs back at once.
-        worker_id = f"{socket.gethostname()}-up-{i}"
+    children: list[subprocess.Popen[bytes]] = []
+    try:
+        # Each child in a process group of its own: Ctrl-C reaches this process only, which
+        # stops them in turn (SIGTERM), so none is cut off mid-import with a traceback.
         children.append(subprocess.Popen(
-            [python, "-m", "trainer.cli", "worker", "--database-url", database_url,
-             "--data-dir", data_dir, "--worker-id", worker_id, "--threads", str(threads)],
-            env=env))
+            [python, "-m", "uvicorn", "server.app:app", "--host", host, "--port", str(port),
+             "--log-level", "warning"], env=env, process_group=0))
+        for i in range(workers):
+            # A stable id: a worker restarted by the next `sepoa up` takes its runs back at once.
+            worker_id = f"{socket.gethostname()}-up-{i}"
+            children.append(subprocess.Popen(
+                [python, "-m", "trainer.cli", "worker", "--database-url", database_url,
+                 "--data-dir", data_dir, "--worker-id", worker_id, "--threads", str(threads)],
+                env=env, process_group=0))
+    except KeyboardInterrupt:
+        _stop(children)
+        raise
 
-    base = f"http://{host}:{port}"
+    base = public_url or f"http://{host}:{port}"
     print(f"\nS-EPOA labelling is up at {base}\n"
           f"  label clips:  {base}/label#token={creds['labeller_token']}\n"
           f"  runs:         {base}/runs#token={creds['operator_token']}\n"
@@ -105,6 +115,7 @@ def up(*, database_url: str, data_dir: str, host: str, port: int, workers: int,
           f"  data:         {os.path.abspath(data_dir)}  (tokens in credentials.json)\n"
           + (f"  demo run {demo_run} queued: dmc:cheetah_run, first clips in about a minute\n"
              if demo_run else "")
+          + (f"  (serving {host}:{port} behind {public_url})\n" if public_url else "")
           + "Ctrl-C stops everything.\n", flush=True)
     return _supervise(children)
 
@@ -129,13 +140,23 @@ def _supervise(children: list[subprocess.Popen[bytes]]) -> int:
                 break
             time.sleep(0.5)
     except KeyboardInterrupt:
-        pass
+        print("\nstopping the server and the workers…", file=sys.stderr, flush=True)
+    _stop(children)
+    return code
+
+
+def _stop(children: list[subprocess.Popen[bytes]]) -> None:
+    """SIGTERM to each child, then up to 20 s for it to end (a second Ctrl-C kills them)."""
     for child in children:
         if child.poll() is None:
             child.terminate()
-    for child in children:
-        try:
-            child.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            child.kill()
-    return code
+    try:
+        for child in children:
+            try:
+                child.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                child.kill()
+    except KeyboardInterrupt:
+        for child in children:
+            if child.poll() is None:
+                child.kill()

@@ -15,6 +15,7 @@ from fastapi import Path
 from fastapi import Query as QueryParam
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, computed_field
 
+from labelqueue.models import SCRIPTED_TEACHER
 from runvocab.answers import Click
 from runvocab.clip_format import CLIP_SIZES
 from runvocab.instructions import MAX_CHARS as MAX_INSTRUCTION_CHARS
@@ -222,6 +223,12 @@ class LabellerOut(Out):
     role: str
     active: bool
     created_at: datetime
+
+    @computed_field  # type: ignore[prop-decorator]
+    @property
+    def scripted(self) -> bool:
+        """the runs' scripted teacher, which answers as this labeller: no person"""
+        return self.name == SCRIPTED_TEACHER
 
 
 class LabellerCreated(BaseModel):

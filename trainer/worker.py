@@ -10,7 +10,8 @@ A run's folder is `<data dir>/runs/run-<id>`; an experiment's run (one with a gr
 `<results>/<grid key>`, i.e. `<results>/<spec name>/<run folder>`, with its skill snapshots in
 `<results>/snapshots`, so every worker given the same (shared) results folder writes the grid
 where `sepoa experiment status` and `sepoa report` read it. The worker marks the folder's end:
-`done.json` (the run's summary) or `failed.json` (the error). `QueueHooks`:
+`done.json` (the run's summary), `stopped.json` (stopped by an operator; its summary) or
+`failed.json` (the error). `QueueHooks`:
 
 - heartbeat every few seconds with the run's progress, and obey the operator between steps:
   paused -> wait, stopping/stopped -> end at the episode's end after a checkpoint;
@@ -95,6 +96,7 @@ from labelqueue import (
     submit_label,
     write_metrics,
 )
+from labelqueue.models import SCRIPTED_TEACHER
 from runvocab.answers import aggregate, click_of_answer
 from runvocab.config import RunConfig, apply_overrides
 from runvocab.query_fields import QUERY_FIELDS
@@ -107,8 +109,8 @@ from trainer.hooks import RunHooks
 from trainer.loop import CHECKPOINT, TrainingRun
 from trainer.trajectories import TrajectoryPool
 
-SCRIPTED_LABELLER = "scripted-teacher"
-DONE, FAILED = "done.json", "failed.json"
+SCRIPTED_LABELLER = SCRIPTED_TEACHER
+DONE, FAILED, STOPPED = "done.json", "failed.json", "stopped.json"
 """a run folder's end, as the worker marks it"""
 
 
@@ -466,7 +468,7 @@ def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerC
         resume = os.path.exists(os.path.join(cfg.run_dir, CHECKPOINT))
         if not resume and os.path.isdir(cfg.run_dir):
             shutil.rmtree(cfg.run_dir)  # an attempt that died before its first checkpoint
-        for marker in (DONE, FAILED):
+        for marker in (DONE, FAILED, STOPPED):
             Path(cfg.run_dir, marker).unlink(missing_ok=True)
         hooks = QueueHooks(sessions, run, worker, cfg, scripted_id, departure)
         print(f"{log}: {'resuming' if resume else 'starting'} {run.task} {run.algo} "
@@ -493,13 +495,13 @@ def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerC
                         f"step {summary['step']} and released; the next worker resumes it")
     status = RunStatus.STOPPED if summary.get("stopped") else RunStatus.FINISHED
     print(f"{log}: {status} at step {summary['step']}", file=sys.stderr, flush=True)
-    if status is RunStatus.FINISHED:
-        _mark(cfg.run_dir, DONE, summary)
+    _mark(cfg.run_dir, DONE if status is RunStatus.FINISHED else STOPPED, summary)
     return _end(sessions, run.id, worker, status, None)
 
 
 def _mark(run_dir: str, name: str, data: dict[str, Any]) -> None:
-    """`done.json` / `failed.json` in the run's folder, for reports that read folders only."""
+    """`done.json` / `failed.json` / `stopped.json` in the run's folder, for reports that read
+    folders only."""
     path = Path(run_dir, name)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -20,9 +20,10 @@ from starlette.types import Scope
 from runvocab.clip_format import CLIP_SIZES
 from runvocab.names import ALGOS, SIZE_PRESETS, all_tasks
 
-ALGO_TITLES = {"sepoa": "S-EPOA", "pebble": "PEBBLE", "surf": "SURF", "rune": "RUNE",
-               "rime": "RIME", "sac": "SAC (true reward)"}
-"""the new-run form's algorithms, S-EPOA first"""
+ALGO_TITLES = {"pebble": "PEBBLE (first pairs soonest)", "sepoa": "S-EPOA (pretrains skills first)",
+               "surf": "SURF", "rune": "RUNE", "rime": "RIME", "sac": "SAC (true reward)"}
+"""the new-run form's algorithms: PEBBLE first, the one whose first pairs come soonest (a
+demo's choice); S-EPOA pretrains skills before anything else"""
 assert set(ALGO_TITLES) == set(ALGOS)
 WEB_DIR = Path(__file__).resolve().parents[2] / "web"
 templates = Jinja2Templates(directory=WEB_DIR / "templates")

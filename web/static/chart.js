@@ -1,9 +1,11 @@
 // Learning curves as inline SVG: a few series on shared axes, with ticks, grid and a legend.
 //
-// drawChart(figure, {title, xLabel, yLabel, time, xMin, xMax, yMin, yMax, note, series: [
+// drawChart(figure, {title, xLabel, yLabel, time, xInteger, xMin, xMax, yMin, yMax, note, series: [
 //   {name, color, kind: "line" | "dots" | "bars", points: [[x, y], ...], barWidth}]})
 // Points whose y is null or not a number are dropped ("draw what exists"). The drawing is as
 // wide as its figure (in CSS pixels, so text keeps its size) and redrawn on every refresh.
+// `xInteger`: x counts something (rounds), so its ticks are whole numbers and one point sits
+// between its neighbours, not at -0.4 ... 0.4.
 
 const H = 250;
 const PAD = { left: 58, right: 14, top: 12, bottom: 38 };
@@ -41,10 +43,11 @@ function clock(ms) {
   return new Date(ms).toLocaleTimeString([], { hour: "2-digit", minute: "2-digit" });
 }
 
-function extent(values, fixedLo, fixedHi) {
+function extent(values, fixedLo, fixedHi, integer = false) {
   let lo = fixedLo ?? Math.min(...values);
   let hi = fixedHi ?? Math.max(...values);
-  if (lo === hi) [lo, hi] = [lo - (Math.abs(lo) || 1) * 0.5, hi + (Math.abs(hi) || 1) * 0.5];
+  if (lo === hi && integer) [lo, hi] = [lo - 1, hi + 1];
+  else if (lo === hi) [lo, hi] = [lo - (Math.abs(lo) || 1) * 0.5, hi + (Math.abs(hi) || 1) * 0.5];
   return [lo, hi];
 }
 
@@ -77,7 +80,8 @@ export function drawChart(figure, options) {
   const bars = series.filter((s) => s.kind === "bars");
   const barPad = Math.max(0, ...bars.map((s) => s.barWidth || 0));
   const [x0, x1] = extent(
-    [...all.map(([x]) => x), ...all.map(([x]) => x + barPad)], options.xMin, options.xMax);
+    [...all.map(([x]) => x), ...all.map(([x]) => x + barPad)], options.xMin, options.xMax,
+    options.xInteger);
   const yLo = options.yMin ?? (bars.length ? 0 : undefined);
   const [yDataLo, yDataHi] = extent(all.map(([, y]) => y), yLo, options.yMax);
   const yTicks = ticks(yDataLo, yDataHi);
@@ -91,7 +95,8 @@ export function drawChart(figure, options) {
     grid.append(svg("line", { x1: PAD.left, x2: W - PAD.right, y1: sy(v), y2: sy(v) }));
     grid.append(svg("text", { x: PAD.left - 6, y: sy(v) + 4, class: "tick y" }, compact(v)));
   }
-  const xTicks = time ? timeTicks(x0, x1) : ticks(x0, x1).values;
+  const xTicks = time ? timeTicks(x0, x1)
+    : ticks(x0, x1).values.filter((v) => !options.xInteger || Number.isInteger(v));
   for (const v of xTicks) {
     grid.append(svg("line", { x1: sx(v), x2: sx(v), y1: H - PAD.bottom, y2: H - PAD.bottom + 4 }));
     grid.append(svg("text", { x: sx(v), y: H - PAD.bottom + 16, class: "tick x" },

@@ -1,11 +1,37 @@
-// The invite links panel on the runs page: make a link (for one run or all), copy it, revoke it.
+// The invite links panel on the runs page: make a link (for one run or all), copy it, revoke it,
+// and check a participant's completion code (POST /api/invites/verify).
 
 import { SignedOut, get, post } from "./api.js";
 import { ago, el, listErrors, notify } from "./dom.js";
 
 export function startInvites() {
   document.getElementById("new-invite").addEventListener("submit", createInvite);
+  document.getElementById("verify-code").addEventListener("submit", verifyCode);
   loadInvites();
+}
+
+const WHY = {
+  target: "reached the target",
+  runs_over: "the run ended before the target",
+  paused: "paused by check pairs",
+};
+
+async function verifyCode(event) {
+  event.preventDefault();
+  const shown = document.getElementById("verify-result");
+  const code = event.target.elements.code.value.trim();
+  try {
+    const who = await post("/api/invites/verify", { code });
+    const target = who.target_answers == null ? "" : ` of ${who.target_answers}`;
+    shown.textContent = `Valid: ${who.participant || who.labeller} (labeller ${who.labeller_id}, `
+      + `link ${who.invite_id}): ${who.counted}${target} decisive answers; `
+      + (who.complete ? `complete, ${WHY[who.why]}.` : "not complete yet.");
+    shown.className = "small";
+  } catch (error) {
+    if (error instanceof SignedOut) return;
+    shown.textContent = error.status === 404 ? `Not valid: ${error.message}.` : error.message;
+    shown.className = "error small";
+  }
 }
 
 export async function loadInvites() {
@@ -45,11 +71,13 @@ function render(invites, runs) {
     el("td", {}, invite.run_id == null ? "all"
       : `${invite.run_id}${runs.has(invite.run_id) ? ` · ${runs.get(invite.run_id).task}` : ""}`),
     el("td", { class: "num" }, `${invite.uses}${invite.max_uses == null ? "" : ` / ${invite.max_uses}`}`),
-    el("td", {}, invite.target_answers == null ? "–"
-      : `${invite.target_answers} · ${invite.completion_code}`),
+    el("td", {}, `${invite.target_answers ?? "–"} · ${invite.completion_code ?? "–"}`,
+      invite.redirect_url ? el("div", { class: "muted small" }, "redirects when done") : null,
+      invite.consent_text ? el("div", { class: "muted small" }, "asks consent") : null),
     el("td", {}, until(invite.expires_at)),
-    el("td", {}, el("span", { class: `badge ${invite.state === "open" ? "running" : "stopped"}` },
-      invite.state.replace("_", " "))),
+    el("td", {}, el("span", { class: `badge ${invite.state === "open" ? "running" : "stopped"}`,
+      title: invite.state === "closed" ? "its run is over: nobody can join" : null },
+    invite.state.replace("_", " "))),
     el("td", { class: "actions" },
       el("button", { type: "button", class: "small", onclick: () => copy(invite) }, "Copy link"),
       invite.state === "revoked" ? null
@@ -92,7 +120,9 @@ function inviteBody(form) {
   for (const name of ["run_id", "expires_in_days", "max_uses", "target_answers"]) {
     if (text(name)) body[name] = Number(text(name));
   }
-  for (const name of ["completion_code", "note"]) if (text(name)) body[name] = text(name);
+  for (const name of ["completion_code", "note", "redirect_url", "consent_text", "pause_message"]) {
+    if (text(name)) body[name] = text(name);
+  }
   return body;
 }
 

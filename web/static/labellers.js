@@ -21,7 +21,8 @@ function render(labellers) {
       "No labellers yet: `sepoa labeller create NAME` or POST /api/labellers.")));
     return;
   }
-  body.replaceChildren(...labellers.map((who) => el("tr", { "data-labeller": who.name },
+  body.replaceChildren(...labellers.map((who) => who.scripted ? scriptedRow(who) : el("tr",
+    { "data-labeller": who.name },
     el("td", {}, String(who.id)),
     el("td", { class: "name" }, who.name),
     el("td", {}, who.role),
@@ -36,6 +37,16 @@ function render(labellers) {
           `Change ${who.name}'s role?`)),
       button("New token", () => newToken(who))),
   )));
+}
+
+/** The runs' scripted teacher answers as a labeller, but is no person: nothing to revoke. */
+function scriptedRow(who) {
+  return el("tr", { "data-labeller": who.name, class: "scripted" },
+    el("td", {}, String(who.id)),
+    el("td", { class: "name" }, who.name),
+    el("td", {}, "scripted teacher"),
+    el("td", {}, el("span", { class: "badge" }, "not a person")),
+    el("td", { class: "muted small" }, "answers the runs a scripted teacher teaches"));
 }
 
 function button(label, onclick) {

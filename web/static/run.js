@@ -201,11 +201,11 @@ function drawCurves(run, episodes, evals, rounds) {
     ],
   });
   drawChart(chart("chart-distinguishable"), {
-    title: "Distinguishable pairs per round", xLabel: "round", yLabel: "ratio", yMin: 0, yMax: 1,
+    title: "Distinguishable pairs per round", xLabel: "round", xInteger: true, yLabel: "ratio", yMin: 0, yMax: 1,
     series: [{ name: "", points: points(rounds, "distinguishable_ratio", roundOf) }],
   });
   drawChart(chart("chart-agreement"), {
-    title: "Agreement per round", xLabel: "round", yLabel: "fraction", yMin: 0, yMax: 1,
+    title: "Agreement per round", xLabel: "round", xInteger: true, yLabel: "fraction", yMin: 0, yMax: 1,
     series: [
       { name: "reward model vs shadow label", points: points(rounds, "model_agreement", roundOf) },
       { name: "given labels vs shadow label", points: points(rounds, "shadow_agreement", roundOf) },
@@ -213,7 +213,7 @@ function drawCurves(run, episodes, evals, rounds) {
     ],
   });
   drawChart(chart("chart-reward-corr"), {
-    title: "Learned reward vs true reward", xLabel: "round", yLabel: "correlation",
+    title: "Learned reward vs true reward", xLabel: "round", xInteger: true, yLabel: "correlation",
     note: "over the replay buffer, after each round", yMin: -1, yMax: 1,
     series: [{ name: "", points: points(rounds, "reward_corr", roundOf) }],
   });
