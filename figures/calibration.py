@@ -26,6 +26,7 @@ from labelqueue.calibration import (
     calibration_report,
     missing_columns,
 )
+from labelqueue.calibration_stats import EpsFit
 from labelqueue.export_read import ExportFileError, read_export
 from labelqueue.labeller_quality import LabellerQuality, labeller_quality
 
@@ -47,11 +48,17 @@ def _interval(low: float | None, high: float | None, digits: int = 2) -> str:
     return f" [{_num(low, digits)}, {'∞' if high is None else _num(high, digits)}]"
 
 
-def _eps_text(group: Group) -> str:
-    fit = group.fit
+def _eps_cell(fit: EpsFit) -> str:
+    """The eps interval first, then the point; a wide interval is flagged (the point then says
+    little)."""
     if fit.eps is None:
-        return "ε̂ –"
-    return f"ε̂ {fit.eps:.2f}{_interval(fit.eps_low, fit.eps_high)}"
+        return "–"
+    return (f"{_interval(fit.eps_low, fit.eps_high).strip()} (ε̂ {fit.eps:.2f})"
+            + (" wide" if fit.wide else ""))
+
+
+def _eps_text(group: Group) -> str:
+    return "ε " + _eps_cell(group.fit)
 
 
 def _drawn(report: CalibrationReport) -> list[Group]:
@@ -165,7 +172,7 @@ def _group_row(group: Group) -> str:
     fit, pos = group.fit, group.position
     return (
         f"| {group.name} | {_rates_cells(group.rates)} | "
-        f"{_num(fit.eps)}{_interval(fit.eps_low, fit.eps_high)} | {_num(fit.lapse)} | "
+        f"{_eps_cell(fit)} | {_num(fit.lapse)} | "
         f"{_num(fit.log_likelihood, 1)} | {_num(pos.left_share)}"
         f"{_interval(pos.left_low, pos.left_high)} | {pos.p_value:.3g} |"
     )

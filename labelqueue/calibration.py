@@ -14,8 +14,9 @@ the same. Definitions:
   gap infinite (the noisy teacher's band is then empty).
 - outcome, judged on the *segment* returns (what the noisy teacher answers by, and the
   export's `correct`): "correct" or "wrong" for first/second; "equal" is correct on exactly
-  equal segment returns and otherwise "unsure", like "can't tell"; "skip" is left out of
-  everything but the answer counts.
+  equal segment returns and otherwise "unsure", like "can't tell"; first/second on exactly equal
+  segment returns is "no verdict" (neither side is right, as the trainer's `is_correct` says);
+  "skip" and "no verdict" are left out of everything but the answer counts.
 - match ratio: correct / (correct + wrong) with its Wilson interval; can't-tell rate:
   unsure / (correct + wrong + unsure).
 - position bias: the share of "left" among left and right clicks, with its Wilson interval and
@@ -63,6 +64,8 @@ DEFAULT_EDGES: tuple[float, ...] = (
 )
 """bin edges of the normalised gap; a bin is [low, high)"""
 MAX_BINS = 100
+JUDGED = ("correct", "wrong", "unsure")
+"""the outcomes the match ratio, the can't-tell rate and the eps fit read"""
 
 
 @dataclass(frozen=True)
@@ -72,6 +75,8 @@ class Rates:
     answers: int
     """every answer, skips included"""
     skipped: int
+    no_verdict: int
+    """first or second on exactly equal segment returns: no side is right"""
     correct: int
     wrong: int
     cant_tell: int
@@ -231,6 +236,8 @@ def _outcome(row: Mapping[str, Any]) -> str:
         return "skip"
     if answer == "cant_tell" or (answer == "equal" and truth != "equal"):
         return "unsure"
+    if truth == "equal" and answer != "equal":
+        return "no verdict"
     return "correct" if answer == truth else "wrong"
 
 
@@ -264,11 +271,13 @@ def _rates(answers: Sequence[_Answer], level: float) -> Rates:
     wrong = sum(a.outcome == "wrong" for a in answers)
     unsure = sum(a.outcome == "unsure" for a in answers)
     match = wilson_interval(correct, correct + wrong, level)
+    no_verdict = sum(a.outcome == "no verdict" for a in answers)
     shown = correct + wrong + unsure
     unsure_interval = wilson_interval(unsure, shown, level)
     return Rates(
         answers=len(answers),
-        skipped=len(answers) - shown,
+        skipped=len(answers) - shown - no_verdict,
+        no_verdict=no_verdict,
         correct=correct,
         wrong=wrong,
         cant_tell=unsure,
@@ -305,7 +314,7 @@ def _bins(answers: Sequence[_Answer], edges: Sequence[float], fit: EpsFit,
             low=low,
             high=None if high == math.inf else high,
             rates=_rates(inside, level),
-            fitted_match=_predicted_match([a for a in inside if a.outcome != "skip"], fit),
+            fitted_match=_predicted_match([a for a in inside if a.outcome in JUDGED], fit),
         ))
     return out
 
@@ -326,7 +335,7 @@ def _position(answers: Sequence[_Answer], level: float) -> PositionBias:
 
 def _group(name: str, labeller_id: int | None, answers: Sequence[_Answer],
            edges: Sequence[float], level: float) -> Group:
-    fit = fit_noisy_teacher([(a.gap, a.outcome) for a in answers if a.outcome != "skip"], level)
+    fit = fit_noisy_teacher([(a.gap, a.outcome) for a in answers if a.outcome in JUDGED], level)
     return Group(
         name=name,
         labeller_id=labeller_id,
@@ -338,7 +347,7 @@ def _group(name: str, labeller_id: int | None, answers: Sequence[_Answer],
 
 
 def _algo(algo: str, answers: Sequence[_Answer], level: float) -> AlgoShare:
-    gaps = [a.gap for a in answers if a.outcome != "skip" and math.isfinite(a.gap)]
+    gaps = [a.gap for a in answers if a.outcome in JUDGED and math.isfinite(a.gap)]
     return AlgoShare(
         algo=algo,
         runs=len({a.run_id for a in answers}),

@@ -114,6 +114,18 @@ class EpsFit:
     """answers the fit used (correct, wrong or can't tell)"""
     level: float
     """the interval's confidence level"""
+    wide: bool = False
+    """the interval is unbounded or wider than eps itself: the answers hardly pin eps down, so
+    read the interval, not the point"""
+
+
+def is_wide(eps: float, low: float, high: float | None) -> bool:
+    """Whether an eps interval is too wide for its point estimate to mean much."""
+    return high is None or high - low > max(eps, WIDE_FLOOR)
+
+
+WIDE_FLOOR = 0.05
+"""an interval narrower than this is never called wide (eps near 0 has a tiny point value)"""
 
 
 @dataclass(frozen=True)
@@ -281,13 +293,15 @@ def fit_noisy_teacher(
     inside = [i for i, fit in enumerate(fits) if fit[0] >= best_ll - cut]
     high = highs[best]
     eps = lows[best] if high is None else (lows[best] + high) / 2.0
+    eps_low, eps_high = lows[min(inside)], highs[max(inside)]
     return EpsFit(
         eps=eps,
-        eps_low=lows[min(inside)],
-        eps_high=highs[max(inside)],
+        eps_low=eps_low,
+        eps_high=eps_high,
         log_likelihood=best_ll,
         lapse=lapse,
         cant_tell=cant_tell,
         answers=total.n,
         level=level,
+        wide=is_wide(eps, eps_low, eps_high),
     )

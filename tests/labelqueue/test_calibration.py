@@ -25,6 +25,7 @@ from labelqueue.calibration import (
 from labelqueue.calibration_stats import (
     binomial_test,
     fit_noisy_teacher,
+    is_wide,
     likelihood_cut,
     wilson_interval,
     z_value,
@@ -183,6 +184,34 @@ def test_outcomes_bins_and_rates_follow_the_definitions() -> None:
     [pebble] = report.algos
     assert (pebble.runs, pebble.queries, pebble.rates.answers) == (1, 7, 7)
     assert report.edges == [0.0, 0.5, None]
+
+
+def test_a_first_or_second_answer_on_tied_segments_is_no_verdict() -> None:
+    """Exactly tied segments have no right side: a first/second answer there is neither right
+    nor wrong (the trainer's is_correct gives None), so it cannot pull the match ratio below
+    chance inside the band."""
+    tied = {"first_segment_return": 0.0, "second_segment_return": 0.0}
+    rows = [row(query_id=1),  # correct
+            row(query_id=2, **tied),  # first on a tie
+            row(query_id=3, choice="right", answer="second", **tied),  # second on a tie
+            row(query_id=4, choice="equal", answer="equal", **tied)]  # equal on a tie: correct
+    rates = calibration_report(rows).everyone.rates
+    assert (rates.answers, rates.no_verdict, rates.skipped) == (4, 2, 0)
+    assert (rates.correct, rates.wrong, rates.cant_tell) == (2, 0, 0)
+    assert rates.match_ratio == 1.0
+    assert calibration_report(rows).everyone.fit.answers == 2  # the fit reads judged answers
+
+
+def test_an_eps_fit_whose_interval_is_wider_than_eps_is_flagged() -> None:
+    assert is_wide(0.118, 0.110, 0.363) and is_wide(0.3, 0.2, None)
+    assert not is_wide(0.3, 0.25, 0.4) and not is_wide(0.0, 0.0, 0.04)
+    # Teachers with eps 0.3 and exact answers outside the band, on many gaps: a narrow interval.
+    gaps = [i / 100 for i in range(150)]
+    sharp = fit_noisy_teacher([(g, "correct" if g >= 0.3 else ("wrong" if i % 2 else "correct"))
+                               for i, g in enumerate(gaps)])
+    assert sharp.eps_low is not None and sharp.eps_low <= 0.3 and not sharp.wide
+    few = fit_noisy_teacher([(0.1, "correct"), (0.5, "correct"), (0.2, "wrong")])
+    assert few.wide
 
 
 def test_rows_without_the_needed_columns_and_bad_bins_are_refused() -> None:
