@@ -40,7 +40,13 @@ from labelqueue.gold import (
     lift_pause,
     paused_labellers,
 )
-from labelqueue.grid import enqueue_grid_run, find_grid_run, grid_runs, release_grid_key
+from labelqueue.grid import (
+    adopt_finished_grid_run,
+    enqueue_grid_run,
+    find_grid_run,
+    grid_runs,
+    release_grid_key,
+)
 from labelqueue.instructions import set_instruction
 from labelqueue.invites import (
     InviteClosed,
@@ -217,6 +223,7 @@ __all__ = [
     "find_grid_run",
     "grid_runs",
     "release_grid_key",
+    "adopt_finished_grid_run",
     "SILENT_WORKER_AFTER_S",
     "database_url",
     "heartbeat_age",
