@@ -14,8 +14,30 @@ import hashlib
 MAX_CHARS = 2000
 """the longest instruction an operator may store"""
 
+OFTEN_SHARE = 0.5
+"""a tie sentence says ties are common early on ("often") when at least this share of the pairs
+of random-action segments have exactly equal returns (`trainer.tie_check`)"""
+RARE_SHARE = 0.01
+"""a tie sentence says exact ties are rare when fewer than this share of pairs tie, with random
+actions and with none"""
+
+# Every task's text ends with one tie sentence, one of three kinds (`tie_kind`), chosen from what
+# its reward does and checked against it (`trainer.tie_check`, tests/trainer/test_tie_check.py):
+# "often" and "sometimes" name what makes both clips score nothing (the reward is exactly 0
+# then, so the scripted teacher, and the truth a labeller is scored against, says "equal");
+# "rare" where the reward never stops telling two clips apart.
+_OFTEN_TAIL = " Early in training most pairs are like that."
+_RARE = ("Two clips are hardly ever exactly as good as each other: if they look alike, prefer "
+         "the one that is even slightly better.")
+
+
+def _ties(condition: str, often: bool = False) -> str:
+    """The tie sentence of a reward that is exactly 0 unless `condition` holds."""
+    return f"If neither clip {condition}, they are equally good." + (_OFTEN_TAIL if often else "")
+
+
 # Shared endings, so that every task says what to do when a clip shows nothing of the goal.
-_NEITHER = "If neither clip gets there, they are equally good."
+_NEITHER = _ties("gets there")
 _CLOSER = "If neither finishes, prefer the one that gets closer to finishing."
 
 # ---- DMControl ---------------------------------------------------------------------------
@@ -27,13 +49,13 @@ _DMC: dict[str, tuple[str, str]] = {
         "stays there.",
         "Prefer the clip whose tip spends more time at the top; otherwise the one whose tip is "
         "nearer the top on the whole. Spinning past the top counts only while the tip is near "
-        "it.",
+        f"it. {_RARE}",
     ),
     "acrobot_swingup_sparse": (
         "Swing the two-link arm up so its tip is inside the small target straight above the "
         "pivot.",
         "Only time with the tip inside the target counts: prefer the clip that keeps it there "
-        f"longer. Nearly reaching it counts nothing. {_NEITHER}",
+        f"longer. Nearly reaching it counts nothing. {_ties('gets its tip into it', True)}",
     ),
     "ball_in_cup_catch": (
         "Swing the ball on its string up and catch it in the cup.",
@@ -44,176 +66,190 @@ _DMC: dict[str, tuple[str, str]] = {
         "Keep the pole balanced upright on the cart, with the cart near the middle of the track.",
         "Prefer the clip whose pole stays nearer vertical. If both stay up, prefer the one "
         "with the cart nearer the middle, then the calmer one: slower pole swings and gentler "
-        "pushes.",
+        f"pushes. {_RARE}",
     ),
     "cartpole_balance_sparse": (
         "Keep the pole within a few degrees of vertical and the cart in the middle quarter of "
         "the track.",
         "Only time inside both limits counts: prefer the clip that stays inside them longer. "
-        f"How close a fallen pole came counts nothing. {_NEITHER}",
+        f"How close a fallen pole came counts nothing. {_ties('stays inside them')}",
     ),
     "cartpole_swingup": (
         "Swing the pole up from hanging down, then balance it upright with the cart near the "
         "middle of the track.",
         "Prefer the clip whose pole is upright more of the time (higher is better even before "
         "it is balanced). Then the cart nearer the middle, then the calmer balance: slower pole "
-        "swings and gentler pushes.",
+        f"swings and gentler pushes. {_RARE}",
     ),
     "cartpole_swingup_sparse": (
         "Swing the pole up from hanging down and hold it within a few degrees of vertical, with "
         "the cart in the middle quarter of the track.",
         "Only time inside both limits counts: prefer the clip that stays inside them longer. "
-        f"Swinging high without holding counts nothing. {_NEITHER}",
+        f"Swinging high without holding counts nothing. {_ties('holds it there', True)}",
     ),
     "cartpole_two_poles": (
         "Balance both stacked poles upright on the cart, with the cart near the middle of the "
         "track.",
         "Prefer the clip whose poles are, on average, nearer vertical more of the time. Then "
-        "the cart nearer the middle, then the calmer one: slower swings, gentler pushes.",
+        f"the cart nearer the middle, then the calmer one: slower swings, gentler pushes. {_RARE}",
     ),
     "cartpole_three_poles": (
         "Balance all three stacked poles upright on the cart, with the cart near the middle of "
         "the track.",
         "Prefer the clip whose poles are, on average, nearer vertical more of the time. Then "
-        "the cart nearer the middle, then the calmer one: slower swings, gentler pushes.",
+        f"the cart nearer the middle, then the calmer one: slower swings, gentler pushes. {_RARE}",
     ),
     "cheetah_run": (
         "Run forward (to the right) as fast as possible.",
-        "Prefer the clip where the cheetah moves forward faster: speed counts up to 10 m/s, "
-        "beyond which more gains nothing. If the speeds look alike, prefer the one that covers "
-        "more ground. Only forward speed counts: a flipped cheetah that moves forward fast "
-        "beats an upright one that stands still, and moving backwards is worst.",
+        "Prefer the clip where the cheetah moves forward faster, up to a full sprint (at 1×, "
+        "about three of the posts behind it go by each second; they stand a metre apart); "
+        "faster gains nothing. If the speeds look alike, prefer the one that covers more "
+        "ground. Only forward speed counts: a flipped cheetah that moves forward fast beats an "
+        "upright one that stands still, and moving backwards counts as little as standing "
+        f"still. {_ties('moves forward')}",
     ),
     "dog_stand": (
         "Stand up on all four legs, with torso and hips at full standing height and the body "
         "level.",
         "Prefer the clip where the dog stands taller and more level (head, torso and hips "
         "upright), without straining its joints against their limits. Moving about does not "
-        "matter.",
+        f"matter. {_RARE}",
     ),
     "dog_walk": (
-        "Stand tall and walk forward at about 1 m/s.",
+        "Stand tall and walk forward at a steady walk.",
         "First the dog must stand (torso and hips at standing height, body level). Then prefer "
-        "the clip moving forward at 1 to 2 m/s; slower is worse, and more than 2 m/s gains "
-        "nothing. Moving sideways or backwards does not count.",
+        "the clip walking forward steadily, up to twice a steady walk's pace; slower is worse, "
+        f"and faster gains nothing. Moving sideways or backwards does not count. {_RARE}",
     ),
     "dog_trot": (
-        "Stand tall and trot forward at about 3 m/s.",
+        "Stand tall and trot forward.",
         "First the dog must stand (torso and hips at standing height, body level). Then prefer "
-        "the clip moving forward at 3 to 6 m/s; slower is worse, and more than 6 m/s gains "
-        "nothing.",
+        "the clip trotting forward, at up to twice a trot's pace; slower is worse, and faster "
+        f"gains nothing. {_RARE}",
     ),
     "dog_run": (
-        "Stand tall and run forward at about 9 m/s.",
+        "Stand tall and run forward fast.",
         "First the dog must stay up (torso and hips at standing height, body level). Then "
-        "prefer the faster clip, up to 18 m/s; moving sideways or backwards does not count.",
+        "prefer the faster clip, up to a full gallop; moving sideways or backwards does not "
+        f"count. {_RARE}",
     ),
     "dog_fetch": (
         "Fetch the ball: get it in the mouth and bring it to the target in the arena, while "
         "standing.",
         "Prefer the clip with the ball nearer the target; then the one whose mouth is nearer "
-        "the ball. Throughout, standing tall and level is better than lying down.",
+        f"the ball. Throughout, standing tall and level is better than lying down. {_RARE}",
     ),
     "finger_spin": (
         "Flick the spinner (the long pole on the hinge) so that it spins fast, clockwise as "
         "seen in the clip.",
-        "Only fast clockwise spinning counts (faster than about two and a half turns a "
-        "second): prefer the clip that keeps it spinning that fast for longer. Slow turns and "
-        f"counter-clockwise spins count nothing. {_NEITHER}",
+        "Only fast clockwise spinning counts (a blur, not a turn you can follow): prefer the "
+        "clip that keeps it spinning that fast for longer. Slow turns and counter-clockwise "
+        f"spins count nothing. {_ties('spins it that fast', True)}",
     ),
     "finger_turn_easy": (
         "Turn the spinner so that its tip reaches the target circle and stays there.",
         "Only time with the tip inside the target counts: prefer the clip that keeps it there "
-        f"longer. {_NEITHER}",
+        f"longer. {_ties('gets the tip into it', True)}",
     ),
     "finger_turn_hard": (
         "Turn the spinner so that its tip reaches the small target circle and stays there.",
         "Only time with the tip inside the target (smaller than in the easy task) counts: "
-        f"prefer the clip that keeps it there longer. {_NEITHER}",
+        f"prefer the clip that keeps it there longer. {_ties('gets the tip into it', True)}",
     ),
     "fish_upright": (
         "Keep the fish upright: back up, belly down.",
         "Prefer the clip where the fish is nearer upright more of the time; where it swims does "
-        "not matter.",
+        f"not matter. {_RARE}",
     ),
     "fish_swim": (
         "Swim so that the fish's mouth reaches the target ball, staying upright.",
         "Reaching the target counts most (7 parts in 8): prefer the clip whose mouth is at or "
-        "nearer the target longer. Then the fish nearer upright (1 part in 8).",
+        f"nearer the target longer. Then the fish nearer upright (1 part in 8). {_RARE}",
     ),
     "hopper_stand": (
         "Stand up on the one leg with the body high, and keep still.",
-        "Prefer the clip whose body is higher off the ground (at least 0.6 m counts fully); "
-        "then the one that needs gentler pushes to stay there.",
+        "Only the body up high counts: at least about two thirds as high above its foot as "
+        "when it stands straight (crouched lower or lying down counts nothing). Prefer the "
+        "clip that is up high longer; then the one that needs gentler pushes to stay there. "
+        f"{_ties('gets its body up that high', True)}",
     ),
     "hopper_hop": (
         "Hop forward (to the right) while staying tall.",
-        "The body must be high (0.6 m or more counts fully; lying down counts nothing). Then "
-        "prefer the clip hopping forward faster, up to 2 m/s; beyond that more gains nothing.",
+        "The body must be up high: at least about two thirds as high above its foot as when "
+        "it stands straight (crouched lower or lying down counts nothing, however it moves). "
+        "Then prefer the clip hopping forward faster, up to a quick hop (at 1×, one or two of "
+        "the posts behind it, a metre apart, going by each second); faster gains nothing. "
+        f"{_ties('hops forward with its body up that high', True)}",
     ),
     "humanoid_stand": (
         "Stand up straight and stay in place.",
-        "Prefer the clip where the head is higher (1.4 m or more counts fully) and the torso "
-        "more upright; then the one that moves about less and uses gentler effort.",
+        "Prefer the clip where the head is higher (nearly as high as standing straight counts "
+        "fully) and the torso more upright; then the one that moves about less and uses gentler "
+        f"effort. {_RARE}",
     ),
     "humanoid_walk": (
-        "Stand up straight and walk at about 1 m/s.",
-        "First the body must be up: head high (1.4 m), torso upright; a fallen humanoid scores "
-        "nothing. Then prefer the clip moving faster over the ground, in any direction, up to "
-        "1 m/s; then gentler effort.",
+        "Stand up straight and walk.",
+        "First the body must be up: head nearly as high as standing straight, torso upright; a "
+        "fallen humanoid scores next to nothing. Then prefer the clip moving faster over the "
+        f"ground, in any direction, up to a walking pace; then gentler effort. {_RARE}",
     ),
     "humanoid_run": (
         "Stand up straight and run as fast as possible.",
-        "First the body must be up: head high (1.4 m), torso upright; a fallen humanoid scores "
-        "nothing. Then prefer the clip moving faster over the ground, in any direction, up to "
-        "10 m/s; then gentler effort.",
+        "First the body must be up: head nearly as high as standing straight, torso upright; a "
+        "fallen humanoid scores next to nothing. Then prefer the clip moving faster over the "
+        "ground, in any direction, up to a sprint (ten times a walking pace); then gentler "
+        f"effort. {_RARE}",
     ),
     "humanoid_run_pure_state": (
         "Stand up straight and run as fast as possible.",
-        "First the body must be up: head high (1.4 m), torso upright; a fallen humanoid scores "
-        "nothing. Then prefer the clip moving faster over the ground, in any direction, up to "
-        "10 m/s; then gentler effort.",
+        "First the body must be up: head nearly as high as standing straight, torso upright; a "
+        "fallen humanoid scores next to nothing. Then prefer the clip moving faster over the "
+        "ground, in any direction, up to a sprint (ten times a walking pace); then gentler "
+        f"effort. {_RARE}",
     ),
     "humanoid_CMU_stand": (
         "Stand up straight and stay in place.",
-        "Prefer the clip where the head is higher (1.4 m or more counts fully) and the chest "
-        "more upright; then the one that moves about less and uses gentler effort.",
+        "Prefer the clip where the head is higher (nearly as high as standing straight counts "
+        "fully) and the chest more upright; then the one that moves about less and uses gentler "
+        f"effort. {_RARE}",
     ),
     "humanoid_CMU_walk": (
-        "Stand up straight and walk at about 1 m/s.",
-        "First the body must be up: head high (1.4 m), chest upright; a fallen humanoid scores "
-        "nothing. Then prefer the clip moving faster over the ground, in any direction, up to "
-        "1 m/s; then gentler effort.",
+        "Stand up straight and walk.",
+        "First the body must be up: head nearly as high as standing straight, chest upright; a "
+        "fallen humanoid scores next to nothing. Then prefer the clip moving faster over the "
+        f"ground, in any direction, up to a walking pace; then gentler effort. {_RARE}",
     ),
     "humanoid_CMU_run": (
         "Stand up straight and run as fast as possible.",
-        "First the body must be up: head high (1.4 m), chest upright; a fallen humanoid scores "
-        "nothing. Then prefer the clip moving faster over the ground, in any direction, up to "
-        "10 m/s; then gentler effort.",
+        "First the body must be up: head nearly as high as standing straight, chest upright; a "
+        "fallen humanoid scores next to nothing. Then prefer the clip moving faster over the "
+        "ground, in any direction, up to a sprint (ten times a walking pace); then gentler "
+        f"effort. {_RARE}",
     ),
     "lqr_lqr_2_1": (
         "Bring the two bodies on their springs to rest at their middle positions, pushing "
         "gently.",
         "Prefer the clip where the bodies are nearer their middle positions; then the one that "
-        "pushes less hard.",
+        f"pushes less hard. {_RARE}",
     ),
     "lqr_lqr_6_2": (
         "Bring the six bodies on their springs to rest at their middle positions, pushing "
         "gently.",
         "Prefer the clip where the bodies are nearer their middle positions; then the one that "
-        "pushes less hard.",
+        f"pushes less hard. {_RARE}",
     ),
     "manipulator_bring_ball": (
         "Pick up the ball and bring it to the target (the faint ball outline).",
-        "Only the ball at the target counts: prefer the clip where it is there, or within a "
-        "centimetre or two, longer. Holding the ball elsewhere counts nothing. "
+        "Only the ball at the target counts: prefer the clip where it is there, or touching "
+        "the outline, longer. Holding the ball elsewhere counts nothing. "
         f"{_NEITHER}",
     ),
     "manipulator_bring_peg": (
         "Grasp the peg and bring it to the target (the faint peg outline), lined up with it.",
         "Prefer the clip where the peg sits in the target outline, both ends lined up; short "
         "of that, a clip where the hand grips the peg properly (pinched between the fingers) "
-        "beats one where it does not.",
+        "beats one where it does not. "
+        f"{_ties('grips the peg or brings it near the outline')}",
     ),
     "manipulator_insert_ball": (
         "Pick up the ball and put it into the cup.",
@@ -224,97 +260,101 @@ _DMC: dict[str, tuple[str, str]] = {
         "Grasp the peg and insert it into the slot, lined up with it.",
         "Prefer the clip where the peg sits in the slot, both ends lined up; short of that, a "
         "clip where the hand grips the peg properly (pinched between the fingers) beats one "
-        "where it does not.",
+        f"where it does not. {_ties('grips the peg or brings it near the slot')}",
     ),
     "pendulum_swingup": (
         "Swing the pendulum up and hold it pointing straight up.",
-        "Only time within about 8 degrees of straight up counts: prefer the clip that holds "
-        f"it there longer. Swinging high without holding counts nothing. {_NEITHER}",
+        "Only time within a few degrees of straight up counts: prefer the clip that holds it "
+        f"there longer. Swinging high without holding counts nothing. "
+        f"{_ties('gets it there', True)}",
     ),
     "point_mass_easy": (
         "Move the ball to the target in the middle and keep it there, pushing gently.",
         "Prefer the clip whose ball is at or nearer the target longer; then the one pushing "
-        "less hard.",
+        f"less hard. {_RARE}",
     ),
     "point_mass_hard": (
         "Move the ball to the target in the middle and keep it there, pushing gently.",
         "Prefer the clip whose ball is at or nearer the target longer; then the one pushing "
-        "less hard.",
+        f"less hard. {_RARE}",
     ),
     "quadruped_walk": (
         "Stay upright and walk forward, the way the body faces.",
         "First, upright beats tipped over: a body on its back scores nothing. If both are "
-        "upright, or neither, prefer the one moving forward faster: at 0.5 m/s or more the "
-        "walk counts fully, slower counts partly, backwards not at all. If both move alike, "
-        "prefer the one whose body is higher off the ground.",
+        "upright, or neither, prefer the one moving forward faster: a steady walk counts "
+        "fully, slower counts partly, backwards not at all. If both move alike, prefer the one "
+        f"whose body is higher off the ground. {_RARE}",
     ),
     "quadruped_run": (
         "Stay upright and run forward, the way the body faces, as fast as possible.",
         "First, upright beats tipped over: a body on its back scores nothing. If both are "
-        "upright, or neither, prefer the one moving forward faster: speed counts up to 5 m/s, "
-        "the running speed, beyond which more gains nothing. If both move alike, prefer the "
-        "one whose body is higher off the ground.",
+        "upright, or neither, prefer the one moving forward faster, up to a fast run (ten "
+        "times a steady walk); faster gains nothing. If both move alike, prefer the one whose "
+        f"body is higher off the ground. {_RARE}",
     ),
     "quadruped_escape": (
         "Climb out of the bumpy bowl: get as far from the starting point as possible, staying "
         "upright.",
         "Prefer the clip that ends farther from where the body started; the body must stay "
-        "upright (tilted no more than about 20 degrees counts fully, on its back nothing).",
+        f"upright (tilted a little counts fully, on its back nothing). {_RARE}",
     ),
     "quadruped_fetch": (
         "Reach the ball and push it to the target in the middle of the arena.",
         "Prefer the clip with the ball nearer the target, with the body close to the ball; "
-        "short of that, the one that gets nearer the ball.",
+        f"short of that, the one that gets nearer the ball. {_RARE}",
     ),
     "reacher_easy": (
         "Touch the target with the tip of the arm and stay there.",
         "Only time with the fingertip on the target counts: prefer the clip that keeps it "
-        f"there longer. {_NEITHER}",
+        f"there longer. {_ties('gets there', True)}",
     ),
     "reacher_hard": (
         "Touch the small target with the tip of the arm and stay there.",
         "Only time with the fingertip on the target (smaller than in the easy task) counts: "
-        f"prefer the clip that keeps it there longer. {_NEITHER}",
+        f"prefer the clip that keeps it there longer. {_ties('gets there', True)}",
     ),
     "stacker_stack_2": (
         "Put one of the two boxes on the target spot, then move the hand away from it.",
         "Prefer the clip where a box is nearer the target spot, with the hand clear of it "
-        "(about 10 cm or more away); a box on the target with the hand still on it counts "
-        "nothing.",
+        "(about a box's width or more away); a box on the target with the hand still on it "
+        f"counts nothing. {_ties('brings a box near the target spot')}",
     ),
     "stacker_stack_4": (
         "Put one of the four boxes on the target spot, then move the hand away from it.",
         "Prefer the clip where a box is nearer the target spot, with the hand clear of it "
-        "(about 10 cm or more away); a box on the target with the hand still on it counts "
-        "nothing.",
+        "(about a box's width or more away); a box on the target with the hand still on it "
+        f"counts nothing. {_ties('brings a box near the target spot')}",
     ),
     "swimmer_swimmer6": (
         "Swim so that the swimmer's nose reaches the target.",
         "Prefer the clip whose nose is at or nearer the target; the nearer, the better, even "
-        "from far away.",
+        f"from far away. {_RARE}",
     ),
     "swimmer_swimmer15": (
         "Swim so that the swimmer's nose reaches the target.",
         "Prefer the clip whose nose is at or nearer the target; the nearer, the better, even "
-        "from far away.",
+        f"from far away. {_RARE}",
     ),
     "walker_stand": (
         "Stand upright with the body high.",
-        "Prefer the clip whose body is higher (1.2 m or more counts fully) and more upright; "
-        "moving does not matter.",
+        "Prefer the clip whose body is higher (nearly as high as standing straight counts "
+        f"fully) and more upright; moving does not matter. {_RARE}",
     ),
     "walker_walk": (
         "Stand upright, then walk forward (to the right).",
-        "First, prefer the walker that stands upright with its body high (1.2 m). If both "
-        "stand, or neither, prefer the one moving right faster, up to 1 m/s, the walking "
-        "speed; beyond that more gains nothing. If the speeds are close, prefer the one that "
-        "covers more ground.",
+        "First, prefer the walker that stands upright with its body high (nearly as high as "
+        "standing straight). If both stand, or neither, prefer the one moving right faster, up "
+        "to a walking pace (at 1×, about one of the posts behind it, a metre apart, going by "
+        "each second); faster gains nothing. If the speeds are close, prefer the one that "
+        f"covers more ground. {_RARE}",
     ),
     "walker_run": (
         "Stand upright, then run forward (to the right) as fast as possible.",
-        "First, prefer the walker that stands upright with its body high (1.2 m). If both "
-        "stand, or neither, prefer the one moving right faster: speed counts up to 8 m/s, the "
-        "running speed. If the speeds are close, prefer the one that covers more ground.",
+        "First, prefer the walker that stands upright with its body high (nearly as high as "
+        "standing straight). If both stand, or neither, prefer the one moving right faster, up "
+        "to a sprint (at 1×, about seven of the posts behind it, a metre apart, going by each "
+        "second). If the speeds are close, prefer the one that covers more ground. "
+        f"{_RARE}",
     ),
 }
 
@@ -561,6 +601,23 @@ _METAWORLD: dict[str, tuple[str, str]] = {
     ),
 }
 
+# Most Metaworld rewards pay for the gripper's distance to the object at every step, so two
+# clips almost never tie exactly (`trainer.tie_check`: no exact tie among random or idle pairs).
+# These do tie: dial-turn and drawer-close pay the same while the arm stays still, and
+# pick-place-wall pays nothing until the puck is between the fingers (every random pair ties).
+_METAWORLD_TIES = {
+    "dial-turn": _ties("moves the gripper at all"),
+    "drawer-close": _ties("moves the gripper at all"),
+    "pick-place-wall": _ties("gets the puck between the gripper's open fingers", True),
+}
+_METAWORLD["pick-place-wall"] = (
+    _METAWORLD["pick-place-wall"][0],
+    "Best: the puck at the goal. Short of that: the puck held and lifted beats the puck only "
+    "between the fingers; moving the gripper towards it counts nothing.",
+)
+_METAWORLD = {name: (goal, f"{how} {_METAWORLD_TIES.get(name, _RARE)}")
+              for name, (goal, how) in _METAWORLD.items()}
+
 _BY_FAMILY = {"dmc": _DMC, "metaworld": _METAWORLD}
 
 
@@ -570,6 +627,29 @@ def specific_instruction(task: str) -> str | None:
     family, _, name = task.partition(":")
     entry = _BY_FAMILY.get(family, {}).get(name)
     return None if entry is None else f"{entry[0]}\n{entry[1]}"
+
+
+def tie_sentence(task: str) -> str:
+    """The last sentence of the task's own (or generic) instruction: what ties look like."""
+    text = default_instruction(task)
+    for kind_end in (_OFTEN_TAIL, ):
+        if text.endswith(kind_end):
+            body = text[:-len(kind_end)]
+            return body[body.rindex("If neither"):] + kind_end
+    if text.endswith(_RARE):
+        return _RARE
+    return text[text.rindex("If neither"):] if "If neither" in text else ""
+
+
+def tie_kind(task: str) -> str:
+    """What the task's instruction says of exact ties: "often" (most early pairs), "sometimes"
+    (when neither clip does what the reward pays for) or "rare"; "" when it says nothing."""
+    sentence = tie_sentence(task)
+    if sentence.endswith(_OFTEN_TAIL):
+        return "often"
+    if sentence == _RARE:
+        return "rare"
+    return "sometimes" if sentence.endswith("they are equally good.") else ""
 
 
 def generic_instruction(task: str) -> str:

@@ -3,6 +3,7 @@ one built from its name; clip sizes and the clip speed against real time are kno
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -25,6 +26,8 @@ from runvocab.instructions import (
     instruction_sha256,
     run_instruction,
     specific_instruction,
+    tie_kind,
+    tie_sentence,
 )
 from runvocab.names import all_tasks
 
@@ -53,14 +56,73 @@ def test_every_task_has_an_instruction_of_its_own(task: str) -> None:
 
 def test_the_papers_four_tasks_say_at_least_what_the_papers_instructions_say() -> None:
     cheetah = default_instruction("dmc:cheetah_run").lower()
-    assert all(word in cheetah for word in ("fast", "forward", "10 m/s", "ground"))
+    assert all(word in cheetah for word in ("fast", "forward", "sprint", "posts", "ground"))
     walker = default_instruction("dmc:walker_run").lower()
     assert all(word in walker for word in ("upright", "first", "faster", "right", "ground"))
-    for task, speed in (("dmc:quadruped_walk", "0.5 m/s"), ("dmc:quadruped_run", "5 m/s")):
+    for task, speed in (("dmc:quadruped_walk", "steady walk"), ("dmc:quadruped_run", "fast run")):
         quadruped = default_instruction(task).lower()
         assert all(word in quadruped for word in ("upright", "first", "faster", speed, "higher"))
     door = default_instruction("metaworld:door-open").lower()
     assert "open" in door and "handle" in door
+
+
+# Lengths and speeds in units nobody can see in a clip (the clips show no scale but the floor's
+# squares and the posts): "0.6 m", "10 m/s", "2 cm", "1.4 metres".
+UNSEEN_UNITS = re.compile(r"\d\s*(m|cm|mm|km|m/s|km/h|metres?|meters?|centimetres?)\b",
+                          re.IGNORECASE)
+TIE_KINDS = {"often", "sometimes", "rare"}
+
+
+def parts(task: str) -> tuple[str, str, str]:
+    """(goal line, what decides, the tie sentence) of the task's instruction."""
+    goal, how = default_instruction(task).split("\n")
+    tie = tie_sentence(task)
+    assert tie and how.endswith(tie), f"{task}: no tie sentence at the end of {how!r}"
+    return goal, how.removesuffix(tie).strip(), tie
+
+
+def check_parts(task: str, decides_words: tuple[str, ...]) -> None:
+    goal, decides, tie = parts(task)
+    assert goal and decides, task
+    # What the reward measures: a rule that says what is preferred.
+    assert any(word in decides for word in decides_words), f"{task}: {decides!r}"
+    # What ties look like: one of the three kinds (trainer/tie_check.py checks it).
+    assert tie_kind(task) in TIE_KINDS, f"{task}: {tie!r}"
+    assert not UNSEEN_UNITS.search(default_instruction(task)), (
+        f"{task}: {UNSEEN_UNITS.search(default_instruction(task))[0]!r}")
+
+
+@pytest.mark.parametrize("task", [t for t in all_tasks() if t.startswith("dmc:")])
+def test_every_dmc_instruction_says_what_is_measured_and_what_ties_look_like(task: str) -> None:
+    check_parts(task, ("Prefer", "prefer"))
+
+
+@pytest.mark.parametrize("task", [t for t in all_tasks() if t.startswith("metaworld:")])
+def test_every_metaworld_instruction_says_what_is_measured_and_what_ties_look_like(
+    task: str,
+) -> None:
+    check_parts(task, ("Best", "Prefer"))
+    # Dense rewards (reaching alone pays a little), but for the three trainer.tie_check finds
+    # exact ties in.
+    tying = {"metaworld:dial-turn", "metaworld:drawer-close", "metaworld:pick-place-wall"}
+    assert (tie_kind(task) == "rare") == (task not in tying)
+
+
+def test_the_generic_instruction_has_a_tie_sentence_too() -> None:
+    check_parts("dmc:juggler_juggle", ("Prefer",))
+    assert tie_kind("metaworld:hammer-throw") == "sometimes"
+
+
+def test_the_tie_sentences_of_the_issues_cases() -> None:
+    """hopper_hop's reward is 0 unless the body is up high and moving forward: early pairs are
+    nearly all exact ties, which the text must say; walker's never is."""
+    assert tie_kind("dmc:hopper_hop") == "often"
+    assert "equally good" in tie_sentence("dmc:hopper_hop")
+    assert tie_kind("dmc:cheetah_run") == "sometimes"
+    assert tie_kind("dmc:walker_run") == "rare"
+    for task in ("dmc:hopper_stand", "dmc:walker_stand", "dmc:humanoid_run"):
+        assert not UNSEEN_UNITS.search(default_instruction(task))
+    assert UNSEEN_UNITS.search("counts fully at 0.6 m") and UNSEEN_UNITS.search("10 m/s")
 
 
 def test_a_task_without_its_own_instruction_gets_one_from_its_name() -> None:
