@@ -200,6 +200,10 @@ def spec_rows(spec: Spec, sessions: sessionmaker[Session]) -> dict[str, Run]:
         return grid_runs(session, prefix=f"{spec.name}/")
 
 
+HELD = (RunStatus.RUNNING, RunStatus.PAUSED, RunStatus.STOPPING)
+"""the statuses in which a worker holds a run, and its heartbeat age tells something"""
+
+
 def age_text(seconds: float) -> str:
     """`42s`, `5m07s`, `2h03m`: how long ago, in a table cell."""
     s = max(0, int(seconds))
@@ -214,7 +218,7 @@ def _heartbeat(row: Run | None, now: datetime) -> tuple[str, str | None]:
     """A run's heartbeat cell, and a line about its worker when that worker has gone silent
     (it may be dead) or is presumed dead (another worker may take the run over)."""
     age = None if row is None else heartbeat_age(row, now)
-    if row is None or age is None:
+    if row is None or age is None or row.status not in HELD:
         return "-", None
     cell = age_text(age)
     if row.status is not RunStatus.RUNNING or age <= SILENT_WORKER_AFTER_S:
