@@ -99,8 +99,10 @@ def up(*, database_url: str, data_dir: str, host: str, port: int, workers: int,
         for i in range(workers):
             # A stable id: a worker restarted by the next `sepoa up` takes its runs back at once.
             worker_id = f"{socket.gethostname()}-up-{i}"
+            # The URL reaches workers in their environment (SEPOA_DATABASE_URL), never on a
+            # command line that `ps` shows.
             children.append(subprocess.Popen(
-                [python, "-m", "trainer.cli", "worker", "--database-url", database_url,
+                [python, "-m", "trainer.cli", "worker",
                  "--data-dir", data_dir, "--worker-id", worker_id, "--threads", str(threads)],
                 env=env, process_group=0))
     except KeyboardInterrupt:
