@@ -20,7 +20,7 @@ from starlette.types import Scope
 from runvocab.clip_format import CLIP_SIZES
 from runvocab.names import ALGOS, SIZE_PRESETS, all_tasks
 
-ALGO_TITLES = {"pebble": "PEBBLE (first pairs soonest)", "sepoa": "S-EPOA (pretrains skills first)",
+ALGO_TITLES = {"pebble": "PEBBLE (fastest start)", "sepoa": "S-EPOA (pretrains first)",
                "surf": "SURF", "rune": "RUNE", "rime": "RIME", "sac": "SAC (true reward)"}
 """the new-run form's algorithms: PEBBLE first, the one whose first pairs come soonest (a
 demo's choice); S-EPOA pretrains skills before anything else"""

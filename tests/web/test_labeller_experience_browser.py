@@ -269,9 +269,11 @@ def test_an_invite_link_signs_a_new_browser_in_and_its_answer_is_its_own(
     while not (labels := labels_for_queries_of(live, query_id)) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert [(label.labeller_id, label.choice) for label in labels] == [(joined, "left")]
-    # The target (one answer) is reached: the completion code is shown.
+    # The target (one answer) is reached: the participant's own completion code is shown.
     page.wait_for_selector("#completion:not([hidden])")
-    assert page.inner_text("#completion-code") == "DONE-7"
+    code = page.inner_text("#completion-code")
+    assert code.startswith("DONE-7-")
+    assert live.api("POST", "/api/invites/verify", json={"code": code})["participant"] == "PID42"
     # Opening the link again in this browser keeps the labeller it made.
     page.goto(f"{invite['url']}?participant=PID42")
     page.wait_for_selector("#join-start:not([hidden])")
@@ -352,8 +354,8 @@ def test_operators_set_instructions_and_clip_sizes_and_make_and_revoke_invite_li
     assert page.input_value("#instruction-text") == "Upright first.\nThen faster is better."
     page.fill("#instruction-text", "Faster is better.")
     page.click("#instruction-form [type=submit]")
-    page.wait_for_function("document.querySelector('#instruction-origin').textContent"
-                           ".includes('operator')")
+    page.wait_for_selector("#notice:has-text('Instruction saved')")  # the PUT has answered
+    assert page.inner_text("#instruction-origin") == "the operator's"
     assert live.api("GET", f"/api/runs/{run['id']}")["instruction"] == "Faster is better."
     page.click("#instruction-reset")
     page.wait_for_function("document.querySelector('#instruction-origin').textContent"
