@@ -24,6 +24,7 @@ from labelqueue import (
     LabellerPause,
     Worker,
     claim_run,
+    create_labeller,
     heartbeat,
     make_engine,
     push_queries,
@@ -64,6 +65,14 @@ def test_a_run_says_it_waits_for_answers_from_paused_labellers_and_for_a_free_wo
     assert worker["host"] and worker["silent_s"] > 500
     assert client.get("/api/workers", headers=bearer(token)).status_code == 403
     assert client.get("/api/runs/999/activity", headers=OPERATOR).status_code == 404
+
+
+def test_the_scripted_teacher_is_listed_as_no_person(client: TestClient, session: Session) -> None:
+    create_labeller(session, name="scripted-teacher")  # as the first worker makes it
+    new_labeller(client, "dee")
+    listed = {who["name"]: who["scripted"] for who in
+              client.get("/api/labellers", headers=OPERATOR).json()}
+    assert listed["scripted-teacher"] is True and listed["dee"] is False
 
 
 def test_the_label_page_is_told_why_nothing_is_there(

@@ -1,0 +1,123 @@
+"""The command line around a study: `sepoa invite verify CODE` says whose completion code it is
+(exit 1 for nobody's), `--public-url` is checked in one line, and Ctrl-C on `sepoa up`, while it
+starts or once it runs, stops it and its children without a traceback."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from datetime import timedelta
+from pathlib import Path
+
+import pytest
+
+from labelqueue import (
+    claim_run,
+    create_invite,
+    create_run,
+    join_invite,
+    labeller_progress,
+    lease_next_query,
+    make_engine,
+    migrate,
+    push_queries,
+    session_factory,
+    sqlite_url,
+    submit_label,
+)
+from labelqueue.models import utcnow
+from sepoa.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_invite_verify_says_whose_code_it_is(tmp_path: Path, capsys: pytest.CaptureFixture[str]
+                                             ) -> None:
+    data = tmp_path / "data"
+    url = sqlite_url(str(data))
+    migrate(url)
+    engine = make_engine(url)
+    with session_factory(engine)() as session:
+        run = create_run(session, name="r", task="dmc:cheetah_run", algo="pebble", budget=10)
+        assert claim_run(session, worker_id="w") is not None
+        spec = {"round": 0, "position": 0, "step": 1, "segment_length": 50,
+                "first_trajectory": 0, "first_start": 0, "second_trajectory": 1,
+                "second_start": 0, "first_segment_return": 1.0, "second_segment_return": 2.0,
+                "first_trajectory_return": 1.0, "second_trajectory_return": 2.0,
+                "first_clip": "a.mp4", "second_clip": "b.mp4"}
+        push_queries(session, run_id=run.id, queries=[spec])
+        invite = create_invite(session, expires_at=utcnow() + timedelta(days=1), run_id=run.id,
+                               target_answers=1, completion_code="PILOT")
+        joined = join_invite(session, code=invite.code, participant="P-1").labeller
+        query = lease_next_query(session, labeller_id=joined.id, run_id=run.id)
+        assert query is not None
+        submit_label(session, query_id=query.id, labeller_id=joined.id, choice="right",
+                     left_is_first=True)
+        code = labeller_progress(session, labeller_id=joined.id).completion_code
+    engine.dispose()
+    assert code is not None
+
+    assert main(["invite", "verify", code.lower(), "--data-dir", str(data)]) == 0
+    out = capsys.readouterr().out
+    assert out == (f"valid: P-1 (labeller 'P-1', id {joined.id}), invite {invite.id}, run "
+                   f"{run.id}: 1 of 1 decisive answers; complete: reached the target\n")
+    assert main(["invite", "--data-dir", str(data), "verify", "PILOT-AAAA-BBBB-CCCC"]) == 1
+    assert "is no participant's completion code" in capsys.readouterr().err
+    assert main(["invite", "verify", code, "--data-dir", str(tmp_path / "none")]) == 2
+    assert "no queue database" in capsys.readouterr().err
+
+
+def test_a_bad_public_url_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["serve", "--data-dir", str(tmp_path), "--port", str(free_port()),
+                 "--public-url", "label.example.org"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: --public-url 'label.example.org': ") and err.count("\n") == 1
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+def up(data: Path) -> subprocess.Popen[str]:
+    env = os.environ | {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    env.pop("SEPOA_DATABASE_URL", None)
+    return subprocess.Popen(
+        [sys.executable, "-m", "sepoa.cli", "up", "--data-dir", str(data), "--port",
+         str(free_port()), "--no-demo", "--threads", "1"],
+        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        process_group=0,  # as a terminal's Ctrl-C: SIGINT to the whole foreground group
+    )
+
+
+@pytest.mark.parametrize("when", ["starting", "running"])
+def test_ctrl_c_on_sepoa_up_stops_everything_without_a_traceback(tmp_path: Path,
+                                                                  when: str) -> None:
+    process = up(tmp_path / "data")
+    try:
+        if when == "starting":
+            time.sleep(0.8)  # importing, migrating: before any child exists
+        else:
+            assert process.stdout is not None
+            deadline = time.monotonic() + 60
+            for line in process.stdout:
+                if "Ctrl-C stops everything" in line or time.monotonic() > deadline:
+                    break
+            time.sleep(1)
+        os.killpg(process.pid, signal.SIGINT)
+        out, err = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    assert process.returncode in (0, 130), err
+    if when == "running":
+        assert "stopping the server and the workers" in err
+    else:
+        assert err.strip().endswith("interrupted") or "stopping" in err, err
