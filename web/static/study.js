@@ -22,7 +22,9 @@ export const study = { complete: false, keepLabelling: false };
 export async function explainWait(runId) {
   const params = runId ? `?run_id=${runId}` : "";
   const { data } = await request("GET", `/api/label/status${params}`);
-  if (showProgress(data.progress)) return true;
+  // Nothing to label and the study complete: the end screen, even for one who chose to keep
+  // labelling past the target (their run may have ended since).
+  if (showProgress(data.progress, true)) return true;
   const waiting = data.waiting;
   $("waiting-title").textContent = waiting.reason === "no_run"
     ? "No run to label right now" : "Waiting for the trainer…";
@@ -39,9 +41,10 @@ export async function explainPause() {
 }
 
 /** Shows the completion screen when `progress` says the study is complete (once the target is
- * reached the participant may keep labelling). True when the screen is up. */
-export function showProgress(progress) {
-  if (!progress.complete || (progress.why === "target" && study.keepLabelling)) return false;
+ * reached the participant may keep labelling, unless `always`). True when the screen is up. */
+export function showProgress(progress, always = false) {
+  if (!progress.complete) return false;
+  if (progress.why === "target" && study.keepLabelling && !always) return false;
   study.complete = true;
   const box = $("completion");
   box.dataset.why = progress.why;
