@@ -32,6 +32,8 @@ NEXT_KEYS = {
     "right_clip_url",
     "left_is_first",
     "segment_length",
+    "left_start_step",  # where each clip starts in its episode: shown by the player
+    "right_start_step",
 }
 
 

@@ -25,6 +25,7 @@ const MAX_TICK_S = 0.1; // a long frame (a background tab) does not make the clo
 const MAX_ZOOM = 2; // a clip is shown at most twice its own size
 const NEW_TASK_MS = 4000; // how long "New task" stays up after the run changes
 const UNDO_MS = 10_000; // an answer can be taken back this long (the server has the last word)
+const JUMP_FRAMES = 10; // J and L move the timeline this many frames
 
 const $ = (id) => document.getElementById(id);
 let runId = new URLSearchParams(location.search).get("run"); // an invite's run replaces it
@@ -44,7 +45,7 @@ const state = {
   target: null, // answers after which the caller's invite shows a completion code
   last: null, // the last answer, while it may be taken back: {pair, counted}
 };
-const clock = { t: 0, passes: 0, last: performance.now() };
+const clock = { t: 0, passes: 0, last: performance.now(), paused: false };
 
 /** One query's two clips, in a hidden element until shown. */
 class Pair {
@@ -120,6 +121,10 @@ function advance(pair, dt) {
     return;
   }
   pair.shownAt ??= serverNow(); // first frame on screen: the answer time starts here
+  if (clock.paused) { // held on one frame: both clips shown at the clock's time, not playing
+    hold(pair, Math.min(clock.t, length));
+    return;
+  }
   clock.t += dt * state.speed;
   if (clock.t >= length + END_HOLD_S) {
     if (videos.every((v) => v.ended || v.currentTime >= v.duration - 0.1)) clock.passes += 1;
@@ -137,11 +142,82 @@ function advance(pair, dt) {
     }
     if (video.paused && target < video.duration - 0.04) video.play().catch(() => {});
   }
-  $("clock-bar").style.width = `${Math.min(100, (100 * clock.t) / length)}%`;
+  showFrame(pair);
+}
+
+// ---- the player: pause, scrub, frame steps on the shared timeline ---------------------------
+
+/** Frames of the shown pair's clips (one per step) and their rate. */
+function frames(pair) {
+  return { count: pair.query.segment_length, fps: pair.brief.fps };
+}
+
+/** The frame the timeline is on, 0-based. */
+function frameAt(pair) {
+  const { count, fps } = frames(pair);
+  return Math.max(0, Math.min(count - 1, Math.floor(clock.t * fps + 1e-6)));
+}
+
+/** Paused: each clip shows the clock's time (the middle of a frame, so no decoder rounds it
+ * into the next one). */
+function hold(pair, t) {
+  for (const video of pair.videos) {
+    if (!video.paused) video.pause();
+    const target = Math.min(t, video.duration - 1e-3);
+    if (Math.abs(video.currentTime - target) > 1e-3 && !video.seeking) video.currentTime = target;
+  }
+  showFrame(pair);
+}
+
+function showFrame(pair) {
+  const { count } = frames(pair);
+  const length = Math.max(...pair.videos.map((v) => v.duration));
+  if (length > 0) $("clock-bar").style.width = `${Math.min(100, (100 * clock.t) / length)}%`;
+  const frame = frameAt(pair);
+  const scrub = $("scrub");
+  scrub.max = String(count - 1);
+  if (document.activeElement !== scrub || clock.paused) scrub.value = String(frame);
+  const q = pair.query;
+  $("frame-info").textContent =
+    `frame ${frame + 1} / ${count} · step ${q.left_start_step + frame} | ${q.right_start_step + frame}`;
+}
+
+/** Pauses or plays both clips; paused, the timeline stays where it is. */
+function setPaused(paused) {
+  clock.paused = paused;
+  $("play").setAttribute("aria-pressed", String(paused));
+  $("play-label").textContent = paused ? "Play" : "Pause";
+  if (!paused && state.current) {
+    const length = Math.max(...state.current.videos.map((v) => v.duration));
+    if (clock.t >= length) clock.t = 0; // from the end, play from the start
+  }
+}
+
+/** Puts the timeline on a frame (0-based, clamped) and pauses there. */
+function seekFrame(frame) {
+  const pair = state.current;
+  if (!pair) return;
+  const { count, fps } = frames(pair);
+  const clamped = Math.max(0, Math.min(count - 1, frame));
+  setPaused(true);
+  clock.t = (clamped + 0.5) / fps;
+  hold(pair, clock.t);
+}
+
+const stepFrames = (n) => state.current && seekFrame(frameAt(state.current) + n);
+
+/** The clip's length and where each clip starts in its episode. */
+function showClipInfo(pair) {
+  const { count, fps } = frames(pair);
+  const q = pair.query;
+  $("clip-info").textContent = `Each clip: ${count} steps, ${round(count / fps)} s at 1×`
+    + ` · left starts at step ${q.left_start_step} of its episode,`
+    + ` right at step ${q.right_start_step}`;
 }
 
 function replay() {
   clock.t = 0;
+  setPaused(false);
   for (const video of state.current?.videos || []) video.currentTime = 0;
 }
 
@@ -181,6 +257,8 @@ function show(pair) {
   pair.root.hidden = false;
   clock.t = 0;
   clock.passes = 0;
+  setPaused(false);
+  showClipInfo(pair);
   $("pair-id").textContent = `${pair.query.query_id} · run ${pair.query.run_id}`;
   $("waiting").hidden = true;
   $("stage").hidden = false;
@@ -488,6 +566,17 @@ function onKey(event) {
     replay();
     return;
   }
+  const player = {
+    " ": () => setPaused(!clock.paused), k: () => setPaused(!clock.paused),
+    ",": () => stepFrames(-1), ".": () => stepFrames(1),
+    j: () => stepFrames(-JUMP_FRAMES), l: () => stepFrames(JUMP_FRAMES),
+    Home: () => seekFrame(0), End: () => seekFrame(Infinity),
+  }[event.key.length === 1 ? event.key.toLowerCase() : event.key];
+  if (player) {
+    event.preventDefault(); // Space would scroll or press a focused button
+    player();
+    return;
+  }
   if (event.key === "Backspace" || event.key === "u" || event.key === "U") {
     event.preventDefault();
     undo();
@@ -524,6 +613,20 @@ start(() => {
     event.currentTarget.blur();
     undo();
   });
+  $("play").addEventListener("click", (event) => {
+    event.currentTarget.blur();
+    setPaused(!clock.paused);
+  });
+  $("frame-back").addEventListener("click", (event) => {
+    event.currentTarget.blur();
+    stepFrames(-1);
+  });
+  $("frame-next").addEventListener("click", (event) => {
+    event.currentTarget.blur();
+    stepFrames(1);
+  });
+  $("scrub").addEventListener("input", (event) => seekFrame(Number(event.target.value)));
+  $("scrub").addEventListener("change", (event) => event.target.blur()); // keys answer again
   document.addEventListener("keydown", onKey);
   requestAnimationFrame(tick);
   showCounts();
