@@ -9,6 +9,7 @@ the others import only the server or the queue package, so they start fast.
     sepoa experiment run specs/small/dmc-curves.toml --workers 2     # a grid of runs
     sepoa report results/dmc-curves-small                            # its figures and tables
     sepoa export --format parquet --run 3 --out labels.parquet
+    sepoa export --dataset datasets --run 3   # the run's episodes and labels as a Minari dataset
     sepoa labeller create alice [--role operator]
     sepoa labeller revoke alice | activate alice | token alice | list
     sepoa invite verify PILOT-7KQ3-M9XD-2WPA   # whose completion code is it, how far did they get
@@ -93,6 +94,15 @@ def _parser() -> argparse.ArgumentParser:
     export.add_argument("--format", choices=("jsonl", "csv", "parquet"), default="jsonl")
     export.add_argument("--run", type=int, default=None, help="one run's labels only")
     export.add_argument("--out", default="-", help="file to write; - for standard output")
+    export.add_argument("--dataset", default=None, metavar="DIR",
+                        help="write the run's episodes and labels as a Minari dataset under "
+                        "the datasets folder DIR (needs --run; docs/EXPORT.md)")
+    export.add_argument("--dataset-id", default=None,
+                        help="with --dataset: the Minari dataset id (default "
+                        "sepoa/<task>/run-<N>-v0)")
+    export.add_argument("--clips-dir", default=None,
+                        help="with --dataset: the clips folder, which holds the runs' episodes "
+                        "(env SEPOA_CLIPS_DIR; default <data-dir>/clips)")
 
     labeller = sub.add_parser("labeller", help="create, list, revoke or restore labellers")
     _database_args(labeller)
@@ -200,10 +210,14 @@ def _export(args: argparse.Namespace) -> int:
     from labelqueue import NotFound, make_engine, session_factory
     from labelqueue.export import write_export
 
+    if args.dataset is None and (args.dataset_id is not None or args.clips_dir is not None):
+        return fail("--dataset-id and --clips-dir go with --dataset DIR")
     url = _database_url(args)
     parsed = make_url(url)
     if parsed.get_backend_name() == "sqlite" and not os.path.exists(parsed.database or ""):
         return fail(f"no queue database at {parsed.database} (--data-dir / --database-url)")
+    if args.dataset is not None:
+        return _export_dataset(args, url)
     if args.out != "-":
         folder = os.path.dirname(os.path.abspath(args.out))
         if not os.path.isdir(folder):
@@ -235,6 +249,48 @@ def _export(args: argparse.Namespace) -> int:
         if os.path.exists(tmp):
             os.remove(tmp)
     print(f"{rows} labels exported", file=sys.stderr)
+    return 0
+
+
+def _export_dataset(args: argparse.Namespace, url: str) -> int:
+    from pathlib import Path
+
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import DBAPIError
+
+    from labelqueue import NotFound, make_engine, session_factory
+    from labelqueue.dataset import DatasetError, write_dataset
+
+    if args.run is None:
+        return fail("--dataset needs --run N: a dataset holds one run's episodes")
+    if args.format != "jsonl" or args.out != "-":
+        return fail("--dataset writes a folder; --format and --out are for the label file")
+    if os.path.exists(args.dataset) and not os.path.isdir(args.dataset):
+        return fail(f"--dataset {args.dataset} is a file; give a folder")
+    clips_dir = args.clips_dir or os.environ.get("SEPOA_CLIPS_DIR")
+    clips = Path(clips_dir) if clips_dir else Path(args.data_dir) / "clips"
+    engine = make_engine(url)
+    try:
+        with session_factory(engine)() as session:
+            summary = write_dataset(session, run_id=args.run, clips_root=clips,
+                                    root=Path(args.dataset), dataset_id=args.dataset_id)
+    except (NotFound, DatasetError) as err:
+        return fail(str(err))
+    except DBAPIError as err:
+        return fail(f"cannot read labels from "
+                    f"{make_url(url).render_as_string(hide_password=True)}: "
+                    f"{str(err.orig).strip().splitlines()[0] if err.orig else err}")
+    except OSError as err:
+        where = f" ({err.filename})" if err.filename else ""
+        return fail(f"cannot write --dataset {args.dataset}{where}: {err.strerror or err}")
+    finally:
+        engine.dispose()
+    left = (f"; {summary.labels_left_out} labels left out (their episodes were not kept)"
+            if summary.labels_left_out else "")
+    print(f"{summary.dataset_id}: {summary.episodes} episodes, {summary.steps} steps, "
+          f"{summary.labels} labels on {summary.queries} queries{left} in {summary.path}\n"
+          f"load it with MINARI_DATASETS_PATH={args.dataset} and "
+          f"minari.load_dataset({summary.dataset_id!r})", file=sys.stderr)
     return 0
 
 

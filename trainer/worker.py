@@ -99,6 +99,14 @@ from labelqueue import (
 from labelqueue.models import SCRIPTED_TEACHER
 from runvocab.answers import aggregate, click_of_answer
 from runvocab.config import RunConfig, apply_overrides
+from runvocab.episodes import (
+    StoredEpisode,
+    episode_path,
+    episodes_dir,
+    read_end_state,
+    write_end_state,
+    write_episode,
+)
 from runvocab.query_fields import QUERY_FIELDS
 from runvocab.queued_run import queued_run_config
 from trainer.clips import ClipConfig, render_query_clips, sized
@@ -107,7 +115,7 @@ from trainer.feedback import GivenAnswer, PreferenceFeedback, Query
 from trainer.gold_pairs import gold_count, gold_pairs
 from trainer.hooks import RunHooks
 from trainer.loop import CHECKPOINT, TrainingRun
-from trainer.trajectories import TrajectoryPool
+from trainer.trajectories import Trajectory, TrajectoryPool
 
 SCRIPTED_LABELLER = SCRIPTED_TEACHER
 DONE, FAILED, STOPPED = "done.json", "failed.json", "stopped.json"
@@ -263,6 +271,11 @@ class QueueHooks(RunHooks):
         self.pretrain_start: tuple[float, int] | None = None
         self.next_round_step: Callable[[], int] | None = None
         """the step the training loop opens its next round at (set once it is built)"""
+        self.episode_end: Callable[[], np.ndarray] | None = None
+        """the training env's physics state, read as an episode ends (set once it is built)"""
+        self.episodes = episodes_dir(worker.clips_root, run.id)
+        """the run's episode store (`runvocab.episodes`)"""
+        self.store_episodes = True
 
     # -- operator ------------------------------------------------------------------------------
     def beat(self, step: int, force: bool = False) -> RunStatus:
@@ -321,6 +334,9 @@ class QueueHooks(RunHooks):
             self.progress["eval_return"] = row["return"]
         elif stream == "rounds":
             self.progress |= {"round": row["round"], "labels_used": row["labels_used"]}
+        if stream == "episodes" and self.episode_end is not None and self.store_episodes:
+            # The loop logs an episode before the next reset: the env holds its final state.
+            write_end_state(self.episodes, int(row["episode"]) - 1, self.episode_end())
         with self.sessions() as session:
             write_metrics(session, run_id=self.run_id, stream=stream, step=int(row["step"]),
                           values=row)
@@ -334,6 +350,7 @@ class QueueHooks(RunHooks):
             segment_length=fb.segment_length, eps=self.cfg.teacher.eps,
             round_=queries[0].round if queries else 0, seed=self.cfg.seed,
             step=queries[0].step if queries else 0)
+        self._store(queries + self.gold, pool)
         skills = {t.id: t.skill for t in pool.trajectories}
         specs = [queue_fields(q, i, skills) | {"needs_labels": fb.labels_per_query}
                  for i, q in enumerate(queries)]
@@ -348,6 +365,33 @@ class QueueHooks(RunHooks):
         if self.teacher is TeacherKind.HUMAN:
             self._render(queries + self.gold, pool)
 
+    def _scratch_env(self) -> Env:
+        """An env of the run's task for restoring states (clips, final observations)."""
+        if self.render_env is None:
+            self.render_env = make_env(self.cfg.task, self.cfg.seed + 200_000,
+                                       self.cfg.episode_length or None)
+        return self.render_env
+
+    def _store(self, queries: list[Query], pool: TrajectoryPool) -> None:
+        """Keep the episodes these queries point into in the run's episode store (those not
+        kept yet), before the queries reach the queue."""
+        if not self.store_episodes:
+            return
+        by_id = {t.id: t for t in pool.trajectories}
+        wanted = sorted({t for q in queries for t in (q.trajectory0, q.trajectory1)})
+        for trajectory in wanted:
+            if episode_path(self.episodes, trajectory).is_file():
+                continue
+            try:
+                episode = stored_episode(by_id[trajectory], self._scratch_env(),
+                                         read_end_state(self.episodes, trajectory))
+            except NotImplementedError as err:  # a task whose states cannot be restored
+                print(f"[worker {self.worker.worker_id}] run {self.run_id}: episodes not "
+                      f"kept for the dataset export: {err}", file=sys.stderr, flush=True)
+                self.store_episodes = False
+                return
+            write_episode(self.episodes, episode)
+
     def _render(self, queries: list[Query], pool: TrajectoryPool) -> None:
         """Clips for the queries that have none yet, attached one query at a time so people can
         start on the first while the rest render. A clip already on disk is not rendered again."""
@@ -360,10 +404,7 @@ class QueueHooks(RunHooks):
             keys = (f"{folder}/{stem}-0.mp4", f"{folder}/{stem}-1.mp4")
             root = self.worker.clips_root
             if not all((root / key).is_file() for key in keys):
-                if self.render_env is None:
-                    self.render_env = make_env(self.cfg.task, self.cfg.seed + 200_000,
-                                               self.cfg.episode_length or None)
-                render_query_clips(self.render_env, by_id[q.trajectory0], q.start0,
+                render_query_clips(self._scratch_env(), by_id[q.trajectory0], q.start0,
                                    by_id[q.trajectory1], q.start1, q.segment_length,
                                    root / folder, stem, self.clip)
             with self.sessions() as session:
@@ -441,6 +482,27 @@ class QueueHooks(RunHooks):
         return names
 
 
+def stored_episode(traj: Trajectory, env: Env, end_state: np.ndarray | None) -> StoredEpisode:
+    """A finished trajectory as the episode store keeps it: its final observation restored
+    from `end_state` (the state after its last step), or, without one, recomputed by stepping
+    its last state with its last action (`final_resimulated`)."""
+    resimulated = end_state is None
+    if end_state is None:
+        env.reset()  # step() needs an episode under way
+        env.restore(traj.states[-1], traj.context)
+        final_obs = env.step(traj.actions[-1]).obs
+        end_state = env.physics_state()
+    else:
+        final_obs = env.restore(end_state, traj.context)
+    return StoredEpisode(
+        trajectory=traj.id,
+        observations=np.concatenate([traj.obs, final_obs[None].astype(np.float32)]),
+        actions=traj.actions, rewards=traj.true_rewards,
+        states=np.concatenate([traj.states, np.asarray(end_state, np.float64)[None]]),
+        context=traj.context, success=traj.success, skill=traj.skill,
+        final_resimulated=resimulated)
+
+
 def scripted_labeller_id(sessions: sessionmaker[Session]) -> int:
     """The labeller the scripted teacher answers as, created on first use."""
     with sessions() as session:
@@ -475,6 +537,7 @@ def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerC
               f"in {cfg.run_dir}", file=sys.stderr, flush=True)
         training = TrainingRun(cfg, resume=resume, progress=False, hooks=hooks)
         hooks.next_round_step = lambda: training.next_round_step
+        hooks.episode_end = training.env.physics_state
         hooks.step = training.step  # a resumed run reports its step before taking one
         summary = training.train()
         hooks.beat(int(summary["step"]), force=True)  # the final step and progress, on record

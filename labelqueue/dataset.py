@@ -1,0 +1,285 @@
+"""A run's data as a Minari dataset, with its preference labels as tables that point into it.
+
+    write_dataset(session, run_id=3, clips_root=Path("data/clips"), root=Path("datasets"))
+
+writes `datasets/sepoa/dmc-cheetah_run/run-3-v0/`, a local Minari dataset (arrow storage):
+
+- `data/`: Minari's own files. One Minari episode per episode of the run that a query points
+  into (the run's episode store, `runvocab.episodes`), in the run's order: observations
+  (T + 1), actions, true rewards, terminations (never: the project's episodes end by time),
+  truncations (the last step), and per step `infos["state"]` (the physics state at each
+  observation, so any segment renders again) and `infos["context"]` (Metaworld's goal variant),
+  plus `infos["skill"]` for skill-based runs. The spaces are the task's: a float32 Box of the
+  observation size and a [-1, 1] float32 Box of the action size.
+- `labels.parquet`: one row per answer (the label export's columns, docs/EXPORT.md) plus
+  `first_episode` and `second_episode`, the Minari episode ids the two segments come from.
+- `queries.parquet`: one row per answered query: both sides' episode, start and length, and its
+  aggregate answer (what a reward model trains on).
+- `episodes.parquet`: per Minari episode, the run's trajectory number, length, return, success,
+  context and skill.
+- `sepoa.json`: the run (task, algorithm, preset, seed, training config) and the counts.
+
+`minari.load_dataset("sepoa/dmc-cheetah_run/run-3-v0")` reads it with `MINARI_DATASETS_PATH`
+set to the root, and needs nothing of this project. The dataset is written into a hidden
+folder beside its destination and renamed into place when complete: an error leaves nothing.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from sqlalchemy.orm import Session
+
+from labelqueue.errors import NotFound
+from labelqueue.export import QUERY_COLUMNS, SCHEMA_VERSION, export_rows
+from labelqueue.models import Run
+from labelqueue.transaction import reading
+from runvocab.config import to_dict
+from runvocab.episodes import StoredEpisode, episodes_dir, read_episode, stored_trajectories
+from runvocab.names import ConfigError
+from runvocab.queued_run import queued_run_config
+
+DATASET_VERSION = 1
+"""the version of this layout (the files beside Minari's `data/` and their columns)"""
+LABELS_FILE, QUERIES_FILE, EPISODES_FILE, INFO_FILE = (
+    "labels.parquet", "queries.parquet", "episodes.parquet", "sepoa.json")
+EPISODE_COLUMNS = ("first_episode", "second_episode")
+"""the columns a label row gets besides the label export's"""
+QUERY_TABLE_COLUMNS = (
+    ("query_id", "first_episode", "first_start", "second_episode", "second_start",
+     "segment_length", "aggregate", "query_answers", "labels_per_query")
+    + tuple(c.name for c in QUERY_COLUMNS
+            if c.name not in ("first_start", "second_start", "segment_length")))
+"""queries.parquet's columns: the pointers and the aggregate first, then the query's fields"""
+REQUIREMENTS = ["mujoco==3.3.0", "dm-control==1.0.28", "metaworld==3.1.1"]
+"""what restores the physics states (`trainer.envs`)"""
+
+
+class DatasetError(ValueError):
+    """The dataset cannot be written or read as asked; the message says why, in one line."""
+
+
+@dataclass(frozen=True)
+class DatasetSummary:
+    path: Path
+    """the dataset's folder (`root/dataset_id`)"""
+    dataset_id: str
+    episodes: int
+    steps: int
+    labels: int
+    queries: int
+    labels_left_out: int
+    """labels whose episodes the run's store does not hold (a run trained before episodes were
+    kept): not in the tables"""
+
+
+def default_dataset_id(task: str, run_id: int) -> str:
+    """`sepoa/<task, ':' as '-'>/run-<id>-v0`, e.g. `sepoa/dmc-cheetah_run/run-3-v0`."""
+    return f"sepoa/{task.replace(':', '-')}/run-{run_id}-v0"
+
+
+def check_dataset_id(dataset_id: str) -> str:
+    from minari.dataset.minari_dataset import (  # type: ignore[import-untyped]
+        parse_dataset_id,
+    )
+
+    try:
+        parse_dataset_id(dataset_id)
+    except ValueError:
+        raise DatasetError(f"dataset id {dataset_id!r} is not a Minari id: give "
+                           "[namespace/]name-v<version>, e.g. sepoa/cheetah/run-3-v0") from None
+    if ".." in dataset_id.split("/"):
+        raise DatasetError(f"dataset id {dataset_id!r} may not contain '..'")
+    return dataset_id
+
+
+def write_dataset(session: Session, *, run_id: int, clips_root: Path, root: Path,
+                  dataset_id: str | None = None) -> DatasetSummary:
+    """Write run `run_id`'s episodes and labels as the Minari dataset `root/<dataset_id>`.
+
+    NotFound for an unknown run; DatasetError when it has no stored episodes, the destination
+    exists, or the episodes disagree with each other. Nothing is left behind on an error."""
+    with reading(session):
+        run = session.get(Run, run_id)
+        if run is None:
+            raise NotFound(f"run {run_id} does not exist")
+        info = _run_info(run)
+    dataset_id = check_dataset_id(dataset_id or default_dataset_id(info["task"], run_id))
+    final = Path(root) / dataset_id
+    if final.exists():
+        raise DatasetError(f"{final} already exists; remove it or give another dataset id")
+    folder = episodes_dir(clips_root, run_id)
+    trajectories = stored_trajectories(folder)
+    if not trajectories:
+        raise DatasetError(
+            f"run {run_id} has no stored episodes in {folder}: a run keeps the episodes its "
+            "queries point into from its first round on (runs trained before this version "
+            "kept none)")
+    rows = list(export_rows(session, run_id=run_id))
+    made = [p for p in reversed(final.parents) if not p.exists()]
+    tmp = final.parent / f".{final.name}.partial-{os.getpid()}"
+    try:
+        tmp.mkdir(parents=True)
+        summary = _write(tmp, final, dataset_id, info, folder, trajectories, rows)
+        os.rename(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        for parent in reversed(made):  # the folders made for it, when still empty
+            try:
+                parent.rmdir()
+            except OSError:
+                break
+        raise
+    return summary
+
+
+def _run_info(run: Run) -> dict[str, Any]:
+    try:
+        config: dict[str, Any] | None = to_dict(queued_run_config(
+            task=run.task, algo=run.algo, preset=run.preset, seed=run.seed, budget=run.budget,
+            teacher_params=run.teacher_params, config=run.config))
+    except ConfigError:  # a run stored by an older version whose config no longer builds
+        config = None
+    return {"run_id": run.id, "run_name": run.name, "task": run.task, "algo": run.algo,
+            "preset": run.preset, "seed": run.seed, "teacher": str(run.teacher),
+            "status": str(run.status), "config": config}
+
+
+def _write(tmp: Path, final: Path, dataset_id: str, info: dict[str, Any], folder: Path,
+           trajectories: list[int], rows: list[dict[str, Any]]) -> DatasetSummary:
+    import gymnasium as gym
+    from minari import __version__ as minari_version  # type: ignore[import-untyped]
+    from minari.dataset.minari_storage import MinariStorage  # type: ignore[import-untyped]
+
+    episodes = [read_episode(folder, t) for t in trajectories]
+    _check_shapes(episodes, folder)
+    first = episodes[0]
+    obs_dim, action_dim = first.observations.shape[1], first.actions.shape[1]
+    storage = MinariStorage.new(
+        tmp / "data",
+        observation_space=gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32),
+        action_space=gym.spaces.Box(-1.0, 1.0, (action_dim,), np.float32),
+        data_format="arrow")
+    storage.update_metadata({
+        "dataset_id": dataset_id,
+        "algorithm_name": f"sepoa {info['algo']}",
+        "description": (
+            f"Episodes of S-EPOA run {info['run_id']} ({info['run_name']}): {info['task']}, "
+            f"{info['algo']}, preset {info['preset']}, seed {info['seed']}; the episodes its "
+            "preference queries point into. Rewards are the task's true rewards; "
+            "infos['state'] is the physics state at each observation. Labels: "
+            f"{LABELS_FILE} and {QUERIES_FILE} beside data/."),
+        "requirements": REQUIREMENTS,
+        "minari_version": minari_version,
+    })
+    storage.update_episodes(_buffers(episodes))
+
+    index = {t: i for i, t in enumerate(trajectories)}
+    lengths = {t: e.length for t, e in zip(trajectories, episodes, strict=True)}
+    labels, left_out = _label_rows(rows, index, lengths)
+    queries = _query_rows(labels)
+    _write_tables(tmp, labels, queries, episodes)
+    steps = sum(e.length for e in episodes)
+    counts = {"episodes": len(episodes), "steps": steps, "labels": len(labels),
+              "queries": len(queries), "labels_left_out": left_out}
+    (tmp / INFO_FILE).write_text(json.dumps(
+        {"dataset_version": DATASET_VERSION, "label_schema_version": SCHEMA_VERSION,
+         "dataset_id": dataset_id, "obs_dim": obs_dim, "action_dim": action_dim,
+         "state_dim": first.states.shape[1]} | info | counts, indent=2) + "\n")
+    return DatasetSummary(path=final, dataset_id=dataset_id, **counts)
+
+
+def _check_shapes(episodes: list[StoredEpisode], folder: Path) -> None:
+    first = episodes[0]
+    for e in episodes:
+        t = e.length
+        shapes = (e.observations.shape, e.actions.shape, e.states.shape)
+        want = ((t + 1, first.observations.shape[1]), (t, first.actions.shape[1]),
+                (t + 1, first.states.shape[1]))
+        if shapes != want:
+            raise DatasetError(f"{folder}: episode {e.trajectory} has observations, actions "
+                               f"and states of shapes {shapes}, expected {want}")
+
+
+def _buffers(episodes: list[StoredEpisode]) -> list[Any]:
+    from minari.data_collector import EpisodeBuffer  # type: ignore[import-untyped]
+
+    out = []
+    for i, e in enumerate(episodes):
+        t = e.length
+        # The context as a list: Minari's arrow storage cannot read back a 1-D array in infos.
+        infos: dict[str, Any] = {"state": e.states, "context": [e.context] * (t + 1)}
+        if e.skill is not None:
+            infos["skill"] = np.repeat(e.skill[None].astype(np.float32), t + 1, axis=0)
+        truncations = np.zeros(t, bool)
+        truncations[-1] = True
+        out.append(EpisodeBuffer(
+            id=i, observations=e.observations, actions=e.actions,
+            rewards=e.rewards.astype(np.float64), terminations=np.zeros(t, bool),
+            truncations=truncations, infos=infos))
+    return out
+
+
+def _label_rows(rows: list[dict[str, Any]], index: dict[int, int],
+                lengths: dict[int, int]) -> tuple[list[dict[str, Any]], int]:
+    kept, left_out = [], 0
+    for row in rows:
+        sides = [(row[f"{side}_trajectory"], row[f"{side}_start"])
+                 for side in ("first", "second")]
+        if any(t not in index for t, _ in sides):
+            left_out += 1
+            continue
+        for t, start in sides:
+            if not 0 <= start <= lengths[t] - row["segment_length"]:
+                raise DatasetError(f"label {row['label_id']}: its segment at step {start} of "
+                                   f"trajectory {t} runs past the episode's {lengths[t]} steps")
+        kept.append(row | {"first_episode": index[sides[0][0]],
+                           "second_episode": index[sides[1][0]]})
+    return kept, left_out
+
+
+def _query_rows(labels: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
+    by_query: dict[int, dict[str, Any]] = {}
+    for row in labels:
+        by_query.setdefault(row["query_id"], {c: row[c] for c in QUERY_TABLE_COLUMNS})
+    return list(by_query.values())
+
+
+def _write_tables(tmp: Path, labels: list[dict[str, Any]], queries: list[dict[str, Any]],
+                  episodes: list[StoredEpisode]) -> None:
+    import pyarrow as pa  # type: ignore[import-untyped]
+    import pyarrow.parquet as pq  # type: ignore[import-untyped]
+
+    from labelqueue.export import parquet_schema
+
+    meta = {"sepoa.dataset.version": str(DATASET_VERSION)}
+    base = parquet_schema()
+    label_schema = pa.schema(
+        list(base) + [pa.field(c, pa.int64()) for c in EPISODE_COLUMNS],
+        metadata=base.metadata | meta)
+    pq.write_table(pa.Table.from_pylist(labels, schema=label_schema), tmp / LABELS_FILE)
+    by_name = {f.name: f for f in label_schema}
+    query_schema = pa.schema([by_name[c] for c in QUERY_TABLE_COLUMNS], metadata=meta)
+    pq.write_table(pa.Table.from_pylist(queries, schema=query_schema), tmp / QUERIES_FILE)
+    episode_rows = [{
+        "episode_id": i, "trajectory": e.trajectory, "length": e.length,
+        "return": float(e.rewards.sum(dtype=np.float64)), "success": e.success,
+        "context": e.context,
+        "skill": None if e.skill is None else [float(x) for x in e.skill],
+        "final_resimulated": e.final_resimulated,
+    } for i, e in enumerate(episodes)]
+    episode_schema = pa.schema([
+        pa.field("episode_id", pa.int64()), pa.field("trajectory", pa.int64()),
+        pa.field("length", pa.int64()), pa.field("return", pa.float64()),
+        pa.field("success", pa.bool_()), pa.field("context", pa.int64()),
+        pa.field("skill", pa.list_(pa.float64())), pa.field("final_resimulated", pa.bool_()),
+    ], metadata=meta)
+    pq.write_table(pa.Table.from_pylist(episode_rows, schema=episode_schema),
+                   tmp / EPISODES_FILE)
