@@ -66,6 +66,10 @@ class DatasetError(ValueError):
     """The dataset cannot be written or read as asked; the message says why, in one line."""
 
 
+class NoEpisodes(DatasetError):
+    """The run kept no episodes to export."""
+
+
 @dataclass(frozen=True)
 class DatasetSummary:
     path: Path
@@ -118,7 +122,7 @@ def write_dataset(session: Session, *, run_id: int, clips_root: Path, root: Path
     folder = episodes_dir(clips_root, run_id)
     trajectories = stored_trajectories(folder)
     if not trajectories:
-        raise DatasetError(
+        raise NoEpisodes(
             f"run {run_id} has no stored episodes in {folder}: a run keeps the episodes its "
             "queries point into from its first round on (runs trained before this version "
             "kept none)")

@@ -11,8 +11,13 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import tempfile
 import threading
+import zipfile
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
 
 from labelqueue import ExportFormat, make_engine, session_factory, write_export
 
@@ -37,6 +42,28 @@ def write_export_file(
         engine.dispose()
 
 
+def write_dataset_zip(*, database_url: str, clips_root: str, run_id: int,
+                      dataset_id: str | None, path: str) -> str:
+    """Run `run_id`'s Minari dataset (`labelqueue.dataset.write_dataset`) as the zip file
+    `path`, its members under `<dataset id>/`, so that it unpacks into a Minari datasets
+    folder; the dataset id. Runs in the export process."""
+    from labelqueue.dataset import write_dataset
+
+    engine = make_engine(database_url)
+    try:
+        with tempfile.TemporaryDirectory(prefix="sepoa-dataset-") as root, \
+                session_factory(engine)() as session:
+            summary = write_dataset(session, run_id=run_id, clips_root=Path(clips_root),
+                                    root=Path(root), dataset_id=dataset_id)
+            with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as archive:
+                for file in sorted(summary.path.rglob("*")):
+                    if file.is_file():
+                        archive.write(file, file.relative_to(root).as_posix())
+            return summary.dataset_id
+    finally:
+        engine.dispose()
+
+
 class ExportProcess:
     """One export process, started at the first export and kept for the next (starting one
     takes about a second); exports queue for it one at a time."""
@@ -50,6 +77,19 @@ class ExportProcess:
     ) -> int:
         """Write the export into `path` in the export process (blocking); rows written.
         NotFound and ValueError come back as they were raised there."""
+        rows: int = self._run(write_export_file, database_url=database_url, fmt=fmt, path=path,
+                              run_id=run_id)
+        return rows
+
+    def write_dataset(self, *, database_url: str, clips_root: str, run_id: int,
+                      dataset_id: str | None, path: str) -> str:
+        """`write_dataset_zip` in the export process (blocking); the dataset id."""
+        written: str = self._run(write_dataset_zip, database_url=database_url,
+                                 clips_root=clips_root, run_id=run_id, dataset_id=dataset_id,
+                                 path=path)
+        return written
+
+    def _run(self, job: Callable[..., Any], **kwargs: Any) -> Any:
         with self._lock:
             if self._pool is None:
                 self._pool = ProcessPoolExecutor(
@@ -59,10 +99,7 @@ class ExportProcess:
                     initializer=_lower_priority,
                 )
             pool = self._pool
-        future = pool.submit(
-            write_export_file, database_url=database_url, fmt=fmt, path=path, run_id=run_id
-        )
-        return future.result()
+        return pool.submit(job, **kwargs).result()
 
     def close(self) -> None:
         with self._lock:

@@ -1,4 +1,5 @@
-"""Operator endpoint: the label database as a JSONL, CSV or Parquet file (docs/EXPORT.md).
+"""Operator endpoints: the label database as a JSONL, CSV or Parquet file, and a run's episodes
+and labels as a Minari dataset in a zip file (docs/EXPORT.md).
 
 The file is built first, into a temporary file on disk, by `write_export` in the export process
 (`server.export_job`: a child process at a lower priority, so labellers' requests do not wait
@@ -13,13 +14,13 @@ import tempfile
 from collections.abc import Iterator
 from typing import IO, Annotated
 
-from fastapi import APIRouter, Query, Request
+from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import StreamingResponse
 
 from labelqueue import EXPORT_SCHEMA_VERSION, ExportFormat
 from server.deps import OperatorDep, SettingsDep
 from server.export_job import ExportProcess
-from server.schemas import RunFilter, errors
+from server.schemas import RunFilter, RunId, errors
 
 router = APIRouter(prefix="/api", tags=["export"])
 
@@ -74,3 +75,43 @@ def export_labels(
         "Content-Length": str(os.fstat(file.fileno()).st_size),
     }
     return StreamingResponse(_blocks(file), media_type=MEDIA_TYPES[fmt], headers=headers)
+
+
+@router.get(
+    "/runs/{run_id}/dataset",
+    response_class=StreamingResponse,
+    responses=errors(401, 403, 404, 409, 422, also={200: {"content": {"application/zip": {}}}}),
+)
+def export_dataset(
+    request: Request,
+    settings: SettingsDep,
+    _: OperatorDep,
+    run_id: RunId,
+    dataset_id: Annotated[str | None, Query(
+        max_length=200, description="the Minari dataset id (default sepoa/<task>/run-<id>-v0)",
+    )] = None,
+) -> StreamingResponse:
+    """The run's episodes and labels as a Minari dataset (docs/EXPORT.md), zipped under its
+    dataset id: unzip it into a Minari datasets folder. 409 when the run kept no episodes."""
+    from labelqueue.dataset import DatasetError, NoEpisodes
+
+    export: ExportProcess = request.app.state.export_process
+    handle, path = tempfile.mkstemp(prefix="sepoa-dataset-", suffix=".zip")
+    os.close(handle)
+    try:
+        written = export.write_dataset(database_url=settings.database_url,
+                                       clips_root=str(settings.clips_root), run_id=run_id,
+                                       dataset_id=dataset_id, path=path)
+        file = open(path, "rb")  # closed by _blocks once sent
+    except NoEpisodes as err:
+        raise HTTPException(409, str(err)) from None
+    except DatasetError as err:
+        raise HTTPException(422, str(err)) from None
+    finally:
+        os.unlink(path)
+    filename = written.replace("/", "_") + ".zip"
+    headers = {
+        "Content-Disposition": f'attachment; filename="{filename}"',
+        "Content-Length": str(os.fstat(file.fileno()).st_size),
+    }
+    return StreamingResponse(_blocks(file), media_type="application/zip", headers=headers)
