@@ -144,6 +144,14 @@ COLUMNS: tuple[Column, ...] = (
         nullable=True,
     ),
     _c(
+        "flag",
+        "string",
+        "the labeller flagged the pair (with a skip): clip_broken, not_visible or other; null "
+        "for an unflagged answer",
+        nullable=True,
+    ),
+    _c("flag_note", "string", "the labeller's note on the flag; null without one", nullable=True),
+    _c(
         "instruction",
         "string",
         "the run's instruction to labellers when the label was answered, as shown",
@@ -178,6 +186,8 @@ _STORED: dict[str, Any] = {
     "answered_at": Label.answered_at,
     "consumed_at": Label.consumed_at,
     "withdrawn_at": Label.withdrawn_at,
+    "flag": Label.flag,
+    "flag_note": Label.flag_note,
 }
 _SEGMENT_ANSWERS = ("first", "second", "equal")
 

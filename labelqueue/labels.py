@@ -39,7 +39,7 @@ from labelqueue.transaction import (
     snapshot,
     transaction,
 )
-from runvocab.answers import Click, answer_of_click
+from runvocab.answers import FLAG_NOTE_MAX, Click, Flag, answer_of_click
 
 _LABELLER = bindparam("labeller", type_=Integer())
 _QUERY = bindparam("query", type_=Integer())
@@ -153,6 +153,29 @@ def clamp_shown_at(
     return min(shown, now)
 
 
+def check_flag(choice: Click, flag: Flag | str | None,
+               note: str | None) -> tuple[Flag | None, str | None]:
+    """A flag and its note as stored (the note stripped, empty as none); ValueError naming the
+    problem for a flag on an answer other than a skip, a note without a flag, an unknown flag
+    or a note too long."""
+    note = (note or "").strip() or None
+    if flag is None:
+        if note is not None:
+            raise ValueError("flag_note needs a flag")
+        return None, None
+    try:
+        flag = Flag(flag)
+    except ValueError:
+        raise ValueError(f"unknown flag {flag!r}; valid: "
+                         + ", ".join(f.value for f in Flag)) from None
+    if choice is not Click.SKIP:
+        raise ValueError(f"a flagged pair is skipped, not answered: send choice 'skip' with the "
+                         f"flag, not {choice.value!r}")
+    if note is not None and len(note) > FLAG_NOTE_MAX:
+        raise ValueError(f"flag_note is {len(note)} characters long; at most {FLAG_NOTE_MAX}")
+    return flag, note
+
+
 def submit_label(
     session: Session,
     *,
@@ -162,6 +185,8 @@ def submit_label(
     left_is_first: bool,
     shown_at: datetime | None = None,
     source: LabelSource | str = LabelSource.HUMAN,
+    flag: Flag | str | None = None,
+    flag_note: str | None = None,
 ) -> tuple[Label, bool]:
     """Store the answer of the labeller holding the query's lease; (label, created).
 
@@ -175,8 +200,13 @@ def submit_label(
     `needs_labels` answers, else pending again; the run's `labels_used` grows by one whatever the
     answer (cant_tell and skip count against the budget too), unless the query is a gold pair:
     a gold answer costs no budget, and may pause the labeller on the run (`labelqueue.gold`).
+
+    `flag` marks the pair as one nobody can judge (`runvocab.answers.Flag`), with an optional
+    `flag_note`; only a skip may carry one (ValueError otherwise), so a flagged pair is never
+    trained on.
     """
     choice = Click(choice)
+    flag, flag_note = check_flag(choice, flag, flag_note)
     source = LabelSource(source)
     now = utcnow()
     # Bound parameters are named apart from every column (see lease_next_query).
@@ -207,6 +237,8 @@ def submit_label(
             "answered_at": now,
             "consumed_at": None,
             "withdrawn_at": None,
+            "flag": flag,
+            "flag_note": flag_note,
         }
         [inserted] = _INSERT_LABEL.rows(connection, values)
         if asked.gold:

@@ -31,7 +31,7 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
-from runvocab.answers import Answer, Click
+from runvocab.answers import Answer, Click, Flag
 
 
 class Role(StrEnum):
@@ -358,6 +358,11 @@ class Label(Base):
     """when the trainer took the label; none until then"""
     withdrawn_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     """when the labeller took the answer back (`labelqueue.undo`); none for a standing label"""
+    flag: Mapped[Flag | None] = mapped_column(_enum(Flag, "flag"))
+    """the labeller flagged the pair as broken (`runvocab.answers.Flag`); only with a skip, so
+    never trained on; none for an unflagged answer"""
+    flag_note: Mapped[str | None] = mapped_column(Text)
+    """the labeller's optional words on the flag"""
 
 
 Index("ix_labels_run_id_consumed_at", Label.run_id, Label.consumed_at)

@@ -29,6 +29,25 @@ class Answer(StrEnum):
     """kept on record, not trained on"""
 
 
+class Flag(StrEnum):
+    """Why a labeller flagged a pair as one nobody can judge; a flagged pair is answered with a
+    skip, which is kept on record and never trained on."""
+
+    CLIP_BROKEN = "clip_broken"
+    """a clip does not play, stops, or shows something wrong"""
+    NOT_VISIBLE = "not_visible"
+    """the agent is out of the picture, hidden or too small to judge"""
+    OTHER = "other"
+    """anything else (the note says what)"""
+
+
+FLAG_TEXT = {Flag.CLIP_BROKEN: "clip broken", Flag.NOT_VISIBLE: "agent not visible",
+             Flag.OTHER: "other"}
+"""what the label page and the operator pages call each flag"""
+FLAG_NOTE_MAX = 500
+"""the longest note a flag may carry"""
+
+
 class Click(StrEnum):
     """What a labeller clicked, in screen terms."""
 

@@ -16,8 +16,8 @@ from server.deps import LabelThreads, TokenCache
 from server.errors import install_error_handlers
 from server.export_job import ExportProcess
 from server.middleware import HardeningMiddleware
-from server.routes import export as export_routes
 from server.routes import (
+    browse,
     instructions,
     invites,
     label,
@@ -28,6 +28,7 @@ from server.routes import (
     stats,
     undo,
 )
+from server.routes import export as export_routes
 from server.settings import Settings, get_settings
 
 if TYPE_CHECKING:
@@ -87,6 +88,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(invites.router)
     app.include_router(undo.router)
     app.include_router(quality.router)
+    app.include_router(browse.router)
     app.include_router(pages.router)
     app.mount("/static", pages.static_files(), name="static")
 

@@ -16,7 +16,7 @@ from fastapi import Query as QueryParam
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, computed_field
 
 from labelqueue.models import SCRIPTED_TEACHER
-from runvocab.answers import Click
+from runvocab.answers import FLAG_NOTE_MAX, Click, Flag
 from runvocab.clip_format import CLIP_SIZES
 from runvocab.instructions import MAX_CHARS as MAX_INSTRUCTION_CHARS
 from runvocab.instructions import clean_instruction, run_instruction
@@ -263,6 +263,11 @@ class LabelSubmit(Body):
     """optional: the value next-query gave, as a check; a different one is refused (422)"""
     shown_at: UTCTime
     """when the page showed the pair; stored clamped to [the lease's start, the answer's time]"""
+    flag: Flag | None = None
+    """the pair is one nobody can judge: clip_broken, not_visible or other; only with choice
+    skip (422 otherwise), so it is never trained on"""
+    flag_note: str | None = Field(default=None, max_length=FLAG_NOTE_MAX)
+    """optional words on the flag"""
 
 
 class LabelOut(Out):
@@ -276,6 +281,9 @@ class LabelOut(Out):
     """the answer in segment terms: first, second, equal, cant_tell or skip"""
     shown_at: datetime | None
     answered_at: datetime
+    flag: str | None = None
+    """clip_broken, not_visible or other when the labeller flagged the pair"""
+    flag_note: str | None = None
 
 
 class ThroughputBucket(BaseModel):

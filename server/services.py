@@ -153,6 +153,8 @@ def submit_answer(
         left_is_first=first_left,
         shown_at=body.shown_at,
         source=LabelSource.HUMAN,
+        flag=body.flag,
+        flag_note=body.flag_note,
     )
 
 

@@ -314,6 +314,31 @@ function updateButtons() {
     button.disabled = !pair || state.submitting || !(watched || escape);
   }
   $("watch-hint").hidden = watched;
+  $("flag").disabled = !pair || state.submitting;
+}
+
+// ---- flagging a pair nobody can judge -------------------------------------------------------
+
+const FLAG_TEXT = { clip_broken: "clip broken", not_visible: "agent not visible", other: "other" };
+
+function openFlag() {
+  if ($("flag").disabled || $("flag-dialog").open) return;
+  $("flag-form").reset();
+  setPaused(true); // look at the frame that shows the problem
+  $("flag-dialog").showModal();
+  $("flag-dialog").querySelector("input[name=flag]").focus();
+}
+
+/** The dialog's answer: the pair is skipped with the flag and the note. */
+function sendFlag(event) {
+  event.preventDefault();
+  const form = $("flag-form");
+  const flag = form.querySelector("input[name=flag]:checked")?.value;
+  if (!flag) return; // the radios are required: the browser says so
+  const note = $("flag-note").value.trim();
+  $("flag-dialog").close();
+  answer("skip", { flag, flag_note: note || null });
+  notice(`Pair flagged (${FLAG_TEXT[flag]}) and skipped: thank you.`);
 }
 
 function showCounts() {
@@ -441,16 +466,19 @@ async function preload() {
   schedule(preload, state.next ? RENEW_MS : POLL_MS);
 }
 
-function answer(choice) {
+/** Answers the shown pair; `flag` ({flag, flag_note}) goes with a skip, allowed before the
+ * clips have played through (a broken clip may never play). */
+function answer(choice, flag = null) {
   const done = state.current;
   const button = document.querySelector(`[data-choice="${choice}"]`);
-  if (!done || button.disabled) return;
+  if (!done || state.submitting || (button.disabled && !flag)) return;
   state.submitting = true;
   clearTimeout(state.timer);
   const body = {
     choice,
     left_is_first: done.query.left_is_first,
     shown_at: (done.shownAt ?? serverNow()).toISOString(),
+    ...(flag || {}),
   };
   if (state.next) {
     show(state.next); // at once; the answer is sent below
@@ -560,6 +588,12 @@ function undo() {
 
 function onKey(event) {
   if (event.repeat || event.ctrlKey || event.metaKey || event.altKey) return;
+  if ($("flag-dialog").open) return; // the dialog has the keys (Esc closes it)
+  if (event.key === "f" || event.key === "F") {
+    event.preventDefault();
+    openFlag();
+    return;
+  }
   if (event.target.closest?.("input, textarea, select")) return;
   if (event.key === "r" || event.key === "R") {
     event.preventDefault();
@@ -613,6 +647,12 @@ start(() => {
     event.currentTarget.blur();
     undo();
   });
+  $("flag").addEventListener("click", (event) => {
+    event.currentTarget.blur();
+    openFlag();
+  });
+  $("flag-form").addEventListener("submit", sendFlag);
+  $("flag-cancel").addEventListener("click", () => $("flag-dialog").close());
   $("play").addEventListener("click", (event) => {
     event.currentTarget.blur();
     setPaused(!clock.paused);

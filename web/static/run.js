@@ -16,17 +16,19 @@ const refresh = poller(async () => {
     const run = await get(`/api/runs/${runId}`);
     showActivity(await get(`/api/runs/${runId}/activity`));
     const bucket = bucketFor(run);
-    const [episodes, evals, rounds, throughput] = await Promise.all([
+    const [episodes, evals, rounds, throughput, flags] = await Promise.all([
       get(`/api/runs/${runId}/metrics?stream=episodes`),
       get(`/api/runs/${runId}/metrics?stream=eval`),
       get(`/api/runs/${runId}/metrics?stream=rounds`),
       get(`/api/runs/${runId}/throughput?bucket_s=${bucket}`),
+      get(`/api/runs/${runId}/flags`),
     ]);
     document.getElementById("loading").hidden = true;
     document.getElementById("run-body").hidden = false; // before drawing: charts fit its width
     showRun(run);
     drawCurves(run, episodes, evals, rounds);
     drawThroughput(throughput, run);
+    showFlags(flags);
     await drawPeers(run, evals);
     await drawCalibration(run);
     document.getElementById("updated").textContent =
@@ -74,6 +76,21 @@ async function drawCalibration(run) {
 }
 
 /** People teach a run with a scripted shadow teacher beside them; its ε is the shadow's. */
+const FLAG_TEXT = { clip_broken: "clip broken", not_visible: "agent not visible", other: "other" };
+
+/** The run's flagged pairs: how many of each, and the latest with who and their note. */
+function showFlags(flags) {
+  const facts = [el("dt", {}, "Flagged answers"), el("dd", {}, num(flags.total),
+    flags.total ? ` on ${num(flags.queries)} pair${flags.queries === 1 ? "" : "s"}` : "")];
+  for (const [flag, count] of Object.entries(flags.by_flag)) {
+    facts.push(el("dt", {}, FLAG_TEXT[flag] ?? flag), el("dd", { "data-flag": flag }, num(count)));
+  }
+  document.getElementById("flag-facts").replaceChildren(...facts);
+  document.getElementById("flag-latest").replaceChildren(...flags.latest.map((f) => el("li", {},
+    `pair ${f.query_id}: ${FLAG_TEXT[f.flag] ?? f.flag} (${f.labeller_name}, ${ago(f.answered_at)})`,
+    f.note ? [": ", el("q", {}, f.note)] : null)));
+}
+
 function teacherText(run) {
   const eps = run.teacher_params?.eps;
   if (run.teacher === "human") {
