@@ -5,7 +5,7 @@
 writes `datasets/sepoa/dmc-cheetah_run/run-3-v0/`, a local Minari dataset (arrow storage):
 
 - `data/`: Minari's own files. One Minari episode per episode of the run that a query points
-  into (the run's episode store, `runvocab.episodes`), in the run's order: observations
+  into (the run's episode store, `labelqueue.episodes`), in the run's order: observations
   (T + 1), actions, true rewards, terminations (never: the project's episodes end by time),
   truncations (the last step), and per step `infos["state"]` (the physics state at each
   observation, so any segment renders again) and `infos["context"]` (Metaworld's goal variant),
@@ -37,12 +37,12 @@ from typing import Any
 import numpy as np
 from sqlalchemy.orm import Session
 
+from labelqueue.episodes import StoredEpisode, episodes_dir, read_episode, stored_trajectories
 from labelqueue.errors import NotFound
 from labelqueue.export import QUERY_COLUMNS, SCHEMA_VERSION, export_rows
 from labelqueue.models import Run
 from labelqueue.transaction import reading
 from runvocab.config import to_dict
-from runvocab.episodes import StoredEpisode, episodes_dir, read_episode, stored_trajectories
 from runvocab.names import ConfigError
 from runvocab.queued_run import queued_run_config
 
@@ -287,3 +287,130 @@ def _write_tables(tmp: Path, labels: list[dict[str, Any]], queries: list[dict[st
     ], metadata=meta)
     pq.write_table(pa.Table.from_pylist(episode_rows, schema=episode_schema),
                    tmp / EPISODES_FILE)
+
+
+# -- reading ------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class DatasetEpisode:
+    observations: np.ndarray
+    """(T + 1, obs_dim) float32"""
+    actions: np.ndarray
+    """(T, action_dim) float32"""
+    rewards: np.ndarray
+    """(T,) float32 true rewards"""
+    states: np.ndarray
+    """(T + 1, state_dim) float64"""
+    context: int
+
+    @property
+    def length(self) -> int:
+        return len(self.rewards)
+
+
+@dataclass(frozen=True)
+class LabelledDataset:
+    """A dataset export read back: its episodes, its answered queries and its run's info."""
+
+    path: Path
+    info: dict[str, Any]
+    """sepoa.json"""
+    episodes: list[DatasetEpisode]
+    queries: list[dict[str, Any]]
+    """queries.parquet's rows, each pointing inside its episodes"""
+
+    @property
+    def task(self) -> str:
+        return str(self.info["task"])
+
+
+def resolve_dataset(name: str) -> Path:
+    """A dataset export's folder from a path, or from a Minari id under the Minari datasets
+    folder (`MINARI_DATASETS_PATH`, else ~/.minari/datasets)."""
+    path = Path(name)
+    if path.is_dir():
+        return path
+    root = os.environ.get("MINARI_DATASETS_PATH") or str(Path.home() / ".minari" / "datasets")
+    if (Path(root) / name).is_dir() and ".." not in name.split("/"):
+        return Path(root) / name
+    raise DatasetError(f"no dataset at {name}: give a dataset folder (sepoa export --dataset) "
+                       f"or a Minari dataset id under {root}")
+
+
+def read_dataset(name: str) -> LabelledDataset:
+    """Read and check a dataset export; DatasetError naming the first problem."""
+    import pyarrow.parquet as pq
+
+    from runvocab.names import all_tasks
+
+    path = resolve_dataset(name)
+    info_path, queries_path = path / INFO_FILE, path / QUERIES_FILE
+    for needed in (info_path, queries_path, path / "data"):
+        if not needed.exists():
+            raise DatasetError(f"{path} is not a dataset export of this project: no "
+                               f"{needed.name} (sepoa export --dataset writes one)")
+    try:
+        info = json.loads(info_path.read_text())
+    except (OSError, ValueError) as err:
+        raise DatasetError(f"{info_path}: not readable JSON ({err})") from None
+    task = info.get("task")
+    if task not in all_tasks():
+        raise DatasetError(f"{path}: task {task!r} is not one this project knows "
+                           "(sepoa tasks lists them)")
+    episodes = _read_minari(path, info)
+    try:
+        queries = pq.read_table(queries_path).to_pylist()
+    except Exception as err:  # noqa: BLE001 - pyarrow raises several kinds for a bad file
+        raise DatasetError(f"{queries_path}: not a readable Parquet table ({err})") from None
+    missing = set(QUERY_TABLE_COLUMNS[:7]) - set(queries[0] if queries else QUERY_TABLE_COLUMNS)
+    if missing:
+        raise DatasetError(f"{queries_path}: columns {sorted(missing)} are missing")
+    for row in queries:
+        for side in ("first", "second"):
+            episode, start = row[f"{side}_episode"], row[f"{side}_start"]
+            length = row["segment_length"]
+            if episode is None or not 0 <= episode < len(episodes):
+                raise DatasetError(f"{queries_path}: query {row['query_id']}'s {side} segment "
+                                   f"points at episode {episode}, but the dataset has episodes "
+                                   f"0 to {len(episodes) - 1}")
+            if start is None or length is None or not (
+                    0 <= start and 1 <= length and start + length <= episodes[episode].length):
+                raise DatasetError(f"{queries_path}: query {row['query_id']}'s {side} segment "
+                                   f"[{start}, {start} + {length}) lies outside episode "
+                                   f"{episode}'s {episodes[episode].length} steps")
+    return LabelledDataset(path=path, info=info, episodes=episodes, queries=queries)
+
+
+def _read_minari(path: Path, info: dict[str, Any]) -> list[DatasetEpisode]:
+    from minari import MinariDataset
+
+    try:
+        dataset = MinariDataset(path / "data")
+    except Exception as err:  # noqa: BLE001 - Minari raises several kinds for a bad folder
+        raise DatasetError(f"{path / 'data'}: not a readable Minari dataset ({err})") from None
+    obs_shape, action_shape = dataset.observation_space.shape, dataset.action_space.shape
+    if (obs_shape, action_shape) != ((info.get("obs_dim"),), (info.get("action_dim"),)):
+        raise DatasetError(
+            f"{path}: the Minari spaces (observations {obs_shape}, actions {action_shape}) do "
+            f"not match sepoa.json (obs_dim {info.get('obs_dim')}, action_dim "
+            f"{info.get('action_dim')})")
+    episodes = []
+    for episode in dataset.iterate_episodes():
+        infos = episode.infos
+        if "state" not in infos:
+            raise DatasetError(f"{path}: episode {episode.id} has no physics states "
+                               "(infos['state'])")
+        t = len(episode.actions)
+        if episode.observations.shape != (t + 1, *obs_shape) or len(infos["state"]) != t + 1:
+            raise DatasetError(f"{path}: episode {episode.id} has observations "
+                               f"{episode.observations.shape} and states "
+                               f"{infos['state'].shape} for {t} actions; expected {t + 1} each")
+        context = infos.get("context")
+        episodes.append(DatasetEpisode(
+            observations=np.asarray(episode.observations, np.float32),
+            actions=np.asarray(episode.actions, np.float32),
+            rewards=np.asarray(episode.rewards, np.float32),
+            states=np.asarray(infos["state"], np.float64),
+            context=int(context[0]) if context is not None else 0))
+    if not episodes:
+        raise DatasetError(f"{path}: the Minari dataset holds no episodes")
+    return episodes

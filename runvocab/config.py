@@ -100,6 +100,10 @@ class RewardConfig:
     """RIME: 3 ln 10; cap of the spread term and the KL beyond which a label is flipped"""
     rime_warm_start_updates: int = 5
     """RIME: reward-model regression steps on the intrinsic reward per pretraining update"""
+    init_from: str = ""
+    """a reward model file (`sepoa reward fit --out`) whose ensemble weights the run's reward
+    model starts from instead of random ones; empty: random (its observation and action sizes
+    and its ensemble's size and shape must be the run's)"""
 
 
 @dataclass(frozen=True)
@@ -455,8 +459,21 @@ def typed_overrides(values: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+WRITTEN_WHEN_SET = ("reward.init_from",)
+"""fields added after runs were stored: a config's dict holds them only when they differ from
+their default, so a stored config.json stays equal to the same run's config today (a results
+folder's finished runs are recognised by that equality, `experiments.queue`)"""
+
+
 def to_dict(cfg: RunConfig) -> dict[str, Any]:
-    return dataclasses.asdict(cfg)
+    out = dataclasses.asdict(cfg)
+    for path in WRITTEN_WHEN_SET:
+        head, _, leaf = path.partition(".")
+        section = getattr(cfg, head)
+        default = {f.name: f.default for f in dataclasses.fields(section)}[leaf]
+        if getattr(section, leaf) == default:
+            del out[head][leaf]
+    return out
 
 
 def from_dict(data: dict[str, Any]) -> RunConfig:

@@ -10,6 +10,7 @@ the others import only the server or the queue package, so they start fast.
     sepoa report results/dmc-curves-small                            # its figures and tables
     sepoa export --format parquet --run 3 --out labels.parquet
     sepoa export --dataset datasets --run 3   # the run's episodes and labels as a Minari dataset
+    sepoa reward fit datasets/sepoa/dmc-cheetah_run/run-3-v0 --out reward.pt  # offline r_hat
     sepoa labeller create alice [--role operator]
     sepoa labeller revoke alice | activate alice | token alice | list
     sepoa invite verify PILOT-7KQ3-M9XD-2WPA   # whose completion code is it, how far did they get
@@ -32,6 +33,7 @@ TRAINER_COMMANDS = {
     "doctor": "check off-screen rendering: EGL and OSMesa, GL strings, fps, upright frames",
     "tasks": "list valid task names",
     "presets": "print the presets",
+    "reward": "fit the reward ensemble on a dataset export's labels (sepoa reward fit DATASET)",
 }
 EXPERIMENT_COMMANDS = {
     "experiment": "a spec's grid of runs in the queue, trained by workers (docs/EXPERIMENTS.md)",

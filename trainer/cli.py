@@ -9,6 +9,8 @@
     sepoa worker --database-url sqlite:///data/queue.db --data-dir data
                                                    # train runs queued in the database
     sepoa doctor                                   # can this machine render clips? EGL, OSMesa
+    sepoa reward fit datasets/sepoa/dmc-cheetah_run/run-3-v0 --out reward.pt
+                                                   # a reward model fitted on exported labels
     sepoa tasks                                    # list valid task names
     sepoa presets                                  # show the presets as data
 """
@@ -225,6 +227,91 @@ def _run_doctor(args: argparse.Namespace) -> int:
                       frames=args.frames)
 
 
+def _reward_parser(sub) -> argparse.ArgumentParser:
+    p = sub.add_parser("reward", help="fit the reward ensemble on a dataset export's labels")
+    actions = p.add_subparsers(dest="action", required=True)
+    fit = actions.add_parser(
+        "fit", help="train the run's reward ensemble on an exported dataset's labels; report "
+        "held-out accuracy and the correlation of r_hat with the true reward; save the model "
+        "for reward.init_from", formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    fit.add_argument("dataset", help="a dataset folder (sepoa export --dataset) or its Minari id "
+                     "under MINARI_DATASETS_PATH")
+    fit.add_argument("--out", default=None,
+                     help="where to save the model (default: reward-<dataset name>.pt); an "
+                     "existing file is refused")
+    fit.add_argument("--holdout", type=lambda s: float(s), metavar="FLOAT", default=0.2,
+                     help="share of the labelled pairs held out, in [0, 0.9]")
+    fit.add_argument("--seed", type=lambda s: int(s), metavar="INT", default=0)
+    fit.add_argument("--epochs", type=lambda s: int(s), metavar="INT", default=None,
+                     help="most passes over the training pairs (default: the run's "
+                     "reward.max_epochs per round it had)")
+    fit.add_argument("--threads", type=lambda s: int(s), metavar="INT", default=1,
+                     help="torch CPU threads")
+    fit.add_argument("--device", default="cpu", help="cpu | cuda")
+    fit.add_argument("--compare", default=None, metavar="CHECKPOINT",
+                     help="also score the exported run's own reward model (the checkpoint.pt "
+                     "in its run folder) on the same pairs")
+    return p
+
+
+def _run_reward_fit(args: argparse.Namespace) -> int:
+    from labelqueue.dataset import DatasetError, read_dataset
+
+    if not 0 <= args.holdout <= 0.9:
+        return _fail(f"--holdout {args.holdout}: give a share in [0, 0.9]")
+    if args.epochs is not None and args.epochs < 1 or args.threads < 1:
+        return _fail("--epochs and --threads must be at least 1")
+    if args.device not in ("cpu", "cuda"):
+        return _fail(f"--device {args.device!r}: give cpu or cuda")
+    try:
+        dataset = read_dataset(args.dataset)
+    except DatasetError as err:
+        return _fail(str(err))
+    out = args.out or f"reward-{dataset.path.name}.pt"
+    if os.path.exists(out):
+        return _fail(f"--out {out} exists; remove it or give another file")
+    if not os.path.isdir(os.path.dirname(os.path.abspath(out))):
+        return _fail(f"--out {out}: its folder does not exist")
+    import torch
+
+    from trainer.reward_fit import compare, fit, run_reward_model, save_reward_model
+
+    if args.device == "cuda" and not torch.cuda.is_available():
+        return _fail("--device cuda: no CUDA device here")
+    torch.set_num_threads(args.threads)
+    try:
+        run_model = None if args.compare is None else run_reward_model(args.compare, dataset)
+        result = fit(dataset, holdout=args.holdout, seed=args.seed, epochs=args.epochs,
+                     device=args.device)
+        if run_model is not None:
+            result.metrics.update(compare(run_model, result, dataset, args.seed))
+        save_reward_model(out, result, dataset)
+    except (DatasetError, ValueError) as err:
+        return _fail(str(err))
+    except OSError as err:
+        return _fail(f"cannot write --out {out}: {err.strerror or err}")
+    m = result.metrics
+    print(f"{dataset.info.get('dataset_id')}: {int(m['train_pairs'])} pairs trained on, "
+          f"{int(m['heldout_pairs'])} held out; held-out accuracy {m['heldout_accuracy']:.3f} "
+          f"({int(m['heldout_decisive'])} decisive), training accuracy "
+          f"{m['train_accuracy']:.3f}, on true-order pairs {m['true_order_accuracy']:.3f}, "
+          f"r_hat vs true reward r = {m['reward_corr']:.3f}; {int(m['epochs'])} epochs in "
+          f"{m['seconds']:.1f} s; saved {out} (start a run from it with "
+          f"reward.init_from={out})", file=sys.stderr)
+    if run_model is not None:
+        print(f"the run's own reward model: held-out accuracy "
+              f"{m['run_heldout_accuracy']:.3f} (it trained on these pairs), on true-order "
+              f"pairs {m['run_true_order_accuracy']:.3f}, r_hat vs true reward r = "
+              f"{m['run_reward_corr']:.3f}", file=sys.stderr)
+    print(json.dumps({"model": out} | m))
+    return 0
+
+
+def _fail(message: str) -> int:
+    print(f"error: {message}", file=sys.stderr)
+    return 2
+
+
 def _config_from_args(args: argparse.Namespace):
     from runvocab.config import apply_overrides, build_config, load_json, overrides_from_args
 
@@ -257,6 +344,7 @@ def main(argv: list[str] | None = None) -> int:
     _pretrain_parser(sub)
     _worker_parser(sub)
     _doctor_parser(sub)
+    _reward_parser(sub)
     sub.add_parser("tasks", help="list valid task names")
     sub.add_parser("presets", help="print the presets")
     args = parser.parse_args(argv)
@@ -278,6 +366,8 @@ def main(argv: list[str] | None = None) -> int:
         return _run_pretrain(args)
     if args.command == "doctor":
         return _run_doctor(args)
+    if args.command == "reward":
+        return _run_reward_fit(args)
 
     from trainer.envs import UnknownTaskError
     from trainer.loop import TrainingRun

@@ -73,6 +73,10 @@ class RewardModel:
             activation=nn.LeakyReLU,
             output_activation=nn.Tanh,
         ).to(device)
+        if cfg.init_from:  # a model fitted offline (trainer/reward_fit.py)
+            from trainer.reward_fit import init_reward_model
+
+            init_reward_model(self, cfg.init_from, obs_dim, action_dim)
         self.opt = torch.optim.Adam(self.ensemble.parameters(), lr=cfg.lr)
         self.generator = torch.Generator(device="cpu").manual_seed(seed)
         self.rime = RimeFilter(cfg) if cfg.rime else None

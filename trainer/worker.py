@@ -96,10 +96,7 @@ from labelqueue import (
     submit_label,
     write_metrics,
 )
-from labelqueue.models import SCRIPTED_TEACHER
-from runvocab.answers import aggregate, click_of_answer
-from runvocab.config import RunConfig, apply_overrides
-from runvocab.episodes import (
+from labelqueue.episodes import (
     StoredEpisode,
     episode_path,
     episodes_dir,
@@ -107,6 +104,9 @@ from runvocab.episodes import (
     write_end_state,
     write_episode,
 )
+from labelqueue.models import SCRIPTED_TEACHER
+from runvocab.answers import aggregate, click_of_answer
+from runvocab.config import RunConfig, apply_overrides
 from runvocab.query_fields import QUERY_FIELDS
 from runvocab.queued_run import queued_run_config
 from trainer.clips import ClipConfig, render_query_clips, sized
@@ -274,7 +274,7 @@ class QueueHooks(RunHooks):
         self.episode_end: Callable[[], np.ndarray] | None = None
         """the training env's physics state, read as an episode ends (set once it is built)"""
         self.episodes = episodes_dir(worker.clips_root, run.id)
-        """the run's episode store (`runvocab.episodes`)"""
+        """the run's episode store (`labelqueue.episodes`)"""
         self.store_episodes = True
 
     # -- operator ------------------------------------------------------------------------------

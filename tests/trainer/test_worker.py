@@ -107,7 +107,7 @@ def test_operator_pauses_a_waiting_run_and_hands_it_to_the_scripted_teacher(tmp_
     assert run_status(sessions, run.id) is RunStatus.FINISHED
     run_dir = tmp_path / "data" / "runs" / f"run-{run.id}"
     assert decisions(run_dir) == decisions(reference)
-    clips = sorted(p.name for p in (tmp_path / "data" / "clips" / f"run-{run.id}").iterdir())
+    clips = sorted(p.name for p in (tmp_path / "data" / "clips" / f"run-{run.id}").glob("*.mp4"))
     assert clips == sorted(f"r0-q{i}-{s}.mp4" for i in range(10) for s in (0, 1))
 
 

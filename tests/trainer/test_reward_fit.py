@@ -1,0 +1,123 @@
+"""Offline reward fitting on a dataset export: a tiny scripted run (three rounds of 20 labels from
+an ideal teacher) exported with `sepoa export --dataset`, fitted with `sepoa reward fit`, compared
+with the run's own reward model, and a new run started from the fit (`reward.init_from`)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pyarrow.parquet as pq
+import pytest
+import torch
+from worker_helpers import RUN, database, worker_config
+
+from labelqueue import create_run
+from runvocab.config import build_config
+from sepoa.cli import main
+from trainer.loop import TrainingRun
+from trainer.worker import run_worker
+
+TOLERANCE = 0.1
+"""how far below the run's own reward model the fit's accuracies may be (held-out labelled
+pairs; random pairs ordered by their true returns)"""
+DATASET_ID = "sepoa/dmc-cheetah_run/run-1-v0"
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("fit")
+    url, sessions = database(tmp)
+    run = RUN | {"budget": 60, "teacher_params": {"eps": 0.0},
+                 "config": RUN["config"] | {"steps": 1600, "feedback.per_round": 20}}
+    with sessions() as session:
+        create_run(session, name="fit", teacher="scripted", **run)
+    run_worker(worker_config(url, tmp / "data"))
+    assert main(["export", "--database-url", url, "--data-dir", str(tmp / "data"),
+                 "--dataset", str(tmp / "datasets"), "--run", "1"]) == 0
+    return {"tmp": tmp, "path": tmp / "datasets" / DATASET_ID,
+            "checkpoint": tmp / "data" / "runs" / "run-1" / "checkpoint.pt"}
+
+
+def _fit(exported, capsys, *extra: str) -> tuple[int, dict, str]:
+    capsys.readouterr()
+    code = main(["reward", "fit", str(exported["path"]), *extra])
+    captured = capsys.readouterr()
+    return code, json.loads(captured.out) if code == 0 else {}, captured.err
+
+
+def test_the_fit_reaches_the_runs_own_reward_model_and_a_run_starts_from_it(exported, capsys):
+    out = exported["tmp"] / "cheetah-reward.pt"
+    code, m, err = _fit(exported, capsys, "--out", str(out), "--holdout", "0.3",
+                        "--compare", str(exported["checkpoint"]))
+    assert code == 0, err
+    assert (m["pairs"], m["train_pairs"], m["heldout_pairs"]) == (60, 42, 18)
+    assert "held-out accuracy" in err and "the run's own reward model" in err
+    assert m["heldout_accuracy"] >= m["run_heldout_accuracy"] - TOLERANCE
+    assert m["true_order_accuracy"] >= m["run_true_order_accuracy"] - TOLERANCE
+    assert m["true_order_accuracy"] > 0.55  # it learned the task's order, if only a little
+    assert -1 <= m["reward_corr"] <= 1
+
+    cfg = build_config("dmc:cheetah_run", "tiny", {
+        "algo": "pebble", "reward.init_from": str(out), "threads": 1,
+        "run_dir": str(exported["tmp"] / "from-fit")})
+    started = TrainingRun(cfg, progress=False).feedback.model.ensemble.state_dict()
+    saved = torch.load(out, weights_only=True)["ensemble"]
+    assert all(torch.equal(started[k], saved[k]) for k in saved)
+
+
+def test_a_run_of_another_shape_refuses_the_model(exported, capsys):
+    out = exported["tmp"] / "shape.pt"
+    assert _fit(exported, capsys, "--out", str(out))[0] == 0
+    cfg = build_config("dmc:walker_run", "tiny", {
+        "algo": "pebble", "reward.init_from": str(out), "threads": 1,
+        "run_dir": str(exported["tmp"] / "walker")})
+    with pytest.raises(ValueError, match="on 17 observations and 6 actions .* on 24"):
+        TrainingRun(cfg, progress=False)
+    capsys.readouterr()
+    assert main(["train", "--task", "dmc:walker_run", "--preset", "tiny", "--algo", "pebble",
+                 "--reward.init_from", str(out), "--run-dir",
+                 str(exported["tmp"] / "walker-cli")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: reward.init_from:") and len(err.splitlines()) == 1
+
+
+def _broken_copy(exported, name: str):
+    copy = exported["tmp"] / name
+    shutil.copytree(exported["path"], copy)
+    return copy
+
+
+def test_bad_datasets_get_one_line_naming_the_problem(exported, capsys):
+    outside = _broken_copy(exported, "outside")
+    table = pq.read_table(outside / "queries.parquet").to_pylist()
+    table[3]["second_start"] = 190  # 190 + 20 steps > the episode's 200
+    pq.write_table(pq.read_table(outside / "queries.parquet").from_pylist(
+        table, schema=pq.read_schema(outside / "queries.parquet")), outside / "queries.parquet")
+
+    def edit_info(name: str, **changes) -> str:
+        copy = _broken_copy(exported, name)
+        info = json.loads((copy / "sepoa.json").read_text()) | changes
+        (copy / "sepoa.json").write_text(json.dumps(info))
+        return str(copy)
+
+    unknown = edit_info("unknown-task", task="dmc:cheetah_fly")
+    spaces = edit_info("spaces", obs_dim=24)
+    cases = {
+        str(outside): f"query {table[3]['query_id']}'s second segment [190, 190 + 20) lies "
+                      "outside episode",
+        unknown: "task 'dmc:cheetah_fly' is not one this project knows",
+        spaces: "do not match sepoa.json",
+        str(exported["tmp"] / "nowhere"): "no dataset at",
+        str(exported["tmp"] / "data"): "is not a dataset export of this project",
+    }
+    for dataset, message in cases.items():
+        capsys.readouterr()
+        assert main(["reward", "fit", dataset, "--out", str(exported["tmp"] / "x.pt")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert message in err and len(err.splitlines()) == 1, (dataset, err)
+    assert not (exported["tmp"] / "x.pt").exists()
+    taken = exported["tmp"] / "taken.pt"
+    taken.write_bytes(b"mine")
+    code, _, err = _fit(exported, capsys, "--out", str(taken))
+    assert code == 2 and "exists" in err and taken.read_bytes() == b"mine"

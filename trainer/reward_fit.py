@@ -1,0 +1,307 @@
+"""Offline reward fitting: the project's reward ensemble trained on a dataset export's labels.
+
+    sepoa reward fit datasets/sepoa/dmc-cheetah_run/run-3-v0 --out cheetah-reward.pt
+
+The labelled pairs are the export's answered queries (`queries.parquet`) whose aggregate is
+first, second or equal, gold pairs aside (never trained on, as in a run). A seeded share of them
+(`holdout`) is held out; the ensemble (the run's own `reward` configuration from `sepoa.json`)
+trains on the rest with the run's loss and early stopping (`RewardModel.train_round`), SURF's
+crops and pseudo-labels included when the run used them. Reported: the held-out accuracy (the
+share of held-out first/second pairs whose summed r_hat orders the two segments as their
+aggregate does), the training accuracy, and the Pearson correlation of r_hat with the true
+reward over every step of the dataset's episodes. The saved file (`save_reward_model`) is what
+a new run starts from with `reward.init_from`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from labelqueue.dataset import DatasetError, LabelledDataset
+from runvocab.answers import Answer
+from runvocab.config import RewardConfig
+from trainer.reward_model import LabelledPairs, RewardModel
+from trainer.teachers import choice_target
+
+MODEL_FORMAT = "sepoa.reward_model"
+MODEL_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Pairs:
+    seg0: np.ndarray
+    """(n, H, obs_dim + action_dim) float32"""
+    seg1: np.ndarray
+    targets: np.ndarray
+    """(n,) P[second preferred]: 0, 1 or 0.5"""
+    query_ids: np.ndarray
+
+
+def _segment(dataset: LabelledDataset, episode: int, start: int, length: int) -> np.ndarray:
+    e = dataset.episodes[episode]
+    return np.concatenate([e.observations[start:start + length],
+                           e.actions[start:start + length]], axis=1)
+
+
+def labelled_pairs(dataset: LabelledDataset) -> Pairs:
+    """The dataset's trainable pairs: answered, not gold, aggregate first/second/equal."""
+    seg0, seg1, targets, ids = [], [], [], []
+    for q in dataset.queries:
+        if q.get("gold") or q["aggregate"] is None:
+            continue
+        target = choice_target(Answer(q["aggregate"]))
+        if target is None:
+            continue
+        h = q["segment_length"]
+        seg0.append(_segment(dataset, q["first_episode"], q["first_start"], h))
+        seg1.append(_segment(dataset, q["second_episode"], q["second_start"], h))
+        targets.append(target)
+        ids.append(q["query_id"])
+    if not targets:
+        raise DatasetError(f"{dataset.path}: no query has a first, second or equal answer to "
+                           "train on")
+    if len({s.shape for s in seg0 + seg1}) > 1:
+        raise DatasetError(f"{dataset.path}: the labelled segments differ in length; a fit "
+                           "needs segments of one length")
+    return Pairs(np.stack(seg0), np.stack(seg1), np.asarray(targets, np.float32),
+                 np.asarray(ids))
+
+
+def split(pairs: Pairs, holdout: float, seed: int) -> tuple[Pairs, Pairs]:
+    """A seeded (train, held-out) split; `holdout` is the held-out share."""
+    n = len(pairs.targets)
+    order = np.random.default_rng(seed).permutation(n)
+    k = int(round(n * holdout))
+    if holdout > 0 and (k < 1 or k >= n):
+        raise DatasetError(f"{n} labelled pairs cannot be split {1 - holdout:.0%} / "
+                           f"{holdout:.0%}: give more labels or another --holdout")
+    held, train = order[:k], order[k:]
+
+    def take(idx: np.ndarray) -> Pairs:
+        return Pairs(pairs.seg0[idx], pairs.seg1[idx], pairs.targets[idx], pairs.query_ids[idx])
+
+    return take(train), take(held)
+
+
+@torch.no_grad()
+def pair_accuracy(model: RewardModel, pairs: Pairs) -> float:
+    """The share of decisive pairs (target 0 or 1) whose summed r_hat (the ensemble mean) puts
+    the preferred segment first; nan without decisive pairs."""
+    decisive = pairs.targets != 0.5
+    if not decisive.any():
+        return float("nan")
+    returns = [segment_returns(model, s[decisive]) for s in (pairs.seg0, pairs.seg1)]
+    second = pairs.targets[decisive] > 0.5
+    return float(np.mean((returns[1] > returns[0]) == second))
+
+
+@torch.no_grad()
+def segment_returns(model: RewardModel, segments: np.ndarray) -> np.ndarray:
+    """(n, H, D) segments -> (n,) summed ensemble-mean r_hat."""
+    n, h, d = segments.shape
+    flat = torch.as_tensor(segments.reshape(n * h, d), device=model.device)
+    return model.member_rewards(flat).mean(0).reshape(n, h).sum(1).cpu().numpy()
+
+
+@torch.no_grad()
+def reward_correlation(model: RewardModel, dataset: LabelledDataset) -> float:
+    """Pearson correlation of r_hat with the true reward over every step of the episodes."""
+    obs = np.concatenate([e.observations[:-1] for e in dataset.episodes])
+    actions = np.concatenate([e.actions for e in dataset.episodes])
+    true = np.concatenate([e.rewards for e in dataset.episodes]).astype(np.float64)
+    r_hat = model.reward(torch.as_tensor(obs, device=model.device),
+                         torch.as_tensor(actions, device=model.device)).cpu().numpy()
+    if true.std() == 0 or r_hat.std() == 0:
+        return float("nan")
+    return float(np.corrcoef(r_hat.astype(np.float64), true)[0, 1])
+
+
+def reward_config(dataset: LabelledDataset, epochs: int | None) -> RewardConfig:
+    """The run's reward configuration (the defaults when the export has none), with `epochs`
+    passes at most, or as many as the run could make: its `max_epochs` per round."""
+    stored = (dataset.info.get("config") or {}).get("reward") or {}
+    known = {f.name for f in dataclasses.fields(RewardConfig)}
+    cfg = RewardConfig(**{k: v for k, v in stored.items() if k in known})
+    rounds = len({q["round"] for q in dataset.queries}) or 1
+    return dataclasses.replace(cfg, init_from="",
+                               max_epochs=epochs if epochs is not None
+                               else cfg.max_epochs * rounds)
+
+
+@dataclass(frozen=True)
+class FitResult:
+    model: RewardModel
+    metrics: dict[str, float]
+    train: Pairs
+    heldout: Pairs
+
+
+def fit(dataset: LabelledDataset, *, holdout: float = 0.2, seed: int = 0,
+        epochs: int | None = None, device: str = "cpu") -> FitResult:
+    """Train a reward ensemble on the dataset's labelled pairs (module docstring)."""
+    pairs = labelled_pairs(dataset)
+    train, held = split(pairs, holdout, seed)
+    cfg = reward_config(dataset, epochs)
+    torch.manual_seed(seed)
+    obs_dim, action_dim = int(dataset.info["obs_dim"]), int(dataset.info["action_dim"])
+    model = RewardModel(obs_dim, action_dim, cfg, torch.device(device), seed)
+    labelled = LabelledPairs()
+    for s0, s1, y in zip(train.seg0, train.seg1, train.targets, strict=True):
+        labelled.add(s0, s1, float(y))
+    unlabelled = _unlabelled_pairs(dataset, pairs.seg0.shape[1], seed) if cfg.surf else None
+    start = time.perf_counter()
+    trained = model.train_round(labelled, unlabelled)
+    truth = true_order_pairs(dataset, TRUE_ORDER_PAIRS, pairs.seg0.shape[1], seed)
+    metrics = {
+        "pairs": float(len(pairs.targets)), "train_pairs": float(len(train.targets)),
+        "heldout_pairs": float(len(held.targets)),
+        "heldout_decisive": float((held.targets != 0.5).sum()),
+        "heldout_accuracy": pair_accuracy(model, held),
+        "train_accuracy": pair_accuracy(model, train),
+        "reward_corr": reward_correlation(model, dataset),
+        "true_order_accuracy": pair_accuracy(model, truth),
+        "epochs": float(trained["reward_epochs"]), "seconds": time.perf_counter() - start,
+    }
+    return FitResult(model, metrics, train, held)
+
+
+TRUE_ORDER_PAIRS = 1000
+"""random segment pairs ordered by their true returns, on which fits are compared too"""
+
+
+def true_order_pairs(dataset: LabelledDataset, n: int, length: int, seed: int) -> Pairs:
+    """`n` random pairs of segments of `length` steps from two different episodes (the same
+    one when there is only one), each targeted by which has the larger true return (exact ties
+    left out): pairs no model trained on, judged by the task itself."""
+    rng = np.random.default_rng([seed, 0x7A0E])
+    episodes = dataset.episodes
+    seg0, seg1, targets = [], [], []
+    for _ in range(n):
+        a = int(rng.integers(len(episodes)))
+        b = a if len(episodes) == 1 else int((a + rng.integers(1, len(episodes)))
+                                             % len(episodes))
+        sa, sb = (int(rng.integers(episodes[i].length - length + 1)) for i in (a, b))
+        ra = episodes[a].rewards[sa:sa + length].sum(dtype=np.float64)
+        rb = episodes[b].rewards[sb:sb + length].sum(dtype=np.float64)
+        if ra == rb:
+            continue
+        seg0.append(_segment(dataset, a, sa, length))
+        seg1.append(_segment(dataset, b, sb, length))
+        targets.append(1.0 if rb > ra else 0.0)
+    return Pairs(np.stack(seg0), np.stack(seg1), np.asarray(targets, np.float32),
+                 np.arange(len(targets)))
+
+
+def run_reward_model(checkpoint: str, dataset: LabelledDataset) -> RewardModel:
+    """The exported run's own reward model as its checkpoint (`checkpoint.pt` in its run
+    folder) holds it; ValueError when the file holds none of the dataset's shape."""
+    from trainer.checkpoint import load_checkpoint
+
+    try:
+        state = load_checkpoint(checkpoint)
+    except FileNotFoundError:
+        raise ValueError(f"--compare: no file {checkpoint}") from None
+    except Exception as err:  # noqa: BLE001 - torch raises several kinds for a bad file
+        raise ValueError(f"--compare: {checkpoint} is not a run's checkpoint ({err})") from None
+    if "feedback" not in state:
+        raise ValueError(f"--compare: {checkpoint} holds no reward model (a SAC run)")
+    cfg = reward_config(dataset, None)
+    model = RewardModel(int(dataset.info["obs_dim"]), int(dataset.info["action_dim"]), cfg,
+                        torch.device("cpu"), 0)
+    try:
+        model.ensemble.load_state_dict(state["feedback"]["model"]["ensemble"])
+    except RuntimeError:
+        raise ValueError(f"--compare: {checkpoint}'s reward model has another shape than the "
+                         "dataset's run") from None
+    return model
+
+
+def compare(run_model: RewardModel, result: FitResult, dataset: LabelledDataset,
+            seed: int = 0) -> dict[str, float]:
+    """The run's own model on the fit's held-out pairs (which it trained on, as on every label
+    of the run), on the same true-order pairs, and its r_hat correlation."""
+    truth = true_order_pairs(dataset, TRUE_ORDER_PAIRS, result.heldout.seg0.shape[1]
+                             if len(result.heldout.targets) else result.train.seg0.shape[1],
+                             seed)
+    return {"run_heldout_accuracy": pair_accuracy(run_model, result.heldout),
+            "run_true_order_accuracy": pair_accuracy(run_model, truth),
+            "run_reward_corr": reward_correlation(run_model, dataset)}
+
+
+def _unlabelled_pairs(dataset: LabelledDataset, length: int, seed: int):
+    """SURF's unlabelled pairs: random segments of two different episodes (of one, when the
+    dataset has only one)."""
+    rng = np.random.default_rng([seed, 0x5E6])
+    episodes = dataset.episodes
+
+    def sample(n: int) -> tuple[np.ndarray, np.ndarray]:
+        sides = []
+        for _ in range(2):
+            which = rng.integers(len(episodes), size=n)
+            segs = [
+                _segment(dataset, int(i),
+                         int(rng.integers(episodes[i].length - length + 1)), length)
+                for i in which]
+            sides.append(np.stack(segs))
+        return sides[0], sides[1]
+
+    return sample
+
+
+def save_reward_model(path: str, result: FitResult, dataset: LabelledDataset) -> None:
+    """The fitted ensemble as `reward.init_from` reads it; written under a temporary name."""
+    model = result.model
+    state: dict[str, Any] = {
+        "format": MODEL_FORMAT, "version": MODEL_VERSION, "task": dataset.task,
+        "obs_dim": int(dataset.info["obs_dim"]), "action_dim": int(dataset.info["action_dim"]),
+        "reward": dataclasses.asdict(model.cfg),
+        "ensemble": model.ensemble.state_dict(),
+        "dataset": str(dataset.info.get("dataset_id")), "fit": result.metrics,
+    }
+    tmp = f"{path}.partial"
+    try:
+        torch.save(state, tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def load_reward_model(path: str | Path) -> dict[str, Any]:
+    """A saved reward model's contents; ValueError naming what is wrong with the file."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise ValueError(f"reward.init_from: no file {path}") from None
+    except Exception as err:  # noqa: BLE001 - torch raises several kinds for a bad file
+        raise ValueError(f"reward.init_from: {path} is not a saved reward model ({err})") \
+            from None
+    if not isinstance(state, dict) or state.get("format") != MODEL_FORMAT:
+        raise ValueError(f"reward.init_from: {path} is not a reward model from sepoa reward fit")
+    return state
+
+
+def init_reward_model(model: RewardModel, path: str, obs_dim: int, action_dim: int) -> None:
+    """Start `model` from the ensemble weights saved at `path` (`reward.init_from`);
+    ValueError when its shape differs from the run's."""
+    state = load_reward_model(path)
+    saved = state["reward"]
+    want = (obs_dim, action_dim, model.cfg.ensemble_size, model.cfg.hidden_layers,
+            model.cfg.hidden_dim)
+    have = (state["obs_dim"], state["action_dim"], saved["ensemble_size"],
+            saved["hidden_layers"], saved["hidden_dim"])
+    if have != want:
+        def shape(s: tuple) -> str:
+            return (f"{s[2]} members of {s[3]} x {s[4]} on {s[0]} observations and {s[1]} "
+                    "actions")
+        raise ValueError(f"reward.init_from: {path} holds {shape(have)} ({state['task']}); "
+                         f"this run's reward model is {shape(want)}")
+    model.ensemble.load_state_dict(state["ensemble"])
