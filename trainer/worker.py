@@ -536,7 +536,9 @@ def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerC
         print(f"{log}: {'resuming' if resume else 'starting'} {run.task} {run.algo} "
               f"in {cfg.run_dir}", file=sys.stderr, flush=True)
         training = TrainingRun(cfg, resume=resume, progress=False, hooks=hooks)
-        hooks.next_round_step = lambda: training.next_round_step
+        # A round opens at the first episode end past its step (episodes have a fixed length).
+        length = training.env.episode_length
+        hooks.next_round_step = lambda: -(-training.next_round_step // length) * length
         hooks.episode_end = training.env.physics_state
         hooks.step = training.step  # a resumed run reports its step before taking one
         summary = training.train()
