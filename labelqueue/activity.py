@@ -233,7 +233,7 @@ def _activity(run: Run, now: datetime, opened: tuple[int, int, int], active: int
     if step == 0 and not progress:
         return make("starting", "starting: building the environment and the agent")
     next_round = progress.get("next_round_step")
-    eta = _eta((next_round or 0) - step, progress.get("fps"))
+    eta = _eta((next_round or 0) - step, progress.get("steps_per_s", progress.get("fps")))
     if run.labels_used >= run.budget:
         return make("training", "training: the label budget is spent, no more pairs")
     if progress.get("round") is None:

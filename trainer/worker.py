@@ -269,6 +269,7 @@ class QueueHooks(RunHooks):
         self.clip = sized(worker.clip, run.clip_size)
         """how this run's clips are rendered: the worker's settings at the run's clip size"""
         self.pretrain_start: tuple[float, int] | None = None
+        self.last_beat: tuple[float, int] | None = None
         self.next_round_step: Callable[[], int] | None = None
         """the step the training loop opens its next round at (set once it is built)"""
         self.episode_end: Callable[[], np.ndarray] | None = None
@@ -285,6 +286,7 @@ class QueueHooks(RunHooks):
         if not force and now < self.next_beat:
             return self.status
         self.next_beat = now + self.worker.heartbeat_seconds
+        self._pace(now, step)
         with self.sessions() as session:
             try:
                 schedule = ({} if self.next_round_step is None
@@ -297,6 +299,17 @@ class QueueHooks(RunHooks):
                 raise LostRun(str(err)) from err
             self.teacher = read_run(session, run_id=self.run_id).teacher
         return self.status
+
+    def _pace(self, now: float, step: int) -> None:
+        """Steps per second lately (a moving average over the beats), for the estimate of the
+        next round: the first episodes' random steps run far faster than training does."""
+        last = self.last_beat
+        self.last_beat = (now, step)
+        if last is None or step <= last[1] or now - last[0] < 0.5:
+            return
+        rate = (step - last[1]) / (now - last[0])
+        old = self.progress.get("steps_per_s")
+        self.progress["steps_per_s"] = rate if old is None else 0.7 * old + 0.3 * rate
 
     def stop_requested(self, step: int) -> bool:
         status = self.beat(step)

@@ -24,6 +24,7 @@ def test_the_heartbeat_says_when_the_next_round_opens_and_how_long_pretraining_i
     progress = run_row(sessions, pebble.id).progress
     # The last round opened at 800 (rounds every 400 steps in tiny): the next would be 1200.
     assert progress["next_round_step"] == 1200 and progress["fps"] > 0
+    assert progress["steps_per_s"] > 0  # the pace lately, for the next round's estimate
     pretrained = run_row(sessions, sepoa.id).progress
     assert (pretrained["pretraining_step"], pretrained["pretraining_steps"]) == (300, 300)
     with sessions() as session:
