@@ -43,8 +43,9 @@ def flag_summary(session: Session, *, run_id: int, latest: int = 10) -> FlagSumm
     """The run's flagged answers that stand (not taken back): counts and the newest few."""
     flagged = (Label.run_id == run_id) & Label.flag.is_not(None) & Label.withdrawn_at.is_(None)
     with reading(session):
-        counts = dict(session.execute(
-            select(Label.flag, func.count()).where(flagged).group_by(Label.flag)).all())
+        counts: dict[Flag | None, int] = {
+            row[0]: int(row[1]) for row in session.execute(
+                select(Label.flag, func.count()).where(flagged).group_by(Label.flag))}
         queries = session.scalar(select(func.count(func.distinct(Label.query_id)))
                                  .where(flagged)) or 0
         rows = session.execute(

@@ -73,6 +73,13 @@ def runs_page(request: Request) -> HTMLResponse:
                 presets=SIZE_PRESETS, clip_sizes=CLIP_SIZES)
 
 
+@router.get("/labels", response_class=HTMLResponse)
+def labels_page(request: Request) -> HTMLResponse:
+    """The label browser (operators): stored labels with filters, each with its two clips, the
+    answer, the shadow label and the true returns (`?run=`, `?labeller=`, ... set filters)."""
+    return page(request, "labels.html", nav="labels")
+
+
 @router.get("/runs/{run_id}", response_class=HTMLResponse)
 def run_page(request: Request, run_id: int) -> HTMLResponse:
     return page(request, "run.html", nav="runs", run_id=run_id)
