@@ -8,7 +8,8 @@ building the endpoint's error context, on every request. A LeanRoute prepares on
 is built, one pydantic model for the path and query parameters and one validator for the JSON
 body, and on each request calls the dependencies with the request, validates, and calls the
 endpoint. Its refusals are FastAPI's: a 422 `RequestValidationError` whose `loc` starts with
-"path", "query" or "body", a 400 for a body that is not UTF-8, and the dependencies' own HTTP
+"path", "query" or "body", a 400 for a body that is not UTF-8 or is nested too deeply to decode
+(FastAPI answers 400 to any decoding error but malformed JSON), and the dependencies' own HTTP
 errors, in the order FastAPI gives them.
 
 It serves the endpoints FastAPI would, within limits that are checked when the route is made:
@@ -129,7 +130,7 @@ class LeanRoute(APIRoute):
                     "type": "json_invalid", "loc": ("body", error.pos),
                     "msg": "JSON decode error", "input": {}, "ctx": {"error": error.msg},
                 }]) from None
-            except ValueError:  # not UTF-8 text
+            except (ValueError, RecursionError):  # not UTF-8 text, or nested too deep to decode
                 raise HTTPException(400, "There was an error parsing the body") from None
 
         def validated_body(value: Any) -> tuple[Any, list[dict[str, Any]]]:
@@ -137,7 +138,11 @@ class LeanRoute(APIRoute):
             if value is None:
                 return None, [{"type": "missing", "loc": ("body",), "msg": "Field required",
                                "input": None}]
-            parsed, errors = body_field.validate(value, loc=("body",))
+            try:
+                parsed, errors = body_field.validate(value, loc=("body",))
+            except RecursionError:  # a value nested some 900 levels deep, refused by repr()
+                return None, [{"type": "value_error", "loc": ("body",), "input": None,
+                               "msg": "Value error, the body is nested too deeply"}]
             for refusal in errors:  # FastAPI sends bytes as text, failing on invalid UTF-8
                 if isinstance(refusal.get("input"), bytes):
                     refusal["input"] = refusal["input"].decode(errors="replace")

@@ -35,7 +35,10 @@ CONFIG_MAX_BYTES = 16 * 1024
 
 
 def _small_json(value: dict[str, Any]) -> dict[str, Any]:
-    size = len(json.dumps(value, default=str).encode())
+    try:
+        size = len(json.dumps(value, default=str).encode())
+    except RecursionError:  # hundreds of levels deep: no config is, and it cannot be stored
+        raise ValueError("is nested too deeply to store") from None
     if size > CONFIG_MAX_BYTES:
         raise ValueError(f"is {size} bytes as JSON; at most {CONFIG_MAX_BYTES} are stored")
     return value

@@ -144,3 +144,82 @@ def test_every_response_forbids_framing_and_sniffing(client: TestClient, path: s
     assert "frame-ancestors 'none'" in response.headers["content-security-policy"]
     assert response.headers["x-content-type-options"] == "nosniff"
     assert response.headers["referrer-policy"] == "same-origin"
+
+
+def _nested(depth: int, shape: str) -> bytes:
+    """JSON nested `depth` levels deep: lists, or objects whose one key holds the next level."""
+    if shape == "list":
+        return b"[" * depth + b"]" * depth
+    return b'{"a":' * depth + b"1" + b"}" * depth
+
+
+# Around the depth where Python's JSON decoding gives up (its recursion limit, less the stack
+# already in use) a body decodes but cannot be echoed back in a 422; beyond it, it cannot be
+# decoded; 5000 levels (10 KB) is what the audit sent.
+DEPTHS = [1, 30, *range(850, 1001, 5), 5000]
+
+
+def test_no_body_however_deeply_nested_is_a_500(client: TestClient, session: Session) -> None:
+    """Fuzz every operation that takes a body with deeply nested JSON, bare and in each of its
+    body's fields: each answer is a 4xx (400, or the 401/403/404/409/422 the operation gives
+    anyway), never a 500, and nothing is stored."""
+    labeller = bearer(new_labeller(client, "alice"))
+    new_run(client)
+    before = snapshot(session)
+    paths = client.get("/openapi.json").json()["paths"]
+    schemas = client.get("/openapi.json").json()["components"]["schemas"]
+    operations = []
+    for path, item in paths.items():
+        for method, operation in item.items():
+            body = operation.get("requestBody", {}).get("content", {}).get("application/json")
+            if body is None:
+                continue
+            ref = body["schema"].get("$ref") or next(
+                (s["$ref"] for s in body["schema"].get("anyOf", []) if "$ref" in s), None)
+            fields = list(schemas[ref.split("/")[-1]]["properties"]) if ref else []
+            url = path.replace("{code}", "x").replace("{", "").replace("}", "")
+            url = "/".join("1" if part.endswith("_id") else part for part in url.split("/"))
+            operations.append((method.upper(), url, fields))
+    assert {(m, u) for m, u, _ in operations} >= {("POST", "/api/label/1"),
+                                                  ("POST", "/api/runs")}
+    statuses = set()
+    for method, url, fields in operations:
+        headers = (labeller if url.startswith("/api/label") else OPERATOR) | {
+            "Content-Type": "application/json"}
+        for depth in DEPTHS:
+            for shape in ("list", "object"):
+                inner = _nested(depth, shape)
+                bodies = [inner] + [b'{"%s": %s}' % (f.encode(), inner) for f in fields]
+                for content in bodies:
+                    response = client.request(method, url, content=content, headers=headers)
+                    assert response.status_code < 500, (method, url, depth, content[:40])
+                    statuses.add(response.status_code)
+    assert snapshot(session) == before
+    assert {400, 422} <= statuses
+
+
+def test_a_deeply_nested_label_does_not_drop_the_connection(settings: Settings) -> None:
+    """Over a real socket, as the audit sent it: 10 KB of nested brackets to /api/label/{id} is
+    a 400, and the keep-alive connection serves the next request."""
+    config = uvicorn.Config(create_app(settings), host="127.0.0.1", port=0, log_level="error")
+    server = uvicorn.Server(config)
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        deadline = time.monotonic() + 20
+        while not server.started:
+            assert time.monotonic() < deadline, "uvicorn did not start"
+            time.sleep(0.05)
+        port = server.servers[0].sockets[0].getsockname()[1]
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}") as http:
+            created = http.post("/api/labellers", json={"name": "alice"}, headers=OPERATOR)
+            labeller = bearer(created.json()["token"])
+            for depth in (5000, 950):
+                bad = http.post("/api/label/1", content=_nested(depth, "list"),
+                                headers=labeller | {"Content-Type": "application/json"})
+                assert bad.status_code in (400, 422), (depth, bad.text[:200])
+                assert bad.headers.get("connection") != "close"
+            assert http.get("/api/label/next", headers=labeller).status_code == 204
+    finally:
+        server.should_exit = True
+        thread.join(timeout=20)

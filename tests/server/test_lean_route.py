@@ -79,6 +79,11 @@ REQUESTS: list[tuple[str, str, dict[str, Any]]] = [
     ("POST", "/api/answer/5", {"content": b"choice=left",
                                "headers": {"Content-Type": "application/x-www-form-urlencoded"}}),
     ("POST", "/api/answer/5", {"content": b'{"choice": "left"}'}),
+    # Nested deeper than JSON decoding goes (about 10 KB, the body limit is 64 KiB): a 400.
+    ("POST", "/api/answer/5", {"content": b"[" * 5000 + b"]" * 5000,
+                               "headers": {"Content-Type": "application/json"}}),
+    ("POST", "/api/answer/5", {"content": b'{"choice": ' + b"[" * 5000 + b"]" * 5000 + b"}",
+                               "headers": {"Content-Type": "application/json"}}),
 ]
 
 
