@@ -143,7 +143,8 @@ class FeedbackConfig:
     per_round: int = 100
     """queries per round"""
     budget: int = 1000
-    """total queries over the run, the first round included"""
+    """total answers over the run, the first round included: a query costs the answers it gets
+    (`labels_per_query` people's, or the scripted teacher's one); gold pairs cost nothing"""
     selection: str = "disagreement"
     """uniform | disagreement | entropy | skill (S-EPOA's; algo sepoa)"""
     candidate_factor: int = 10

@@ -9,6 +9,11 @@ where people or the scripted teacher put them.
 
 Every answer becomes one JSON line in the run's `labels.jsonl`, flushed as soon as it exists;
 a round finished again after a resume adds no second line for a query.
+
+The budget counts answers, as the queue's `runs.labels_used` does: a query that
+`labels_per_query` (k) people answer costs k, one the scripted teacher answers costs 1, and gold
+pairs cost nothing (they are not the trainer's). A round asks for no more queries than the
+budget can still pay k answers for each, so the queue never takes more answers than the budget.
 """
 
 from __future__ import annotations
@@ -81,6 +86,9 @@ class GivenAnswer:
     source: str
     """scripted | human | gold"""
     answered_at: float
+    answers: int = 1
+    """the answers this one stands for, each paid from the budget: the labels its query got
+    (up to `labels_per_query` people's, or the scripted teacher's one)"""
 
 
 @dataclass(frozen=True)
@@ -132,7 +140,7 @@ def _segment(traj: Trajectory, start: int, length: int) -> np.ndarray:
 
 
 class PreferenceFeedback:
-    """Owns the labelled pairs, the budget and the round counter of one run."""
+    """Owns the labelled pairs, the budget (in answers) and the round counter of one run."""
 
     def __init__(self, cfg: FeedbackConfig, reward_model: RewardModel, teacher, labeller: str,
                  label_log: LabelLog, rng: np.random.Generator,
@@ -143,6 +151,7 @@ class PreferenceFeedback:
         """S-EPOA's R_theta(z) (skill rule only), refitted as each round selects"""
         self.pairs = LabelledPairs()
         self.labels_used = 0
+        """answers paid for so far (the queue's `runs.labels_used` once the round closed)"""
         self.rounds = 0
         self.pending: list[Query] = []
         self.compare_ratio = float("nan")
@@ -150,11 +159,15 @@ class PreferenceFeedback:
 
     @property
     def budget_left(self) -> int:
-        return self.cfg.budget - self.labels_used
+        """The answers the budget can still pay for, in whole queries of `labels_per_query`
+        answers each: 0 once fewer are left than one query asks for (feedback is over)."""
+        k = self.cfg.labels_per_query
+        return max(0, self.cfg.budget - self.labels_used) // k * k
 
     def open_round(self, pool: TrajectoryPool, step: int) -> list[Query]:
-        """Select this round's queries; they stay pending until `finish_round`."""
-        n = min(self.cfg.per_round, self.budget_left)
+        """Select this round's queries, as many as the budget can pay `labels_per_query`
+        answers each (at most `per_round`); they stay pending until `finish_round`."""
+        n = min(self.cfg.per_round, self.budget_left // self.cfg.labels_per_query)
         rule = self.cfg.first_round_selection if self.rounds == 0 else self.cfg.selection
         trajectories = list(pool.trajectories)
         compare = bool(self.cfg.compare_rule) and rule != "uniform"
@@ -243,7 +256,8 @@ class PreferenceFeedback:
     def finish_round(self, pool: TrajectoryPool,
                      answers: Mapping[str, GivenAnswer]) -> dict[str, float]:
         """Close the open round with `answers` (by query id; a query without one is dropped and
-        costs no budget), log the new ones, and train the reward model on every label so far."""
+        costs no budget; one with an answer costs the answers it stands for), log the new ones,
+        and train the reward model on every label so far."""
         queries, by_id = self.pending, {t.id: t for t in pool.trajectories}
         unknown = set(answers) - {q.query_id for q in queries}
         if unknown:
@@ -271,11 +285,13 @@ class PreferenceFeedback:
                     _segment(by_id[q.trajectory1], q.start1, q.segment_length),
                     target,
                 )
-        self.labels_used += len(answered)
+        spent = sum(a.answers for _, a in answered)
+        self.labels_used += spent
         metrics = {
             "round": self.rounds,
             "queries": len(queries),
             "answered": len(answered),
+            "answers": spent,
             "labels_used": self.labels_used,
             # Of the selected pairs, whether or not anyone answered: the paper's ratio.
             "distinguishable_ratio": _mean([q.distinguishable for q in queries]),

@@ -238,13 +238,14 @@ def complete_queries(labels: Sequence[Label], labels_per_query: int) -> set[int]
 
 def _answer(given: Sequence[Label], labeller_names: dict[int, str]) -> GivenAnswer:
     """One query's answer from its labels: the scripted teacher's if it answered, else the
-    majority of people's (`runvocab.answers.aggregate`)."""
+    majority of people's (`runvocab.answers.aggregate`). It stands for every one of them: each
+    was an answer the queue counted against the budget."""
     scripted = [label for label in given if label.source is LabelSource.SCRIPTED]
     used = scripted[:1] or list(given)
     names = "+".join(labeller_names.get(label.labeller_id, f"labeller-{label.labeller_id}")
                      for label in used)
     return GivenAnswer(aggregate(label.answer for label in used), names, used[0].source.value,
-                       max(label.answered_at for label in used).timestamp())
+                       max(label.answered_at for label in used).timestamp(), answers=len(given))
 
 
 class QueueHooks(RunHooks):
@@ -460,14 +461,7 @@ class QueueHooks(RunHooks):
                             if label.source is not LabelSource.HUMAN or settled(label.answered_at)]
             done = complete_queries(final_labels, self.cfg.feedback.labels_per_query)
             self.progress["waiting_for"] = len(ids) - len(done)
-            if len(done) == len(ids):
-                labels = final_labels
-                break
-            if final:
-                with self.sessions() as session:
-                    # Cancel first: a label submitted after this read could not be used.
-                    cancel_queries(session, run_id=self.run_id, query_ids=ids)
-                    labels = labels_for_queries(session, query_ids=ids)
+            if len(done) == len(ids) or final:
                 break
             if not wait:
                 self.beat(self.step)
@@ -477,7 +471,14 @@ class QueueHooks(RunHooks):
                 return None
 
         with self.sessions() as session:
-            consume_labels(session, run_id=self.run_id)  # bookkeeping: the round has them
+            # The round takes no more answers (a query the scripted teacher answered may still
+            # wait for people's), and those it has can no longer be taken back: read after
+            # that, they are the answers the queue counted, each paid from the budget. When
+            # every query was complete, this adds to what the loop saw only people's answers
+            # too fresh to use, to queries the scripted teacher's answer decides.
+            cancel_queries(session, run_id=self.run_id, query_ids=ids)
+            consume_labels(session, run_id=self.run_id)
+            labels = labels_for_queries(session, query_ids=ids)
             names = self._labeller_names(session, {label.labeller_id for label in labels})
         by_db_id = {db_id: qid for qid, db_id in self.query_ids.items()}
         by_query: dict[int, list[Label]] = {}
