@@ -1,5 +1,6 @@
-"""A run's data as a Minari dataset: a tiny scripted run through the worker, exported with
-`sepoa export --dataset`, read back with Minari, and compared with the run's own checkpoint."""
+"""A run's data as a Minari dataset: a tiny run through the worker, exported with
+`sepoa export --dataset`, read back with Minari, and compared with the run's own checkpoint and
+the clips its labellers were shown."""
 
 from __future__ import annotations
 
@@ -8,30 +9,48 @@ import os
 import subprocess
 import sys
 
+import imageio.v2 as imageio
 import numpy as np
 import pandas as pd
 import pytest
-from worker_helpers import RUN, database, worker_config
+from sqlalchemy import func, select
+from worker_helpers import (
+    RUN,
+    database,
+    run_row,
+    run_status,
+    start_worker,
+    wait_for,
+    worker_config,
+)
 
-from labelqueue import create_run
+from labelqueue import Query, RunStatus, create_run, set_run_status, set_teacher
 from sepoa.cli import main
 from trainer.checkpoint import load_checkpoint
-from trainer.clips import ClipConfig, render_segment
+from trainer.clips import ClipConfig, encode_mp4, iter_segment_frames, sized
 from trainer.envs import make_env
-from trainer.worker import run_worker
 
 DATASET_ID = "sepoa/dmc-cheetah_run/run-1-v0"
 
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
-    """A finished scripted run (two rounds of 10 queries on 200-step episodes) and its export."""
+    """A finished run (two rounds of 10 queries on 200-step episodes) and its export. People
+    teach round 0, so its clips are rendered; nobody answers, and the operator hands the run to
+    the scripted teacher, who answers everything."""
     tmp = tmp_path_factory.mktemp("dataset")
     url, sessions = database(tmp)
     with sessions() as session:
-        create_run(session, name="tiny", teacher="scripted", **RUN)
+        create_run(session, name="tiny", teacher="human", clip_size="128x128", **RUN)
     data = tmp / "data"
-    run_worker(worker_config(url, data))
+    thread = start_worker(worker_config(url, data))
+    wait_for(lambda: _rendered(sessions) == 10, what="round 0's clips")
+    with sessions() as session:
+        set_run_status(session, run_id=1, status=RunStatus.PAUSED)
+        set_teacher(session, run_id=1, teacher="scripted", params={"eps": 0.3})
+        set_run_status(session, run_id=1, status=RunStatus.RUNNING)
+    thread.join(timeout=300)
+    assert run_status(sessions, 1) is RunStatus.FINISHED
     with sessions() as session:  # queued, never trained: no episodes
         create_run(session, name="untrained", teacher="scripted", **RUN)
     roots = tmp / "datasets"
@@ -39,7 +58,14 @@ def trained(tmp_path_factory):
             "--run", "1"]
     assert main(args) == 0
     return {"url": url, "data": data, "roots": roots, "args": args,
-            "path": roots / DATASET_ID, "run_dir": data / "runs" / "run-1"}
+            "path": roots / DATASET_ID, "run_dir": data / "runs" / "run-1",
+            "clip_size": run_row(sessions, 1).clip_size}
+
+
+def _rendered(sessions) -> int:
+    with sessions() as session:
+        return session.scalar(select(func.count()).where(
+            Query.run_id == 1, Query.second_clip.is_not(None))) or 0
 
 
 def _load(trained):
@@ -98,18 +124,27 @@ def test_each_answer_is_a_row_pointing_at_the_segments_it_judged(trained):
     assert info["labels"] == 20 and info["labels_left_out"] == 0
 
 
-def test_a_stored_segment_renders_again_as_the_run_showed_it(trained):
+def test_a_stored_segment_renders_again_as_the_labeller_saw_it(trained, tmp_path):
     dataset = _load(trained)
-    _, pool = _pool(trained)
-    episodes = pd.read_parquet(trained["path"] / "episodes.parquet")
-    cfg = ClipConfig(width=64, height=64)
+    labels = pd.read_parquet(trained["path"] / "labels.parquet")
+    clip = sized(ClipConfig(width=64, height=64), trained["clip_size"])  # as the worker's
     env = make_env("dmc:cheetah_run", 7, 200)
-    trajectory = int(episodes.trajectory[1])
-    again = render_segment(env, dataset[1].infos["state"], int(dataset[1].infos["context"][0]),
-                           30, 5, cfg)
-    original = render_segment(env, pool[trajectory]["states"], 0, 30, 5, cfg)
-    np.testing.assert_array_equal(again, original)
-    assert again.std() > 0
+    for position, side, segment in ((0, "first", 0), (3, "second", 1)):
+        row = labels[(labels["round"] == 0) & (labels.position == position)].iloc[0]
+        episode = dataset[int(row[f"{side}_episode"])]
+        frames = iter_segment_frames(env, episode.infos["state"],
+                                     int(episode.infos["context"][0]),
+                                     int(row[f"{side}_start"]), int(row.segment_length), clip)
+        again = encode_mp4(frames, tmp_path / f"again-{position}.mp4", clip)
+        shown = trained["data"] / "clips" / "run-1" / f"r0-q{position}-{segment}.mp4"
+        decoded = [_decode(path) for path in (shown, again)]
+        assert decoded[0].shape == (row.segment_length, clip.height, clip.width, 3)
+        np.testing.assert_array_equal(decoded[1], decoded[0])
+
+
+def _decode(path) -> np.ndarray:
+    with imageio.get_reader(path) as reader:
+        return np.stack(list(reader.iter_data()))
 
 
 def test_minari_alone_reads_it(trained):
