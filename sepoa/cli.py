@@ -61,6 +61,29 @@ LABELLER_ACTIONS = {
 NAME_MAX = 100
 
 
+PORT_MAX = 65535
+ID_MAX = 2**31 - 1
+"""the largest id the queue database stores (PostgreSQL's INTEGER)"""
+
+
+def _number(low: int, high: int, what: str):  # type: ignore[no-untyped-def]
+    """An argparse type: an integer from `low` to `high`; else one line naming the range."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {what}: give {low} to {high}")
+        return value
+
+    return parse
+
+
+PORT = _number(1, PORT_MAX, "a TCP port")
+RUN_ID = _number(1, ID_MAX, "a run id")
+
+
 def _database_url(args: argparse.Namespace) -> str:
     """The queue database's URL; ValueError when it is not one this app can open."""
     from labelqueue import check_url, sqlite_url
@@ -76,7 +99,7 @@ def _parser() -> argparse.ArgumentParser:
     up = sub.add_parser("up", help="start the server and a worker on SQLite, with a demo run")
     _database_args(up)
     up.add_argument("--host", default="127.0.0.1")
-    up.add_argument("--port", type=int, default=8000)
+    up.add_argument("--port", type=PORT, default=8000)
     up.add_argument("--workers", type=int, default=1, help="trainer worker processes")
     up.add_argument("--threads", type=int, default=None,
                     help="torch CPU threads per worker; default: the cores divided among the "
@@ -88,13 +111,13 @@ def _parser() -> argparse.ArgumentParser:
     serve = sub.add_parser("serve", help="run the web server (API, label page, dashboard)")
     _database_args(serve)
     serve.add_argument("--host", default="127.0.0.1")
-    serve.add_argument("--port", type=int, default=8000)
+    serve.add_argument("--port", type=PORT, default=8000)
     _public_url_arg(serve)
 
     export = sub.add_parser("export", help="write the labels as JSONL, CSV or Parquet")
     _database_args(export)
     export.add_argument("--format", choices=("jsonl", "csv", "parquet"), default="jsonl")
-    export.add_argument("--run", type=int, default=None, help="one run's labels only")
+    export.add_argument("--run", type=RUN_ID, default=None, help="one run's labels only")
     export.add_argument("--out", default="-", help="file to write; - for standard output")
     export.add_argument("--dataset", default=None, metavar="DIR",
                         help="write the run's episodes and labels as a Minari dataset under "
@@ -196,7 +219,11 @@ def _serve(args: argparse.Namespace) -> int:
     # Before anything is created or migrated: a busy port leaves no new database behind.
     if not port_free(args.host, args.port):
         return fail(f"{args.host}:{args.port} is in use; pick another with --port")
-    os.environ["SEPOA_DATABASE_URL"] = _database_url(args)
+    from labelqueue import check_database
+
+    url = _database_url(args)
+    check_database(url, writable=True)  # damaged, read-only: one line here, not a traceback
+    os.environ["SEPOA_DATABASE_URL"] = url
     os.environ["SEPOA_DATA_DIR"] = args.data_dir
     public_url = _public_url(args)
     if public_url is not None:
@@ -209,7 +236,7 @@ def _export(args: argparse.Namespace) -> int:
     from sqlalchemy.engine import make_url
     from sqlalchemy.exc import DBAPIError
 
-    from labelqueue import NotFound, make_engine, session_factory
+    from labelqueue import NotFound, check_database, make_engine, session_factory
     from labelqueue.export import write_export
 
     if args.dataset is None and (args.dataset_id is not None or args.clips_dir is not None):
@@ -218,6 +245,8 @@ def _export(args: argparse.Namespace) -> int:
     parsed = make_url(url)
     if parsed.get_backend_name() == "sqlite" and not os.path.exists(parsed.database or ""):
         return fail(f"no queue database at {parsed.database} (--data-dir / --database-url)")
+    # A damaged file can read back fewer labels than it holds, without an error.
+    check_database(url)
     if args.dataset is not None:
         return _export_dataset(args, url)
     if args.out != "-":
@@ -303,6 +332,7 @@ def _labeller(args: argparse.Namespace) -> int:
     from labelqueue import (
         Conflict,
         Labeller,
+        check_database,
         create_labeller,
         find_labeller,
         make_engine,
@@ -316,6 +346,7 @@ def _labeller(args: argparse.Namespace) -> int:
     if name is not None and not 1 <= len(name) <= NAME_MAX:  # as POST /api/labellers
         return fail(f"labeller name {name!r} is not valid: give 1 to {NAME_MAX} characters")
     url = _database_url(args)
+    check_database(url)
     try:
         migrate(url)
     except DBAPIError as err:
@@ -346,6 +377,9 @@ def _labeller(args: argparse.Namespace) -> int:
                     active = args.action == "activate"
                     update_labeller(session, labeller_id=found.id, active=active)
                     print(f"{name!r} {'activated' if active else 'revoked'}")
+    except DBAPIError as err:  # damage the integrity check does not see, a database gone away
+        first = str(err.orig or err).strip().splitlines()[0]
+        return fail(f"cannot use the queue database: {first}")
     finally:
         engine.dispose()
     return 0

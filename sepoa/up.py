@@ -19,7 +19,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from labelqueue import Run, create_labeller, create_run, make_engine, migrate, session_factory
+from labelqueue import (
+    Run,
+    check_database,
+    create_labeller,
+    create_run,
+    make_engine,
+    session_factory,
+)
 from trainer.threads import default_threads, describe
 
 DEMO_RUN: dict[str, Any] = {
@@ -79,7 +86,7 @@ def up(*, database_url: str, data_dir: str, host: str, port: int, workers: int,
     chosen = threads is not None
     threads = threads or default_threads(workers=workers, server=True)
     print(describe(threads, workers=workers, server=True, chosen=chosen), flush=True)
-    migrate(database_url)
+    check_database(database_url, writable=True)  # damaged, read-only: one line, no traceback
     creds = _credentials(Path(data_dir) / "credentials.json", database_url)
     demo_run = _queue_demo_run(database_url) if demo else None
 

@@ -60,6 +60,88 @@ def test_labellers_are_revoked_restored_and_given_new_tokens(tmp_path, capsys):
     assert "no labeller named 'nobody'" in capsys.readouterr().err
 
 
+def _damaged_copies(tmp_path: Path) -> dict[str, Path]:
+    """A database with 233 labels, and data folders holding copies of it damaged two ways: a
+    page of the labels table claiming fewer rows than it holds (reads lose labels without an
+    error) and a file whose header is overwritten."""
+    import sqlite3
+
+    from labelqueue import (
+        TeacherKind,
+        claim_run,
+        create_labeller,
+        create_run,
+        lease_next_query,
+        make_engine,
+        migrate,
+        push_queries,
+        session_factory,
+        sqlite_url,
+        submit_label,
+    )
+
+    sys.path.insert(0, str(ROOT / "tests" / "labelqueue"))
+    from queue_helpers import query_spec
+
+    sound = tmp_path / "sound"
+    migrate(sqlite_url(sound))
+    engine = make_engine(sqlite_url(sound))
+    with session_factory(engine)() as session:
+        run = create_run(session, name="r", task="dmc:cheetah_run", algo="pebble", budget=300,
+                         teacher=TeacherKind.HUMAN)
+        claim_run(session, worker_id="w")
+        push_queries(session, run_id=run.id, queries=[query_spec(i) for i in range(240)])
+        ann, _ = create_labeller(session, name="ann")
+        for _ in range(233):
+            query = lease_next_query(session, labeller_id=ann.id, run_id=run.id)
+            assert query is not None
+            submit_label(session, query_id=query.id, labeller_id=ann.id, choice="left",
+                         left_is_first=True)
+    engine.dispose()  # checkpoints the WAL into the file
+    with sqlite3.connect(sound / "queue.db") as connection:
+        [(page,)] = connection.execute("SELECT pageno FROM dbstat WHERE name = 'labels' AND "
+                                       "pagetype = 'leaf' ORDER BY pageno LIMIT 1 OFFSET 1")
+        page_size = connection.execute("PRAGMA page_size").fetchone()[0]
+    copies = {}
+    for kind, offset, data in (("rows", (page - 1) * page_size + 3, b"\x00\x05"),
+                               ("header", 0, b"not a database" * 2)):
+        folder = tmp_path / kind
+        folder.mkdir()
+        blob = bytearray((sound / "queue.db").read_bytes())
+        blob[offset:offset + len(data)] = data
+        (folder / "queue.db").write_bytes(bytes(blob))
+        copies[kind] = folder
+    return copies
+
+
+def test_a_damaged_or_read_only_database_is_refused_in_one_line(tmp_path):
+    """Export, the labeller commands, serve and doctor check the database first: a damaged one
+    is refused (nothing exported), a read-only one cannot be served; one line, exit 2."""
+    copies = _damaged_copies(tmp_path)
+    out = tmp_path / "labels.jsonl"
+    for kind, folder in copies.items():
+        for args in (["export", "--out", str(out)], ["labeller", "list"],
+                     ["serve", "--port", "18675"], ["doctor", "--backend", "egl"]):
+            done = _sepoa(*args, "--data-dir", str(folder), cwd=tmp_path)
+            lines = done.stderr.strip().splitlines()
+            assert done.returncode == 2, (kind, args, done.stderr)
+            assert len(lines) == 1 and "Traceback" not in done.stderr, (kind, args, lines)
+            assert "is damaged (PRAGMA quick_check:" in lines[0], (kind, args, lines[0])
+            assert "restore it from a backup" in lines[0]
+        assert not out.exists()
+    sound = _sepoa("export", "--data-dir", str(tmp_path / "sound"), "--out", str(out),
+                   cwd=tmp_path)
+    assert sound.returncode == 0 and sound.stderr.strip() == "233 labels exported"
+    # A read-only database (as root ignores file modes, SQLite's read-only mode stands in).
+    read_only = f"sqlite:///file:{tmp_path / 'sound' / 'queue.db'}?mode=ro&uri=true"
+    for command in ("serve", "up"):
+        done = _sepoa(command, "--port", "18676", "--database-url", read_only, "--no-demo"
+                      if command == "up" else "--host=127.0.0.1", cwd=tmp_path)
+        lines = done.stderr.strip().splitlines()
+        assert done.returncode == 2 and len(lines) == 1, (command, done.stderr)
+        assert "attempt to write a readonly database" in lines[0], lines[0]
+
+
 def _sepoa(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     code = "import sys; from sepoa.cli import main; sys.exit(main())"
     env = os.environ | {"OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
@@ -85,6 +167,11 @@ def test_every_cli_mistake_is_one_line_with_exit_status_2(tmp_path, capsys):
             (["serve", "--port", port, "--data-dir", str(tmp_path / "fresh")],
              [f"127.0.0.1:{port} is in use", "--port"]),
             (["export", "--format", "xml"], ["'xml'", "jsonl"]),
+            (["serve", "--port", "99999"], ["--port", "'99999' is not a TCP port", "65535"]),
+            (["up", "--port", "-1", "--data-dir", str(tmp_path / "fresh")],
+             ["--port", "'-1'", "1 to 65535"]),
+            (["export", "--data-dir", str(data), "--run", "1180591620717411303424"],
+             ["--run", "not a run id", "2147483647"]),
         ]
         for args, words in cases:
             out = _sepoa(*args, cwd=tmp_path)

@@ -214,14 +214,46 @@ def _doctor_parser(sub) -> argparse.ArgumentParser:
                    help=f"a task to render (repeatable); default {' and '.join(TASKS)}")
     p.add_argument("--size", type=int, default=128, help="frame width and height in pixels")
     p.add_argument("--frames", type=int, default=20, help="frames timed after the first")
+    p.add_argument("--database-url", default=os.environ.get("SEPOA_DATABASE_URL"),
+                   help="the queue database checked first (env SEPOA_DATABASE_URL; default "
+                   "sqlite:///<data-dir>/queue.db)")
+    p.add_argument("--data-dir", default=os.environ.get("SEPOA_DATA_DIR", "data"),
+                   help="where the SQLite file lives (env SEPOA_DATA_DIR)")
     return p
 
 
+def _check_queue_database(url: str) -> int:
+    """The doctor's first line: whether SQLite's integrity check finds the queue database
+    damaged (then it says so, in one line, and the doctor stops: exit 2)."""
+    from labelqueue.db import integrity_problem, mask_url, sqlite_file
+
+    path = sqlite_file(url)
+    if path is None:
+        print(f"queue database {mask_url(url)}: not checked (the integrity check is SQLite's)")
+    elif not os.path.isfile(path):
+        print(f"queue database {path}: none yet (`sepoa up` or `sepoa serve` makes it)")
+    elif (problem := integrity_problem(url)) is not None:
+        print(f"error: the queue database {path} is damaged (PRAGMA quick_check: {problem}); "
+              "restore it from a backup", file=sys.stderr)
+        return 2
+    else:
+        print(f"queue database {path}: ok (PRAGMA quick_check)")
+    return 0
+
+
 def _run_doctor(args: argparse.Namespace) -> int:
+    from labelqueue.db import check_url, sqlite_url
     from trainer.doctor import BACKENDS, TASKS, run_doctor
 
     if not 16 <= args.size <= 2048 or args.frames < 0:
         print("error: --size takes 16 to 2048 pixels and --frames at least 0", file=sys.stderr)
+        return 2
+    try:
+        url = check_url(args.database_url or sqlite_url(args.data_dir))
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    if _check_queue_database(url):
         return 2
     return run_doctor(args.backend or BACKENDS, args.task or TASKS, size=args.size,
                       frames=args.frames)
