@@ -14,9 +14,9 @@ const MIN_SPAN_MS = 30 * 60_000; // the throughput chart shows at least the last
 const refresh = poller(async () => {
   try {
     const run = await get(`/api/runs/${runId}`);
-    showActivity(await get(`/api/runs/${runId}/activity`));
     const bucket = bucketFor(run);
-    const [episodes, evals, rounds, throughput, flags] = await Promise.all([
+    const [activity, episodes, evals, rounds, throughput, flags] = await Promise.all([
+      get(`/api/runs/${runId}/activity`),
       get(`/api/runs/${runId}/metrics?stream=episodes`),
       get(`/api/runs/${runId}/metrics?stream=eval`),
       get(`/api/runs/${runId}/metrics?stream=rounds`),
@@ -26,6 +26,7 @@ const refresh = poller(async () => {
     document.getElementById("loading").hidden = true;
     document.getElementById("run-body").hidden = false; // before drawing: charts fit its width
     showRun(run);
+    showActivity(activity); // with the facts it explains, in one paint
     drawCurves(run, episodes, evals, rounds);
     drawThroughput(throughput, run);
     showFlags(flags);
