@@ -151,6 +151,8 @@ COLUMNS: tuple[Column, ...] = (
         nullable=True,
     ),
     _c("flag_note", "string", "the labeller's note on the flag; null without one", nullable=True),
+    _c("practice", "bool", "an answer of the labeller's practice round on the run (a gold pair, "
+       "explained once answered, not counted in gold accuracy)"),
     _c(
         "instruction",
         "string",
@@ -188,6 +190,7 @@ _STORED: dict[str, Any] = {
     "withdrawn_at": Label.withdrawn_at,
     "flag": Label.flag,
     "flag_note": Label.flag_note,
+    "practice": Label.practice,
 }
 _SEGMENT_ANSWERS = ("first", "second", "equal")
 

@@ -73,7 +73,7 @@ _SHARE = Prepared(
            func.coalesce(func.sum(QUERIES.c.gold.cast(Integer)), 0).label("gold"))
     .select_from(LABELS.join(QUERIES, QUERIES.c.id == LABELS.c.query_id))
     .where(LABELS.c.labeller_id == _LABELLER, LABELS.c.run_id == _RUN,
-           LABELS.c.withdrawn_at.is_(None))
+           LABELS.c.withdrawn_at.is_(None), LABELS.c.practice.is_(False))
 )
 
 
@@ -90,7 +90,8 @@ _GOLD_ANSWERS = Prepared(
     select(LABELS.c.answer, QUERIES.c.first_segment_return, QUERIES.c.second_segment_return)
     .select_from(LABELS.join(QUERIES, QUERIES.c.id == LABELS.c.query_id))
     .where(LABELS.c.labeller_id == _LABELLER, LABELS.c.run_id == _RUN,
-           LABELS.c.withdrawn_at.is_(None), QUERIES.c.gold.is_(True))
+           LABELS.c.withdrawn_at.is_(None), QUERIES.c.gold.is_(True),
+           LABELS.c.practice.is_(False))  # the practice round is not measured
 )
 
 

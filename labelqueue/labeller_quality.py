@@ -55,7 +55,9 @@ class LabellerQuality:
     shadow_agreement: Share
     """answers equal to the scripted teacher's, where both are first, second or equal"""
     gold_accuracy: Share
-    """correct of the answers to gold pairs (skips aside)"""
+    """correct of the answers to gold pairs (skips and the practice round aside)"""
+    practice: Share
+    """correct of the practice round's answers (`labelqueue.practice`; skips aside)"""
     cant_tell: Share
     """can't-tell answers of all answers"""
     skips: Share
@@ -96,7 +98,9 @@ def _quality(rows: Sequence[Mapping[str, Any]], paused: bool, level: float) -> L
     judged = [row for row in rows if not row.get("gold") and row.get("distinguishable")
               and row["answer"] in ("first", "second") and row.get("correct") is not None]
     shadow = [row for row in rows if row.get("agrees_with_shadow") is not None]
-    gold = [row for row in rows if row.get("gold") and row["answer"] != "skip"]
+    gold = [row for row in rows if row.get("gold") and row["answer"] != "skip"
+            and not row.get("practice")]
+    practice = [row for row in rows if row.get("practice") and row["answer"] != "skip"]
     clicks = [row.get("choice") for row in rows if row.get("choice") in ("left", "right")]
     lefts = clicks.count("left")
     return LabellerQuality(
@@ -109,6 +113,7 @@ def _quality(rows: Sequence[Mapping[str, Any]], paused: bool, level: float) -> L
         shadow_agreement=_share(sum(bool(row["agrees_with_shadow"]) for row in shadow),
                                 len(shadow), level),
         gold_accuracy=_share(sum(bool(row.get("correct")) for row in gold), len(gold), level),
+        practice=_share(sum(bool(row.get("correct")) for row in practice), len(practice), level),
         cant_tell=_share(sum(row["answer"] == "cant_tell" for row in rows), len(rows), level),
         skips=_share(sum(row["answer"] == "skip" for row in rows), len(rows), level),
         left=_share(lefts, len(clicks), level),

@@ -30,6 +30,7 @@ from labelqueue.models import (
     UTCDateTime,
     utcnow,
 )
+from labelqueue.practice import practice_step
 from labelqueue.prepared import DriverConnection, Prepared
 from labelqueue.queries import LABELLABLE, one_of
 from labelqueue.transaction import (
@@ -201,6 +202,9 @@ def submit_label(
     answer (cant_tell and skip count against the budget too), unless the query is a gold pair:
     a gold answer costs no budget, and may pause the labeller on the run (`labelqueue.gold`).
 
+    A gold answer in the labeller's practice round on the run (`labelqueue.practice`) is stored
+    with `practice` set and checks no gold threshold.
+
     `flag` marks the pair as one nobody can judge (`runvocab.answers.Flag`), with an optional
     `flag_note`; only a skip may carry one (ValueError otherwise), so a flagged pair is never
     trained on.
@@ -219,6 +223,9 @@ def submit_label(
             label = _stored_label(connection, params)
             assert label is not None
             return label, False
+        # Before this answer is stored: whether it is one of the labeller's practice round.
+        practice = bool(asked.gold) and practice_step(
+            connection, labeller_id=labeller_id, run_id=asked.run_id) is not None
         if not _TAKE_ANSWER.count(connection, params):
             # A concurrent twin of this very submit may have won (PostgreSQL).
             label = _stored_label(connection, params)
@@ -239,9 +246,10 @@ def submit_label(
             "withdrawn_at": None,
             "flag": flag,
             "flag_note": flag_note,
+            "practice": practice,
         }
         [inserted] = _INSERT_LABEL.rows(connection, values)
-        if asked.gold:
+        if asked.gold and not practice:  # practice answers do not count in gold accuracy
             pause_if_below(connection, labeller_id=labeller_id, run_id=asked.run_id)
         else:
             _COUNT_LABEL.count(connection, {"run": asked.run_id})

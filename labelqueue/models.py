@@ -363,6 +363,9 @@ class Label(Base):
     never trained on; none for an unflagged answer"""
     flag_note: Mapped[str | None] = mapped_column(Text)
     """the labeller's optional words on the flag"""
+    practice: Mapped[bool] = mapped_column(Boolean, default=False)
+    """an answer of the labeller's practice round on the run (`labelqueue.practice`): a gold
+    pair, explained once answered, not counted in gold accuracy"""
 
 
 Index("ix_labels_run_id_consumed_at", Label.run_id, Label.consumed_at)

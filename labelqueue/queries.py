@@ -44,6 +44,7 @@ from labelqueue.models import (
     UTCDateTime,
     utcnow,
 )
+from labelqueue.practice import practice_step
 from labelqueue.prepared import DriverConnection, Prepared
 from labelqueue.transaction import (
     changed,
@@ -395,8 +396,13 @@ def _lease_gold(connection: DriverConnection, params: dict[str, Any]) -> Any | N
     """A gold pair for the labeller when one is open and their share of gold answers is due."""
     oldest = _GOLD_OF_ANY_HUMAN_RUN if params["run"] is None else _GOLD_OF_RUN
     candidate = oldest.first(connection, params)
-    if candidate is None or not gold_due(connection, labeller_id=params["labeller"],
-                                         run_id=candidate.run_id,
-                                         rate=GoldSettings.of(candidate.config).rate):
+    if candidate is None:
+        return None
+    practising = practice_step(connection, labeller_id=params["labeller"],
+                               run_id=candidate.run_id, config=candidate.config, known=True,
+                               held="all")
+    if practising is None and not gold_due(connection, labeller_id=params["labeller"],
+                                           run_id=candidate.run_id,
+                                           rate=GoldSettings.of(candidate.config).rate):
         return None
     return _TAKE_GOLD.first(connection, params | {"gold_pair": candidate.id})

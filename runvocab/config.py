@@ -174,6 +174,10 @@ class FeedbackConfig:
     """pause a labeller on the run whose accuracy on gold pairs falls below this (0: never)"""
     gold_min_answers: int = 10
     """gold answers a labeller gives before `gold_min_accuracy` can pause them"""
+    practice_pairs: int = 0
+    """people teaching: a practice round of this many gold pairs before a labeller's first
+    answer on the run, each explained once answered; never trained on, not counted in gold
+    accuracy (0-20; `labelqueue.practice`). Each round then has at least this many gold pairs"""
 
 
 @dataclass(frozen=True)

@@ -120,7 +120,8 @@ def _check_feedback(cfg: RunConfig) -> None:
     _within({"feedback.labels_per_query": (fb.labels_per_query, 1, 10),
              "feedback.gold_rate": (fb.gold_rate, 0.0, 0.5),
              "feedback.gold_min_accuracy": (fb.gold_min_accuracy, 0.0, 1.0),
-             "feedback.gold_min_answers": (fb.gold_min_answers, 1, 10_000)})
+             "feedback.gold_min_answers": (fb.gold_min_answers, 1, 10_000),
+             "feedback.practice_pairs": (fb.practice_pairs, 0, 20)})
     if fb.pool_trajectories < 2:
         raise ConfigError("feedback.pool_trajectories",
                           "feedback.pool_trajectories must be at least 2 (a query pairs two)")

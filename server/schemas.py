@@ -243,6 +243,22 @@ class LabellerCreated(BaseModel):
     token: str
 
 
+class PracticeOut(BaseModel):
+    index: int
+    """1-based: which practice pair this is"""
+    of: int
+    """the run's practice pairs"""
+
+
+class PracticeFeedback(PracticeOut):
+    """After a practice answer: what the true reward says, as a ratio, never the returns."""
+
+    correct: bool | None
+    """the answer agrees with the true reward; null for can't-tell and skip"""
+    better: Literal["left", "right", "equal"]
+    explanation: str
+
+
 class NextQuery(BaseModel):
     """A leased query as a labeller sees it: two clip URLs, and nothing that hints the answer."""
 
@@ -257,6 +273,9 @@ class NextQuery(BaseModel):
     left_start_step: int
     """the step of its episode the left clip starts at (the player shows it)"""
     right_start_step: int
+    practice: PracticeOut | None = None
+    """a pair of the labeller's practice round on the run (`feedback.practice_pairs`): its
+    answer is explained once given; null for any other pair"""
 
 
 class LabelSubmit(Body):
@@ -287,6 +306,8 @@ class LabelOut(Out):
     flag: str | None = None
     """clip_broken, not_visible or other when the labeller flagged the pair"""
     flag_note: str | None = None
+    practice_feedback: PracticeFeedback | None = None
+    """a practice answer, explained (`feedback.practice_pairs`); null for any other"""
 
 
 class ThroughputBucket(BaseModel):

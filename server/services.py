@@ -26,8 +26,16 @@ from labelqueue import (
     withdraw_label,
 )
 from labelqueue import reading as reading  # the routes' own reads (stats, curves) use it too
+from labelqueue.practice import explain, practice_progress
 from server import clips
-from server.schemas import LabelSubmit, NextQuery, RunCreate
+from server.schemas import (
+    LabelOut,
+    LabelSubmit,
+    NextQuery,
+    PracticeFeedback,
+    PracticeOut,
+    RunCreate,
+)
 from server.settings import Settings
 
 
@@ -106,12 +114,14 @@ def next_query(
     )
     if query is None:
         return None
-    return shown_query(settings=settings, query=query, labeller_id=labeller_id)
+    return shown_query(settings=settings, query=query, labeller_id=labeller_id, session=session)
 
 
-def shown_query(*, settings: Settings, query: Query, labeller_id: int) -> NextQuery:
+def shown_query(*, settings: Settings, query: Query, labeller_id: int,
+                session: Session | None = None) -> NextQuery:
     """A query leased to the labeller as its page shows it: signed clip URLs in the labeller's
-    side order, and nothing that hints the answer."""
+    side order, and nothing that hints the answer; with `session`, whether a gold pair is one
+    of the labeller's practice round (said so: its answer is explained once given)."""
     assert query.lease_expires_at is not None
     first_left = clips.left_is_first(settings=settings, query_id=query.id, labeller_id=labeller_id)
     now = time.time()
@@ -129,7 +139,38 @@ def shown_query(*, settings: Settings, query: Query, labeller_id: int) -> NextQu
         segment_length=query.segment_length,
         left_start_step=query.first_start if first_left else query.second_start,
         right_start_step=query.second_start if first_left else query.first_start,
+        practice=None if session is None or not query.gold
+        else practice_of(session, query=query, labeller_id=labeller_id),
     )
+
+
+def practice_of(session: Session, *, query: Query, labeller_id: int) -> PracticeOut | None:
+    """Which pair of the labeller's practice round a gold pair is; None outside the round."""
+    _, _, step = practice_progress(session, labeller_id=labeller_id, run_id=query.run_id,
+                                   shown=query.id)
+    return None if step is None else PracticeOut(index=step.index, of=step.of)
+
+
+def answer_out(
+    session: Session, *, settings: Settings, labeller_id: int, query_id: int, body: LabelSubmit
+) -> tuple[LabelOut, bool]:
+    """`submit_answer`, as the page gets it: a practice answer comes explained (which clip the
+    true reward prefers, by a ratio: never the returns)."""
+    label, created = submit_answer(session, settings=settings, labeller_id=labeller_id,
+                                   query_id=query_id, body=body)
+    out = LabelOut.model_validate(label)
+    if label.practice:  # an answer of the practice round
+        query = get_query(session, query_id=query_id)
+        first, second = query.first_segment_return, query.second_segment_return
+        left, right = (first, second) if label.left_is_first else (second, first)
+        better, text = explain(left_return=left, right_return=right)
+        done, pairs, _ = practice_progress(session, labeller_id=labeller_id, run_id=query.run_id)
+        choice = str(getattr(label.choice, "value", label.choice))
+        out.practice_feedback = PracticeFeedback(
+            index=done, of=pairs, better=better,  # type: ignore[arg-type]
+            correct=choice == better if choice in ("left", "right", "equal") else None,
+            explanation=text)
+    return out, created
 
 
 def submit_answer(
@@ -166,7 +207,7 @@ def take_back_answer(
     withdrawn = withdraw_label(session, query_id=query_id, labeller_id=labeller_id, keep=keep,
                                lease_seconds=settings.lease_seconds)
     return withdrawn.label, shown_query(settings=settings, query=withdrawn.query,
-                                        labeller_id=labeller_id)
+                                        labeller_id=labeller_id, session=session)
 
 
 def clip_path(session: Session, *, settings: Settings, query_id: int, side: str) -> Path:

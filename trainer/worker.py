@@ -358,9 +358,11 @@ class QueueHooks(RunHooks):
     # -- queries -------------------------------------------------------------------------------
     def round_opened(self, queries: list[Query], pool: TrajectoryPool) -> None:
         fb = self.cfg.feedback
-        # Gold pairs measure people; a round the scripted teacher answers gets none.
+        # Gold pairs measure people; a round the scripted teacher answers gets none. At least
+        # the run's practice pairs, for the practice round of whoever starts now.
         self.gold = [] if self.teacher is not TeacherKind.HUMAN else gold_pairs(
-            list(pool.trajectories), n=gold_count(len(queries), fb.gold_rate),
+            list(pool.trajectories),
+            n=max(gold_count(len(queries), fb.gold_rate), fb.practice_pairs if queries else 0),
             segment_length=fb.segment_length, eps=self.cfg.teacher.eps,
             round_=queries[0].round if queries else 0, seed=self.cfg.seed,
             step=queries[0].step if queries else 0)

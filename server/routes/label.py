@@ -81,8 +81,8 @@ async def post_label(query_id: QueryId, body: LabelSubmit, call: LabellerCallDep
     """Answer a leased query. A revoked labeller: 403; a run no longer running or paused, an
     expired lease or another labeller's query: 409; a `left_is_first` other than next-query's:
     422. `shown_at` is stored within [the lease's start, now]."""
-    label, created = await call.serve(services.submit_answer, query_id=query_id, body=body)
-    return json_response(LabelOut.model_validate(label), status_code=201 if created else 200)
+    out, created = await call.serve(services.answer_out, query_id=query_id, body=body)
+    return json_response(out, status_code=201 if created else 200)
 
 
 @router.get(

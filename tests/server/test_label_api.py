@@ -34,6 +34,7 @@ NEXT_KEYS = {
     "segment_length",
     "left_start_step",  # where each clip starts in its episode: shown by the player
     "right_start_step",
+    "practice",  # null but on a practice pair (feedback.practice_pairs)
 }
 
 

@@ -262,6 +262,12 @@ function show(pair) {
   $("pair-id").textContent = `${pair.query.query_id} · run ${pair.query.run_id}`;
   $("waiting").hidden = true;
   $("stage").hidden = false;
+  const practice = pair.query.practice;
+  $("practice-banner").hidden = !practice;
+  if (practice) {
+    $("practice-index").textContent = practice.index;
+    $("practice-of").textContent = practice.of;
+  }
   showInstruction(pair.brief);
   showSpeedNote();
   updateButtons();
@@ -315,6 +321,25 @@ function updateButtons() {
   }
   $("watch-hint").hidden = watched;
   $("flag").disabled = !pair || state.submitting;
+}
+
+// ---- the practice round ---------------------------------------------------------------------
+
+const CLICKED = { left: "left", right: "right", equal: "equally good", cant_tell: "can't tell", skip: "skip" };
+
+/** After a practice answer: whether it was right and why, until Continue (Enter). */
+function explainPractice(practice, choice) {
+  const verdict = $("practice-verdict");
+  verdict.className = `verdict ${practice.correct === true ? "right" : practice.correct === false ? "wrong" : ""}`;
+  const said = `you answered “${CLICKED[choice] ?? choice}”`;
+  verdict.textContent = practice.correct === true ? `Right: ${said}.`
+    : practice.correct === false ? `Not this time: ${said}.` : `No preference given: ${said}.`;
+  $("practice-title").textContent = `Practice pair ${practice.index} of ${practice.of}`;
+  $("practice-explanation").textContent = practice.explanation;
+  $("practice-next").textContent = practice.index >= practice.of
+    ? "That was the last practice pair: the next pairs count." : "Next: another practice pair.";
+  if (!$("practice-dialog").open) $("practice-dialog").showModal();
+  setPaused(true);
 }
 
 // ---- flagging a pair nobody can judge -------------------------------------------------------
@@ -502,8 +527,9 @@ function answer(choice, flag = null) {
 
 async function submit(queryId, body) {
   try {
-    const { status } = await request("POST", `/api/label/${queryId}`, body);
+    const { status, data } = await request("POST", `/api/label/${queryId}`, body);
     if (state.last?.pair.query.query_id === queryId) state.last.counted = status === 201;
+    if (data?.practice_feedback && status === 201) explainPractice(data.practice_feedback, data.choice);
     if (status === 201) {
       state.session += 1;
       if (state.total != null) state.total += 1;
@@ -588,7 +614,7 @@ function undo() {
 
 function onKey(event) {
   if (event.repeat || event.ctrlKey || event.metaKey || event.altKey) return;
-  if ($("flag-dialog").open) return; // the dialog has the keys (Esc closes it)
+  if ($("flag-dialog").open || $("practice-dialog").open) return; // a dialog has the keys
   if (event.key === "f" || event.key === "F") {
     event.preventDefault();
     openFlag();
@@ -653,6 +679,7 @@ start(() => {
   });
   $("flag-form").addEventListener("submit", sendFlag);
   $("flag-cancel").addEventListener("click", () => $("flag-dialog").close());
+  $("practice-dialog").addEventListener("close", () => setPaused(false));
   $("play").addEventListener("click", (event) => {
     event.currentTarget.blur();
     setPaused(!clock.paused);

@@ -39,6 +39,11 @@ function shareCell(share) {
     share && share.n ? el("span", { class: "muted small of" }, ` ${share.k}/${share.n}`) : null);
 }
 
+/** The practice round's answers: "2/3 right", "–" for none. */
+function practiceCell(share) {
+  return el("td", { class: "num practice" }, share && share.n ? `${share.k}/${share.n} right` : "–");
+}
+
 // ---- the labellers' quality table (runs page) -----------------------------------------------
 
 let chosenRun = null; // null: all runs
@@ -74,7 +79,7 @@ async function loadQuality() {
   } catch (error) {
     if (error instanceof SignedOut) return false;
     const body = document.getElementById("quality-body");
-    body.replaceChildren(el("tr", {}, el("td", { colspan: 12, class: "error" },
+    body.replaceChildren(el("tr", {}, el("td", { colspan: 13, class: "error" },
       `Could not load the labellers' quality: ${error.message}`)));
   }
   return true;
@@ -98,7 +103,7 @@ function fillRuns(runs) {
 function renderQuality(rows) {
   const body = document.getElementById("quality-body");
   if (rows.length === 0) {
-    body.replaceChildren(el("tr", {}, el("td", { colspan: 12, class: "muted" },
+    body.replaceChildren(el("tr", {}, el("td", { colspan: 13, class: "muted" },
       chosenRun == null ? "No answers yet." : `No answers on run ${chosenRun} yet.`)));
     return;
   }
@@ -112,6 +117,7 @@ function renderQuality(rows) {
       shareCell(who.accuracy),
       shareCell(who.shadow_agreement),
       shareCell(who.gold_accuracy),
+      practiceCell(who.practice),
       shareCell(who.cant_tell),
       shareCell(who.skips),
       el("td", { class: "num left-share" }, shareText(who.left), " ",
