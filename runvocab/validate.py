@@ -3,7 +3,10 @@ what it holds and what is valid."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Iterator
+from typing import Any
 
 from runvocab.config import RunConfig
 from runvocab.names import (
@@ -27,6 +30,7 @@ def validate(cfg: RunConfig, pretraining: bool = False) -> None:
     """Raise a ConfigError for the first bad field of `cfg`. `pretraining`: `cfg` describes a
     skill pretraining run (`sepoa pretrain`), whose skill fields are checked whatever the algo."""
     _check_names(cfg)
+    _check_sizes(cfg)
     _check_numbers(cfg)
     _check_feedback(cfg)
     _check_teacher(cfg)
@@ -56,6 +60,34 @@ def _within(values: dict[str, tuple[float, float, float]]) -> None:
     for name, (value, low, high) in values.items():
         if not low <= value <= high:
             raise ConfigError(name, f"{name} must be between {low} and {high}, got {value}")
+
+
+MAX_INT = 2**31 - 1
+"""the largest whole number a run's field takes: what the queue database's INTEGER columns hold
+(a run's step, its budget); a larger size is none a run could reach"""
+
+
+def _leaves(obj: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value):
+            yield from _leaves(value, f"{prefix}{f.name}.")
+        else:
+            yield prefix + f.name, value
+
+
+def _check_sizes(cfg: RunConfig) -> None:
+    """Every whole number within +-MAX_INT, every other number finite (teacher.beta may be inf:
+    a rational teacher)."""
+    for path, value in _leaves(cfg):
+        if isinstance(value, bool):
+            continue
+        if isinstance(value, int) and not -MAX_INT <= value <= MAX_INT:
+            shown = str(value) if len(str(value)) <= 20 else f"{value:.3g}"
+            raise ConfigError(path, f"{path} must be at most {MAX_INT} (2^31 - 1) in size, got "
+                                    f"{shown}")
+        if isinstance(value, float) and not math.isfinite(value) and path != "teacher.beta":
+            raise ConfigError(path, f"{path} must be a finite number, got {value}")
 
 
 def _check_names(cfg: RunConfig) -> None:

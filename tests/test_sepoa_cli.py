@@ -172,6 +172,10 @@ def test_every_cli_mistake_is_one_line_with_exit_status_2(tmp_path, capsys):
              ["--port", "'-1'", "1 to 65535"]),
             (["export", "--data-dir", str(data), "--run", "1180591620717411303424"],
              ["--run", "not a run id", "2147483647"]),
+            (["train", "--steps", "1e30", "--run-dir", str(tmp_path / "never")],
+             ["steps must be at most 2147483647", "1e+30"]),
+            (["train", "--budget", "2147483648", "--run-dir", str(tmp_path / "never")],
+             ["feedback.budget must be at most 2147483647", "2147483648"]),
         ]
         for args, words in cases:
             out = _sepoa(*args, cwd=tmp_path)
@@ -179,8 +183,8 @@ def test_every_cli_mistake_is_one_line_with_exit_status_2(tmp_path, capsys):
             assert out.returncode == 2, (args, out.stderr)
             assert len(lines) == 1 and "Traceback" not in out.stderr, (args, out.stderr)
             assert all(word in lines[0] for word in words), (args, lines[0])
-    # Nothing was created by the refused commands: no empty labeller, no database.
-    assert not (tmp_path / "fresh").exists()
+    # Nothing was created by the refused commands: no empty labeller, no database, no run.
+    assert not (tmp_path / "fresh").exists() and not (tmp_path / "never").exists()
     capsys.readouterr()
     assert main(["labeller", "list", "--data-dir", str(data)]) == 0
     assert capsys.readouterr().out.splitlines() == ["1\tzoe\tlabeller\tactive"]

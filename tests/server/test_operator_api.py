@@ -201,6 +201,13 @@ def test_a_malformed_run_is_422_naming_the_field(
          ["between 0.0 and 0.5, got 0.6"]),
         ({"config": {"feedback.gold_rate": -0.1}}, ["body", "config", "feedback.gold_rate"],
          ["between 0.0 and 0.5"]),
+        # Absurd sizes: refused with the limit named, not trained "forever".
+        ({"config": {"steps": 1e30}}, ["body", "config", "steps"],
+         ["at most 2147483647", "1e+30"]),
+        ({"config": {"steps": 2147483648}}, ["body", "config", "steps"],
+         ["at most 2147483647", "2147483648"]),
+        ({"config": {"replay_capacity": 10**12}}, ["body", "config", "replay_capacity"],
+         ["at most 2147483647"]),
     ],
 )
 def test_a_run_no_worker_could_train_is_422_naming_the_field_and_what_is_valid(
