@@ -549,9 +549,17 @@ def _field_doc(cls: type, name: str) -> str:
     return ""
 
 
+BOOL_WORDS = {"true": True, "yes": True, "on": True, "1": True,
+              "false": False, "no": False, "off": False, "0": False}
+"""the spellings a command-line bool takes"""
+
+
 def _parse_value(t: Any, text: str) -> Any:
     if t is bool:
-        return text.lower() in ("1", "true", "yes", "on")
+        if text.lower() not in BOOL_WORDS:  # a typo must not silently mean false
+            raise argparse.ArgumentTypeError(
+                f"{text!r} is not a bool; use true/false, yes/no, on/off or 1/0")
+        return BOOL_WORDS[text.lower()]
     if t is int:
         return int(float(text)) if "e" in text.lower() else int(text)
     if t is float:

@@ -163,6 +163,8 @@ def test_every_cli_mistake_is_one_line_with_exit_status_2(tmp_path, capsys):
             (["worker", "--database-url", "nonsense://x", "--once"],
              ["nonsense://x", "postgresql+psycopg://"]),
             (["train", "--steps", "abc"], ["--steps", "invalid integer value: 'abc'"]),
+            (["train", "--reward.surf", "flase", "--run-dir", str(tmp_path / "never")],
+             ["--reward.surf", "'flase' is not a bool", "true/false"]),
             (["labeller", "create", "", "--data-dir", str(data)], ["''", "1 to 100 characters"]),
             (["serve", "--port", port, "--data-dir", str(tmp_path / "fresh")],
              [f"127.0.0.1:{port} is in use", "--port"]),

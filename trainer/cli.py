@@ -51,7 +51,8 @@ class OneLineParser(argparse.ArgumentParser):
 def _train_parser(sub) -> argparse.ArgumentParser:
     from runvocab.config import add_config_arguments
 
-    p = sub.add_parser("train", help="train one run (SAC oracle or PEBBLE)",
+    p = sub.add_parser("train", help="train one run of any algorithm (sac, pebble, surf, rune, "
+                                     "rime, sepoa)",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--task", default=None, help="dmc:<domain>_<task> or metaworld:<name>")
     p.add_argument("--preset", default=None, help="paper | small | tiny")
