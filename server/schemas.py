@@ -61,7 +61,8 @@ AheadOf = Annotated[
     QueryParam(ge=1, le=INT32_MAX, description="the query being shown: keep it, lease one more"),
 ]
 AfterStep = Annotated[
-    int | None, QueryParam(ge=-1, le=INT32_MAX, description="rows after this step only")
+    int | None,
+    QueryParam(ge=0, le=INT32_MAX, description="rows after this step only (leave it out for all)"),
 ]
 Expires = Annotated[int | None, QueryParam(ge=0, le=INT64_MAX, description="unix seconds")]
 
@@ -136,8 +137,16 @@ PresetName = Annotated[str, AfterValidator(_one_of("preset", SIZE_PRESETS)),
                        Field(json_schema_extra={"enum": list(SIZE_PRESETS)})]
 ClipSizeName = Annotated[str, AfterValidator(_one_of("clip_size", list(CLIP_SIZES))),
                          Field(json_schema_extra={"enum": list(CLIP_SIZES)})]
+# What `clean_instruction` takes, stated in the schema: at most MAX_INSTRUCTION_CHARS characters,
+# something besides white space, and no control character but tab and line ends (its own
+# refusals name each problem).
+_TEXT_CHAR = r"[^\x00-\x08\x0b\x0c\x0e-\x1f]"
+_VISIBLE_CHAR = r"[^\x00-\x20\x85\xa0\u1680\u2000-\u200a\u2028\u2029\u202f\u205f\u3000]"
+INSTRUCTION_PATTERN = f"^{_TEXT_CHAR}*{_VISIBLE_CHAR}{_TEXT_CHAR}*$"
 InstructionText = Annotated[str, AfterValidator(clean_instruction),
-                            Field(max_length=4 * MAX_INSTRUCTION_CHARS,
+                            Field(max_length=MAX_INSTRUCTION_CHARS,
+                                  json_schema_extra={"minLength": 1,
+                                                     "pattern": INSTRUCTION_PATTERN},
                                   examples=["Run forward as fast as possible."])]
 
 

@@ -21,6 +21,7 @@ from labelqueue import NotFound, export_rows, lift_pause, paused_labellers
 from labelqueue.agreement import AgreementReport, agreement_report
 from labelqueue.calibration import (
     DEFAULT_EDGES,
+    MAX_BINS,
     CalibrationReport,
     calibration_report,
     parse_edges,
@@ -32,12 +33,19 @@ from server.schemas import LabellerId, RunFilter, RunId, errors
 
 router = APIRouter(prefix="/api/quality", tags=["quality"])
 
+_EDGE = r"(\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?|inf"
+_ZERO = r"(0+(\.0*)?|\.0+)([eE][+-]?\d+)?"
+BINS_PATTERN = rf"^ *{_ZERO} *(, *({_EDGE}) *){{1,{MAX_BINS}}}$"
+"""what `parse_edges` takes, but that the edges must increase: 2 to MAX_BINS + 1 numbers, 0
+first"""
 Bins = Annotated[
     str | None,
     Query(
         max_length=2000,
-        description="bin edges of the normalised gap, comma-separated and increasing from 0, "
-        "e.g. 0,0.1,0.2,0.5,1,inf (default: 0, 0.05, 0.1, ..., 2, inf)",
+        description=f"bin edges of the normalised gap: 2 to {MAX_BINS + 1} comma-separated "
+        "numbers (or inf), the first 0, each larger than the one before, e.g. "
+        "0,0.1,0.2,0.5,1,inf (default: 0, 0.05, 0.1, ..., 2, inf)",
+        json_schema_extra={"pattern": BINS_PATTERN},
     ),
 ]
 
