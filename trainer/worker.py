@@ -305,9 +305,12 @@ class QueueHooks(RunHooks):
         """Steps per second lately (a moving average over the beats), for the estimate of the
         next round: the first episodes' random steps run far faster than training does."""
         last = self.last_beat
-        self.last_beat = (now, step)
-        if last is None or step <= last[1] or now - last[0] < 0.5:
+        if last is None or step <= last[1]:  # no steps taken (waiting for answers): not counted
+            self.last_beat = (now, step)
             return
+        if now - last[0] < 0.5:  # beats close together: measure over a longer stretch
+            return
+        self.last_beat = (now, step)
         rate = (step - last[1]) / (now - last[0])
         old = self.progress.get("steps_per_s")
         self.progress["steps_per_s"] = rate if old is None else 0.7 * old + 0.3 * rate
