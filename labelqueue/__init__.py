@@ -29,6 +29,7 @@ from labelqueue.errors import (
     QueueError,
     Revoked,
     RunClosed,
+    StaleToken,
 )
 from labelqueue.export import COLUMNS as EXPORT_COLUMNS
 from labelqueue.export import FORMATS as EXPORT_FORMATS
@@ -153,6 +154,7 @@ __all__ = [
     "Role",
     "Run",
     "RunClosed",
+    "StaleToken",
     "RunStatus",
     "TeacherKind",
     "Worker",

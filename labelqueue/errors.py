@@ -29,5 +29,10 @@ class Revoked(QueueError):
     """The labeller has been deactivated: it may neither lease nor answer."""
 
 
+class StaleToken(Revoked):
+    """The bearer token the request came with is no longer the labeller's: a new one replaced
+    it (`rotate_token`), from whichever process."""
+
+
 class RunClosed(Conflict):
     """The run takes no answers in its status (only running and paused runs do)."""

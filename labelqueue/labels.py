@@ -9,14 +9,15 @@ returns their labels whether consumed or not, so nothing taken after the checkpo
 
 from __future__ import annotations
 
+import hmac
 from collections.abc import Sequence
 from datetime import UTC, datetime
 from typing import Any
 
-from sqlalchemy import ColumnElement, Integer, bindparam, case, insert, select, update
+from sqlalchemy import ColumnElement, Integer, String, bindparam, case, insert, select, update
 from sqlalchemy.orm import Session
 
-from labelqueue.errors import LeaseError, NotFound, Revoked, RunClosed
+from labelqueue.errors import LeaseError, NotFound, Revoked, RunClosed, StaleToken
 from labelqueue.gold import pause_if_below
 from labelqueue.models import (
     LABELLERS,
@@ -56,31 +57,41 @@ _ASKED = Prepared(select(
     QUERIES.c.gold,
     _STORED.with_only_columns(LABELS.c.id).scalar_subquery().label("stored"),
 ).where(QUERIES.c.id == _QUERY))
-_TAKE_ANSWER = Prepared(
-    update(QUERIES)
-    .where(
-        QUERIES.c.id == _QUERY,
-        QUERIES.c.status == QueryStatus.LEASED,
-        QUERIES.c.lease_holder == _LABELLER,
-        QUERIES.c.lease_expires_at > _NOW,
-        select(LABELLERS.c.id)
-        .where(LABELLERS.c.id == _LABELLER, LABELLERS.c.active.is_(True))
-        .exists(),
-        select(RUNS.c.id)
-        .where(RUNS.c.id == QUERIES.c.run_id, one_of(RUNS.c.status, LABELLABLE))
-        .exists(),
+def _take_answer(*, token: bool) -> Prepared:
+    """The conditional update that takes an answer: the labeller active (and with `token`, its
+    token the one whose hash `token_hash` names), holding a live lease on a running run's
+    query."""
+    labeller = [LABELLERS.c.id == _LABELLER, LABELLERS.c.active.is_(True)]
+    if token:
+        labeller.append(LABELLERS.c.token_hash == bindparam("token_hash", type_=String()))
+    return Prepared(
+        update(QUERIES)
+        .where(
+            QUERIES.c.id == _QUERY,
+            QUERIES.c.status == QueryStatus.LEASED,
+            QUERIES.c.lease_holder == _LABELLER,
+            QUERIES.c.lease_expires_at > _NOW,
+            select(LABELLERS.c.id).where(*labeller).exists(),
+            select(RUNS.c.id)
+            .where(RUNS.c.id == QUERIES.c.run_id, one_of(RUNS.c.status, LABELLABLE))
+            .exists(),
+        )
+        .values(
+            label_count=QUERIES.c.label_count + 1,
+            status=case(
+                (QUERIES.c.label_count + 1 >= QUERIES.c.needs_labels,
+                 QueryStatus.LABELLED.value),
+                else_=QueryStatus.PENDING.value,
+            ),
+            lease_holder=None,
+            lease_expires_at=None,
+            leased_at=None,
+        )
     )
-    .values(
-        label_count=QUERIES.c.label_count + 1,
-        status=case(
-            (QUERIES.c.label_count + 1 >= QUERIES.c.needs_labels, QueryStatus.LABELLED.value),
-            else_=QueryStatus.PENDING.value,
-        ),
-        lease_holder=None,
-        lease_expires_at=None,
-        leased_at=None,
-    )
-)
+
+
+_TAKE_ANSWER = _take_answer(token=False)
+_TAKE_ANSWER_WITH_TOKEN = _take_answer(token=True)
 _LABEL_COLUMNS = [column for column in LABELS.c if not column.primary_key]
 _INSERT_LABEL = Prepared(
     insert(LABELS)
@@ -102,6 +113,7 @@ def _stored_label(connection: DriverConnection, params: dict[str, Any]) -> Label
 _REFUSAL = Prepared(
     select(
         LABELLERS.c.active,
+        LABELLERS.c.token_hash,
         RUNS.c.status.label("run_status"),
         QUERIES.c.run_id,
         QUERIES.c.status,
@@ -123,6 +135,9 @@ def _why_refused(connection: DriverConnection, params: dict[str, Any]) -> Except
         return NotFound(f"labeller {labeller_id} does not exist")
     if not row.active:
         return Revoked(f"labeller {labeller_id} is deactivated")
+    token = params.get("token_hash")
+    if token is not None and not hmac.compare_digest(row.token_hash, token):
+        return StaleToken(f"labeller {labeller_id}'s token was replaced by a new one")
     if row.run_status not in LABELLABLE:
         return RunClosed(f"run {row.run_id} is {row.run_status}: it takes no more answers")
     status, expires = QueryStatus(row.status), row.lease_expires_at
@@ -188,6 +203,7 @@ def submit_label(
     source: LabelSource | str = LabelSource.HUMAN,
     flag: Flag | str | None = None,
     flag_note: str | None = None,
+    token_hash: str | None = None,
 ) -> tuple[Label, bool]:
     """Store the answer of the labeller holding the query's lease; (label, created).
 
@@ -196,11 +212,13 @@ def submit_label(
     the query's run running or paused (else RunClosed: an answer after a stop is refused, while
     those stored before it stay and are used when the run is requeued), and the labeller must
     hold an unexpired lease on the query (else LeaseError); all three are checked by the one
-    conditional update that takes the answer. `shown_at` is stored within [the lease's start,
-    now] (`clamp_shown_at`). The lease ends; the query becomes `labelled` once it has
-    `needs_labels` answers, else pending again; the run's `labels_used` grows by one whatever the
-    answer (cant_tell and skip count against the budget too), unless the query is a gold pair:
-    a gold answer costs no budget, and may pause the labeller on the run (`labelqueue.gold`).
+    conditional update that takes the answer, as is, given `token_hash` (the hash of the bearer
+    token a person answers with), that the token is still theirs (else StaleToken). `shown_at`
+    is stored within [the lease's start, now] (`clamp_shown_at`). The lease ends; the query
+    becomes `labelled` once it has `needs_labels` answers, else pending again; the run's
+    `labels_used` grows by one whatever the answer (cant_tell and skip count against the budget
+    too), unless the query is a gold pair: a gold answer costs no budget, and may pause the
+    labeller on the run (`labelqueue.gold`).
 
     A gold answer in the labeller's practice round on the run (`labelqueue.practice`) is stored
     with `practice` set and checks no gold threshold.
@@ -226,12 +244,13 @@ def submit_label(
         # Before this answer is stored: whether it is one of the labeller's practice round.
         practice = bool(asked.gold) and practice_step(
             connection, labeller_id=labeller_id, run_id=asked.run_id) is not None
-        if not _TAKE_ANSWER.count(connection, params):
+        take = _TAKE_ANSWER if token_hash is None else _TAKE_ANSWER_WITH_TOKEN
+        if not take.count(connection, params | {"token_hash": token_hash}):
             # A concurrent twin of this very submit may have won (PostgreSQL).
             label = _stored_label(connection, params)
             if label is not None:
                 return label, False
-            raise _why_refused(connection, params)
+            raise _why_refused(connection, params | {"token_hash": token_hash})
         values: dict[str, Any] = {
             "query_id": query_id,
             "run_id": asked.run_id,

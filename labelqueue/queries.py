@@ -7,6 +7,7 @@ expired lease needs no sweeper: the next lease simply takes the query over.
 
 from __future__ import annotations
 
+import hmac
 from collections.abc import Callable, Mapping, Sequence
 from datetime import datetime, timedelta
 from typing import Any
@@ -28,7 +29,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from labelqueue.coerce import clip_key, finite
-from labelqueue.errors import Conflict, NotFound, Revoked
+from labelqueue.errors import Conflict, NotFound, Revoked, StaleToken
 from labelqueue.gold import GOLD_NEEDS_LABELS, GoldSettings, Paused, gold_due, pause_notice
 from labelqueue.models import (
     LABELLERS,
@@ -224,7 +225,8 @@ _ASKED_TEACHER = (
     select(RUNS.c.teacher).where(RUNS.c.id == bindparam("run")).scalar_subquery().label("teacher")
 )
 _HOLDER = Prepared(
-    select(LABELLERS.c.active, QUERIES.c.id, QUERIES.c.run_id, RUNS.c.status, _ASKED_TEACHER)
+    select(LABELLERS.c.active, QUERIES.c.id, QUERIES.c.run_id, RUNS.c.status, _ASKED_TEACHER,
+           LABELLERS.c.token_hash)
     .select_from(LABELLERS)
     .outerjoin(
         QUERIES,
@@ -326,6 +328,7 @@ def lease_next_query(
     ahead_of: int | None = None,
     gold: bool = True,
     for_people: bool = False,
+    token_hash: str | None = None,
 ) -> Query | None:
     """Lease the oldest open query this labeller has no standing answer to (one it took back
     counts as unanswered); None when there is none.
@@ -344,7 +347,9 @@ def lease_next_query(
     leaves nothing to lease, Paused says why.
 
     `for_people`: a person asks, so the run asked for must exist (else NotFound) and be taught
-    by people (else Conflict).
+    by people (else Conflict). `token_hash`: the hash of the bearer token the person asked with
+    (`labellers.hash_token`), which must still be theirs (else StaleToken), read in this
+    transaction: a new token stops the old one at once, whichever process made it.
     """
     now = utcnow()
     params: dict[str, Any] = {
@@ -359,6 +364,8 @@ def lease_next_query(
             raise NotFound(f"labeller {labeller_id} does not exist")
         if not holder[0].active:
             raise Revoked(f"labeller {labeller_id} is deactivated")
+        if token_hash is not None and not hmac.compare_digest(holder[0].token_hash, token_hash):
+            raise StaleToken(f"labeller {labeller_id}'s token was replaced by a new one")
         if for_people and run_id is not None:
             if holder[0].teacher is None:
                 raise NotFound(f"run {run_id} does not exist")
@@ -366,7 +373,7 @@ def lease_next_query(
                 raise Conflict(f"run {run_id} is taught by a scripted teacher, not by people")
         # Its live leases: at most the one it is shown and the one ahead of it.
         others = []
-        for _, held, held_run, status, _ in holder:
+        for _, held, held_run, status, *_ in holder:
             if held is None:
                 continue
             if held == ahead_of:

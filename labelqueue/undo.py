@@ -14,14 +14,15 @@ cancelled (the worker cancels a round's open queries before it closes the round 
 
 from __future__ import annotations
 
+import hmac
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 
 from sqlalchemy import and_, or_, select, update
 from sqlalchemy.orm import Session
 
-from labelqueue.errors import Conflict, NotFound, RunClosed
-from labelqueue.models import Label, Query, QueryStatus, Run, utcnow
+from labelqueue.errors import Conflict, NotFound, Revoked, RunClosed, StaleToken
+from labelqueue.models import Label, Labeller, Query, QueryStatus, Run, utcnow
 from labelqueue.queries import LABELLABLE, LEASE_SECONDS
 from labelqueue.transaction import changed, detach, get_row, transaction
 
@@ -51,6 +52,7 @@ def withdraw_label(
     keep: int | None = None,
     lease_seconds: float = LEASE_SECONDS,
     window_seconds: float = UNDO_SECONDS,
+    token_hash: str | None = None,
 ) -> Withdrawn:
     """Take back the labeller's standing answer to the query and lease the query to it again;
     the labeller's other leases are released, but `keep`'s (the pair it is looking at now).
@@ -58,10 +60,17 @@ def withdraw_label(
     NotFound when it has no standing answer to the query; UndoRefused when the answer is older
     than `window_seconds` or the trainer has taken it; RunClosed when the run takes no answers;
     Conflict when the pair has been cancelled or another labeller holds it now. On refusal
-    nothing changes.
+    nothing changes. A deactivated labeller takes nothing back (Revoked), and given `token_hash`
+    (the hash of the bearer token a person asks with), nor one whose token was replaced
+    (StaleToken): both read in this transaction, so they hold at once from any process.
     """
     now = utcnow()
     with transaction(session):
+        labeller = get_row(session, Labeller, labeller_id)
+        if not labeller.active:
+            raise Revoked(f"labeller {labeller_id} is deactivated")
+        if token_hash is not None and not hmac.compare_digest(labeller.token_hash, token_hash):
+            raise StaleToken(f"labeller {labeller_id}'s token was replaced by a new one")
         label = session.scalars(
             select(Label)
             .where(Label.query_id == query_id, Label.labeller_id == labeller_id,

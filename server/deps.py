@@ -30,6 +30,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from starlette.concurrency import run_in_threadpool
 
 from labelqueue import Role, WriterBusy, authenticate, without_waiting
+from labelqueue.labellers import hash_token
 from server.settings import Settings
 
 T = TypeVar("T")
@@ -253,15 +254,19 @@ class LabellerCall:
     threads: LabelThreads | None
     inline: bool = False
     """try the work on the event loop first (`Settings.label_work_inline`)"""
+    token_hash: str | None = None
+    """the hash of the bearer token the request came with: the queue work checks it is still
+    the labeller's, in its own transaction, so a new token stops the old one at once whatever
+    the token cache holds (`labelqueue.StaleToken`)"""
 
     def _in_session(self, service: Callable[..., T], kwargs: dict[str, Any]) -> T:
         with self.sessions() as session:
-            return service(
-                session, settings=self.settings, labeller_id=self.labeller_id, **kwargs
-            )
+            return service(session, settings=self.settings, labeller_id=self.labeller_id,
+                           token_hash=self.token_hash, **kwargs)
 
     async def serve(self, service: Callable[..., T], /, **kwargs: Any) -> T:
-        """`service(session, settings=..., labeller_id=..., **kwargs)` in a session of its own
+        """`service(session, settings=..., labeller_id=..., token_hash=..., **kwargs)` in a
+        session of its own
         on the app's executor for queue work, awaited.
 
         A plain executor hand-off costs about half of FastAPI's for a `def` route (AnyIO's
@@ -300,7 +305,8 @@ async def get_labeller_call(request: Request) -> LabellerCall:
         caller = await label_work(threads, check, inline=inline)
     must_be_labeller(caller)
     assert caller.labeller_id is not None
-    return LabellerCall(settings, sessions, caller.labeller_id, threads, inline)
+    return LabellerCall(settings, sessions, caller.labeller_id, threads, inline,
+                        None if token is None else hash_token(token))
 
 
 BEARER_SECURITY: dict[str, Any] = {"security": [{"bearer": []}]}

@@ -15,7 +15,15 @@ from sqlalchemy.exc import DataError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import BaseRoute
 
-from labelqueue import Conflict, InviteClosed, LeaseError, NotFound, Paused, Revoked
+from labelqueue import (
+    Conflict,
+    InviteClosed,
+    LeaseError,
+    NotFound,
+    Paused,
+    Revoked,
+    StaleToken,
+)
 
 STATUS_OF: dict[type[Exception], int] = {
     NotFound: 404,
@@ -34,6 +42,12 @@ def _handler(status_code: int) -> Callable[[Request, Exception], Awaitable[JSONR
         return JSONResponse(status_code=status_code, content={"detail": str(error)})
 
     return handle
+
+
+async def _stale_token(_request: Request, error: Exception) -> JSONResponse:
+    # As for any token that names no labeller: the caller must sign in with the new one.
+    return JSONResponse(status_code=401, content={"detail": f"invalid or revoked bearer token "
+                        f"({error})"}, headers={"WWW-Authenticate": "Bearer"})
 
 
 async def _out_of_range(_request: Request, _error: Exception) -> JSONResponse:
@@ -89,6 +103,7 @@ def install_error_handlers(app: FastAPI) -> None:
     """Register the mappings above on `app` (once, in the app factory)."""
     for error_type, status_code in STATUS_OF.items():
         app.add_exception_handler(error_type, _handler(status_code))
+    app.add_exception_handler(StaleToken, _stale_token)
     app.add_exception_handler(OverflowError, _out_of_range)
     app.add_exception_handler(DataError, _out_of_range)
     app.add_exception_handler(StarletteHTTPException, _http_error)

@@ -101,6 +101,7 @@ def next_query(
     labeller_id: int,
     run_id: int | None,
     ahead_of: int | None = None,
+    token_hash: str | None = None,
 ) -> NextQuery | None:
     """Lease the labeller's next query and describe it without ground truth; None if none. A
     run asked for must exist and be taught by people (checked in the lease's transaction)."""
@@ -111,6 +112,7 @@ def next_query(
         lease_seconds=settings.lease_seconds,
         ahead_of=ahead_of,
         for_people=True,
+        token_hash=token_hash,
     )
     if query is None:
         return None
@@ -152,12 +154,13 @@ def practice_of(session: Session, *, query: Query, labeller_id: int) -> Practice
 
 
 def answer_out(
-    session: Session, *, settings: Settings, labeller_id: int, query_id: int, body: LabelSubmit
+    session: Session, *, settings: Settings, labeller_id: int, query_id: int, body: LabelSubmit,
+    token_hash: str | None = None,
 ) -> tuple[LabelOut, bool]:
     """`submit_answer`, as the page gets it: a practice answer comes explained (which clip the
     true reward prefers, by a ratio: never the returns)."""
     label, created = submit_answer(session, settings=settings, labeller_id=labeller_id,
-                                   query_id=query_id, body=body)
+                                   query_id=query_id, body=body, token_hash=token_hash)
     out = LabelOut.model_validate(label)
     if label.practice:  # an answer of the practice round
         query = get_query(session, query_id=query_id)
@@ -174,7 +177,8 @@ def answer_out(
 
 
 def submit_answer(
-    session: Session, *, settings: Settings, labeller_id: int, query_id: int, body: LabelSubmit
+    session: Session, *, settings: Settings, labeller_id: int, query_id: int, body: LabelSubmit,
+    token_hash: str | None = None,
 ) -> tuple[Label, bool]:
     """Store a person's answer; (label, created). The side order is the server's own; a page
     that sends the `left_is_first` next-query gave as a check, and sends another, is refused
@@ -196,16 +200,18 @@ def submit_answer(
         source=LabelSource.HUMAN,
         flag=body.flag,
         flag_note=body.flag_note,
+        token_hash=token_hash,
     )
 
 
 def take_back_answer(
-    session: Session, *, settings: Settings, labeller_id: int, query_id: int, keep: int | None
+    session: Session, *, settings: Settings, labeller_id: int, query_id: int, keep: int | None,
+    token_hash: str | None = None,
 ) -> tuple[Label, NextQuery]:
     """Withdraw the labeller's answer to the query (`labelqueue.undo`); the label as withdrawn
     and the query, leased to the labeller again, as its page shows it."""
     withdrawn = withdraw_label(session, query_id=query_id, labeller_id=labeller_id, keep=keep,
-                               lease_seconds=settings.lease_seconds)
+                               lease_seconds=settings.lease_seconds, token_hash=token_hash)
     return withdrawn.label, shown_query(settings=settings, query=withdrawn.query,
                                         labeller_id=labeller_id, session=session)
 

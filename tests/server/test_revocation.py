@@ -1,0 +1,61 @@
+"""Revoking a labeller or giving them a new token takes effect at once, from any process: the
+command line's change reaches a running server's lease, answer and undo although the server
+trusts the checked token for a few seconds (`SEPOA_AUTH_CACHE_SECONDS`)."""
+
+from __future__ import annotations
+
+from fastapi.testclient import TestClient
+from server_helpers import bearer, new_labeller, running_run_with_queries, snapshot
+from sqlalchemy.orm import Session
+
+from sepoa.cli import main
+from server.settings import Settings
+
+SHOWN = "2026-01-01T00:00:00Z"
+
+
+def _next(client: TestClient, token: str, run_id: int):  # type: ignore[no-untyped-def]
+    return client.get(f"/api/label/next?run_id={run_id}", headers=bearer(token))
+
+
+def _answer(client: TestClient, token: str, query: dict):  # type: ignore[no-untyped-def]
+    body = {"choice": "left", "left_is_first": query["left_is_first"], "shown_at": SHOWN}
+    return client.post(f"/api/label/{query['query_id']}", json=body, headers=bearer(token))
+
+
+def _withdraw(client: TestClient, token: str, query_id: int):  # type: ignore[no-untyped-def]
+    return client.post(f"/api/label/{query_id}/withdraw", json={}, headers=bearer(token))
+
+
+def test_a_new_token_made_by_the_cli_stops_the_old_one_at_once(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    run_id, _ = running_run_with_queries(client, session, settings, n=4)
+    old = new_labeller(client, "alice")
+    shown = _next(client, old, run_id).json()  # the server has checked the token: cached
+    assert _answer(client, old, shown).status_code == 201
+    held = _next(client, old, run_id).json()
+    assert main(["labeller", "token", "alice", "--data-dir", str(settings.data_dir)]) == 0
+    before = snapshot(session)
+    for refused in (_next(client, old, run_id), _answer(client, old, held),
+                    _withdraw(client, old, shown["query_id"])):
+        assert refused.status_code == 401, refused.text
+        assert "replaced by a new one" in refused.json()["detail"]
+        assert refused.headers["www-authenticate"] == "Bearer"
+    assert snapshot(session) == before  # nothing leased, answered or taken back
+
+
+def test_a_labeller_revoked_by_the_cli_cannot_take_an_answer_back(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    run_id, _ = running_run_with_queries(client, session, settings, n=4)
+    token = new_labeller(client, "bob")
+    shown = _next(client, token, run_id).json()
+    assert _answer(client, token, shown).status_code == 201
+    assert main(["labeller", "revoke", "bob", "--data-dir", str(settings.data_dir)]) == 0
+    before = snapshot(session)
+    taken_back = _withdraw(client, token, shown["query_id"])  # within the undo window
+    assert taken_back.status_code == 403, taken_back.text
+    assert "deactivated" in taken_back.json()["detail"]
+    assert _next(client, token, run_id).status_code == 403
+    assert snapshot(session) == before  # the answer stands; no pair leased to bob again
