@@ -276,8 +276,11 @@ def _reward_parser(sub) -> argparse.ArgumentParser:
                      help="share of the labelled pairs held out, in [0, 0.9]")
     fit.add_argument("--seed", type=lambda s: int(s), metavar="INT", default=0)
     fit.add_argument("--epochs", type=lambda s: int(s), metavar="INT", default=None,
-                     help="most passes over the training pairs (default: the run's "
-                     "reward.max_epochs per round it had)")
+                     help="most passes over the pairs per training (default: the run's "
+                     "reward.max_epochs)")
+    fit.add_argument("--schedule", choices=("rounds", "once"), default="rounds",
+                     help="rounds: train as the run did, after each round's pairs join, on "
+                     "every pair so far; once: one training on all of them")
     fit.add_argument("--threads", type=lambda s: int(s), metavar="INT", default=1,
                      help="torch CPU threads")
     fit.add_argument("--device", default="cpu", help="cpu | cuda")
@@ -315,7 +318,7 @@ def _run_reward_fit(args: argparse.Namespace) -> int:
     try:
         run_model = None if args.compare is None else run_reward_model(args.compare, dataset)
         result = fit(dataset, holdout=args.holdout, seed=args.seed, epochs=args.epochs,
-                     device=args.device)
+                     device=args.device, schedule=args.schedule)
         if run_model is not None:
             result.metrics.update(compare(run_model, result, dataset, args.seed))
         save_reward_model(out, result, dataset)
@@ -328,9 +331,9 @@ def _run_reward_fit(args: argparse.Namespace) -> int:
           f"{int(m['heldout_pairs'])} held out; held-out accuracy {m['heldout_accuracy']:.3f} "
           f"({int(m['heldout_decisive'])} decisive), training accuracy "
           f"{m['train_accuracy']:.3f}, on true-order pairs {m['true_order_accuracy']:.3f}, "
-          f"r_hat vs true reward r = {m['reward_corr']:.3f}; {int(m['epochs'])} epochs in "
-          f"{m['seconds']:.1f} s; saved {out} (start a run from it with "
-          f"reward.init_from={out})", file=sys.stderr)
+          f"r_hat vs true reward r = {m['reward_corr']:.3f}; {int(m['epochs'])} epochs over "
+          f"{int(m['trainings'])} trainings in {m['seconds']:.1f} s; saved {out} (start a "
+          f"run from it with reward.init_from={out})", file=sys.stderr)
     if run_model is not None:
         print(f"the run's own reward model: held-out accuracy "
               f"{m['run_heldout_accuracy']:.3f} (it trained on these pairs), on true-order "

@@ -5,10 +5,12 @@
 The labelled pairs are the export's answered queries (`queries.parquet`) whose aggregate is
 first, second or equal, gold pairs aside (never trained on, as in a run). A seeded share of them
 (`holdout`) is held out; the ensemble (the run's own `reward` configuration from `sepoa.json`)
-trains on the rest with the run's loss and early stopping (`RewardModel.train_round`), SURF's
-crops and pseudo-labels included when the run used them. Reported: the held-out accuracy (the
-share of held-out first/second pairs whose summed r_hat orders the two segments as their
-aggregate does), the training accuracy, and the Pearson correlation of r_hat with the true
+trains on the rest as the run trained its own: after each feedback round's pairs join, on every
+pair so far, with the run's loss and early stopping (`RewardModel.train_round`), SURF's crops
+and pseudo-labels included when the run used them (or once on all of them: `schedule`).
+Reported: the held-out accuracy (the share of held-out first/second pairs whose summed r_hat
+orders the two segments as their aggregate does), the training accuracy, the accuracy on random
+segment pairs ordered by their true returns, and the Pearson correlation of r_hat with the true
 reward over every step of the dataset's episodes. The saved file (`save_reward_model`) is what
 a new run starts from with `reward.init_from`.
 """
@@ -43,6 +45,8 @@ class Pairs:
     targets: np.ndarray
     """(n,) P[second preferred]: 0, 1 or 0.5"""
     query_ids: np.ndarray
+    rounds: np.ndarray
+    """(n,) the feedback round that asked each pair"""
 
 
 def _segment(dataset: LabelledDataset, episode: int, start: int, length: int) -> np.ndarray:
@@ -53,7 +57,7 @@ def _segment(dataset: LabelledDataset, episode: int, start: int, length: int) ->
 
 def labelled_pairs(dataset: LabelledDataset) -> Pairs:
     """The dataset's trainable pairs: answered, not gold, aggregate first/second/equal."""
-    seg0, seg1, targets, ids = [], [], [], []
+    seg0, seg1, targets, ids, rounds = [], [], [], [], []
     for q in dataset.queries:
         if q.get("gold") or q["aggregate"] is None:
             continue
@@ -65,6 +69,7 @@ def labelled_pairs(dataset: LabelledDataset) -> Pairs:
         seg1.append(_segment(dataset, q["second_episode"], q["second_start"], h))
         targets.append(target)
         ids.append(q["query_id"])
+        rounds.append(q["round"])
     if not targets:
         raise DatasetError(f"{dataset.path}: no query has a first, second or equal answer to "
                            "train on")
@@ -72,7 +77,7 @@ def labelled_pairs(dataset: LabelledDataset) -> Pairs:
         raise DatasetError(f"{dataset.path}: the labelled segments differ in length; a fit "
                            "needs segments of one length")
     return Pairs(np.stack(seg0), np.stack(seg1), np.asarray(targets, np.float32),
-                 np.asarray(ids))
+                 np.asarray(ids), np.asarray(rounds))
 
 
 def split(pairs: Pairs, holdout: float, seed: int) -> tuple[Pairs, Pairs]:
@@ -86,7 +91,8 @@ def split(pairs: Pairs, holdout: float, seed: int) -> tuple[Pairs, Pairs]:
     held, train = order[:k], order[k:]
 
     def take(idx: np.ndarray) -> Pairs:
-        return Pairs(pairs.seg0[idx], pairs.seg1[idx], pairs.targets[idx], pairs.query_ids[idx])
+        return Pairs(pairs.seg0[idx], pairs.seg1[idx], pairs.targets[idx],
+                     pairs.query_ids[idx], pairs.rounds[idx])
 
     return take(train), take(held)
 
@@ -125,15 +131,13 @@ def reward_correlation(model: RewardModel, dataset: LabelledDataset) -> float:
 
 
 def reward_config(dataset: LabelledDataset, epochs: int | None) -> RewardConfig:
-    """The run's reward configuration (the defaults when the export has none), with `epochs`
-    passes at most, or as many as the run could make: its `max_epochs` per round."""
+    """The run's reward configuration (the defaults when the export has none), with at most
+    `epochs` passes per training (default: the run's `max_epochs`)."""
     stored = (dataset.info.get("config") or {}).get("reward") or {}
     known = {f.name for f in dataclasses.fields(RewardConfig)}
     cfg = RewardConfig(**{k: v for k, v in stored.items() if k in known})
-    rounds = len({q["round"] for q in dataset.queries}) or 1
     return dataclasses.replace(cfg, init_from="",
-                               max_epochs=epochs if epochs is not None
-                               else cfg.max_epochs * rounds)
+                               max_epochs=epochs if epochs is not None else cfg.max_epochs)
 
 
 @dataclass(frozen=True)
@@ -144,21 +148,33 @@ class FitResult:
     heldout: Pairs
 
 
+SCHEDULES = ("rounds", "once")
+"""rounds: train after each feedback round's pairs join, on every pair so far, as the run did;
+once: one training on all the pairs"""
+
+
 def fit(dataset: LabelledDataset, *, holdout: float = 0.2, seed: int = 0,
-        epochs: int | None = None, device: str = "cpu") -> FitResult:
+        epochs: int | None = None, device: str = "cpu", schedule: str = "rounds") -> FitResult:
     """Train a reward ensemble on the dataset's labelled pairs (module docstring)."""
+    if schedule not in SCHEDULES:
+        raise ValueError(f"schedule {schedule!r}: give one of {', '.join(SCHEDULES)}")
     pairs = labelled_pairs(dataset)
     train, held = split(pairs, holdout, seed)
     cfg = reward_config(dataset, epochs)
     torch.manual_seed(seed)
     obs_dim, action_dim = int(dataset.info["obs_dim"]), int(dataset.info["action_dim"])
     model = RewardModel(obs_dim, action_dim, cfg, torch.device(device), seed)
-    labelled = LabelledPairs()
-    for s0, s1, y in zip(train.seg0, train.seg1, train.targets, strict=True):
-        labelled.add(s0, s1, float(y))
     unlabelled = _unlabelled_pairs(dataset, pairs.seg0.shape[1], seed) if cfg.surf else None
     start = time.perf_counter()
-    trained = model.train_round(labelled, unlabelled)
+    labelled = LabelledPairs()
+    steps = sorted(set(train.rounds.tolist())) if schedule == "rounds" else [None]
+    epochs_run = 0
+    for round_ in steps:
+        for s0, s1, y, r in zip(train.seg0, train.seg1, train.targets, train.rounds,
+                                strict=True):
+            if round_ is None or r == round_:
+                labelled.add(s0, s1, float(y))
+        epochs_run += int(model.train_round(labelled, unlabelled)["reward_epochs"])
     truth = true_order_pairs(dataset, TRUE_ORDER_PAIRS, pairs.seg0.shape[1], seed)
     metrics = {
         "pairs": float(len(pairs.targets)), "train_pairs": float(len(train.targets)),
@@ -168,7 +184,8 @@ def fit(dataset: LabelledDataset, *, holdout: float = 0.2, seed: int = 0,
         "train_accuracy": pair_accuracy(model, train),
         "reward_corr": reward_correlation(model, dataset),
         "true_order_accuracy": pair_accuracy(model, truth),
-        "epochs": float(trained["reward_epochs"]), "seconds": time.perf_counter() - start,
+        "trainings": float(len(steps)), "epochs": float(epochs_run),
+        "seconds": time.perf_counter() - start,
     }
     return FitResult(model, metrics, train, held)
 
@@ -197,7 +214,7 @@ def true_order_pairs(dataset: LabelledDataset, n: int, length: int, seed: int) -
         seg1.append(_segment(dataset, b, sb, length))
         targets.append(1.0 if rb > ra else 0.0)
     return Pairs(np.stack(seg0), np.stack(seg1), np.asarray(targets, np.float32),
-                 np.arange(len(targets)))
+                 np.arange(len(targets)), np.zeros(len(targets), np.int64))
 
 
 def run_reward_model(checkpoint: str, dataset: LabelledDataset) -> RewardModel:
