@@ -3,10 +3,15 @@
 The worker pushes a few gold pairs per round when the run's `feedback.gold_rate` is above zero:
 pairs whose true segment returns differ by far more than the teacher's band, so their answer,
 the segment with the larger return, is beyond doubt. Every labeller may answer each gold pair
-once (`GOLD_NEEDS_LABELS`); the page cannot tell them from the others. A lease serves one when
-the labeller's share of gold answers on the run is below the rate (with a random offset per
-answer, so the positions of gold pairs in a stream follow no pattern). Gold answers are never
-trained on and never count against the budget.
+once (`GOLD_NEEDS_LABELS`). Nothing a labeller sees tells them from the others: the worker puts
+them at random places among the round's queries (`trainer.gold_pairs.round_layout`), so their
+ids are the round's like any, and renders their clips in that order; a lease serves a gold pair
+only in the order the others come in (`labelqueue.queries`: never behind the furthest query the
+labeller answered on the run, nor after the next ordinary one), and only when the labeller's
+share of gold answers on the run is below the rate, with an offset per answer drawn from a key
+the server keeps in the database (`SCHEDULE_KEY`), so knowing the rate, the code and one's own
+ids does not tell when the next check is due. Gold answers are never trained on and never count
+against the budget.
 
 After each gold answer the labeller's gold accuracy on the run is checked against the run's
 `feedback.gold_min_accuracy` (0: off): below it, once they gave `feedback.gold_min_answers`
@@ -17,6 +22,7 @@ they get no more of the run's queries until an operator lifts the pause.
 from __future__ import annotations
 
 import hashlib
+import hmac
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -60,9 +66,15 @@ def gold_answer(first_return: float, second_return: float) -> Answer:
     return Answer.FIRST if first_return > second_return else Answer.SECOND
 
 
-def _offset(labeller_id: int, run_id: int, answers: int) -> float:
-    """A uniform number in [0, 1), fixed per labeller, run and answer count."""
-    digest = hashlib.sha256(f"gold:{labeller_id}:{run_id}:{answers}".encode()).digest()
+SCHEDULE_KEY = "gold-schedule"
+"""the server key (`labelqueue.keys`) the offsets of the gold schedule are drawn with"""
+
+
+def _offset(key: bytes, labeller_id: int, run_id: int, answers: int) -> float:
+    """A uniform number in [0, 1), fixed per labeller, run and answer count, that only a
+    holder of `key` can work out."""
+    message = f"gold:{labeller_id}:{run_id}:{answers}".encode()
+    digest = hmac.new(key, message, hashlib.sha256).digest()
     return int.from_bytes(digest[:8], "big") / 2.0**64
 
 
@@ -70,20 +82,39 @@ _LABELLER = bindparam("labeller", type_=Integer())
 _RUN = bindparam("gold_run", type_=Integer())
 _SHARE = Prepared(
     select(func.count().label("answers"),
-           func.coalesce(func.sum(QUERIES.c.gold.cast(Integer)), 0).label("gold"))
+           func.coalesce(func.sum(QUERIES.c.gold.cast(Integer)), 0).label("gold"),
+           func.coalesce(func.max(LABELS.c.query_id), 0).label("furthest"))
     .select_from(LABELS.join(QUERIES, QUERIES.c.id == LABELS.c.query_id))
     .where(LABELS.c.labeller_id == _LABELLER, LABELS.c.run_id == _RUN,
            LABELS.c.withdrawn_at.is_(None), LABELS.c.practice.is_(False))
 )
 
 
-def gold_due(connection: DriverConnection, *, labeller_id: int, run_id: int,
+@dataclass(frozen=True)
+class GoldShare:
+    """A labeller's standing answers on a run (the practice round's left out)."""
+
+    answers: int
+    gold: int
+    """of them, to gold pairs"""
+    furthest: int
+    """the largest query id among them (0 for none): how far the labeller got in the run"""
+
+
+def gold_share(connection: DriverConnection, *, labeller_id: int, run_id: int) -> GoldShare:
+    [row] = _SHARE.rows(connection, {"labeller": labeller_id, "gold_run": run_id})
+    return GoldShare(int(row.answers), int(row.gold), int(row.furthest))
+
+
+def gold_due(share: GoldShare, *, key: bytes, labeller_id: int, run_id: int,
              rate: float) -> bool:
-    """Whether the labeller's next query on the run should be a gold pair."""
+    """Whether the labeller's next query on the run should be a gold pair: whether their gold
+    answers, plus an offset drawn with `key` for this answer, fall short of `rate` of their
+    answers and this one (so they stay within one of the rate's share)."""
     if rate <= 0:
         return False
-    [(answers, gold)] = _SHARE.rows(connection, {"labeller": labeller_id, "gold_run": run_id})
-    return int(gold) + _offset(labeller_id, run_id, int(answers)) < rate * (int(answers) + 1)
+    offset = _offset(key, labeller_id, run_id, share.answers)
+    return share.gold + offset < rate * (share.answers + 1)
 
 
 _GOLD_ANSWERS = Prepared(

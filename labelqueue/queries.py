@@ -30,7 +30,16 @@ from sqlalchemy.orm import Session
 
 from labelqueue.coerce import clip_key, finite
 from labelqueue.errors import Conflict, NotFound, Revoked, StaleToken
-from labelqueue.gold import GOLD_NEEDS_LABELS, GoldSettings, Paused, gold_due, pause_notice
+from labelqueue.gold import (
+    GOLD_NEEDS_LABELS,
+    SCHEDULE_KEY,
+    GoldSettings,
+    Paused,
+    gold_due,
+    gold_share,
+    pause_notice,
+)
+from labelqueue.keys import server_key
 from labelqueue.models import (
     LABELLERS,
     LABELS,
@@ -254,11 +263,13 @@ _RELEASE = Prepared(
 )
 
 
-def _oldest(*, of_run: bool, gold: bool, only_id: bool = False) -> Select[Any]:
+def _oldest(*, of_run: bool, gold: bool, only_id: bool = False, after: bool = False,
+            lock: bool = True) -> Select[Any]:
     """The oldest open query (gold pair or not) the labeller has not answered, of one run or of
     any human-taught run, on a run that has not paused the labeller: its id, run and the run's
-    config. Locked with SKIP LOCKED on PostgreSQL, so concurrent leases take different queries
-    instead of queueing for one."""
+    config; with `after`, the oldest whose id is above the parameter `after`. Locked with SKIP
+    LOCKED on PostgreSQL (unless not `lock`: a look only), so concurrent leases take different
+    queries instead of queueing for one."""
     candidate = QUERIES.alias("candidate")
     # A standing answer: one taken back lets the labeller answer again (and the partial
     # unique index on standing labels makes this a lookup, not a scan of every label).
@@ -278,15 +289,17 @@ def _oldest(*, of_run: bool, gold: bool, only_id: bool = False) -> Select[Any]:
         candidate.c.run_id == bindparam("run") if of_run else RUNS.c.teacher == TeacherKind.HUMAN
     )
     columns = (candidate.c.id,) if only_id else (candidate.c.id, candidate.c.run_id, RUNS.c.config)
-    return (
+    oldest = (
         select(*columns)
         .join(RUNS, RUNS.c.id == candidate.c.run_id)
         .where(candidate.c.gold.is_(gold), one_of(RUNS.c.status, LABELLABLE))
         .where(_free(candidate, _NOW), ~answered, ~paused, servable, which)
         .order_by(candidate.c.id)
         .limit(1)
-        .with_for_update(of=candidate, skip_locked=True)
     )
+    if after:
+        oldest = oldest.where(candidate.c.id > bindparam("after", type_=Integer()))
+    return oldest.with_for_update(of=candidate, skip_locked=True) if lock else oldest
 
 
 def _lease(which: ColumnElement[Any]) -> Prepared:
@@ -308,6 +321,9 @@ _TAKE_OF_ANY_HUMAN_RUN = _lease(_oldest(of_run=False, gold=False, only_id=True).
 _TAKE_OF_RUN = _lease(_oldest(of_run=True, gold=False, only_id=True).scalar_subquery())
 _GOLD_OF_ANY_HUMAN_RUN = Prepared(_oldest(of_run=False, gold=True))
 _GOLD_OF_RUN = Prepared(_oldest(of_run=True, gold=True))
+_GOLD_OF_RUN_AFTER = Prepared(_oldest(of_run=True, gold=True, after=True))
+_FIRST_OF_ANY_HUMAN_RUN = Prepared(_oldest(of_run=False, gold=False, only_id=True, lock=False))
+_FIRST_OF_RUN = Prepared(_oldest(of_run=True, gold=False, only_id=True, lock=False))
 _TAKE_GOLD = _lease(bindparam("gold_pair", type_=Integer()))
 # Why nothing was leased, when the labeller is paused on the runs asked about.
 _PAUSE_STATEMENT = (
@@ -358,6 +374,7 @@ def lease_next_query(
         "until": now + timedelta(seconds=lease_seconds),
         "run": run_id,
     }
+    key = server_key(session, SCHEDULE_KEY) if gold else None  # read once per process
     with driver_transaction(session) as connection:
         holder = _HOLDER.rows(connection, params)
         if not holder:
@@ -387,7 +404,7 @@ def lease_next_query(
             others.append(held)
         for other in others:  # held for another run, or for a run that closed: free for others
             _RELEASE.count(connection, params | {"query": other})
-        row = _lease_gold(connection, params) if gold else None
+        row = _lease_gold(connection, params, key, ahead_of) if key is not None else None
         if row is None:
             take = _TAKE_OF_ANY_HUMAN_RUN if run_id is None else _TAKE_OF_RUN
             row = take.first(connection, params)
@@ -399,17 +416,33 @@ def lease_next_query(
     return None if row is None else snapshot(Query, row._asdict())
 
 
-def _lease_gold(connection: DriverConnection, params: dict[str, Any]) -> Any | None:
-    """A gold pair for the labeller when one is open and their share of gold answers is due."""
+def _lease_gold(connection: DriverConnection, params: dict[str, Any], key: bytes,
+                ahead_of: int | None) -> Any | None:
+    """A gold pair for the labeller when one is open and their share of gold answers is due
+    (`labelqueue.gold`; or their practice round wants one), in the order the other queries
+    come in: never one behind the furthest query they answered on the run or the one they are
+    shown (`ahead_of`), and never one after the next ordinary query, which then comes first.
+    So neither the ids a labeller is served nor their order tell a gold pair from the others."""
+    labeller = params["labeller"]
     oldest = _GOLD_OF_ANY_HUMAN_RUN if params["run"] is None else _GOLD_OF_RUN
     candidate = oldest.first(connection, params)
     if candidate is None:
         return None
-    practising = practice_step(connection, labeller_id=params["labeller"],
-                               run_id=candidate.run_id, config=candidate.config, known=True,
-                               held="all")
-    if practising is None and not gold_due(connection, labeller_id=params["labeller"],
-                                           run_id=candidate.run_id,
-                                           rate=GoldSettings.of(candidate.config).rate):
-        return None
+    practising = practice_step(connection, labeller_id=labeller, run_id=candidate.run_id,
+                               config=candidate.config, known=True, held="all")
+    if practising is None:  # the practice round is said to be one; the rest is hidden
+        share = gold_share(connection, labeller_id=labeller, run_id=candidate.run_id)
+        if not gold_due(share, key=key, labeller_id=labeller, run_id=candidate.run_id,
+                        rate=GoldSettings.of(candidate.config).rate):
+            return None
+        reached = max(share.furthest, ahead_of or 0)
+        if candidate.id <= reached:
+            ahead = params | {"run": candidate.run_id, "after": reached}
+            candidate = _GOLD_OF_RUN_AFTER.first(connection, ahead)
+            if candidate is None:
+                return None
+        first = (_FIRST_OF_ANY_HUMAN_RUN if params["run"] is None else _FIRST_OF_RUN).first(
+            connection, params)
+        if first is not None and first.id < candidate.id:
+            return None
     return _TAKE_GOLD.first(connection, params | {"gold_pair": candidate.id})

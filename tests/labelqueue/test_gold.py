@@ -46,12 +46,16 @@ def gold_run(session: Session, *, worker_id: str = "worker-a", **config: Any) ->
     return claimed
 
 
-def push(session: Session, run: Run, *, plain: int, gold: int) -> tuple[list[int], list[int]]:
-    """`plain` ordinary queries, then `gold` gold pairs; their ids."""
-    specs = [query_spec(i) for i in range(plain)]
-    specs += [query_spec(plain + i, gold=True) for i in range(gold)]
+def push(session: Session, run: Run, *, plain: int, gold: int,
+         **plain_fields: Any) -> tuple[list[int], list[int]]:
+    """`plain` ordinary queries and `gold` gold pairs spread evenly among them, as a worker puts
+    them (at places of their own in the round); their ids, in order."""
+    places = {(i + 1) * (plain + gold) // (gold + 1) for i in range(gold)}
+    specs = [query_spec(i, gold=True) if i in places else query_spec(i, **plain_fields)
+             for i in range(plain + gold)]
     ids = push_queries(session, run_id=run.id, queries=specs)
-    return ids[:plain], ids[plain:]
+    return ([i for i, spec in zip(ids, specs, strict=True) if not spec.get("gold")],
+            [i for i, spec in zip(ids, specs, strict=True) if spec.get("gold")])
 
 
 def answer_next(
@@ -85,7 +89,8 @@ def test_the_gold_answer_is_the_segment_with_the_larger_true_return() -> None:
 
 def test_a_gold_pair_is_answered_by_everyone_once_and_costs_no_budget(session: Session) -> None:
     run = gold_run(session, gold_rate=0.5)
-    plain, [gold] = push(session, run, plain=20, gold=1)
+    # Every ordinary query asks everyone, so each person walks the same stream.
+    plain, [gold] = push(session, run, plain=3, gold=1, needs_labels=6)
     assert fresh(session, gold).needs_labels == GOLD_NEEDS_LABELS and fresh(session, gold).gold
     people = [create_labeller(session, name=f"p{i}")[0] for i in range(6)]
     plain_answers = 0
@@ -95,8 +100,8 @@ def test_a_gold_pair_is_answered_by_everyone_once_and_costs_no_budget(session: S
             served.append(query.id)
             if query.id == gold:
                 break
-        # At half the answers, the gold pair comes at the first or second lease.
-        assert served[-1] == gold and len(served) <= 2, person.name
+        # In its place among the ordinary queries (the third), due after one answer at half.
+        assert served == [plain[0], plain[1], gold], person.name
         plain_answers += len(served) - 1
         # Never twice to one labeller: the next lease is an ordinary query or nothing.
         again = lease_next_query(session, labeller_id=person.id, run_id=run.id)
@@ -139,7 +144,8 @@ def test_ordinary_queries_are_served_when_no_gold_pair_is_open(session: Session)
 @pytest.mark.parametrize("run_id_given", [True, False])
 def test_a_labeller_gets_gold_pairs_at_the_runs_rate(session: Session, run_id_given: bool) -> None:
     run = gold_run(session, gold_rate=0.2)
-    plain, gold = push(session, run, plain=100, gold=15)  # enough of both for two people
+    # Enough of both for two people, gold pairs at least as dense in the stream as the rate.
+    plain, gold = push(session, run, plain=100, gold=40)
     counts = []
     for name in ("ann", "bob"):
         person, _ = create_labeller(session, name=name)
