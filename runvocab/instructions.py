@@ -604,17 +604,20 @@ _METAWORLD: dict[str, tuple[str, str]] = {
 # Most Metaworld rewards pay for the gripper's distance to the object at every step, so two
 # clips almost never tie exactly (`trainer.tie_check`: no exact tie among random or idle pairs).
 # These do tie: dial-turn and drawer-close pay the same while the arm stays still, and
-# pick-place-wall pays nothing until the puck is between the fingers (every random pair ties).
+# pick-place-wall and shelf-place pay nothing until the puck is between the fingers (every
+# random pair ties).
+_CAGED = ("Short of that: the puck held and lifted beats the puck only between the fingers; "
+          "moving the gripper towards it counts nothing.")
 _METAWORLD_TIES = {
     "dial-turn": _ties("moves the gripper at all"),
     "drawer-close": _ties("moves the gripper at all"),
     "pick-place-wall": _ties("gets the puck between the gripper's open fingers", True),
+    "shelf-place": _ties("gets the puck between the gripper's open fingers", True),
 }
-_METAWORLD["pick-place-wall"] = (
-    _METAWORLD["pick-place-wall"][0],
-    "Best: the puck at the goal. Short of that: the puck held and lifted beats the puck only "
-    "between the fingers; moving the gripper towards it counts nothing.",
-)
+_METAWORLD["pick-place-wall"] = (_METAWORLD["pick-place-wall"][0],
+                                 f"Best: the puck at the goal. {_CAGED}")
+_METAWORLD["shelf-place"] = (_METAWORLD["shelf-place"][0],
+                             f"Best: the puck on the shelf at the goal. {_CAGED}")
 _METAWORLD = {name: (goal, f"{how} {_METAWORLD_TIES.get(name, _RARE)}")
               for name, (goal, how) in _METAWORLD.items()}
 

@@ -104,7 +104,7 @@ def test_two_labellers_answer_one_query_and_the_operator_sees_their_agreement(
             assert row.locator("td.agreement").inner_text() == "0.50 on 2 shared"
             assert "[" in row.locator("td.left-share").inner_text()  # a share with its interval
             assert "paused" not in row.inner_text()
-        assert page.locator("table.quality th[scope=col]").count() == 12
+        assert page.locator("table.quality th[scope=col]").count() == 13  # with Practice
 
         # The run page's Agreement card: half the pairs agree; κ below chance.
         page.goto(f"{live.url}/runs/{run_id}#token={OPERATOR_TOKEN}")
