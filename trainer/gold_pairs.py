@@ -5,10 +5,14 @@ teacher, the band being eps times the mean |segment return| of the pool (never l
 `MIN_EPS`, so an exact teacher still gets clearly different pairs). Among random pairs of the
 pool that qualify, a round's gold pairs are drawn at random, not the widest gaps, so they do not
 all look alike. The draw is seeded by the run and the round: a resumed round draws the same.
+
+`round_layout` puts them at random places among the round's queries, so that no id, position or
+order of rendering tells them apart (`labelqueue.gold`).
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
 
 import numpy as np
@@ -27,6 +31,24 @@ CANDIDATES_PER_PAIR = 50
 def gold_count(queries: int, rate: float) -> int:
     """Gold pairs a round of `queries` gets at `rate` (at least one when the rate is not 0)."""
     return 0 if rate <= 0 or queries <= 0 else max(1, math.ceil(rate * queries))
+
+
+def round_layout(queries: list[Query], gold: list[Query]) -> list[Query]:
+    """The round's pairs in the order they are pushed, which gives them their positions and
+    ids, and rendered: the queries in their own order, the gold pairs at random places among
+    them. The places are drawn with a key made of the round's hidden ground truth, which no
+    labeller sees (unlike the run's seed, often 0), and so are the same when a resumed worker
+    pushes the round again (the push is idempotent per position)."""
+    if not gold:
+        return list(queries)
+    pairs = list(queries) + list(gold)
+    truth = repr([(q.query_id, q.trajectory0, q.start0, q.trajectory1, q.start1,
+                   q.segment_return0, q.segment_return1, q.trajectory_return0,
+                   q.trajectory_return1) for q in pairs])
+    key = int.from_bytes(hashlib.sha256(truth.encode()).digest()[:8], "big")
+    places = set(np.random.default_rng(key).choice(len(pairs), size=len(gold), replace=False))
+    ordinary, checks = iter(queries), iter(gold)
+    return [next(checks) if i in places else next(ordinary) for i in range(len(pairs))]
 
 
 def _segment_return(t: Trajectory, start: int, h: int) -> float:

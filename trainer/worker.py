@@ -112,7 +112,7 @@ from runvocab.queued_run import queued_run_config
 from trainer.clips import ClipConfig, render_query_clips, sized
 from trainer.envs import Env, make_env
 from trainer.feedback import GivenAnswer, PreferenceFeedback, Query
-from trainer.gold_pairs import gold_count, gold_pairs
+from trainer.gold_pairs import gold_count, gold_pairs, round_layout
 from trainer.hooks import RunHooks
 from trainer.loop import CHECKPOINT, TrainingRun
 from trainer.trajectories import Trajectory, TrajectoryPool
@@ -263,7 +263,7 @@ class QueueHooks(RunHooks):
         self.next_beat = 0.0
         self.query_ids: dict[str, int] = {}
         self.gold: list[Query] = []
-        """the open round's gold pairs (`labelqueue.gold`), pushed after its queries"""
+        """the open round's gold pairs (`labelqueue.gold`), pushed among its queries"""
         self.rendered: set[str] = set()
         """the open round's queries whose clips are attached"""
         self.render_env: Env | None = None
@@ -371,18 +371,18 @@ class QueueHooks(RunHooks):
             step=queries[0].step if queries else 0)
         self._store(queries + self.gold, pool)
         skills = {t.id: t.skill for t in pool.trajectories}
-        specs = [queue_fields(q, i, skills) | {"needs_labels": fb.labels_per_query}
-                 for i, q in enumerate(queries)]
-        specs += [queue_fields(q, len(queries) + i, skills) | {"gold": True}
-                  for i, q in enumerate(self.gold)]
+        # Gold pairs at random places among the queries: their ids tell nothing.
+        pairs, gold = round_layout(queries, self.gold), {q.query_id for q in self.gold}
+        specs = [queue_fields(q, i, skills) | ({"gold": True} if q.query_id in gold
+                                               else {"needs_labels": fb.labels_per_query})
+                 for i, q in enumerate(pairs)]
         with self.sessions() as session:
             ids = push_queries(session, run_id=self.run_id, queries=specs)
-        self.query_ids = {q.query_id: db_id
-                          for q, db_id in zip(queries + self.gold, ids, strict=True)}
+        self.query_ids = {q.query_id: db_id for q, db_id in zip(pairs, ids, strict=True)}
         self.rendered = set()
         self.progress["waiting_for"] = len(queries)
         if self.teacher is TeacherKind.HUMAN:
-            self._render(queries + self.gold, pool)
+            self._render(pairs, pool)  # in id order, gold pairs among the rest
 
     def _scratch_env(self) -> Env:
         """An env of the run's task for restoring states (clips, final observations)."""

@@ -163,6 +163,38 @@ def test_a_labeller_gets_gold_pairs_at_the_runs_rate(session: Session, run_id_gi
     assert all(9 <= got <= 11 for got in counts), counts
 
 
+def test_the_gold_schedule_cannot_be_worked_out_from_a_labellers_own_ids(
+    session: Session, tmp_path: Any
+) -> None:
+    """The offsets that decide when a labeller's next check is due come from a key the server
+    keeps in its database: the public formula (a hash of labeller, run and answer count) does
+    not give them, and another database's key gives others."""
+    import hashlib
+
+    from labelqueue import make_engine, migrate, server_key, session_factory
+    from labelqueue.gold import SCHEDULE_KEY, _offset
+
+    def public(labeller: int, answers: int) -> float:
+        digest = hashlib.sha256(f"gold:{labeller}:1:{answers}".encode()).digest()
+        return int.from_bytes(digest[:8], "big") / 2.0**64
+
+    key = server_key(session, SCHEDULE_KEY)
+    assert server_key(session, SCHEDULE_KEY) == key and len(key) == 32  # one, kept
+    other_url = f"sqlite:///{tmp_path / 'other.db'}"
+    migrate(other_url)
+    engine = make_engine(other_url)
+    with session_factory(engine)() as other:
+        other_key = server_key(other, SCHEDULE_KEY)
+    engine.dispose()
+    offsets = [_offset(key, 7, 1, n) for n in range(200)]
+    assert all(0 <= x < 1 for x in offsets) and 0.4 < sum(offsets) / 200 < 0.6
+    # Predicting "due" (offset below the rate's remainder) by the public formula is a coin flip.
+    rate = 0.5
+    agree = sum((o < rate) == (public(7, n) < rate) for n, o in enumerate(offsets))
+    assert 70 <= agree <= 130, agree
+    assert offsets != [_offset(other_key, 7, 1, n) for n in range(200)]
+
+
 def pause_settings(**overrides: Any) -> dict[str, Any]:
     return {"gold_rate": 0.5, "gold_min_accuracy": 0.5, "gold_min_answers": 4} | overrides
 
