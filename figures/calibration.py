@@ -51,8 +51,10 @@ def _interval(low: float | None, high: float | None, digits: int = 2) -> str:
 def _eps_cell(fit: EpsFit) -> str:
     """The eps interval first, then the point; a wide interval is flagged (the point then says
     little)."""
-    if fit.eps is None:
+    if fit.eps is None or fit.eps_low is None:
         return "–"
+    if fit.eps_high is None:  # every eps above eps_low explains the answers
+        return f"≥ {fit.eps_low:.2f}, no upper bound (wide)"
     return (f"{_interval(fit.eps_low, fit.eps_high).strip()} (ε̂ {fit.eps:.2f})"
             + (" wide" if fit.wide else ""))
 

@@ -48,6 +48,10 @@ def test_an_export_gives_a_figure_a_table_and_the_numbers(
         "ann", 5, 4, 1)
     table = (folder / "calibration.md").read_text()
     assert "| ann | 5 | 1.00 [0.51, 1.00] | 0.20 |" in table
+    # The eps interval comes before the point, flagged when wider than eps.
+    fit = ann["fit"]
+    assert (fit["eps_low"], fit["eps_high"], fit["wide"]) == (0.0, 0.2, True)
+    assert f"| [0.00, 0.20] (ε̂ {fit['eps']:.2f}) wide |" in table
     assert "| sepoa | 1 | 5 | 5 |" in table
     [quality] = list(csv.DictReader((folder / "labellers.csv").open()))
     assert (quality["labeller_name"], quality["answers"], quality["cant_tell_k"]) == (
@@ -96,3 +100,13 @@ def test_every_mistake_is_one_line_and_exit_2(
         code, out, err = run_report(capsys, *args)
         assert code == 2, (args, out, err)
         assert message in err and err.count("\n") == 1, (args, err)
+
+
+def test_an_unbounded_eps_interval_is_said_in_words() -> None:
+    from figures.calibration import _eps_cell
+    from labelqueue.calibration_stats import EpsFit
+
+    unbounded = EpsFit(0.0, 0.0, None, -3.0, 0.0, 0.0, 3, 0.95, wide=True)
+    assert _eps_cell(unbounded) == "≥ 0.00, no upper bound (wide)"  # not "[0.00, ∞)"
+    narrow = EpsFit(0.3, 0.28, 0.33, -50.0, 0.0, 0.0, 600, 0.95, wide=False)
+    assert _eps_cell(narrow) == "[0.28, 0.33] (ε̂ 0.30)"
