@@ -29,8 +29,13 @@ CANDIDATES_PER_PAIR = 50
 
 
 def gold_count(queries: int, rate: float) -> int:
-    """Gold pairs a round of `queries` gets at `rate` (at least one when the rate is not 0)."""
-    return 0 if rate <= 0 or queries <= 0 else max(1, math.ceil(rate * queries))
+    """Gold pairs a round of `queries` gets at `rate` (at least one when the rate is not 0):
+    enough that they are `rate` of the round's pairs, gold ones included. A labeller is served
+    a gold pair only in its place among the others (`labelqueue.gold`), so one who sees every
+    pair of a round can be given the rate's share only then."""
+    if rate <= 0 or queries <= 0:
+        return 0
+    return max(1, math.ceil(round(rate * queries / (1 - rate), 9)))
 
 
 def round_layout(queries: list[Query], gold: list[Query]) -> list[Query]:

@@ -31,7 +31,9 @@ def key(q: Query) -> tuple[int, int, int, int]:
 
 @pytest.mark.parametrize(
     ("queries", "rate", "expected"),
-    [(10, 0.0, 0), (0, 0.2, 0), (10, 0.2, 2), (10, 0.25, 3), (3, 0.1, 1), (50, 0.5, 25)],
+    # rate of the round's pairs, gold ones included: 3 of 13 at 0.2, 50 of 100 at 0.5
+    [(10, 0.0, 0), (0, 0.2, 0), (10, 0.2, 3), (10, 0.25, 4), (3, 0.1, 1), (50, 0.5, 50),
+     (8, 0.2, 2)],
 )
 def test_gold_count(queries: int, rate: float, expected: int) -> None:
     assert gold_count(queries, rate) == expected

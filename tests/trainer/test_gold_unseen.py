@@ -87,7 +87,7 @@ def test_a_labellers_view_tells_gold_pairs_from_the_others_in_no_way(tmp_path: P
         rows = session.execute(select(Query.id, Query.round, Query.gold)
                                .where(Query.run_id == run.id).order_by(Query.id)).all()
     gold = {i for i, _, is_gold in rows if is_gold}
-    assert len(gold) == 6 and len(rows) == 26  # 3 gold pairs in each of the two rounds
+    assert len(gold) == 10 and len(rows) == 30  # 5 gold pairs in each of the two rounds
 
     # Ids: in each round, gold pairs are among the queries, not a block after them.
     for round_ in (0, 1):

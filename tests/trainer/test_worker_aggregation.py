@@ -123,7 +123,7 @@ def test_a_round_is_pushed_wanting_k_answers_and_gold_pairs_wanting_all(
     # Every clip already on disk, so nothing is rendered.
     folder = worker.clips_root / f"run-{run.id}"
     folder.mkdir(parents=True)
-    for stem in [f"r0-{i}" for i in range(4)] + ["r0-g0"]:
+    for stem in [f"r0-{i}" for i in range(4)] + ["r0-g0", "r0-g1"]:
         for side in (0, 1):
             (folder / f"{stem}-{side}.mp4").write_bytes(b"")
 
@@ -131,9 +131,9 @@ def test_a_round_is_pushed_wanting_k_answers_and_gold_pairs_wanting_all(
     with sessions() as session:
         stored = session.scalars(select(Query).order_by(Query.position)).all()
         rows = [(q.gold, q.needs_labels) for q in stored]
-    if teacher == "human":  # 4 queries at rate 0.25: one gold pair, at a place among them
-        assert sorted(rows) == [(False, 3)] * 4 + [(True, GOLD_NEEDS_LABELS)]
-        [gold] = [q for q in stored if q.gold]
+    if teacher == "human":  # 4 queries at rate 0.25: two gold pairs, at places among them
+        assert sorted(rows) == [(False, 3)] * 4 + [(True, GOLD_NEEDS_LABELS)] * 2
+        gold, _ = [q for q in stored if q.gold]
         assert 2 in (gold.first_trajectory, gold.second_trajectory)
     else:  # the scripted teacher is not measured
         assert rows == [(False, 3)] * 4
