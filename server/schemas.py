@@ -93,6 +93,8 @@ ERROR_TEXT: dict[int, str] = {
     "forbids, a lease that ran out, a stopped run)",
     413: "the request body is larger than the server accepts (64 KiB by default)",
     422: "a malformed request, or values the queue refuses",
+    503: "the queue database is damaged (SQLite's integrity check found it so): restore it from "
+    "a backup",
 }
 
 

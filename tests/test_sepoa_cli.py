@@ -9,6 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from database_helpers import damaged_copies
+
 from sepoa.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -60,64 +62,10 @@ def test_labellers_are_revoked_restored_and_given_new_tokens(tmp_path, capsys):
     assert "no labeller named 'nobody'" in capsys.readouterr().err
 
 
-def _damaged_copies(tmp_path: Path) -> dict[str, Path]:
-    """A database with 233 labels, and data folders holding copies of it damaged two ways: a
-    page of the labels table claiming fewer rows than it holds (reads lose labels without an
-    error) and a file whose header is overwritten."""
-    import sqlite3
-
-    from labelqueue import (
-        TeacherKind,
-        claim_run,
-        create_labeller,
-        create_run,
-        lease_next_query,
-        make_engine,
-        migrate,
-        push_queries,
-        session_factory,
-        sqlite_url,
-        submit_label,
-    )
-
-    sys.path.insert(0, str(ROOT / "tests" / "labelqueue"))
-    from queue_helpers import query_spec
-
-    sound = tmp_path / "sound"
-    migrate(sqlite_url(sound))
-    engine = make_engine(sqlite_url(sound))
-    with session_factory(engine)() as session:
-        run = create_run(session, name="r", task="dmc:cheetah_run", algo="pebble", budget=300,
-                         teacher=TeacherKind.HUMAN)
-        claim_run(session, worker_id="w")
-        push_queries(session, run_id=run.id, queries=[query_spec(i) for i in range(240)])
-        ann, _ = create_labeller(session, name="ann")
-        for _ in range(233):
-            query = lease_next_query(session, labeller_id=ann.id, run_id=run.id)
-            assert query is not None
-            submit_label(session, query_id=query.id, labeller_id=ann.id, choice="left",
-                         left_is_first=True)
-    engine.dispose()  # checkpoints the WAL into the file
-    with sqlite3.connect(sound / "queue.db") as connection:
-        [(page,)] = connection.execute("SELECT pageno FROM dbstat WHERE name = 'labels' AND "
-                                       "pagetype = 'leaf' ORDER BY pageno LIMIT 1 OFFSET 1")
-        page_size = connection.execute("PRAGMA page_size").fetchone()[0]
-    copies = {}
-    for kind, offset, data in (("rows", (page - 1) * page_size + 3, b"\x00\x05"),
-                               ("header", 0, b"not a database" * 2)):
-        folder = tmp_path / kind
-        folder.mkdir()
-        blob = bytearray((sound / "queue.db").read_bytes())
-        blob[offset:offset + len(data)] = data
-        (folder / "queue.db").write_bytes(bytes(blob))
-        copies[kind] = folder
-    return copies
-
-
 def test_a_damaged_or_read_only_database_is_refused_in_one_line(tmp_path):
     """Export, the labeller commands, serve and doctor check the database first: a damaged one
     is refused (nothing exported), a read-only one cannot be served; one line, exit 2."""
-    copies = _damaged_copies(tmp_path)
+    copies = damaged_copies(tmp_path)
     out = tmp_path / "labels.jsonl"
     for kind, folder in copies.items():
         for args in (["export", "--out", str(out)], ["labeller", "list"],

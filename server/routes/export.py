@@ -17,7 +17,7 @@ from typing import IO, Annotated
 from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import StreamingResponse
 
-from labelqueue import EXPORT_SCHEMA_VERSION, ExportFormat
+from labelqueue import EXPORT_SCHEMA_VERSION, ExportFormat, integrity_problem
 from server.deps import OperatorDep, SettingsDep
 from server.export_job import ExportProcess
 from server.schemas import RunFilter, RunId, errors
@@ -50,7 +50,8 @@ def _blocks(file: IO[bytes]) -> Iterator[bytes]:
     "/export",
     response_class=StreamingResponse,
     responses=errors(
-        401, 403, 404, 422, also={200: {"content": {media: {} for media in MEDIA_TYPES.values()}}}
+        401, 403, 404, 422, 503,
+        also={200: {"content": {media: {} for media in MEDIA_TYPES.values()}}},
     ),
 )
 def export_labels(
@@ -60,7 +61,13 @@ def export_labels(
     fmt: Annotated[ExportFormat, Query(alias="format")] = "jsonl",
     run_id: RunFilter = None,
 ) -> StreamingResponse:
-    """Every label (or one run's), one row each, with ground truth: see docs/EXPORT.md."""
+    """Every label (or one run's), one row each, with ground truth: see docs/EXPORT.md. 503 when
+    SQLite's integrity check finds the database damaged: such a file can read back fewer labels
+    than it holds, without an error."""
+    problem = integrity_problem(settings.database_url)
+    if problem is not None:
+        raise HTTPException(503, f"the queue database is damaged (PRAGMA quick_check: "
+                                 f"{problem}); restore it from a backup")
     export: ExportProcess = request.app.state.export_process
     handle, path = tempfile.mkstemp(prefix="sepoa-export-", suffix=f".{fmt}")
     os.close(handle)
