@@ -226,19 +226,21 @@ def _doctor_parser(sub) -> argparse.ArgumentParser:
 def _check_queue_database(url: str) -> int:
     """The doctor's first line: whether SQLite's integrity check finds the queue database
     damaged (then it says so, in one line, and the doctor stops: exit 2)."""
-    from labelqueue.db import integrity_problem, mask_url, sqlite_file
+    from labelqueue.db import check_database, mask_url, sqlite_file
 
     path = sqlite_file(url)
     if path is None:
         print(f"queue database {mask_url(url)}: not checked (the integrity check is SQLite's)")
-    elif not os.path.isfile(path):
+        return 0
+    if not os.path.isfile(path):
         print(f"queue database {path}: none yet (`sepoa up` or `sepoa serve` makes it)")
-    elif (problem := integrity_problem(url)) is not None:
-        print(f"error: the queue database {path} is damaged (PRAGMA quick_check: {problem}); "
-              "restore it from a backup", file=sys.stderr)
+        return 0
+    try:
+        check_database(url)
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
         return 2
-    else:
-        print(f"queue database {path}: ok (PRAGMA quick_check)")
+    print(f"queue database {path}: ok (PRAGMA quick_check)")
     return 0
 
 

@@ -17,7 +17,7 @@ from typing import IO, Annotated
 from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import StreamingResponse
 
-from labelqueue import EXPORT_SCHEMA_VERSION, ExportFormat, integrity_problem
+from labelqueue import EXPORT_SCHEMA_VERSION, ExportFormat, check_database
 from server.deps import OperatorDep, SettingsDep
 from server.export_job import ExportProcess
 from server.schemas import RunFilter, RunId, errors
@@ -64,10 +64,10 @@ def export_labels(
     """Every label (or one run's), one row each, with ground truth: see docs/EXPORT.md. 503 when
     SQLite's integrity check finds the database damaged: such a file can read back fewer labels
     than it holds, without an error."""
-    problem = integrity_problem(settings.database_url)
-    if problem is not None:
-        raise HTTPException(503, f"the queue database is damaged (PRAGMA quick_check: "
-                                 f"{problem}); restore it from a backup")
+    try:
+        check_database(settings.database_url)
+    except ValueError as err:
+        raise HTTPException(503, str(err)) from None
     export: ExportProcess = request.app.state.export_process
     handle, path = tempfile.mkstemp(prefix="sepoa-export-", suffix=f".{fmt}")
     os.close(handle)
