@@ -91,14 +91,13 @@ def default_dataset_id(task: str, run_id: int) -> str:
 
 def check_dataset_id(dataset_id: str) -> str:
     from minari.dataset.minari_dataset import (  # type: ignore[import-untyped]
-        parse_dataset_id,
+        DATASET_ID_RE,
     )
 
-    try:
-        parse_dataset_id(dataset_id)
-    except ValueError:
+    match = DATASET_ID_RE.fullmatch(dataset_id)
+    if match is None or match.group("version") is None:
         raise DatasetError(f"dataset id {dataset_id!r} is not a Minari id: give "
-                           "[namespace/]name-v<version>, e.g. sepoa/cheetah/run-3-v0") from None
+                           "[namespace/]name-v<version>, e.g. sepoa/cheetah/run-3-v0")
     if ".." in dataset_id.split("/"):
         raise DatasetError(f"dataset id {dataset_id!r} may not contain '..'")
     return dataset_id

@@ -76,5 +76,6 @@ def test_refusals_name_the_problem(
     empty = client.get(url, headers=OPERATOR)
     assert empty.status_code == 409 and "no stored episodes" in empty.json()["detail"]
     write_episode(episodes_dir(settings.clips_root, run_id), _episode(0))
-    bad = client.get(url, params={"dataset_id": "no spaces allowed"}, headers=OPERATOR)
-    assert bad.status_code == 422 and "not a Minari id" in bad.json()["detail"]
+    for bad_id in ("no spaces allowed", "no-version", "0000"):
+        bad = client.get(url, params={"dataset_id": bad_id}, headers=OPERATOR)
+        assert bad.status_code == 422 and "not a Minari id" in bad.json()["detail"], bad_id
