@@ -277,7 +277,8 @@ class QueueHooks(RunHooks):
         """the training env's physics state, read as an episode ends (set once it is built)"""
         self.episodes = episodes_dir(worker.clips_root, run.id)
         """the run's episode store (`labelqueue.episodes`)"""
-        self.store_episodes = True
+        self.store_episodes = cfg.algo != "sac"
+        """whether episodes are kept (a SAC run asks no queries, so none would be read)"""
 
     # -- operator ------------------------------------------------------------------------------
     def beat(self, step: int, force: bool = False) -> RunStatus:
