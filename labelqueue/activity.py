@@ -29,7 +29,7 @@ from labelqueue.models import (
     Worker,
     utcnow,
 )
-from labelqueue.runs import DEAD_WORKER_AFTER_S
+from labelqueue.runs import DEAD_WORKER_AFTER_S, budget_spent
 from labelqueue.transaction import reading
 
 LIVE_WORKER_S = 60.0
@@ -234,7 +234,7 @@ def _activity(run: Run, now: datetime, opened: tuple[int, int, int], active: int
         return make("starting", "starting: building the environment and the agent")
     next_round = progress.get("next_round_step")
     eta = _eta((next_round or 0) - step, progress.get("steps_per_s", progress.get("fps")))
-    if run.labels_used >= run.budget:
+    if budget_spent(run):
         return make("training", "training: the label budget is spent, no more pairs")
     if progress.get("round") is None:
         return make("exploring", "exploring before its first round of pairs"

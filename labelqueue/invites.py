@@ -46,6 +46,7 @@ from labelqueue.models import (
     TeacherKind,
     utcnow,
 )
+from labelqueue.runs import budget_spent
 from labelqueue.transaction import changed, detach, get_row, reading, transaction
 from runvocab.answers import DECISIVE
 
@@ -408,7 +409,7 @@ def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
         if invite.run_id is not None:
             run = session.get(Run, invite.run_id)
             assert run is not None
-            over = run.status not in RUN_OPEN or run.labels_used >= run.budget
+            over = run.status not in RUN_OPEN or budget_spent(run)
             paused = session.scalar(select(exists().where(
                 LabellerPause.run_id == run.id, LabellerPause.labeller_id == labeller_id)))
         else:

@@ -53,6 +53,21 @@ OWNED = (RunStatus.RUNNING, RunStatus.PAUSED, RunStatus.STOPPING)
 """the statuses in which a run belongs to its worker"""
 
 
+def labels_per_query(run: Run) -> int:
+    """Answers each of the run's queries takes (`feedback.labels_per_query`, 1 by default)."""
+    config: dict[str, Any] = run.config or {}
+    nested = config.get("feedback")
+    value: Any = config.get("feedback.labels_per_query",
+                            nested.get("labels_per_query", 1) if isinstance(nested, dict) else 1)
+    return int(value)
+
+
+def budget_spent(run: Run) -> bool:
+    """The budget pays for no more queries: fewer answers are left than one query takes (the
+    trainer stops asking there, possibly short of `budget`)."""
+    return run.budget - run.labels_used < labels_per_query(run)
+
+
 def create_run(
     session: Session,
     *,
