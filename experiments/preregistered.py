@@ -172,6 +172,8 @@ def primary_table(results: Results, runs: pd.DataFrame) -> pd.DataFrame:
         if variant in scores:
             row |= dict(zip(("iqm", "iqm_low", "iqm_high"), iqm[variant], strict=True))
             row |= dict(zip(("mean", "mean_low", "mean_high"), mean[variant], strict=True))
+            if len(scores[variant]) < 2:  # one run resamples to itself: no interval
+                row |= dict.fromkeys(("iqm_low", "iqm_high", "mean_low", "mean_high"), math.nan)
         rows.append(row)
     return pd.DataFrame(rows)
 

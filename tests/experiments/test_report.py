@@ -392,6 +392,7 @@ def test_the_preregistered_comparison_uses_finished_runs_and_rliable_intervals(
     assert r["mean"] == pytest.approx(41.0) and r.iqm_low <= r.iqm <= r.iqm_high
     assert (primary.loc["X", "finished"], primary.loc["X", "planned"]) == (3, 4)
     assert (primary.loc["O", "finished"], primary.loc["O", "planned"]) == (1, 2)
+    assert primary.loc["O", "iqm"] == 50.0 and math.isnan(primary.loc["O", "iqm_low"])
 
     improvement = pd.read_csv(out / "improvement.csv").iloc[0]
     # R: 11, 21, 31, 101 against X: 6, 16, 26. R is higher in 9 of the 12 pairs.
