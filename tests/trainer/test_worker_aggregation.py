@@ -85,10 +85,12 @@ def test_a_labeller_without_a_name_is_named_by_id() -> None:
 
 
 def trajectory(id: int, reward: float, length: int = 60) -> Trajectory:
-    return Trajectory(id=id, obs=np.zeros((length, 3), np.float32),
-                      actions=np.zeros((length, 2), np.float32),
+    """A cheetah trajectory at rest (its shapes: the worker keeps the episodes queries point
+    into, restoring their states)."""
+    return Trajectory(id=id, obs=np.zeros((length, 17), np.float32),
+                      actions=np.zeros((length, 6), np.float32),
                       true_rewards=np.full(length, reward, np.float32),
-                      states=np.zeros((length, 4)), context=0, success=False)
+                      states=np.zeros((length, 18)), context=0, success=False)
 
 
 def pair(i: int) -> PairQuery:
