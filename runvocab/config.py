@@ -218,8 +218,9 @@ class SkillConfig:
     between) | episode (also at every episode start, as the authors' code; behind on the
     return in specs/small/sepoa-choices.toml)"""
     task_skill_update: bool = True
-    """online: each update also trains on its batch with z_task in place of every stored skill
-    (valid off-policy: r_hat does not depend on z), besides the update on the stored skills"""
+    """online: every other update trains on its batch with z_task in place of every stored
+    skill (valid off-policy: r_hat does not depend on z), taking turns with the update on the
+    stored skills: one SAC update per update step in all, as every algorithm"""
     initial_rollouts: int = 20
     """online: episodes, each with its own random skill, before the first round (the authors'
     reward_start_rollouts)"""
@@ -233,8 +234,9 @@ class SkillConfig:
     """where `sepoa pretrain` writes <task>-<backend>-<steps>-s<seed>.pt by default"""
     snapshot: str = ""
     """online S-EPOA: the snapshot to start from; empty = the default name in snapshot_dir"""
-    snapshot_seed: int = 0
-    """online S-EPOA: the pretraining seed of the default snapshot (runs of any seed share it)"""
+    snapshot_seed: int = -1
+    """online S-EPOA: the pretraining seed of the default snapshot; -1 = the run's own seed (a
+    snapshot per seed, so seeds sample pretraining too); a fixed seed shares one snapshot"""
 
 
 @dataclass(frozen=True)

@@ -99,6 +99,9 @@ def _check_numbers(cfg: RunConfig) -> None:
         "eval_every": cfg.eval_every, "checkpoint_every": cfg.checkpoint_every,
         "threads": cfg.threads,
     })
+    if cfg.skill.snapshot_seed < -1:
+        raise ConfigError("skill.snapshot_seed", "skill.snapshot_seed is a seed (>= 0) or -1 "
+                          f"for the run's own seed, got {cfg.skill.snapshot_seed}")
     if not 0 <= cfg.sac.gamma < 1:
         raise ConfigError("sac.gamma", f"sac.gamma is a discount in [0, 1), got {cfg.sac.gamma}")
     if not 0 < cfg.sac.tau <= 1:

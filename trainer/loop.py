@@ -20,9 +20,11 @@ first round, then z_task, the best of N_z fresh random skills under R_theta, dra
 refits R_theta and held until the next (or drawn each episode: skill.task_skill_draw). The
 first round comes after `seed_steps` and `skill.initial_rollouts` episodes; the agent trains
 only on the learned reward, from the first round on, where its pretrained critic is reset
-(skill.reset_critic). Each update trains the batch's stored skills and, with z_task in every
-row, the acting skill (skill.task_skill_update). Queries are selected by the skill rule, each
-the best of its own candidates (query_selection.py).
+(skill.reset_critic). Its updates take turns: one trains the batch's stored skills, the next,
+with z_task in every row, the acting skill (skill.task_skill_update). Every algorithm makes one
+SAC update per update step (`update_every`), so arms compared at equal steps have equal update
+budgets; episodes.csv counts them (`updates`, and `reward_updates` on r_hat). Queries are
+selected by the skill rule, each the best of its own candidates (query_selection.py).
 
 After any critic reset, `reset_updates` updates on the relabelled buffer follow at once
 (PEBBLE's reset_update).
@@ -58,10 +60,13 @@ from trainer.trajectories import EpisodeRecorder, TrajectoryPool
 from trainer.utils import pick_device, set_seed
 
 CHECKPOINT = "checkpoint.pt"
-LOOP_VERSION = 2
+LOOP_VERSION = 3
 """Checkpoints of version 1 predate S-EPOA's initial rollouts, per-query selection, z_task
-updates and critic reset, and PEBBLE's post-reset updates: such a run cannot resume as it
-began, so it is refused."""
+updates and critic reset, and PEBBLE's post-reset updates; those of version 2, S-EPOA's one
+update per step (its two updates took two per step) and the update counts. Such a run cannot
+resume as it began, so it is refused."""
+RESUMABLE_FROM = {1: ("sac",), 2: ("sac", "pebble", "surf", "rune", "rime")}
+"""older loop versions, and the algorithms whose runs they still resume"""
 
 
 def default_run_dir(cfg: RunConfig) -> str:
@@ -189,7 +194,9 @@ class TrainingRun:
                 labels = feedback.labels_used if feedback else 0
                 self._log("episodes", {
                     "step": self.step, "episode": self.episode, "return": episode_return,
-                    "success": float(traj.success), "labels_used": labels, "fps": fps,
+                    "success": float(traj.success), "labels_used": labels,
+                    "updates": self.policy.updates, "reward_updates": self.policy.reward_updates,
+                    "fps": fps,
                 } | {k: v for k, v in last_metrics.items() if k in ("critic_loss", "alpha", "q")}
                   | self.reward.episode_row(self.step))
                 self._end_of_episode()
@@ -285,6 +292,7 @@ class TrainingRun:
     def summary(self) -> dict[str, float]:
         returns = self.pool.returns[-10:]
         out = {"step": self.step, "episodes": self.episode, "stopped": int(self.stopped),
+               "updates": self.policy.updates, "reward_updates": self.policy.reward_updates,
                "mean_return_last10": float(np.mean(returns)) if returns else float("nan")}
         if self.feedback is not None:
             out["labels_used"] = self.feedback.labels_used
@@ -322,13 +330,15 @@ class TrainingRun:
     def _load(self) -> None:
         state = load_checkpoint(self.checkpoint_path)
         version = state.get("loop_version", 1)
-        if version != LOOP_VERSION and self.cfg.algo != "sac":
+        if version != LOOP_VERSION and self.cfg.algo not in RESUMABLE_FROM.get(version, ()):
             raise ValueError(
                 f"{self.checkpoint_path} was written by training-loop version {version}; this "
                 f"is version {LOOP_VERSION}, whose {self.cfg.algo} differs (S-EPOA's initial "
-                "rollouts, per-query selection, z_task updates and critic reset; the updates "
-                "after a critic reset), so the run cannot resume as it began: start a new run")
-        self.policy.load_state_dict(state)
+                "rollouts, per-query selection, z_task updates, critic reset and one update "
+                "per step; the updates after a critic reset), so the run cannot resume as it "
+                "began: start a new run")
+        # Update counts are logged since version 3; older runs resume counting from 0.
+        self.policy.load_state_dict({"updates": 0, "reward_updates": 0} | state)
         self.step, self.episode = state["step"], state["episode"]
         self.next_round_step = state["next_round_step"]
         self.evaluations.happened(state["last_eval_step"])

@@ -26,6 +26,7 @@ from trainer.skills.pretrain import (
     load_snapshot,
     pretrain_once,
     snapshot_path,
+    snapshot_seed,
 )
 from trainer.utils import set_seed
 
@@ -65,7 +66,20 @@ class Policy:
             deterministic: bool = False) -> np.ndarray:
         return self.agent.act(obs, *meta, rng, deterministic)
 
+    updates = 0
+    """SAC gradient updates so far in the online run"""
+    reward_updates = 0
+    """of those, on the learned reward r_hat (after the first round)"""
+
     def update(self, batches: Batches, learned: bool) -> dict[str, float]:
+        """One SAC gradient update. Every algorithm makes exactly one per update step, so arms
+        compared at equal steps have equal update budgets (`updates` counts them)."""
+        metrics = self._gradient_step(batches)
+        self.updates += 1
+        self.reward_updates += int(learned)
+        return metrics
+
+    def _gradient_step(self, batches: Batches) -> dict[str, float]:
         return self.agent.update(batches())
 
     def round_closed(self, rng: np.random.Generator) -> None:
@@ -78,10 +92,10 @@ class Policy:
         return not self.cfg.reward.rime
 
     def state_dict(self) -> dict[str, Any]:
-        return {}
+        return {"updates": self.updates, "reward_updates": self.reward_updates}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        pass
+        self.updates, self.reward_updates = state["updates"], state["reward_updates"]
 
 
 class SkillPolicy(Policy):
@@ -98,6 +112,8 @@ class SkillPolicy(Policy):
         self.estimator = ReturnEstimator(self.skills.skill_dim, cfg.skill, device)
         self.task_skill: np.ndarray | None = None
         """z_task, once R_theta is fitted"""
+        self._stored_skill_metrics: dict[str, float] = {}
+        """the last stored-skill update's metrics, logged beside a z_task update's"""
 
     @property
     def random_seed_steps(self) -> int:
@@ -121,14 +137,20 @@ class SkillPolicy(Policy):
     def update(self, batches: Batches, learned: bool) -> dict[str, float]:
         if not learned:
             return {}  # the pretrained policy stays until there is a reward to learn
-        metrics = self.agent.update(batches())
-        if self.cfg.skill.task_skill_update:
-            # The acting skill learns from every transition, not only its own episode's share.
-            batch = batches()
-            task = torch.as_tensor(self.task_skill, device=self.device).expand_as(batch.skill)
-            task_metrics = self.agent.update(batch._replace(skill=task))
-            metrics |= {f"task_{k}": v for k, v in task_metrics.items()}
-        return metrics
+        return super().update(batches, learned)
+
+    def _gradient_step(self, batches: Batches) -> dict[str, float]:
+        """The update on the batch's stored skills and the z_task update take turns: one SAC
+        update per update step in all, as for every other algorithm (the authors' code runs
+        both on every 2nd step: the same budget, less evenly spread)."""
+        batch = batches()
+        if not (self.cfg.skill.task_skill_update and self.updates % 2 == 1):
+            self._stored_skill_metrics = self.agent.update(batch)
+            return self._stored_skill_metrics
+        # The acting skill learns from every transition, not only its own episode's share.
+        task = torch.as_tensor(self.task_skill, device=self.device).expand_as(batch.skill)
+        task_metrics = self.agent.update(batch._replace(skill=task))
+        return self._stored_skill_metrics | {f"task_{k}": v for k, v in task_metrics.items()}
 
     def round_closed(self, rng: np.random.Generator) -> None:
         self._draw_task_skill(rng)  # the updates after a critic reset train the new z_task
@@ -144,9 +166,10 @@ class SkillPolicy(Policy):
         return self.cfg.skill.reset_critic
 
     def state_dict(self) -> dict[str, Any]:
-        return {"task_skill": self.task_skill}
+        return super().state_dict() | {"task_skill": self.task_skill}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        super().load_state_dict(state)
         self.task_skill = state["task_skill"]
 
 
@@ -168,7 +191,7 @@ def _skill_agent(cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.devic
         print(f"no skill snapshot at {path}: pretraining {cfg.skill.backend} for "
               f"{cfg.skill.pretrain_steps} steps first", file=sys.stderr, flush=True)
         # Once per snapshot: other runs needing it (other workers too) wait, heartbeating.
-        pretrain_once(dataclasses.replace(cfg, seed=cfg.skill.snapshot_seed), path,
+        pretrain_once(dataclasses.replace(cfg, seed=snapshot_seed(cfg)), path,
                       tick=hooks.pretraining, waiting=lambda: hooks.pretraining(0))
         set_seed(cfg.seed)  # the online run starts from the same state as with a snapshot at hand
     snapshot = load_snapshot(path, cfg.task, cfg.skill.backend)

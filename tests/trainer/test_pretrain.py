@@ -134,10 +134,14 @@ def test_default_snapshot_name_and_pretraining_presets():
     cfg = build_config("dmc:quadruped_run", "paper", {"skill.backend": "cic", "seed": 2})
     name = r"dmc-quadruped_run-cic-1000000-s{}-[0-9a-f]{{10}}\.pt"  # the paper: 1 M for quadruped
     assert re.fullmatch(os.path.join("snapshots", name.format(2)), default_snapshot_path(cfg))
-    # Online runs of every seed share the snapshot pretrained with skill.snapshot_seed (0):
-    # the name `sepoa pretrain --seed 0` gives the same settings.
-    assert re.fullmatch(os.path.join("snapshots", name.format(0)), snapshot_path(cfg))
-    assert snapshot_path(cfg) == default_snapshot_path(dataclasses.replace(cfg, seed=0))
+    # By default an online run starts from the snapshot of its own seed: the name
+    # `sepoa pretrain --seed 2` gives the same settings.
+    assert snapshot_path(cfg) == default_snapshot_path(cfg)
+    assert snapshot_path(dataclasses.replace(cfg, seed=3)) != snapshot_path(cfg)
+    # A fixed skill.snapshot_seed shares one snapshot among runs of every seed.
+    fixed = apply_overrides(cfg, {"skill.snapshot_seed": 0})
+    assert re.fullmatch(os.path.join("snapshots", name.format(0)), snapshot_path(fixed))
+    assert snapshot_path(dataclasses.replace(fixed, seed=5)) == snapshot_path(fixed)
     # Settings only the online phase reads share it; one pretraining reads does not.
     online = apply_overrides(cfg, {"skill.estimator_steps": 5, "skill.reset_critic": False})
     assert snapshot_path(online) == snapshot_path(cfg)

@@ -92,11 +92,17 @@ def default_snapshot_path(cfg: RunConfig, seed: int | None = None) -> str:
     return os.path.join(cfg.skill.snapshot_dir, name)
 
 
+def snapshot_seed(cfg: RunConfig) -> int:
+    """The pretraining seed of an online run's default snapshot: `skill.snapshot_seed`, or the
+    run's own seed when that is -1."""
+    return cfg.seed if cfg.skill.snapshot_seed < 0 else cfg.skill.snapshot_seed
+
+
 def snapshot_path(cfg: RunConfig) -> str:
     """The snapshot an online run starts from: `skill.snapshot`, else the default name for its
-    task, backend and pretraining length, pretrained with seed `skill.snapshot_seed`: online
-    runs of every seed, teacher and eps share one snapshot."""
-    return cfg.skill.snapshot or default_snapshot_path(cfg, cfg.skill.snapshot_seed)
+    task, backend and pretraining length, pretrained with `snapshot_seed(cfg)`: runs of one
+    seed (any teacher, eps or online setting) share it."""
+    return cfg.skill.snapshot or default_snapshot_path(cfg, snapshot_seed(cfg))
 
 
 def check_pretrain_config(cfg: RunConfig) -> RunConfig:
