@@ -193,13 +193,22 @@ class RewardModel:
         u0, u1 = (torch.as_tensor(u, device=self.device) for u in unlabelled(n))
         u0, u1 = random_crops(u0, u1, length, self.generator)
         e = self.cfg.ensemble_size
-        r0 = self._segment_returns(u0.expand(e, -1, -1, -1))
-        r1 = self._segment_returns(u1.expand(e, -1, -1, -1))
+        u0, u1 = u0.expand(e, -1, -1, -1), u1.expand(e, -1, -1, -1)
         with torch.no_grad():
-            y, keep = pseudo_labels(torch.sigmoid(r1 - r0), self.cfg.surf_threshold)
-        losses = F.binary_cross_entropy_with_logits(r1 - r0, y, reduction="none") * keep
+            p = torch.sigmoid(self._segment_returns(u1) - self._segment_returns(u0))
+            y, keep = pseudo_labels(p, self.cfg.surf_threshold)
+        # Only confident pairs carry a gradient: forward just the pairs some member is confident
+        # about again, with autograd (most are not: a pass over all of them cost most of SURF's
+        # training time).
+        some = keep.any(0)
+        kept = int(keep.sum())
+        if not kept:
+            return torch.zeros((), device=self.device), 0
+        y, keep = y[:, some], keep[:, some]
+        logits = self._segment_returns(u1[:, some]) - self._segment_returns(u0[:, some])
+        losses = F.binary_cross_entropy_with_logits(logits, y, reduction="none") * keep
         per_member = losses.sum(-1) / keep.sum(-1).clamp(min=1)
-        return per_member.sum(), int(keep.sum())
+        return per_member.sum(), kept
 
     def state_dict(self) -> dict:
         return {

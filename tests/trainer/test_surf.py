@@ -60,6 +60,38 @@ def test_pseudo_labelled_pairs_join_the_loss_only_when_confident():
     assert 0 < metrics["surf_confident_ratio"] <= 1
 
 
+def test_the_pseudo_label_loss_has_the_gradient_of_every_pair_masked_to_the_confident():
+    """Only confident pairs are forwarded with autograd; the loss and its gradient must equal
+    the masked loss over all pairs."""
+    torch.manual_seed(0)
+    cfg = RewardConfig(hidden_dim=16, hidden_layers=2, surf=True, surf_threshold=0.55,
+                       surf_unlabelled_ratio=4)
+    model = RewardModel(3, 1, cfg, torch.device("cpu"), seed=0)
+    rng = np.random.default_rng(0)
+    u0, u1 = (rng.normal(size=(40, 10, 4)).astype(np.float32) * 3 for _ in range(2))
+    state = model.generator.get_state()
+    loss, kept = model._pseudo_label_loss(lambda n: (u0[:n], u1[:n]), 10, 8)
+    assert 0 < kept < 3 * 40  # some member-pairs confident, not all
+    loss.backward()
+    grads = [p.grad.clone() for p in model.ensemble.parameters()]
+
+    model.ensemble.zero_grad()
+    model.generator.set_state(state)
+    c0, c1 = random_crops(torch.as_tensor(u0), torch.as_tensor(u1), 8, model.generator)
+    e = cfg.ensemble_size
+    logits = (model._segment_returns(c1.expand(e, -1, -1, -1))
+              - model._segment_returns(c0.expand(e, -1, -1, -1)))
+    y, keep = pseudo_labels(torch.sigmoid(logits.detach()), cfg.surf_threshold)
+    losses = torch.nn.functional.binary_cross_entropy_with_logits(
+        logits, y, reduction="none") * keep
+    reference = (losses.sum(-1) / keep.sum(-1).clamp(min=1)).sum()
+    reference.backward()
+    assert int(keep.sum()) == kept
+    torch.testing.assert_close(loss, reference)
+    for got, want in zip(grads, (p.grad for p in model.ensemble.parameters()), strict=True):
+        torch.testing.assert_close(got, want)
+
+
 def test_a_pebble_run_with_surf_trains_on_crops_and_pseudo_labels(tmp_path):
     cfg = build_config("dmc:cheetah_run", "tiny", {
         "algo": "pebble", "steps": 1000, "threads": 1, "reward.surf": True,
