@@ -103,7 +103,7 @@ def enqueue_spec(spec: Spec, sessions: sessionmaker[Session], results: Path,
     """Put the spec's grid in the queue (see the module docstring); SpecError for a redefined
     run without `force`, or one a worker still owns. Nothing is written on a dry run."""
     clash = conflicts(spec, sessions)
-    fields = {grid_key(spec, run): queued_fields(spec, run) for run in spec.runs()}
+    fields = {grid_key(spec, run): queued_fields(spec, run) for run in spec.runs_seed_first()}
     if clash and not force:
         lines = [f"{key}: {_describe(row, fields[key])}" for key, row in clash.items()]
         shown = "\n  ".join(lines[:5]) + (f"\n  ... {len(lines) - 5} more"

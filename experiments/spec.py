@@ -1,9 +1,11 @@
 """Experiment specs: a TOML grid of runs, checked on load and expanded into runs.
 
 A spec is tasks x variants x eps x seeds (x budgets) under one preset and one length, with
-shared config overrides; a variant is a label, an algorithm and its own overrides, which win
-over the shared ones. Each run gets a stable folder under the spec's results folder:
-`<task>/<variant>/eps<e>[/budget<b>]/s<seed>`. docs/EXPERIMENTS.md describes the format.
+shared config overrides; a variant is a label, an algorithm, its own overrides, which win over
+the shared ones, and optionally its own seeds (a reference arm may need fewer). An optional
+`[analysis]` pre-registers the report's primary comparison. Each run gets a stable folder under
+the spec's results folder: `<task>/<variant>/eps<e>[/budget<b>]/s<seed>`. docs/EXPERIMENTS.md
+describes the format.
 """
 
 from __future__ import annotations
@@ -22,7 +24,9 @@ from runvocab.validate import validate
 
 KINDS = ("curves", "ablation")
 REQUIRED = ("name", "preset", "steps", "tasks", "eps", "seeds", "variants")
-OPTIONAL = ("title", "kind", "budgets", "threads", "overrides")
+OPTIONAL = ("title", "kind", "budgets", "threads", "overrides", "analysis")
+METRICS = {"final_quarter": "the mean evaluation return over the last 25 % of steps"}
+"""pre-registered primary metrics, by the name `[analysis] metric` gives"""
 
 # Fields the spec sets through its own keys: an override of one would contradict the grid.
 RESERVED = {
@@ -44,6 +48,18 @@ class Variant:
     algo: str
     overrides: dict[str, Any]
     """the variant's own dotted-path overrides"""
+    seeds: tuple[int, ...] = ()
+    """the variant's own seeds; empty: the spec's"""
+
+
+@dataclass(frozen=True)
+class Analysis:
+    """A pre-registered comparison (`[analysis]`): the primary metric per run, and the variant
+    whose probability of improvement over each of `compare_to` the report estimates."""
+
+    metric: str
+    reference: str
+    compare_to: tuple[str, ...]
 
 
 @dataclass(frozen=True)
@@ -99,6 +115,7 @@ class Spec:
     variants: tuple[Variant, ...]
     source: str = ""
     """the TOML text, stored beside the results"""
+    analysis: Analysis | None = None
 
     def runs(self) -> list[Run]:
         """Every run of the grid, in folder order (task, variant, eps, budget, seed)."""
@@ -108,7 +125,7 @@ class Spec:
             for v in self.variants:
                 for eps in self.eps:
                     for budget in budgets:
-                        for seed in self.seeds:
+                        for seed in v.seeds or self.seeds:
                             extra = {} if budget is None else {"feedback.budget": budget}
                             folder = Path(safe_name(task), safe_name(v.label), f"eps{eps:g}")
                             if budget is not None:
@@ -118,6 +135,13 @@ class Spec:
                                            self.overrides | v.overrides | extra,
                                            folder / f"s{seed}"))
         return out
+
+    def runs_seed_first(self) -> list[Run]:
+        """Every run, the first seed of every variant before the second of any: the order runs
+        are queued in, so a grid stopped half-way has a balanced share of every variant."""
+        rank = {run.dir: i for i, run in enumerate(self.runs())}
+        seeds = {v.label: v.seeds or self.seeds for v in self.variants}
+        return sorted(self.runs(), key=lambda r: (seeds[r.variant].index(r.seed), rank[r.dir]))
 
 
 def safe_name(text: str) -> str:
@@ -197,12 +221,16 @@ def parse_spec(data: dict[str, Any], where: str, source: str = "",
             raise fail(f"{section}: missing required key 'algo'")
         if not isinstance(body["algo"], str):
             raise fail(f"{section}: 'algo' must be a string")
-        own = _flatten({k: v for k, v in body.items() if k != "algo"})
+        own = _flatten({k: v for k, v in body.items() if k not in ("algo", "seeds")})
+        own_seeds = (_axis(body, "seeds", fail, lambda v, k: _integer(v, k, 0, fail))
+                     if "seeds" in body else ())
         variants.append(Variant(label, body["algo"],
-                                _check_overrides(own, section, bool(budgets), fail)))
+                                _check_overrides(own, section, bool(budgets), fail),
+                                own_seeds))
 
+    analysis = _analysis(data.get("analysis"), [v.label for v in variants], fail)
     spec = Spec(name, title, kind, preset, steps, tasks, eps, seeds, budgets, threads, shared,
-                tuple(variants), source)
+                tuple(variants), source, analysis)
     folders: dict[Path, Run] = {}
     for run in spec.runs():
         if run.dir in folders:
@@ -227,6 +255,26 @@ def check_runs(spec: Spec, fail: Fail) -> None:
             validate(run.config())
         except ValueError as err:
             raise fail(f"variant {run.variant!r} on {run.task}, eps {run.eps:g}: {err}") from err
+
+
+def _analysis(table: Any, labels: list[str], fail: Fail) -> Analysis | None:
+    if table is None:
+        return None
+    keys = ("metric", "reference", "compare_to")
+    if not isinstance(table, dict) or set(table) != set(keys):
+        raise fail(f"[analysis] takes exactly the keys {', '.join(keys)}")
+    if table["metric"] not in METRICS:
+        raise fail(f"[analysis] unknown metric {table['metric']!r}; valid: "
+                   + ", ".join(f"{k} ({v})" for k, v in METRICS.items()))
+    compare_to = table["compare_to"]
+    if not isinstance(compare_to, list) or not compare_to:
+        raise fail("[analysis] 'compare_to' must be a non-empty list of variant labels")
+    for label in [table["reference"], *compare_to]:
+        if label not in labels:
+            raise fail(f"[analysis] {label!r} is not a variant; variants: {', '.join(labels)}")
+    if table["reference"] in compare_to:
+        raise fail("[analysis] 'compare_to' lists the reference variant itself")
+    return Analysis(table["metric"], table["reference"], tuple(compare_to))
 
 
 def _flatten(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:

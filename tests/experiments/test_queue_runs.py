@@ -224,8 +224,9 @@ algo = "sepoa"
         assert (folder / "eval.csv").read_text().splitlines()[-1].startswith("400,")
         config = json.loads((folder / "config.json").read_text())
         assert config["skill"]["snapshot_dir"] == str(results / "snapshots")
-    # The two S-EPOA runs shared one snapshot, pretrained once under the results folder.
-    assert len(list((results / "snapshots").glob("*.pt"))) == 1
+    # Each seed pretrained its own snapshot, once, under the results folder.
+    snapshots = sorted(p.name for p in (results / "snapshots").glob("*.pt"))
+    assert [name.split("-")[4] for name in snapshots] == ["s0", "s1"]
     assert "is not a readable skill snapshot" in json.loads(
         (root / "broken" / "eps0.3" / "s0" / "failed.json").read_text())["reason"]
     with sessions() as session:

@@ -88,3 +88,40 @@ def test_a_bad_run_config_is_refused_before_anything_runs(tmp_path: Path) -> Non
     path = write(tmp_path, GRID.replace("eval_every = 200", '"feedback.selection" = "best"'))
     with pytest.raises(SpecError, match="unknown feedback.selection 'best'"):
         load_spec(path)
+
+
+def test_a_variant_can_have_its_own_seeds_and_runs_are_queued_seed_first(tmp_path: Path) -> None:
+    text = GRID.replace('budgets = [20, 30]\n', '').replace(
+        'tasks = ["dmc:cheetah_run", "dmc:walker_run"]', 'tasks = ["dmc:cheetah_run"]').replace(
+        'eps = [0.1, 0.3]', 'eps = [0.3]') + '\n[variants.SAC]\nalgo = "sac"\nseeds = [1]\n'
+    spec = load_spec(write(tmp_path, text))
+    assert [(r.variant, r.seed) for r in spec.runs_seed_first()] == [
+        ("PEBBLE", 0), ("S-EPOA w/o pretraining", 0), ("SAC", 1),
+        ("PEBBLE", 1), ("S-EPOA w/o pretraining", 1),
+        ("PEBBLE", 2), ("S-EPOA w/o pretraining", 2)]
+    assert "seeds" not in spec.variants[2].overrides
+
+
+@pytest.mark.parametrize("analysis, message", [
+    ('metric = "final_quarter"\nreference = "PEBBLE"\ncompare_to = ["SURF"]',
+     "'SURF' is not a variant; variants: PEBBLE, S-EPOA w/o pretraining"),
+    ('metric = "best"\nreference = "PEBBLE"\ncompare_to = ["PEBBLE"]',
+     "unknown metric 'best'; valid: final_quarter"),
+    ('metric = "final_quarter"\nreference = "PEBBLE"', "takes exactly the keys"),
+])
+def test_a_bad_analysis_is_refused_by_name(tmp_path: Path, analysis: str, message: str) -> None:
+    with pytest.raises(SpecError, match=message.replace("(", r"\(")):
+        load_spec(write(tmp_path, GRID + "\n[analysis]\n" + analysis + "\n"))
+
+
+def test_the_fair_comparison_spec_preregisters_its_analysis() -> None:
+    spec = load_spec(ROOT / "specs" / "small" / "sepoa-fair.toml")
+    assert spec.analysis is not None and spec.analysis.metric == "final_quarter"
+    assert (spec.analysis.reference, spec.analysis.compare_to) == ("S-EPOA", ("SURF", "PEBBLE"))
+    seeds = {v.label: len(v.seeds or spec.seeds) for v in spec.variants}
+    assert seeds["S-EPOA"] == seeds["SURF"] == seeds["PEBBLE"] == 8
+    # Equal update budgets and the same labels for every arm.
+    configs = {r.variant: r.config() for r in spec.runs()}
+    assert {c.update_every for c in configs.values()} == {1}
+    assert {(c.feedback.budget, c.feedback.per_round, c.feedback.every)
+            for c in configs.values()} == {(1000, 100, 5000)}
