@@ -25,7 +25,7 @@ from typing import Any
 from sqlalchemy.orm import Session, sessionmaker
 
 from experiments.spec import Run as GridRun
-from experiments.spec import Spec, SpecError
+from experiments.spec import Spec, SpecError, flatten
 from labelqueue import (
     DEAD_WORKER_AFTER_S,
     SILENT_WORKER_AFTER_S,
@@ -93,16 +93,6 @@ HOST_FIELDS = ("run_dir", "threads", "device", "skill.snapshot_dir")
 """config fields a worker sets for its host: they differ between machines, not between results"""
 
 
-def _flat(config: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for key, value in config.items():
-        if isinstance(value, dict):
-            out |= _flat(value, f"{prefix}{key}.")
-        else:
-            out[prefix + key] = value
-    return out
-
-
 def finished_results(results: Path, spec: Spec, run: GridRun) -> dict[str, Any] | None:
     """The done.json of `run`'s folder when it holds this run's finished results: its
     config.json is the spec's configuration of the run (host fields aside). None otherwise."""
@@ -113,7 +103,7 @@ def finished_results(results: Path, spec: Spec, run: GridRun) -> dict[str, Any] 
     except (OSError, ValueError):
         return None
     expected = json.loads(json.dumps(to_dict(run.config()), default=str))
-    mine, theirs = _flat(expected), _flat(stored)
+    mine, theirs = flatten(expected), flatten(stored)
     for name in HOST_FIELDS:
         mine.pop(name, None)
         theirs.pop(name, None)

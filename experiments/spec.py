@@ -206,7 +206,7 @@ def parse_spec(data: dict[str, Any], where: str, source: str = "",
     shared = data.get("overrides", {})
     if not isinstance(shared, dict):
         raise fail("'overrides' must be a table of config fields")
-    shared = _check_overrides(_flatten(shared), "[overrides]", bool(budgets), fail)
+    shared = _check_overrides(flatten(shared), "[overrides]", bool(budgets), fail)
 
     table = data["variants"]
     if not isinstance(table, dict) or not table:
@@ -221,7 +221,7 @@ def parse_spec(data: dict[str, Any], where: str, source: str = "",
             raise fail(f"{section}: missing required key 'algo'")
         if not isinstance(body["algo"], str):
             raise fail(f"{section}: 'algo' must be a string")
-        own = _flatten({k: v for k, v in body.items() if k not in ("algo", "seeds")})
+        own = flatten({k: v for k, v in body.items() if k not in ("algo", "seeds")})
         own_seeds = (_axis(body, "seeds", fail, lambda v, k: _integer(v, k, 0, fail))
                      if "seeds" in body else ())
         variants.append(Variant(label, body["algo"],
@@ -277,13 +277,14 @@ def _analysis(table: Any, labels: list[str], fail: Fail) -> Analysis | None:
     return Analysis(table["metric"], table["reference"], tuple(compare_to))
 
 
-def _flatten(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    """Nested tables to dotted paths: TOML reads `skill.backend = "diayn"` (unquoted) as a
-    table, `"skill.backend" = "diayn"` as one key; both mean the same field."""
+def flatten(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested tables (TOML's, a config.json's) to dotted paths: TOML reads
+    `skill.backend = "diayn"` (unquoted) as a table, `"skill.backend" = "diayn"` as one key;
+    both mean the same field."""
     out: dict[str, Any] = {}
     for key, value in table.items():
         if isinstance(value, dict):
-            out |= _flatten(value, f"{prefix}{key}.")
+            out |= flatten(value, f"{prefix}{key}.")
         else:
             out[prefix + key] = value
     return out
