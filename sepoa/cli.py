@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
 
 from experiments.cli import OneLineParser, fail
@@ -419,6 +420,9 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as err:  # a database URL that cannot be opened, among others
         return fail(str(err))
     except KeyboardInterrupt:  # Ctrl-C while starting up: no traceback
+        # A second Ctrl-C (or the same one seen again) while the interpreter shuts down would
+        # end it by the signal instead of this exit status.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         print("interrupted", file=sys.stderr)
         return 130
 

@@ -111,12 +111,14 @@ def test_ctrl_c_on_sepoa_up_stops_everything_without_a_traceback(tmp_path: Path,
                     break
             time.sleep(1)
         os.killpg(process.pid, signal.SIGINT)
-        out, err = process.communicate(timeout=60)
+        # Up to 20 s per child to stop (sepoa.up._stop), more on a loaded host.
+        out, err = process.communicate(timeout=120)
     finally:
         if process.poll() is None:
             os.killpg(process.pid, signal.SIGKILL)
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
-    assert process.returncode in (0, 130), err
+    # 130, or ended by the SIGINT itself (-2): what a shell reports as 130 either way.
+    assert process.returncode in (0, 130, -signal.SIGINT), err
     if when == "running":
         assert "stopping the server and the workers" in err
     else:
