@@ -97,6 +97,15 @@ def up(*, database_url: str, data_dir: str, host: str, port: int, workers: int,
     env.setdefault("MUJOCO_GL", "egl")
     python = sys.executable
     children: list[subprocess.Popen[bytes]] = []
+    # Ctrl-C while the children start is noted, not raised: an exception inside Popen would
+    # leave a started child out of `children`, running on after this process.
+    interrupted = False
+
+    def note_interrupt(signum: int, _frame: object) -> None:
+        nonlocal interrupted
+        interrupted = True
+
+    previous = signal.signal(signal.SIGINT, note_interrupt)
     try:
         # Each child in a process group of its own: Ctrl-C reaches this process only, which
         # stops them in turn (SIGTERM), so none is cut off mid-import with a traceback.
@@ -112,9 +121,13 @@ def up(*, database_url: str, data_dir: str, host: str, port: int, workers: int,
                 [python, "-m", "trainer.cli", "worker",
                  "--data-dir", data_dir, "--worker-id", worker_id, "--threads", str(threads)],
                 env=env, process_group=0))
-    except KeyboardInterrupt:
+            if interrupted:
+                break
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if interrupted:
         _stop(children)
-        raise
+        raise KeyboardInterrupt
 
     base = public_url or f"http://{host}:{port}"
     print(f"\nS-EPOA labelling is up at {base}\n"

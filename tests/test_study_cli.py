@@ -99,7 +99,8 @@ def up(data: Path) -> subprocess.Popen[str]:
 @pytest.mark.parametrize("when", ["starting", "running"])
 def test_ctrl_c_on_sepoa_up_stops_everything_without_a_traceback(tmp_path: Path,
                                                                   when: str) -> None:
-    process = up(tmp_path / "data")
+    data = tmp_path / "data"
+    process = up(data)
     try:
         if when == "starting":
             time.sleep(0.8)  # importing, migrating: before any child exists
@@ -119,6 +120,9 @@ def test_ctrl_c_on_sepoa_up_stops_everything_without_a_traceback(tmp_path: Path,
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
     # 130, or ended by the SIGINT itself (-2): what a shell reports as 130 either way.
     assert process.returncode in (0, 130, -signal.SIGINT), err
+    # No child outlives it (a worker started as the Ctrl-C came used to run on).
+    left = subprocess.run(["pgrep", "-f", str(data)], capture_output=True, text=True).stdout
+    assert not left.strip(), left
     if when == "running":
         assert "stopping the server and the workers" in err
     else:
