@@ -228,9 +228,9 @@ def _serve(args: argparse.Namespace) -> int:
 
     url = _database_url(args)
     check_database(url, writable=True)  # damaged, read-only: one line here, not a traceback
+    public_url = _public_url(args)  # checked before the environment the server reads is set
     os.environ["SEPOA_DATABASE_URL"] = url
     os.environ["SEPOA_DATA_DIR"] = args.data_dir
-    public_url = _public_url(args)
     if public_url is not None:
         os.environ["SEPOA_PUBLIC_URL"] = public_url
     uvicorn.run("server.app:app", host=args.host, port=args.port)
