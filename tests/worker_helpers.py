@@ -12,6 +12,7 @@ from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -29,7 +30,9 @@ from labelqueue.models import utcnow
 from runvocab.answers import click_of_answer
 from runvocab.config import build_config
 from trainer.clips import ClipConfig
+from trainer.feedback import Query as PairQuery
 from trainer.loop import TrainingRun
+from trainer.trajectories import Trajectory
 from trainer.worker import WorkerConfig, run_worker
 
 # Two rounds of 10 pairs in 1000 tiny steps (rounds at 400 and 800), a SAC update every 4
@@ -125,3 +128,21 @@ def decisions(run_dir: Path) -> list[tuple]:
 def round_accuracies(run_dir: Path) -> list[str]:
     with open(os.path.join(run_dir, "rounds.csv"), newline="") as f:
         return [row["reward_accuracy"] for row in csv.DictReader(f)]
+
+
+def cheetah_trajectory(id: int, reward: float, length: int = 60) -> Trajectory:
+    """A cheetah trajectory at rest, with a constant true reward (its shapes: the worker keeps
+    the episodes queries point into, restoring their states)."""
+    return Trajectory(id=id, obs=np.zeros((length, 17), np.float32),
+                      actions=np.zeros((length, 6), np.float32),
+                      true_rewards=np.full(length, reward, np.float32),
+                      states=np.zeros((length, 18)), context=0, success=False)
+
+
+def round_query(i: int) -> PairQuery:
+    """Query i of a round of 20-step segments of trajectories 0 and 1, starting at step i."""
+    return PairQuery(query_id=f"r0-{i}", round=0, step=400, trajectory0=0, start0=i,
+                     trajectory1=1, start1=i, segment_length=20, segment_return0=20.0,
+                     segment_return1=22.0, trajectory_return0=60.0, trajectory_return1=66.0,
+                     model_p=0.5, score=0.1, rule="disagreement", shadow_choice="second",
+                     distinguishable=True)

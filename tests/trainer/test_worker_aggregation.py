@@ -6,9 +6,9 @@ from __future__ import annotations
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
-import numpy as np
 import pytest
 from sqlalchemy import select
+from worker_helpers import cheetah_trajectory, round_query
 
 from labelqueue import (
     GOLD_NEEDS_LABELS,
@@ -24,8 +24,7 @@ from labelqueue import (
 from runvocab.answers import Answer
 from runvocab.config import build_config
 from trainer.clips import ClipConfig
-from trainer.feedback import Query as PairQuery
-from trainer.trajectories import Trajectory, TrajectoryPool
+from trainer.trajectories import TrajectoryPool
 from trainer.worker import QueueHooks, WorkerConfig, _answer, complete_queries
 
 T0 = datetime(2026, 11, 23, 12, 0, tzinfo=UTC)
@@ -84,23 +83,6 @@ def test_a_labeller_without_a_name_is_named_by_id() -> None:
     assert _answer([label(10, 7, Answer.EQUAL)], {}).labeller == "labeller-7"
 
 
-def trajectory(id: int, reward: float, length: int = 60) -> Trajectory:
-    """A cheetah trajectory at rest (its shapes: the worker keeps the episodes queries point
-    into, restoring their states)."""
-    return Trajectory(id=id, obs=np.zeros((length, 17), np.float32),
-                      actions=np.zeros((length, 6), np.float32),
-                      true_rewards=np.full(length, reward, np.float32),
-                      states=np.zeros((length, 18)), context=0, success=False)
-
-
-def pair(i: int) -> PairQuery:
-    return PairQuery(query_id=f"r0-{i}", round=0, step=400, trajectory0=0, start0=i,
-                     trajectory1=1, start1=i, segment_length=20, segment_return0=20.0,
-                     segment_return1=22.0, trajectory_return0=60.0, trajectory_return1=66.0,
-                     model_p=0.5, score=0.1, rule="disagreement", shadow_choice="second",
-                     distinguishable=True)
-
-
 @pytest.mark.parametrize("teacher", ["human", "scripted"])
 def test_a_round_is_pushed_wanting_k_answers_and_gold_pairs_wanting_all(
     tmp_path: Path, teacher: str
@@ -120,7 +102,8 @@ def test_a_round_is_pushed_wanting_k_answers_and_gold_pairs_wanting_all(
     cfg = build_config("dmc:cheetah_run", "tiny", overrides)
     hooks = QueueHooks(sessions, run, worker, cfg, scripted_labeller_id=0)
     trajectories = TrajectoryPool(10)
-    for t in (trajectory(0, 1.0), trajectory(1, 1.1), trajectory(2, 5.0)):
+    for t in (cheetah_trajectory(0, 1.0), cheetah_trajectory(1, 1.1),
+              cheetah_trajectory(2, 5.0)):
         trajectories.add(t)
     # Every clip already on disk, so nothing is rendered.
     folder = worker.clips_root / f"run-{run.id}"
@@ -129,7 +112,7 @@ def test_a_round_is_pushed_wanting_k_answers_and_gold_pairs_wanting_all(
         for side in (0, 1):
             (folder / f"{stem}-{side}.mp4").write_bytes(b"")
 
-    hooks.round_opened([pair(i) for i in range(4)], trajectories)
+    hooks.round_opened([round_query(i) for i in range(4)], trajectories)
     with sessions() as session:
         stored = session.scalars(select(Query).order_by(Query.position)).all()
         rows = [(q.gold, q.needs_labels) for q in stored]

@@ -5,31 +5,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 from sqlalchemy import select
+from worker_helpers import cheetah_trajectory, round_query
 
 from labelqueue import Query, claim_run, create_run, make_engine, migrate, session_factory
 from runvocab.config import build_config
 from trainer.clips import ClipConfig
-from trainer.feedback import Query as PairQuery
-from trainer.trajectories import Trajectory, TrajectoryPool
+from trainer.trajectories import TrajectoryPool
 from trainer.worker import QueueHooks, WorkerConfig
-
-
-def trajectory(id: int, reward: float, length: int = 60) -> Trajectory:
-    """A cheetah episode's shapes (the worker keeps the episodes its queries point into)."""
-    return Trajectory(id=id, obs=np.zeros((length, 17), np.float32),
-                      actions=np.zeros((length, 6), np.float32),
-                      true_rewards=np.full(length, reward, np.float32),
-                      states=np.zeros((length, 18)), context=0, success=False)
-
-
-def pair(i: int) -> PairQuery:
-    return PairQuery(query_id=f"r0-{i}", round=0, step=400, trajectory0=0, start0=i,
-                     trajectory1=1, start1=i, segment_length=20, segment_return0=20.0,
-                     segment_return1=22.0, trajectory_return0=60.0, trajectory_return1=66.0,
-                     model_p=0.5, score=0.1, rule="disagreement", shadow_choice="second",
-                     distinguishable=True)
 
 
 def test_a_round_pushes_the_practice_pairs_at_a_gold_rate_of_0(tmp_path: Path) -> None:
@@ -47,7 +30,8 @@ def test_a_round_pushes_the_practice_pairs_at_a_gold_rate_of_0(tmp_path: Path) -
     hooks = QueueHooks(sessions, run, worker, build_config("dmc:cheetah_run", "tiny", overrides),
                        scripted_labeller_id=0)
     pool = TrajectoryPool(10)
-    for t in (trajectory(0, 1.0), trajectory(1, 1.1), trajectory(2, 5.0), trajectory(3, 9.0)):
+    for t in (cheetah_trajectory(0, 1.0), cheetah_trajectory(1, 1.1),
+              cheetah_trajectory(2, 5.0), cheetah_trajectory(3, 9.0)):
         pool.add(t)
     folder = worker.clips_root / f"run-{run.id}"  # every clip on disk: nothing is rendered
     folder.mkdir(parents=True)
@@ -55,7 +39,7 @@ def test_a_round_pushes_the_practice_pairs_at_a_gold_rate_of_0(tmp_path: Path) -
         for side in (0, 1):
             (folder / f"{stem}-{side}.mp4").write_bytes(b"")
 
-    hooks.round_opened([pair(i) for i in range(3)], pool)
+    hooks.round_opened([round_query(i) for i in range(3)], pool)
     with sessions() as session:
         gold = session.scalars(select(Query).where(Query.gold.is_(True))).all()
     assert len(gold) == 2
