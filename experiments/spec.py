@@ -139,9 +139,9 @@ class Spec:
     def runs_seed_first(self) -> list[Run]:
         """Every run, the first seed of every variant before the second of any: the order runs
         are queued in, so a grid stopped half-way has a balanced share of every variant."""
-        rank = {run.dir: i for i, run in enumerate(self.runs())}
         seeds = {v.label: v.seeds or self.seeds for v in self.variants}
-        return sorted(self.runs(), key=lambda r: (seeds[r.variant].index(r.seed), rank[r.dir]))
+        # A stable sort: within a seed's rank, folder order.
+        return sorted(self.runs(), key=lambda r: seeds[r.variant].index(r.seed))
 
 
 def safe_name(text: str) -> str:
