@@ -10,6 +10,7 @@ import pytest
 from sqlalchemy import select
 from worker_helpers import cheetah_trajectory, round_query
 
+import trainer.worker as worker_module
 from labelqueue import (
     GOLD_NEEDS_LABELS,
     Label,
@@ -17,6 +18,7 @@ from labelqueue import (
     Query,
     claim_run,
     create_run,
+    lease_next_query,
     make_engine,
     migrate,
     session_factory,
@@ -122,3 +124,55 @@ def test_a_round_is_pushed_wanting_k_answers_and_gold_pairs_wanting_all(
         assert 2 in (gold.first_trajectory, gold.second_trajectory)
     else:  # the scripted teacher is not measured
         assert rows == [(False, 3)] * 4
+
+
+def test_two_workers_answering_as_the_scripted_teacher_at_once_lose_no_query(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Both workers answer as one scripted labeller, and a labeller's lease for one run releases
+    its lease for another: a lease taken away between lease and submit is leased again."""
+    url = f"sqlite:///{tmp_path / 'queue.db'}"
+    migrate(url)
+    sessions = session_factory(make_engine(url))
+    overrides = {"feedback.segment_length": 20}
+    cfg = build_config("dmc:cheetah_run", "tiny", overrides)
+    trajectories = TrajectoryPool(10)
+    for t in (cheetah_trajectory(0, 1.0), cheetah_trajectory(1, 1.1)):
+        trajectories.add(t)
+    scripted = worker_module.scripted_labeller_id(sessions)
+    hooks = []
+    for name in ("w0", "w1"):
+        with sessions() as session:
+            create_run(session, name=name, task="dmc:cheetah_run", algo="pebble", budget=100,
+                       teacher="scripted", config=overrides)
+            run = claim_run(session, worker_id=name)
+        assert run is not None
+        worker = WorkerConfig(database_url=url, data_dir=tmp_path, worker_id=name,
+                              clip=ClipConfig(width=64, height=64))
+        hooks.append(QueueHooks(sessions, run, worker, cfg, scripted_labeller_id=scripted))
+        hooks[-1].round_opened([round_query(i) for i in range(4)], trajectories)
+    first, second = hooks
+
+    real_submit = worker_module.submit_label
+    stolen: list[int] = []
+
+    def submit_after_the_other_worker_leased(session, **kw):  # type: ignore[no-untyped-def]
+        if len(stolen) < 3:  # the other worker leases for its run just before this submit
+            with sessions() as other:
+                leased = lease_next_query(other, labeller_id=scripted, run_id=second.run_id,
+                                          gold=False)
+            assert leased is not None
+            stolen.append(kw["query_id"])
+        return real_submit(session, **kw)
+
+    monkeypatch.setattr(worker_module, "submit_label", submit_after_the_other_worker_leased)
+    first._answer_as_scripted([round_query(i) for i in range(4)])
+    monkeypatch.setattr(worker_module, "submit_label", real_submit)
+    second._answer_as_scripted([round_query(i) for i in range(4)])
+
+    assert len(stolen) == 3 and len(set(stolen)) == 1  # the same query lost three times
+    with sessions() as session:
+        answered = session.execute(select(Label.run_id, Label.query_id)).all()
+    for h in hooks:
+        ids = sorted(q for r, q in answered if r == h.run_id)
+        assert ids == sorted(h.query_ids.values())  # every query answered, none twice
