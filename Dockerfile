@@ -42,6 +42,7 @@ COPY experiments ./experiments
 COPY figures ./figures
 COPY trainer ./trainer
 COPY labelqueue ./labelqueue
+COPY labelstats ./labelstats
 COPY server ./server
 COPY runvocab ./runvocab
 COPY web ./web

@@ -238,7 +238,7 @@ def _run_calibration_report(args: argparse.Namespace) -> int:
         read_calibration_rows,
         write_calibration_report,
     )
-    from labelqueue.calibration import DEFAULT_EDGES, parse_edges
+    from labelstats.calibration import DEFAULT_EDGES, parse_edges
 
     try:
         edges = DEFAULT_EDGES if args.bins is None else parse_edges(args.bins)

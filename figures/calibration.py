@@ -1,7 +1,7 @@
 """The teacher-calibration report as files: a figure (PNG), a table (Markdown) and the numbers
 (JSON), from a label export (`sepoa report --calibration FILE`) or from report data the
 server made (`GET /api/quality/calibration.png`). The numbers come from
-`labelqueue.calibration`; this module only draws and writes them (matplotlib's Agg canvas, no
+`labelstats.calibration`; this module only draws and writes them (matplotlib's Agg canvas, no
 pyplot state, no torch). docs/QUALITY.md explains how to read them.
 """
 
@@ -16,8 +16,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from labelqueue.agreement import agreement_report
-from labelqueue.calibration import (
+from labelqueue.export_read import ExportFileError, read_export
+from labelstats.agreement import agreement_report
+from labelstats.calibration import (
     DEFAULT_EDGES,
     Bin,
     CalibrationReport,
@@ -26,9 +27,8 @@ from labelqueue.calibration import (
     calibration_report,
     missing_columns,
 )
-from labelqueue.calibration_stats import EpsFit
-from labelqueue.export_read import ExportFileError, read_export
-from labelqueue.labeller_quality import LabellerQuality, labeller_quality
+from labelstats.calibration_stats import EpsFit
+from labelstats.labeller_quality import LabellerQuality, labeller_quality
 
 MAX_LABELLERS_DRAWN = 8
 """labellers drawn in the figure (those with the most answers); the tables list all"""
@@ -247,7 +247,7 @@ def write_calibration_report(
     edges: Sequence[float] = DEFAULT_EDGES,
 ) -> list[Path]:
     """Write calibration.png, .md and .json of `rows` (from `source`, a file name) into
-    `folder`, with each labeller's quality (labellers.csv, `labelqueue.labeller_quality`) and the
+    `folder`, with each labeller's quality (labellers.csv, `labelstats.labeller_quality`) and the
     agreement between labellers (agreement.json); the files written."""
     report = calibration_report(rows, edges=edges)
     folder.mkdir(parents=True, exist_ok=True)

@@ -6,7 +6,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 export MUJOCO_GL=${MUJOCO_GL:-egl}
-.venv/bin/python -m ruff check sepoa server trainer labelqueue runvocab experiments figures migrations tests benchmarks
+.venv/bin/python -m ruff check sepoa server trainer labelqueue labelstats runvocab experiments figures migrations tests benchmarks
 .venv/bin/python -m mypy
 set +e
 bash scripts/with_postgres.sh .venv/bin/python -m pytest "$@"

@@ -32,7 +32,7 @@ from server.export_job import NICENESS
 from server.services import reading
 
 if TYPE_CHECKING:
-    from labelqueue.calibration import CalibrationReport
+    from labelstats.calibration import CalibrationReport
 
 Figure = tuple[tuple[str, tuple[tuple[tuple[int, ...], tuple[float, ...]], ...]], ...]
 """per curve label, the seeds' (steps, values): hashable, so a drawn figure is kept by it"""

@@ -18,15 +18,15 @@ from fastapi.responses import Response
 from sqlalchemy.orm import Session
 
 from labelqueue import NotFound, export_rows, lift_pause, paused_labellers
-from labelqueue.agreement import AgreementReport, agreement_report
-from labelqueue.calibration import (
+from labelstats.agreement import AgreementReport, agreement_report
+from labelstats.calibration import (
     DEFAULT_EDGES,
     MAX_BINS,
     CalibrationReport,
     calibration_report,
     parse_edges,
 )
-from labelqueue.labeller_quality import LabellerQuality, labeller_quality
+from labelstats.labeller_quality import LabellerQuality, labeller_quality
 from server import curves
 from server.deps import OperatorDep, SessionDep
 from server.schemas import LabellerId, RunFilter, RunId, errors

@@ -104,7 +104,7 @@ def test_every_mistake_is_one_line_and_exit_2(
 
 def test_an_unbounded_eps_interval_is_said_in_words() -> None:
     from figures.calibration import _eps_cell
-    from labelqueue.calibration_stats import EpsFit
+    from labelstats.calibration_stats import EpsFit
 
     unbounded = EpsFit(0.0, 0.0, None, -3.0, 0.0, 0.0, 3, 0.95, wide=True)
     assert _eps_cell(unbounded) == "≥ 0.00, no upper bound (wide)"  # not "[0.00, ∞)"

@@ -17,8 +17,8 @@ from server_helpers import OPERATOR, bearer, new_labeller, new_run
 from sqlalchemy.orm import Session
 
 from labelqueue import claim_run, export_rows, push_queries, set_clips
-from labelqueue.calibration import calibration_report
 from labelqueue.export_read import read_export
+from labelstats.calibration import calibration_report
 from server import curves
 from server.export_job import NICENESS
 from server.settings import Settings

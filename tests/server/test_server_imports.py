@@ -41,17 +41,19 @@ def test_the_server_imports_neither_the_trainer_nor_torch() -> None:
 
 
 # Who may import whom, by top-level package: a package imports only those listed for it (and
-# third-party code). runvocab and labelqueue are the bottom; figures draws for the server and
-# the reports; the trainer and the server sit beside each other; experiments and the `sepoa`
-# command line are on top.
+# third-party code). runvocab is the bottom; the queue package and the label statistics sit on
+# it, beside each other; figures draws for the server and the reports; the trainer and the
+# server sit beside each other; experiments and the `sepoa` command line are on top.
 LAYERS = {
     "runvocab": set(),
     "labelqueue": {"runvocab"},
-    "figures": {"runvocab", "labelqueue"},
-    "server": {"runvocab", "labelqueue", "figures"},
+    "labelstats": {"runvocab"},
+    "figures": {"runvocab", "labelqueue", "labelstats"},
+    "server": {"runvocab", "labelqueue", "labelstats", "figures"},
     "trainer": {"runvocab", "labelqueue"},
-    "experiments": {"runvocab", "labelqueue", "figures", "trainer"},
-    "sepoa": {"runvocab", "labelqueue", "figures", "trainer", "server", "experiments"},
+    "experiments": {"runvocab", "labelqueue", "labelstats", "figures", "trainer"},
+    "sepoa": {"runvocab", "labelqueue", "labelstats", "figures", "trainer", "server",
+              "experiments"},
 }
 
 
@@ -61,6 +63,16 @@ def test_each_package_imports_only_the_layers_below_it(package: str) -> None:
     for path in (ROOT / package).rglob("*.py"):
         wrong = imported_packages(path) & others
         assert not wrong, f"{path.relative_to(ROOT)} imports {sorted(wrong)}"
+
+
+def test_the_label_statistics_need_no_database_numpy_or_torch() -> None:
+    probe = ("import sys, labelstats.calibration, labelstats.labeller_quality, "
+             "labelstats.agreement; print(sorted(m for m in sys.modules if m.split('.')[0] in "
+             "('torch', 'numpy', 'sqlalchemy', 'labelqueue')))")
+    result = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, check=True, cwd=ROOT
+    )
+    assert result.stdout.strip() == "[]"
 
 
 def test_figures_draw_without_torch_or_the_trainer() -> None:

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from simulated_crowd import SimulatedLabeller, answer_as_crowd, estimated_r_avg
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -27,11 +28,10 @@ from labelqueue import (
     session_factory,
     write_export,
 )
-from labelqueue.agreement import agreement_report
-from labelqueue.calibration import calibration_report
-from labelqueue.labeller_quality import labeller_quality
+from labelstats.agreement import agreement_report
+from labelstats.calibration import calibration_report
+from labelstats.labeller_quality import labeller_quality
 from sepoa.cli import main
-from trainer.crowd import SimulatedLabeller, answer_as_crowd, estimated_r_avg
 
 R_AVG = 100.0
 CROWD = [

@@ -13,7 +13,7 @@ taken back (withdrawn) are left out. Per labeller:
 - can't-tell and skip rates;
 - position bias: the share of "left" among left and right clicks, with the exact binomial test
   of 0.5;
-- agreement with the other labellers on the queries they share (`labelqueue.agreement`).
+- agreement with the other labellers on the queries they share (`labelstats.agreement`).
 """
 
 from __future__ import annotations
@@ -24,8 +24,8 @@ from dataclasses import dataclass, replace
 from datetime import datetime
 from typing import Any
 
-from labelqueue.agreement import labeller_agreement, standing_answers
-from labelqueue.calibration_stats import LEVEL, binomial_test, wilson_interval
+from labelstats.agreement import labeller_agreement, standing_answers
+from labelstats.calibration_stats import LEVEL, binomial_test, wilson_interval
 
 BREAK_S = 600.0
 """a gap between two answers longer than this is a break, not work"""

@@ -1,16 +1,17 @@
 """The scripted teacher as a crowd: simulated labellers that answer a run's queries through the
 queue's own operations (create labellers, lease, submit), as people answer through the API.
+The tests use it to check that the quality statistics give each labeller's eps and bias back.
 
-Each `SimulatedLabeller` is the paper's noisy teacher (`teachers.NoisyTeacher`, the same code a
-scripted run is labelled by) with its own eps, seen through a screen: the two segments are put
-left and right at random, as the server does, and with probability |2 * left_bias - 1| the
-labeller clicks its favoured side without looking. So its share of "left" clicks is
-`left_bias`, and it guesses (a lapse, in the calibration report's terms) on that share of the
-pairs it could tell apart. Queries pushed with `needs_labels` = the crowd's size are answered by
-every labeller; with fewer, the labellers share them.
+Each `SimulatedLabeller` is the paper's noisy teacher (`trainer.teachers.NoisyTeacher`, the
+same code a scripted run is labelled by) with its own eps, seen through a screen: the two
+segments are put left and right at random, as the server does, and with probability
+|2 * left_bias - 1| the labeller clicks its favoured side without looking. So its share of
+"left" clicks is `left_bias`, and it guesses (a lapse, in the calibration report's terms) on
+that share of the pairs it could tell apart. Queries pushed with `needs_labels` = the crowd's
+size are answered by every labeller; with fewer, the labellers share them.
 
 The noisy teacher's band is eps * |R_avg|. A query does not hold R_avg, so the crowd takes the
-calibration report's estimate (`labelqueue.calibration.estimate_r_avg`) unless given one:
+calibration report's estimate (`labelstats.calibration.estimate_r_avg`) unless given one:
 then the report measures the crowd on the scale the crowd answered on.
 """
 
@@ -33,7 +34,7 @@ from labelqueue import (
     lease_next_query,
     submit_label,
 )
-from labelqueue.calibration import RECENT_TRAJECTORIES, estimate_r_avg
+from labelstats.calibration import RECENT_TRAJECTORIES, estimate_r_avg
 from runvocab.answers import click_of_answer
 from trainer.teachers import NoisyTeacher, QueryTruth
 

@@ -10,7 +10,8 @@ the same. Definitions:
   trainer recorded with the query (the export's `r_avg`: the mean return of the run's newest
   trajectories when the round opened). Where it is missing (queries stored before it was
   recorded, schema-2 files) it is estimated per (run, round): the mean trajectory return of the
-  ten newest trajectories (by index) that the round's queries show. An R_avg of 0 makes every
+  newest trajectories (by index) that the round's queries show, as many as the noisy teacher's
+  default window (`teacher.recent_trajectories`). An R_avg of 0 makes every
   gap infinite (the noisy teacher's band is then empty).
 - outcome, judged on the *segment* returns (what the noisy teacher answers by, and the
   export's `correct`): "correct" or "wrong" for first/second; "equal" is correct on exactly
@@ -32,13 +33,14 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from labelqueue.calibration_stats import (
+from labelstats.calibration_stats import (
     LEVEL,
     EpsFit,
     binomial_test,
     fit_noisy_teacher,
     wilson_interval,
 )
+from runvocab.config import TeacherConfig
 
 REQUIRED_COLUMNS = (
     "run_id",
@@ -57,8 +59,8 @@ REQUIRED_COLUMNS = (
     "second_trajectory_return",
 )
 """the export columns a report reads (docs/EXPORT.md)"""
-RECENT_TRAJECTORIES = 10
-"""how many of a round's newest trajectories estimate R_avg, as the noisy teacher's default"""
+RECENT_TRAJECTORIES = TeacherConfig().recent_trajectories
+"""how many of a round's newest trajectories estimate R_avg: the noisy teacher's own window"""
 DEFAULT_EDGES: tuple[float, ...] = (
     0.0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.5, 2.0, math.inf,
 )

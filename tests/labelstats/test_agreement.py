@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from labelqueue.agreement import agreement, agreement_report
+from labelstats.agreement import agreement, agreement_report
 
 # Fleiss (1971) as Wikipedia works it: 10 subjects, 14 raters, 5 categories; kappa 0.210.
 FLEISS = [[0, 0, 0, 0, 14], [0, 2, 6, 4, 2], [0, 0, 3, 5, 6], [0, 3, 9, 2, 0], [2, 2, 8, 1, 1],
