@@ -176,6 +176,9 @@ class Run(Base):
     grid_key: Mapped[str | None] = mapped_column(String(300), unique=True, index=True)
     """an experiment's run: `<spec name>/<run folder>` (`experiments.spec`), unique, so a grid
     enqueued again adds nothing; its worker trains it in `<results>/<grid key>`"""
+    dataset: Mapped[str | None] = mapped_column(String(1000))
+    """a labelling-only run: the dataset export its pairs are drawn from (its folder, as the
+    workers reach it; `labelqueue.labelling`); none: a training run"""
 
 
 class RunInstruction(Base):

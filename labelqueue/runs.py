@@ -83,10 +83,13 @@ def create_run(
     instruction: str | None = None,
     clip_size: str | None = None,
     grid_key: str | None = None,
+    dataset: str | None = None,
 ) -> Run:
     """A queued run, for the next free worker to claim. `instruction`: the operator's text for
     labellers (None: the task's own); `clip_size`: a `runvocab.clip_format.CLIP_SIZES` name
-    (None: the default); `grid_key`: an experiment's key for the run (`labelqueue.grid`).
+    (None: the default); `grid_key`: an experiment's key for the run (`labelqueue.grid`);
+    `dataset`: the dataset export a labelling-only run draws its pairs from (checked by
+    `labelqueue.labelling.create_labelling_run`, which should be used to make one).
     ValueError for a bad instruction or clip size."""
     stored_instruction = checked_instruction(instruction)
     if clip_size is not None:
@@ -106,6 +109,7 @@ def create_run(
             instruction=stored_instruction,
             clip_size=clip_size,
             grid_key=grid_key,
+            dataset=dataset,
         )
         session.add(run)
         session.flush()

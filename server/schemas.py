@@ -199,6 +199,8 @@ class RunOut(Out):
     """the operator's instruction; null: the task's own (see `instruction_text`)"""
     clip_size: str | None
     """null: the default size, 256x256"""
+    dataset: str | None = None
+    """a labelling-only run: the dataset export its pairs come from; null: a training run"""
 
     @computed_field  # type: ignore[prop-decorator]
     @property

@@ -111,6 +111,7 @@ from runvocab.config import RunConfig, apply_overrides
 from runvocab.query_fields import QUERY_FIELDS
 from runvocab.queued_run import queued_run_config
 from trainer.clips import ClipConfig, render_query_clips, sized
+from trainer.dataset_labelling import DatasetLabelling
 from trainer.envs import Env, make_env
 from trainer.feedback import GivenAnswer, PreferenceFeedback, Query
 from trainer.gold_pairs import gold_count, gold_pairs, round_layout
@@ -568,13 +569,19 @@ def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerC
         hooks = QueueHooks(sessions, run, worker, cfg, scripted_id, departure)
         print(f"{log}: {'resuming' if resume else 'starting'} {run.task} {run.algo} "
               f"in {cfg.run_dir}", file=sys.stderr, flush=True)
-        training = TrainingRun(cfg, resume=resume, progress=False, hooks=hooks)
-        # A round opens at the first episode end past its step (episodes have a fixed length).
-        length = training.env.episode_length
-        hooks.next_round_step = lambda: -(-training.next_round_step // length) * length
-        hooks.episode_end = training.env.physics_state
-        hooks.step = training.step  # a resumed run reports its step before taking one
-        summary = training.train()
+        if run.dataset is not None:  # a labelling-only run over a dataset: no training
+            labelling = DatasetLabelling(cfg, run.dataset, resume=resume, hooks=hooks,
+                                         episode_store=hooks.episodes)
+            hooks.step = labelling.step
+            summary = labelling.train()
+        else:
+            training = TrainingRun(cfg, resume=resume, progress=False, hooks=hooks)
+            # A round opens at the first episode end past its step (fixed-length episodes).
+            length = training.env.episode_length
+            hooks.next_round_step = lambda: -(-training.next_round_step // length) * length
+            hooks.episode_end = training.env.physics_state
+            hooks.step = training.step  # a resumed run reports its step before taking one
+            summary = training.train()
         hooks.beat(int(summary["step"]), force=True)  # the final step and progress, on record
     except LostRun as err:
         print(f"{log}: lost ({err})", file=sys.stderr, flush=True)

@@ -1,0 +1,62 @@
+"""A small dataset export to label: real episodes of a task, written by the project's own
+dataset export, for the tests of labelling-only runs."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from labelqueue import create_run, make_engine, migrate, session_factory
+from labelqueue.dataset import INFO_FILE, write_dataset
+from labelqueue.episodes import StoredEpisode, episodes_dir, write_episode
+
+TASK = "dmc:cheetah_run"
+
+
+def exported_dataset(folder: Path, *, episodes: int = 4, length: int = 60,
+                     dataset_id: str = "sepoa/dmc-cheetah_run/source-v0", seed: int = 0) -> Path:
+    """`episodes` random-action cheetah episodes of `length` steps, kept in a run's episode
+    store as a worker keeps them and exported with `write_dataset` under `folder` (a Minari
+    datasets folder); the dataset's path. Its source run, in a database of its own, has no
+    labels: the dataset is unlabelled."""
+    from trainer.envs import make_env
+
+    source = folder.parent / f"{folder.name}-source"
+    url = f"sqlite:///{source / 'queue.db'}"
+    source.mkdir(parents=True)
+    migrate(url)
+    engine = make_engine(url)
+    sessions = session_factory(engine)
+    with sessions() as session:
+        run = create_run(session, name="source", task=TASK, algo="pebble", preset="tiny",
+                         budget=1, teacher="scripted")
+    store = episodes_dir(source / "clips", run.id)
+    rng = np.random.default_rng(seed)
+    with make_env(TASK, seed, length) as env:
+        for trajectory in range(episodes):
+            observations, states = [env.reset()], [env.physics_state()]
+            actions, rewards = [], []
+            for _ in range(length):
+                action = rng.uniform(-1, 1, env.action_dim).astype(np.float32)
+                step = env.step(action)
+                actions.append(action)
+                rewards.append(step.reward)
+                observations.append(step.obs)
+                states.append(env.physics_state())
+            write_episode(store, StoredEpisode(
+                trajectory=trajectory, observations=np.array(observations, np.float32),
+                actions=np.array(actions), rewards=np.array(rewards, np.float32),
+                states=np.array(states), context=env.episode_context(), success=False))
+    with sessions() as session:
+        summary = write_dataset(session, run_id=run.id, clips_root=source / "clips",
+                                root=folder, dataset_id=dataset_id)
+    engine.dispose()
+    return summary.path
+
+
+def edit_info(path: Path, **changes: object) -> None:
+    """Change fields of a dataset's sepoa.json."""
+    info = json.loads((path / INFO_FILE).read_text())
+    (path / INFO_FILE).write_text(json.dumps(info | changes))
