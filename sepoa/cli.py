@@ -11,6 +11,7 @@ the others import only the server or the queue package, so they start fast.
     sepoa export --format parquet --run 3 --out labels.parquet
     sepoa export --dataset datasets --run 3   # the run's episodes and labels as a Minari dataset
     sepoa reward fit datasets/sepoa/dmc-cheetah_run/run-3-v0 --out reward.pt  # offline r_hat
+    sepoa label-dataset datasets/sepoa/dmc-cheetah_run/run-3-v0 --budget 200  # label it
     sepoa labeller create alice [--role operator]
     sepoa labeller revoke alice | activate alice | token alice | list
     sepoa invite verify PILOT-7KQ3-M9XD-2WPA   # whose completion code is it, how far did they get
@@ -26,6 +27,7 @@ import signal
 import sys
 
 from experiments.cli import OneLineParser, fail
+from labelqueue.labelling import LABELLING_SELECTIONS
 
 TRAINER_COMMANDS = {
     "train": "train one run standalone, answered by a scripted teacher",
@@ -133,6 +135,38 @@ def _parser() -> argparse.ArgumentParser:
     export.add_argument("--clips-dir", default=None,
                         help="with --dataset: the clips folder, which holds the runs' episodes "
                         "(env SEPOA_CLIPS_DIR; default <data-dir>/clips)")
+
+    label = sub.add_parser(
+        "label-dataset", help="queue a labelling-only run over a dataset export: pairs of its "
+        "episodes for people to label, no training (docs/EXPORT.md)")
+    _database_args(label)
+    label.add_argument("dataset", metavar="DATASET",
+                       help="a dataset export's folder (sepoa export --dataset), or its Minari "
+                       "id under MINARI_DATASETS_PATH; workers read it at the same path")
+    label.add_argument("--budget", type=_number(1, ID_MAX, "a budget"), required=True,
+                       help="answers to ask for in all")
+    label.add_argument("--per-round", type=_number(1, ID_MAX, "a round size"), default=None,
+                       help="pairs per round (default: the preset's)")
+    label.add_argument("--selection", choices=LABELLING_SELECTIONS, default="disagreement",
+                       help="how rounds after the first (uniform) draw their pairs: uniformly, "
+                       "or by the disagreement of the reward ensemble refitted on the labels "
+                       "so far (default)")
+    label.add_argument("--segment-length", type=_number(1, ID_MAX, "a segment length"),
+                       default=None, help="steps per clip (default: the preset's, at most the "
+                       "dataset's shortest episode)")
+    label.add_argument("--name", default=None, help="the run's name (default: label <id>)")
+    label.add_argument("--preset", default="small",
+                       help="the size preset of the reward ensemble and rounds (default small)")
+    label.add_argument("--seed", type=_number(0, ID_MAX, "a seed"), default=0)
+    label.add_argument("--teacher", choices=("human", "scripted"), default="human",
+                       help="who answers: people on the label page (default), or the scripted "
+                       "teacher from the dataset's true rewards")
+    label.add_argument("--clip-size", default=None, help="256x256 (default), 320x240 or 128x128")
+    label.add_argument("--instruction", default=None,
+                       help="what labellers are told \"better\" means (default: the task's)")
+    label.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                       help="a config override, e.g. reward.hidden_dim=64 or "
+                       "feedback.labels_per_query=3 (repeatable; VALUE is JSON, else text)")
 
     labeller = sub.add_parser("labeller", help="create, list, revoke or restore labellers")
     _database_args(labeller)
@@ -330,6 +364,72 @@ def _export_dataset(args: argparse.Namespace, url: str) -> int:
     return 0
 
 
+def _overrides(pairs: list[str]) -> dict[str, object]:
+    """`--set KEY=VALUE` flags as config overrides; ValueError naming a malformed one."""
+    import json
+
+    out: dict[str, object] = {}
+    for pair in pairs:
+        key, sep, text = pair.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--set {pair!r}: give KEY=VALUE, e.g. reward.hidden_dim=64")
+        try:
+            out[key] = json.loads(text)
+        except ValueError:
+            out[key] = text
+    return out
+
+
+def _label_dataset(args: argparse.Namespace) -> int:
+    from sqlalchemy.exc import DBAPIError
+
+    from labelqueue import check_database, make_engine, migrate, session_factory
+    from labelqueue.labelling import create_labelling_run, labelling_dataset
+    from runvocab.names import ConfigError
+
+    overrides = _overrides(args.set)
+    try:
+        found = labelling_dataset(args.dataset)
+    except ConfigError as err:
+        return fail(str(err))
+    try:  # the task's own sizes, where the trainer is installed (a worker checks them anyway)
+        from trainer.dataset_labelling import dataset_pool
+    except ImportError:
+        pass
+    else:
+        try:
+            dataset_pool(found, found.task)
+        except ValueError as err:
+            return fail(str(err))
+    url = _database_url(args)
+    check_database(url)
+    try:
+        migrate(url)
+    except DBAPIError as err:
+        return fail(f"cannot open the queue database: {str(err.orig).strip().splitlines()[0]}")
+    engine = make_engine(url)
+    try:
+        with session_factory(engine)() as session:
+            run = create_labelling_run(
+                session, dataset=args.dataset, budget=args.budget, per_round=args.per_round,
+                selection=args.selection, segment_length=args.segment_length, name=args.name,
+                preset=args.preset, seed=args.seed, teacher=args.teacher, config=overrides,
+                instruction=args.instruction, clip_size=args.clip_size)
+    except ConfigError as err:
+        return fail(str(err))
+    except DBAPIError as err:
+        return fail(f"cannot use the queue database: "
+                    f"{str(err.orig or err).strip().splitlines()[0]}")
+    finally:
+        engine.dispose()
+    h = run.config["feedback.segment_length"]
+    print(f"run {run.id} ({run.name!r}) queued: {run.budget} answers on pairs of {h}-step "
+          f"segments of {len(found.episodes)} episodes of {run.task} in {run.dataset}, "
+          f"{args.selection} after a uniform first round; a worker serves it "
+          f"(sepoa worker), people label it on the label page")
+    return 0
+
+
 def _labeller(args: argparse.Namespace) -> int:
     from sqlalchemy import select
     from sqlalchemy.exc import DBAPIError
@@ -416,6 +516,8 @@ def main(argv: list[str] | None = None) -> int:
             return _export(args)
         if args.command == "invite":
             return _invite(args)
+        if args.command == "label-dataset":
+            return _label_dataset(args)
         return _labeller(args)
     except ValueError as err:  # a database URL that cannot be opened, among others
         return fail(str(err))

@@ -60,3 +60,29 @@ def edit_info(path: Path, **changes: object) -> None:
     """Change fields of a dataset's sepoa.json."""
     info = json.loads((path / INFO_FILE).read_text())
     (path / INFO_FILE).write_text(json.dumps(info | changes))
+
+
+def drop_states(path: Path) -> None:
+    """Rewrite a dataset's Minari episodes without their physics states (`infos["state"]`), as
+    a dataset recorded elsewhere would come."""
+    import shutil
+
+    import gymnasium as gym
+    import minari
+    from minari import MinariDataset
+    from minari.data_collector import EpisodeBuffer
+    from minari.dataset.minari_storage import MinariStorage
+
+    old = MinariDataset(path / "data")
+    episodes = [EpisodeBuffer(id=int(e.id), observations=e.observations, actions=e.actions,
+                              rewards=e.rewards, terminations=e.terminations,
+                              truncations=e.truncations, infos={})
+                for e in old.iterate_episodes()]
+    obs, act = old.observation_space.shape, old.action_space.shape
+    shutil.rmtree(path / "data")
+    storage = MinariStorage.new(
+        path / "data", observation_space=gym.spaces.Box(-np.inf, np.inf, obs, np.float32),
+        action_space=gym.spaces.Box(-1.0, 1.0, act, np.float32), data_format="arrow")
+    storage.update_metadata({"dataset_id": "sepoa/dmc-cheetah_run/source-v0",
+                             "minari_version": minari.__version__})
+    storage.update_episodes(episodes)
