@@ -66,13 +66,14 @@ def _train_parser(sub) -> argparse.ArgumentParser:
 
 def _pretrain_parser(sub) -> argparse.ArgumentParser:
     from runvocab.config import add_config_arguments
+    from runvocab.config.args import value_type
 
     p = sub.add_parser("pretrain", help="unsupervised skill pretraining; writes a snapshot",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--task", default=None, help="dmc:<domain>_<task> or metaworld:<name>")
     p.add_argument("--preset", default=None, help="paper | small | tiny")
     p.add_argument("--steps", dest="skill.pretrain_steps", default=None,
-                   type=lambda s: int(float(s)), help="pretraining environment steps")
+                   type=value_type("skill.pretrain_steps"), help="pretraining environment steps")
     p.add_argument("--out", default=None, help="snapshot file; default "
                    "<skill.snapshot_dir>/<task>-<backend>-<steps>-s<seed>.pt")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -64,6 +64,7 @@ BAD_SPECS = [
     ("seeds = [0, 1, 2]", "seeds = []", "'seeds' is empty"),
     ('tasks = ["dmc:cheetah_run", "dmc:walker_run"]\n', "", "missing required key 'tasks'"),
     ("eval_every = 200", "eval_every = 0.5", "'eval_every' takes int"),
+    ("eval_every = 200", '"reward.surf" = "flase"', "'reward.surf' takes bool, got 'flase'; use"),
     ("eval_every = 200", '"teacher.eps" = 0.1', "'teacher.eps' is set by the spec's eps"),
     ("seeds = [0, 1, 2]", "seeds = [0, 1, 1]", "'seeds' lists 1 twice"),
     ('tasks = ["dmc:cheetah_run", "dmc:walker_run"]', 'tasks = ["dmc:cheetah_rum"]',

@@ -184,6 +184,8 @@ def test_a_malformed_run_is_422_naming_the_field(
         ({"config": {"feedback.per_rund": 10}}, ["body", "config", "feedback.per_rund"],
          ["did you mean 'feedback.per_round'"]),
         ({"config": {"sac.lr": "fast"}}, ["body", "config", "sac.lr"], ["takes float"]),
+        ({"config": {"reward.surf": "flase"}}, ["body", "config", "reward.surf"],
+         ["takes bool, got 'flase'", "true/false, yes/no, on/off or 1/0"]),
         ({"config": {"feedback.budget": 500}}, ["body", "config", "feedback.budget"],
          ["top-level field says 0"]),
         ({"config": {"algo": "pebble"}}, ["body", "config", "algo"], ["says 'sac'"]),

@@ -1,22 +1,19 @@
-"""Typed, frozen run configuration, presets as data, and a command-line reader for both.
+"""What a run is configured by: typed, frozen dataclasses with a one-line docstring per field,
+and the one parser of a field's value, from the command line (text) or from JSON.
 
-A run is described by one `RunConfig`. Presets are plain dictionaries of field overrides,
-applied in order: task family (dmc / metaworld) → per-task feedback amounts → preset
-(paper / small / tiny) → explicit command-line flags.
+A run is described by one `RunConfig`; a field is named by its dotted path (`sac.lr`).
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import functools
-import json
 import math
 import typing
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
-from runvocab.names import ConfigError, did_you_mean, task_family, unknown
+from runvocab.names import ConfigError, did_you_mean
 
 
 @dataclass(frozen=True)
@@ -296,298 +293,118 @@ class RunConfig:
     skill: SkillConfig = field(default_factory=SkillConfig)
 
 
-# ---------------------------------------------------------------------------------------------
-# Presets: plain data. Keys are dotted field paths.
 
-FAMILY_PRESETS: dict[str, dict[str, Any]] = {
-    "dmc": {"feedback.every": 20_000},
-    "metaworld": {
-        "sac.hidden_dim": 256,
-        "sac.hidden_layers": 3,
-        "sac.lr": 1e-4,
-        "sac.batch_size": 512,
-        "feedback.every": 5_000,
-        "feedback.per_round": 100,
-        "feedback.budget": 30_000,
-        "reward.rime_k": 1 / 300,
-    },
-}
+class Leaf(NamedTuple):
+    """A field that holds a value (not a section), by its dotted path."""
 
-# The paper's feedback amounts (total / per round) per task.
-TASK_PRESETS: dict[str, dict[str, Any]] = {
-    "dmc:cheetah_run": {"feedback.budget": 1000, "feedback.per_round": 100},
-    "dmc:walker_run": {"feedback.budget": 1000, "feedback.per_round": 100},
-    "dmc:quadruped_walk": {"feedback.budget": 2000, "feedback.per_round": 200,
-                           "skill.pretrain_steps": 1_000_000},
-    "dmc:quadruped_run": {"feedback.budget": 2000, "feedback.per_round": 200,
-                          "skill.pretrain_steps": 1_000_000},
-    "metaworld:door-open": {"skill.pretrain_steps": 1_000_000},
-}
-
-PRESETS: dict[str, dict[str, Any]] = {
-    # The paper's networks and schedule: GPU work (1 M steps, 1024-wide nets).
-    "paper": {},
-    # Learns on a 2-core CPU in about an hour per 100 k steps.
-    "small": {
-        "sac.hidden_dim": 256,
-        "sac.hidden_layers": 2,
-        "sac.batch_size": 256,
-        "unsup_steps": 4000,
-        "feedback.every": 5000,
-        "replay_capacity": 200_000,
-        "eval_every": 10_000,
-        "eval_episodes": 5,
-        "checkpoint_every": 20_000,
-        "skill.hidden_dim": 256,
-        "skill.pretrain_steps": 200_000,  # APS: ~15 min at ~230 steps/s on 2 CPU cores
-        "skill.seed_steps": 2000,
-        "skill.initial_rollouts": 10,  # 10 k steps: round 0 compares 45 skill pairs
-    },
-    # For tests and smoke runs: seconds, not minutes. Learns nothing useful.
-    "tiny": {
-        "sac.hidden_dim": 32,
-        "sac.hidden_layers": 2,
-        "sac.batch_size": 32,
-        "reward.hidden_dim": 32,
-        "reward.hidden_layers": 2,
-        "reward.max_epochs": 5,
-        "seed_steps": 200,
-        "unsup_steps": 200,
-        "feedback.segment_length": 20,
-        "feedback.every": 400,
-        "feedback.per_round": 10,
-        "feedback.budget": 30,
-        "feedback.candidate_factor": 5,
-        "replay_capacity": 10_000,
-        "eval_every": 0,
-        "eval_episodes": 1,
-        "checkpoint_every": 400,
-        "episode_length": 200,
-        "skill.hidden_dim": 32,
-        "skill.pretrain_steps": 300,
-        "skill.seed_steps": 100,
-        "skill.initial_rollouts": 3,
-        "reset_updates": 10,
-        "reward.surf_crop_min": 15,  # segments of 20 here
-        "reward.surf_crop_max": 18,
-    },
-}
+    path: str
+    kind: Any
+    """its type: bool, int, float, str or a tuple of those"""
+    section: type
+    """the dataclass that declares it"""
+    name: str
 
 
-def _unknown_field(path: str) -> ConfigError:
-    paths = [p for p, _, _ in _leaf_fields(RunConfig)]
+@functools.cache
+def leaf_fields() -> tuple[Leaf, ...]:
+    """Every value field of a `RunConfig`, in declaration order."""
+    return tuple(_leaves(RunConfig, ""))
+
+
+def _leaves(cls: type, prefix: str) -> list[Leaf]:
+    hints = typing.get_type_hints(cls)
+    out: list[Leaf] = []
+    for f in dataclasses.fields(cls):
+        t = hints[f.name]
+        if isinstance(t, type) and dataclasses.is_dataclass(t):
+            out += _leaves(t, f"{prefix}{f.name}.")
+        else:
+            out.append(Leaf(prefix + f.name, t, cls, f.name))
+    return out
+
+
+@functools.cache
+def _kinds() -> dict[str, Any]:
+    return {leaf.path: leaf.kind for leaf in leaf_fields()}
+
+
+def unknown_field(path: str) -> ConfigError:
+    paths = [leaf.path for leaf in leaf_fields()]
     return ConfigError(path, f"unknown config field {path!r}{did_you_mean(path, paths)}; "
                              "`sepoa train --help` lists every field")
 
 
-def _replace_path(cfg: Any, path: str, value: Any, full: str = "") -> Any:
-    head, _, rest = path.partition(".")
-    if not any(f.name == head for f in dataclasses.fields(cfg)):
-        raise _unknown_field(full or path)
-    if rest:
-        inner = _replace_path(getattr(cfg, head), rest, value, full or path)
-        return dataclasses.replace(cfg, **{head: inner})
-    return dataclasses.replace(cfg, **{head: value})
+BOOL_WORDS = {"true": True, "yes": True, "on": True, "1": True,
+              "false": False, "no": False, "off": False, "0": False}
+"""the spellings a bool takes, as text on the command line or in JSON (any case)"""
+BOOL_SPELLINGS = "true/false, yes/no, on/off or 1/0"
 
 
-def apply_overrides(cfg: RunConfig, overrides: dict[str, Any]) -> RunConfig:
-    for path, value in overrides.items():
-        cfg = _replace_path(cfg, path, value)
-    return cfg
+def parse_value(path: str, value: Any) -> Any:
+    """`value` for the field at `path`, from the command line (text) or JSON (text, or a value of
+    the field's type): a bool is one of `BOOL_WORDS` (or JSON's true/false, 0 or 1); an int
+    takes a whole number, also written as a float (`1e6`, `2.0`); a float any number; a str
+    only text; a tuple its items, comma-separated as text or a JSON list. Anything else is a
+    ConfigError that names the field and what it takes, never a silent default."""
+    if path not in _kinds():
+        raise unknown_field(path)
+    kind = _kinds()[path]
+    try:
+        return _convert(kind, value)
+    except (TypeError, ValueError, OverflowError):
+        spellings = f"; use {BOOL_SPELLINGS}" if kind is bool else ""
+        raise ConfigError(path, f"config field {path!r} takes {_kind_name(kind)}, got "
+                                f"{value!r}{spellings}") from None
 
 
-# Per algorithm. SURF, RUNE and RIME are PEBBLE with one piece added; S-EPOA selects queries
-# by its skill rule and, as in the paper, learns its reward with SURF.
-SURF = {"reward.surf": True, "feedback.segment_length": 60}
-ALGO_PRESETS: dict[str, dict[str, Any]] = {
-    "surf": SURF,
-    "rune": {"reward.rune": True},
-    "rime": {"reward.rime": True},
-    "sepoa": {"feedback.selection": "skill", "feedback.selection_mode": "per_query"} | SURF,
-}
-# RIME's own unsupervised pretraining length on cheetah (9000 elsewhere, PEBBLE's).
-ALGO_TASK_PRESETS: dict[tuple[str, str], dict[str, Any]] = {
-    ("rime", "dmc:cheetah_run"): {"unsup_steps": 2000},
-}
+def _convert(kind: Any, value: Any) -> Any:
+    if kind is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.strip().lower() in BOOL_WORDS:
+            return BOOL_WORDS[value.strip().lower()]
+        if type(value) is int and value in (0, 1):
+            return bool(value)
+    elif kind is int:
+        if isinstance(value, str):
+            value = _number(value)
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+    elif kind is float:
+        if isinstance(value, str):
+            return float(value)
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            return float(value)
+    elif kind is str:
+        if isinstance(value, str):
+            return value
+    elif typing.get_origin(kind) is tuple:
+        items = value.split(",") if isinstance(value, str) else value
+        kinds = typing.get_args(kind)
+        if isinstance(items, list | tuple) and len(items) == len(kinds):
+            return tuple(_convert(k, item) for k, item in zip(kinds, items, strict=True))
+    else:
+        raise NotImplementedError(f"no parser for fields of type {kind}")
+    raise ValueError(value)
 
 
-def preset_layers() -> dict[str, dict[str, dict[str, Any]]]:
-    """Every preset layer, in the order `build_config` applies them (algorithm-and-task keys
-    written "<algo> <task>")."""
-    return {
-        "family": FAMILY_PRESETS,
-        "task": TASK_PRESETS,
-        "algorithm": ALGO_PRESETS,
-        "algorithm and task": {f"{a} {t}": v for (a, t), v in ALGO_TASK_PRESETS.items()},
-        "size": PRESETS,
-    }
+def _number(text: str) -> int | float:
+    try:
+        return int(text)
+    except ValueError:
+        return float(text)
 
 
-def build_config(task: str, preset: str, overrides: dict[str, Any] | None = None) -> RunConfig:
-    """The run config for `task` under `preset`: family, task, algorithm and size presets in
-    that order (a size preset shrinks whatever came before), then explicit `overrides`
-    (dotted paths)."""
-    if preset not in PRESETS:
-        raise ConfigError("preset", unknown("preset", preset, PRESETS))
-    overrides = overrides or {}
-    algo = overrides.get("algo", RunConfig.algo)
-    cfg = RunConfig(task=task, preset=preset)
-    cfg = apply_overrides(cfg, FAMILY_PRESETS.get(task_family(task), {}))
-    cfg = apply_overrides(cfg, TASK_PRESETS.get(task, {}))
-    cfg = apply_overrides(cfg, ALGO_PRESETS.get(algo, {}))
-    cfg = apply_overrides(cfg, ALGO_TASK_PRESETS.get((algo, task), {}))
-    cfg = apply_overrides(cfg, PRESETS[preset])
-    return apply_overrides(cfg, overrides)
+def _kind_name(kind: Any) -> str:
+    if typing.get_origin(kind) is tuple:
+        names = [k.__name__ for k in typing.get_args(kind)]
+        return f"{len(names)} values ({', '.join(names)}), comma-separated"
+    return str(kind.__name__)
 
 
 def typed_overrides(values: dict[str, Any]) -> dict[str, Any]:
-    """Overrides from JSON (a run's stored config) checked against the fields' types: ints
-    stay ints (a whole float is taken), floats take ints, bools and strings must be exact."""
-    types = {path: t for path, t, _ in _leaf_fields(RunConfig)}
-    out = {}
-    for path, value in values.items():
-        if path not in types:
-            raise _unknown_field(path)
-        t, bad = types[path], False
-        if t is bool or t is str:
-            bad = not isinstance(value, t)
-        elif t is int:
-            bad = isinstance(value, bool) or not (
-                isinstance(value, int) or (isinstance(value, float) and value.is_integer()))
-            value = value if bad else int(value)
-        elif t is float:
-            bad = isinstance(value, bool) or not isinstance(value, int | float)
-            value = value if bad else float(value)
-        if bad:
-            raise ConfigError(path, f"config field {path!r} takes {t.__name__}, got {value!r}")
-        out[path] = value
-    return out
-
-
-WRITTEN_WHEN_SET = ("reward.init_from",)
-"""fields added after runs were stored: a config's dict holds them only when they differ from
-their default, so a stored config.json stays equal to the same run's config today (a results
-folder's finished runs are recognised by that equality, `experiments.queue`)"""
-
-
-def to_dict(cfg: RunConfig) -> dict[str, Any]:
-    out = dataclasses.asdict(cfg)
-    for path in WRITTEN_WHEN_SET:
-        head, _, leaf = path.partition(".")
-        section = getattr(cfg, head)
-        default = {f.name: f.default for f in dataclasses.fields(section)}[leaf]
-        if getattr(section, leaf) == default:
-            del out[head][leaf]
-    return out
-
-
-def from_dict(data: dict[str, Any]) -> RunConfig:
-    def build(cls: type, values: dict[str, Any]) -> Any:
-        hints = typing.get_type_hints(cls)
-        kwargs = {}
-        for f in dataclasses.fields(cls):
-            if f.name not in values:
-                continue
-            v = values[f.name]
-            if dataclasses.is_dataclass(hints[f.name]):
-                v = build(hints[f.name], v)
-            elif isinstance(v, list):
-                v = tuple(v)
-            kwargs[f.name] = v
-        return cls(**kwargs)
-
-    cfg: RunConfig = build(RunConfig, data)
-    return cfg
-
-
-def save_json(cfg: RunConfig, path: str) -> None:
-    with open(path, "w") as f:
-        json.dump(to_dict(cfg), f, indent=2, default=str)
-
-
-def load_json(path: str) -> RunConfig:
-    with open(path) as f:
-        return from_dict(json.load(f))
-
-
-# ---------------------------------------------------------------------------------------------
-# Command line: every leaf field becomes a flag (`--sac.lr 1e-4`); the common ones also have
-# short aliases (`--eps`, `--selection`, `--budget`, ...).
-
-ALIASES = {
-    "eps": "teacher.eps",
-    "selection": "feedback.selection",
-    "budget": "feedback.budget",
-    "per-round": "feedback.per_round",
-    "feedback-every": "feedback.every",
-    "skills": "skill.backend",
-}
-
-
-@functools.cache  # reading the docs parses source: once per class, not per call
-def _leaf_fields(cls: type, prefix: str = "") -> tuple[tuple[str, type, str], ...]:
-    hints = typing.get_type_hints(cls)
-    out: list[tuple[str, type, str]] = []
-    for f in dataclasses.fields(cls):
-        t = hints[f.name]
-        if isinstance(t, type) and dataclasses.is_dataclass(t):
-            out += _leaf_fields(t, f"{prefix}{f.name}.")
-        else:
-            out.append((prefix + f.name, t, _field_doc(cls, f.name)))
-    return tuple(out)
-
-
-def _field_doc(cls: type, name: str) -> str:
-    import inspect
-
-    lines = inspect.getsource(cls).splitlines()
-    for i, line in enumerate(lines):
-        if line.strip().startswith(f"{name}:") and i + 1 < len(lines):
-            doc = lines[i + 1].strip()
-            if doc.startswith('"""'):
-                return doc.strip('"')
-    return ""
-
-
-BOOL_WORDS = {"true": True, "yes": True, "on": True, "1": True,
-              "false": False, "no": False, "off": False, "0": False}
-"""the spellings a command-line bool takes"""
-
-
-def _parse_value(t: Any, text: str) -> Any:
-    if t is bool:
-        if text.lower() not in BOOL_WORDS:  # a typo must not silently mean false
-            raise argparse.ArgumentTypeError(
-                f"{text!r} is not a bool; use true/false, yes/no, on/off or 1/0")
-        return BOOL_WORDS[text.lower()]
-    if t is int:
-        return int(float(text)) if "e" in text.lower() else int(text)
-    if t is float:
-        return float(text)
-    if typing.get_origin(t) is tuple:
-        return tuple(float(x) for x in text.split(","))
-    return text
-
-
-def add_config_arguments(parser: argparse.ArgumentParser,
-                         exclude: tuple[str, ...] = ()) -> None:
-    """A flag per leaf field but task, preset and `exclude` (which a command defines itself)."""
-    for path, t, doc in _leaf_fields(RunConfig):
-        if path in ("task", "preset", *exclude):
-            continue
-        names = [f"--{path}"] + [f"--{a}" for a, p in ALIASES.items() if p == path]
-        if "_" in path:
-            names.append(f"--{path.replace('_', '-')}")
-        parser.add_argument(
-            *names, dest=path, default=None, metavar=t.__name__.upper() if hasattr(t, "__name__")
-            else "VALUE", help=doc,
-            type=lambda s, t=t: _parse_value(t, s),  # type: ignore[misc]
-        )
-
-
-def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
-    return {
-        path: getattr(args, path)
-        for path, _, _ in _leaf_fields(RunConfig)
-        if path not in ("task", "preset") and getattr(args, path, None) is not None
-    }
+    """Overrides (dotted paths) from JSON, TOML or the command line, each value parsed by
+    `parse_value`."""
+    return {path: parse_value(path, value) for path, value in values.items()}
