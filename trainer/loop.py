@@ -54,6 +54,7 @@ from trainer.hooks import RunHooks
 from trainer.metrics import Metrics
 from trainer.policies import Meta, make_policy
 from trainer.reward_model import RewardModel
+from trainer.sac import UpdateMetrics
 from trainer.schedule import After, Every, Period, Until
 from trainer.teachers import make_teacher
 from trainer.trajectories import EpisodeRecorder, TrajectoryPool
@@ -145,7 +146,7 @@ class TrainingRun:
         self.meta = self.policy.episode_meta(self.rng)
         return obs
 
-    def _update(self) -> dict[str, float]:
+    def _update(self) -> UpdateMetrics:
         return self.policy.update(self._training_batch, self.reward.learned)
 
     def _training_batch(self):
@@ -163,7 +164,7 @@ class TrainingRun:
             self.hooks.round_opened(feedback.pending, self.pool)
             self._try_finish_round()
         obs = self._start_episode()
-        episode_return, last_metrics = 0.0, {}
+        episode_return, last_metrics = 0.0, {}  # the last update's, read as an episode ends
         stopping = False
         start_step, start_time = self.step, time.time()
         bar = tqdm(total=cfg.steps, initial=self.step, disable=not self.progress,
@@ -197,7 +198,8 @@ class TrainingRun:
                     "success": float(traj.success), "labels_used": labels,
                     "updates": self.policy.updates, "reward_updates": self.policy.reward_updates,
                     "fps": fps,
-                } | {k: v for k, v in last_metrics.items() if k in ("critic_loss", "alpha", "q")}
+                } | {k: float(v) for k, v in last_metrics.items()
+                     if k in ("critic_loss", "alpha", "q")}
                   | self.reward.episode_row(self.step))
                 self._end_of_episode()
                 bar.set_postfix(ret=f"{episode_return:.1f}",

@@ -19,7 +19,7 @@ from runvocab.config import RunConfig
 from trainer.hooks import RunHooks
 from trainer.replay_buffer import ReplayBuffer
 from trainer.return_estimator import ReturnEstimator
-from trainer.sac import SAC
+from trainer.sac import SAC, UpdateMetrics
 from trainer.skills import SkillAgent, SkillBackend, SkillReplayBuffer
 from trainer.skills.pretrain import (
     build_skill_agent,
@@ -71,7 +71,7 @@ class Policy:
     reward_updates = 0
     """of those, on the learned reward r_hat (after the first round)"""
 
-    def update(self, batches: Batches, learned: bool) -> dict[str, float]:
+    def update(self, batches: Batches, learned: bool) -> UpdateMetrics:
         """One SAC gradient update. Every algorithm makes exactly one per update step, so arms
         compared at equal steps have equal update budgets (`updates` counts them)."""
         metrics = self._gradient_step(batches)
@@ -79,7 +79,7 @@ class Policy:
         self.reward_updates += int(learned)
         return metrics
 
-    def _gradient_step(self, batches: Batches) -> dict[str, float]:
+    def _gradient_step(self, batches: Batches) -> UpdateMetrics:
         return self.agent.update(batches())
 
     def round_closed(self, rng: np.random.Generator) -> None:
@@ -112,7 +112,7 @@ class SkillPolicy(Policy):
         self.estimator = ReturnEstimator(self.skills.skill_dim, cfg.skill, device)
         self.task_skill: np.ndarray | None = None
         """z_task, once R_theta is fitted"""
-        self._stored_skill_metrics: dict[str, float] = {}
+        self._stored_skill_metrics: UpdateMetrics = {}
         """the last stored-skill update's metrics, logged beside a z_task update's"""
 
     @property
@@ -134,12 +134,12 @@ class SkillPolicy(Policy):
         """z_task once there is one; before, the current episode's random skill."""
         return episode_meta if self.task_skill is None else (self.task_skill,)
 
-    def update(self, batches: Batches, learned: bool) -> dict[str, float]:
+    def update(self, batches: Batches, learned: bool) -> UpdateMetrics:
         if not learned:
             return {}  # the pretrained policy stays until there is a reward to learn
         return super().update(batches, learned)
 
-    def _gradient_step(self, batches: Batches) -> dict[str, float]:
+    def _gradient_step(self, batches: Batches) -> UpdateMetrics:
         """The update on the batch's stored skills and the z_task update take turns: one SAC
         update per update step in all, as for every other algorithm (the authors' code runs
         both on every 2nd step: the same budget, less evenly spread)."""

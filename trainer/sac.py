@@ -22,6 +22,10 @@ from trainer.nets import EnsembleMLP, NumpyMLP, mlp
 LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
 
 
+UpdateMetrics = dict[str, torch.Tensor]
+"""an update's metrics, 0-d tensors on the training device (read when a row is logged)"""
+
+
 class Batch(NamedTuple):
     obs: torch.Tensor
     action: torch.Tensor
@@ -130,7 +134,9 @@ class SAC:
             return np.tanh(mean)
         return np.tanh(mean + rng.standard_normal(self.action_dim, np.float32) * np.exp(log_std))
 
-    def update(self, batch: Batch) -> dict[str, float]:
+    def update(self, batch: Batch) -> UpdateMetrics:
+        """One update; its metrics stay on the device as 0-d tensors, read (one host sync each)
+        only when a row is logged: reading five per update cost five device syncs."""
         # log_alpha changes only at the end of the update, so one exp serves all three losses.
         alpha = self.log_alpha.exp()
         metrics = self._update_critic(batch, alpha.detach())
@@ -141,7 +147,7 @@ class SAC:
         self.updates += 1
         return metrics
 
-    def _update_critic(self, batch: Batch, alpha: torch.Tensor) -> dict[str, float]:
+    def _update_critic(self, batch: Batch, alpha: torch.Tensor) -> UpdateMetrics:
         with torch.no_grad():
             next_action, next_log_prob = self.actor.sample(batch.next_obs)
             target_q = self.critic_target(batch.next_obs, next_action).min(dim=0).values
@@ -154,9 +160,10 @@ class SAC:
         self.critic_opt.zero_grad(set_to_none=True)
         loss.backward()
         self.critic_opt.step()
-        return {"critic_loss": loss.item(), "q": q.detach().mean().item()}
+        return {"critic_loss": loss.detach(), "q": q.detach().mean()}
 
-    def _update_actor_and_alpha(self, obs: torch.Tensor, alpha: torch.Tensor) -> dict[str, float]:
+    def _update_actor_and_alpha(self, obs: torch.Tensor,
+                                alpha: torch.Tensor) -> UpdateMetrics:
         action, log_prob = self.actor.sample(obs)
         q = self.critic(obs, action, detach_params=True).min(dim=0).values
         actor_loss = (alpha.detach() * log_prob - q).mean()
@@ -169,11 +176,8 @@ class SAC:
         (actor_loss + alpha_loss).backward()
         self.actor_opt.step()
         self.alpha_opt.step()
-        return {
-            "actor_loss": actor_loss.item(),
-            "alpha": alpha.item(),
-            "entropy": -mean_log_prob.item(),
-        }
+        return {"actor_loss": actor_loss.detach(), "alpha": alpha.detach(),
+                "entropy": -mean_log_prob}
 
     @torch.no_grad()
     def _update_target(self) -> None:

@@ -69,7 +69,8 @@ def test_update_schedule_temperature_and_target():
     target_before = [p.clone() for p in agent.critic_target.parameters()]
     metrics = agent.update(buffer.sample(16))  # update 0: the target moves (every 2 updates)
     assert set(metrics) >= {"critic_loss", "actor_loss", "alpha", "entropy"}
-    assert all(isinstance(v, float) for v in metrics.values())
+    # Read when logged, not at each update: 0-d tensors, off the graph.
+    assert all(v.dim() == 0 and not v.requires_grad for v in metrics.values())
     # Polyak: target <- (1 - tau) target + tau critic, with the critic after its step
     for t0, t1, c1 in zip(target_before, agent.critic_target.parameters(),
                           agent.critic.parameters(), strict=True):

@@ -13,7 +13,7 @@ from torch import nn
 from runvocab.config import SACConfig
 from trainer.nets import EnsembleMLP
 from trainer.replay_buffer import ReplayBuffer
-from trainer.sac import SAC, Batch, Critic
+from trainer.sac import SAC, Batch, Critic, UpdateMetrics
 from trainer.skills.common import SkillBatch
 
 
@@ -51,7 +51,7 @@ class SkillAgent:
         """One action in (-1, 1) for one observation under one skill."""
         return self.sac.act(np.concatenate([obs, skill], dtype=np.float32), rng, deterministic)
 
-    def update(self, batch: SkillBatch) -> dict[str, float]:
+    def update(self, batch: SkillBatch) -> UpdateMetrics:
         """One SAC update on `batch.reward` (the caller puts the reward it trains on there)."""
         obs = torch.cat([batch.obs, batch.skill], dim=-1)
         next_obs = torch.cat([batch.next_obs, batch.skill], dim=-1)

@@ -19,6 +19,7 @@ import torch.nn.functional as F
 from runvocab.config import SkillConfig
 from trainer.entropy import RunningMeanStd
 from trainer.nets import mlp
+from trainer.sac import UpdateMetrics
 from trainer.skills.common import SkillBatch, adam, particle_entropy
 
 
@@ -50,14 +51,14 @@ class APS:
         sf = (F.normalize(h, dim=-1) * batch.skill).sum(-1, keepdim=True)
         return sf + self.cfg.beta * entropy
 
-    def update(self, batch: SkillBatch) -> dict[str, float]:
+    def update(self, batch: SkillBatch) -> UpdateMetrics:
         """One step on the feature loss -phi(s')^T z."""
         sf = (self.phi(batch.next_obs) * batch.skill).sum(-1).mean()
         loss = -sf
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
-        return {"aps_loss": loss.item()}
+        return {"aps_loss": loss.detach()}
 
     def state_dict(self) -> dict:
         return {"features": self.features.state_dict(), "opt": self.opt.state_dict(),

@@ -18,6 +18,7 @@ import torch.nn.functional as F
 from runvocab.config import SkillConfig
 from trainer.entropy import RunningMeanStd
 from trainer.nets import mlp
+from trainer.sac import UpdateMetrics
 from trainer.skills.common import SkillBatch, adam, particle_entropy
 
 
@@ -57,7 +58,7 @@ class CIC:
         key = self.embed(batch.obs, batch.next_obs)
         return particle_entropy(key, self.cfg.knn_k, self.entropy_stats, self.cfg.knn_clip)
 
-    def update(self, batch: SkillBatch) -> dict[str, float]:
+    def update(self, batch: SkillBatch) -> UpdateMetrics:
         logits = self.logits(batch)
         target = torch.arange(len(logits), device=logits.device)
         loss = F.cross_entropy(logits, target)
@@ -65,7 +66,7 @@ class CIC:
         loss.backward()
         self.opt.step()
         accuracy = (logits.detach().argmax(dim=1) == target).float().mean()
-        return {"cic_loss": loss.item(), "cic_accuracy": accuracy.item()}
+        return {"cic_loss": loss.detach(), "cic_accuracy": accuracy.detach()}
 
     def state_dict(self) -> dict:
         return {"state_net": self.state_net.state_dict(), "pred_net": self.pred_net.state_dict(),

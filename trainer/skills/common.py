@@ -10,6 +10,7 @@ import torch
 
 from runvocab.config import SkillConfig
 from trainer.entropy import RunningMeanStd
+from trainer.sac import UpdateMetrics
 
 
 class SkillBatch(NamedTuple):
@@ -42,7 +43,7 @@ class SkillBackend(Protocol):
         """(batch, 1) reward, no gradient; updates the running kNN statistics where it has some."""
         ...
 
-    def update(self, batch: SkillBatch) -> dict[str, float]:
+    def update(self, batch: SkillBatch) -> UpdateMetrics:
         """One gradient step of the backend's own nets."""
         ...
 
@@ -71,10 +72,12 @@ def adam(params, lr: float, device: torch.device) -> torch.optim.Adam:
     return torch.optim.Adam(params, lr=lr, fused=device.type in ("cuda", "cpu"))
 
 
-def mean_metrics(rows: list[dict[str, float]]) -> dict[str, float]:
-    """Key-wise mean of metric dicts (keys missing from some rows average over the others)."""
-    sums: dict[str, list[float]] = {}
+def mean_metrics(rows: list[UpdateMetrics]) -> dict[str, float]:
+    """Key-wise mean of update metrics (keys missing from some rows average over the others),
+    each key's values read from the device at once."""
+    values: dict[str, list[torch.Tensor]] = {}
     for row in rows:
         for key, value in row.items():
-            sums.setdefault(key, []).append(value)
-    return {key: float(np.mean(values)) for key, values in sums.items()}
+            values.setdefault(key, []).append(value)
+    return {key: float(np.mean(torch.stack(v).cpu().numpy().astype(np.float64)))
+            for key, v in values.items()}

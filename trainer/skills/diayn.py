@@ -16,6 +16,7 @@ import torch.nn.functional as F
 
 from runvocab.config import SkillConfig
 from trainer.nets import mlp
+from trainer.sac import UpdateMetrics
 from trainer.skills.common import SkillBatch, adam
 
 
@@ -46,7 +47,7 @@ class DIAYN:
     def intrinsic_reward(self, batch: SkillBatch) -> torch.Tensor:
         return (self.log_q(batch.next_obs, batch.skill) + math.log(self.skill_dim)).unsqueeze(1)
 
-    def update(self, batch: SkillBatch) -> dict[str, float]:
+    def update(self, batch: SkillBatch) -> UpdateMetrics:
         logits = self.discriminator(batch.next_obs)
         target = batch.skill.argmax(dim=1)
         loss = F.cross_entropy(logits, target)
@@ -54,7 +55,7 @@ class DIAYN:
         loss.backward()
         self.opt.step()
         accuracy = (logits.detach().argmax(dim=1) == target).float().mean()
-        return {"diayn_loss": loss.item(), "diayn_accuracy": accuracy.item()}
+        return {"diayn_loss": loss.detach(), "diayn_accuracy": accuracy.detach()}
 
     def state_dict(self) -> dict:
         return {"discriminator": self.discriminator.state_dict(), "opt": self.opt.state_dict()}

@@ -31,6 +31,7 @@ from runvocab.validate import validate
 from trainer.checkpoint import load_checkpoint, save_checkpoint
 from trainer.envs import make_env
 from trainer.metrics import CSVStream
+from trainer.sac import UpdateMetrics
 from trainer.skills import (
     SkillAgent,
     SkillBackend,
@@ -220,13 +221,13 @@ class SkillPretraining:
         self.rng = np.random.default_rng(cfg.seed)
         self.step = 0
 
-    def _update(self) -> dict[str, float]:
+    def _update(self) -> UpdateMetrics:
         batch = self.buffer.sample(self.cfg.sac.batch_size)
         metrics = self.backend.update(batch)
         # URLB's order: the skill nets step first, then reward the batch with the new nets.
         reward = self.backend.intrinsic_reward(batch)
         metrics |= self.agent.update(batch._replace(reward=reward))
-        return metrics | {"intrinsic_reward": reward.mean().item()}
+        return metrics | {"intrinsic_reward": reward.detach().mean()}
 
     def run(self) -> str:
         """Pretrain for `skill.pretrain_steps` steps, save the snapshot, return its path."""
@@ -237,7 +238,7 @@ class SkillPretraining:
             os.remove(metrics_path)
         stream = CSVStream(metrics_path)
         episode, episode_return = 0, 0.0
-        updates: list[dict[str, float]] = []
+        updates: list[UpdateMetrics] = []
         start = time.time()
         bar = tqdm(total=s.pretrain_steps, disable=not self.progress, dynamic_ncols=True,
                    unit="step")
