@@ -59,7 +59,7 @@ REQUIRED_COLUMNS = (
     "second_trajectory_return",
 )
 """the export columns a report reads (docs/EXPORT.md)"""
-RECENT_TRAJECTORIES = TeacherConfig().recent_trajectories
+RECENT_TRAJECTORIES = TeacherConfig.recent_trajectories
 """how many of a round's newest trajectories estimate R_avg: the noisy teacher's own window"""
 DEFAULT_EDGES: tuple[float, ...] = (
     0.0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.5, 2.0, math.inf,

@@ -136,8 +136,9 @@ class NoisyTeacher:
 
     kind = "noisy"
 
-    def __init__(self, eps: float, seed: int, recent_trajectories: int = 10,
-                 tie: str = "equal"):
+    def __init__(self, eps: float, seed: int,
+                 recent_trajectories: int = TeacherConfig.recent_trajectories,
+                 tie: str = TeacherConfig.tie):
         if not eps >= 0:
             raise ValueError(f"eps must be >= 0, got {eps}")
         if recent_trajectories < 1:
