@@ -6,6 +6,7 @@ reward the agent trains on, which the preference loop rewrites after every rewar
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Callable
 
 import numpy as np
@@ -25,7 +26,8 @@ class ReplayBuffer:
         self.reward = torch.empty(capacity, 1, device=device)
         self.size = 0
         self.cursor = 0
-        self.generator = torch.Generator(device="cpu").manual_seed(seed)
+        # Indices are drawn where the buffer lives: on a GPU, sampling costs no host round trip.
+        self.generator = torch.Generator(device=device).manual_seed(seed)
         # On the CPU, `add` writes through NumPy views of the same memory: five plain array
         # writes instead of five torch indexing calls (~1.5 us instead of ~15-25 us a step).
         self._arrays = (
@@ -53,8 +55,13 @@ class ReplayBuffer:
         self.cursor = (i + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
+    def indices(self, batch_size: int) -> torch.Tensor:
+        """`batch_size` uniform indices into the stored transitions, on the buffer's device."""
+        return torch.randint(0, self.size, (batch_size,), generator=self.generator,
+                             device=self.device)
+
     def sample(self, batch_size: int) -> Batch:
-        idx = torch.randint(0, self.size, (batch_size,), generator=self.generator).to(self.device)
+        idx = self.indices(batch_size)
         return Batch(self.obs[idx], self.action[idx], self.reward[idx], self.next_obs[idx])
 
     @torch.no_grad()
@@ -94,4 +101,9 @@ class ReplayBuffer:
         for name in ("obs", "next_obs", "action", "reward", "true_reward"):
             getattr(self, name)[:n] = state[name].to(self.device)
         self.size, self.cursor = n, state["cursor"]
-        self.generator.set_state(state["generator"])
+        saved = state["generator"]
+        if len(saved) == len(self.generator.get_state()):
+            self.generator.set_state(saved)
+        else:  # saved on another kind of device: carry on with a stream seeded by that state
+            self.generator.manual_seed(int.from_bytes(hashlib.sha256(
+                saved.numpy().tobytes()).digest()[:8], "little"))

@@ -95,3 +95,28 @@ def test_critic_reset_gives_fresh_critic_and_target():
                                                  agent.critic_target.parameters(), strict=True))
     assert all(torch.equal(a, b) for a, b in zip(actor_before, agent.actor.parameters(),
                                                  strict=True))
+
+
+def test_a_buffer_resumes_its_sampling_stream_and_takes_another_devices_state():
+    def filled(seed: int) -> ReplayBuffer:
+        buffer = ReplayBuffer(2, 1, 100, torch.device("cpu"), seed=seed)
+        for i in range(60):
+            buffer.add(np.full(2, i, np.float32), np.zeros(1, np.float32), 0.0, 0.0,
+                       np.zeros(2, np.float32))
+        return buffer
+
+    buffer = filled(0)
+    buffer.indices(8)
+    state = buffer.state_dict()
+    expected = buffer.indices(8)
+    resumed = filled(1)
+    resumed.load_state_dict(state)
+    assert torch.equal(resumed.indices(8), expected)  # the same stream, on from where it was
+    # A state saved by a generator of another device (a CUDA generator's is 16 bytes): the
+    # buffer carries on with a stream seeded by it, the same one at every resume.
+    foreign = state | {"generator": torch.arange(16, dtype=torch.uint8)}
+    first, second = filled(2), filled(3)
+    first.load_state_dict(foreign)
+    second.load_state_dict(foreign)
+    drawn = first.indices(32)
+    assert torch.equal(drawn, second.indices(32)) and int(drawn.max()) < 60

@@ -112,7 +112,7 @@ class SkillReplayBuffer(ReplayBuffer):
         super().add(obs, action, reward, true_reward, next_obs)
 
     def sample(self, batch_size: int) -> SkillBatch:  # type: ignore[override]
-        idx = torch.randint(0, self.size, (batch_size,), generator=self.generator).to(self.device)
+        idx = self.indices(batch_size)
         return SkillBatch(self.obs[idx], self.action[idx], self.reward[idx], self.next_obs[idx],
                           self.skill[idx])
 
