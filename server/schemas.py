@@ -174,6 +174,39 @@ class RunCreate(Body):
     """the size the run's clips are rendered at; defaults to 256x256"""
 
 
+DATASET_ID_PATTERN = r"^[A-Za-z0-9_][A-Za-z0-9_.-]*(/[A-Za-z0-9_][A-Za-z0-9_.-]*)*$"
+"""a dataset's Minari id (`sepoa/dmc-cheetah_run/run-3-v0`): names of letters, digits, `_`, `.`
+and `-` joined by `/`, none starting with a dot"""
+
+
+class LabellingRunCreate(Body):
+    """A labelling-only run over a dataset export in the server's datasets folder
+    (`<data dir>/datasets`, where `sepoa export --dataset data/datasets` writes): rounds of pairs
+    of its episodes for people to label, no training (`labelqueue.labelling`)."""
+
+    dataset: str = Field(min_length=1, max_length=300, pattern=DATASET_ID_PATTERN,
+                         examples=["sepoa/dmc-cheetah_run/run-3-v0"])
+    """the dataset's id: its folder under the datasets folder"""
+    budget: int = Field(ge=1, le=INT32_MAX)
+    """answers the run asks for in all"""
+    per_round: int | None = Field(default=None, ge=1, le=INT32_MAX)
+    """pairs per round; defaults to the preset's"""
+    selection: Literal["uniform", "disagreement"] = "disagreement"
+    """how rounds after the first (always uniform) draw their pairs: uniformly, or by the
+    disagreement of the reward ensemble refitted on the labels so far"""
+    segment_length: int | None = Field(default=None, ge=1, le=INT32_MAX)
+    """steps per clip; defaults to the preset's, at most the dataset's shortest episode"""
+    preset: PresetName = "small"
+    seed: StoredInt = 0
+    teacher: Teacher = "human"
+    teacher_params: SmallJson = Field(default_factory=dict, examples=[{"eps": 0.1}])
+    config: SmallJson = Field(default_factory=dict, examples=[{"reward.hidden_dim": 64}])
+    name: str | None = Field(default=None, min_length=1, max_length=200)
+    """defaults to `label <dataset id>`"""
+    instruction: InstructionText | None = None
+    clip_size: ClipSizeName | None = None
+
+
 class RunOut(Out):
     id: int
     name: str

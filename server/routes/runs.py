@@ -12,13 +12,15 @@ from sqlalchemy import select
 
 from labelqueue import Run, RunStatus, read_metrics, reading, set_run_status, set_teacher
 from labelqueue.activity import list_workers, runs_activity
+from runvocab.names import ConfigError
 from server import curves, services
-from server.deps import OperatorDep, SessionDep
+from server.deps import OperatorDep, SessionDep, SettingsDep
 from server.run_check import check_run, run_defaults
 from server.schemas import (
     ActivityOut,
     AfterStep,
     AlgoName,
+    LabellingRunCreate,
     MetricOut,
     PresetName,
     RunCreate,
@@ -53,6 +55,48 @@ def create_run(spec: RunCreate, session: SessionDep, _: OperatorDep) -> RunOut:
     check_run(task=spec.task, algo=spec.algo, preset=spec.preset, seed=spec.seed,
               budget=spec.budget, teacher_params=spec.teacher_params, config=spec.config)
     return RunOut.model_validate(services.new_run(session, spec=spec))
+
+
+LABELLING_FIELDS = {"dataset": "dataset", "feedback.budget": "budget",
+                    "feedback.per_round": "per_round", "feedback.selection": "selection",
+                    "feedback.segment_length": "segment_length", "name": "name"}
+"""the paths a labelling run's refusal names, and the body fields that give them"""
+
+
+@router.post("/labelling", status_code=201, response_model=RunOut,
+             responses=errors(400, 413, 422))
+def create_labelling_run(spec: LabellingRunCreate, session: SessionDep, _: OperatorDep,
+                         settings: SettingsDep) -> RunOut:
+    """A queued labelling-only run over a dataset export in the server's datasets folder
+    (`<data dir>/datasets`): no training; each round's pairs come from the dataset's episodes
+    (uniformly, then by `selection`), their clips rendered from the stored physics states, until
+    `budget` answers. A dataset that is missing, of a task this server does not know, without
+    physics states or whose spaces disagree with its `sepoa.json`, and rounds that do not fit
+    its episodes, are a 422 naming the problem; nothing is stored."""
+    from labelqueue.labelling import create_labelling_run as create
+
+    root = settings.data_dir / "datasets"
+    if ".." in spec.dataset.split("/") or not (root / spec.dataset).is_dir():
+        raise RequestValidationError([{
+            "type": "value_error", "loc": ("body", "dataset"),
+            "msg": f"no dataset {spec.dataset!r} in the server's datasets folder {root} "
+                   f"(sepoa export --dataset {root} --run N writes one there)"}])
+    try:
+        run = create(session, dataset=str(root / spec.dataset), budget=spec.budget,
+                     per_round=spec.per_round, selection=spec.selection,
+                     segment_length=spec.segment_length, name=spec.name, preset=spec.preset,
+                     seed=spec.seed, teacher=spec.teacher, teacher_params=spec.teacher_params,
+                     config=spec.config, instruction=spec.instruction,
+                     clip_size=spec.clip_size)
+    except ConfigError as err:
+        where: tuple[str, ...] = (
+            ("body", LABELLING_FIELDS[err.field]) if err.field in LABELLING_FIELDS
+            else ("body", "config", err.field) if err.field in spec.config
+            else ("body", "teacher_params", err.field.removeprefix("teacher."))
+            if err.field.removeprefix("teacher.") in spec.teacher_params else ("body",))
+        raise RequestValidationError([{"type": "value_error", "loc": where,
+                                       "msg": str(err)}]) from None
+    return RunOut.model_validate(run)
 
 
 @router.get("/defaults", response_model=RunDefaults, responses=errors(422))
