@@ -90,6 +90,21 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
+# Per algorithm. SURF, RUNE and RIME are PEBBLE with one piece added; S-EPOA selects queries
+# by its skill rule and, as in the paper, learns its reward with SURF.
+SURF = {"reward.surf": True, "feedback.segment_length": 60}
+ALGO_PRESETS: dict[str, dict[str, Any]] = {
+    "surf": SURF,
+    "rune": {"reward.rune": True},
+    "rime": {"reward.rime": True},
+    "sepoa": {"feedback.selection": "skill", "feedback.selection_mode": "per_query"} | SURF,
+}
+# RIME's own unsupervised pretraining length on cheetah (9000 elsewhere, PEBBLE's).
+ALGO_TASK_PRESETS: dict[tuple[str, str], dict[str, Any]] = {
+    ("rime", "dmc:cheetah_run"): {"unsup_steps": 2000},
+}
+
+
 def _replace_path(cfg: Any, path: str, value: Any, full: str = "") -> Any:
     head, _, rest = path.partition(".")
     if not any(f.name == head for f in dataclasses.fields(cfg)):
@@ -104,21 +119,6 @@ def apply_overrides(cfg: RunConfig, overrides: dict[str, Any]) -> RunConfig:
     for path, value in overrides.items():
         cfg = _replace_path(cfg, path, value)
     return cfg
-
-
-# Per algorithm. SURF, RUNE and RIME are PEBBLE with one piece added; S-EPOA selects queries
-# by its skill rule and, as in the paper, learns its reward with SURF.
-SURF = {"reward.surf": True, "feedback.segment_length": 60}
-ALGO_PRESETS: dict[str, dict[str, Any]] = {
-    "surf": SURF,
-    "rune": {"reward.rune": True},
-    "rime": {"reward.rime": True},
-    "sepoa": {"feedback.selection": "skill", "feedback.selection_mode": "per_query"} | SURF,
-}
-# RIME's own unsupervised pretraining length on cheetah (9000 elsewhere, PEBBLE's).
-ALGO_TASK_PRESETS: dict[tuple[str, str], dict[str, Any]] = {
-    ("rime", "dmc:cheetah_run"): {"unsup_steps": 2000},
-}
 
 
 def preset_layers() -> dict[str, dict[str, dict[str, Any]]]:
@@ -149,6 +149,8 @@ def build_config(task: str, preset: str, overrides: dict[str, Any] | None = None
     cfg = apply_overrides(cfg, PRESETS[preset])
     return apply_overrides(cfg, overrides)
 
+
+# A run's configuration as JSON: config.json in its folder, a queued run's stored copy.
 
 WRITTEN_WHEN_SET = ("reward.init_from",)
 """fields added after runs were stored: a config's dict holds them only when they differ from

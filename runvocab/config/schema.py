@@ -293,7 +293,6 @@ class RunConfig:
     skill: SkillConfig = field(default_factory=SkillConfig)
 
 
-
 class Leaf(NamedTuple):
     """A field that holds a value (not a section), by its dotted path."""
 
