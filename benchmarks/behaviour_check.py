@@ -30,6 +30,11 @@ from trainer.loop import TrainingRun  # noqa: E402
 TIMINGS = ("fps", "seconds", "answered_at", "shown_at")
 
 
+def _timing(key: str) -> bool:
+    """A wall-time column (the loop's phase seconds included), left out of the fingerprint."""
+    return key in TIMINGS or key.startswith("seconds_") or key.endswith("_seconds")
+
+
 def fingerprint(out: str, algo: str, steps: int) -> None:
     run_dir = os.path.join(out, "runs", algo)
     cfg = build_config("dmc:cheetah_run", "tiny", {
@@ -40,13 +45,13 @@ def fingerprint(out: str, algo: str, steps: int) -> None:
         path = os.path.join(run_dir, f"{stream}.csv")
         if os.path.exists(path):
             with open(path, newline="") as f:
-                rows = [{k: v for k, v in row.items() if k not in TIMINGS}
+                rows = [{k: v for k, v in row.items() if not _timing(k)}
                         for row in csv.DictReader(f)]
             _write_lines(os.path.join(out, f"{algo}-{stream}.jsonl"), rows)
     labels = os.path.join(run_dir, "labels.jsonl")
     if os.path.exists(labels):
         with open(labels) as f:
-            rows = [{k: v for k, v in json.loads(line).items() if k not in TIMINGS}
+            rows = [{k: v for k, v in json.loads(line).items() if not _timing(k)}
                     for line in f]
         _write_lines(os.path.join(out, f"{algo}-labels.jsonl"), rows)
 

@@ -305,10 +305,14 @@ class PreferenceFeedback:
         if self.cfg.compare_rule:
             metrics["compare_distinguishable_ratio"] = self.compare_ratio
         if len(self.pairs):
+            start = time.perf_counter()
             unlabelled = self._unlabelled_pairs(pool) if self.model.cfg.surf else None
             metrics |= self.model.train_round(self.pairs, unlabelled)
+            metrics["reward_seconds"] = time.perf_counter() - start
         if self.estimator is not None:  # z_task follows the reward model from now on
+            start = time.perf_counter()
             metrics |= self.fit_estimator(pool)
+            metrics["estimator_seconds"] = time.perf_counter() - start
         self.rounds += 1
         self.pending = []
         return metrics

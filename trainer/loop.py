@@ -52,6 +52,7 @@ from trainer.envs import make_env
 from trainer.feedback import GivenAnswer, LabelLog, PreferenceFeedback
 from trainer.hooks import RunHooks
 from trainer.metrics import Metrics
+from trainer.phase_clock import PhaseClock
 from trainer.policies import Meta, make_policy
 from trainer.reward_model import RewardModel
 from trainer.sac import UpdateMetrics
@@ -135,6 +136,8 @@ class TrainingRun:
         else:
             save_json(cfg, os.path.join(self.run_dir, "config.json"))
         self.metrics = Metrics(self.run_dir, purge_step=self.step + 1 if resume else None)
+        self.clock = PhaseClock()
+        """where the wall time goes, written with every episode row"""
         if resume:
             self._trim_metrics()
 
@@ -169,7 +172,9 @@ class TrainingRun:
         start_step, start_time = self.step, time.time()
         bar = tqdm(total=cfg.steps, initial=self.step, disable=not self.progress,
                    dynamic_ncols=True, unit="step")
+        seconds = self.clock.seconds
         while self.step < cfg.steps:
+            tick = time.perf_counter()
             if self.random_actions(self.step):
                 action = self.rng.uniform(-1, 1, self.env.action_dim).astype(np.float32)
             else:
@@ -181,8 +186,11 @@ class TrainingRun:
             self.recorder.record(obs, action, result.reward, state, result.success)
             obs, episode_return = result.obs, episode_return + result.reward
             self.step += 1
+            acted = time.perf_counter()
             if self.learning(self.step) and self.update_step(self.step):
                 last_metrics = self._update()
+            seconds["acting"] += acted - tick
+            seconds["updates"] += time.perf_counter() - acted
             bar.update(1)
             stopping = stopping or self.hooks.stop_requested(self.step)
 
@@ -200,7 +208,8 @@ class TrainingRun:
                     "fps": fps,
                 } | {k: float(v) for k, v in last_metrics.items()
                      if k in ("critic_loss", "alpha", "q")}
-                  | self.reward.episode_row(self.step))
+                  | self.reward.episode_row(self.step) | self.clock.row())
+                seconds = self.clock.seconds
                 self._end_of_episode()
                 bar.set_postfix(ret=f"{episode_return:.1f}",
                                 labels=feedback.labels_used if feedback else 0, refresh=False)
@@ -218,14 +227,16 @@ class TrainingRun:
     def _end_of_episode(self) -> None:
         cfg = self.cfg
         if self.evaluations.due(self.step):
-            self.evaluate()
+            with self.clock("evaluation"):
+                self.evaluate()
         fb = self.feedback
         if fb is not None and fb.pending:
             self._try_finish_round()
         # No round at the very end: its labels could no longer shape the policy.
         elif (fb is not None and self.next_round_step <= self.step < cfg.steps
                 and fb.budget_left > 0 and len(self.pool) >= self._pool_needed()):
-            fb.open_round(self.pool, self.step)
+            with self.clock("selection"):
+                fb.open_round(self.pool, self.step)
             self._save()  # the chosen queries survive a kill; their answers go to labels.jsonl
             self.hooks.round_opened(fb.pending, self.pool)
             self._try_finish_round()
@@ -245,7 +256,8 @@ class TrainingRun:
         assert fb is not None and fb.pending
         due = min(fb.pending[0].step + self.cfg.feedback.every, self.cfg.steps)
         opened = fb.pending[0].step
-        answers = self.hooks.answers(fb, self.pool, final=self.step >= due)
+        with self.clock("waiting"):
+            answers = self.hooks.answers(fb, self.pool, final=self.step >= due)
         if answers is not None:
             self._finish_round(answers)
             if self.step > opened:
@@ -257,17 +269,22 @@ class TrainingRun:
         fb = self.feedback
         assert fb is not None
         first = fb.rounds == 0
+        start = time.perf_counter()
         metrics = fb.finish_round(self.pool, answers)
         self.buffer.relabel(fb.model.reward)
         metrics["reward_corr"] = self.buffer.reward_correlation()
         self.policy.round_closed(self.rng)
+        estimator = metrics.get("estimator_seconds", 0.0)
+        self.clock.add("estimator", estimator)
+        self.clock.add("reward_training", time.perf_counter() - start - estimator)
         if first:
             self.reward.start_step = self.step
             if self.policy.resets_critic:
                 self.agent.reset_critic()
                 # PEBBLE's reset_update: the fresh critic catches up on the learned reward.
-                for _ in range(self.cfg.reset_updates):
-                    self._update()
+                with self.clock("updates"):
+                    for _ in range(self.cfg.reset_updates):
+                        self._update()
         self.next_round_step = self.step + self.cfg.feedback.every
         self._log("rounds", {"step": self.step} | metrics)
 
@@ -327,7 +344,8 @@ class TrainingRun:
 
     def _save(self) -> None:
         self.checkpoints.happened(self.step)
-        save_checkpoint(self.checkpoint_path, self._state())
+        with self.clock("checkpoints"):
+            save_checkpoint(self.checkpoint_path, self._state())
 
     def _load(self) -> None:
         state = load_checkpoint(self.checkpoint_path)
