@@ -30,6 +30,7 @@ from labelqueue.dataset import read_dataset, write_dataset
 from labelqueue.labelling import create_labelling_run
 from trainer.clips import ClipConfig, encode_mp4, iter_segment_frames, sized
 from trainer.envs import make_env
+from trainer.reward_fit import fit
 
 BUDGET, PER_ROUND, SEGMENT = 12, 6, 20
 
@@ -174,4 +175,7 @@ def test_the_runs_dataset_export_holds_the_labelled_episodes(labelled):
     for q in again.queries:
         t = int(episodes.trajectory[q["first_episode"]])
         assert q["first_segment_return"] == _segment_return(source, t, q["first_start"])
+    # An offline fit takes it as it takes a training run's export.
+    result = fit(again, holdout=0.25, seed=0)
+    assert result.metrics["pairs"] == BUDGET and result.metrics["heldout_pairs"] == 3
 
