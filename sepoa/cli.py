@@ -25,9 +25,12 @@ import argparse
 import os
 import signal
 import sys
+from typing import TYPE_CHECKING
 
 from experiments.cli import OneLineParser, fail
-from labelqueue.labelling import LABELLING_SELECTIONS
+
+if TYPE_CHECKING:
+    from sqlalchemy.engine import Engine
 
 TRAINER_COMMANDS = {
     "train": "train one run standalone, answered by a scripted teacher",
@@ -99,6 +102,8 @@ def _database_url(args: argparse.Namespace) -> str:
 
 
 def _parser() -> argparse.ArgumentParser:
+    from labelqueue.labelling import LABELLING_SELECTIONS
+
     parser = OneLineParser(prog="sepoa", description=__doc__,
                            formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -364,6 +369,22 @@ def _export_dataset(args: argparse.Namespace, url: str) -> int:
     return 0
 
 
+def _migrated_engine(args: argparse.Namespace) -> Engine:
+    """The queue database, checked and migrated; ValueError naming what is wrong."""
+    from sqlalchemy.exc import DBAPIError
+
+    from labelqueue import check_database, make_engine, migrate
+
+    url = _database_url(args)
+    check_database(url)
+    try:
+        migrate(url)
+    except DBAPIError as err:
+        raise ValueError(f"cannot open the queue database: "
+                         f"{str(err.orig).strip().splitlines()[0]}") from None
+    return make_engine(url)
+
+
 def _overrides(pairs: list[str]) -> dict[str, object]:
     """`--set KEY=VALUE` flags as config overrides; ValueError naming a malformed one."""
     import json
@@ -383,7 +404,7 @@ def _overrides(pairs: list[str]) -> dict[str, object]:
 def _label_dataset(args: argparse.Namespace) -> int:
     from sqlalchemy.exc import DBAPIError
 
-    from labelqueue import check_database, make_engine, migrate, session_factory
+    from labelqueue import session_factory
     from labelqueue.labelling import create_labelling_run, labelling_dataset
     from runvocab.names import ConfigError
 
@@ -401,13 +422,7 @@ def _label_dataset(args: argparse.Namespace) -> int:
             dataset_pool(found, found.task)
         except ValueError as err:
             return fail(str(err))
-    url = _database_url(args)
-    check_database(url)
-    try:
-        migrate(url)
-    except DBAPIError as err:
-        return fail(f"cannot open the queue database: {str(err.orig).strip().splitlines()[0]}")
-    engine = make_engine(url)
+    engine = _migrated_engine(args)
     try:
         with session_factory(engine)() as session:
             run = create_labelling_run(
@@ -437,11 +452,8 @@ def _labeller(args: argparse.Namespace) -> int:
     from labelqueue import (
         Conflict,
         Labeller,
-        check_database,
         create_labeller,
         find_labeller,
-        make_engine,
-        migrate,
         rotate_token,
         session_factory,
         update_labeller,
@@ -450,13 +462,7 @@ def _labeller(args: argparse.Namespace) -> int:
     name = getattr(args, "name", None)
     if name is not None and not 1 <= len(name) <= NAME_MAX:  # as POST /api/labellers
         return fail(f"labeller name {name!r} is not valid: give 1 to {NAME_MAX} characters")
-    url = _database_url(args)
-    check_database(url)
-    try:
-        migrate(url)
-    except DBAPIError as err:
-        return fail(f"cannot open the queue database: {str(err.orig).strip().splitlines()[0]}")
-    engine = make_engine(url)
+    engine = _migrated_engine(args)
     try:
         with session_factory(engine)() as session:
             if args.action == "create":

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -113,7 +114,7 @@ class DatasetLabelling:
         return {"step": self.step, "episodes": len(self.pool), "stopped": int(self.stopped),
                 "labels_used": self.feedback.labels_used, "rounds": self.feedback.rounds}
 
-    def _state(self) -> dict:
+    def _state(self) -> dict[str, Any]:
         return {"format": STATE_FORMAT, "step": self.step,
                 "episode_lengths": [t.length for t in self.pool.trajectories],
                 "feedback": self.feedback.state_dict(), "torch_rng": torch.get_rng_state()}
