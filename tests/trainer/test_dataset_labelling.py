@@ -16,7 +16,15 @@ import pandas as pd
 import pytest
 from labelling_helpers import exported_dataset
 from sqlalchemy import select
-from worker_helpers import database, run_row, settle_labels, start_worker, worker_config
+from worker_helpers import (
+    database,
+    labels_jsonl,
+    run_row,
+    settle_labels,
+    start_worker,
+    wait_for,
+    worker_config,
+)
 
 from labelqueue import (
     Query,
@@ -24,6 +32,7 @@ from labelqueue import (
     create_labeller,
     export_rows,
     lease_next_query,
+    set_run_status,
     submit_label,
 )
 from labelqueue.dataset import read_dataset, write_dataset
@@ -40,11 +49,11 @@ def _segment_return(dataset, episode: int, start: int) -> float:
 
 
 def _label_as_a_person(sessions, run_id: int, labeller_id: int, dataset, done: threading.Event,
-                       answered: list[int]) -> None:
+                       answered: list[int], limit: int | None = None) -> None:
     """A labeller who leases rendered pairs as the label page does and prefers the segment
     with the larger return (equal ones are equal), read from the dataset at the pair's
-    pointers (not from the query's hidden truth)."""
-    while not done.is_set():
+    pointers (not from the query's hidden truth); until `done`, or `limit` answers."""
+    while not done.is_set() and (limit is None or len(answered) < limit):
         with sessions() as session:
             query = lease_next_query(session, labeller_id=labeller_id, run_id=run_id,
                                      for_people=True)
@@ -179,3 +188,40 @@ def test_the_runs_dataset_export_holds_the_labelled_episodes(labelled):
     result = fit(again, holdout=0.25, seed=0)
     assert result.metrics["pairs"] == BUDGET and result.metrics["heldout_pairs"] == 3
 
+
+
+def test_a_stopped_labelling_run_resumes_its_open_round_when_requeued(tmp_path):
+    path = exported_dataset(tmp_path / "datasets", seed=1)
+    dataset = read_dataset(str(path))
+    url, sessions = database(tmp_path)
+    with sessions() as session:
+        run = create_labelling_run(session, dataset=str(path), budget=8, per_round=4,
+                                   preset="tiny", config={"threads": 1})
+        bob, _token = create_labeller(session, name="bob")
+    data, answered = tmp_path / "data", []
+    worker = start_worker(worker_config(url, data))
+    # Two of round 0's four pairs answered, then the operator stops the run.
+    _label_as_a_person(sessions, run.id, bob.id, dataset, threading.Event(), answered, limit=2)
+    with sessions() as session:
+        set_run_status(session, run_id=run.id, status=RunStatus.STOPPING)
+    worker.join(timeout=60)
+    assert run_row(sessions, run.id).status is RunStatus.STOPPED
+
+    with sessions() as session:
+        set_run_status(session, run_id=run.id, status=RunStatus.QUEUED)
+    done = threading.Event()
+    person = threading.Thread(target=_label_as_a_person, daemon=True,
+                              args=(sessions, run.id, bob.id, dataset, done, answered))
+    person.start()
+    worker = start_worker(worker_config(url, data))
+    worker.join(timeout=120)
+    done.set()
+    person.join(timeout=10)
+    finished = run_row(sessions, run.id)
+    assert finished.status is RunStatus.FINISHED and finished.labels_used == 8
+    with sessions() as session:  # round 0 was pushed again, not asked twice
+        rounds = list(session.scalars(select(Query.round).where(Query.run_id == run.id)))
+    assert sorted(rounds) == [0] * 4 + [1] * 4
+    logged = labels_jsonl(data / "runs" / f"run-{run.id}")
+    assert len({row["query_id"] for row in logged}) == len(logged) == 8
+    wait_for(lambda: len(answered) == 8, what="every answer")
