@@ -1,10 +1,11 @@
 """Labeller endpoints: lease the next query, answer it, fetch its clips.
 
-Next and submit are the label API's hot path, on `hot_router`: `LeanRoute`s (documented like any
-route, served without FastAPI's per-request dependency solver), each an `async def` with one
-cheap async dependency (`LabellerCallDep`) that serves its queue work (`LabellerCall.serve`), and
-answers with JSON bytes serialised once by pydantic: FastAPI does not validate the returned model
-again. The declared `response_model` still documents the body in OpenAPI.
+Next and submit are the label API's hot path. They are served as plain Starlette routes
+(`hot_routes`): each reads its caller with one async call (`get_labeller_call`), checks its query
+string, path and body with pydantic (`server.validation`: FastAPI's refusals, without its
+per-request dependency solver), and answers with JSON bytes serialised once by pydantic. Their
+OpenAPI operations come from `documented`: FastAPI routes of the same endpoints, declared with
+the same models, that the app documents and never serves (`server.app`).
 """
 
 from __future__ import annotations
@@ -14,18 +15,20 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response
 from fastapi.responses import FileResponse
-from pydantic import BaseModel
+from pydantic import BaseModel, TypeAdapter
+from starlette.routing import Route
 
 from server import clips, services
 from server.deps import (
     BEARER_SECURITY,
+    LabellerCall,
     LabellerCallDep,
     SessionDep,
     SettingsDep,
     bearer_token,
     caller_from_token,
+    get_labeller_call,
 )
-from server.lean_route import LeanRoute
 from server.schemas import (
     AheadOf,
     Expires,
@@ -36,9 +39,11 @@ from server.schemas import (
     RunFilter,
     errors,
 )
+from server.validation import check, check_body, check_query, json_body, refuse_if
 
 router = APIRouter(prefix="/api", tags=["label"])
-hot_router = APIRouter(prefix="/api", tags=["label"], route_class=LeanRoute)
+documented = APIRouter(prefix="/api", tags=["label"])
+"""next and submit as OpenAPI describes them; `hot_routes` serve them"""
 
 
 def json_response(body: BaseModel, status_code: int = 200) -> Response:
@@ -50,7 +55,14 @@ BEARER_OR_SIGNED: dict[str, Any] = {"security": [{}, {"bearer": []}]}
 """a clip URL's signature (`expires`, `sig`) or a bearer token"""
 
 
-@hot_router.get(
+class NextParams(BaseModel):
+    """next-query's query string"""
+
+    run_id: RunFilter = None
+    ahead_of: AheadOf = None
+
+
+@documented.get(
     "/label/next",
     response_model=NextQuery,
     responses=errors(
@@ -58,16 +70,14 @@ BEARER_OR_SIGNED: dict[str, Any] = {"security": [{}, {"bearer": []}]}
     ),
     openapi_extra=BEARER_SECURITY,
 )
-async def next_query(
-    call: LabellerCallDep, run_id: RunFilter = None, ahead_of: AheadOf = None
-) -> Response:
+async def next_query(call: LabellerCallDep, params: Annotated[NextParams, Query()]) -> Response:
     """Lease the next query. `ahead_of=<query_id being shown>` keeps that lease and leases one
     more, so the page can preload the next pair."""
-    query = await call.serve(services.next_query, run_id=run_id, ahead_of=ahead_of)
+    query = await call.serve(services.next_query, run_id=params.run_id, ahead_of=params.ahead_of)
     return Response(status_code=204) if query is None else json_response(query)
 
 
-@hot_router.post(
+@documented.post(
     "/label/{query_id:int}",
     status_code=201,
     response_model=LabelOut,
@@ -83,6 +93,44 @@ async def post_label(query_id: QueryId, body: LabelSubmit, call: LabellerCallDep
     422. `shown_at` is stored within [the lease's start, now]."""
     out, created = await call.serve(services.answer_out, query_id=query_id, body=body)
     return json_response(out, status_code=201 if created else 200)
+
+
+NEXT_PARAMS = TypeAdapter(NextParams)
+QUERY_ID: TypeAdapter[int] = TypeAdapter(QueryId)
+LABEL_SUBMIT = TypeAdapter(LabelSubmit)
+
+
+async def serve_next_query(request: Request) -> Response:
+    # FastAPI's order: the caller (401/403) first, then the parameters (422).
+    call: LabellerCall = await get_labeller_call(request)
+    params, problems = check_query(NEXT_PARAMS, request)
+    refuse_if(problems)
+    return await next_query(call, params)
+
+
+async def serve_post_label(request: Request) -> Response:
+    # FastAPI's order: a body that is not JSON first, then the caller, then every other refusal.
+    body = await json_body(request)
+    call: LabellerCall = await get_labeller_call(request)
+    query_id, problems = check(QUERY_ID, request.path_params["query_id"], "path", "query_id")
+    submit, body_problems = check_body(LABEL_SUBMIT, body)
+    refuse_if(problems + body_problems)
+    return await post_label(query_id, submit, call)
+
+
+def _only(method: str, route: Route) -> Route:
+    # Starlette adds HEAD to a GET route; a lease is not a HEAD request's business.
+    route.methods = {method}
+    return route
+
+
+hot_routes = [
+    _only("GET", Route("/api/label/next", serve_next_query, methods=["GET"],
+                       name="next_query")),
+    _only("POST", Route("/api/label/{query_id:int}", serve_post_label, methods=["POST"],
+                        name="post_label")),
+]
+"""next and submit as the app serves them: plain Starlette routes"""
 
 
 @router.get(

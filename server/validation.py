@@ -1,0 +1,81 @@
+"""Explicit pydantic validation for the label API's plain Starlette routes (`routes/label.py`).
+
+A request's parts are checked with pydantic and refused in FastAPI's terms, so a client cannot
+tell these routes from FastAPI's own: a 422 `RequestValidationError` whose `loc` starts with
+"query", "path" or "body" (every refusal of a request together), and a 400 for a body that is
+not UTF-8 text or is nested too deeply to decode.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any, TypeVar
+
+from fastapi import HTTPException, Request
+from fastapi.exceptions import RequestValidationError
+from pydantic import TypeAdapter, ValidationError
+
+T = TypeVar("T")
+Problems = list[dict[str, Any]]
+
+
+def check(adapter: TypeAdapter[T], value: Any, *where: str) -> tuple[Any, Problems]:
+    """`value` validated by `adapter` (as FastAPI validates, from attributes too) and no
+    refusals, or None and the refusals, each `loc` under `where`."""
+    try:
+        return adapter.validate_python(value, from_attributes=True), []
+    except ValidationError as error:
+        return None, [{**e, "loc": (*where, *e["loc"])} for e in error.errors(include_url=False)]
+    except RecursionError:  # a value nested some 900 levels deep, refused by repr()
+        return None, [{"type": "value_error", "loc": where, "input": None,
+                       "msg": "Value error, the body is nested too deeply"}]
+
+
+def check_query(adapter: TypeAdapter[T], request: Request) -> tuple[Any, Problems]:
+    """The query string as the model `adapter` validates it (the last of repeated names)."""
+    return check(adapter, dict(request.query_params), "query")
+
+
+def _is_json(content_type: str) -> bool:
+    kind = content_type.partition(";")[0].strip().lower()
+    return kind == "application/json" or (
+        kind.startswith("application/") and kind.endswith("+json")
+    )
+
+
+async def json_body(request: Request) -> Any:
+    """The body, read before anything else is checked: decoded JSON for a JSON content type
+    (422 at once when it is not JSON), else the bytes (refused by the body's model); None when
+    there is none."""
+    raw = await request.body()
+    if not raw:
+        return None
+    if not _is_json(request.headers.get("content-type", "")):
+        return raw
+    try:
+        return json.loads(raw)
+    except json.JSONDecodeError as error:
+        raise RequestValidationError([{
+            "type": "json_invalid", "loc": ("body", error.pos),
+            "msg": "JSON decode error", "input": {}, "ctx": {"error": error.msg},
+        }]) from None
+    except (ValueError, RecursionError):  # not UTF-8 text, or nested too deep to decode
+        raise HTTPException(400, "There was an error parsing the body") from None
+
+
+def check_body(adapter: TypeAdapter[T], value: Any) -> tuple[Any, Problems]:
+    """The decoded body (`json_body`) as `adapter` validates it; a missing body is refused."""
+    if value is None:
+        return None, [{"type": "missing", "loc": ("body",), "msg": "Field required",
+                       "input": None}]
+    parsed, problems = check(adapter, value, "body")
+    for problem in problems:  # bytes that are not text must still go back as JSON
+        if isinstance(problem.get("input"), bytes):
+            problem["input"] = problem["input"].decode(errors="replace")
+    return parsed, problems
+
+
+def refuse_if(problems: Problems) -> None:
+    """A 422 with every refusal of the request, if there is any."""
+    if problems:
+        raise RequestValidationError(problems)
