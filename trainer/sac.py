@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import torch
@@ -18,6 +18,9 @@ from torch import nn
 
 from runvocab.config import SACConfig
 from trainer.nets import EnsembleMLP, NumpyMLP, mlp
+
+if TYPE_CHECKING:
+    from trainer.graphed_update import GraphedUpdate
 
 LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
 
@@ -76,10 +79,13 @@ class Critic(nn.Module):
         return self.q(torch.cat([obs, action], dim=-1), detach_params)
 
 
-def _adam(params, cfg: SACConfig, device: torch.device) -> torch.optim.Adam:
-    # The fused kernel is one launch per step instead of one per parameter.
+def _adam(params, cfg: SACConfig, device: torch.device,
+          capturable: bool = False) -> torch.optim.Adam:
+    # The fused kernel is one launch per step instead of one per parameter; a capturable one
+    # keeps its step count on the device, so a CUDA graph can replay it.
     fused = device.type in ("cuda", "cpu")
-    return torch.optim.Adam(params, lr=cfg.lr, betas=cfg.betas, fused=fused)
+    return torch.optim.Adam(params, lr=cfg.lr, betas=cfg.betas, fused=fused,
+                            capturable=capturable)
 
 
 CriticFactory = Callable[[int, int, SACConfig], nn.Module]
@@ -90,10 +96,13 @@ class SAC:
 
     `critic_factory(obs_dim, action_dim, cfg)` swaps in another critic whose forward has
     `Critic`'s signature and output shape (2, batch, 1): APS's successor-feature critic.
+    `graph_ready` runs every update through trainer/graphed_update.py's static batch and
+    capturable optimisers (by default where `cfg.cuda_graph` is set on a CUDA device), captured
+    in CUDA graphs on a GPU and run eagerly elsewhere.
     """
 
     def __init__(self, obs_dim: int, action_dim: int, cfg: SACConfig, device: torch.device,
-                 critic_factory: CriticFactory = Critic):
+                 critic_factory: CriticFactory = Critic, graph_ready: bool | None = None):
         self.cfg, self.device = cfg, device
         self.obs_dim, self.action_dim = obs_dim, action_dim
         self.critic_factory = critic_factory
@@ -105,14 +114,21 @@ class SAC:
         self.log_alpha = torch.tensor(math.log(cfg.init_temperature), device=device)
         self.log_alpha.requires_grad_(True)
         self.target_entropy = -float(action_dim)
-        self.actor_opt = _adam(self.actor.parameters(), cfg, device)
-        self.critic_opt = _adam(self.critic.parameters(), cfg, device)
-        self.alpha_opt = _adam([self.log_alpha], cfg, device)
+        if graph_ready is None:
+            graph_ready = cfg.cuda_graph and device.type == "cuda"
+        self.capturable = graph_ready
+        self.actor_opt = _adam(self.actor.parameters(), cfg, device, graph_ready)
+        self.critic_opt = _adam(self.critic.parameters(), cfg, device, graph_ready)
+        self.alpha_opt = _adam([self.log_alpha], cfg, device, graph_ready)
         self.updates = 0
         # In-place loads and resets keep these the same tensors, so the lists stay valid.
         self._critic_params = list(self.critic.parameters())
         self._target_params = list(self.critic_target.parameters())
         self._numpy_actor = NumpyMLP(list(self.actor.trunk)) if device.type == "cpu" else None
+        self.graphed: GraphedUpdate | None = None
+        if graph_ready:
+            from trainer.graphed_update import GraphedUpdate  # it builds on this module
+            self.graphed = GraphedUpdate(self, capture=device.type == "cuda")
 
     @property
     def alpha(self) -> torch.Tensor:
@@ -137,14 +153,28 @@ class SAC:
     def update(self, batch: Batch) -> UpdateMetrics:
         """One update; its metrics stay on the device as 0-d tensors, read (one host sync each)
         only when a row is logged: reading five per update cost five device syncs."""
+        if self.graphed is not None:
+            metrics = self.graphed(batch)
+        else:
+            metrics = self.step(batch, *self.schedule())
+        self.updates += 1
+        return metrics
+
+    def schedule(self) -> tuple[bool, bool]:
+        """Whether this update steps the actor and temperature, and whether the target."""
+        return (self.updates % self.cfg.actor_update_every == 0,
+                self.updates % self.cfg.target_update_every == 0)
+
+    def step(self, batch: Batch, actor: bool, target: bool) -> UpdateMetrics:
+        """The update's arithmetic, with no host sync and no branch on a tensor's value (what
+        a CUDA graph can capture)."""
         # log_alpha changes only at the end of the update, so one exp serves all three losses.
         alpha = self.log_alpha.exp()
         metrics = self._update_critic(batch, alpha.detach())
-        if self.updates % self.cfg.actor_update_every == 0:
+        if actor:
             metrics |= self._update_actor_and_alpha(batch.obs, alpha)
-        if self.updates % self.cfg.target_update_every == 0:
+        if target:
             self._update_target()
-        self.updates += 1
         return metrics
 
     def _update_critic(self, batch: Batch, alpha: torch.Tensor) -> UpdateMetrics:
@@ -189,7 +219,9 @@ class SAC:
         fresh = self.critic_factory(self.obs_dim, self.action_dim, self.cfg).to(self.device)
         self.critic.load_state_dict(fresh.state_dict())
         self.critic_target.load_state_dict(fresh.state_dict())
-        self.critic_opt = _adam(self.critic.parameters(), self.cfg, self.device)
+        self.critic_opt = _adam(self.critic.parameters(), self.cfg, self.device, self.capturable)
+        if self.graphed is not None:
+            self.graphed.forget()  # its graphs step the old optimiser's state
 
     def state_dict(self) -> dict:
         return {
@@ -212,4 +244,9 @@ class SAC:
         self.actor_opt.load_state_dict(state["actor_opt"])
         self.critic_opt.load_state_dict(state["critic_opt"])
         self.alpha_opt.load_state_dict(state["alpha_opt"])
+        for opt in (self.actor_opt, self.critic_opt, self.alpha_opt):
+            for group in opt.param_groups:  # a loaded group says how the saving run stepped
+                group["capturable"] = self.capturable
         self.updates = state["updates"]
+        if self.graphed is not None:
+            self.graphed.forget()  # the optimisers' state tensors were replaced

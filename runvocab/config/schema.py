@@ -44,6 +44,9 @@ class SACConfig:
     """upper bound of the actor's log standard deviation"""
     betas: tuple[float, float] = (0.9, 0.999)
     """Adam betas"""
+    cuda_graph: bool = False
+    """on a CUDA device, replay the update from CUDA graphs (trainer/graphed_update.py): the
+    same update without a kernel launch per operation; ignored on the CPU"""
 
 
 @dataclass(frozen=True)
