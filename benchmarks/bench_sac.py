@@ -5,16 +5,22 @@ size, learning rate, tau, target period, gamma, initial temperature and observat
 dimensions (DMC cheetah: 17 and 6). Each samples its own replay buffer, pre-filled with the same
 random transitions, so an "update" is sample + critic + actor + temperature (+ target every 2nd).
 
+On a CUDA device (`--device cuda`) a third side runs our update replayed from CUDA graphs
+(`sac.cuda_graph`, trainer/graphed_update.py); every timed block ends with a device sync.
+
     .venv/bin/python benchmarks/bench_sac.py                      # both presets
     .venv/bin/python benchmarks/bench_sac.py --hidden 256 --layers 2 --batch 256
+    python3 benchmarks/bench_sac.py --device cuda                 # SB3, eager, graphed
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import statistics
 import time
+from collections.abc import Callable
 
 import gymnasium as gym
 import numpy as np
@@ -47,14 +53,14 @@ def random_transitions(n: int, seed: int):
     return obs, action, reward, next_obs
 
 
-def make_sb3(cfg: SACConfig, data) -> SB3SAC:
+def make_sb3(cfg: SACConfig, data, device: torch.device) -> SB3SAC:
     n = len(data[0])
     arch = [cfg.hidden_dim] * cfg.hidden_layers
     model = SB3SAC(
         "MlpPolicy", BoxEnv(), learning_rate=cfg.lr, buffer_size=n, learning_starts=0,
         batch_size=cfg.batch_size, tau=cfg.tau, gamma=cfg.gamma,
         ent_coef=f"auto_{cfg.init_temperature}", target_update_interval=cfg.target_update_every,
-        policy_kwargs={"net_arch": {"pi": arch, "qf": arch}}, device="cpu", seed=0,
+        policy_kwargs={"net_arch": {"pi": arch, "qf": arch}}, device=str(device), seed=0,
     )
     model.set_logger(configure(None, []))  # train() records its losses somewhere
     rb = model.replay_buffer
@@ -68,52 +74,61 @@ def make_sb3(cfg: SACConfig, data) -> SB3SAC:
     return model
 
 
-def make_ours(cfg: SACConfig, data) -> tuple[SAC, ReplayBuffer]:
+def make_ours(cfg: SACConfig, data, device: torch.device) -> tuple[SAC, ReplayBuffer]:
     n = len(data[0])
-    cpu = torch.device("cpu")
-    agent = SAC(OBS_DIM, ACTION_DIM, cfg, cpu)
-    buffer = ReplayBuffer(OBS_DIM, ACTION_DIM, n, cpu, seed=0)
-    obs, action, reward, next_obs = (torch.from_numpy(x) for x in data)
+    agent = SAC(OBS_DIM, ACTION_DIM, cfg, device)
+    buffer = ReplayBuffer(OBS_DIM, ACTION_DIM, n, device, seed=0)
+    obs, action, reward, next_obs = (torch.from_numpy(x).to(device) for x in data)
     buffer.obs[:], buffer.action[:], buffer.next_obs[:] = obs, action, next_obs
     buffer.reward[:, 0] = buffer.true_reward[:, 0] = reward
     buffer.size = n
     return agent, buffer
 
 
-def time_sb3(model: SB3SAC, updates: int, batch: int) -> float:
+def timed(run: Callable[[int], None], updates: int, device: torch.device) -> float:
+    """Updates per second of `run(updates)`, the device's work included."""
+    if device.type == "cuda":
+        torch.cuda.synchronize()
     start = time.perf_counter()
-    model.train(gradient_steps=updates, batch_size=batch)
+    run(updates)
+    if device.type == "cuda":
+        torch.cuda.synchronize()
     return updates / (time.perf_counter() - start)
 
 
-def time_ours(agent: SAC, buffer: ReplayBuffer, updates: int, batch: int) -> float:
-    start = time.perf_counter()
-    for _ in range(updates):
-        agent.update(buffer.sample(batch))
-    return updates / (time.perf_counter() - start)
+def sb3_side(model: SB3SAC, batch: int) -> Callable[[int], None]:
+    return lambda n: model.train(gradient_steps=n, batch_size=batch)
+
+
+def our_side(agent: SAC, buffer: ReplayBuffer, batch: int) -> Callable[[int], None]:
+    def run(n: int) -> None:
+        for _ in range(n):
+            agent.update(buffer.sample(batch))
+    return run
 
 
 def bench(hidden: int, layers: int, batch: int, updates: int, repeats: int, warmup: int,
-          buffer_size: int) -> tuple[float, float]:
+          buffer_size: int, device: torch.device) -> dict[str, float]:
+    """The median updates/s of each side: SB3, ours (eager) and, on CUDA, ours graphed."""
     cfg = SACConfig(hidden_dim=hidden, hidden_layers=layers, batch_size=batch, lr=5e-4,
                     tau=0.01, target_update_every=2, actor_update_every=1, gamma=0.99,
                     init_temperature=0.2)
     data = random_transitions(buffer_size, seed=0)
     torch.manual_seed(0)
-    sb3 = make_sb3(cfg, data)
-    agent, buffer = make_ours(cfg, data)
-    time_sb3(sb3, warmup, batch)
-    time_ours(agent, buffer, warmup, batch)
-    sb3_rates, our_rates = [], []
+    sides = {"SB3": sb3_side(make_sb3(cfg, data, device), batch),
+             "ours": our_side(*make_ours(cfg, data, device), batch)}
+    if device.type == "cuda":
+        graphed = dataclasses.replace(cfg, cuda_graph=True)
+        sides["graphed"] = our_side(*make_ours(graphed, data, device), batch)
+    for run in sides.values():
+        run(warmup)
+    rates: dict[str, list[float]] = {name: [] for name in sides}
     for r in range(repeats):
-        # Alternate who goes first so drift (thermal, other load) hits both alike.
-        if r % 2 == 0:
-            sb3_rates.append(time_sb3(sb3, updates, batch))
-            our_rates.append(time_ours(agent, buffer, updates, batch))
-        else:
-            our_rates.append(time_ours(agent, buffer, updates, batch))
-            sb3_rates.append(time_sb3(sb3, updates, batch))
-    return statistics.median(sb3_rates), statistics.median(our_rates)
+        # Rotate who goes first so drift (thermal, other load) hits every side alike.
+        names = list(sides)
+        for name in names[r % len(names):] + names[: r % len(names)]:
+            rates[name].append(timed(sides[name], updates, device))
+    return {name: statistics.median(values) for name, values in rates.items()}
 
 
 def main() -> None:
@@ -126,8 +141,13 @@ def main() -> None:
     p.add_argument("--warmup", type=int, default=10, help="untimed updates per side first")
     p.add_argument("--buffer", type=int, default=50_000, help="pre-filled random transitions")
     p.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch threads")
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                   help="where both sides train (cuda adds the graphed side)")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("error: --device cuda, but torch finds no CUDA device")
 
     if args.hidden is None:
         configs = PRESETS
@@ -136,15 +156,25 @@ def main() -> None:
         default_updates = max(20, min(300, 300 * 256 * 256 // (args.hidden * batch)))
         configs = [(args.hidden, args.layers, batch, args.updates or default_updates)]
 
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, load average "
-          f"{os.getloadavg()[0]:.2f}; obs {OBS_DIM}, action {ACTION_DIM}, buffer {args.buffer}")
+    where = (torch.cuda.get_device_name(device) if device.type == "cuda"
+             else f"cpu, {torch.get_num_threads()} threads")
+    print(f"torch {torch.__version__}, {where}, load average {os.getloadavg()[0]:.2f}; "
+          f"obs {OBS_DIM}, action {ACTION_DIM}, buffer {args.buffer}")
+    graph_columns = (f" {'graphed upd/s':>14} {'graphed/ours':>13} {'graphed/SB3':>12}"
+                     if device.type == "cuda" else "")
     print(f"{'hidden x layers':>15} {'batch':>6} {'updates':>8} {'SB3 upd/s':>10} "
-          f"{'ours upd/s':>11} {'ours/SB3':>9}")
+          f"{'ours upd/s':>11} {'ours/SB3':>9}{graph_columns}")
     for hidden, layers, batch, updates in configs:
         updates = args.updates or updates
-        sb3, ours = bench(hidden, layers, batch, updates, args.repeats, args.warmup, args.buffer)
-        print(f"{f'{hidden} x {layers}':>15} {batch:>6} {updates:>8} {sb3:>10.1f} "
-              f"{ours:>11.1f} {ours / sb3:>8.2f}x", flush=True)
+        rate = bench(hidden, layers, batch, updates, args.repeats, args.warmup, args.buffer,
+                     device)
+        sb3, ours = rate["SB3"], rate["ours"]
+        line = (f"{f'{hidden} x {layers}':>15} {batch:>6} {updates:>8} {sb3:>10.1f} "
+                f"{ours:>11.1f} {ours / sb3:>8.2f}x")
+        if "graphed" in rate:
+            g = rate["graphed"]
+            line += f" {g:>14.1f} {g / ours:>12.2f}x {g / sb3:>11.2f}x"
+        print(line, flush=True)
 
 
 if __name__ == "__main__":
