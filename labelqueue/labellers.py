@@ -18,7 +18,6 @@ from labelqueue.errors import Conflict
 from labelqueue.models import LABELLERS, Labeller, Query, QueryStatus, Role
 from labelqueue.transaction import (
     changed,
-    core_transaction,
     detach,
     get_row,
     reading,
@@ -56,8 +55,8 @@ def authenticate(session: Session, *, token: str) -> Labeller | None:
     labeller_id, dot, _secret = token.partition(".")
     if not dot or not labeller_id.isdigit() or len(labeller_id) > 18:
         return None
-    with core_transaction(session, read_only=True) as connection:
-        row = connection.execute(_BY_ID, {"labeller": int(labeller_id)}).first()
+    with reading(session):
+        row = session.execute(_BY_ID, {"labeller": int(labeller_id)}).first()
     if row is None or not row.active:
         return None
     if not hmac.compare_digest(row.token_hash, hash_token(token)):

@@ -11,16 +11,22 @@ Only plain statements are taken, checked when first compiled: every parameter is
 literal of the statement or one the caller must give (no expanding IN lists, no values rendered
 at execution time). The driver's errors reach callers as SQLAlchemy's own (`DataError`,
 `IntegrityError`, ...). Transactions are `labelqueue.transaction.driver_transaction`'s.
+
+Tracing sees these statements as it sees SQLAlchemy's: an engine's `before_cursor_execute` and
+`after_cursor_execute` listeners are called with each one (given the SQLAlchemy `Connection`
+the driver's connection was taken through), and `echo` or the `sqlalchemy.engine` logger at
+INFO logs its SQL and values. An engine with neither pays nothing for it.
 """
 
 from __future__ import annotations
 
+import logging
 from collections import namedtuple
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from sqlalchemy import Connection, Dialect, PoolProxiedConnection, Select
+from sqlalchemy import Connection, Dialect, Engine, PoolProxiedConnection, Select
 from sqlalchemy.exc import DBAPIError
 from sqlalchemy.sql.dml import UpdateBase
 
@@ -85,19 +91,45 @@ def _plan(statement: Statement, dialect: Dialect) -> _Plan:
     return _Plan(compiled.string, tuple(slot[name] for name in order), compiled.positional, row)
 
 
+def traced(engine: Engine) -> bool:
+    """Whether anything watches the engine's statements: cursor-execute listeners, or its
+    logger at INFO (`echo`)."""
+    hooks = engine.dispatch  # the engine's event listeners, as its connections inherit them
+    return bool(hooks.before_cursor_execute or hooks.after_cursor_execute) or \
+        engine.logger.isEnabledFor(logging.INFO)
+
+
 class DriverConnection:
     """A driver's connection in a transaction, as `Prepared` statements run on it: from the
     engine's pool (`pooled`, invalidated when an error says the database went away), or the one
-    under a SQLAlchemy `Connection` (whose own error handling then applies)."""
+    under a SQLAlchemy `Connection` (whose own error handling then applies). With `tracer`, the
+    SQLAlchemy `Connection` it was taken through, each statement is shown to the engine's
+    cursor-execute listeners and logger as SQLAlchemy's own statements are."""
 
-    def __init__(self, dbapi: Any, dialect: Dialect, pooled: PoolProxiedConnection | None = None):
+    def __init__(self, dbapi: Any, dialect: Dialect, pooled: PoolProxiedConnection | None = None,
+                 tracer: Connection | None = None):
         self.dbapi = dbapi
         self.dialect = dialect
         self.pooled = pooled
+        self.tracer = tracer
 
     @classmethod
     def under(cls, connection: Connection) -> DriverConnection:
-        return cls(connection.connection.dbapi_connection, connection.dialect)
+        return cls(connection.connection.dbapi_connection, connection.dialect, tracer=connection)
+
+    def before(self, cursor: Any, sql: str, params: Any) -> None:
+        assert self.tracer is not None
+        for hook in self.tracer.dispatch.before_cursor_execute:
+            hook(self.tracer, cursor, sql, params, None, False)
+        logger = self.tracer.engine.logger
+        if logger.isEnabledFor(logging.INFO):
+            logger.info(sql)
+            logger.info("[prepared] %r", params)
+
+    def after(self, cursor: Any, sql: str, params: Any) -> None:
+        assert self.tracer is not None
+        for hook in self.tracer.dispatch.after_cursor_execute:
+            hook(self.tracer, cursor, sql, params, None, False)
 
     def wrapped(self, error: Exception, sql: str, params: Any) -> DBAPIError:
         """A driver's error as SQLAlchemy raises it; a lost connection leaves the pool."""
@@ -154,11 +186,15 @@ class Prepared:
         plan = self._plan_for(dialect)
         driver_params = plan.driver_values(params)
         cursor = connection.dbapi.cursor()
+        if connection.tracer is not None:
+            connection.before(cursor, plan.sql, driver_params)
         try:
             cursor.execute(plan.sql, driver_params)
         except dialect.loaded_dbapi.Error as error:
             cursor.close()
             raise connection.wrapped(error, plan.sql, driver_params) from error
+        if connection.tracer is not None:
+            connection.after(cursor, plan.sql, driver_params)
         return cursor, plan
 
     def rows(self, connection: DriverConnection, params: Mapping[str, Any]) -> list[Any]:

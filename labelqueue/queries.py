@@ -58,7 +58,6 @@ from labelqueue.practice import practice_step
 from labelqueue.prepared import DriverConnection, Prepared
 from labelqueue.transaction import (
     changed,
-    core_transaction,
     detach,
     driver_transaction,
     get_row,
@@ -129,12 +128,12 @@ def push_queries(
     now = utcnow()
     # One INSERT for the round, with rows built before the transaction: the worker holds the
     # database's write lock, which every labeller's answer waits for, as briefly as it can.
-    with core_transaction(session) as connection:
-        if connection.execute(select(RUNS.c.id).where(RUNS.c.id == run_id)).first() is None:
+    with transaction(session):
+        if session.execute(select(RUNS.c.id).where(RUNS.c.id == run_id)).first() is None:
             raise NotFound(f"run {run_id} does not exist")
         stored = {
             (row.round, row.position): row
-            for row in connection.execute(
+            for row in session.execute(
                 select(QUERIES.c.id, QUERIES.c.round, QUERIES.c.position, *provenance).where(
                     QUERIES.c.run_id == run_id, QUERIES.c.round.in_(rounds)
                 )
@@ -154,7 +153,7 @@ def push_queries(
         ids = {key: row.id for key, row in stored.items()}
         if new:
             try:
-                inserted = connection.execute(
+                inserted = session.execute(
                     insert(QUERIES).returning(QUERIES.c.id, sort_by_parameter_order=True), new
                 ).scalars().all()
             except IntegrityError as error:
@@ -377,43 +376,67 @@ def lease_next_query(
     key = server_key(session, SCHEDULE_KEY) if gold else None  # read once per process
     with driver_transaction(session) as connection:
         holder = _HOLDER.rows(connection, params)
-        if not holder:
-            raise NotFound(f"labeller {labeller_id} does not exist")
-        if not holder[0].active:
-            raise Revoked(f"labeller {labeller_id} is deactivated")
-        if token_hash is not None and not hmac.compare_digest(holder[0].token_hash, token_hash):
-            raise StaleToken(f"labeller {labeller_id}'s token was replaced by a new one")
-        if for_people and run_id is not None:
-            if holder[0].teacher is None:
-                raise NotFound(f"run {run_id} does not exist")
-            if holder[0].teacher != TeacherKind.HUMAN:
-                raise Conflict(f"run {run_id} is taught by a scripted teacher, not by people")
-        # Its live leases: at most the one it is shown and the one ahead of it.
-        others = []
-        for _, held, held_run, status, *_ in holder:
-            if held is None:
-                continue
-            if held == ahead_of:
-                _RENEW.count(connection, params | {"query": held})
-                continue
-            if status in LABELLABLE and run_id in (None, held_run):
-                # A reload: the same query, its lease renewed.
-                row = _RENEW_RETURNING.first(connection, params | {"query": held})
-                if row is not None:
-                    return snapshot(Query, row._asdict())
-            others.append(held)
-        for other in others:  # held for another run, or for a run that closed: free for others
-            _RELEASE.count(connection, params | {"query": other})
-        row = _lease_gold(connection, params, key, ahead_of) if key is not None else None
+        _check_asker(holder, params, for_people=for_people, token_hash=token_hash)
+        row = _renew_or_release(connection, holder, params, ahead_of=ahead_of)
         if row is None:
-            take = _TAKE_OF_ANY_HUMAN_RUN if run_id is None else _TAKE_OF_RUN
-            row = take.first(connection, params)
-        if row is None:
-            pause = (_PAUSE if run_id is None else _PAUSE_ON_RUN).first(connection, params)
-            if pause is not None:
-                raise Paused(pause_notice(pause.gold_answers, pause.gold_correct,
-                                          GoldSettings.of(pause.config)))
+            row = _take_next(connection, params, key=key, ahead_of=ahead_of)
     return None if row is None else snapshot(Query, row._asdict())
+
+
+def _check_asker(holder: Sequence[Any], params: dict[str, Any], *, for_people: bool,
+                 token_hash: str | None) -> None:
+    """Refuse a lease to a labeller that is missing or deactivated, that asks with a replaced
+    token, or (a person) for a run that is missing or taught by a script."""
+    labeller_id, run_id = params["labeller"], params["run"]
+    if not holder:
+        raise NotFound(f"labeller {labeller_id} does not exist")
+    if not holder[0].active:
+        raise Revoked(f"labeller {labeller_id} is deactivated")
+    if token_hash is not None and not hmac.compare_digest(holder[0].token_hash, token_hash):
+        raise StaleToken(f"labeller {labeller_id}'s token was replaced by a new one")
+    if for_people and run_id is not None:
+        if holder[0].teacher is None:
+            raise NotFound(f"run {run_id} does not exist")
+        if holder[0].teacher != TeacherKind.HUMAN:
+            raise Conflict(f"run {run_id} is taught by a scripted teacher, not by people")
+
+
+def _renew_or_release(connection: DriverConnection, holder: Sequence[Any],
+                      params: dict[str, Any], *, ahead_of: int | None) -> Any | None:
+    """The labeller's live leases (at most the one it is shown and the one ahead of it): the
+    one shown (`ahead_of`) is renewed; one of the run asked for is a reload, renewed and
+    returned; the rest, held for another run or a run that closed, are freed for others."""
+    others = []
+    for _, held, held_run, status, *_ in holder:
+        if held is None:
+            continue
+        if held == ahead_of:
+            _RENEW.count(connection, params | {"query": held})
+            continue
+        if status in LABELLABLE and params["run"] in (None, held_run):
+            row = _RENEW_RETURNING.first(connection, params | {"query": held})
+            if row is not None:
+                return row
+        others.append(held)
+    for other in others:
+        _RELEASE.count(connection, params | {"query": other})
+    return None
+
+
+def _take_next(connection: DriverConnection, params: dict[str, Any], *, key: bytes | None,
+               ahead_of: int | None) -> Any | None:
+    """Lease a gold pair when one is due (`key`: the gold schedule's, None for no gold), else
+    the oldest open query; None when there is none, or Paused when a pause is why."""
+    row = _lease_gold(connection, params, key, ahead_of) if key is not None else None
+    if row is None:
+        take = _TAKE_OF_ANY_HUMAN_RUN if params["run"] is None else _TAKE_OF_RUN
+        row = take.first(connection, params)
+    if row is None:
+        pause = (_PAUSE if params["run"] is None else _PAUSE_ON_RUN).first(connection, params)
+        if pause is not None:
+            raise Paused(pause_notice(pause.gold_answers, pause.gold_correct,
+                                      GoldSettings.of(pause.config)))
+    return row
 
 
 def _lease_gold(connection: DriverConnection, params: dict[str, Any], key: bytes,

@@ -12,6 +12,10 @@ UPDATE waits for the winner, re-checks its WHERE on the new row and changes noth
 
 Operations that only read run in `reading(session)`: on SQLite a deferred, query-only
 transaction that takes no lock, so it runs beside a writer (WAL) and never makes one wait.
+
+Two tiers, one rule: every operation runs in the ORM session (`transaction`, `reading`), except
+the label API's lease, submit and their gold checks, which run `Prepared` statements in a
+`driver_transaction` (docs/ARCHITECTURE.md says why, and what a new hot statement must do).
 """
 
 from __future__ import annotations
@@ -21,13 +25,13 @@ from contextlib import contextmanager
 from functools import cache
 from typing import Any, TypeVar, cast
 
-from sqlalchemy import Connection, CursorResult, Engine, Update
+from sqlalchemy import CursorResult, Engine, Update
 from sqlalchemy.orm import ClassManager, Session, class_mapper
 
 from labelqueue.db import READ_ONLY, begin_sqlite
 from labelqueue.errors import NotFound
 from labelqueue.models import Base
-from labelqueue.prepared import DriverConnection
+from labelqueue.prepared import DriverConnection, traced
 
 M = TypeVar("M", bound=Base)
 
@@ -60,46 +64,27 @@ def reading(session: Session) -> Iterator[None]:
 
 
 @contextmanager
-def core_transaction(session: Session, *, read_only: bool = False) -> Iterator[Connection]:
-    """One transaction on a connection of the session's engine, for Core statements built once:
-    committed when the block ends, rolled back when it raises; read-only as in `reading`.
-
-    The session's own transaction machinery is skipped: on the label API's hot path it cost as
-    much as the statements. A session with a transaction open, or bound to a connection rather
-    than an engine, runs the block in its own transaction instead (so never waits on itself).
-    """
-    bind = session.get_bind()
-    if session.in_transaction() or not isinstance(bind, Engine):
-        with reading(session) if read_only else transaction(session):
-            yield session.connection()
-        return
-    with bind.connect() as connection:
-        if read_only:
-            connection.execution_options(**{READ_ONLY: True})
-        with connection.begin():
-            yield connection
-
-
-@contextmanager
 def driver_transaction(session: Session) -> Iterator[DriverConnection]:
     """One writing transaction on a driver connection from the session's engine pool, for
     `Prepared` statements: committed when the block ends, rolled back when it raises.
 
-    SQLAlchemy's Connection and its transaction are skipped too (on SQLite the same begin as
-    theirs, `labelqueue.db.begin_sqlite`; psycopg begins at the first statement): on the label
-    API's hot path they cost more than the statements. A session with a transaction open, or
-    bound to a connection rather than an engine, runs the block in its own transaction instead.
+    SQLAlchemy's transaction is skipped (on SQLite the same begin as theirs,
+    `labelqueue.db.begin_sqlite`; psycopg begins at the first statement), and so is its
+    Connection unless something traces the engine (`prepared.traced`): on the label API's hot
+    path they cost more than the statements. A session with a transaction open, or bound to a
+    connection rather than an engine, runs the block in its own transaction instead.
     """
     bind = session.get_bind()
     if session.in_transaction() or not isinstance(bind, Engine):
         with transaction(session):
             yield DriverConnection.under(session.connection())
         return
-    pooled = bind.raw_connection()
+    tracer = bind.connect() if traced(bind) else None
+    pooled = bind.raw_connection() if tracer is None else tracer.connection
     try:
         if bind.dialect.name == "sqlite":
             begin_sqlite(pooled.dbapi_connection, read_only=False)  # type: ignore[arg-type]
-        connection = DriverConnection(pooled.dbapi_connection, bind.dialect, pooled)
+        connection = DriverConnection(pooled.dbapi_connection, bind.dialect, pooled, tracer)
         try:
             yield connection
         except BaseException:
@@ -111,7 +96,7 @@ def driver_transaction(session: Session) -> Iterator[DriverConnection]:
             pooled.rollback()
             raise connection.wrapped(error, "COMMIT", None) from error
     finally:
-        pooled.close()
+        (pooled if tracer is None else tracer).close()
 
 
 def detach(session: Session, *rows: Base) -> None:
