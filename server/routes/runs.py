@@ -63,6 +63,14 @@ LABELLING_FIELDS = {"dataset": "dataset", "feedback.budget": "budget",
 """the paths a labelling run's refusal names, and the body fields that give them"""
 
 
+@router.get("/labelling", response_model=list[RunOut])
+def list_labelling_runs(session: SessionDep, _: OperatorDep) -> list[RunOut]:
+    """The labelling-only runs (those over a dataset), oldest first."""
+    with reading(session):
+        runs = session.scalars(select(Run).where(Run.dataset.is_not(None)).order_by(Run.id))
+        return [RunOut.model_validate(run) for run in runs]
+
+
 @router.post("/labelling", status_code=201, response_model=RunOut,
              responses=errors(400, 413, 422))
 def create_labelling_run(spec: LabellingRunCreate, session: SessionDep, _: OperatorDep,

@@ -47,6 +47,8 @@ def test_an_operator_queues_a_labelling_run_over_a_dataset(client: TestClient, d
     trained = client.post("/api/runs", headers=OPERATOR, json={
         "task": "dmc:cheetah_run", "algo": "pebble", "preset": "tiny"}).json()
     assert trained["dataset"] is None
+    listed = client.get("/api/runs/labelling", headers=OPERATOR).json()
+    assert [r["id"] for r in listed] == [run["id"]]
 
 
 def test_a_dataset_no_worker_could_serve_is_a_422_naming_it(client: TestClient, datasets):
