@@ -152,7 +152,7 @@ def _run_info(run: Run) -> dict[str, Any]:
         config = None
     return {"run_id": run.id, "run_name": run.name, "task": run.task, "algo": run.algo,
             "preset": run.preset, "seed": run.seed, "teacher": str(run.teacher),
-            "status": str(run.status), "config": config}
+            "status": str(run.status), "config": config, "source_dataset": run.dataset}
 
 
 def _write(tmp: Path, final: Path, dataset_id: str, info: dict[str, Any], folder: Path,

@@ -173,6 +173,7 @@ def test_the_runs_dataset_export_holds_the_labelled_episodes(labelled):
                                 clips_root=labelled["data"] / "clips",
                                 root=labelled["tmp"] / "labelled")
     again, source = read_dataset(str(summary.path)), labelled["dataset"]
+    assert again.info["source_dataset"] == str(labelled["path"].resolve())
     episodes = pd.read_parquet(summary.path / "episodes.parquet")
     # Each exported episode is the source dataset's episode its `trajectory` names.
     for i, trajectory in enumerate(episodes.trajectory):
