@@ -226,3 +226,22 @@ def test_a_stopped_labelling_run_resumes_its_open_round_when_requeued(tmp_path):
     logged = labels_jsonl(data / "runs" / f"run-{run.id}")
     assert len({row["query_id"] for row in logged}) == len(logged) == 8
     wait_for(lambda: len(answered) == 8, what="every answer")
+
+
+def test_the_scripted_teacher_labels_a_dataset_from_its_true_rewards(tmp_path):
+    path = exported_dataset(tmp_path / "datasets", seed=2)
+    url, sessions = database(tmp_path)
+    with sessions() as session:
+        run = create_labelling_run(session, dataset=str(path), budget=9, per_round=3,
+                                   preset="tiny", teacher="scripted",
+                                   config={"threads": 1, "teacher.eps": 0.0})
+    start_worker(worker_config(url, tmp_path / "data")).join(timeout=120)
+    assert run_row(sessions, run.id).status is RunStatus.FINISHED
+    with sessions() as session:
+        rows = list(export_rows(session, run_id=run.id))
+        rendered = session.scalars(select(Query.first_clip).where(Query.run_id == run.id))
+        assert set(rendered) == {None}  # nobody watches: no clip is rendered
+    assert [r["round"] for r in rows] == [0] * 3 + [1] * 3 + [2] * 3
+    assert {r["source"] for r in rows} == {"scripted"}
+    assert all(r["answer"] == r["shadow_choice"] for r in rows)
+    assert all(r["correct"] for r in rows if r["answer"] in ("first", "second"))
