@@ -55,8 +55,8 @@ def authenticate(session: Session, *, token: str) -> Labeller | None:
     labeller_id, dot, _secret = token.partition(".")
     if not dot or not labeller_id.isdigit() or len(labeller_id) > 18:
         return None
-    with reading(session):
-        row = session.execute(_BY_ID, {"labeller": int(labeller_id)}).first()
+    with reading(session):  # a Core statement on the session's connection: no ORM to load
+        row = session.connection().execute(_BY_ID, {"labeller": int(labeller_id)}).first()
     if row is None or not row.active:
         return None
     if not hmac.compare_digest(row.token_hash, hash_token(token)):
