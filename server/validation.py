@@ -9,17 +9,16 @@ not UTF-8 text or is nested too deeply to decode.
 from __future__ import annotations
 
 import json
-from typing import Any, TypeVar
+from typing import Any
 
 from fastapi import HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 from pydantic import TypeAdapter, ValidationError
 
-T = TypeVar("T")
 Problems = list[dict[str, Any]]
 
 
-def check(adapter: TypeAdapter[T], value: Any, *where: str) -> tuple[Any, Problems]:
+def check(adapter: TypeAdapter[Any], value: Any, *where: str) -> tuple[Any, Problems]:
     """`value` validated by `adapter` (as FastAPI validates, from attributes too) and no
     refusals, or None and the refusals, each `loc` under `where`."""
     try:
@@ -31,7 +30,7 @@ def check(adapter: TypeAdapter[T], value: Any, *where: str) -> tuple[Any, Proble
                        "msg": "Value error, the body is nested too deeply"}]
 
 
-def check_query(adapter: TypeAdapter[T], request: Request) -> tuple[Any, Problems]:
+def check_query(adapter: TypeAdapter[Any], request: Request) -> tuple[Any, Problems]:
     """The query string as the model `adapter` validates it (the last of repeated names)."""
     return check(adapter, dict(request.query_params), "query")
 
@@ -63,7 +62,7 @@ async def json_body(request: Request) -> Any:
         raise HTTPException(400, "There was an error parsing the body") from None
 
 
-def check_body(adapter: TypeAdapter[T], value: Any) -> tuple[Any, Problems]:
+def check_body(adapter: TypeAdapter[Any], value: Any) -> tuple[Any, Problems]:
     """The decoded body (`json_body`) as `adapter` validates it; a missing body is refused."""
     if value is None:
         return None, [{"type": "missing", "loc": ("body",), "msg": "Field required",
