@@ -19,7 +19,7 @@ import torch
 from runvocab.config import RunConfig
 from runvocab.names import PEBBLE_FAMILY
 from trainer.entropy import RunningMeanStd, knn_distance
-from trainer.feedback import PreferenceFeedback
+from trainer.feedback import Feedback, PreferenceFeedback
 from trainer.nets import NumpyMLP
 from trainer.replay_buffer import ReplayBuffer
 from trainer.rune import rune_beta
@@ -28,19 +28,45 @@ B = TypeVar("B", bound=Any)
 """a replay batch: SAC's, or one that also carries skills"""
 
 
-class AgentReward:
-    """The reward of one run's agent, per step (what the buffer stores) and per batch (what an
-    update trains on)."""
+class TrueReward:
+    """The SAC oracle's reward: the environment's, stored and trained on as it is."""
 
-    def __init__(self, cfg: RunConfig, buffer: ReplayBuffer,
-                 feedback: PreferenceFeedback | None, device: torch.device):
+    unsupervised_steps = 0
+    learned = False
+    """it never trains on r_hat"""
+
+    def at_step(self, obs: np.ndarray, action: np.ndarray, true_reward: float) -> float:
+        return true_reward
+
+    def batch(self, batch: B, step: int) -> B:
+        return batch
+
+    def first_round_closed(self, step: int) -> None:
+        """Never called: the oracle's rounds never open."""
+
+    def episode_row(self, step: int) -> dict[str, float]:
+        return {}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Nothing to restore: the true reward has no state."""
+
+
+class AgentReward:
+    """The reward of a preference-learning run's agent, per step (what the buffer stores) and
+    per batch (what an update trains on)."""
+
+    def __init__(self, cfg: RunConfig, buffer: ReplayBuffer, feedback: PreferenceFeedback,
+                 device: torch.device):
         self.cfg, self.buffer, self.feedback, self.device = cfg, buffer, feedback, device
         self.entropy_stats = RunningMeanStd()
         self.start_step: int | None = None
         """the step the first round closed at: RUNE's t counts from here"""
         self._numpy_reward = (
             NumpyMLP(list(feedback.model.ensemble.layers), "leaky_relu", "tanh")
-            if feedback is not None and device.type == "cpu" else None
+            if device.type == "cpu" else None
         )
 
     @property
@@ -51,12 +77,10 @@ class AgentReward:
     @property
     def learned(self) -> bool:
         """After the first round: the agent trains on r_hat."""
-        return self.feedback is not None and self.feedback.rounds > 0
+        return self.feedback.rounds > 0
 
     def at_step(self, obs: np.ndarray, action: np.ndarray, true_reward: float) -> float:
         """The reward stored with a new transition."""
-        if self.feedback is None:
-            return true_reward
         if not self.learned:
             return 0.0  # the unsupervised reward is computed per batch
         if self._numpy_reward is not None:
@@ -69,8 +93,6 @@ class AgentReward:
 
     def batch(self, batch: B, step: int) -> B:
         """`batch` carrying the reward the agent trains on at `step`."""
-        if self.feedback is None:
-            return batch
         if not self.learned:
             dist = self.entropy_distance(batch.next_obs)
             self.entropy_stats.update(dist)
@@ -81,6 +103,10 @@ class AgentReward:
             bonus = self.feedback.model.reward_std(batch.obs, batch.action)
             batch = batch._replace(reward=batch.reward + self.rune_beta(step) * bonus.unsqueeze(1))
         return batch
+
+    def first_round_closed(self, step: int) -> None:
+        """The agent trains on r_hat from `step` on."""
+        self.start_step = step
 
     def rune_beta(self, step: int) -> float:
         assert self.start_step is not None
@@ -99,10 +125,26 @@ class AgentReward:
     def _warm_start_reward_model(self) -> None:
         """RIME: regress r_hat onto the state-entropy reward of fresh batches, standardised and
         scaled into tanh's range, so the first round starts from a reward the agent knows."""
-        assert self.feedback is not None
         for _ in range(self.cfg.reward.rime_warm_start_updates):
             batch = self.buffer.sample(self.cfg.sac.batch_size)
             z = (self.entropy_distance(batch.next_obs) - self.entropy_stats.mean) / (
                 self.entropy_stats.std)
             target = z / z.abs().max().clamp(min=1e-8)
             self.feedback.model.regress(torch.cat([batch.obs, batch.action], dim=1), target)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"reward_start_step": self.start_step,
+                "entropy_stats": self.entropy_stats.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.start_step = state.get("reward_start_step")
+        self.entropy_stats.load_state_dict(state["entropy_stats"])
+
+
+def make_agent_reward(cfg: RunConfig, buffer: ReplayBuffer, feedback: Feedback,
+                      device: torch.device) -> TrueReward | AgentReward:
+    """The true reward for a run without preference feedback (the SAC oracle), else the
+    learned one."""
+    if isinstance(feedback, PreferenceFeedback):
+        return AgentReward(cfg, buffer, feedback, device)
+    return TrueReward()

@@ -317,6 +317,10 @@ class PreferenceFeedback:
         self.pending = []
         return metrics
 
+    def summary(self) -> dict[str, int]:
+        """What a run's summary reports of its feedback."""
+        return {"labels_used": self.labels_used, "rounds": self.rounds}
+
     def state_dict(self) -> dict:
         return {
             "pairs": self.pairs.state_dict(),
@@ -339,6 +343,33 @@ class PreferenceFeedback:
         self.model.load_state_dict(state["model"])
         if self.estimator is not None:
             self.estimator.load_state_dict(state["estimator"])
+
+
+class NoFeedback:
+    """The SAC oracle's feedback: it trains on the true reward, so it has no reward model and
+    asks no queries. Its budget is 0, so no round ever opens; it adds nothing to the run's
+    summary, and nothing to its checkpoint."""
+
+    labels_used = 0
+    rounds = 0
+    budget_left = 0
+
+    @property
+    def pending(self) -> list[Query]:
+        return []
+
+    def summary(self) -> dict[str, int]:
+        return {}
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        """A SAC checkpoint holds no feedback: nothing to restore."""
+
+
+Feedback = PreferenceFeedback | NoFeedback
+"""a run's feedback: preference rounds, or none (the SAC oracle)"""
 
 
 def _pairs(trajectories: list[Trajectory], q: Candidates) -> list[tuple[Trajectory, int,

@@ -46,14 +46,14 @@ from tqdm import tqdm
 
 from runvocab.config import RunConfig, save_json
 from runvocab.validate import validate
-from trainer.agent_reward import AgentReward
+from trainer.agent_reward import make_agent_reward
 from trainer.checkpoint import load_checkpoint, save_checkpoint
 from trainer.envs import make_env
-from trainer.feedback import GivenAnswer, LabelLog, PreferenceFeedback
+from trainer.feedback import Feedback, GivenAnswer, LabelLog, NoFeedback, PreferenceFeedback
 from trainer.hooks import RunHooks
 from trainer.metrics import Metrics
 from trainer.phase_clock import PhaseClock
-from trainer.policies import Meta, make_policy
+from trainer.policies import EpisodeMeta, make_policy
 from trainer.reward_model import RewardModel
 from trainer.sac import UpdateMetrics
 from trainer.schedule import After, Every, Period, Until
@@ -103,14 +103,14 @@ class TrainingRun:
         self.rng = np.random.default_rng(cfg.seed)
         self.policy = make_policy(cfg, obs_dim, act_dim, self.device, self.hooks)
         self.agent, self.buffer = self.policy.agent, self.policy.buffer
-        self.meta: Meta = ()
+        self.meta = EpisodeMeta()
         """what the current episode acts on besides the observation (S-EPOA: its skill)"""
         self.pool = TrajectoryPool(cfg.feedback.pool_trajectories)
         self.env.reset()
         state_dim = len(self.env.physics_state())
         self.recorder = EpisodeRecorder(obs_dim, act_dim, state_dim, self.env.episode_length)
 
-        self.feedback: PreferenceFeedback | None = None
+        self.feedback: Feedback = NoFeedback()
         if cfg.algo != "sac":
             model = RewardModel(obs_dim, act_dim, cfg.reward, self.device, cfg.seed)
             teacher = make_teacher(cfg.teacher, cfg.seed, cfg.feedback.segment_length,
@@ -125,7 +125,7 @@ class TrainingRun:
         self.step = 0
         self.episode = 0
         self.stopped = False
-        self.reward = AgentReward(cfg, self.buffer, self.feedback, self.device)
+        self.reward = make_agent_reward(cfg, self.buffer, self.feedback, self.device)
         self.next_round_step = cfg.seed_steps + self.reward.unsupervised_steps
         self.random_actions = Until(self.policy.random_seed_steps)
         self.learning, self.update_step = After(cfg.seed_steps), Every(cfg.update_every)
@@ -163,7 +163,7 @@ class TrainingRun:
         """Train until `cfg.steps`, or until the hooks ask to stop (then at an episode's end,
         after a checkpoint: `summary()["stopped"]` is 1)."""
         cfg, feedback = self.cfg, self.feedback
-        if feedback is not None and feedback.pending:  # resumed inside a round
+        if feedback.pending:  # resumed inside a round
             self.hooks.round_opened(feedback.pending, self.pool)
             self._try_finish_round()
         obs = self._start_episode()
@@ -182,7 +182,7 @@ class TrainingRun:
             state = self.env.physics_state()
             result = self.env.step(action)
             reward = self.reward.at_step(obs, action, result.reward)
-            self.buffer.add(obs, action, reward, result.reward, result.obs, *self.meta)
+            self.buffer.add(obs, action, reward, result.reward, result.obs, self.meta.skill)
             self.recorder.record(obs, action, result.reward, state, result.success)
             obs, episode_return = result.obs, episode_return + result.reward
             self.step += 1
@@ -196,14 +196,13 @@ class TrainingRun:
 
             if result.done:
                 traj = self.recorder.finish(self.episode, self.env.episode_context(),
-                                            *self.meta)
+                                            self.meta.skill)
                 self.pool.add(traj)
                 self.episode += 1
                 fps = (self.step - start_step) / max(time.time() - start_time, 1e-9)
-                labels = feedback.labels_used if feedback else 0
                 self._log("episodes", {
                     "step": self.step, "episode": self.episode, "return": episode_return,
-                    "success": float(traj.success), "labels_used": labels,
+                    "success": float(traj.success), "labels_used": feedback.labels_used,
                     "updates": self.policy.updates, "reward_updates": self.policy.reward_updates,
                     "fps": fps,
                 } | {k: float(v) for k, v in last_metrics.items()
@@ -212,13 +211,13 @@ class TrainingRun:
                 seconds = self.clock.seconds
                 self._end_of_episode()
                 bar.set_postfix(ret=f"{episode_return:.1f}",
-                                labels=feedback.labels_used if feedback else 0, refresh=False)
+                                labels=feedback.labels_used, refresh=False)
                 if stopping or self.hooks.stop_requested(self.step):
                     self.stopped = True  # before the reset: a resumed run makes that reset
                     break
                 obs, episode_return = self._start_episode(), 0.0
         bar.close()
-        if feedback is not None and feedback.pending and not self.stopped:
+        if feedback.pending and not self.stopped:
             self._try_finish_round()  # a round still collecting answers closes with what came
         self._save()
         self.metrics.close()
@@ -229,12 +228,12 @@ class TrainingRun:
         if self.evaluations.due(self.step):
             with self.clock("evaluation"):
                 self.evaluate()
-        fb = self.feedback
-        if fb is not None and fb.pending:
+        if self.feedback.pending:
             self._try_finish_round()
         # No round at the very end: its labels could no longer shape the policy.
-        elif (fb is not None and self.next_round_step <= self.step < cfg.steps
-                and fb.budget_left > 0 and len(self.pool) >= self._pool_needed()):
+        elif (self.next_round_step <= self.step < cfg.steps and self.feedback.budget_left > 0
+                and len(self.pool) >= self._pool_needed()):
+            fb = self._preferences()
             with self.clock("selection"):
                 fb.open_round(self.pool, self.step)
             self._save()  # the chosen queries survive a kill; their answers go to labels.jsonl
@@ -243,17 +242,22 @@ class TrainingRun:
         if self.checkpoints.due(self.step):
             self._save()
 
+    def _preferences(self) -> PreferenceFeedback:
+        """The run's feedback where a round opens or closes: only a preference run's ever does
+        (the SAC oracle's budget is 0)."""
+        assert isinstance(self.feedback, PreferenceFeedback)
+        return self.feedback
+
     def _pool_needed(self) -> int:
         """Trajectories a round needs: two, and for the first round the policy's say (S-EPOA:
         its initial rollouts, so the first labels compare many skills)."""
-        assert self.feedback is not None
         return self.policy.trajectories_for_first_round() if self.feedback.rounds == 0 else 2
 
     def _try_finish_round(self) -> None:
         """Finish the open round if its answers are in; it must close once the next round is
         due, or at the end of the run."""
-        fb = self.feedback
-        assert fb is not None and fb.pending
+        fb = self._preferences()
+        assert fb.pending
         due = min(fb.pending[0].step + self.cfg.feedback.every, self.cfg.steps)
         opened = fb.pending[0].step
         with self.clock("waiting"):
@@ -266,8 +270,7 @@ class TrainingRun:
                 self._save()
 
     def _finish_round(self, answers: dict[str, GivenAnswer]) -> None:
-        fb = self.feedback
-        assert fb is not None
+        fb = self._preferences()
         first = fb.rounds == 0
         start = time.perf_counter()
         metrics = fb.finish_round(self.pool, answers)
@@ -278,7 +281,7 @@ class TrainingRun:
         self.clock.add("estimator", estimator)
         self.clock.add("reward_training", time.perf_counter() - start - estimator)
         if first:
-            self.reward.start_step = self.step
+            self.reward.first_round_closed(self.step)
             if self.policy.resets_critic:
                 self.agent.reset_critic()
                 # PEBBLE's reset_update: the fresh critic catches up on the learned reward.
@@ -304,7 +307,7 @@ class TrainingRun:
         self.evaluations.happened(self.step)
         row = {"step": self.step, "return": float(np.mean(returns)),
                "return_std": float(np.std(returns)), "success_rate": float(np.mean(successes)),
-               "labels_used": self.feedback.labels_used if self.feedback else 0}
+               "labels_used": self.feedback.labels_used}
         self._log("eval", row)
         return row
 
@@ -313,24 +316,19 @@ class TrainingRun:
         out = {"step": self.step, "episodes": self.episode, "stopped": int(self.stopped),
                "updates": self.policy.updates, "reward_updates": self.policy.reward_updates,
                "mean_return_last10": float(np.mean(returns)) if returns else float("nan")}
-        if self.feedback is not None:
-            out["labels_used"] = self.feedback.labels_used
-            out["rounds"] = self.feedback.rounds
-        return out
+        return out | self.feedback.summary()
 
     # ----------------------------------------------------------------------------------------
     def _state(self) -> dict:
-        state = self.policy.state_dict() | {
+        state = self.policy.state_dict() | self.reward.state_dict() | {
             "loop_version": LOOP_VERSION,
             "step": self.step,
             "episode": self.episode,
             "next_round_step": self.next_round_step,
             "last_eval_step": self.evaluations.last,
-            "reward_start_step": self.reward.start_step,
             "agent": self.agent.state_dict(),
             "buffer": self.buffer.state_dict(),
             "pool": self.pool.state_dict(),
-            "entropy_stats": self.reward.entropy_stats.state_dict(),
             "rng": self.rng.bit_generator.state,
             "torch_rng": torch.get_rng_state(),
             "env_rng": self.env.rng_state(),
@@ -338,8 +336,10 @@ class TrainingRun:
         }
         if self.device.type == "cuda":
             state["cuda_rng"] = torch.cuda.get_rng_state()
-        if self.feedback is not None:
-            state["feedback"] = self.feedback.state_dict()
+        # No feedback section in a SAC run's checkpoint: reward_fit reads that as "no reward
+        # model".
+        if feedback := self.feedback.state_dict():
+            state["feedback"] = feedback
         return state
 
     def _save(self) -> None:
@@ -362,25 +362,23 @@ class TrainingRun:
         self.step, self.episode = state["step"], state["episode"]
         self.next_round_step = state["next_round_step"]
         self.evaluations.happened(state["last_eval_step"])
-        self.reward.start_step = state.get("reward_start_step")
+        self.reward.load_state_dict(state)
         self.checkpoints.happened(self.step)
         self.agent.load_state_dict(state["agent"])
         self.buffer.load_state_dict(state["buffer"])
         self.pool.load_state_dict(state["pool"])
-        self.reward.entropy_stats.load_state_dict(state["entropy_stats"])
         self.rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
         if "cuda_rng" in state and self.device.type == "cuda":
             torch.cuda.set_rng_state(state["cuda_rng"])
         self.env.set_rng_state(state["env_rng"])
         self.eval_env.set_rng_state(state["eval_env_rng"])
-        if self.feedback is not None:
-            self.feedback.load_state_dict(state["feedback"])
+        self.feedback.load_state_dict(state.get("feedback", {}))
 
     def _trim_metrics(self) -> None:
         """Drop metric rows written after the checkpoint; the resumed run writes them again."""
         step = self.step
-        pending = self.feedback is not None and bool(self.feedback.pending)
+        pending = bool(self.feedback.pending)
         self.metrics.streams["episodes"].keep_rows(lambda r: int(r["step"]) <= step)
         self.metrics.streams["eval"].keep_rows(lambda r: int(r["step"]) <= step)
         self.metrics.streams["rounds"].keep_rows(

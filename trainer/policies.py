@@ -1,7 +1,7 @@
 """The agent as the training loop sees it: what it acts on besides the observation, and how it
-learns. The loop passes each episode's `meta` along without looking inside (URLB's `meta`):
-an empty tuple for SAC, `(z,)` for S-EPOA's skill-conditioned agent pi(a|s,z); the replay
-buffer and the trajectory recorder take it as their trailing arguments.
+learns. The loop passes each episode's `EpisodeMeta` along without branching on it (URLB's
+`meta`): no skill for SAC, z for S-EPOA's skill-conditioned agent pi(a|s,z); the replay buffer
+and the trajectory recorder keep its skill with each transition and trajectory.
 """
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ import dataclasses
 import os
 import sys
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -30,7 +31,15 @@ from trainer.skills.pretrain import (
 )
 from trainer.utils import set_seed
 
-Meta = tuple[np.ndarray, ...]
+
+@dataclass(frozen=True)
+class EpisodeMeta:
+    """What an episode acts on besides the observation."""
+
+    skill: np.ndarray | None = None
+    """S-EPOA's skill z (None for SAC's pi(a|s))"""
+
+
 Batches = Callable[[], Any]
 """draws a replay batch carrying the reward the agent trains on now"""
 
@@ -43,7 +52,9 @@ class Policy:
 
     def __init__(self, cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.device):
         self.cfg = cfg
-        self.agent: SAC | SkillAgent = SAC(obs_dim, act_dim, cfg.sac, device)
+        self._sac = SAC(obs_dim, act_dim, cfg.sac, device)
+        self.agent: SAC | SkillAgent = self._sac
+        """what the loop resets, checkpoints and restores"""
         self.buffer: ReplayBuffer = ReplayBuffer(obs_dim, act_dim, cfg.replay_capacity,
                                                  device, cfg.seed)
 
@@ -55,16 +66,16 @@ class Policy:
     def trajectories_for_first_round(self) -> int:
         return 2
 
-    def episode_meta(self, rng: np.random.Generator) -> Meta:
-        return ()
+    def episode_meta(self, rng: np.random.Generator) -> EpisodeMeta:
+        return EpisodeMeta()
 
-    def eval_meta(self, episode_meta: Meta) -> Meta:
+    def eval_meta(self, episode_meta: EpisodeMeta) -> EpisodeMeta:
         """What evaluation episodes act with, given the current episode's."""
         return episode_meta
 
-    def act(self, obs: np.ndarray, meta: Meta, rng: np.random.Generator,
+    def act(self, obs: np.ndarray, meta: EpisodeMeta, rng: np.random.Generator,
             deterministic: bool = False) -> np.ndarray:
-        return self.agent.act(obs, *meta, rng, deterministic)
+        return self._sac.act(obs, rng, deterministic)
 
     updates = 0
     """SAC gradient updates so far in the online run"""
@@ -103,10 +114,14 @@ class SkillPolicy(Policy):
     acts with a random skill; then with z_task, the best of N_z random skills under R_theta,
     drawn when R_theta is refitted (or at each episode, `skill.task_skill_draw`)."""
 
+    estimator: ReturnEstimator
+
     def __init__(self, cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.device,
                  hooks: RunHooks):
         self.cfg, self.device = cfg, device
-        self.agent, self.skills = _skill_agent(cfg, obs_dim, act_dim, device, hooks)
+        self._skill_agent, self.skills = _load_skill_agent(cfg, obs_dim, act_dim, device,
+                                                           hooks)
+        self.agent = self._skill_agent
         self.buffer = SkillReplayBuffer(obs_dim, act_dim, self.skills.skill_dim,
                                         cfg.replay_capacity, device, cfg.seed)
         self.estimator = ReturnEstimator(self.skills.skill_dim, cfg.skill, device)
@@ -123,16 +138,21 @@ class SkillPolicy(Policy):
         """Its initial rollouts, each with its own random skill, so round 0 compares many."""
         return max(2, self.cfg.skill.initial_rollouts)
 
-    def episode_meta(self, rng: np.random.Generator) -> Meta:
+    def episode_meta(self, rng: np.random.Generator) -> EpisodeMeta:
         if self.task_skill is None:
-            return (self.skills.sample_skills(rng, 1)[0],)
+            return EpisodeMeta(self.skills.sample_skills(rng, 1)[0])
         if self.cfg.skill.task_skill_draw == "episode":
             self._draw_task_skill(rng)
-        return (self.task_skill,)
+        return EpisodeMeta(self.task_skill)
 
-    def eval_meta(self, episode_meta: Meta) -> Meta:
+    def eval_meta(self, episode_meta: EpisodeMeta) -> EpisodeMeta:
         """z_task once there is one; before, the current episode's random skill."""
-        return episode_meta if self.task_skill is None else (self.task_skill,)
+        return episode_meta if self.task_skill is None else EpisodeMeta(self.task_skill)
+
+    def act(self, obs: np.ndarray, meta: EpisodeMeta, rng: np.random.Generator,
+            deterministic: bool = False) -> np.ndarray:
+        assert meta.skill is not None, "pi(a|s,z) acts with a skill"
+        return self._skill_agent.act(obs, meta.skill, rng, deterministic)
 
     def update(self, batches: Batches, learned: bool) -> UpdateMetrics:
         if not learned:
@@ -180,8 +200,8 @@ def make_policy(cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.device
     return Policy(cfg, obs_dim, act_dim, device)
 
 
-def _skill_agent(cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.device,
-                 hooks: RunHooks) -> tuple[SkillAgent, SkillBackend]:
+def _load_skill_agent(cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.device,
+                      hooks: RunHooks) -> tuple[SkillAgent, SkillBackend]:
     """pi(a|s,z) from the run's pretraining snapshot (pretrained first when missing), or fresh
     when skill.pretrain_steps is 0."""
     if cfg.skill.pretrain_steps == 0:

@@ -40,7 +40,9 @@ class ReplayBuffer:
         return self.size
 
     def add(self, obs: np.ndarray, action: np.ndarray, reward: float, true_reward: float,
-            next_obs: np.ndarray) -> None:
+            next_obs: np.ndarray, skill: np.ndarray | None = None) -> None:
+        """Store one transition; `skill`, the episode's (`EpisodeMeta.skill`), is kept by
+        `SkillReplayBuffer` only."""
         i = self.cursor
         if self._arrays is not None:
             obs_a, action_a, next_obs_a, reward_a, true_reward_a = self._arrays
