@@ -33,6 +33,7 @@ from sqlalchemy.orm import Session
 from labelqueue.errors import QueueError
 from labelqueue.models import LABELS, PAUSES, QUERIES, RUNS, LabellerPause, utcnow
 from labelqueue.prepared import DriverConnection, Prepared
+from labelqueue.run_config import FEEDBACK, run_feedback
 from labelqueue.transaction import reading, transaction
 from runvocab.answers import Answer
 from runvocab.config import FeedbackConfig
@@ -47,18 +48,19 @@ class Paused(QueueError):
 
 @dataclass(frozen=True)
 class GoldSettings:
-    """A run's gold settings, from its `config` overrides over the defaults."""
+    """A run's gold settings, from its feedback settings (`labelqueue.run_config.run_feedback`)
+    over the defaults."""
 
     rate: float
     min_accuracy: float
     min_answers: int
 
     @classmethod
-    def of(cls, config: Mapping[str, Any] | None) -> GoldSettings:
-        config, default = config or {}, FeedbackConfig()
-        return cls(float(config.get("feedback.gold_rate", default.gold_rate)),
-                   float(config.get("feedback.gold_min_accuracy", default.gold_min_accuracy)),
-                   int(config.get("feedback.gold_min_answers", default.gold_min_answers)))
+    def of(cls, feedback: Mapping[str, Any]) -> GoldSettings:
+        default = FeedbackConfig()
+        return cls(float(feedback.get("gold_rate", default.gold_rate)),
+                   float(feedback.get("gold_min_accuracy", default.gold_min_accuracy)),
+                   int(feedback.get("gold_min_answers", default.gold_min_answers)))
 
 
 def gold_answer(first_return: float, second_return: float) -> Answer:
@@ -136,7 +138,7 @@ def gold_record(connection: DriverConnection, *, labeller_id: int,
     return len(answered), correct
 
 
-_RUN_CONFIG = Prepared(select(RUNS.c.config).where(RUNS.c.id == _RUN))
+_RUN_CONFIG = Prepared(select(RUNS.c.config, FEEDBACK).where(RUNS.c.id == _RUN))
 _PAUSED = Prepared(
     select(PAUSES.c.id).where(PAUSES.c.run_id == _RUN, PAUSES.c.labeller_id == _LABELLER)
 )
@@ -152,7 +154,7 @@ def pause_if_below(connection: DriverConnection, *, labeller_id: int, run_id: in
     params = {"labeller": labeller_id, "gold_run": run_id}
     if _PAUSED.first(connection, params) is not None:
         return True
-    settings = GoldSettings.of(_RUN_CONFIG.rows(connection, params)[0].config)
+    settings = GoldSettings.of(run_feedback(_RUN_CONFIG.rows(connection, params)[0]))
     if settings.min_accuracy <= 0:
         return False
     answers, correct = gold_record(connection, labeller_id=labeller_id, run_id=run_id)

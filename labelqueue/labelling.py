@@ -12,9 +12,10 @@ a query's `first_trajectory`/`second_trajectory` is the dataset's episode id.
 
 The dataset is checked here, before anything is stored (`labelqueue.dataset.read_dataset`: a
 task this project knows, physics states, spaces that agree with its `sepoa.json`), and so is
-the run's configuration (`runvocab.queued_run`), so a run no worker could serve is refused with
-one line naming the problem. The run stores the dataset's absolute folder (`runs.dataset`): the
-workers read it there, so on several hosts it must be a folder they all reach, like the clips.
+the run's configuration (resolved and stored by `create_run`), so a run no worker could serve
+is refused with one line naming the problem. The run stores the dataset's absolute folder
+(`runs.dataset`): the workers read it there, so on several hosts it must be a folder they all
+reach, like the clips.
 """
 
 from __future__ import annotations
@@ -30,7 +31,6 @@ from labelqueue.models import Run
 from labelqueue.runs import create_run
 from runvocab.config import build_config
 from runvocab.names import ConfigError
-from runvocab.queued_run import queued_run_config
 
 LABELLING_ALGO = "pebble"
 """the algorithm a labelling run records: its reward ensemble and selection rules are PEBBLE's;
@@ -106,8 +106,6 @@ def create_labelling_run(session: Session, *, dataset: str, budget: int,
         raise LabellingError("name", f"name {name!r}: give 1 to {NAME_MAX} characters")
     overrides = labelling_config(found, per_round=per_round, selection=selection,
                                  segment_length=segment_length, preset=preset, config=config)
-    queued_run_config(task=found.task, algo=LABELLING_ALGO, preset=preset, seed=seed,
-                      budget=budget, teacher_params=teacher_params or {}, config=overrides)
     path = Path(found.path).resolve()
     return create_run(
         session, name=name or f"label {found.info.get('dataset_id') or path.name}",

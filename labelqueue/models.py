@@ -154,6 +154,10 @@ class Run(Base):
     seed: Mapped[int] = mapped_column(Integer)
     config: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     """overrides of the preset, as the trainer's CLI flags name them (`{"sac.lr": 1e-4}`)"""
+    resolved_config: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    """the configuration the run trains with, resolved from the presets, `config` and the
+    top-level fields when it was created (`runvocab.config.to_dict`); none: a run stored before
+    migration 0015, resolved when read (`labelqueue.run_config`)"""
     teacher: Mapped[TeacherKind] = mapped_column(_enum(TeacherKind, "teacher"))
     teacher_params: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     budget: Mapped[int] = mapped_column(Integer)

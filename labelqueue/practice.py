@@ -21,6 +21,7 @@ from sqlalchemy.orm import Session
 
 from labelqueue.models import LABELS, QUERIES, RUNS, QueryStatus
 from labelqueue.prepared import DriverConnection, Prepared
+from labelqueue.run_config import FEEDBACK, run_feedback
 from labelqueue.transaction import driver_transaction
 from runvocab.config import FeedbackConfig
 
@@ -32,7 +33,7 @@ _COUNTS = Prepared(
     .where(LABELS.c.labeller_id == _LABELLER, LABELS.c.run_id == _RUN,
            LABELS.c.withdrawn_at.is_(None))
 )
-_CONFIG = Prepared(select(RUNS.c.config).where(RUNS.c.id == _RUN))
+_CONFIG = Prepared(select(RUNS.c.config, FEEDBACK).where(RUNS.c.id == _RUN))
 # Gold pairs of the run the labeller holds a lease on (the one shown, the one preloaded), and
 # those leased before a given one (gold pairs are served oldest first).
 _HELD_WHERE = (QUERIES.c.lease_holder == _LABELLER, QUERIES.c.run_id == _RUN,
@@ -42,9 +43,10 @@ _HELD_BELOW = Prepared(select(func.count()).select_from(QUERIES).where(
     *_HELD_WHERE, QUERIES.c.id < bindparam("practice_below", type_=Integer())))
 
 
-def practice_pairs(config: Mapping[str, Any] | None) -> int:
-    """The run's practice pairs, from its `config` overrides over the default (0)."""
-    return int((config or {}).get("feedback.practice_pairs", FeedbackConfig().practice_pairs))
+def practice_pairs(feedback: Mapping[str, Any]) -> int:
+    """The run's practice pairs, from its feedback settings (`run_config.run_feedback`) over
+    the default (0)."""
+    return int(feedback.get("practice_pairs", FeedbackConfig().practice_pairs))
 
 
 @dataclass(frozen=True)
@@ -56,15 +58,15 @@ class PracticeStep:
 
 
 def practice_step(connection: DriverConnection, *, labeller_id: int, run_id: int,
-                  config: Mapping[str, Any] | None = None, known: bool = False,
+                  feedback: Mapping[str, Any] | None = None,
                   held: str | int | None = None) -> PracticeStep | None:
     """The practice pair the labeller's next gold pair on the run would be; None once the round
-    is over (or the run has none). `known`: `config` is the run's (else it is read). `held`:
+    is over (or the run has none). `feedback`: the run's settings (None: they are read). `held`:
     "all" counts the gold pairs the labeller holds leases on as practice pairs to come (a
     lease), a query id those leased before it (a pair shown); None, none (an answer)."""
-    if not known:
-        config = _CONFIG.rows(connection, {"practice_run": run_id})[0].config
-    pairs = practice_pairs(config)
+    if feedback is None:
+        feedback = run_feedback(_CONFIG.rows(connection, {"practice_run": run_id})[0])
+    pairs = practice_pairs(feedback)
     if pairs <= 0:
         return None
     params: dict[str, Any] = {"practice_labeller": labeller_id, "practice_run": run_id}
@@ -105,7 +107,7 @@ def practice_progress(session: Session, *, labeller_id: int, run_id: int,
     with driver_transaction(session) as connection:
         [(_, practice)] = _COUNTS.rows(
             connection, {"practice_labeller": labeller_id, "practice_run": run_id})
-        config = _CONFIG.rows(connection, {"practice_run": run_id})[0].config
+        feedback = run_feedback(_CONFIG.rows(connection, {"practice_run": run_id})[0])
         step = practice_step(connection, labeller_id=labeller_id, run_id=run_id,
-                             config=config, known=True, held=shown)
-    return int(practice), practice_pairs(config), step
+                             feedback=feedback, held=shown)
+    return int(practice), practice_pairs(feedback), step

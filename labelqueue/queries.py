@@ -56,6 +56,7 @@ from labelqueue.models import (
 )
 from labelqueue.practice import practice_step
 from labelqueue.prepared import DriverConnection, Prepared
+from labelqueue.run_config import FEEDBACK, run_feedback
 from labelqueue.transaction import (
     changed,
     detach,
@@ -287,7 +288,8 @@ def _oldest(*, of_run: bool, gold: bool, only_id: bool = False, after: bool = Fa
     which = (
         candidate.c.run_id == bindparam("run") if of_run else RUNS.c.teacher == TeacherKind.HUMAN
     )
-    columns = (candidate.c.id,) if only_id else (candidate.c.id, candidate.c.run_id, RUNS.c.config)
+    columns = ((candidate.c.id,) if only_id
+               else (candidate.c.id, candidate.c.run_id, RUNS.c.config, FEEDBACK))
     oldest = (
         select(*columns)
         .join(RUNS, RUNS.c.id == candidate.c.run_id)
@@ -326,7 +328,7 @@ _FIRST_OF_RUN = Prepared(_oldest(of_run=True, gold=False, only_id=True, lock=Fal
 _TAKE_GOLD = _lease(bindparam("gold_pair", type_=Integer()))
 # Why nothing was leased, when the labeller is paused on the runs asked about.
 _PAUSE_STATEMENT = (
-    select(PAUSES.c.gold_answers, PAUSES.c.gold_correct, RUNS.c.config)
+    select(PAUSES.c.gold_answers, PAUSES.c.gold_correct, RUNS.c.config, FEEDBACK)
     .join(RUNS, RUNS.c.id == PAUSES.c.run_id)
     .where(PAUSES.c.labeller_id == _LABELLER, one_of(RUNS.c.status, LABELLABLE))
 )
@@ -435,7 +437,7 @@ def _take_next(connection: DriverConnection, params: dict[str, Any], *, key: byt
         pause = (_PAUSE if params["run"] is None else _PAUSE_ON_RUN).first(connection, params)
         if pause is not None:
             raise Paused(pause_notice(pause.gold_answers, pause.gold_correct,
-                                      GoldSettings.of(pause.config)))
+                                      GoldSettings.of(run_feedback(pause))))
     return row
 
 
@@ -452,11 +454,11 @@ def _lease_gold(connection: DriverConnection, params: dict[str, Any], key: bytes
     if candidate is None:
         return None
     practising = practice_step(connection, labeller_id=labeller, run_id=candidate.run_id,
-                               config=candidate.config, known=True, held="all")
+                               feedback=run_feedback(candidate), held="all")
     if practising is None:  # the practice round is said to be one; the rest is hidden
         share = gold_share(connection, labeller_id=labeller, run_id=candidate.run_id)
         if not gold_due(share, key=key, labeller_id=labeller, run_id=candidate.run_id,
-                        rate=GoldSettings.of(candidate.config).rate):
+                        rate=GoldSettings.of(run_feedback(candidate)).rate):
             return None
         reached = max(share.furthest, ahead_of or 0)
         if candidate.id <= reached:

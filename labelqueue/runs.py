@@ -27,6 +27,7 @@ from labelqueue.coerce import json_object
 from labelqueue.errors import Conflict, InvalidTransition
 from labelqueue.instructions import checked_instruction, record_instruction
 from labelqueue.models import Run, RunStatus, TeacherKind, UTCDateTime, Worker, utcnow
+from labelqueue.run_config import resolve, with_teacher
 from labelqueue.transaction import changed, detach, get_row, reading, transaction
 from runvocab.clip_format import parse_clip_size
 
@@ -55,11 +56,9 @@ OWNED = (RunStatus.RUNNING, RunStatus.PAUSED, RunStatus.STOPPING)
 
 def labels_per_query(run: Run) -> int:
     """Answers each of the run's queries takes (`feedback.labels_per_query`, 1 by default)."""
-    config: dict[str, Any] = run.config or {}
-    nested = config.get("feedback")
-    value: Any = config.get("feedback.labels_per_query",
-                            nested.get("labels_per_query", 1) if isinstance(nested, dict) else 1)
-    return int(value)
+    if run.resolved_config is not None:
+        return int(run.resolved_config["feedback"]["labels_per_query"])
+    return int((run.config or {}).get("feedback.labels_per_query", 1))
 
 
 def budget_spent(run: Run) -> bool:
@@ -90,10 +89,14 @@ def create_run(
     (None: the default); `grid_key`: an experiment's key for the run (`labelqueue.grid`);
     `dataset`: the dataset export a labelling-only run draws its pairs from (checked by
     `labelqueue.labelling.create_labelling_run`, which should be used to make one).
-    ValueError for a bad instruction or clip size."""
+    The run's configuration is resolved against the presets here and stored with it
+    (`labelqueue.run_config`). ValueError for a bad instruction or clip size; a ConfigError
+    (a ValueError) naming the field for a run no worker could train. Nothing is stored then."""
     stored_instruction = checked_instruction(instruction)
     if clip_size is not None:
         parse_clip_size(clip_size)
+    resolved = resolve(task=task, algo=algo, preset=preset, seed=seed, budget=budget,
+                       teacher_params=teacher_params or {}, config=config or {})
     with transaction(session):
         run = Run(
             name=name,
@@ -105,6 +108,7 @@ def create_run(
             teacher=TeacherKind(teacher),
             teacher_params=json_object(teacher_params or {}),
             config=json_object(config or {}),
+            resolved_config=resolved,
             status=RunStatus.QUEUED,
             instruction=stored_instruction,
             clip_size=clip_size,
@@ -351,10 +355,13 @@ def set_teacher(
     teacher: TeacherKind | str,
     params: Mapping[str, Any] | None = None,
 ) -> Run:
-    """Switch who answers a run's queries; the worker reads it when it opens its next round."""
+    """Switch who answers a run's queries; the worker reads it when it opens its next round.
+    The run's stored configuration takes the new parameters (a ConfigError names a bad one)."""
     with transaction(session):
         run = get_row(session, Run, run_id)
+        resolved = with_teacher(run, params or {})
         run.teacher = TeacherKind(teacher)
         run.teacher_params = json_object(params or {})
+        run.resolved_config = resolved
         detach(session, run)
     return run

@@ -93,7 +93,7 @@ def seed(session: Session) -> Seeded:
     beta = create_run(
         session,
         name="beta",
-        task="metaworld:drawer-open-v3",
+        task="metaworld:drawer-open",
         algo="pebble",
         budget=100,
         preset="tiny",

@@ -36,7 +36,7 @@ JOINED = (
 @pytest.fixture
 def stored(session, engine: Engine) -> dict[str, int]:
     run = create_run(session, name="r", task="dmc:cheetah_run", algo="pebble", budget=10,
-                     config={"feedback.gold_rate": 0.25, "note": ["a", 1]}, teacher="human")
+                     config={"feedback.gold_rate": 0.25, "sac.betas": [0.5, 0.9]}, teacher="human")
     labeller, _ = create_labeller(session, name="alice")
     ids = push_queries(session, run_id=run.id, queries=[query_spec(i) for i in range(3)])
     return {"run": run.id, "labeller": labeller.id, "query": ids[0]}
@@ -58,7 +58,7 @@ def test_rows_and_their_types_match_sqlalchemy(engine: Engine, stored) -> None:
     first = ours[0]
     assert type(first.status) is type(theirs[0].status)
     assert first.gold is False and isinstance(first.run_status, RunStatus)
-    assert first.config == {"feedback.gold_rate": 0.25, "note": ["a", 1]}
+    assert first.config == {"feedback.gold_rate": 0.25, "sac.betas": [0.5, 0.9]}
 
 
 def test_count_says_how_many_rows_changed(engine: Engine, stored) -> None:

@@ -1,0 +1,93 @@
+"""The configuration a queued run trains with, resolved once, when the run is created.
+
+`create_run` resolves a run's top-level fields, teacher parameters and `config` overrides
+against the presets (`runvocab.queued_run`) and stores the result in `runs.resolved_config`.
+The worker trains exactly that, the run page shows it, and the label API reads the run's gold
+and practice settings from its feedback section; a preset changed later changes no stored run.
+A run stored before migration 0015 has none: it is resolved as it always was, the worker's
+way, and its label settings are its `config` overrides over the defaults.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from typing import Any
+
+from labelqueue.models import RUNS, Run
+from runvocab.config import RunConfig, apply_overrides, from_dict, to_dict, typed_overrides
+from runvocab.queued_run import queued_run_config
+
+FEEDBACK = RUNS.c.resolved_config["feedback"].label("feedback")
+"""the feedback section of a run's resolved config (null for a run stored without one), for
+statements that select a run's label settings beside its `config`"""
+
+
+def resolve(*, task: str, algo: str, preset: str, seed: int, budget: int,
+            teacher_params: Mapping[str, Any], config: Mapping[str, Any]) -> dict[str, Any]:
+    """The run's resolved configuration as stored (JSON); a ConfigError naming the field for
+    a run no worker could train."""
+    cfg = queued_run_config(task=task, algo=algo, preset=preset, seed=seed, budget=budget,
+                            teacher_params=teacher_params, config=config)
+    return as_json(cfg)
+
+
+def as_json(cfg: RunConfig) -> dict[str, Any]:
+    """`to_dict(cfg)` as strict JSON, which PostgreSQL and SQLite's JSON functions take: an
+    infinite float (`teacher.beta`) as the text "inf", a tuple as a list."""
+    def plain(value: Any) -> Any:
+        if isinstance(value, dict):
+            return {key: plain(item) for key, item in value.items()}
+        if isinstance(value, list | tuple):
+            return [plain(item) for item in value]
+        if isinstance(value, float) and not math.isfinite(value):
+            return str(value)
+        return value
+
+    stored: dict[str, Any] = plain(to_dict(cfg))
+    return stored
+
+
+def from_json(stored: Mapping[str, Any]) -> RunConfig:
+    """The configuration `as_json` stored; its text values read by their fields' own parser
+    (`runvocab.config.parse_value`), so "inf" is a float again."""
+    texts = {}
+    for name, value in stored.items():
+        leaves = value.items() if isinstance(value, dict) else [(None, value)]
+        for leaf, item in leaves:
+            if isinstance(item, str):
+                texts[name if leaf is None else f"{name}.{leaf}"] = item
+    return apply_overrides(from_dict(dict(stored)), typed_overrides(texts))
+
+
+def run_config(run: Run) -> RunConfig:
+    """What the run trains with: its stored configuration, or for a run stored without one,
+    its fields resolved against today's presets (a ConfigError when they no longer resolve)."""
+    if run.resolved_config is not None:
+        return from_json(run.resolved_config)
+    return queued_run_config(task=run.task, algo=run.algo, preset=run.preset, seed=run.seed,
+                             budget=run.budget, teacher_params=run.teacher_params,
+                             config=run.config)
+
+
+def with_teacher(run: Run, params: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The run's stored configuration with new teacher parameters (None for a run stored
+    without one): the teacher section as the run's overrides and `params` make it, the rest
+    as stored. A ConfigError names a bad or contradictory parameter."""
+    fresh = queued_run_config(task=run.task, algo=run.algo, preset=run.preset, seed=run.seed,
+                              budget=run.budget, teacher_params=params, config=run.config)
+    if run.resolved_config is None:
+        return None
+    return as_json(dataclasses.replace(from_json(run.resolved_config), teacher=fresh.teacher))
+
+
+def run_feedback(row: Any) -> Mapping[str, Any]:
+    """A run's feedback settings by field name (`gold_rate`), from a row with its `config`
+    and `feedback` (`FEEDBACK`): the resolved section, or for a run stored without one, the
+    section's `config` overrides. A field missing from them takes its default."""
+    if row.feedback is not None:
+        section: Mapping[str, Any] = row.feedback
+        return section
+    return {path.removeprefix("feedback."): value for path, value in (row.config or {}).items()
+            if path.startswith("feedback.")}
