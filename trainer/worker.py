@@ -3,9 +3,10 @@
     sepoa worker --database-url sqlite:///data/queue.db --data-dir data
 
 A worker trains one run at a time; any number of workers may share one database. For each run
-it claims (a queued one, or one whose worker stopped heartbeating), it builds the run's config
-from the row (task, algorithm, preset, seed, budget, teacher parameters, config overrides),
-resumes from the checkpoint in the run's folder if there is one, and trains with `QueueHooks`.
+it claims (a queued one, or one whose worker stopped heartbeating), it takes the configuration
+stored with the run when it was created (a run stored before that was kept: resolved from the
+row's task, algorithm, preset, seed, budget, teacher parameters and config overrides), resumes
+from the checkpoint in the run's folder if there is one, and trains with `QueueHooks`.
 A run's folder is `<data dir>/runs/run-<id>`; an experiment's run (one with a grid key) goes to
 `<results>/<grid key>`, i.e. `<results>/<spec name>/<run folder>`, with its skill snapshots in
 `<results>/snapshots`, so every worker given the same (shared) results folder writes the grid
@@ -106,10 +107,10 @@ from labelqueue.episodes import (
     write_episode,
 )
 from labelqueue.models import SCRIPTED_TEACHER
+from labelqueue.run_config import run_config as stored_run_config
 from runvocab.answers import aggregate, click_of_answer
 from runvocab.config import RunConfig, apply_overrides
 from runvocab.query_fields import QUERY_FIELDS
-from runvocab.queued_run import queued_run_config
 from trainer.clips import ClipConfig, render_query_clips, sized
 from trainer.dataset_labelling import DatasetLabelling
 from trainer.envs import Env, make_env
@@ -197,10 +198,9 @@ class Interrupted(Exception):
 
 
 def run_config(run: Run, worker: WorkerConfig) -> RunConfig:
-    """The training config a queued run describes; ValueError naming a bad field."""
-    cfg = queued_run_config(task=run.task, algo=run.algo, preset=run.preset, seed=run.seed,
-                            budget=run.budget, teacher_params=run.teacher_params,
-                            config=run.config)
+    """The config the run was stored with (`labelqueue.run_config`), in this worker's folders;
+    ValueError naming a bad field of a run stored without one."""
+    cfg = stored_run_config(run)
     if run.grid_key is not None:  # an experiment's run: in the shared results folder
         root, folder = worker.results_root, worker.results_root / run.grid_key
     else:
