@@ -71,6 +71,23 @@ def run_config(run: Run) -> RunConfig:
                              config=run.config)
 
 
+def fields(stored: Mapping[str, Any]) -> dict[str, Any]:
+    """A stored configuration as `{dotted path: value}`, in the schema's order."""
+    out: dict[str, Any] = {}
+    for name, value in stored.items():
+        if isinstance(value, dict):
+            out |= {f"{name}.{leaf}": item for leaf, item in value.items()}
+        else:
+            out[name] = value
+    return out
+
+
+def overridden(run: Run) -> list[str]:
+    """The paths the run sets itself rather than taking from the presets: its `config`
+    overrides and its teacher parameters (`teacher.<name>`)."""
+    return [*run.config, *(f"teacher.{name}" for name in run.teacher_params)]
+
+
 def with_teacher(run: Run, params: Mapping[str, Any]) -> dict[str, Any] | None:
     """The run's stored configuration with new teacher parameters (None for a run stored
     without one): the teacher section as the run's overrides and `params` make it, the rest

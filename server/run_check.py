@@ -1,5 +1,6 @@
-"""A run checked as the worker will build it (`runvocab.queued_run`), before it is stored: a bad
-or contradictory field is a 422 whose `loc` points at it in the request body."""
+"""A run no worker could train, refused when it is created (`labelqueue.create_run` resolves
+it with `runvocab.queued_run`): a bad or contradictory field is a 422 whose `loc` points at it
+in the request body. And a new run's defaults."""
 
 from __future__ import annotations
 
@@ -11,22 +12,17 @@ from fastapi.exceptions import RequestValidationError
 from runvocab.clip_format import CLIP_FPS, step_seconds
 from runvocab.config import build_config, typed_overrides
 from runvocab.names import ConfigError
-from runvocab.queued_run import TOP_LEVEL_FIELDS, queued_run_config
+from runvocab.queued_run import TOP_LEVEL_FIELDS
 
 
-def check_run(*, task: str, algo: str, preset: str, seed: int, budget: int,
-              teacher_params: Mapping[str, Any], config: Mapping[str, Any],
-              params_at: str = "teacher_params") -> None:
-    """Raise a RequestValidationError (422) for a run no worker could train. `params_at`: the
-    body field that holds the teacher parameters."""
-    try:
-        queued_run_config(task=task, algo=algo, preset=preset, seed=seed, budget=budget,
-                          teacher_params=teacher_params, config=config)
-    except ConfigError as err:
-        raise RequestValidationError([{
-            "type": "value_error", "msg": str(err),
-            "loc": _location(err.field, teacher_params, config, params_at),
-        }]) from None
+def refusal(err: ConfigError, *, teacher_params: Mapping[str, Any], config: Mapping[str, Any],
+            params_at: str = "teacher_params") -> RequestValidationError:
+    """The 422 for a run no worker could train. `params_at`: the body field that holds the
+    teacher parameters."""
+    return RequestValidationError([{
+        "type": "value_error", "msg": str(err),
+        "loc": _location(err.field, teacher_params, config, params_at),
+    }])
 
 
 def _location(field: str, teacher_params: Mapping[str, Any], config: Mapping[str, Any],

@@ -242,6 +242,19 @@ class RunOut(Out):
         return run_instruction(self.task, self.instruction)
 
 
+class RunConfigOut(Out):
+    values: dict[str, Any]
+    """every field the run trains with, by dotted path (`sac.lr`), in the schema's order; an
+    infinite float as text ("inf")"""
+    overridden: list[str]
+    """the paths the run sets itself (its `config` overrides and teacher parameters); the rest
+    come from the presets and the defaults"""
+    stored: bool
+    """whether the configuration was stored when the run was created; false for a run stored
+    before that was kept, whose worker resolves it against the presets when it claims it, as
+    shown here"""
+
+
 class TeacherUpdate(Body):
     teacher: Teacher
     params: SmallJson = Field(default_factory=dict)

@@ -6,16 +6,17 @@ from __future__ import annotations
 import json
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Query, Response
+from fastapi import APIRouter, HTTPException, Query, Response
 from fastapi.exceptions import RequestValidationError
 from sqlalchemy import select
 
 from labelqueue import Run, RunStatus, read_metrics, reading, set_run_status, set_teacher
 from labelqueue.activity import list_workers, runs_activity
+from labelqueue.run_config import as_json, fields, overridden, run_config
 from runvocab.names import ConfigError
 from server import curves, services
 from server.deps import OperatorDep, SessionDep, SettingsDep
-from server.run_check import check_run, run_defaults
+from server.run_check import refusal, run_defaults
 from server.schemas import (
     ActivityOut,
     AfterStep,
@@ -23,6 +24,7 @@ from server.schemas import (
     LabellingRunCreate,
     MetricOut,
     PresetName,
+    RunConfigOut,
     RunCreate,
     RunDefaults,
     RunId,
@@ -51,10 +53,11 @@ def create_run(spec: RunCreate, session: SessionDep, _: OperatorDep) -> RunOut:
             run_defaults(task=spec.task, algo=spec.algo, preset=spec.preset, config={},
                          measured_pace=None)["budget"]
         spec = spec.model_copy(update={"budget": budget})
-    assert spec.budget is not None
-    check_run(task=spec.task, algo=spec.algo, preset=spec.preset, seed=spec.seed,
-              budget=spec.budget, teacher_params=spec.teacher_params, config=spec.config)
-    return RunOut.model_validate(services.new_run(session, spec=spec))
+    try:
+        run = services.new_run(session, spec=spec)
+    except ConfigError as err:
+        raise refusal(err, teacher_params=spec.teacher_params, config=spec.config) from None
+    return RunOut.model_validate(run)
 
 
 LABELLING_FIELDS = {"dataset": "dataset", "feedback.budget": "budget",
@@ -153,6 +156,21 @@ def get_run(run_id: RunId, session: SessionDep, _: OperatorDep) -> RunOut:
     return RunOut.model_validate(services.get_run(session, run_id=run_id))
 
 
+@router.get("/{run_id}/config", response_model=RunConfigOut, responses=errors(404, 409, 422))
+def get_run_config(run_id: RunId, session: SessionDep, _: OperatorDep) -> RunConfigOut:
+    """What the run trains with: every field of its configuration, those the run sets itself
+    marked. A run stored before configurations were kept is resolved as its worker would (409
+    when that fails: its worker fails it with the same message)."""
+    run = services.get_run(session, run_id=run_id)
+    try:
+        stored = run.resolved_config or as_json(run_config(run))
+    except ConfigError as err:
+        raise HTTPException(409, f"run {run_id}'s configuration does not resolve: {err}") \
+            from None
+    return RunConfigOut(values=fields(stored), overridden=overridden(run),
+                        stored=run.resolved_config is not None)
+
+
 @router.get("/{run_id}/activity", response_model=ActivityOut, responses=errors(404, 422))
 def get_activity(run_id: RunId, session: SessionDep, _: OperatorDep) -> ActivityOut:
     """What the run is doing or waiting for now: a free worker, pretraining (with an estimate),
@@ -218,10 +236,11 @@ def requeue_run(run_id: RunId, session: SessionDep, _: OperatorDep) -> RunOut:
 )
 def put_teacher(run_id: RunId, body: TeacherUpdate, session: SessionDep, _: OperatorDep) -> RunOut:
     """The run's teacher from now on, with its parameters checked as a worker will use them."""
-    run = services.get_run(session, run_id=run_id)
-    check_run(task=run.task, algo=run.algo, preset=run.preset, seed=run.seed, budget=run.budget,
-              teacher_params=body.params, config=run.config, params_at="params")
-    run = set_teacher(session, run_id=run_id, teacher=body.teacher, params=body.params)
+    try:
+        run = set_teacher(session, run_id=run_id, teacher=body.teacher, params=body.params)
+    except ConfigError as err:
+        config = services.get_run(session, run_id=run_id).config
+        raise refusal(err, teacher_params=body.params, config=config, params_at="params") from None
     return RunOut.model_validate(run)
 
 
