@@ -234,7 +234,7 @@ def test_updates_after_the_first_round_take_turns_on_stored_skills_and_on_z_task
     run = TrainingRun(_tiny(tmp_path, **{"skill.pretrain_steps": 0}), progress=False)
     run.train()
     assert len(seen) > 2  # a stored-skill update and a z_task one, in turn
-    assert np.array_equal(run.meta[0], run.policy.task_skill)  # the skill that acts is z_task
+    assert np.array_equal(run.meta.skill, run.policy.task_skill)  # the skill that acts is z_task
     stored, task = seen[0::2], seen[1::2]
     for skills, acting in task:
         assert torch.equal(skills, torch.as_tensor(acting).expand_as(skills))
