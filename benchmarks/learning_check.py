@@ -46,9 +46,9 @@ def main() -> None:
     procs, start = {}, time.time()
     for name, flags in runs.items():
         run_dir = os.path.join(args.out, name)
-        cmd = [sys.executable, "-m", "trainer.cli", "train", "--run-dir", run_dir, *flags]
+        cmd = [sys.executable, "-m", "sepoa", "train", "--run-dir", run_dir, *flags]
         if args.resume:
-            cmd = [sys.executable, "-m", "trainer.cli", "train", "--run-dir", run_dir,
+            cmd = [sys.executable, "-m", "sepoa", "train", "--run-dir", run_dir,
                    "--resume", "--no-progress", "--steps", str(args.steps)]
         os.makedirs(args.out, exist_ok=True)
         log = open(os.path.join(args.out, f"{name}.log"), "a")

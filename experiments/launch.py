@@ -12,19 +12,16 @@ same names, so its workers take their unfinished runs back at once and resume th
 checkpoints; a second launcher on the same host gets other slots, never a live worker's name.
 The workers die with their launcher (SIGTERM): each checkpoints its run and releases it, to
 be resumed by the next launch. The database URL reaches them in their environment, never on
-their command line (where `ps` would show a password).
+their command line (where `ps` would show a password). Starting and stopping them is the
+caller's `train` (`sepoa experiment run` passes `sepoa.experiment_commands.train_locally`, which
+holds them with the supervisor `sepoa up` uses), so this package starts no process itself.
 """
 
 from __future__ import annotations
 
-import ctypes
 import fcntl
-import os
-import signal
 import socket
-import subprocess
 import sys
-import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
@@ -41,8 +38,9 @@ from labelqueue import (
     url_has_secret,
 )
 
-STOP_GRACE_S = 30.0
-PR_SET_PDEATHSIG = 1
+TrainLocally = Callable[[str, Path, int, int, Callable[[str], None]], "int | None"]
+"""runs `workers` local workers on (url, results, workers, threads, echo) to their end; returns
+the signal that stopped them, if one did"""
 
 
 def default_database(results: Path) -> str:
@@ -71,13 +69,6 @@ def worker_slots(results: Path, count: int) -> Iterator[list[str]]:
         yield names
 
 
-def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
-    try:
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
-    except OSError:
-        pass
-
-
 def _missing_sqlite(url: str) -> bool:
     from sqlalchemy.engine import make_url
 
@@ -88,17 +79,21 @@ def _missing_sqlite(url: str) -> bool:
 def worker_argv(results: Path, worker_id: str, threads: int) -> list[str]:
     """A local worker's command line; the database URL goes in its environment
     (SEPOA_DATABASE_URL)."""
-    return [sys.executable, "-m", "trainer.cli", "worker", "--data-dir", str(results),
+    return [sys.executable, "-m", "sepoa", "worker", "--data-dir", str(results),
             "--results", str(results), "--worker-id", worker_id, "--threads", str(threads),
             "--once", "--poll-seconds", "1"]
 
 
 def run_experiment(spec: Spec, *, results: Path, database_url: str | None = None,
                    workers: int = 1, threads: int | None = None, force: bool = False,
-                   dry_run: bool = False, echo: Callable[[str], None] = print) -> int:
-    """Enqueue the grid and train it with `workers` local workers (0: enqueue only). The exit
-    status: 0 every run of the spec finished (or, without workers, enqueued), 1 some did not,
-    128 + signal when stopped. SpecError for a redefined grid without `force`."""
+                   dry_run: bool = False, echo: Callable[[str], None] = print,
+                   train: TrainLocally | None = None) -> int:
+    """Enqueue the grid and train it with `workers` local workers run by `train` (0: enqueue
+    only). The exit status: 0 every run of the spec finished (or, without workers, enqueued),
+    1 some did not, 128 + signal when stopped. SpecError for a redefined grid without
+    `force`."""
+    if workers and train is None:
+        raise ValueError("local workers need `train`, which runs them")
     results = Path(results)
     url = database_url or default_database(results)
     threads = threads or spec.threads
@@ -138,63 +133,11 @@ def run_experiment(spec: Spec, *, results: Path, database_url: str | None = None
                      "`sepoa experiment slurm` for a Slurm array")
             return 0
         echo(f"{workers} local worker(s), {threads} torch thread(s) each -> {folder}")
-        stopped = _train(url, results, workers, threads, echo)
+        assert train is not None
+        stopped = train(url, results, workers, threads, echo)
         return _summary(spec, sessions, echo, stopped)
     finally:
         engine.dispose()
-
-
-def _train(url: str, results: Path, workers: int, threads: int,
-           echo: Callable[[str], None]) -> int | None:
-    """Run the local workers to their end; the signal that stopped the launcher, if any."""
-    stop: list[int] = []
-    handlers: dict[int, Any] = {}
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        stop.append(signum)
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        try:
-            handlers[sig] = signal.signal(sig, on_signal)
-        except ValueError:  # not the main thread
-            pass
-    env = os.environ | {"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
-                        "PYTHONUNBUFFERED": "1", "SEPOA_DATABASE_URL": url}
-    log = (results / "workers.log").open("a")
-    children: list[subprocess.Popen[bytes]] = []
-    try:
-        with worker_slots(results, workers) as names:
-            for name in names:
-                # Own session: a Ctrl-C reaches the launcher, which stops its workers itself.
-                children.append(subprocess.Popen(
-                    worker_argv(results, name, threads), stdout=log,
-                    stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
-                    start_new_session=True, preexec_fn=_die_with_parent))
-                echo(f"worker {name} started (pid {children[-1].pid}; log {log.name})")
-            while not stop and any(c.poll() is None for c in children):
-                time.sleep(0.2)
-            if stop:
-                echo(f"stopping {sum(c.poll() is None for c in children)} worker(s): each "
-                     "checkpoints its run and releases it; the runs resume from there on the "
-                     "next call")
-            for child in children:
-                if child.poll() is None:
-                    child.terminate()
-            deadline = time.time() + STOP_GRACE_S
-            for child in children:
-                try:
-                    child.wait(max(0.1, deadline - time.time()))
-                except subprocess.TimeoutExpired:
-                    child.kill()
-                    child.wait()
-            for name, child in zip(names, children, strict=True):
-                if child.returncode not in (0, -signal.SIGTERM, -signal.SIGKILL) and not stop:
-                    echo(f"worker {name} exited with status {child.returncode}; see {log.name}")
-    finally:
-        log.close()
-        for sig, handler in handlers.items():
-            signal.signal(sig, handler)
-    return stop[0] if stop else None
 
 
 def _summary(spec: Spec, sessions: Any, echo: Callable[[str], None],

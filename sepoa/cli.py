@@ -1,5 +1,4 @@
-"""The `sepoa` command line. Trainer commands are handed to `trainer.cli` (they import torch);
-the others import only the server or the queue package, so they start fast.
+"""The `sepoa` command line (`python -m sepoa` is the same command).
 
     sepoa up                          # server + worker on SQLite under ./data, and a demo run
     sepoa serve --port 8000           # the web server only (settings from SEPOA_* variables)
@@ -22,512 +21,72 @@ the others import only the server or the queue package, so they start fast.
 from __future__ import annotations
 
 import argparse
-import os
+import importlib
 import signal
 import sys
-from typing import TYPE_CHECKING
 
-from experiments.cli import OneLineParser, fail
+from sepoa.parser import Command, OneLineParser
 
-if TYPE_CHECKING:
-    from sqlalchemy.engine import Engine
-
-TRAINER_COMMANDS = {
-    "train": "train one run standalone, answered by a scripted teacher",
-    "pretrain": "pretrain skills (APS, DIAYN, CIC) for a task; writes a reusable snapshot",
-    "worker": "train the runs queued in the queue database",
-    "doctor": "check off-screen rendering: EGL and OSMesa, GL strings, fps, upright frames",
-    "tasks": "list valid task names",
-    "presets": "print the presets",
-    "reward": "fit the reward ensemble on a dataset export's labels (sepoa reward fit DATASET)",
+COMMANDS: dict[str, tuple[str, str]] = {
+    "up": ("sepoa.up", "start the server and a worker on SQLite, with a demo run"),
+    "serve": ("sepoa.up", "run the web server (API, label page, dashboard)"),
+    "worker": ("sepoa.trainer_commands", "train the runs queued in the queue database"),
+    "train": ("sepoa.trainer_commands", "train one run of any algorithm (sac, pebble, surf, "
+              "rune, rime, sepoa) standalone, answered by a scripted teacher"),
+    "pretrain": ("sepoa.trainer_commands", "pretrain skills (APS, DIAYN, CIC) for a task; "
+                 "writes a reusable snapshot"),
+    "experiment": ("sepoa.experiment_commands", "a spec's grid of runs in the queue, trained "
+                   "by workers (docs/EXPERIMENTS.md)"),
+    "report": ("sepoa.experiment_commands", "figures and tables of an experiment's results, or "
+               "the teacher-calibration report of a label export"),
+    "export": ("sepoa.queue_commands", "write the labels as JSONL, CSV or Parquet, or a run as "
+               "a Minari dataset"),
+    "reward": ("sepoa.trainer_commands", "fit the reward ensemble on a dataset export's labels "
+               "(sepoa reward fit DATASET)"),
+    "label-dataset": ("sepoa.queue_commands", "queue a labelling-only run over a dataset "
+                      "export: pairs of its episodes for people to label, no training "
+                      "(docs/EXPORT.md)"),
+    "labeller": ("sepoa.queue_commands", "create, list, revoke or restore labellers"),
+    "invite": ("sepoa.queue_commands", "check a participant's completion code"),
+    "doctor": ("sepoa.trainer_commands", "check off-screen rendering: EGL and OSMesa, GL "
+               "strings, fps, upright frames"),
+    "tasks": ("sepoa.trainer_commands", "list valid task names"),
+    "presets": ("sepoa.trainer_commands", "print the presets"),
 }
-EXPERIMENT_COMMANDS = {
-    "experiment": "a spec's grid of runs in the queue, trained by workers (docs/EXPERIMENTS.md)",
-    "report": "figures and tables of an experiment's results, or of labellers' calibration",
-}
+"""each command's module (which holds its arguments and what runs it) and its line of help"""
 
 
-def _database_args(p: argparse.ArgumentParser, inherit: bool = False) -> None:
-    """`inherit`: on a sub-action, where an absent flag keeps the parent parser's value (so
-    `sepoa labeller --data-dir D create x` and `sepoa labeller create x --data-dir D` agree)."""
-    url = argparse.SUPPRESS if inherit else os.environ.get("SEPOA_DATABASE_URL")
-    data = argparse.SUPPRESS if inherit else os.environ.get("SEPOA_DATA_DIR", "data")
-    p.add_argument("--database-url", default=url,
-                   help="the queue database (env SEPOA_DATABASE_URL; default: "
-                   "sqlite:///<data-dir>/queue.db)")
-    p.add_argument("--data-dir", default=data,
-                   help="where the SQLite file, runs and clips live (env SEPOA_DATA_DIR)")
+def command(name: str) -> Command:
+    """The command `name`, from its module (imported only now: the trainer's imports torch)."""
+    found: Command = importlib.import_module(COMMANDS[name][0]).COMMANDS[name]
+    return found
 
 
-LABELLER_ACTIONS = {
-    "revoke": "revoke a labeller's access (its labels stay): leasing, answering and taking "
-    "answers back stop at once on every server; reads (label count, clips) within "
-    "SEPOA_AUTH_CACHE_SECONDS (5 s)",
-    "activate": "restore a revoked labeller's access",
-    "token": "give a labeller a new token (printed once): the old one stops leasing, answering "
-    "and taking answers back at once on every server, and reading within "
-    "SEPOA_AUTH_CACHE_SECONDS (5 s)",
-}
-NAME_MAX = 100
-
-
-PORT_MAX = 65535
-ID_MAX = 2**31 - 1
-"""the largest id the queue database stores (PostgreSQL's INTEGER)"""
-
-
-def _number(low: int, high: int, what: str):  # type: ignore[no-untyped-def]
-    """An argparse type: an integer from `low` to `high`; else one line naming the range."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = None
-        if value is None or not low <= value <= high:
-            raise argparse.ArgumentTypeError(f"{text!r} is not {what}: give {low} to {high}")
-        return value
-
-    return parse
-
-
-PORT = _number(1, PORT_MAX, "a TCP port")
-RUN_ID = _number(1, ID_MAX, "a run id")
-
-
-def _database_url(args: argparse.Namespace) -> str:
-    """The queue database's URL; ValueError when it is not one this app can open."""
-    from labelqueue import check_url, sqlite_url
-
-    return check_url(args.database_url or sqlite_url(args.data_dir))
-
-
-def _parser() -> argparse.ArgumentParser:
-    from labelqueue.labelling import LABELLING_SELECTIONS
-
+def build_parser(given: str | None = None) -> OneLineParser:
+    """The whole `sepoa` parser; of the commands, only `given` gets its arguments (the others
+    are listed in `sepoa --help`, and are never parsed when `given` is)."""
     parser = OneLineParser(prog="sepoa", description=__doc__,
                            formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = parser.add_subparsers(dest="command", required=True)
-
-    up = sub.add_parser("up", help="start the server and a worker on SQLite, with a demo run")
-    _database_args(up)
-    up.add_argument("--host", default="127.0.0.1")
-    up.add_argument("--port", type=PORT, default=8000)
-    up.add_argument("--workers", type=int, default=1, help="trainer worker processes")
-    up.add_argument("--threads", type=int, default=None,
-                    help="torch CPU threads per worker; default: the cores divided among the "
-                    "workers and the server")
-    up.add_argument("--no-demo", action="store_true",
-                    help="do not queue the demo run on a fresh database")
-    _public_url_arg(up)
-
-    serve = sub.add_parser("serve", help="run the web server (API, label page, dashboard)")
-    _database_args(serve)
-    serve.add_argument("--host", default="127.0.0.1")
-    serve.add_argument("--port", type=PORT, default=8000)
-    _public_url_arg(serve)
-
-    export = sub.add_parser("export", help="write the labels as JSONL, CSV or Parquet")
-    _database_args(export)
-    export.add_argument("--format", choices=("jsonl", "csv", "parquet"), default="jsonl")
-    export.add_argument("--run", type=RUN_ID, default=None, help="one run's labels only")
-    export.add_argument("--out", default="-", help="file to write; - for standard output")
-    export.add_argument("--dataset", default=None, metavar="DIR",
-                        help="write the run's episodes and labels as a Minari dataset under "
-                        "the datasets folder DIR (needs --run; docs/EXPORT.md)")
-    export.add_argument("--dataset-id", default=None,
-                        help="with --dataset: the Minari dataset id (default "
-                        "sepoa/<task>/run-<N>-v0)")
-    export.add_argument("--clips-dir", default=None,
-                        help="with --dataset: the clips folder, which holds the runs' episodes "
-                        "(env SEPOA_CLIPS_DIR; default <data-dir>/clips)")
-
-    label = sub.add_parser(
-        "label-dataset", help="queue a labelling-only run over a dataset export: pairs of its "
-        "episodes for people to label, no training (docs/EXPORT.md)")
-    _database_args(label)
-    label.add_argument("dataset", metavar="DATASET",
-                       help="a dataset export's folder (sepoa export --dataset), or its Minari "
-                       "id under MINARI_DATASETS_PATH; workers read it at the same path")
-    label.add_argument("--budget", type=_number(1, ID_MAX, "a budget"), required=True,
-                       help="answers to ask for in all")
-    label.add_argument("--per-round", type=_number(1, ID_MAX, "a round size"), default=None,
-                       help="pairs per round (default: the preset's)")
-    label.add_argument("--selection", choices=LABELLING_SELECTIONS, default="disagreement",
-                       help="how rounds after the first (uniform) draw their pairs: uniformly, "
-                       "or by the disagreement of the reward ensemble refitted on the labels "
-                       "so far (default)")
-    label.add_argument("--segment-length", type=_number(1, ID_MAX, "a segment length"),
-                       default=None, help="steps per clip (default: the preset's, at most the "
-                       "dataset's shortest episode)")
-    label.add_argument("--name", default=None, help="the run's name (default: label <id>)")
-    label.add_argument("--preset", default="small",
-                       help="the size preset of the reward ensemble and rounds (default small)")
-    label.add_argument("--seed", type=_number(0, ID_MAX, "a seed"), default=0)
-    label.add_argument("--teacher", choices=("human", "scripted"), default="human",
-                       help="who answers: people on the label page (default), or the scripted "
-                       "teacher from the dataset's true rewards")
-    label.add_argument("--clip-size", default=None, help="256x256 (default), 320x240 or 128x128")
-    label.add_argument("--instruction", default=None,
-                       help="what labellers are told \"better\" means (default: the task's)")
-    label.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                       help="a config override, e.g. reward.hidden_dim=64 or "
-                       "feedback.labels_per_query=3 (repeatable; VALUE is JSON, else text)")
-
-    labeller = sub.add_parser("labeller", help="create, list, revoke or restore labellers")
-    _database_args(labeller)
-    labeller_sub = labeller.add_subparsers(dest="action", required=True)
-    create = labeller_sub.add_parser("create", help="a new labeller; prints its token once")
-    create.add_argument("name")
-    create.add_argument("--role", choices=("labeller", "operator"), default="labeller")
-    _database_args(create, inherit=True)
-    _database_args(labeller_sub.add_parser("list", help="list labellers"), inherit=True)
-    for action, text in LABELLER_ACTIONS.items():
-        one = labeller_sub.add_parser(action, help=text)
-        one.add_argument("name")
-        _database_args(one, inherit=True)
-
-    invite = sub.add_parser("invite", help="check a participant's completion code")
-    _database_args(invite)
-    invite_sub = invite.add_subparsers(dest="action", required=True)
-    verify = invite_sub.add_parser(
-        "verify", help="whose completion code it is and how far they got (exit 1: nobody's)")
-    verify.add_argument("code")
-    _database_args(verify, inherit=True)
-
-    for name, text in TRAINER_COMMANDS.items():
-        sub.add_parser(name, help=text, add_help=False)  # parsed by trainer.cli
-    for name, text in EXPERIMENT_COMMANDS.items():
-        sub.add_parser(name, help=text, add_help=False)  # parsed by experiments.cli
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, (_module, text) in COMMANDS.items():
+        if name != given:
+            sub.add_parser(name, help=text)
+            continue
+        found = command(name)
+        p = sub.add_parser(name, help=text, description=text, formatter_class=(
+            argparse.ArgumentDefaultsHelpFormatter if found.defaults_in_help
+            else argparse.HelpFormatter))
+        found.arguments(p)
     return parser
-
-
-def _public_url_arg(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--public-url", default=os.environ.get("SEPOA_PUBLIC_URL"),
-                   help="the address people outside reach the server at (https://label.example."
-                   "org, behind a reverse proxy): invite links and clip URLs use it (env "
-                   "SEPOA_PUBLIC_URL)")
-
-
-def _public_url(args: argparse.Namespace) -> str | None:
-    """--public-url as the server will use it; ValueError naming the flag for a bad one."""
-    if not args.public_url:
-        return None
-    from pydantic import ValidationError
-
-    from server.settings import Settings
-
-    try:
-        return Settings(public_url=args.public_url).public_url
-    except ValidationError as err:
-        raise ValueError(f"--public-url {args.public_url!r}: {err.errors()[0]['msg']}") from None
-
-
-def _invite(args: argparse.Namespace) -> int:
-    from sqlalchemy.engine import make_url
-    from sqlalchemy.exc import DBAPIError
-
-    from labelqueue import make_engine, session_factory, verify_code
-
-    url = _database_url(args)
-    parsed = make_url(url)
-    if parsed.get_backend_name() == "sqlite" and not os.path.exists(parsed.database or ""):
-        return fail(f"no queue database at {parsed.database} (--data-dir / --database-url)")
-    engine = make_engine(url)
-    try:
-        with session_factory(engine)() as session:
-            verified = verify_code(session, args.code)
-    except DBAPIError as err:
-        return fail(f"cannot read the queue database: "
-                    f"{str(err.orig or err).strip().splitlines()[0]}")
-    finally:
-        engine.dispose()
-    if verified is None:
-        print(f"{args.code!r} is no participant's completion code (check it was copied whole)",
-              file=sys.stderr)
-        return 1
-    why = {"target": "complete: reached the target", "runs_over": "complete: the run ended",
-           "paused": "complete: paused by check pairs", None: "not complete yet"}[verified.why]
-    target = "" if verified.target_answers is None else f" of {verified.target_answers}"
-    print(f"valid: {verified.participant or '-'} (labeller {verified.labeller!r}, id "
-          f"{verified.labeller_id}), invite {verified.invite_id}, run "
-          f"{verified.run_id if verified.run_id is not None else 'all'}: "
-          f"{verified.counted}{target} decisive answers; {why}")
-    return 0
-
-
-def _serve(args: argparse.Namespace) -> int:
-    import uvicorn
-
-    from sepoa.up import port_free
-
-    # Before anything is created or migrated: a busy port leaves no new database behind.
-    if not port_free(args.host, args.port):
-        return fail(f"{args.host}:{args.port} is in use; pick another with --port")
-    from labelqueue import check_database
-
-    url = _database_url(args)
-    check_database(url, writable=True)  # damaged, read-only: one line here, not a traceback
-    public_url = _public_url(args)  # checked before the environment the server reads is set
-    os.environ["SEPOA_DATABASE_URL"] = url
-    os.environ["SEPOA_DATA_DIR"] = args.data_dir
-    if public_url is not None:
-        os.environ["SEPOA_PUBLIC_URL"] = public_url
-    uvicorn.run("server.app:app", host=args.host, port=args.port)
-    return 0
-
-
-def _export(args: argparse.Namespace) -> int:
-    from sqlalchemy.engine import make_url
-    from sqlalchemy.exc import DBAPIError
-
-    from labelqueue import NotFound, check_database, make_engine, session_factory
-    from labelqueue.export import write_export
-
-    if args.dataset is None and (args.dataset_id is not None or args.clips_dir is not None):
-        return fail("--dataset-id and --clips-dir go with --dataset DIR")
-    url = _database_url(args)
-    parsed = make_url(url)
-    if parsed.get_backend_name() == "sqlite" and not os.path.exists(parsed.database or ""):
-        return fail(f"no queue database at {parsed.database} (--data-dir / --database-url)")
-    # A damaged file can read back fewer labels than it holds, without an error.
-    check_database(url)
-    if args.dataset is not None:
-        return _export_dataset(args, url)
-    if args.out != "-":
-        folder = os.path.dirname(os.path.abspath(args.out))
-        if not os.path.isdir(folder):
-            return fail(f"--out {args.out}: the folder {folder} does not exist; give a file in "
-                        "an existing folder, or - for standard output")
-        if os.path.isdir(args.out):
-            return fail(f"--out {args.out} is a folder; give a file name, or - for standard "
-                        "output")
-    engine = make_engine(url)
-    tmp = f"{args.out}.partial"
-    try:
-        with session_factory(engine)() as session:
-            if args.out == "-":
-                rows = write_export(session, fmt=args.format, out=sys.stdout.buffer,
-                                    run_id=args.run)
-            else:
-                with open(tmp, "wb") as f:
-                    rows = write_export(session, fmt=args.format, out=f, run_id=args.run)
-                os.replace(tmp, args.out)
-    except NotFound as err:
-        return fail(str(err))
-    except DBAPIError as err:
-        return fail(f"cannot read labels from {parsed.render_as_string(hide_password=True)}: "
-                    f"{str(err.orig).strip().splitlines()[0] if err.orig else err}")
-    except OSError as err:
-        return fail(f"cannot write --out {args.out}: {err.strerror or err}")
-    finally:
-        engine.dispose()
-        if os.path.exists(tmp):
-            os.remove(tmp)
-    print(f"{rows} labels exported", file=sys.stderr)
-    return 0
-
-
-def _export_dataset(args: argparse.Namespace, url: str) -> int:
-    from pathlib import Path
-
-    from sqlalchemy.engine import make_url
-    from sqlalchemy.exc import DBAPIError
-
-    from labelqueue import NotFound, make_engine, session_factory
-    from labelqueue.dataset import DatasetError, write_dataset
-
-    if args.run is None:
-        return fail("--dataset needs --run N: a dataset holds one run's episodes")
-    if args.format != "jsonl" or args.out != "-":
-        return fail("--dataset writes a folder; --format and --out are for the label file")
-    if os.path.exists(args.dataset) and not os.path.isdir(args.dataset):
-        return fail(f"--dataset {args.dataset} is a file; give a folder")
-    clips_dir = args.clips_dir or os.environ.get("SEPOA_CLIPS_DIR")
-    clips = Path(clips_dir) if clips_dir else Path(args.data_dir) / "clips"
-    engine = make_engine(url)
-    try:
-        with session_factory(engine)() as session:
-            summary = write_dataset(session, run_id=args.run, clips_root=clips,
-                                    root=Path(args.dataset), dataset_id=args.dataset_id)
-    except (NotFound, DatasetError) as err:
-        return fail(str(err))
-    except DBAPIError as err:
-        return fail(f"cannot read labels from "
-                    f"{make_url(url).render_as_string(hide_password=True)}: "
-                    f"{str(err.orig).strip().splitlines()[0] if err.orig else err}")
-    except OSError as err:
-        where = f" ({err.filename})" if err.filename else ""
-        return fail(f"cannot write --dataset {args.dataset}{where}: {err.strerror or err}")
-    finally:
-        engine.dispose()
-    left = (f"; {summary.labels_left_out} labels left out (their episodes were not kept)"
-            if summary.labels_left_out else "")
-    print(f"{summary.dataset_id}: {summary.episodes} episodes, {summary.steps} steps, "
-          f"{summary.labels} labels on {summary.queries} queries{left} in {summary.path}\n"
-          f"load it with MINARI_DATASETS_PATH={args.dataset} and "
-          f"minari.load_dataset({summary.dataset_id!r})", file=sys.stderr)
-    return 0
-
-
-def _migrated_engine(args: argparse.Namespace) -> Engine:
-    """The queue database, checked and migrated; ValueError naming what is wrong."""
-    from sqlalchemy.exc import DBAPIError
-
-    from labelqueue import check_database, make_engine, migrate
-
-    url = _database_url(args)
-    check_database(url)
-    try:
-        migrate(url)
-    except DBAPIError as err:
-        raise ValueError(f"cannot open the queue database: "
-                         f"{str(err.orig).strip().splitlines()[0]}") from None
-    return make_engine(url)
-
-
-def _overrides(pairs: list[str]) -> dict[str, object]:
-    """`--set KEY=VALUE` flags as config overrides; ValueError naming a malformed one."""
-    import json
-
-    out: dict[str, object] = {}
-    for pair in pairs:
-        key, sep, text = pair.partition("=")
-        if not sep or not key:
-            raise ValueError(f"--set {pair!r}: give KEY=VALUE, e.g. reward.hidden_dim=64")
-        try:
-            out[key] = json.loads(text)
-        except ValueError:
-            out[key] = text
-    return out
-
-
-def _label_dataset(args: argparse.Namespace) -> int:
-    from sqlalchemy.exc import DBAPIError
-
-    from labelqueue import session_factory
-    from labelqueue.labelling import create_labelling_run, labelling_dataset
-    from runvocab.names import ConfigError
-
-    overrides = _overrides(args.set)
-    try:
-        found = labelling_dataset(args.dataset)
-    except ConfigError as err:
-        return fail(str(err))
-    try:  # the task's own sizes, where the trainer is installed (a worker checks them anyway)
-        from trainer.dataset_labelling import dataset_pool
-    except ImportError:
-        pass
-    else:
-        try:
-            dataset_pool(found, found.task)
-        except ValueError as err:
-            return fail(str(err))
-    engine = _migrated_engine(args)
-    try:
-        with session_factory(engine)() as session:
-            run = create_labelling_run(
-                session, dataset=args.dataset, budget=args.budget, per_round=args.per_round,
-                selection=args.selection, segment_length=args.segment_length, name=args.name,
-                preset=args.preset, seed=args.seed, teacher=args.teacher, config=overrides,
-                instruction=args.instruction, clip_size=args.clip_size)
-    except ConfigError as err:
-        return fail(str(err))
-    except DBAPIError as err:
-        return fail(f"cannot use the queue database: "
-                    f"{str(err.orig or err).strip().splitlines()[0]}")
-    finally:
-        engine.dispose()
-    h = run.config["feedback.segment_length"]
-    print(f"run {run.id} ({run.name!r}) queued: {run.budget} answers on pairs of {h}-step "
-          f"segments of {len(found.episodes)} episodes of {run.task} in {run.dataset}, "
-          f"{args.selection} after a uniform first round; a worker serves it "
-          f"(sepoa worker), people label it on the label page")
-    return 0
-
-
-def _labeller(args: argparse.Namespace) -> int:
-    from sqlalchemy import select
-    from sqlalchemy.exc import DBAPIError
-
-    from labelqueue import (
-        Conflict,
-        Labeller,
-        create_labeller,
-        find_labeller,
-        rotate_token,
-        session_factory,
-        update_labeller,
-    )
-
-    name = getattr(args, "name", None)
-    if name is not None and not 1 <= len(name) <= NAME_MAX:  # as POST /api/labellers
-        return fail(f"labeller name {name!r} is not valid: give 1 to {NAME_MAX} characters")
-    engine = _migrated_engine(args)
-    try:
-        with session_factory(engine)() as session:
-            if args.action == "create":
-                try:
-                    labeller, token = create_labeller(session, name=name, role=args.role)
-                except Conflict as err:
-                    return fail(str(err))
-                print(f"{labeller.role} {labeller.name!r} created; its token (shown once):")
-                print(token)
-            elif args.action == "list":
-                for lab in session.scalars(select(Labeller).order_by(Labeller.id)):
-                    state = "active" if lab.active else "revoked"
-                    print(f"{lab.id}\t{lab.name}\t{lab.role}\t{state}")
-            else:
-                found = find_labeller(session, name=name)
-                if found is None:
-                    return fail(f"no labeller named {name!r} (sepoa labeller list shows them)")
-                if args.action == "token":
-                    _, token = rotate_token(session, labeller_id=found.id)
-                    print(f"new token for {name!r} (shown once; the old one no longer works):")
-                    print(token)
-                else:
-                    active = args.action == "activate"
-                    update_labeller(session, labeller_id=found.id, active=active)
-                    print(f"{name!r} {'activated' if active else 'revoked'}")
-    except DBAPIError as err:  # damage the integrity check does not see, a database gone away
-        first = str(err.orig or err).strip().splitlines()[0]
-        return fail(f"cannot use the queue database: {first}")
-    finally:
-        engine.dispose()
-    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    if argv and argv[0] in TRAINER_COMMANDS:
-        from trainer.cli import main as trainer_main
-
-        return trainer_main(argv)
-    if argv and argv[0] in EXPERIMENT_COMMANDS:
-        from experiments.cli import main as experiments_main
-
-        return experiments_main(argv)
-    args = _parser().parse_args(argv)
+    given = next((a for a in argv[:1] if a in COMMANDS), None)
     try:
-        if args.command == "up":
-            from sepoa.up import up
-
-            if args.workers < 1 or (args.threads is not None and args.threads < 1):
-                return fail("--workers and --threads must be at least 1")
-            return up(database_url=_database_url(args), data_dir=args.data_dir, host=args.host,
-                      port=args.port, workers=args.workers, demo=not args.no_demo,
-                      threads=args.threads, public_url=_public_url(args))
-        if args.command == "serve":
-            return _serve(args)
-        if args.command == "export":
-            return _export(args)
-        if args.command == "invite":
-            return _invite(args)
-        if args.command == "label-dataset":
-            return _label_dataset(args)
-        return _labeller(args)
-    except ValueError as err:  # a database URL that cannot be opened, among others
-        return fail(str(err))
-    except KeyboardInterrupt:  # Ctrl-C while starting up: no traceback
+        args = build_parser(given).parse_args(argv)  # exit 2 on a mistake, 0 after --help
+        return command(args.command).run(args)
+    except KeyboardInterrupt:  # Ctrl-C while starting up or running: no traceback
         # A second Ctrl-C (or the same one seen again) while the interpreter shuts down would
         # end it by the signal instead of this exit status.
         signal.signal(signal.SIGINT, signal.SIG_IGN)

@@ -1,19 +1,20 @@
-"""`sepoa up`: the embedded default. One SQLite file and a clips folder under a data folder, the
-web server and a trainer worker as child processes, and (on a fresh database) a demo run on
-dmc:cheetah_run taught by people, so the label page shows real clips within about a minute.
+"""`sepoa up` and `sepoa serve`. `up` is the embedded default: one SQLite file and a clips folder
+under a data folder, the web server and a trainer worker as child processes, and (on a fresh
+database) a demo run on dmc:cheetah_run taught by people, so the label page shows real clips
+within about a minute.
 
 Tokens: on first start an operator and a labeller are created and their tokens kept in
 `<data dir>/credentials.json` (readable by the owner only), with the key that signs clip URLs,
-so later starts print the same links.
+so later starts print the same links. The children are held by `sepoa.supervisor`: Ctrl-C or
+SIGTERM stops them all (exit status 130 or 143), and one that ends stops the others.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
-import signal
 import socket
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -27,6 +28,9 @@ from labelqueue import (
     make_engine,
     session_factory,
 )
+from sepoa.parser import PORT, Command, fail, refusing
+from sepoa.queue_commands import database_args, database_url
+from sepoa.supervisor import Supervisor
 from trainer.threads import default_threads, describe
 
 DEMO_RUN: dict[str, Any] = {
@@ -78,11 +82,15 @@ def port_free(host: str, port: int) -> bool:
         return sock.connect_ex((host, port)) != 0
 
 
+
+STOP_GRACE_S = 20.0
+"""how long the server and each worker have to end after `sepoa up` is stopped"""
+
+
 def up(*, database_url: str, data_dir: str, host: str, port: int, workers: int,
        demo: bool, threads: int | None = None, public_url: str | None = None) -> int:
     if not port_free(host, port):
-        print(f"error: {host}:{port} is in use; pick another with --port", file=sys.stderr)
-        return 2
+        return fail(f"{host}:{port} is in use; pick another with --port")
     chosen = threads is not None
     threads = threads or default_threads(workers=workers, server=True)
     print(describe(threads, workers=workers, server=True, chosen=chosen), flush=True)
@@ -96,89 +104,111 @@ def up(*, database_url: str, data_dir: str, host: str, port: int, workers: int,
         env["SEPOA_PUBLIC_URL"] = public_url
     env.setdefault("MUJOCO_GL", "egl")
     python = sys.executable
-    children: list[subprocess.Popen[bytes]] = []
-    # Ctrl-C while the children start is noted, not raised: an exception inside Popen would
-    # leave a started child out of `children`, running on after this process.
-    interrupted = False
-
-    def note_interrupt(signum: int, _frame: object) -> None:
-        nonlocal interrupted
-        interrupted = True
-
-    previous = signal.signal(signal.SIGINT, note_interrupt)
-    try:
-        # Each child in a process group of its own: Ctrl-C reaches this process only, which
-        # stops them in turn (SIGTERM), so none is cut off mid-import with a traceback.
-        children.append(subprocess.Popen(
-            [python, "-m", "uvicorn", "server.app:app", "--host", host, "--port", str(port),
-             "--log-level", "warning"], env=env, process_group=0))
+    with Supervisor(grace_s=STOP_GRACE_S) as children:
+        children.start("the server", [python, "-m", "uvicorn", "server.app:app", "--host", host,
+                                      "--port", str(port), "--log-level", "warning"], env=env)
         for i in range(workers):
             # A stable id: a worker restarted by the next `sepoa up` takes its runs back at once.
-            worker_id = f"{socket.gethostname()}-up-{i}"
             # The URL reaches workers in their environment (SEPOA_DATABASE_URL), never on a
             # command line that `ps` shows.
-            children.append(subprocess.Popen(
-                [python, "-m", "trainer.cli", "worker",
-                 "--data-dir", data_dir, "--worker-id", worker_id, "--threads", str(threads)],
-                env=env, process_group=0))
-            if interrupted:
-                break
-    finally:
-        signal.signal(signal.SIGINT, previous)
-    if interrupted:
-        _stop(children)
-        raise KeyboardInterrupt
+            children.start(f"worker {i}", [
+                python, "-m", "sepoa", "worker", "--data-dir", data_dir,
+                "--worker-id", f"{socket.gethostname()}-up-{i}", "--threads", str(threads)],
+                env=env)
+        if not children.stopping:
+            print(_banner(host, port, public_url, data_dir, creds, demo_run), flush=True)
+        outcome = children.wait(until="any")
+        if outcome.signal is not None:
+            print("\nstopping the server and the workers…", file=sys.stderr, flush=True)
+        elif outcome.exited is not None:
+            print(f"error: {outcome.exited.name} exited with {outcome.exited.returncode}",
+                  file=sys.stderr)
+    return outcome.status
 
+
+def _banner(host: str, port: int, public_url: str | None, data_dir: str,
+            creds: dict[str, str], demo_run: int | None) -> str:
     base = public_url or f"http://{host}:{port}"
-    print(f"\nS-EPOA labelling is up at {base}\n"
-          f"  label clips:  {base}/label#token={creds['labeller_token']}\n"
-          f"  runs:         {base}/runs#token={creds['operator_token']}\n"
-          f"  API docs:     {base}/docs  (operator token: {creds['operator_token']})\n"
-          f"  data:         {os.path.abspath(data_dir)}  (tokens in credentials.json)\n"
-          + (f"  demo run {demo_run} queued: dmc:cheetah_run, first clips in about a minute\n"
-             if demo_run else "")
-          + (f"  (serving {host}:{port} behind {public_url})\n" if public_url else "")
-          + "Ctrl-C stops everything.\n", flush=True)
-    return _supervise(children)
+    return (f"\nS-EPOA labelling is up at {base}\n"
+            f"  label clips:  {base}/label#token={creds['labeller_token']}\n"
+            f"  runs:         {base}/runs#token={creds['operator_token']}\n"
+            f"  API docs:     {base}/docs  (operator token: {creds['operator_token']})\n"
+            f"  data:         {os.path.abspath(data_dir)}  (tokens in credentials.json)\n"
+            + (f"  demo run {demo_run} queued: dmc:cheetah_run, first clips in about a minute\n"
+               if demo_run else "")
+            + (f"  (serving {host}:{port} behind {public_url})\n" if public_url else "")
+            + "Ctrl-C stops everything.\n")
 
 
-def _supervise(children: list[subprocess.Popen[bytes]]) -> int:
-    """Wait until Ctrl-C / SIGTERM or until a child dies; then stop the others."""
-    stop = False
+def _public_url_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--public-url", default=os.environ.get("SEPOA_PUBLIC_URL"),
+                   help="the address people outside reach the server at (https://label.example."
+                   "org, behind a reverse proxy): invite links and clip URLs use it (env "
+                   "SEPOA_PUBLIC_URL)")
 
-    def on_signal(signum: int, _frame: object) -> None:
-        nonlocal stop
-        stop = True
 
-    signal.signal(signal.SIGTERM, on_signal)
-    code = 0
+def _public_url(args: argparse.Namespace) -> str | None:
+    """--public-url as the server will use it; ValueError naming the flag for a bad one."""
+    if not args.public_url:
+        return None
+    from pydantic import ValidationError
+
+    from server.settings import Settings
+
     try:
-        while not stop:
-            dead = [c for c in children if c.poll() is not None]
-            if dead:
-                code = dead[0].returncode or 1
-                print(f"error: {' '.join(map(str, dead[0].args[:4]))} exited with {code}",
-                      file=sys.stderr)
-                break
-            time.sleep(0.5)
-    except KeyboardInterrupt:
-        print("\nstopping the server and the workers…", file=sys.stderr, flush=True)
-    _stop(children)
-    return code
+        return Settings(public_url=args.public_url).public_url
+    except ValidationError as err:
+        raise ValueError(f"--public-url {args.public_url!r}: {err.errors()[0]['msg']}") from None
 
 
-def _stop(children: list[subprocess.Popen[bytes]]) -> None:
-    """SIGTERM to each child, then up to 20 s for it to end (a second Ctrl-C kills them)."""
-    for child in children:
-        if child.poll() is None:
-            child.terminate()
-    try:
-        for child in children:
-            try:
-                child.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                child.kill()
-    except KeyboardInterrupt:
-        for child in children:
-            if child.poll() is None:
-                child.kill()
+def _up_arguments(p: argparse.ArgumentParser) -> None:
+    database_args(p)
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=PORT, default=8000)
+    p.add_argument("--workers", type=int, default=1, help="trainer worker processes")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch CPU threads per worker; default: the cores divided among the "
+                   "workers and the server")
+    p.add_argument("--no-demo", action="store_true",
+                   help="do not queue the demo run on a fresh database")
+    _public_url_arg(p)
+
+
+@refusing(ValueError)
+def _run_up(args: argparse.Namespace) -> int:
+    if args.workers < 1 or (args.threads is not None and args.threads < 1):
+        return fail("--workers and --threads must be at least 1")
+    return up(database_url=database_url(args), data_dir=args.data_dir, host=args.host,
+              port=args.port, workers=args.workers, demo=not args.no_demo,
+              threads=args.threads, public_url=_public_url(args))
+
+
+def _serve_arguments(p: argparse.ArgumentParser) -> None:
+    database_args(p)
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=PORT, default=8000)
+    _public_url_arg(p)
+
+
+@refusing(ValueError)
+def _run_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    # Before anything is created or migrated: a busy port leaves no new database behind.
+    if not port_free(args.host, args.port):
+        return fail(f"{args.host}:{args.port} is in use; pick another with --port")
+    url = database_url(args)
+    check_database(url, writable=True)  # damaged, read-only: one line here, not a traceback
+    public_url = _public_url(args)  # checked before the environment the server reads is set
+    os.environ["SEPOA_DATABASE_URL"] = url
+    os.environ["SEPOA_DATA_DIR"] = args.data_dir
+    if public_url is not None:
+        os.environ["SEPOA_PUBLIC_URL"] = public_url
+    uvicorn.run("server.app:app", host=args.host, port=args.port)
+    return 0
+
+
+COMMANDS = {
+    "up": Command(_up_arguments, _run_up),
+    "serve": Command(_serve_arguments, _run_serve),
+}

@@ -112,7 +112,7 @@ def test_ctrl_c_on_sepoa_up_stops_everything_without_a_traceback(tmp_path: Path,
                     break
             time.sleep(1)
         os.killpg(process.pid, signal.SIGINT)
-        # Up to 20 s per child to stop (sepoa.up._stop), more on a loaded host.
+        # Up to 20 s for the children to stop (sepoa.up.STOP_GRACE_S), more on a loaded host.
         out, err = process.communicate(timeout=120)
     finally:
         if process.poll() is None:

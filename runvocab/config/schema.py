@@ -268,7 +268,8 @@ class RunConfig:
     seed_steps: int = 1000
     """uniformly random actions at the start"""
     unsup_steps: int = 9000
-    """unsupervised state-entropy pretraining steps after the seed steps (pebble only)"""
+    """unsupervised state-entropy pretraining steps after the seed steps (PEBBLE, SURF, RUNE
+    and RIME; sac and sepoa have none)"""
     entropy_k: int = 5
     """k of the kNN state-entropy reward during pretraining"""
     update_every: int = 1

@@ -17,7 +17,6 @@ import pytest
 from sqlalchemy import func, select
 from worker_helpers import wait_for, worker_config
 
-from experiments.cli import main
 from experiments.launch import run_experiment
 from experiments.queue import enqueue_spec, grid_key
 from experiments.spec import Spec, SpecError, load_spec
@@ -31,6 +30,7 @@ from labelqueue import (
     migrate,
     session_factory,
 )
+from sepoa.cli import main
 from trainer.worker import run_worker
 
 ROOT = Path(__file__).resolve().parents[2]

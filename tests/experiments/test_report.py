@@ -84,7 +84,7 @@ def results(tmp_path_factory: pytest.TempPathFactory) -> Path:
                        [f"{200 * (i + 1)},{i},{r}" for i, r in enumerate(ratios)])
         if evals[-1][0] == 600:
             (run / "done.json").write_text(json.dumps({"step": 600}))
-    from experiments.cli import main
+    from sepoa.cli import main
 
     assert main(["report", str(folder)]) == 0
     return folder
@@ -170,7 +170,7 @@ def test_figures_and_index(results: Path) -> None:
 
 
 def test_report_of_a_folder_without_spec_is_an_error(tmp_path: Path, capsys) -> None:
-    from experiments.cli import main
+    from sepoa.cli import main
 
     assert main(["report", str(tmp_path)]) == 2
     assert "spec.toml: cannot read the spec" in capsys.readouterr().err

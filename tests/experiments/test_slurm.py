@@ -19,13 +19,12 @@ from pathlib import Path
 import pytest
 from sqlalchemy import update
 
-from experiments.cli import main
 from experiments.launch import run_experiment
 from experiments.slurm import URL_FILE, running_sepoa, seconds
 from experiments.spec import load_spec
 from labelqueue import Run, claim_run, make_engine, migrate, session_factory
 from labelqueue.models import utcnow
-from trainer.cli import _worker_parser
+from sepoa.cli import build_parser, main
 
 ROOT = Path(__file__).resolve().parents[2]
 SPEC = """
@@ -64,8 +63,7 @@ def worker_args(script: str) -> argparse.Namespace:
     argv = shlex.split(command.replace('"slurm-${SLURM_ARRAY_JOB_ID}-${SLURM_ARRAY_TASK_ID}"',
                                        "slurm-1-0"))
     assert argv[0] == running_sepoa()[0] and argv[1] == "worker"
-    parser = argparse.ArgumentParser()
-    return _worker_parser(parser.add_subparsers()).parse_args(argv[2:])
+    return build_parser("worker").parse_args(argv[1:])
 
 
 def test_the_script_runs_this_sepoa_and_sizes_each_task_by_the_preset(
@@ -145,7 +143,7 @@ def test_the_password_stays_out_of_the_script_and_the_workers_command_line(
     err = capsys.readouterr().err
     assert err == (f"error: database URL file {own} may be read by other users (mode 644); "
                    f"chmod 600 {own}\n")
-    worker = subprocess.run([sys.executable, "-m", "trainer.cli", "worker",
+    worker = subprocess.run([sys.executable, "-m", "sepoa", "worker",
                              "--database-url-file", str(own)], capture_output=True, text=True,
                             cwd=ROOT, timeout=60)
     assert worker.returncode == 2 and "may be read by other users" in worker.stderr

@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-SEPOA = [sys.executable, "-m", "trainer.cli"]
+SEPOA = [sys.executable, "-m", "sepoa"]
 TINY = ["train", "--task", "dmc:cheetah_run", "--algo", "pebble", "--teacher", "noisy",
         "--eps", "0.3", "--preset", "tiny", "--seed", "3", "--threads", "1", "--no-progress",
         "--update_every", "4"]  # a SAC update every 4 steps: the updates are most of the time
@@ -23,7 +23,7 @@ def _run(args: list[str], **kw) -> subprocess.CompletedProcess:
 def _in_process(args: list[str], capsys) -> subprocess.CompletedProcess:
     """`sepoa` run by its main() in this interpreter, with the exit status and stderr a process
     would have (a SystemExit with a message exits 1 and prints it)."""
-    from trainer.cli import main
+    from sepoa.cli import main
 
     try:
         code = main(args)

@@ -91,7 +91,7 @@ def test_with_no_backend_the_doctor_and_the_worker_say_what_to_install(tmp_path:
     assert "libegl1" in last and "libosmesa6" in last
 
     url = f"sqlite:///{tmp_path / 'queue.db'}"
-    worker = _run([sys.executable, "-m", "trainer.cli", "worker", "--database-url", url,
+    worker = _run([sys.executable, "-m", "sepoa", "worker", "--database-url", url,
                    "--data-dir", str(tmp_path), "--once"], broken)
     assert worker.returncode == 1
     [line] = worker.stderr.strip().splitlines()
@@ -109,7 +109,7 @@ def test_a_worker_with_a_broken_egl_falls_back_to_osmesa_and_renders_clips(tmp_p
                          teacher_params={"eps": 0.0},
                          config={"steps": 400, "seed_steps": 100, "unsup_steps": 100,
                                  "episode_length": 50, "feedback.per_round": 2, "threads": 1})
-    command = [sys.executable, "-m", "trainer.cli", "worker", "--database-url", url,
+    command = [sys.executable, "-m", "sepoa", "worker", "--database-url", url,
                "--data-dir", str(tmp_path / "data"), "--worker-id", "w1", "--once",
                "--poll-seconds", "0.1", "--clip-size", "64"]
     env = os.environ | {"MUJOCO_GL": "egl"} | BROKEN_EGL

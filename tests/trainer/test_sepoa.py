@@ -102,7 +102,7 @@ def _rows(path):
 
 
 def test_a_tiny_sepoa_run_pretrains_once_then_learns_from_labels_by_the_skill_rule(tmp_path):
-    command = [sys.executable, "-m", "trainer.cli", "train", "--task", "dmc:cheetah_run",
+    command = [sys.executable, "-m", "sepoa", "train", "--task", "dmc:cheetah_run",
                "--algo", "sepoa", "--preset", "tiny", "--steps", "1200", "--eps", "0.3",
                "--threads", "1", "--no-progress",
                "--skill.snapshot_dir", str(tmp_path / "snapshots")]

@@ -163,7 +163,7 @@ def test_a_killed_worker_resumes_and_no_label_is_lost_or_used_twice(tmp_path, re
         run = create_run(session, name="people", teacher="human", **RUN)
         person, _ = create_labeller(session, name="alice")
     data = tmp_path / "data"
-    command = [sys.executable, "-m", "trainer.cli", "worker", "--database-url", url,
+    command = [sys.executable, "-m", "sepoa", "worker", "--database-url", url,
                "--data-dir", str(data), "--worker-id", "w1", "--once", "--poll-seconds", "0.1",
                "--clip-size", "64"]
     env = os.environ | {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}

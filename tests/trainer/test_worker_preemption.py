@@ -44,7 +44,7 @@ def test_a_signalled_worker_checkpoints_and_releases_its_run_for_the_next_worker
     with sessions() as session:
         run = create_run(session, name="preempted", teacher="scripted", **RUN)
     data = tmp_path / "data"
-    command = [sys.executable, "-m", "trainer.cli", "worker", "--database-url", url,
+    command = [sys.executable, "-m", "sepoa", "worker", "--database-url", url,
                "--data-dir", str(data), "--worker-id", "w1", "--once", "--poll-seconds", "0.1",
                "--threads", "1"]
     env = os.environ | {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
@@ -85,7 +85,7 @@ def test_slurms_warning_before_the_time_limit_ends_an_idle_worker_cleanly(
     """SIGUSR1 (`--signal=B:USR1@...`) is a departure like SIGTERM, not a crash (its default
     action would kill the worker with no word)."""
     url, _ = database(tmp_path)
-    command = [sys.executable, "-m", "trainer.cli", "worker", "--database-url", url,
+    command = [sys.executable, "-m", "sepoa", "worker", "--database-url", url,
                "--data-dir", str(tmp_path / "data"), "--worker-id", "idle", "--poll-seconds",
                "0.1", "--threads", "1"]
     env = os.environ | {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}

@@ -1,5 +1,5 @@
-"""The `sepoa` command line's trainer commands (`sepoa experiment` and `sepoa report` live in
-`experiments.cli`, above the trainer).
+"""`sepoa train`, `pretrain`, `worker`, `doctor`, `reward fit`, `tasks` and `presets`: the
+commands that run the trainer (torch, MuJoCo), imported only when one of them is given.
 
     sepoa train --task dmc:cheetah_run --algo pebble --teacher noisy --eps 0.3 \
                 --preset small --seed 0 --steps 100000
@@ -21,57 +21,36 @@ import argparse
 import json
 import os
 import sys
+from typing import TYPE_CHECKING
+
+from sepoa.parser import Command, fail, integer, real
+
+if TYPE_CHECKING:
+    from runvocab.config import RunConfig
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-# How an argument error names the value a flag takes (by the flag's metavar).
-TYPE_WORDS = {"INT": "integer", "FLOAT": "number", "BOOL": "boolean (true or false)",
-              "STR": "string"}
 
-
-class OneLineParser(argparse.ArgumentParser):
-    """An argument error is one line naming the flag and the kind of value it takes, with exit
-    status 2, instead of the whole usage; sub-commands' parsers are of this class too."""
-
-    def error(self, message):
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
-
-    def add_argument(self, *args, **kwargs):
-        kind = kwargs.get("type")
-        if callable(kind) and getattr(kind, "__name__", "") == "<lambda>":
-            def parse(text, kind=kind):
-                return kind(text)
-
-            # argparse says "invalid <type name> value": name it for what the flag takes.
-            parse.__name__ = TYPE_WORDS.get(str(kwargs.get("metavar")), "number")
-            kwargs["type"] = parse
-        return super().add_argument(*args, **kwargs)
-
-
-def _train_parser(sub) -> argparse.ArgumentParser:
+def _train_arguments(p: argparse.ArgumentParser) -> None:
     from runvocab.config import add_config_arguments
+    from runvocab.names import SIZE_PRESETS, TEACHER_KINDS
 
-    p = sub.add_parser("train", help="train one run of any algorithm (sac, pebble, surf, rune, "
-                                     "rime, sepoa)",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--task", default=None, help="dmc:<domain>_<task> or metaworld:<name>")
-    p.add_argument("--preset", default=None, help="paper | small | tiny")
-    p.add_argument("--teacher", dest="teacher.kind", default=None, help="noisy | bpref")
+    p.add_argument("--preset", default=None, help=" | ".join(SIZE_PRESETS))
+    p.add_argument("--teacher", dest="teacher.kind", default=None, help=" | ".join(TEACHER_KINDS))
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --run-dir from its last checkpoint")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_config_arguments(p)
-    return p
 
 
-def _pretrain_parser(sub) -> argparse.ArgumentParser:
+def _pretrain_arguments(p: argparse.ArgumentParser) -> None:
     from runvocab.config import add_config_arguments
     from runvocab.config.args import value_type
+    from runvocab.names import SIZE_PRESETS
 
-    p = sub.add_parser("pretrain", help="unsupervised skill pretraining; writes a snapshot",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--task", default=None, help="dmc:<domain>_<task> or metaworld:<name>")
-    p.add_argument("--preset", default=None, help="paper | small | tiny")
+    p.add_argument("--preset", default=None, help=" | ".join(SIZE_PRESETS))
     p.add_argument("--steps", dest="skill.pretrain_steps", default=None,
                    type=value_type("skill.pretrain_steps"), help="pretraining environment steps")
     p.add_argument("--out", default=None, help="snapshot file; default "
@@ -79,7 +58,6 @@ def _pretrain_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     # --steps is the pretraining length here, not the online run's.
     add_config_arguments(p, exclude=("steps",))
-    return p
 
 
 def _run_pretrain(args: argparse.Namespace) -> int:
@@ -95,8 +73,7 @@ def _run_pretrain(args: argparse.Namespace) -> int:
                            overrides_from_args(args))
         path = pretrain(cfg, out=args.out, progress=not args.no_progress)
     except (ValueError, UnknownTaskError, FileExistsError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+        return fail(str(err))
     seconds = time.time() - start
     steps = cfg.skill.pretrain_steps
     print(json.dumps({"snapshot": path, "steps": steps, "seconds": round(seconds, 1),
@@ -104,9 +81,7 @@ def _run_pretrain(args: argparse.Namespace) -> int:
     return 0
 
 
-def _worker_parser(sub) -> argparse.ArgumentParser:
-    p = sub.add_parser("worker", help="train the runs queued in the queue database",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+def _worker_arguments(p: argparse.ArgumentParser) -> None:
     env = os.environ.get
     p.add_argument("--database-url", default=None,
                    help="the queue database (env SEPOA_DATABASE_URL; default "
@@ -143,7 +118,6 @@ def _worker_parser(sub) -> argparse.ArgumentParser:
                    help="shadow map texels (0: no shadows); larger is slower on a CPU")
     p.add_argument("--clip-multisamples", type=int, default=0,
                    help="off-screen multisampling; 0 is fastest on a CPU")
-    return p
 
 
 def _run_worker(args: argparse.Namespace) -> int:
@@ -158,21 +132,18 @@ def _run_worker(args: argparse.Namespace) -> int:
         clip = ClipConfig(width=args.clip_size, height=args.clip_size, fps=args.clip_fps,
                           shadow_size=args.clip_shadow_size, multisamples=args.clip_multisamples)
     except ValueError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+        return fail(str(err))
     from trainer.threads import cpu_cores
 
     if (args.threads is not None and args.threads < 1) or args.host_processes < 1:
-        print("error: --threads and --host-processes must be at least 1", file=sys.stderr)
-        return 2
+        return fail("--threads and --host-processes must be at least 1")
     threads = args.threads or max(1, cpu_cores() // args.host_processes)
     extra = {"worker_id": args.worker_id} if args.worker_id else {}
     try:
         url = check_url(database_url(args.database_url, args.database_url_file)
                         or sqlite_url(args.data_dir))
     except ValueError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+        return fail(str(err))
     from trainer.doctor import RenderingUnavailable, choose_backend
 
     try:  # a probe process per backend: a broken EGL cannot take this process down
@@ -199,17 +170,13 @@ def _run_worker(args: argparse.Namespace) -> int:
         return 130
     except DBAPIError as err:  # the database cannot be reached (or went away)
         first = str(err.orig or err).strip().splitlines()[0]
-        print(f"error: queue database {mask_url(url)}: {first}", file=sys.stderr)
-        return 2
+        return fail(f"queue database {mask_url(url)}: {first}")
     return 0
 
 
-def _doctor_parser(sub) -> argparse.ArgumentParser:
+def _doctor_arguments(p: argparse.ArgumentParser) -> None:
     from trainer.doctor import BACKENDS, TASKS
 
-    p = sub.add_parser("doctor", help="check off-screen rendering: which of EGL and OSMesa "
-                       "works, GL strings, fps, upright frames",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--backend", action="append", choices=BACKENDS, default=None,
                    help=f"a backend to check (repeatable); default {' and '.join(BACKENDS)}")
     p.add_argument("--task", action="append", default=None,
@@ -221,7 +188,6 @@ def _doctor_parser(sub) -> argparse.ArgumentParser:
                    "sqlite:///<data-dir>/queue.db)")
     p.add_argument("--data-dir", default=os.environ.get("SEPOA_DATA_DIR", "data"),
                    help="where the SQLite file lives (env SEPOA_DATA_DIR)")
-    return p
 
 
 def _check_queue_database(url: str) -> int:
@@ -239,8 +205,7 @@ def _check_queue_database(url: str) -> int:
     try:
         check_database(url)
     except ValueError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+        return fail(str(err))
     print(f"queue database {path}: ok (PRAGMA quick_check)")
     return 0
 
@@ -250,21 +215,18 @@ def _run_doctor(args: argparse.Namespace) -> int:
     from trainer.doctor import BACKENDS, TASKS, run_doctor
 
     if not 16 <= args.size <= 2048 or args.frames < 0:
-        print("error: --size takes 16 to 2048 pixels and --frames at least 0", file=sys.stderr)
-        return 2
+        return fail("--size takes 16 to 2048 pixels and --frames at least 0")
     try:
         url = check_url(args.database_url or sqlite_url(args.data_dir))
     except ValueError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+        return fail(str(err))
     if _check_queue_database(url):
         return 2
     return run_doctor(args.backend or BACKENDS, args.task or TASKS, size=args.size,
                       frames=args.frames)
 
 
-def _reward_parser(sub) -> argparse.ArgumentParser:
-    p = sub.add_parser("reward", help="fit the reward ensemble on a dataset export's labels")
+def _reward_arguments(p: argparse.ArgumentParser) -> None:
     actions = p.add_subparsers(dest="action", required=True)
     fit = actions.add_parser(
         "fit", help="train the run's reward ensemble on an exported dataset's labels; report "
@@ -275,48 +237,43 @@ def _reward_parser(sub) -> argparse.ArgumentParser:
     fit.add_argument("--out", default=None,
                      help="where to save the model (default: reward-<dataset name>.pt); an "
                      "existing file is refused")
-    fit.add_argument("--holdout", type=lambda s: float(s), metavar="FLOAT", default=0.2,
+    fit.add_argument("--holdout", type=real("a share", 0, 0.9), metavar="SHARE", default=0.2,
                      help="share of the labelled pairs held out, in [0, 0.9]")
-    fit.add_argument("--seed", type=lambda s: int(s), metavar="INT", default=0)
-    fit.add_argument("--epochs", type=lambda s: int(s), metavar="INT", default=None,
+    fit.add_argument("--seed", type=integer("a seed", 0), default=0)
+    fit.add_argument("--epochs", type=integer("a number of epochs", 1), default=None,
                      help="most passes over the pairs per training (default: the run's "
                      "reward.max_epochs)")
     fit.add_argument("--schedule", choices=("rounds", "once"), default="rounds",
                      help="rounds: train as the run did, after each round's pairs join, on "
                      "every pair so far; once: one training on all of them")
-    fit.add_argument("--threads", type=lambda s: int(s), metavar="INT", default=1,
+    fit.add_argument("--threads", type=integer("a thread count", 1), default=1,
                      help="torch CPU threads")
     fit.add_argument("--device", default="cpu", help="cpu | cuda")
     fit.add_argument("--compare", default=None, metavar="CHECKPOINT",
                      help="also score the exported run's own reward model (the checkpoint.pt "
                      "in its run folder) on the same pairs")
-    return p
 
 
 def _run_reward_fit(args: argparse.Namespace) -> int:
     from labelqueue.dataset import DatasetError, read_dataset
 
-    if not 0 <= args.holdout <= 0.9:
-        return _fail(f"--holdout {args.holdout}: give a share in [0, 0.9]")
-    if args.epochs is not None and args.epochs < 1 or args.threads < 1:
-        return _fail("--epochs and --threads must be at least 1")
     if args.device not in ("cpu", "cuda"):
-        return _fail(f"--device {args.device!r}: give cpu or cuda")
+        return fail(f"--device {args.device!r}: give cpu or cuda")
     try:
         dataset = read_dataset(args.dataset)
     except DatasetError as err:
-        return _fail(str(err))
+        return fail(str(err))
     out = args.out or f"reward-{dataset.path.name}.pt"
     if os.path.exists(out):
-        return _fail(f"--out {out} exists; remove it or give another file")
+        return fail(f"--out {out} exists; remove it or give another file")
     if not os.path.isdir(os.path.dirname(os.path.abspath(out))):
-        return _fail(f"--out {out}: its folder does not exist")
+        return fail(f"--out {out}: its folder does not exist")
     import torch
 
     from trainer.reward_fit import compare, fit, run_reward_model, save_reward_model
 
     if args.device == "cuda" and not torch.cuda.is_available():
-        return _fail("--device cuda: no CUDA device here")
+        return fail("--device cuda: no CUDA device here")
     torch.set_num_threads(args.threads)
     try:
         run_model = None if args.compare is None else run_reward_model(args.compare, dataset)
@@ -326,9 +283,9 @@ def _run_reward_fit(args: argparse.Namespace) -> int:
             result.metrics.update(compare(run_model, result, dataset, args.seed))
         save_reward_model(out, result, dataset)
     except (DatasetError, ValueError) as err:
-        return _fail(str(err))
+        return fail(str(err))
     except OSError as err:
-        return _fail(f"cannot write --out {out}: {err.strerror or err}")
+        return fail(f"cannot write --out {out}: {err.strerror or err}")
     m = result.metrics
     print(f"{dataset.info.get('dataset_id')}: {int(m['train_pairs'])} pairs trained on, "
           f"{int(m['heldout_pairs'])} held out; held-out accuracy {m['heldout_accuracy']:.3f} "
@@ -346,28 +303,23 @@ def _run_reward_fit(args: argparse.Namespace) -> int:
     return 0
 
 
-def _fail(message: str) -> int:
-    print(f"error: {message}", file=sys.stderr)
-    return 2
-
-
-def _config_from_args(args: argparse.Namespace):
+def _config_from_args(args: argparse.Namespace) -> RunConfig:
     from runvocab.config import apply_overrides, build_config, load_json, overrides_from_args
 
     overrides = overrides_from_args(args)
     if args.resume:
         run_dir = overrides.get("run_dir")
         if not run_dir:
-            raise SystemExit("error: --resume needs --run-dir")
+            raise ValueError("--resume needs --run-dir")
         config_path = os.path.join(run_dir, "config.json")
         if not os.path.exists(config_path):
-            raise SystemExit(f"error: --resume: {run_dir} holds no run (config.json missing)")
+            raise ValueError(f"--resume: {run_dir} holds no run (config.json missing)")
         cfg = load_json(config_path)
         # A resumed run keeps its configuration; only the length may be extended.
         allowed = {"run_dir", "steps", "device", "threads"}
         ignored = set(overrides) - allowed
         if ignored:
-            raise SystemExit(f"error: --resume keeps the run's configuration; "
+            raise ValueError(f"--resume keeps the run's configuration; "
                              f"cannot change {', '.join(sorted(ignored))}")
         return apply_overrides(cfg, overrides)
     task = args.task or "dmc:cheetah_run"
@@ -375,39 +327,7 @@ def _config_from_args(args: argparse.Namespace):
     return build_config(task, preset, overrides)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = OneLineParser(prog="sepoa", description=__doc__,
-                           formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = parser.add_subparsers(dest="command", required=True)
-    _train_parser(sub)
-    _pretrain_parser(sub)
-    _worker_parser(sub)
-    _doctor_parser(sub)
-    _reward_parser(sub)
-    sub.add_parser("tasks", help="list valid task names")
-    sub.add_parser("presets", help="print the presets")
-    args = parser.parse_args(argv)
-
-    if args.command == "tasks":
-        from runvocab.names import all_tasks
-
-        print("\n".join(all_tasks()))
-        return 0
-    if args.command == "presets":
-        from runvocab.config import preset_layers
-
-        print(json.dumps(preset_layers(), indent=2))
-        return 0
-
-    if args.command == "worker":
-        return _run_worker(args)
-    if args.command == "pretrain":
-        return _run_pretrain(args)
-    if args.command == "doctor":
-        return _run_doctor(args)
-    if args.command == "reward":
-        return _run_reward_fit(args)
-
+def _run_train(args: argparse.Namespace) -> int:
     from trainer.envs import UnknownTaskError
     from trainer.loop import TrainingRun
 
@@ -415,8 +335,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = _config_from_args(args)
         run = TrainingRun(cfg, resume=args.resume, progress=not args.no_progress)
     except (ValueError, UnknownTaskError, FileExistsError, FileNotFoundError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+        return fail(str(err))
     print(f"run directory: {run.run_dir}", file=sys.stderr)
     from trainer.threads import cpu_cores
 
@@ -428,5 +347,31 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+
+def _run_tasks(_args: argparse.Namespace) -> int:
+    from runvocab.names import all_tasks
+
+    print("\n".join(all_tasks()))
+    return 0
+
+
+def _run_presets(_args: argparse.Namespace) -> int:
+    from runvocab.config import preset_layers
+
+    print(json.dumps(preset_layers(), indent=2))
+    return 0
+
+
+def _nothing(_p: argparse.ArgumentParser) -> None:
+    pass
+
+
+COMMANDS = {
+    "train": Command(_train_arguments, _run_train, defaults_in_help=True),
+    "pretrain": Command(_pretrain_arguments, _run_pretrain, defaults_in_help=True),
+    "worker": Command(_worker_arguments, _run_worker, defaults_in_help=True),
+    "doctor": Command(_doctor_arguments, _run_doctor, defaults_in_help=True),
+    "reward": Command(_reward_arguments, _run_reward_fit),
+    "tasks": Command(_nothing, _run_tasks),
+    "presets": Command(_nothing, _run_presets),
+}

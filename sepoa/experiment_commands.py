@@ -1,4 +1,5 @@
-"""`sepoa experiment` and `sepoa report`: a spec's grid through the queue, and its report.
+"""`sepoa experiment` and `sepoa report`: a spec's grid through the queue, trained by local
+workers that `sepoa.supervisor` holds, or by workers elsewhere; and its report.
 
     sepoa experiment run SPEC [--results results] [--workers N | --no-workers]
                               [--database-url URL] [--threads N] [--force] [--dry-run]
@@ -19,22 +20,17 @@ import argparse
 import os
 import pathlib
 import shlex
+import signal
+import subprocess
 import sys
-from typing import NoReturn
+from collections.abc import Callable
+from pathlib import Path
 
+from sepoa.parser import Command, fail
+from sepoa.supervisor import Supervisor
 
-class OneLineParser(argparse.ArgumentParser):
-    """An argument error is one line on stderr, naming what is wrong (and where help is), with
-    exit status 2; not the whole usage. `sepoa`'s own commands use it too."""
-
-    def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
-
-
-def fail(message: str) -> int:
-    """Print `error: message` on stderr; the exit status of a user's mistake."""
-    print(f"error: {message}", file=sys.stderr)
-    return 2
+STOP_GRACE_S = 30.0
+"""how long a local worker has to checkpoint and release its run once the launcher is stopped"""
 
 
 def _database(p: argparse.ArgumentParser, default: str = "sqlite:///<results>/queue.db") -> None:
@@ -57,9 +53,7 @@ def say(line: str) -> None:
         os.close(devnull)
 
 
-def _experiment_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("experiment", help="a spec's grid of runs in the queue "
-                       "(docs/EXPERIMENTS.md)")
+def _experiment_arguments(p: argparse.ArgumentParser) -> None:
     actions = p.add_subparsers(dest="action", required=True)
     run = actions.add_parser("run", help="enqueue the spec's runs and train them with local "
                              "workers; finished runs stay, failed ones are queued again",
@@ -107,9 +101,7 @@ def _experiment_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore
                        "(default: this one, by absolute path)")
 
 
-def _report_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("report", help="figures and tables of a spec's results, or the "
-                       "teacher-calibration report of a label export")
+def _report_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("folder", nargs="?", default=None,
                    help="<results>/<spec name>, the folder holding spec.toml")
     p.add_argument("--calibration", metavar="EXPORT_FILE", default=None,
@@ -142,7 +134,7 @@ def _run_experiment(args: argparse.Namespace) -> int:
         workers = 0 if args.no_workers else args.workers
         return run_experiment(spec, results=results, database_url=url, workers=workers,
                               threads=args.threads, force=args.force, dry_run=args.dry_run,
-                              echo=say)
+                              echo=say, train=train_locally)
     except (SpecError, ValueError) as err:
         return fail(str(err))
     except DBAPIError as err:
@@ -273,17 +265,36 @@ def _run_report(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = OneLineParser(prog="sepoa", description=__doc__,
-                           formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = parser.add_subparsers(dest="command", required=True)
-    _experiment_parser(sub)
-    _report_parser(sub)
-    args = parser.parse_args(argv)
-    if args.command == "experiment":
-        return _run_experiment(args)
-    return _run_report(args)
+def train_locally(url: str, results: Path, workers: int, threads: int,
+                  echo: Callable[[str], None]) -> int | None:
+    """Run `workers` local `sepoa worker --once` processes to their end (the grid is done when
+    the last one exits); the signal that stopped the launcher, if one did."""
+    from experiments.launch import worker_argv, worker_slots
+
+    env = os.environ | {"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
+                        "PYTHONUNBUFFERED": "1", "SEPOA_DATABASE_URL": url}
+    with (results / "workers.log").open("a") as log, worker_slots(results, workers) as names, \
+            Supervisor(grace_s=STOP_GRACE_S) as children:
+        for name in names:
+            child = children.start(name, worker_argv(results, name, threads), stdout=log,
+                                   stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
+            if child is None:
+                break
+            echo(f"worker {name} started (pid {child.process.pid}; log {log.name})")
+        outcome = children.wait(until="all")
+        if outcome.signal is not None:
+            echo(f"stopping {len(children.running())} worker(s): each checkpoints its run and "
+                 "releases it; the runs resume from there on the next call")
+        children.stop()
+        for child in children.children:
+            if outcome.signal is None and child.returncode not in (0, -signal.SIGTERM,
+                                                                    -signal.SIGKILL):
+                echo(f"worker {child.name} exited with status {child.returncode}; "
+                     f"see {log.name}")
+    return outcome.signal
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+COMMANDS = {
+    "experiment": Command(_experiment_arguments, _run_experiment),
+    "report": Command(_report_arguments, _run_report),
+}

@@ -1,0 +1,378 @@
+"""`sepoa export`, `label-dataset`, `labeller` and `invite`: the commands on the queue database
+alone (no server, no trainer), and the database flags every command that opens it shares."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from typing import TYPE_CHECKING
+
+from sepoa.parser import ID_MAX, RUN_ID, Command, fail, integer, refusing
+
+if TYPE_CHECKING:
+    from sqlalchemy.engine import Engine
+
+
+def database_args(p: argparse.ArgumentParser, inherit: bool = False) -> None:
+    """`inherit`: on a sub-action, where an absent flag keeps the parent parser's value (so
+    `sepoa labeller --data-dir D create x` and `sepoa labeller create x --data-dir D` agree)."""
+    url = argparse.SUPPRESS if inherit else os.environ.get("SEPOA_DATABASE_URL")
+    data = argparse.SUPPRESS if inherit else os.environ.get("SEPOA_DATA_DIR", "data")
+    p.add_argument("--database-url", default=url,
+                   help="the queue database (env SEPOA_DATABASE_URL; default: "
+                   "sqlite:///<data-dir>/queue.db)")
+    p.add_argument("--data-dir", default=data,
+                   help="where the SQLite file, runs and clips live (env SEPOA_DATA_DIR)")
+
+
+LABELLER_ACTIONS = {
+    "revoke": "revoke a labeller's access (its labels stay): leasing, answering and taking "
+    "answers back stop at once on every server; reads (label count, clips) within "
+    "SEPOA_AUTH_CACHE_SECONDS (5 s)",
+    "activate": "restore a revoked labeller's access",
+    "token": "give a labeller a new token (printed once): the old one stops leasing, answering "
+    "and taking answers back at once on every server, and reading within "
+    "SEPOA_AUTH_CACHE_SECONDS (5 s)",
+}
+NAME_MAX = 100
+
+
+def database_url(args: argparse.Namespace) -> str:
+    """The queue database's URL; ValueError when it is not one this app can open."""
+    from labelqueue import check_url, sqlite_url
+
+    return check_url(args.database_url or sqlite_url(args.data_dir))
+
+
+def _export_arguments(p: argparse.ArgumentParser) -> None:
+    database_args(p)
+    p.add_argument("--format", choices=("jsonl", "csv", "parquet"), default="jsonl")
+    p.add_argument("--run", type=RUN_ID, default=None, help="one run's labels only")
+    p.add_argument("--out", default="-", help="file to write; - for standard output")
+    p.add_argument("--dataset", default=None, metavar="DIR",
+                   help="write the run's episodes and labels as a Minari dataset under "
+                        "the datasets folder DIR (needs --run; docs/EXPORT.md)")
+    p.add_argument("--dataset-id", default=None,
+                   help="with --dataset: the Minari dataset id (default "
+                        "sepoa/<task>/run-<N>-v0)")
+    p.add_argument("--clips-dir", default=None,
+                   help="with --dataset: the clips folder, which holds the runs' episodes "
+                        "(env SEPOA_CLIPS_DIR; default <data-dir>/clips)")
+
+
+def _export(args: argparse.Namespace) -> int:
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import DBAPIError
+
+    from labelqueue import NotFound, check_database, make_engine, session_factory
+    from labelqueue.export import write_export
+
+    if args.dataset is None and (args.dataset_id is not None or args.clips_dir is not None):
+        return fail("--dataset-id and --clips-dir go with --dataset DIR")
+    url = database_url(args)
+    parsed = make_url(url)
+    if parsed.get_backend_name() == "sqlite" and not os.path.exists(parsed.database or ""):
+        return fail(f"no queue database at {parsed.database} (--data-dir / --database-url)")
+    # A damaged file can read back fewer labels than it holds, without an error.
+    check_database(url)
+    if args.dataset is not None:
+        return _export_dataset(args, url)
+    if args.out != "-":
+        folder = os.path.dirname(os.path.abspath(args.out))
+        if not os.path.isdir(folder):
+            return fail(f"--out {args.out}: the folder {folder} does not exist; give a file in "
+                        "an existing folder, or - for standard output")
+        if os.path.isdir(args.out):
+            return fail(f"--out {args.out} is a folder; give a file name, or - for standard "
+                        "output")
+    engine = make_engine(url)
+    tmp = f"{args.out}.partial"
+    try:
+        with session_factory(engine)() as session:
+            if args.out == "-":
+                rows = write_export(session, fmt=args.format, out=sys.stdout.buffer,
+                                    run_id=args.run)
+            else:
+                with open(tmp, "wb") as f:
+                    rows = write_export(session, fmt=args.format, out=f, run_id=args.run)
+                os.replace(tmp, args.out)
+    except NotFound as err:
+        return fail(str(err))
+    except DBAPIError as err:
+        return fail(f"cannot read labels from {parsed.render_as_string(hide_password=True)}: "
+                    f"{str(err.orig).strip().splitlines()[0] if err.orig else err}")
+    except OSError as err:
+        return fail(f"cannot write --out {args.out}: {err.strerror or err}")
+    finally:
+        engine.dispose()
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    print(f"{rows} labels exported", file=sys.stderr)
+    return 0
+
+
+def _export_dataset(args: argparse.Namespace, url: str) -> int:
+    from pathlib import Path
+
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import DBAPIError
+
+    from labelqueue import NotFound, make_engine, session_factory
+    from labelqueue.dataset import DatasetError, write_dataset
+
+    if args.run is None:
+        return fail("--dataset needs --run N: a dataset holds one run's episodes")
+    if args.format != "jsonl" or args.out != "-":
+        return fail("--dataset writes a folder; --format and --out are for the label file")
+    if os.path.exists(args.dataset) and not os.path.isdir(args.dataset):
+        return fail(f"--dataset {args.dataset} is a file; give a folder")
+    clips_dir = args.clips_dir or os.environ.get("SEPOA_CLIPS_DIR")
+    clips = Path(clips_dir) if clips_dir else Path(args.data_dir) / "clips"
+    engine = make_engine(url)
+    try:
+        with session_factory(engine)() as session:
+            summary = write_dataset(session, run_id=args.run, clips_root=clips,
+                                    root=Path(args.dataset), dataset_id=args.dataset_id)
+    except (NotFound, DatasetError) as err:
+        return fail(str(err))
+    except DBAPIError as err:
+        return fail(f"cannot read labels from "
+                    f"{make_url(url).render_as_string(hide_password=True)}: "
+                    f"{str(err.orig).strip().splitlines()[0] if err.orig else err}")
+    except OSError as err:
+        where = f" ({err.filename})" if err.filename else ""
+        return fail(f"cannot write --dataset {args.dataset}{where}: {err.strerror or err}")
+    finally:
+        engine.dispose()
+    left = (f"; {summary.labels_left_out} labels left out (their episodes were not kept)"
+            if summary.labels_left_out else "")
+    print(f"{summary.dataset_id}: {summary.episodes} episodes, {summary.steps} steps, "
+          f"{summary.labels} labels on {summary.queries} queries{left} in {summary.path}\n"
+          f"load it with MINARI_DATASETS_PATH={args.dataset} and "
+          f"minari.load_dataset({summary.dataset_id!r})", file=sys.stderr)
+    return 0
+
+
+def _label_dataset_arguments(p: argparse.ArgumentParser) -> None:
+    from labelqueue.labelling import LABELLING_SELECTIONS
+
+    database_args(p)
+    p.add_argument("dataset", metavar="DATASET",
+                   help="a dataset export's folder (sepoa export --dataset), or its Minari "
+                   "id under MINARI_DATASETS_PATH; workers read it at the same path")
+    p.add_argument("--budget", type=integer("a budget", 1, ID_MAX), required=True,
+                   help="answers to ask for in all")
+    p.add_argument("--per-round", type=integer("a round size", 1, ID_MAX), default=None,
+                   help="pairs per round (default: the preset's)")
+    p.add_argument("--selection", choices=LABELLING_SELECTIONS, default="disagreement",
+                   help="how rounds after the first (uniform) draw their pairs: uniformly, "
+                   "or by the disagreement of the reward ensemble refitted on the labels "
+                   "so far (default)")
+    p.add_argument("--segment-length", type=integer("a segment length", 1, ID_MAX),
+                   default=None, help="steps per clip (default: the preset's, at most the "
+                   "dataset's shortest episode)")
+    p.add_argument("--name", default=None, help="the run's name (default: label <id>)")
+    p.add_argument("--preset", default="small",
+                   help="the size preset of the reward ensemble and rounds (default small)")
+    p.add_argument("--seed", type=integer("a seed", 0, ID_MAX), default=0)
+    p.add_argument("--teacher", choices=("human", "scripted"), default="human",
+                   help="who answers: people on the label page (default), or the scripted "
+                   "teacher from the dataset's true rewards")
+    p.add_argument("--clip-size", default=None, help="256x256 (default), 320x240 or 128x128")
+    p.add_argument("--instruction", default=None,
+                   help="what labellers are told \"better\" means (default: the task's)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a config override, e.g. reward.hidden_dim=64 or "
+                   "feedback.labels_per_query=3 (repeatable; VALUE is JSON, else text)")
+
+
+def _migrated_engine(args: argparse.Namespace) -> Engine:
+    """The queue database, checked and migrated; ValueError naming what is wrong."""
+    from sqlalchemy.exc import DBAPIError
+
+    from labelqueue import check_database, make_engine, migrate
+
+    url = database_url(args)
+    check_database(url)
+    try:
+        migrate(url)
+    except DBAPIError as err:
+        raise ValueError(f"cannot open the queue database: "
+                         f"{str(err.orig).strip().splitlines()[0]}") from None
+    return make_engine(url)
+
+
+def _overrides(pairs: list[str]) -> dict[str, object]:
+    """`--set KEY=VALUE` flags as config overrides; ValueError naming a malformed one."""
+    import json
+
+    out: dict[str, object] = {}
+    for pair in pairs:
+        key, sep, text = pair.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--set {pair!r}: give KEY=VALUE, e.g. reward.hidden_dim=64")
+        try:
+            out[key] = json.loads(text)
+        except ValueError:
+            out[key] = text
+    return out
+
+
+def _label_dataset(args: argparse.Namespace) -> int:
+    from sqlalchemy.exc import DBAPIError
+
+    from labelqueue import session_factory
+    from labelqueue.labelling import create_labelling_run, labelling_dataset
+    from runvocab.names import ConfigError
+
+    overrides = _overrides(args.set)
+    try:
+        found = labelling_dataset(args.dataset)
+    except ConfigError as err:
+        return fail(str(err))
+    try:  # the task's own sizes, where the trainer is installed (a worker checks them anyway)
+        from trainer.dataset_labelling import dataset_pool
+    except ImportError:
+        pass
+    else:
+        try:
+            dataset_pool(found, found.task)
+        except ValueError as err:
+            return fail(str(err))
+    engine = _migrated_engine(args)
+    try:
+        with session_factory(engine)() as session:
+            run = create_labelling_run(
+                session, dataset=args.dataset, budget=args.budget, per_round=args.per_round,
+                selection=args.selection, segment_length=args.segment_length, name=args.name,
+                preset=args.preset, seed=args.seed, teacher=args.teacher, config=overrides,
+                instruction=args.instruction, clip_size=args.clip_size)
+    except ConfigError as err:
+        return fail(str(err))
+    except DBAPIError as err:
+        return fail(f"cannot use the queue database: "
+                    f"{str(err.orig or err).strip().splitlines()[0]}")
+    finally:
+        engine.dispose()
+    h = run.config["feedback.segment_length"]
+    print(f"run {run.id} ({run.name!r}) queued: {run.budget} answers on pairs of {h}-step "
+          f"segments of {len(found.episodes)} episodes of {run.task} in {run.dataset}, "
+          f"{args.selection} after a uniform first round; a worker serves it "
+          f"(sepoa worker), people label it on the label page")
+    return 0
+
+
+def _labeller(args: argparse.Namespace) -> int:
+    from sqlalchemy import select
+    from sqlalchemy.exc import DBAPIError
+
+    from labelqueue import (
+        Conflict,
+        Labeller,
+        create_labeller,
+        find_labeller,
+        rotate_token,
+        session_factory,
+        update_labeller,
+    )
+
+    name: str | None = getattr(args, "name", None)  # every action but list has one
+    if name is not None and not 1 <= len(name) <= NAME_MAX:  # as POST /api/labellers
+        return fail(f"labeller name {name!r} is not valid: give 1 to {NAME_MAX} characters")
+    engine = _migrated_engine(args)
+    try:
+        with session_factory(engine)() as session:
+            if args.action == "create":
+                try:
+                    labeller, token = create_labeller(session, name=args.name, role=args.role)
+                except Conflict as err:
+                    return fail(str(err))
+                print(f"{labeller.role} {labeller.name!r} created; its token (shown once):")
+                print(token)
+            elif args.action == "list":
+                for lab in session.scalars(select(Labeller).order_by(Labeller.id)):
+                    state = "active" if lab.active else "revoked"
+                    print(f"{lab.id}\t{lab.name}\t{lab.role}\t{state}")
+            else:
+                found = find_labeller(session, name=args.name)
+                if found is None:
+                    return fail(f"no labeller named {name!r} (sepoa labeller list shows them)")
+                if args.action == "token":
+                    _, token = rotate_token(session, labeller_id=found.id)
+                    print(f"new token for {name!r} (shown once; the old one no longer works):")
+                    print(token)
+                else:
+                    active = args.action == "activate"
+                    update_labeller(session, labeller_id=found.id, active=active)
+                    print(f"{name!r} {'activated' if active else 'revoked'}")
+    except DBAPIError as err:  # damage the integrity check does not see, a database gone away
+        first = str(err.orig or err).strip().splitlines()[0]
+        return fail(f"cannot use the queue database: {first}")
+    finally:
+        engine.dispose()
+    return 0
+
+
+def _labeller_arguments(p: argparse.ArgumentParser) -> None:
+    database_args(p)
+    labeller_sub = p.add_subparsers(dest="action", required=True)
+    create = labeller_sub.add_parser("create", help="a new labeller; prints its token once")
+    create.add_argument("name")
+    create.add_argument("--role", choices=("labeller", "operator"), default="labeller")
+    database_args(create, inherit=True)
+    database_args(labeller_sub.add_parser("list", help="list labellers"), inherit=True)
+    for action, text in LABELLER_ACTIONS.items():
+        one = labeller_sub.add_parser(action, help=text)
+        one.add_argument("name")
+        database_args(one, inherit=True)
+
+
+def _invite(args: argparse.Namespace) -> int:
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import DBAPIError
+
+    from labelqueue import make_engine, session_factory, verify_code
+
+    url = database_url(args)
+    parsed = make_url(url)
+    if parsed.get_backend_name() == "sqlite" and not os.path.exists(parsed.database or ""):
+        return fail(f"no queue database at {parsed.database} (--data-dir / --database-url)")
+    engine = make_engine(url)
+    try:
+        with session_factory(engine)() as session:
+            verified = verify_code(session, args.code)
+    except DBAPIError as err:
+        return fail(f"cannot read the queue database: "
+                    f"{str(err.orig or err).strip().splitlines()[0]}")
+    finally:
+        engine.dispose()
+    if verified is None:
+        print(f"{args.code!r} is no participant's completion code (check it was copied whole)",
+              file=sys.stderr)
+        return 1
+    why = {"target": "complete: reached the target", "runs_over": "complete: the run ended",
+           "paused": "complete: paused by check pairs", None: "not complete yet"}[verified.why]
+    target = "" if verified.target_answers is None else f" of {verified.target_answers}"
+    print(f"valid: {verified.participant or '-'} (labeller {verified.labeller!r}, id "
+          f"{verified.labeller_id}), invite {verified.invite_id}, run "
+          f"{verified.run_id if verified.run_id is not None else 'all'}: "
+          f"{verified.counted}{target} decisive answers; {why}")
+    return 0
+
+
+def _invite_arguments(p: argparse.ArgumentParser) -> None:
+    database_args(p)
+    invite_sub = p.add_subparsers(dest="action", required=True)
+    verify = invite_sub.add_parser(
+        "verify", help="whose completion code it is and how far they got (exit 1: nobody's)")
+    verify.add_argument("code")
+    database_args(verify, inherit=True)
+
+
+COMMANDS = {
+    "export": Command(_export_arguments, refusing(ValueError)(_export)),
+    "label-dataset": Command(_label_dataset_arguments, refusing(ValueError)(_label_dataset)),
+    "labeller": Command(_labeller_arguments, refusing(ValueError)(_labeller)),
+    "invite": Command(_invite_arguments, refusing(ValueError)(_invite)),
+}
