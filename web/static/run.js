@@ -1,5 +1,6 @@
-// One run: status and controls, teacher switch, label export, learning curves and label
-// throughput; all of it refreshed every 5 s while the tab is visible.
+// One run: status and controls, teacher switch, label export, the configuration it trains
+// with, learning curves and label throughput; all of it but the configuration (read at the
+// start and after a teacher switch) refreshed every 5 s while the tab is visible.
 
 import { SignedOut, download, get, getBlob, post, request, start } from "./api.js";
 import { drawChart } from "./chart.js";
@@ -92,6 +93,31 @@ function showFlags(flags) {
     f.note ? [": ", el("q", {}, f.note)] : null)));
 }
 
+/** What the run trains with, every field, those the run sets itself marked. */
+async function showConfig() {
+  let config;
+  try {
+    config = await get(`/api/runs/${runId}/config`);
+  } catch (error) {
+    if (!(error instanceof SignedOut)) {
+      document.getElementById("config-summary").textContent = error.message;
+    }
+    return;
+  }
+  const own = new Set(config.overridden);
+  document.getElementById("config-summary").textContent = own.size
+    ? `set by this run: ${config.overridden.join(", ")}` : "presets and defaults only";
+  document.getElementById("config-note").textContent = config.stored
+    ? "Stored when the run was created: a preset changed since does not change it."
+    : "Stored before configurations were kept: its worker resolves it against today's presets, as shown.";
+  document.getElementById("config-rows").replaceChildren(
+    ...Object.entries(config.values).map(([path, value]) => {
+      const text = Array.isArray(value) ? value.join(", ") : String(value);
+      return el("tr", own.has(path) ? { "data-own": true } : {},
+        el("td", {}, own.has(path) ? el("mark", {}, path) : path), el("td", {}, text));
+    }));
+}
+
 function teacherText(run) {
   const eps = run.teacher_params?.eps;
   if (run.teacher === "human") {
@@ -176,6 +202,7 @@ async function switchTeacher(event) {
     await request("PUT", `/api/runs/${runId}/teacher`, body);
     notify(`Teacher: ${body.teacher}${eps === "" ? "" : ` (ε=${eps})`}.`);
     document.activeElement.blur();
+    showConfig();
   } catch (error) {
     if (!(error instanceof SignedOut)) notify(`Teacher: ${error.message}`, "error");
   }
@@ -257,6 +284,7 @@ function drawThroughput(stats, run) {
 start(() => {
   document.getElementById("teacher-form").addEventListener("submit", switchTeacher);
   startInstructionForm(runId, refresh);
+  showConfig();
   for (const button of document.querySelectorAll("[data-export]")) {
     button.addEventListener("click", () => exportLabels(button.dataset.export));
   }
