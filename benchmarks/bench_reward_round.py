@@ -7,7 +7,8 @@ of labels, with and without SURF, and how close it runs to the machine's matrix-
 The reward model is the run's (3 members of 3 x 256 on cheetah's 17 + 6 inputs, batch 128;
 segments of 50 steps, or 60 with SURF, cropped to 45-55, as the presets set them). Labels and
 SURF's unlabelled pairs are random segments with random answers, so no epoch stops early at
-98 % training accuracy (SURF rounds of real runs never did in the sepoa-fair-small grid). The
+98 % training accuracy (in the sepoa-fair-small grid, S-EPOA's rounds and SURF's from the third
+on never did). The
 useful arithmetic of a round is counted in multiply-adds of the members' linear layers (forward,
 and twice that backward where a gradient flows), and set against a plain matmul of the same
 shapes timed on the same threads.
