@@ -52,12 +52,7 @@ def as_json(cfg: RunConfig) -> dict[str, Any]:
 def from_json(stored: Mapping[str, Any]) -> RunConfig:
     """The configuration `as_json` stored; its text values read by their fields' own parser
     (`runvocab.config.parse_value`), so "inf" is a float again."""
-    texts = {}
-    for name, value in stored.items():
-        leaves = value.items() if isinstance(value, dict) else [(None, value)]
-        for leaf, item in leaves:
-            if isinstance(item, str):
-                texts[name if leaf is None else f"{name}.{leaf}"] = item
+    texts = {path: value for path, value in fields(stored).items() if isinstance(value, str)}
     return apply_overrides(from_dict(dict(stored)), typed_overrides(texts))
 
 
@@ -66,8 +61,12 @@ def run_config(run: Run) -> RunConfig:
     its fields resolved against today's presets (a ConfigError when they no longer resolve)."""
     if run.resolved_config is not None:
         return from_json(run.resolved_config)
+    return _resolved_now(run, run.teacher_params)
+
+
+def _resolved_now(run: Run, teacher_params: Mapping[str, Any]) -> RunConfig:
     return queued_run_config(task=run.task, algo=run.algo, preset=run.preset, seed=run.seed,
-                             budget=run.budget, teacher_params=run.teacher_params,
+                             budget=run.budget, teacher_params=teacher_params,
                              config=run.config)
 
 
@@ -92,8 +91,7 @@ def with_teacher(run: Run, params: Mapping[str, Any]) -> dict[str, Any] | None:
     """The run's stored configuration with new teacher parameters (None for a run stored
     without one): the teacher section as the run's overrides and `params` make it, the rest
     as stored. A ConfigError names a bad or contradictory parameter."""
-    fresh = queued_run_config(task=run.task, algo=run.algo, preset=run.preset, seed=run.seed,
-                              budget=run.budget, teacher_params=params, config=run.config)
+    fresh = _resolved_now(run, params)
     if run.resolved_config is None:
         return None
     return as_json(dataclasses.replace(from_json(run.resolved_config), teacher=fresh.teacher))
