@@ -25,10 +25,10 @@ from labelqueue import (
 
 @pytest.fixture
 def leasable(session: Session) -> tuple[int, int]:
-    """A running run with an ordinary query and a gold pair, gold due at every answer; (its
-    labeller's id, its id)."""
+    """A running run with an ordinary query and a gold pair, gold due by the second answer
+    (half the answers, whatever the schedule's offset); (its labeller's id, its id)."""
     create_run(session, name="r", task="dmc:cheetah_run", algo="pebble", budget=10,
-               config={"feedback.gold_rate": 1.0, "feedback.gold_min_accuracy": 0.5},
+               config={"feedback.gold_rate": 0.5, "feedback.gold_min_accuracy": 0.5},
                teacher="scripted")
     run = claim_run(session, worker_id="w")
     assert run is not None
