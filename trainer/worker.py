@@ -57,6 +57,7 @@ from labelqueue import (
     Label,
     Labeller,
     LabelSource,
+    LeaseError,
     Run,
     RunClosed,
     RunStatus,
@@ -93,6 +94,8 @@ from trainer.loop import CHECKPOINT, TrainingRun
 from trainer.trajectories import TrajectoryPool
 
 SCRIPTED_LABELLER = "scripted-teacher"
+SCRIPTED_LEASE_RETRIES = 100
+"""leases of one query the scripted teacher may lose in a row to other workers before it gives up"""
 DONE, FAILED = "done.json", "failed.json"
 """a run folder's end, as the worker marks it"""
 
@@ -304,8 +307,12 @@ class QueueHooks(RunHooks):
             self.beat(self.step)
 
     def _answer_as_scripted(self, queries: list[Query]) -> None:
-        """The scripted teacher takes every open query of the round it can lease."""
+        """The scripted teacher takes every open query of the round it can lease. Every worker on
+        a queue answers as the same scripted labeller, and a labeller's lease for one run
+        releases the one it held for another: a lease lost to another worker between lease and
+        submit is leased again."""
         by_db_id = {self.query_ids[q.query_id]: q for q in queries}
+        lost = 0
         with self.sessions() as session:
             while (leased := lease_next_query(session, labeller_id=self.scripted_id,
                                               run_id=self.run_id, gold=False)) is not None:
@@ -319,6 +326,12 @@ class QueueHooks(RunHooks):
                                  left_is_first=True, source="scripted")
                 except RunClosed:  # stopped meanwhile; the caller's stop check ends the run
                     return
+                except LeaseError:
+                    lost += 1
+                    if lost > SCRIPTED_LEASE_RETRIES:
+                        raise
+                    continue
+                lost = 0
 
     def answers(self, feedback: PreferenceFeedback, pool: TrajectoryPool,
                 final: bool) -> dict[str, GivenAnswer] | None:
