@@ -93,6 +93,8 @@ def up(data: Path) -> subprocess.Popen[str]:
          str(free_port()), "--no-demo", "--threads", "1"],
         cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         process_group=0,  # as a terminal's Ctrl-C: SIGINT to the whole foreground group
+        # As from a terminal: a suite started in the background inherits SIGINT ignored.
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
 
 
