@@ -22,7 +22,7 @@ import copy
 import json
 import os
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -254,8 +254,8 @@ class PreferenceFeedback:
         return {q.query_id: GivenAnswer(Answer(q.shadow_choice), self.labeller, "scripted", now)
                 for q in self.pending}
 
-    def finish_round(self, pool: TrajectoryPool,
-                     answers: Mapping[str, GivenAnswer]) -> dict[str, float]:
+    def finish_round(self, pool: TrajectoryPool, answers: Mapping[str, GivenAnswer],
+                     after_epoch: Callable[[], None] | None = None) -> dict[str, float]:
         """Close the open round with `answers` (by query id; a query without one is dropped and
         costs no budget; one with an answer costs the answers it stands for), log the new ones,
         and train the reward model on every label so far."""
@@ -308,7 +308,7 @@ class PreferenceFeedback:
         if len(self.pairs):
             start = time.perf_counter()
             unlabelled = self._unlabelled_pairs(pool) if self.model.cfg.surf else None
-            metrics |= self.model.train_round(self.pairs, unlabelled)
+            metrics |= self.model.train_round(self.pairs, unlabelled, after_epoch)
             metrics["reward_seconds"] = time.perf_counter() - start
         if self.estimator is not None:  # z_task follows the reward model from now on
             start = time.perf_counter()

@@ -273,7 +273,8 @@ class TrainingRun:
         fb = self._preferences()
         first = fb.rounds == 0
         start = time.perf_counter()
-        metrics = fb.finish_round(self.pool, answers)
+        metrics = fb.finish_round(self.pool, answers,
+                                  after_epoch=lambda: self.hooks.reward_epoch(self.step))
         self.buffer.relabel(fb.model.reward)
         metrics["reward_corr"] = self.buffer.reward_correlation()
         self.policy.round_closed(self.rng)
