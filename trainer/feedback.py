@@ -17,7 +17,7 @@ import copy
 import json
 import os
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -240,8 +240,8 @@ class PreferenceFeedback:
         return {q.query_id: GivenAnswer(Answer(q.shadow_choice), self.labeller, "scripted", now)
                 for q in self.pending}
 
-    def finish_round(self, pool: TrajectoryPool,
-                     answers: Mapping[str, GivenAnswer]) -> dict[str, float]:
+    def finish_round(self, pool: TrajectoryPool, answers: Mapping[str, GivenAnswer],
+                     after_epoch: Callable[[], None] | None = None) -> dict[str, float]:
         """Close the open round with `answers` (by query id; a query without one is dropped and
         costs no budget), log the new ones, and train the reward model on every label so far."""
         queries, by_id = self.pending, {t.id: t for t in pool.trajectories}
@@ -290,7 +290,7 @@ class PreferenceFeedback:
             metrics["compare_distinguishable_ratio"] = self.compare_ratio
         if len(self.pairs):
             unlabelled = self._unlabelled_pairs(pool) if self.model.cfg.surf else None
-            metrics |= self.model.train_round(self.pairs, unlabelled)
+            metrics |= self.model.train_round(self.pairs, unlabelled, after_epoch)
         if self.estimator is not None:  # z_task follows the reward model from now on
             metrics |= self.fit_estimator(pool)
         self.rounds += 1

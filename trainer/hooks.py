@@ -24,6 +24,10 @@ class RunHooks:
         """Called after each step of the skill pretraining an S-EPOA run does first when its
         snapshot is missing (keep it cheap)."""
 
+    def reward_epoch(self, step: int) -> None:
+        """Called after each epoch of a round's reward-model training, which can take many
+        minutes on a CPU with SURF (keep it cheap)."""
+
     def metrics(self, stream: str, row: dict[str, Any]) -> None:
         """A metric row the run just logged (stream: episodes | eval | rounds)."""
 

@@ -255,7 +255,8 @@ class TrainingRun:
         fb = self.feedback
         assert fb is not None
         first = fb.rounds == 0
-        metrics = fb.finish_round(self.pool, answers)
+        metrics = fb.finish_round(self.pool, answers,
+                                  after_epoch=lambda: self.hooks.reward_epoch(self.step))
         self.buffer.relabel(fb.model.reward)
         metrics["reward_corr"] = self.buffer.reward_correlation()
         self.policy.round_closed(self.rng)

@@ -7,6 +7,8 @@ that the second segment is preferred: 0 (first), 1 (second) or 0.5 (equal).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -122,8 +124,8 @@ class RewardModel:
         e, b, h, d = segments.shape
         return self.ensemble(segments.reshape(e, b * h, d)).reshape(e, b, h).sum(-1)
 
-    def train_round(self, pairs: LabelledPairs,
-                    unlabelled: PairSampler | None = None) -> dict[str, float]:
+    def train_round(self, pairs: LabelledPairs, unlabelled: PairSampler | None = None,
+                    after_epoch: Callable[[], None] | None = None) -> dict[str, float]:
         """Train on every label so far: up to `max_epochs` passes, each member on its own
         shuffle, stopping once the mean training accuracy reaches `stop_accuracy`. With
         `cfg.surf`, batches are temporally cropped and, given `unlabelled` pairs, pseudo-labelled
@@ -175,6 +177,8 @@ class RewardModel:
                 counted += int(decisive[0].sum())
             loss_value = total_loss / (n * e)
             accuracy = correct.sum().item() / (e * max(counted, 1))
+            if after_epoch is not None:  # a round is minutes of CPU: the caller's heartbeat
+                after_epoch()
             if accuracy >= self.cfg.stop_accuracy:
                 break
         metrics = {"reward_loss": loss_value, "reward_accuracy": accuracy,

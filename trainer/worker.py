@@ -241,6 +241,11 @@ class QueueHooks(RunHooks):
             status = self.beat(step, force=True)
         return status in (RunStatus.STOPPING, RunStatus.STOPPED)
 
+    def reward_epoch(self, step: int) -> None:
+        # A round's reward training ran 45 min under load: without a heartbeat the run looked
+        # dead (300 s) and another worker took it over, throwing the round away.
+        self.beat(step)
+
     def pretraining(self, step: int) -> None:
         # Heartbeats keep the run ours while its skill snapshot is made (minutes to hours);
         # pause and stop wait for the online phase, which can checkpoint.

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from runvocab.config import build_config
+from trainer.hooks import RunHooks
 from trainer.loop import TrainingRun
 
 
@@ -180,3 +181,23 @@ def test_pebble_resets_its_critic_at_the_first_round_then_catches_up_on_r_hat(tm
     assert rounds[0]["compare_distinguishable_ratio"] == "nan"
     assert 0 <= float(rounds[1]["compare_distinguishable_ratio"]) <= 1
     assert all(-1 <= float(r["reward_corr"]) <= 1 for r in rounds)
+
+
+def test_the_hooks_hear_of_every_reward_epoch_of_a_round(tmp_path):
+    """A round's reward training can run for many minutes: a worker heartbeats after each epoch
+    (otherwise its run looks dead and another worker takes it over mid-round)."""
+
+    class CountingHooks(RunHooks):
+        def __init__(self) -> None:
+            self.steps: list[int] = []
+
+        def reward_epoch(self, step: int) -> None:
+            self.steps.append(step)
+
+    hooks = CountingHooks()
+    cfg = build_config("dmc:cheetah_run", "tiny", {
+        "algo": "surf", "steps": 1200, "threads": 1, "run_dir": str(tmp_path / "run")})
+    TrainingRun(cfg, progress=False, hooks=hooks).train()
+    rounds = _rows(str(tmp_path / "run" / "rounds.csv"))
+    assert rounds and len(hooks.steps) == sum(int(r["reward_epochs"]) for r in rounds)
+    assert sorted(set(hooks.steps)) == [int(r["step"]) for r in rounds]  # at each round's step
