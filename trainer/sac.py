@@ -116,7 +116,6 @@ class SAC:
         self.target_entropy = -float(action_dim)
         if graph_ready is None:
             graph_ready = cfg.cuda_graph and device.type == "cuda"
-        self.capturable = graph_ready
         self.actor_opt = _adam(self.actor.parameters(), cfg, device, graph_ready)
         self.critic_opt = _adam(self.critic.parameters(), cfg, device, graph_ready)
         self.alpha_opt = _adam([self.log_alpha], cfg, device, graph_ready)
@@ -129,6 +128,11 @@ class SAC:
         if graph_ready:
             from trainer.graphed_update import GraphedUpdate  # it builds on this module
             self.graphed = GraphedUpdate(self, capture=device.type == "cuda")
+
+    @property
+    def capturable(self) -> bool:
+        """Whether the optimisers are built capturable: exactly when updates are graph-ready."""
+        return self.graphed is not None
 
     @property
     def alpha(self) -> torch.Tensor:
