@@ -18,11 +18,8 @@ a new run starts from with `reward.init_from`.
 from __future__ import annotations
 
 import dataclasses
-import os
 import time
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -30,11 +27,9 @@ import torch
 from labelqueue.dataset import DatasetError, LabelledDataset
 from runvocab.answers import Answer
 from runvocab.config import RewardConfig
+from trainer.reward_file import save_ensemble
 from trainer.reward_model import LabelledPairs, RewardModel
 from trainer.teachers import choice_target
-
-MODEL_FORMAT = "sepoa.reward_model"
-MODEL_VERSION = 1
 
 
 @dataclass(frozen=True)
@@ -274,51 +269,7 @@ def _unlabelled_pairs(dataset: LabelledDataset, length: int, seed: int):
 
 
 def save_reward_model(path: str, result: FitResult, dataset: LabelledDataset) -> None:
-    """The fitted ensemble as `reward.init_from` reads it; written under a temporary name."""
-    model = result.model
-    state: dict[str, Any] = {
-        "format": MODEL_FORMAT, "version": MODEL_VERSION, "task": dataset.task,
-        "obs_dim": int(dataset.info["obs_dim"]), "action_dim": int(dataset.info["action_dim"]),
-        "reward": dataclasses.asdict(model.cfg),
-        "ensemble": model.ensemble.state_dict(),
-        "dataset": str(dataset.info.get("dataset_id")), "fit": result.metrics,
-    }
-    tmp = f"{path}.partial"
-    try:
-        torch.save(state, tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-
-
-def load_reward_model(path: str | Path) -> dict[str, Any]:
-    """A saved reward model's contents; ValueError naming what is wrong with the file."""
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except FileNotFoundError:
-        raise ValueError(f"reward.init_from: no file {path}") from None
-    except Exception as err:  # noqa: BLE001 - torch raises several kinds for a bad file
-        raise ValueError(f"reward.init_from: {path} is not a saved reward model ({err})") \
-            from None
-    if not isinstance(state, dict) or state.get("format") != MODEL_FORMAT:
-        raise ValueError(f"reward.init_from: {path} is not a reward model from sepoa reward fit")
-    return state
-
-
-def init_reward_model(model: RewardModel, path: str, obs_dim: int, action_dim: int) -> None:
-    """Start `model` from the ensemble weights saved at `path` (`reward.init_from`);
-    ValueError when its shape differs from the run's."""
-    state = load_reward_model(path)
-    saved = state["reward"]
-    want = (obs_dim, action_dim, model.cfg.ensemble_size, model.cfg.hidden_layers,
-            model.cfg.hidden_dim)
-    have = (state["obs_dim"], state["action_dim"], saved["ensemble_size"],
-            saved["hidden_layers"], saved["hidden_dim"])
-    if have != want:
-        def shape(s: tuple) -> str:
-            return (f"{s[2]} members of {s[3]} x {s[4]} on {s[0]} observations and {s[1]} "
-                    "actions")
-        raise ValueError(f"reward.init_from: {path} holds {shape(have)} ({state['task']}); "
-                         f"this run's reward model is {shape(want)}")
-    model.ensemble.load_state_dict(state["ensemble"])
+    """The fitted ensemble as `reward.init_from` reads it (trainer/reward_file.py)."""
+    save_ensemble(path, result.model.ensemble, result.model.cfg, task=dataset.task,
+                  obs_dim=int(dataset.info["obs_dim"]), action_dim=int(dataset.info["action_dim"]),
+                  dataset=str(dataset.info.get("dataset_id")), fit=result.metrics)

@@ -16,6 +16,7 @@ from torch import nn
 
 from runvocab.config import RewardConfig
 from trainer.nets import EnsembleMLP
+from trainer.reward_file import load_ensemble
 from trainer.rime import RimeFilter
 from trainer.surf import PairSampler, pseudo_labels, random_crops
 
@@ -75,10 +76,8 @@ class RewardModel:
             activation=nn.LeakyReLU,
             output_activation=nn.Tanh,
         ).to(device)
-        if cfg.init_from:  # a model fitted offline (trainer/reward_fit.py)
-            from trainer.reward_fit import init_reward_model
-
-            init_reward_model(self, cfg.init_from, obs_dim, action_dim)
+        if cfg.init_from:  # a model fitted offline (sepoa reward fit)
+            load_ensemble(self.ensemble, cfg, cfg.init_from, obs_dim, action_dim)
         self.opt = torch.optim.Adam(self.ensemble.parameters(), lr=cfg.lr)
         self.generator = torch.Generator(device="cpu").manual_seed(seed)
         self.rime = RimeFilter(cfg) if cfg.rime else None

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -17,15 +17,13 @@ import torch.nn.functional as F
 from torch import nn
 
 from runvocab.config import SACConfig
+from trainer.graphed_update import GraphedUpdate, Metrics
 from trainer.nets import EnsembleMLP, NumpyMLP, mlp
-
-if TYPE_CHECKING:
-    from trainer.graphed_update import GraphedUpdate
 
 LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
 
 
-UpdateMetrics = dict[str, torch.Tensor]
+UpdateMetrics = Metrics
 """an update's metrics, 0-d tensors on the training device (read when a row is logged)"""
 
 
@@ -124,10 +122,11 @@ class SAC:
         self._critic_params = list(self.critic.parameters())
         self._target_params = list(self.critic_target.parameters())
         self._numpy_actor = NumpyMLP(list(self.actor.trunk)) if device.type == "cpu" else None
-        self.graphed: GraphedUpdate | None = None
+        self.graphed: GraphedUpdate[Batch] | None = None
         if graph_ready:
-            from trainer.graphed_update import GraphedUpdate  # it builds on this module
-            self.graphed = GraphedUpdate(self, capture=device.type == "cuda")
+            self.graphed = GraphedUpdate(
+                self.step, lambda: (self.actor_opt, self.critic_opt, self.alpha_opt),
+                capture=device.type == "cuda")
 
     @property
     def capturable(self) -> bool:
@@ -157,10 +156,11 @@ class SAC:
     def update(self, batch: Batch) -> UpdateMetrics:
         """One update; its metrics stay on the device as 0-d tensors, read (one host sync each)
         only when a row is logged: reading five per update cost five device syncs."""
+        slot = self.schedule()
         if self.graphed is not None:
-            metrics = self.graphed(batch)
+            metrics = self.graphed(batch, slot)
         else:
-            metrics = self.step(batch, *self.schedule())
+            metrics = self.step(batch, *slot)
         self.updates += 1
         return metrics
 

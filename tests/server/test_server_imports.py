@@ -95,3 +95,43 @@ def test_the_trainer_never_imports_the_server() -> None:
     # Every module, without importing torch: no `import server` / `from server` anywhere.
     for path in (ROOT / "trainer").rglob("*.py"):
         assert "server" not in imported_packages(path), path
+
+
+def project_modules() -> dict[str, Path]:
+    modules = {}
+    for package in LAYERS:
+        for path in (ROOT / package).rglob("*.py"):
+            parts = path.relative_to(ROOT).with_suffix("").parts
+            modules[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    return modules
+
+
+def imported_modules(path: Path, modules: dict[str, Path]) -> set[str]:
+    """The project's modules a module imports anywhere in it, lazy imports included: `from p
+    import m` names the submodule p.m where there is one, else the package p."""
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            named = {f"{node.module}.{alias.name}" for alias in node.names}
+            found |= named & modules.keys()
+            if not named <= modules.keys():  # a name defined in the module itself
+                found.add(node.module)
+    return found & modules.keys()
+
+
+def test_no_two_modules_import_each_other_even_lazily() -> None:
+    """A module imported from inside a function still ties the two: one of them should not
+    know the other (what trainer/graphed_update.py and trainer/reward_file.py are for)."""
+    modules = project_modules()
+    imports = {name: imported_modules(path, modules) - {name} for name, path in modules.items()}
+    for start in imports:  # a depth-first search from each module, back to itself
+        stack, seen = [(start, [start])], set()
+        while stack:
+            name, trail = stack.pop()
+            for after in imports[name]:
+                assert after != start, "import cycle: " + " -> ".join([*trail, start])
+                if after not in seen:
+                    seen.add(after)
+                    stack.append((after, [*trail, after]))
