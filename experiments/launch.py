@@ -76,12 +76,13 @@ def _missing_sqlite(url: str) -> bool:
     return parsed.get_backend_name() == "sqlite" and not Path(parsed.database or "").exists()
 
 
-def worker_argv(results: Path, worker_id: str, threads: int) -> list[str]:
+def worker_argv(results: Path, worker_id: str, threads: int,
+                device: str | None = None) -> list[str]:
     """A local worker's command line; the database URL goes in its environment
     (SEPOA_DATABASE_URL)."""
     return [sys.executable, "-m", "sepoa", "worker", "--data-dir", str(results),
             "--results", str(results), "--worker-id", worker_id, "--threads", str(threads),
-            "--once", "--poll-seconds", "1"]
+            "--once", "--poll-seconds", "1", *(["--device", device] if device else [])]
 
 
 def run_experiment(spec: Spec, *, results: Path, database_url: str | None = None,

@@ -2,7 +2,8 @@
 workers that `sepoa.supervisor` holds, or by workers elsewhere; and its report.
 
     sepoa experiment run SPEC [--results results] [--workers N | --no-workers]
-                              [--database-url URL] [--threads N] [--force] [--dry-run]
+                              [--database-url URL] [--threads N] [--device D] [--force]
+                              [--dry-run]
     sepoa experiment status SPEC [--results results] [--database-url URL]
     sepoa experiment slurm SPEC --workers N [--results DIR] ...   # an sbatch array script
     sepoa report <results>/<spec name>           # figures + tables -> <folder>/report
@@ -17,6 +18,7 @@ is not an error: the command does its work without printing.
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import pathlib
 import shlex
@@ -67,6 +69,9 @@ def _experiment_arguments(p: argparse.ArgumentParser) -> None:
                      help="only enqueue; workers elsewhere train the runs")
     run.add_argument("--threads", type=int, default=None,
                      help="torch threads per worker, instead of the spec's threads")
+    run.add_argument("--device", default=None,
+                     help="the device every local worker trains on (auto | cpu | cuda | "
+                     "cuda:N), instead of each run's own; the workers may share one GPU")
     run.add_argument("--dry-run", action="store_true",
                      help="say what would be enqueued; write nothing")
     run.add_argument("--force", action="store_true", help="delete and retrain runs whose "
@@ -132,9 +137,15 @@ def _run_experiment(args: argparse.Namespace) -> int:
 
         check_counts(args.workers, args.threads)
         workers = 0 if args.no_workers else args.workers
+        if args.device is not None:
+            if not workers:
+                return fail("--device is for local workers: give it to `sepoa worker` where "
+                            "the workers run")
+            check_device(args.device)
         return run_experiment(spec, results=results, database_url=url, workers=workers,
                               threads=args.threads, force=args.force, dry_run=args.dry_run,
-                              echo=say, train=train_locally)
+                              echo=say, train=functools.partial(train_locally,
+                                                                device=args.device))
     except (SpecError, ValueError) as err:
         return fail(str(err))
     except DBAPIError as err:
@@ -265,10 +276,18 @@ def _run_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def check_device(name: str) -> None:
+    """ValueError unless `name` is a device this host's torch can train on."""
+    from trainer.utils import pick_device  # torch: only when a device is named
+
+    pick_device(name)
+
+
 def train_locally(url: str, results: Path, workers: int, threads: int,
-                  echo: Callable[[str], None]) -> int | None:
+                  echo: Callable[[str], None], device: str | None = None) -> int | None:
     """Run `workers` local `sepoa worker --once` processes to their end (the grid is done when
-    the last one exits); the signal that stopped the launcher, if one did."""
+    the last one exits), on `device` when one is given; the signal that stopped the launcher,
+    if one did."""
     from experiments.launch import worker_argv, worker_slots
 
     env = os.environ | {"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
@@ -276,7 +295,7 @@ def train_locally(url: str, results: Path, workers: int, threads: int,
     with (results / "workers.log").open("a") as log, worker_slots(results, workers) as names, \
             Supervisor(grace_s=STOP_GRACE_S) as children:
         for name in names:
-            child = children.start(name, worker_argv(results, name, threads), stdout=log,
+            child = children.start(name, worker_argv(results, name, threads, device), stdout=log,
                                    stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
             if child is None:
                 break

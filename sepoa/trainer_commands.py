@@ -102,7 +102,8 @@ def _worker_arguments(p: argparse.ArgumentParser) -> None:
                    "worker restarted under the same id takes its runs back at once")
     p.add_argument("--once", action="store_true", help="exit when no run is waiting")
     p.add_argument("--poll-seconds", type=float, default=2.0)
-    p.add_argument("--device", default=None, help="overrides each run's device: auto|cpu|cuda")
+    p.add_argument("--device", default=None,
+                   help="overrides each run's device: auto | cpu | cuda | cuda:N")
     p.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads per run; default: the cores divided by "
                    "--host-processes")
@@ -137,6 +138,13 @@ def _run_worker(args: argparse.Namespace) -> int:
 
     if (args.threads is not None and args.threads < 1) or args.host_processes < 1:
         return fail("--threads and --host-processes must be at least 1")
+    if args.device is not None:
+        from trainer.utils import pick_device
+
+        try:  # here, not as each run starts: a run it cannot train would be marked failed
+            pick_device(args.device)
+        except ValueError as err:
+            return fail(str(err))
     threads = args.threads or max(1, cpu_cores() // args.host_processes)
     extra = {"worker_id": args.worker_id} if args.worker_id else {}
     try:

@@ -15,10 +15,18 @@ def set_seed(seed: int) -> None:
 
 
 def pick_device(name: str) -> torch.device:
-    if name == "auto":
+    """The device `name` (auto | cpu | cuda | cuda:<index>) stands for on this host; ValueError
+    for any other name, or for a CUDA device torch does not see here."""
+    kind, _, index = name.partition(":")
+    if kind not in ("auto", "cpu", "cuda") or (index and (kind != "cuda" or not index.isdigit())):
+        raise ValueError(f"unknown device {name!r}; valid: auto, cpu, cuda, cuda:<index>")
+    if kind == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError("--device cuda was asked for, but torch sees no CUDA device")
-    if name.split(":")[0] not in ("cpu", "cuda"):
-        raise ValueError(f"unknown device {name!r}; valid: auto, cpu, cuda")
+    if kind == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"device {name!r} was asked for, but torch sees no CUDA device")
+        count = torch.cuda.device_count()
+        if index and int(index) >= count:
+            raise ValueError(f"device {name!r}: torch sees {count} CUDA device(s) here, "
+                             f"cuda:0 to cuda:{count - 1}")
     return torch.device(name)

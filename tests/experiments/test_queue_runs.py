@@ -303,8 +303,24 @@ def test_one_command_trains_with_local_workers_and_a_killed_launch_resumes(
     assert "resuming dmc:cheetah_run pebble" in log  # from the killed launch's checkpoint
 
 
+def test_the_device_given_to_experiment_run_is_the_one_its_workers_train_on(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    spec_path = write(tmp_path, TINY.format(steps=200, seeds="[0]")
+                      + '[variants.PEBBLE]\nalgo = "pebble"\n')
+    results = tmp_path / "results"
+    assert main(["experiment", "run", str(spec_path), "--results", str(results),
+                 "--threads", "1", "--device", "cpu"]) == 0
+    folder = results / "tiny" / "dmc-cheetah_run" / "PEBBLE" / "eps0.3" / "s0"
+    assert json.loads((folder / "config.json").read_text())["device"] == "cpu"
+    assert "tiny: 1 finished" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize(("argv", "message"), [
     (["experiment", "run", "missing.toml"], "error: missing.toml: cannot read the spec"),
+    (["experiment", "run", "{spec}", "--device", "gpu"],
+     "error: unknown device 'gpu'; valid: auto, cpu, cuda, cuda:<index>"),
+    (["experiment", "run", "{spec}", "--no-workers", "--device", "cpu"],
+     "error: --device is for local workers"),
     (["experiment", "run", "{spec}", "--workers", "0"], "error: --workers must be at least 1"),
     (["experiment", "run", "{spec}", "--database-url", "mysql://x/y"], "error: "),
     (["experiment", "status", "{spec}", "--results", "{tmp}/nothing"],
@@ -321,3 +337,4 @@ def test_bad_input_gets_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[s
                 and argv[1] == "run" else argv) == 2
     err = capsys.readouterr().err
     assert err.startswith(message) and err.count("\n") == 1, err
+    assert not (tmp_path / "r" / "queue.db").exists()  # refused before anything was stored
