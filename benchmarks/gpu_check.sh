@@ -1,31 +1,60 @@
 #!/bin/bash
-# The GPU figures of the training-speed work, in one prepared run on a GPU host (about 6
-# minutes on an H100/H200): the graphed update's CUDA test, SAC updates/s (SB3, eager,
-# graphed) at both sizes, whole-run steps/s eager against graphed, and EGL rendering. Every
-# figure is written to $OUT as it comes, so a run stopped at its limit still leaves them.
+# The GPU figures of the training-speed work, in prepared runs on a GPU host. Steps:
+#   test    the graphed update's CUDA test (replayed graphs give the eager update's parameters)
+#   sac     SAC updates/s, SB3 / eager / graphed, at both sizes
+#   run     whole-run steps/s, eager against graphed (paper preset PEBBLE)
+#   doctor  EGL rendering
+#   shared  N runs sharing the GPU against one alone (`experiment run --device cuda`)
+# No step named: test sac run doctor (about 6 minutes on an H100/H200); `shared` takes about 4
+# more, so a host that allows 10 minutes a command gets two calls. Every figure is written to
+# $OUT as it comes, so a run stopped at its limit still leaves them.
 #
-# Here, once, from the project's root (wheels for the host, which has torch but no index):
-#   bash ../shared/gpu/prepare.sh pytest==9.2.0 pluggy==1.7.0 iniconfig==2.3.1 packaging==26.4
+# Here, once, from the project's root (wheels for the host, which has torch but no index; the
+# queue's packages are for `shared`, whose runs go through `sepoa experiment run`):
+#   bash ../shared/gpu/prepare.sh pytest==9.2.0 pluggy==1.7.0 iniconfig==2.3.1 packaging==26.4 \
+#       SQLAlchemy==2.0.58 greenlet==3.5.6 alembic==1.20.1 Mako==1.4.3 MarkupSafe==3.0.4
 # There, with .gpu carried along:
-#   OUT=/somewhere bash benchmarks/gpu_check.sh
+#   OUT=/somewhere bash benchmarks/gpu_check.sh [STEP ...]
 set -uo pipefail
 : "${OUT:?set OUT to a folder for the figures}"
+steps=("$@")
+[ ${#steps[@]} -eq 0 ] && steps=(test sac run doctor)
+for step in "${steps[@]}"; do
+    case "$step" in test|sac|run|doctor|shared) ;;
+    *) echo "unknown step $step; valid: test sac run doctor shared" >&2; exit 2 ;; esac
+done
 source .gpu/device-env.sh || exit 1
-step() { echo "== $1" | tee -a "$OUT/summary.txt"; }
+say() { echo "== $1" | tee -a "$OUT/summary.txt"; }
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv > "$OUT/device.txt" 2>&1
 python3 -c "import torch; print(torch.__version__, torch.cuda.get_device_name())" \
     >> "$OUT/device.txt" 2>&1
-step "graphed update equals eager on CUDA"
-timeout 120 python3 -m pytest -q -p no:cacheprovider tests/trainer/test_graphed_update.py \
-    > "$OUT/test_graphed_update.txt" 2>&1; tail -1 "$OUT/test_graphed_update.txt" >> "$OUT/summary.txt"
-step "SAC updates/s, SB3 / eager / graphed"
-timeout 240 python3 benchmarks/bench_sac.py --device cuda --threads 4 \
-    > "$OUT/bench_sac.txt" 2>&1; tail -3 "$OUT/bench_sac.txt" >> "$OUT/summary.txt"
-step "whole run, paper preset PEBBLE, 12 000 steps, eager / graphed"
-timeout 300 python3 benchmarks/bench_run.py --device cuda --preset paper --algo pebble \
-    --steps 12000 --threads 4 --from-step 10000 > "$OUT/bench_run.txt" 2>&1
-tail -3 "$OUT/bench_run.txt" >> "$OUT/summary.txt"
-step "EGL rendering"
-timeout 60 python3 -m sepoa.cli doctor --backend egl > "$OUT/doctor.txt" 2>&1
-tail -2 "$OUT/doctor.txt" >> "$OUT/summary.txt"
+for step in "${steps[@]}"; do
+    case "$step" in
+    test)
+        say "graphed update equals eager on CUDA"
+        timeout 120 python3 -m pytest -q -p no:cacheprovider tests/trainer/test_graphed_update.py \
+            tests/trainer/test_pick_device.py > "$OUT/test_graphed_update.txt" 2>&1
+        tail -1 "$OUT/test_graphed_update.txt" >> "$OUT/summary.txt" ;;
+    sac)
+        say "SAC updates/s, SB3 / eager / graphed"
+        timeout 240 python3 benchmarks/bench_sac.py --device cuda --threads 4 \
+            > "$OUT/bench_sac.txt" 2>&1
+        tail -3 "$OUT/bench_sac.txt" >> "$OUT/summary.txt" ;;
+    run)
+        say "whole run, paper preset PEBBLE, 12 000 steps, eager / graphed"
+        timeout 300 python3 benchmarks/bench_run.py --device cuda --preset paper --algo pebble \
+            --steps 12000 --threads 4 --from-step 10000 > "$OUT/bench_run.txt" 2>&1
+        tail -3 "$OUT/bench_run.txt" >> "$OUT/summary.txt" ;;
+    doctor)
+        say "EGL rendering"
+        timeout 60 python3 -m sepoa doctor --backend egl > "$OUT/doctor.txt" 2>&1
+        tail -2 "$OUT/doctor.txt" >> "$OUT/summary.txt" ;;
+    shared)
+        say "1 and 4 paper-preset PEBBLE runs sharing the GPU (graphed updates)"
+        timeout 300 python3 benchmarks/bench_shared_device.py --device cuda --preset paper \
+            --algo pebble --steps 10000 --from-step 6000 --workers 1,4 --threads 2 \
+            --set sac.cuda_graph=true > "$OUT/bench_shared_device.txt" 2>&1
+        tail -4 "$OUT/bench_shared_device.txt" >> "$OUT/summary.txt" ;;
+    esac
+done
 cat "$OUT/summary.txt"
