@@ -11,7 +11,8 @@
 - Mechanism, per run then per variant (mean and 95 % percentile-bootstrap interval over runs):
   SAC updates and those on r_hat (episodes.csv's last row), pretraining steps, labels used, the
   distinguishable ratio of the selected queries (rounds after the first), the same-agent
-  comparison (`compare_distinguishable_ratio`), reward_corr after the last round, and the
+  comparison (`compare_distinguishable_ratio`) and the paired difference of the two rules over
+  the rounds where both were judged, reward_corr after the last round, and the
   reward model's accuracy on held-out labelled pairs: rounds.csv `model_agreement`, the model
   of the round before scored on a round's new labels before it trains on them (rounds after
   the first).
@@ -136,6 +137,11 @@ def per_run(results: Results) -> pd.DataFrame:
                 if "compare_distinguishable_ratio" in later:
                     row["compared_distinguishable"] = later[
                         "compare_distinguishable_ratio"].mean()
+                    both = later[["distinguishable_ratio",
+                                  "compare_distinguishable_ratio"]].dropna()
+                    if len(both):  # the paired difference, round by round
+                        row["same_agent_gain"] = float(
+                            (both.iloc[:, 0] - both.iloc[:, 1]).mean())
             if "reward_corr" in rounds:
                 row["reward_corr_last"] = rounds["reward_corr"].iloc[-1]
         rows.append(row)
@@ -205,6 +211,7 @@ MECHANISM = {
     "labels_used": ("labels used", 0),
     "distinguishable": ("distinguishable ratio", 3),
     "compared_distinguishable": ("same agent, compared rule", 3),
+    "same_agent_gain": ("own rule − compared, same rounds", 3),
     "reward_corr_last": ("reward corr (last round)", 3),
     "heldout_accuracy": ("held-out accuracy", 3),
 }

@@ -480,7 +480,9 @@ MECHANISM_DOC = (
     "skill snapshot, the PEBBLE family's unsupervised phase. Distinguishable ratio: rounds.csv "
     "`distinguishable_ratio` over the rounds after the first; same agent, compared rule: "
     "`compare_distinguishable_ratio`, the compared rule's picks on the same pool and model over "
-    "the same rounds. Held-out accuracy: `model_agreement`, the reward model before a round "
+    "the same rounds; own rule − compared: per run the mean over those rounds of the two "
+    "ratios' difference, so its interval is that of a paired comparison. Held-out accuracy: "
+    "`model_agreement`, the reward model before a round "
     "scored on that round's new labels, which it has not trained on (rounds after the first).")
 ROUNDS_DOC = ("Per variant and round: the mean across runs of the distinguishable ratio of the "
               "selected queries (and of the compared rule's picks on the same agent).")

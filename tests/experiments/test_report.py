@@ -364,10 +364,15 @@ def analysed(tmp_path_factory: pytest.TempPathFactory) -> Path:
         _write_csv(run / "episodes.csv", "step,episode,return,updates,reward_updates",
                    [f"{updates},1,0,{updates},{updates - 200}"])
         if variant != "O":
+            # R also logs the compared rule's picks: 0.5 then 0.6 (0.7 at seed 3).
+            compared = (["", "0.5", f"{0.6 + 0.1 * (seed == 3):.1f}"] if variant == "R"
+                        else ["", "", ""])
             _write_csv(run / "rounds.csv",
-                       "step,round,labels_used,distinguishable_ratio,model_agreement,reward_corr",
-                       ["200,0,10,0.5,,0.1", f"400,1,20,{0.6 + 0.1 * (variant == 'R')},0.7,0.2",
-                        "600,2,30,0.8,0.9,0.3"][:2 if stopped else 3])
+                       "step,round,labels_used,distinguishable_ratio,model_agreement,"
+                       "reward_corr,compare_distinguishable_ratio",
+                       [f"200,0,10,0.5,,0.1,{compared[0]}",
+                        f"400,1,20,{0.6 + 0.1 * (variant == 'R')},0.7,0.2,{compared[1]}",
+                        f"600,2,30,0.8,0.9,0.3,{compared[2]}"][:2 if stopped else 3])
         marker = "stopped.json" if stopped else "done.json"
         (run / marker).write_text(json.dumps({"step": 400 if stopped else 800}))
     write_report(folder)
@@ -409,6 +414,12 @@ def test_the_preregistered_comparison_uses_finished_runs_and_rliable_intervals(
     # Rounds after the first: R (0.7 + 0.8) / 2; held-out accuracy (0.7 + 0.9) / 2.
     assert mechanism.loc["R", "distinguishable"] == pytest.approx(0.75)
     assert mechanism.loc["R", "heldout_accuracy"] == pytest.approx(0.8)
+    # The same-agent gain is paired round by round: 0.2 at seeds 0-2, (0.2 + 0.1) / 2 at seed 3.
+    r = mechanism.loc["R"]
+    assert r.compared_distinguishable == pytest.approx((3 * 0.55 + 0.6) / 4)
+    assert r.same_agent_gain == pytest.approx((3 * 0.2 + 0.15) / 4)
+    assert 0.15 <= r.same_agent_gain_low <= r.same_agent_gain <= r.same_agent_gain_high <= 0.2
+    assert math.isnan(mechanism.loc["X", "same_agent_gain"])
 
     index = (out / "report.md").read_text()
     assert "## Pre-registered comparison" in index
