@@ -106,7 +106,9 @@ def run_experiment(spec: Spec, *, results: Path, database_url: str | None = None
         finished = sum(s is RunStatus.FINISHED for s in done.present.values())
         echo(f"{spec.name}: {len(spec.runs())} runs; {len(done.created)} enqueued, "
              f"{len(done.requeued)} queued again, {len(done.replaced)} redefined, "
-             f"{finished} finished, {len(done.present) - finished} queued or running "
+             f"{finished} finished, {len(done.present) - finished} queued or running"
+             + (f", {len(done.adopted)} finished before (their folders' results kept)"
+                if done.adopted else "") + " "
              f"({where}{'; dry run, nothing written' if dry_run else ''})")
         if dry_run:
             return 0

@@ -28,11 +28,13 @@ from labelqueue import (
     Conflict,
     Run,
     RunStatus,
+    adopt_finished_grid_run,
     enqueue_grid_run,
     grid_runs,
     release_grid_key,
     set_run_status,
 )
+from runvocab.config import to_dict
 from runvocab.queued_run import TOP_LEVEL_FIELDS
 
 RETRIED = (RunStatus.FAILED, RunStatus.STOPPED)
@@ -76,6 +78,40 @@ class Enqueued:
     """redefined with --force: the old run let go of its key, its folder was deleted"""
     present: dict[str, RunStatus] = field(default_factory=dict)
     """already queued, running or finished: left as they are"""
+    adopted: list[str] = field(default_factory=list)
+    """queued, but its folder holds the finished results of this very run (carried from another
+    queue database): recorded as finished, not trained again"""
+
+
+HOST_FIELDS = ("run_dir", "threads", "device", "skill.snapshot_dir")
+"""config fields a worker sets for its host: they differ between machines, not between results"""
+
+
+def _flat(config: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in config.items():
+        if isinstance(value, dict):
+            out |= _flat(value, f"{prefix}{key}.")
+        else:
+            out[prefix + key] = value
+    return out
+
+
+def finished_results(results: Path, spec: Spec, run: GridRun) -> dict[str, Any] | None:
+    """The done.json of `run`'s folder when it holds this run's finished results: its
+    config.json is the spec's configuration of the run (host fields aside). None otherwise."""
+    folder = results / grid_key(spec, run)
+    try:
+        done = json.loads((folder / "done.json").read_text())
+        stored = json.loads((folder / "config.json").read_text())
+    except (OSError, ValueError):
+        return None
+    expected = json.loads(json.dumps(to_dict(run.config()), default=str))
+    mine, theirs = _flat(expected), _flat(stored)
+    for name in HOST_FIELDS:
+        mine.pop(name, None)
+        theirs.pop(name, None)
+    return done if mine == theirs else None
 
 
 def conflicts(spec: Spec, sessions: sessionmaker[Session]) -> dict[str, Run]:
@@ -103,7 +139,8 @@ def enqueue_spec(spec: Spec, sessions: sessionmaker[Session], results: Path,
     """Put the spec's grid in the queue (see the module docstring); SpecError for a redefined
     run without `force`, or one a worker still owns. Nothing is written on a dry run."""
     clash = conflicts(spec, sessions)
-    fields = {grid_key(spec, run): queued_fields(spec, run) for run in spec.runs_seed_first()}
+    runs = {grid_key(spec, run): run for run in spec.runs_seed_first()}
+    fields = {key: queued_fields(spec, run) for key, run in runs.items()}
     if clash and not force:
         lines = [f"{key}: {_describe(row, fields[key])}" for key, row in clash.items()]
         shown = "\n  ".join(lines[:5]) + (f"\n  ... {len(lines) - 5} more"
@@ -135,7 +172,13 @@ def enqueue_spec(spec: Spec, sessions: sessionmaker[Session], results: Path,
             out.replaced.append(key)
         for key, values in fields.items():
             row, created = enqueue_grid_run(session, grid_key=key, **values)
-            if created:
+            done = (finished_results(results, spec, runs[key])
+                    if row.status is RunStatus.QUEUED and key not in clash else None)
+            if done is not None:
+                adopt_finished_grid_run(session, run_id=row.id, step=int(done.get("step", 0)),
+                                        labels_used=int(done.get("labels_used", 0)))
+                out.adopted.append(key)
+            elif created:
                 if key not in clash:
                     out.created.append(key)
             elif row.status in RETRIED:

@@ -36,7 +36,13 @@ from labelqueue.gold import (
     lift_pause,
     paused_labellers,
 )
-from labelqueue.grid import enqueue_grid_run, find_grid_run, grid_runs, release_grid_key
+from labelqueue.grid import (
+    adopt_finished_grid_run,
+    enqueue_grid_run,
+    find_grid_run,
+    grid_runs,
+    release_grid_key,
+)
 from labelqueue.instructions import set_instruction
 from labelqueue.invites import (
     InviteClosed,
@@ -197,4 +203,5 @@ __all__ = [
     "find_grid_run",
     "grid_runs",
     "release_grid_key",
+    "adopt_finished_grid_run",
 ]

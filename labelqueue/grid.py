@@ -71,3 +71,21 @@ def release_grid_key(session: Session, *, run_id: int) -> Run:
         run = get_row(session, Run, run_id)
         detach(session, run)
     return run
+
+
+def adopt_finished_grid_run(session: Session, *, run_id: int, step: int,
+                            labels_used: int) -> Run:
+    """A queued grid run whose results folder already holds its finished results (carried from
+    another queue database: another machine, a lost database) is recorded as finished at
+    `step`, so no worker trains it again. Conflict unless the run is queued."""
+    with transaction(session):
+        now = utcnow()
+        done = changed(session, update(Run).where(Run.id == run_id,
+                                                  Run.status == RunStatus.QUEUED)
+                       .values(status=RunStatus.FINISHED, step=step, labels_used=labels_used,
+                               started_at=now, finished_at=now))
+        run = get_row(session, Run, run_id)
+        if not done:
+            raise Conflict(f"run {run_id} ({run.grid_key}) is {run.status}, not queued")
+        detach(session, run)
+    return run

@@ -252,6 +252,25 @@ algo = "sepoa"
         rows = grid_runs(session, prefix="tiny/")
     assert sorted(str(r.status) for r in rows.values()) == ["finished"] * 2 + ["queued"] * 2
 
+    # The results folder carried to a new queue database (another machine): the finished runs
+    # are recorded as finished, not trained again; the failed ones are queued; a finished
+    # folder whose config is not the spec's run is not taken for it.
+    (results / "queue.db").unlink()
+    tampered = root / "S-EPOA" / "eps0.3" / "s1" / "config.json"
+    config = json.loads(tampered.read_text())
+    tampered.write_text(json.dumps(config | {"steps": 500}))
+    capsys.readouterr()
+    assert main(["experiment", "run", str(spec_path), "--results", str(results),
+                 "--no-workers"]) == 0
+    assert "1 finished before (their folders' results kept)" in capsys.readouterr().out
+    url, sessions = sessions_for(results)
+    with sessions() as session:
+        rows = grid_runs(session, prefix="tiny/")
+    status = {key.split("/", 2)[2]: str(row.status) for key, row in rows.items()}
+    assert status == {"S-EPOA/eps0.3/s0": "finished", "S-EPOA/eps0.3/s1": "queued",
+                      "broken/eps0.3/s0": "queued", "broken/eps0.3/s1": "queued"}
+    assert rows["tiny/dmc-cheetah_run/S-EPOA/eps0.3/s0"].step == 400
+
 
 @pytest.mark.slow
 def test_one_command_trains_with_local_workers_and_a_killed_launch_resumes(
