@@ -28,6 +28,14 @@ TASK_SKILL_DRAWS = ("refit", "episode")
 DEVICES = ("auto", "cpu", "cuda")
 FAMILIES = ("dmc", "metaworld")
 
+
+def device_name_error(name: str) -> str | None:
+    """Why `name` is not a device a run can name (auto, cpu, cuda or cuda:<index>), or None."""
+    kind, _, index = name.partition(":")
+    if kind in DEVICES and (not index or (kind == "cuda" and index.isdigit())):
+        return None
+    return f"unknown device {name!r}; valid: {', '.join(DEVICES)}, cuda:<index>"
+
 TASKS_JSON = Path(__file__).with_name("tasks.json")
 
 

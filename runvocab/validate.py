@@ -21,6 +21,7 @@ from runvocab.names import (
     TIES,
     ConfigError,
     all_tasks,
+    device_name_error,
     unknown,
     unknown_task,
 )
@@ -109,10 +110,9 @@ def _check_names(cfg: RunConfig) -> None:
     for name, (value, valid) in choices.items():
         if value not in valid:
             raise ConfigError(name, unknown(name, value, valid))
-    kind, _, index = cfg.device.partition(":")
-    if kind not in ("auto", "cpu", "cuda") or (index and (kind != "cuda" or not index.isdigit())):
-        raise ConfigError("device", f"unknown device {cfg.device!r}; valid: auto, cpu, cuda, "
-                                    "cuda:<index>")
+    problem = device_name_error(cfg.device)
+    if problem:
+        raise ConfigError("device", problem)
 
 
 def _check_numbers(cfg: RunConfig) -> None:

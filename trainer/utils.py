@@ -7,6 +7,8 @@ import random
 import numpy as np
 import torch
 
+from runvocab.names import device_name_error
+
 
 def set_seed(seed: int) -> None:
     random.seed(seed)
@@ -17,9 +19,10 @@ def set_seed(seed: int) -> None:
 def pick_device(name: str) -> torch.device:
     """The device `name` (auto | cpu | cuda | cuda:<index>) stands for on this host; ValueError
     for any other name, or for a CUDA device torch does not see here."""
+    problem = device_name_error(name)
+    if problem:
+        raise ValueError(problem)
     kind, _, index = name.partition(":")
-    if kind not in ("auto", "cpu", "cuda") or (index and (kind != "cuda" or not index.isdigit())):
-        raise ValueError(f"unknown device {name!r}; valid: auto, cpu, cuda, cuda:<index>")
     if kind == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if kind == "cuda":
