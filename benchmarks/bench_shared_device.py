@@ -136,8 +136,8 @@ def main() -> int:
     if single is None:
         print("(no N = 1 among --workers: no ratio)")
     else:
-        print(f"median run alone: {single:.1f} steps/s; "
-              f"per-run rates at the largest N: median {statistics.median(rates):.1f}")
+        print(f"one run alone: {single:.1f} steps/s; "
+              f"per-run rates at the last N: median {statistics.median(rates):.1f}")
     return 0
 
 
