@@ -47,7 +47,12 @@ from tqdm import tqdm
 from runvocab.config import RunConfig, save_json
 from runvocab.validate import validate
 from trainer.agent_reward import make_agent_reward
-from trainer.checkpoint import load_checkpoint, save_checkpoint
+from trainer.checkpoint import (
+    load_checkpoint,
+    random_state,
+    restore_random_state,
+    save_checkpoint,
+)
 from trainer.envs import make_env
 from trainer.feedback import Feedback, GivenAnswer, LabelLog, NoFeedback, PreferenceFeedback
 from trainer.hooks import RunHooks
@@ -330,13 +335,9 @@ class TrainingRun:
             "agent": self.agent.state_dict(),
             "buffer": self.buffer.state_dict(),
             "pool": self.pool.state_dict(),
-            "rng": self.rng.bit_generator.state,
-            "torch_rng": torch.get_rng_state(),
             "env_rng": self.env.rng_state(),
             "eval_env_rng": self.eval_env.rng_state(),
-        }
-        if self.device.type == "cuda":
-            state["cuda_rng"] = torch.cuda.get_rng_state()
+        } | random_state(self.rng, self.device)
         # No feedback section in a SAC run's checkpoint: reward_fit reads that as "no reward
         # model".
         if feedback := self.feedback.state_dict():
@@ -368,10 +369,7 @@ class TrainingRun:
         self.agent.load_state_dict(state["agent"])
         self.buffer.load_state_dict(state["buffer"])
         self.pool.load_state_dict(state["pool"])
-        self.rng.bit_generator.state = state["rng"]
-        torch.set_rng_state(state["torch_rng"])
-        if "cuda_rng" in state and self.device.type == "cuda":
-            torch.cuda.set_rng_state(state["cuda_rng"])
+        restore_random_state(state, self.rng, self.device)
         self.env.set_rng_state(state["env_rng"])
         self.eval_env.set_rng_state(state["eval_env_rng"])
         self.feedback.load_state_dict(state.get("feedback", {}))
