@@ -51,3 +51,20 @@ def save_checkpoint(path: str, state: dict) -> None:
 
 def load_checkpoint(path: str) -> dict:
     return _from_plain(torch.load(path, map_location="cpu", weights_only=True))
+
+
+def random_state(rng: np.random.Generator, device: torch.device) -> dict:
+    """The process's random streams a run draws from: its NumPy generator, torch's CPU stream
+    and, on a GPU, CUDA's (a checkpoint's `rng`, `torch_rng` and `cuda_rng`)."""
+    state = {"rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state()}
+    if device.type == "cuda":
+        state["cuda_rng"] = torch.cuda.get_rng_state()
+    return state
+
+
+def restore_random_state(state: dict, rng: np.random.Generator, device: torch.device) -> None:
+    """Puts back what `random_state` saved (CUDA's stream only where both ran on a GPU)."""
+    rng.bit_generator.state = state["rng"]
+    torch.set_rng_state(state["torch_rng"])
+    if "cuda_rng" in state and device.type == "cuda":
+        torch.cuda.set_rng_state(state["cuda_rng"])

@@ -215,3 +215,75 @@ def test_runs_needing_one_snapshot_pretrain_it_once(tmp_path, monkeypatch) -> No
     assert made == [path] and sorted(results) == [False, False, True]
     assert waits  # the others waited, calling back (a worker's heartbeat)
     assert module.pretrain_once(cfg, path) is False and made == [path]
+
+
+class Stopped(Exception):
+    """What the tests below raise to stop a pretraining midway, as a kill would."""
+
+
+def _stop_at(step: int):
+    def tick(now: int) -> None:
+        if now == step:
+            raise Stopped
+    return tick
+
+
+def _snapshot_tensors(path) -> dict[str, torch.Tensor]:
+    def flat(prefix, obj):
+        if isinstance(obj, torch.Tensor):
+            yield prefix, obj
+        elif isinstance(obj, dict):
+            for k, v in obj.items():
+                yield from flat(f"{prefix}.{k}", v)
+    state = torch.load(path, weights_only=True)
+    return dict(flat("", {"agent": state["agent"], "skill_nets": state["skill_nets"]}))
+
+
+def _rows(path) -> list[dict[str, str]]:
+    with open(os.path.splitext(path)[0] + ".csv", newline="") as f:
+        return [{k: v for k, v in r.items() if k != "fps"} for r in csv.DictReader(f)]
+
+
+def test_a_pretraining_stopped_midway_goes_on_to_the_snapshot_an_unstopped_one_writes(
+        tmp_path, capsys):
+    steps = {"skill.pretrain_steps": 700}
+    straight = str(tmp_path / "straight.pt")  # never checkpointed
+    SkillPretraining(_tiny("aps", checkpoint_every=10_000, **steps), out=straight,
+                     progress=False).run()
+
+    cfg = _tiny("aps", checkpoint_every=200, **steps)
+    out = str(tmp_path / "stopped.pt")
+    with pytest.raises(Stopped):  # killed at step 500, past its checkpoints at 200 and 400
+        SkillPretraining(cfg, out=out, progress=False, tick=_stop_at(500)).run()
+    assert os.path.exists(out + ".partial") and not os.path.exists(out)
+    assert [int(r["step"]) for r in _rows(out)] == [200, 400]
+
+    resumed = SkillPretraining(cfg, out=out, progress=False)
+    assert resumed.resumed_from == 400
+    resumed.run()
+    assert "pretraining goes on from step 400 of 700" in capsys.readouterr().err
+    assert not os.path.exists(out + ".partial")  # gone with the snapshot written
+
+    ours, theirs = _snapshot_tensors(out), _snapshot_tensors(straight)
+    assert ours.keys() == theirs.keys() and len(ours) > 10
+    for name, tensor in ours.items():
+        assert torch.equal(tensor, theirs[name]), name  # bit for bit
+    # Every episode's metrics once, as the straight run logged them (steps/s aside).
+    assert _rows(out) == _rows(straight) and len(_rows(out)) == 3
+
+
+def test_a_pretraining_checkpoint_of_other_settings_or_unreadable_is_refused_by_name(tmp_path):
+    out = str(tmp_path / "s.pt")
+    with pytest.raises(Stopped):
+        SkillPretraining(_tiny("aps", checkpoint_every=200), out=out, progress=False,
+                         tick=_stop_at(250)).run()
+    with pytest.raises(ValueError, match=r"s\.pt\.partial holds a pretraining with other "
+                       r"settings \(seed 0 there, 3 here\); remove it"):
+        SkillPretraining(_tiny("aps", seed=3, checkpoint_every=200), out=out, progress=False)
+    # A setting that leaves the snapshot as it is (the checkpoint period) may change.
+    assert SkillPretraining(_tiny("aps", checkpoint_every=50), out=out,
+                            progress=False).resumed_from == 200
+    with open(out + ".partial", "wb") as f:
+        f.write(b"cut short")
+    with pytest.raises(ValueError, match="not a readable pretraining checkpoint.*remove it"):
+        SkillPretraining(_tiny("aps"), out=out, progress=False)

@@ -9,6 +9,12 @@ with `torch.load(weights_only=True)`, written atomically) holding the task, back
 the configuration used, the agent's weights and the backend's nets, and no path: any number of
 online runs of the task load it with `load_snapshot` and `build_skill_agent`.
 `build_skill_agent(..., snapshot=None)` gives fresh nets: the paper's "no pretraining" ablation.
+
+Pretraining is hours of a run's life, so it is resumable: every `checkpoint_every` steps, at an
+episode's end, it writes its whole state (nets, optimisers, replay buffer, every RNG) to
+`<snapshot>.partial`, and a pretraining of the same settings started later (a worker taking the
+run over, `sepoa pretrain` again) goes on from there, to the very snapshot an uninterrupted one
+writes. The file goes once the snapshot is written.
 """
 
 from __future__ import annotations
@@ -18,6 +24,7 @@ import fcntl
 import hashlib
 import json
 import os
+import sys
 import time
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -28,9 +35,15 @@ from tqdm import tqdm
 
 from runvocab.config import RunConfig, to_dict
 from runvocab.validate import validate
-from trainer.checkpoint import load_checkpoint, save_checkpoint
+from trainer.checkpoint import (
+    load_checkpoint,
+    random_state,
+    restore_random_state,
+    save_checkpoint,
+)
 from trainer.envs import make_env
 from trainer.metrics import CSVStream
+from trainer.schedule import Period
 from trainer.skills import (
     SkillAgent,
     SkillBackend,
@@ -42,6 +55,7 @@ from trainer.skills.common import mean_metrics
 from trainer.utils import pick_device, set_seed
 
 SNAPSHOT_FORMAT = "sepoa-skill-snapshot/1"
+PROGRESS_FORMAT = "sepoa-skill-pretraining-progress/1"
 
 
 class Snapshot(NamedTuple):
@@ -103,6 +117,11 @@ def snapshot_path(cfg: RunConfig) -> str:
     task, backend and pretraining length, pretrained with `snapshot_seed(cfg)`: runs of one
     seed (any teacher, eps or online setting) share it."""
     return cfg.skill.snapshot or default_snapshot_path(cfg, snapshot_seed(cfg))
+
+
+def progress_path(path: str) -> str:
+    """Where an unfinished pretraining of the snapshot `path` keeps its state."""
+    return path + ".partial"
 
 
 def check_pretrain_config(cfg: RunConfig) -> RunConfig:
@@ -218,7 +237,53 @@ class SkillPretraining:
         self.buffer = SkillReplayBuffer(self.obs_dim, self.action_dim, self.backend.skill_dim,
                                         capacity, self.device, cfg.seed)
         self.rng = np.random.default_rng(cfg.seed)
-        self.step = 0
+        self.step = self.episode = 0
+        self.progress_file = progress_path(self.path)
+        self.checkpoints = Period(max(cfg.checkpoint_every, 1))  # 0: at every episode's end
+        self.resumed_from = 0
+        """the step this pretraining went on from (0: it started afresh)"""
+        if os.path.exists(self.progress_file):
+            self._load_progress()
+
+    def _settings(self) -> str:
+        return json.dumps(snapshot_settings(self.cfg, self.cfg.seed), sort_keys=True,
+                          default=str)
+
+    def _save_progress(self) -> None:
+        """Everything `run` needs to go on from this episode's end as if never stopped."""
+        self.checkpoints.happened(self.step)
+        state = {
+            "format": PROGRESS_FORMAT, "settings": self._settings(),
+            "step": self.step, "episode": self.episode,
+            "agent": self.agent.state_dict(), "skill_nets": self.backend.state_dict(),
+            "buffer": self.buffer.state_dict(), "env_rng": self.env.rng_state(),
+        } | random_state(self.rng, self.device)
+        save_checkpoint(self.progress_file, state)
+
+    def _load_progress(self) -> None:
+        where = self.progress_file
+        try:
+            state = load_checkpoint(where)
+        except Exception:  # noqa: BLE001 - torch raises several kinds for a bad file
+            raise ValueError(f"{where} is not a readable pretraining checkpoint (cut short or "
+                             "another file); remove it to pretrain from the start") from None
+        if not isinstance(state, dict) or state.get("format") != PROGRESS_FORMAT:
+            raise ValueError(f"{where} is not a pretraining checkpoint; remove it to pretrain "
+                             "from the start")
+        if state["settings"] != self._settings():
+            saved, ours = json.loads(state["settings"]), json.loads(self._settings())
+            differ = sorted(_differences(saved, ours))
+            raise ValueError(f"{where} holds a pretraining with other settings ("
+                             f"{', '.join(differ)}); remove it to pretrain from the start, or "
+                             "pretrain with its settings")
+        self.agent.load_state_dict(state["agent"])
+        self.backend.load_state_dict(state["skill_nets"])
+        self.buffer.load_state_dict(state["buffer"])
+        restore_random_state(state, self.rng, self.device)
+        self.env.set_rng_state(state["env_rng"])
+        self.step = self.resumed_from = state["step"]
+        self.episode = state["episode"]
+        self.checkpoints.happened(self.step)
 
     def _update(self) -> dict[str, float]:
         batch = self.buffer.sample(self.cfg.sac.batch_size)
@@ -233,14 +298,19 @@ class SkillPretraining:
         cfg, s, env, rng = self.cfg, self.cfg.skill, self.env, self.rng
         os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
         metrics_path = os.path.splitext(self.path)[0] + ".csv"
-        if os.path.exists(metrics_path):  # left by a run killed before its snapshot
+        if self.resumed_from:
+            print(f"pretraining goes on from step {self.resumed_from} of {s.pretrain_steps} "
+                  f"({self.progress_file}; remove it to start afresh)", file=sys.stderr,
+                  flush=True)
+            CSVStream(metrics_path).keep_rows(lambda r: int(r["step"]) <= self.resumed_from)
+        elif os.path.exists(metrics_path):  # left by a run killed before its first checkpoint
             os.remove(metrics_path)
         stream = CSVStream(metrics_path)
-        episode, episode_return = 0, 0.0
+        episode_return = 0.0
         updates: list[dict[str, float]] = []
         start = time.time()
-        bar = tqdm(total=s.pretrain_steps, disable=not self.progress, dynamic_ncols=True,
-                   unit="step")
+        bar = tqdm(total=s.pretrain_steps, initial=self.step, disable=not self.progress,
+                   dynamic_ncols=True, unit="step")
         obs, new_episode = env.reset(), True
         while self.step < s.pretrain_steps:
             if new_episode or self.step % s.update_skill_every == 0:
@@ -261,27 +331,44 @@ class SkillPretraining:
             if self.tick is not None:
                 self.tick(self.step)
             if result.done:
-                episode += 1
-                row = {"step": self.step, "episode": episode, "return": episode_return,
-                       "fps": self.step / max(time.time() - start, 1e-9)}
+                self.episode += 1
+                row = {"step": self.step, "episode": self.episode, "return": episode_return,
+                       "fps": (self.step - self.resumed_from) / max(time.time() - start, 1e-9)}
                 row |= mean_metrics(updates)
                 stream.write(row)
                 if updates:
                     bar.set_postfix(r_int=f"{row['intrinsic_reward']:.3f}", refresh=False)
                 updates, episode_return = [], 0.0
+                if self.checkpoints.due(self.step) and self.step < s.pretrain_steps:
+                    self._save_progress()  # before the reset, whose RNG draws it keeps
                 obs, new_episode = env.reset(), True
         bar.close()
         env.close()
         save_snapshot(self.path, cfg, self.agent, self.backend, self.obs_dim, self.action_dim,
                       self.step)
+        if os.path.exists(self.progress_file):
+            os.remove(self.progress_file)
         return self.path
+
+
+def _differences(saved: dict, ours: dict, prefix: str = "") -> list[str]:
+    """The dotted names of the settings two `snapshot_settings` dicts disagree on."""
+    out = []
+    for key in sorted(set(saved) | set(ours)):
+        a, b = saved.get(key), ours.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _differences(a, b, f"{prefix}{key}.")
+        elif a != b:
+            out.append(f"{prefix}{key} {a!r} there, {b!r} here")
+    return out
 
 
 def pretrain(cfg: RunConfig, out: str | None = None, progress: bool = True,
              tick: Callable[[int], None] | None = None) -> str:
     """Pretrain skills for `cfg.task` with `cfg.skill`; returns the snapshot's path (`out`, by
-    default `default_snapshot_path(cfg)`). Refuses to overwrite an existing snapshot. `tick`
-    is called with the step after every step."""
+    default `default_snapshot_path(cfg)`). Refuses to overwrite an existing snapshot; goes on
+    from `<out>.partial` where an unfinished pretraining left one. `tick` is called with the
+    step after every step."""
     return SkillPretraining(cfg, out, progress, tick).run()
 
 
