@@ -72,6 +72,12 @@ def _experiment_arguments(p: argparse.ArgumentParser) -> None:
     run.add_argument("--device", default=None,
                      help="the device every local worker trains on (auto | cpu | cuda | "
                      "cuda:N), instead of each run's own; the workers may share one GPU")
+    run.add_argument("--variant", action="append", default=None, metavar="LABEL",
+                     help="only this variant's runs (repeat for more): part of a grid for "
+                     "another host, whose finished run folders, copied into these results, "
+                     "count as finished here")
+    run.add_argument("--seed", action="append", type=int, default=None, metavar="N",
+                     help="only runs of this seed (repeat for more)")
     run.add_argument("--dry-run", action="store_true",
                      help="say what would be enqueued; write nothing")
     run.add_argument("--force", action="store_true", help="delete and retrain runs whose "
@@ -131,6 +137,8 @@ def _run_experiment(args: argparse.Namespace) -> int:
         if args.action == "slurm":
             return _slurm(args, url)
         spec = load_spec(args.spec, check=args.action == "run")
+        if args.action == "run" and (args.variant or args.seed):
+            spec = spec.only(args.variant, args.seed)
         if args.action == "status":
             return _status(spec, results, url)
         from experiments.launch import check_counts, run_experiment

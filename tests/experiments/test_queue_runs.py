@@ -6,6 +6,7 @@ one-command launch with local workers. The Slurm script: test_slurm.py, test_slu
 from __future__ import annotations
 
 import json
+import shutil
 import signal
 import subprocess
 import sys
@@ -338,3 +339,47 @@ def test_bad_input_gets_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[s
     err = capsys.readouterr().err
     assert err.startswith(message) and err.count("\n") == 1, err
     assert not (tmp_path / "r" / "queue.db").exists()  # refused before anything was stored
+
+
+def test_part_of_a_grid_trained_on_another_host_counts_as_finished_in_the_whole(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`--variant`/`--seed` train part of a grid elsewhere (a GPU host); its finished run
+    folders, copied into the main results folder, are that grid's runs, finished."""
+    spec_path = write(tmp_path, TINY.format(steps=400, seeds="[0, 1]") + """
+[variants.PEBBLE]
+algo = "pebble"
+[variants.S-EPOA]
+algo = "sepoa"
+""")
+    elsewhere, here = tmp_path / "gpu-host", tmp_path / "results"
+    assert main(["experiment", "run", str(spec_path), "--results", str(elsewhere),
+                 "--no-workers", "--variant", "PEBBLE", "--seed", "1"]) == 0
+    assert "tiny: 1 runs; 1 enqueued" in capsys.readouterr().out
+    url, sessions = sessions_for(elsewhere)
+    run_worker(worker_config(url, tmp_path / "data", results_dir=elsewhere, threads=1))
+    part = elsewhere / "tiny" / "dmc-cheetah_run" / "PEBBLE" / "eps0.3" / "s1"
+    assert json.loads((part / "done.json").read_text())["step"] == 400
+
+    shutil.copytree(part, here / "tiny" / "dmc-cheetah_run" / "PEBBLE" / "eps0.3" / "s1")
+    assert main(["experiment", "run", str(spec_path), "--results", str(here),
+                 "--no-workers"]) == 0
+    assert "tiny: 4 runs; 3 enqueued" in (out := capsys.readouterr().out)
+    assert "1 finished before (their folders' results kept)" in out
+    _, sessions = sessions_for(here)
+    with sessions() as session:
+        rows = grid_runs(session, prefix="tiny/")
+    assert {k.split("/", 2)[2]: str(r.status) for k, r in rows.items()} == {
+        "PEBBLE/eps0.3/s0": "queued", "PEBBLE/eps0.3/s1": "finished",
+        "S-EPOA/eps0.3/s0": "queued", "S-EPOA/eps0.3/s1": "queued"}
+
+    # What the spec lacks is said at the door, in one line, and nothing is written.
+    for args, message in (
+            (["--variant", "SURF"], "spec 'tiny' has no variant 'SURF'; its variants: "
+                                    "'PEBBLE', 'S-EPOA'"),
+            (["--variant", "PEBBLE", "--seed", "7"], "spec 'tiny' runs none of seeds 7 with "
+                                                     "'PEBBLE'")):
+        assert main(["experiment", "run", str(spec_path), "--results", str(tmp_path / "none"),
+                     "--no-workers", *args]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1
+        assert not (tmp_path / "none").exists()

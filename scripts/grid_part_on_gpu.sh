@@ -1,0 +1,55 @@
+#!/bin/bash
+# Part of an experiment grid, trained on a lent GPU host in one command of a few minutes.
+# Runs that finish come back in $OUT/runs.tar.gz as folders of a results folder; untarred into
+# the grid's own results folder, `sepoa experiment run SPEC --results <results>` counts them as
+# finished ("finished before"). A run that does not finish in time is lost there (nothing is
+# resumed across devices); its episodes.csv comes back in $OUT/unfinished.tar.gz, for its rate.
+#
+# Here, once, from the project's root (wheels for the host; the queue's packages are needed):
+#   bash ../shared/gpu/prepare.sh pytest==9.2.0 pluggy==1.7.0 iniconfig==2.3.1 packaging==26.4 \
+#       SQLAlchemy==2.0.58 greenlet==3.5.6 alembic==1.20.1 Mako==1.4.3 MarkupSafe==3.0.4
+# and, when the grid trains on a commit of its own (as every run of a grid must), its code:
+#   echo /.grid-code/ >> .git/info/exclude
+#   rm -rf .grid-code && mkdir .grid-code && git archive GRID_COMMIT | tar -x -C .grid-code
+# There, carrying .gpu (and .grid-code):
+#   OUT=/somewhere CODE=.grid-code LIMIT=540 WORKERS=14 bash scripts/grid_part_on_gpu.sh \
+#       specs/small/sepoa-fair.toml --variant PEBBLE --variant SURF --seed 16 --seed 17
+# Back here:
+#   tar -xzf <files>/runs.tar.gz -C <results>
+# LIMIT (seconds) bounds the training, so that packing the results fits the command's limit;
+# DEVICE (default cuda) is where the workers train.
+set -uo pipefail
+: "${OUT:?set OUT to a folder for what comes back}"
+[ $# -ge 1 ] || { echo "usage: OUT=... bash $0 SPEC [--variant LABEL ...] [--seed N ...]" >&2; exit 2; }
+spec=$1; shift
+code=$(cd "${CODE:-.}" && pwd) || exit 2
+[ -f "$code/$spec" ] || { echo "no spec $spec under $code" >&2; exit 2; }
+limit=${LIMIT:-540}
+workers=${WORKERS:-14}
+device=${DEVICE:-cuda}
+source .gpu/device-env.sh || exit 1
+export PYTHONPATH=$code:$PYTHONPATH  # the grid's code first
+results=$(mktemp -d)
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv > "$OUT/device.txt" 2>&1
+echo "code: $code; spec $spec $*; $workers workers on $device; limit ${limit}s" >> "$OUT/device.txt"
+start=$(date +%s)
+(cd "$code" && timeout --signal=TERM --kill-after=20 "$limit" python3 -m sepoa experiment run \
+    "$spec" --results "$results" --workers "$workers" --threads 1 --device "$device" "$@") \
+    > "$OUT/launch.txt" 2>&1
+echo "launch exited $? after $(( $(date +%s) - start )) s" >> "$OUT/launch.txt"
+cp "$results/workers.log" "$OUT/workers.log" 2>/dev/null
+cd "$results" || exit 1
+# Finished runs: what the grid's report reads (no checkpoint, no TensorBoard files).
+find . -name done.json -printf '%h\n' | sort > finished.txt
+while read -r run; do
+    for f in config.json done.json episodes.csv eval.csv rounds.csv labels.jsonl; do
+        [ -f "$run/$f" ] && echo "$run/$f"
+    done
+done < finished.txt > keep.txt
+tar -czf "$OUT/runs.tar.gz" -T keep.txt
+find . -name episodes.csv -printf '%h\n' | sort | comm -23 - finished.txt \
+    | sed 's|$|/episodes.csv|' > unfinished.txt
+tar -czf "$OUT/unfinished.tar.gz" -T unfinished.txt
+echo "finished: $(wc -l < finished.txt) runs; unfinished: $(wc -l < unfinished.txt)" \
+    | tee -a "$OUT/launch.txt"
+cat finished.txt
