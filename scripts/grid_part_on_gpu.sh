@@ -16,8 +16,9 @@
 #       specs/small/sepoa-fair.toml --variant PEBBLE --variant SURF --seed 16 --seed 17
 # Back here:
 #   tar -xzf <files>/runs.tar.gz -C <results>
-# LIMIT (seconds) bounds the training, so that packing the results fits the command's limit;
-# DEVICE (default cuda) is where the workers train.
+# LIMIT (seconds) bounds the training, so that packing the results fits the command's limit.
+# The workers train on each run's own device (`auto`: the GPU); DEVICE=D passes `--device D`,
+# for code whose `experiment run` has that option.
 set -uo pipefail
 : "${OUT:?set OUT to a folder for what comes back}"
 [ $# -ge 1 ] || { echo "usage: OUT=... bash $0 SPEC [--variant LABEL ...] [--seed N ...]" >&2; exit 2; }
@@ -26,15 +27,15 @@ code=$(cd "${CODE:-.}" && pwd) || exit 2
 [ -f "$code/$spec" ] || { echo "no spec $spec under $code" >&2; exit 2; }
 limit=${LIMIT:-540}
 workers=${WORKERS:-14}
-device=${DEVICE:-cuda}
+device=(); [ -n "${DEVICE:-}" ] && device=(--device "$DEVICE")
 source .gpu/device-env.sh || exit 1
 export PYTHONPATH=$code:$PYTHONPATH  # the grid's code first
 results=$(mktemp -d)
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv > "$OUT/device.txt" 2>&1
-echo "code: $code; spec $spec $*; $workers workers on $device; limit ${limit}s" >> "$OUT/device.txt"
+echo "code: $code; spec $spec $*; $workers workers ${device[*]}; limit ${limit}s" >> "$OUT/device.txt"
 start=$(date +%s)
 (cd "$code" && timeout --signal=TERM --kill-after=20 "$limit" python3 -m sepoa experiment run \
-    "$spec" --results "$results" --workers "$workers" --threads 1 --device "$device" "$@") \
+    "$spec" --results "$results" --workers "$workers" --threads 1 "${device[@]}" "$@") \
     > "$OUT/launch.txt" 2>&1
 echo "launch exited $? after $(( $(date +%s) - start )) s" >> "$OUT/launch.txt"
 cp "$results/workers.log" "$OUT/workers.log" 2>/dev/null
