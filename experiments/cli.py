@@ -55,6 +55,12 @@ def _experiment_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore
                      help="only enqueue; workers elsewhere train the runs")
     run.add_argument("--threads", type=int, default=None,
                      help="torch threads per worker, instead of the spec's threads")
+    run.add_argument("--variant", action="append", default=None, metavar="LABEL",
+                     help="only this variant's runs (repeat for more): part of a grid for "
+                     "another host, whose finished run folders, copied into these results, "
+                     "count as finished here")
+    run.add_argument("--seed", action="append", type=int, default=None, metavar="N",
+                     help="only runs of this seed (repeat for more)")
     run.add_argument("--dry-run", action="store_true",
                      help="say what would be enqueued; write nothing")
     run.add_argument("--force", action="store_true", help="delete and retrain runs whose "
@@ -105,6 +111,8 @@ def _run_experiment(args: argparse.Namespace) -> int:
         if args.action == "slurm":
             return _slurm(args)
         spec = load_spec(args.spec, check=args.action == "run")
+        if args.action == "run" and (args.variant or args.seed):
+            spec = spec.only(args.variant, args.seed)
         url = check_url(args.database_url) if args.database_url else None
         if args.action == "status":
             return _status(spec, results, url)

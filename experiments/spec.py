@@ -10,6 +10,7 @@ describes the format.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import tomllib
@@ -142,6 +143,28 @@ class Spec:
         rank = {run.dir: i for i, run in enumerate(self.runs())}
         seeds = {v.label: v.seeds or self.seeds for v in self.variants}
         return sorted(self.runs(), key=lambda r: (seeds[r.variant].index(r.seed), rank[r.dir]))
+
+    def only(self, variants: list[str] | None = None, seeds: list[int] | None = None) -> Spec:
+        """The part of the grid with these variants (labels) and seeds (None: all of them):
+        the same runs, folders and configurations, so a part trained elsewhere (another host,
+        a GPU) joins the whole grid's results. SpecError naming what the spec lacks."""
+        labels = [v.label for v in self.variants]
+        for label in variants or []:
+            if label not in labels:
+                raise SpecError(f"spec {self.name!r} has no variant {label!r}; its variants: "
+                                + ", ".join(repr(x) for x in labels))
+        kept = []
+        for v in self.variants:
+            if variants is not None and v.label not in variants:
+                continue
+            own = tuple(s for s in v.seeds or self.seeds if seeds is None or s in seeds)
+            if own:
+                kept.append(dataclasses.replace(v, seeds=own))
+        if not kept:
+            chosen = ", ".join(repr(x) for x in variants) if variants else "any variant"
+            raise SpecError(f"spec {self.name!r} runs none of seeds "
+                            f"{', '.join(map(str, seeds or []))} with {chosen}")
+        return dataclasses.replace(self, variants=tuple(kept))
 
 
 def safe_name(text: str) -> str:
