@@ -42,8 +42,11 @@ cp "$results/workers.log" "$OUT/workers.log" 2>/dev/null
 cd "$results" || exit 1
 # Finished runs: what the grid's report reads (no checkpoint, no TensorBoard files).
 find . -name done.json -printf '%h\n' | sort > finished.txt
+gpu=$(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -1)
 while read -r run; do
-    for f in config.json done.json episodes.csv eval.csv rounds.csv labels.jsonl; do
+    # config.json says `auto`: where the run actually trained is kept beside it.
+    echo "${gpu:-no GPU}, $(date -u +%F) (scripts/grid_part_on_gpu.sh)" > "$run/trained_on.txt"
+    for f in config.json done.json episodes.csv eval.csv rounds.csv labels.jsonl trained_on.txt; do
         [ -f "$run/$f" ] && echo "$run/$f"
     done
 done < finished.txt > keep.txt
