@@ -287,3 +287,34 @@ def test_a_pretraining_checkpoint_of_other_settings_or_unreadable_is_refused_by_
         f.write(b"cut short")
     with pytest.raises(ValueError, match="not a readable pretraining checkpoint.*remove it"):
         SkillPretraining(_tiny("aps"), out=out, progress=False)
+
+
+def test_a_run_stopped_while_pretraining_its_snapshot_goes_on_from_the_last_checkpoint(
+        tmp_path):
+    """A worker told to go while an S-EPOA run pretrains its snapshot leaves the run; the next
+    worker's run pretrains on from where the first checkpointed, not from step 0."""
+    from trainer.hooks import RunHooks
+    from trainer.loop import TrainingRun
+
+    class Departing(RunHooks):
+        def __init__(self, leave_at: int | None):
+            self.steps: list[int] = []
+            self.leave_at = leave_at
+
+        def pretraining(self, step):
+            self.steps.append(step)
+            if step == self.leave_at:
+                raise Stopped
+
+    cfg = build_config("dmc:cheetah_run", "tiny", {
+        "algo": "sepoa", "steps": 10, "run_dir": str(tmp_path / "run"), "threads": 1,
+        "checkpoint_every": 100, "skill.snapshot": str(tmp_path / "skills.pt")})
+    first = Departing(leave_at=250)
+    with pytest.raises(Stopped):
+        TrainingRun(cfg, progress=False, hooks=first)
+    assert os.path.exists(tmp_path / "skills.pt.partial")
+    second = Departing(leave_at=None)
+    TrainingRun(cfg, progress=False, hooks=second)
+    assert second.steps == list(range(201, cfg.skill.pretrain_steps + 1))  # on from 200
+    assert os.path.exists(tmp_path / "skills.pt")
+    assert not os.path.exists(tmp_path / "skills.pt.partial")
