@@ -201,3 +201,50 @@ def test_the_hooks_hear_of_every_reward_epoch_of_a_round(tmp_path):
     rounds = _rows(str(tmp_path / "run" / "rounds.csv"))
     assert rounds and len(hooks.steps) == sum(int(r["reward_epochs"]) for r in rounds)
     assert sorted(set(hooks.steps)) == [int(r["step"]) for r in rounds]  # at each round's step
+
+
+def test_a_run_killed_after_a_round_resumes_past_its_reward_training(tmp_path):
+    """A round's reward training is minutes of CPU: the checkpoint written as the round closes
+    keeps it, so a run killed soon after goes on without training that round again, and ends
+    as an uninterrupted run does."""
+
+    class Killed(Exception):
+        pass
+
+    class Hooks(RunHooks):
+        def __init__(self, kill: bool) -> None:
+            self.kill, self.rounds, self.epochs = kill, 0, []
+
+        def metrics(self, stream, row):
+            self.rounds += stream == "rounds"
+
+        def reward_epoch(self, step):
+            self.epochs.append(step)
+
+        def stop_requested(self, step):
+            if self.kill and self.rounds:
+                raise Killed  # the first step after the first round: no periodic checkpoint
+            return False
+
+    overrides = {"algo": "pebble", "steps": 1000, "threads": 1, "checkpoint_every": 100_000}
+    reference = build_config("dmc:cheetah_run", "tiny",
+                             overrides | {"run_dir": str(tmp_path / "reference")})
+    TrainingRun(reference, progress=False).train()
+    cfg = build_config("dmc:cheetah_run", "tiny", overrides | {"run_dir": str(tmp_path / "cut")})
+    first = Hooks(kill=True)
+    with pytest.raises(Killed):
+        TrainingRun(cfg, progress=False, hooks=first).train()
+    trained = sorted(set(first.epochs))
+    assert len(trained) == 1  # the first round trained, then the kill
+
+    again = Hooks(kill=False)
+    TrainingRun(cfg, resume=True, progress=False, hooks=again).train()
+    assert trained[0] not in again.epochs  # that round's training was not done twice
+    rounds = _rows(os.path.join(cfg.run_dir, "rounds.csv"))
+    assert [r["step"] for r in rounds] == [
+        r["step"] for r in _rows(os.path.join(reference.run_dir, "rounds.csv"))]
+
+    def strip(rows):
+        return [{k: v for k, v in r.items() if k != "answered_at"} for r in rows]
+
+    assert strip(_labels(cfg.run_dir)) == strip(_labels(reference.run_dir))
