@@ -93,6 +93,19 @@ def _config(folder: Any) -> dict[str, Any]:
         return {}
 
 
+TRAINED_ON = "trained_on.txt"
+"""where a run trained outside the grid's own workers (scripts/grid_part_on_gpu.sh writes it:
+config.json says only `auto`)"""
+
+
+def _trained_on(folder: Any) -> str:
+    """The first field of the run's trained_on.txt (the GPU's name), or "" where it has none."""
+    try:
+        return (folder / TRAINED_ON).read_text().split(",")[0].strip()
+    except OSError:
+        return ""
+
+
 def pretraining_steps(config: dict[str, Any]) -> int:
     """Environment steps a run's agent learned from before its reward existed: S-EPOA's skill
     snapshot, PEBBLE's family's unsupervised phase; 0 for the SAC oracle."""
@@ -124,6 +137,7 @@ def per_run(results: Results) -> pd.DataFrame:
             "updates": episode.get("updates", math.nan),
             "reward_updates": episode.get("reward_updates", math.nan),
             "pretraining_steps": pretraining_steps(config) if config else math.nan,
+            "trained_on": _trained_on(folder),
         }
         rounds = rounds_by_run.get(key)
         if rounds is not None and len(rounds):
@@ -367,5 +381,11 @@ def runs_markdown(runs: pd.DataFrame) -> str:
              number(r.updates, 0), number(r.reward_updates, 0),
              number(getattr(r, "labels_used", math.nan), 0)]
             for r in runs.itertuples()]
-    return _table(["variant", "seed", "state", "step", "primary metric", "SAC updates",
-                   "updates on r̂", "labels used"], rows)
+    header = ["variant", "seed", "state", "step", "primary metric", "SAC updates",
+              "updates on r̂", "labels used"]
+    # Only a grid trained partly elsewhere (a GPU host) says where each run trained.
+    if "trained_on" in runs and runs["trained_on"].fillna("").astype(bool).any():
+        header.append("trained on")
+        for row, where in zip(rows, runs["trained_on"].fillna(""), strict=True):
+            row.append(where or "the grid's workers")
+    return _table(header, rows)

@@ -488,7 +488,8 @@ ROUNDS_DOC = ("Per variant and round: the mean across runs of the distinguishabl
               "selected queries (and of the compared rule's picks on the same agent).")
 RUNS_DOC = ("Every planned run with its state (done, stopped by an operator, failed, partial "
             "or not started), the step it reached, its primary metric (finished runs only) "
-            "and its counts.")
+            "and its counts; where part of the grid trained on another host "
+            "(scripts/grid_part_on_gpu.sh), the GPU each such run trained on.")
 
 
 def preregistered_sections(results: Results, out: Path

@@ -427,3 +427,24 @@ def test_the_preregistered_comparison_uses_finished_runs_and_rliable_intervals(
     assert "| R | X | 4 vs 3 | 0.75 [" in index
     assert (out / "iqm-curves.png").read_bytes().startswith(PNG_SIGNATURE)
     assert "| R | 0 | done | 800 | 11.0 | 800 | 600 | 30 |" in (out / "runs.md").read_text()
+
+
+def test_runs_trained_on_another_host_say_where_in_the_runs_table(analysed: Path,
+                                                                   tmp_path: Path) -> None:
+    """Part of a grid trained on a GPU host (scripts/grid_part_on_gpu.sh) says so per run, as
+    its config.json cannot (its device is `auto`)."""
+    import shutil
+
+    from experiments import preregistered
+
+    assert "| trained on |" not in (analysed / "report" / "runs.md").read_text()
+    copy = tmp_path / "analysed"
+    shutil.copytree(analysed, copy, ignore=shutil.ignore_patterns("report"))
+    (copy / "dmc-cheetah_run" / "R" / "eps0.3" / "s1" / "trained_on.txt").write_text(
+        "NVIDIA H100 80GB HBM3, 2026-11-26 (scripts/grid_part_on_gpu.sh)\n")
+    table = preregistered.runs_markdown(preregistered.per_run(load_results(copy)))
+    lines = table.splitlines()
+    assert lines[0].endswith("| labels used | trained on |")
+    assert "| R | 0 | done | 800 | 11.0 | 800 | 600 | 30 | the grid's workers |" in lines
+    assert any(line.startswith("| R | 1 | done |") and line.endswith("| NVIDIA H100 80GB HBM3 |")
+               for line in lines)
