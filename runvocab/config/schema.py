@@ -283,7 +283,7 @@ class RunConfig:
     eval_episodes: int = 10
     """episodes per evaluation"""
     checkpoint_every: int = 50_000
-    """environment steps between checkpoints (also one at every feedback round)"""
+    """environment steps between checkpoints (also one as each feedback round opens and closes)"""
     device: str = "auto"
     """auto | cpu | cuda"""
     threads: int = 0
