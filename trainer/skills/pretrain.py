@@ -243,18 +243,17 @@ class SkillPretraining:
         self.checkpoints = Period(max(cfg.checkpoint_every, 1))  # 0: at every episode's end
         self.resumed_from = 0
         """the step this pretraining went on from (0: it started afresh)"""
+        self.settings = json.dumps(snapshot_settings(cfg, cfg.seed), sort_keys=True,
+                                   default=str)
+        """what its checkpoint must match to be gone on from"""
         if os.path.exists(self.progress_file):
             self._load_progress()
-
-    def _settings(self) -> str:
-        return json.dumps(snapshot_settings(self.cfg, self.cfg.seed), sort_keys=True,
-                          default=str)
 
     def _save_progress(self) -> None:
         """Everything `run` needs to go on from this episode's end as if never stopped."""
         self.checkpoints.happened(self.step)
         state = {
-            "format": PROGRESS_FORMAT, "settings": self._settings(),
+            "format": PROGRESS_FORMAT, "settings": self.settings,
             "step": self.step, "episode": self.episode,
             "agent": self.agent.state_dict(), "skill_nets": self.backend.state_dict(),
             "buffer": self.buffer.state_dict(), "env_rng": self.env.rng_state(),
@@ -271,9 +270,8 @@ class SkillPretraining:
         if not isinstance(state, dict) or state.get("format") != PROGRESS_FORMAT:
             raise ValueError(f"{where} is not a pretraining checkpoint; remove it to pretrain "
                              "from the start")
-        if state["settings"] != self._settings():
-            saved, ours = json.loads(state["settings"]), json.loads(self._settings())
-            differ = sorted(_differences(saved, ours))
+        if state["settings"] != self.settings:
+            differ = sorted(_differences(json.loads(state["settings"]), json.loads(self.settings)))
             raise ValueError(f"{where} holds a pretraining with other settings ("
                              f"{', '.join(differ)}); remove it to pretrain from the start, or "
                              "pretrain with its settings")
