@@ -20,7 +20,8 @@ from sqlalchemy import select
 from worker_helpers import database, wait_for
 
 from labelqueue import Query, create_run
-from trainer.doctor import Orientation, orientation
+from trainer import doctor
+from trainer.doctor import Orientation, Probe, orientation
 from trainer.envs import make_env
 
 BROKEN_EGL = {"__EGL_VENDOR_LIBRARY_FILENAMES": "/nonexistent.json"}
@@ -137,3 +138,29 @@ def test_a_worker_with_a_broken_egl_falls_back_to_osmesa_and_renders_clips(tmp_p
     frame = np.asarray(frames[len(frames) // 2])
     assert frame.shape == (64, 64, 3)
     assert orientation(frame, "dmc:cheetah_run").verdict == "upright"
+
+
+def test_a_task_whose_suite_is_not_installed_is_not_held_against_the_backend(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    def probe(backend: str, task: str, **_: object) -> Probe:
+        if task.startswith("metaworld:"):
+            return Probe(backend, task, error="ModuleNotFoundError: No module named 'metaworld'")
+        if backend == "osmesa":
+            return Probe(backend, task, error="ImportError: no libOSMesa")
+        return Probe(backend, task, vendor="NVIDIA", renderer="H100", version="4.6",
+                     first_frame_s=1.0, fps=2000.0, upright="yes", r=1.0, r_flipped=-0.5)
+
+    monkeypatch.setattr(doctor, "probe", probe)
+    lines: list[str] = []
+    assert doctor.run_doctor(echo=lines.append) == 0
+    assert lines[-2] == ("not checked: metaworld:door-open, whose suite does not load here "
+                         "(ModuleNotFoundError: No module named 'metaworld')")
+    assert lines[-1].startswith("ok: egl renders dmc:cheetah_run upright")
+
+    def nothing_loads(backend: str, task: str, **_: object) -> Probe:
+        return Probe(backend, task, error="ModuleNotFoundError: No module named 'mujoco'")
+
+    monkeypatch.setattr(doctor, "probe", nothing_loads)
+    lines.clear()
+    assert doctor.run_doctor(echo=lines.append) == 1
+    assert lines[-1].startswith("error: no task loads here")
