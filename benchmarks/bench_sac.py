@@ -108,11 +108,11 @@ def our_side(agent: SAC, buffer: ReplayBuffer, batch: int) -> Callable[[int], No
 
 
 def bench(hidden: int, layers: int, batch: int, updates: int, repeats: int, warmup: int,
-          buffer_size: int, device: torch.device) -> dict[str, float]:
+          buffer_size: int, device: torch.device, tf32: bool = False) -> dict[str, float]:
     """The median updates/s of each side: SB3, ours (eager) and, on CUDA, ours graphed."""
     cfg = SACConfig(hidden_dim=hidden, hidden_layers=layers, batch_size=batch, lr=5e-4,
                     tau=0.01, target_update_every=2, actor_update_every=1, gamma=0.99,
-                    init_temperature=0.2)
+                    init_temperature=0.2, tf32=tf32)
     data = random_transitions(buffer_size, seed=0)
     torch.manual_seed(0)
     sides = {"SB3": sb3_side(make_sb3(cfg, data, device), batch),
@@ -143,11 +143,15 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch threads")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
                    help="where both sides train (cuda adds the graphed side)")
+    p.add_argument("--tf32", action="store_true",
+                   help="on cuda, every side's float32 matrix products in TF32 (sac.tf32)")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise SystemExit("error: --device cuda, but torch finds no CUDA device")
+    if args.tf32 and device.type != "cuda":
+        raise SystemExit("error: --tf32 is for --device cuda (the CPU has no TF32)")
 
     if args.hidden is None:
         configs = PRESETS
@@ -158,6 +162,7 @@ def main() -> None:
 
     where = (torch.cuda.get_device_name(device) if device.type == "cuda"
              else f"cpu, {torch.get_num_threads()} threads")
+    where += ", TF32 matrix products" if args.tf32 else ""
     print(f"torch {torch.__version__}, {where}, load average {os.getloadavg()[0]:.2f}; "
           f"obs {OBS_DIM}, action {ACTION_DIM}, buffer {args.buffer}")
     graph_columns = (f" {'graphed upd/s':>14} {'graphed/ours':>13} {'graphed/SB3':>12}"
@@ -167,7 +172,7 @@ def main() -> None:
     for hidden, layers, batch, updates in configs:
         updates = args.updates or updates
         rate = bench(hidden, layers, batch, updates, args.repeats, args.warmup, args.buffer,
-                     device)
+                     device, args.tf32)
         sb3, ours = rate["SB3"], rate["ours"]
         line = (f"{f'{hidden} x {layers}':>15} {batch:>6} {updates:>8} {sb3:>10.1f} "
                 f"{ours:>11.1f} {ours / sb3:>8.2f}x")

@@ -5,6 +5,7 @@
 #   run     whole-run steps/s, eager against graphed (paper preset PEBBLE)
 #   doctor  EGL rendering
 #   shared  N runs sharing the GPU against one alone (`experiment run --device cuda`)
+#   tf32    `sac` and `shared` again with TF32 matrix products (`sac.tf32`), about 3.5 minutes
 # No step named: test sac run doctor (about 6 minutes on an H100/H200); `shared` takes about 4
 # more, so a host that allows 10 minutes a command gets two calls. Every figure is written to
 # $OUT as it comes, so a run stopped at its limit still leaves them.
@@ -20,8 +21,8 @@ set -uo pipefail
 steps=("$@")
 [ ${#steps[@]} -eq 0 ] && steps=(test sac run doctor)
 for step in "${steps[@]}"; do
-    case "$step" in test|sac|run|doctor|shared) ;;
-    *) echo "unknown step $step; valid: test sac run doctor shared" >&2; exit 2 ;; esac
+    case "$step" in test|sac|run|doctor|shared|tf32) ;;
+    *) echo "unknown step $step; valid: test sac run doctor shared tf32" >&2; exit 2 ;; esac
 done
 source .gpu/device-env.sh || exit 1
 say() { echo "== $1" | tee -a "$OUT/summary.txt"; }
@@ -55,6 +56,16 @@ for step in "${steps[@]}"; do
             --algo pebble --steps 10000 --from-step 6000 --workers 1,4 --threads 2 \
             --set sac.cuda_graph=true > "$OUT/bench_shared_device.txt" 2>&1
         tail -4 "$OUT/bench_shared_device.txt" >> "$OUT/summary.txt" ;;
+    tf32)
+        say "SAC updates/s with TF32 matrix products, SB3 / eager / graphed"
+        timeout 120 python3 benchmarks/bench_sac.py --device cuda --threads 4 --tf32 \
+            > "$OUT/bench_sac_tf32.txt" 2>&1
+        tail -3 "$OUT/bench_sac_tf32.txt" >> "$OUT/summary.txt"
+        say "1 and 4 paper-preset PEBBLE runs sharing the GPU (graphed updates, TF32)"
+        timeout 240 python3 benchmarks/bench_shared_device.py --device cuda --preset paper \
+            --algo pebble --steps 10000 --from-step 6000 --workers 1,4 --threads 2 \
+            --set sac.cuda_graph=true --set sac.tf32=true > "$OUT/bench_shared_tf32.txt" 2>&1
+        tail -4 "$OUT/bench_shared_tf32.txt" >> "$OUT/summary.txt" ;;
     esac
 done
 cat "$OUT/summary.txt"

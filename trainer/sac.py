@@ -102,6 +102,9 @@ class SAC:
     def __init__(self, obs_dim: int, action_dim: int, cfg: SACConfig, device: torch.device,
                  critic_factory: CriticFactory = Critic, graph_ready: bool | None = None):
         self.cfg, self.device = cfg, device
+        if device.type == "cuda":
+            # Set either way, so a run gets what its config says whatever ran before it here.
+            torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
         self.obs_dim, self.action_dim = obs_dim, action_dim
         self.critic_factory = critic_factory
         self.actor = Actor(obs_dim, action_dim, cfg).to(device)

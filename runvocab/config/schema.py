@@ -47,6 +47,10 @@ class SACConfig:
     cuda_graph: bool = False
     """on a CUDA device, replay the update from CUDA graphs (trainer/graphed_update.py): the
     same update without a kernel launch per operation; ignored on the CPU"""
+    tf32: bool = False
+    """on a CUDA device, float32 matrix products in TF32 (10-bit mantissa), for the whole
+    process: at the paper's sizes the graphed update is bound by arithmetic, which TF32 runs
+    on the tensor cores; ignored on the CPU"""
 
 
 @dataclass(frozen=True)

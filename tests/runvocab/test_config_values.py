@@ -10,6 +10,7 @@ import pytest
 
 from runvocab.config import add_config_arguments, overrides_from_args, typed_overrides
 from runvocab.config.args import field_docs
+from runvocab.config.presets import WRITTEN_WHEN_SET, build_config, from_dict, to_dict
 from runvocab.config.schema import RewardConfig, parse_value
 from runvocab.names import ConfigError
 
@@ -90,3 +91,14 @@ def test_a_flag_is_helped_by_its_whole_docstring() -> None:
     doc = field_docs()[RewardConfig, "rime"]
     assert doc.startswith("RIME: train only on labels") and doc.endswith("before the first round")
     assert "\n" not in doc
+
+
+@pytest.mark.parametrize("path", WRITTEN_WHEN_SET)
+def test_a_later_field_is_stored_only_when_set_so_older_config_files_stay_equal(path) -> None:
+    head, _, leaf = path.partition(".")
+    default = build_config("dmc:cheetah_run", "small")
+    assert leaf not in to_dict(default)[head]  # as config.json files written before it
+    value = "/some/model.pt" if path == "reward.init_from" else True
+    changed = build_config("dmc:cheetah_run", "small", {path: value})
+    assert to_dict(changed)[head][leaf] == value
+    assert from_dict(to_dict(changed)) == changed and from_dict(to_dict(default)) == default

@@ -83,8 +83,11 @@ def test_a_checkpoint_loads_into_a_graph_ready_agent_and_carries_on_alike() -> N
 def test_replayed_cuda_graphs_give_the_eager_updates_parameters() -> None:
     cuda = torch.device("cuda")
     cfg = dataclasses.replace(CFG, cuda_graph=True)
-    data = batches(14, cuda)  # warm-up, capture and replays of both schedule slots
-    runs = []
+    # Two schedule slots (target step or not) take turns; each is warmed up 3 times, recorded
+    # at its 4th update and replayed after: 10 updates record and replay both, then a critic
+    # reset drops them and 12 more record and replay them again.
+    data = batches(22, cuda)
+    runs, recorded = [], []
     for capture in (False, True):
         torch.manual_seed(0)
         agent = SAC(OBS, ACT, cfg, cuda)
@@ -93,9 +96,27 @@ def test_replayed_cuda_graphs_give_the_eager_updates_parameters() -> None:
         torch.manual_seed(1)
         for i, batch in enumerate(data):
             if i == 10:
-                agent.reset_critic()  # graphs dropped and recorded again
+                recorded.append(len(agent.graphed.graphs))
+                agent.reset_critic()
+                assert not agent.graphed.graphs
             agent.update(batch)
+        recorded.append(len(agent.graphed.graphs))
         runs.append(agent)
     eager, graphed = runs
-    assert graphed.graphed is not None and graphed.graphed.graphs
+    assert recorded == [0, 0, 2, 2]  # eager: never recorded; graphed: both slots, twice
     assert_same_agent(eager, graphed, tol=1e-4)
+
+
+def test_tf32_is_the_runs_setting_on_cuda_and_left_alone_on_the_cpu() -> None:
+    before = torch.backends.cuda.matmul.allow_tf32
+    SAC(OBS, ACT, dataclasses.replace(CFG, tf32=not before), torch.device("cpu"))
+    assert torch.backends.cuda.matmul.allow_tf32 == before
+    if not torch.cuda.is_available():
+        return
+    try:
+        SAC(OBS, ACT, dataclasses.replace(CFG, tf32=True), torch.device("cuda"))
+        assert torch.backends.cuda.matmul.allow_tf32
+        SAC(OBS, ACT, CFG, torch.device("cuda"))  # a later run without it gets float32 back
+        assert not torch.backends.cuda.matmul.allow_tf32
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = before
