@@ -6,9 +6,9 @@
 #   doctor  EGL rendering
 #   shared  N runs sharing the GPU against one alone (`experiment run --device cuda`)
 #   tf32    `sac` and `shared` again with TF32 matrix products (`sac.tf32`), about 3.5 minutes
-# No step named: test sac run doctor (about 6 minutes on an H100/H200); `shared` takes about 4
-# more, so a host that allows 10 minutes a command gets two calls. Every figure is written to
-# $OUT as it comes, so a run stopped at its limit still leaves them.
+# No step named: test sac run doctor. On an H100, `test sac run shared doctor` took 406 s in one
+# call and `test doctor tf32` 234 s. Every figure is written to $OUT as it comes, so a run
+# stopped at its limit still leaves them.
 #
 # Here, once, from the project's root (wheels for the host, which has torch but no index; the
 # queue's packages are for `shared`, whose runs go through `sepoa experiment run`):
