@@ -58,7 +58,14 @@ def main() -> int:
                    help="any other config field, e.g. skill.pretrain_steps=5000")
     p.add_argument("--from-step", type=int, default=0,
                    help="profile only episodes ending after this step (e.g. after round 0)")
+    p.add_argument("--sides", default="eager,graphed",
+                   help="which sides run: eager,graphed (the ratio) or one of them (a GPU "
+                        "host's minutes are few)")
     args = p.parse_args()
+    sides = args.sides.split(",")
+    if not sides or any(side not in ("eager", "graphed") for side in sides) \
+            or len(set(sides)) != len(sides):
+        raise SystemExit(f"error: --sides {args.sides}: takes eager, graphed or eager,graphed")
     folder = tempfile.mkdtemp(prefix="bench-run-")
     base = {"algo": args.algo, "steps": args.steps, "device": args.device,
             "threads": args.threads, "skill.snapshot_dir": os.path.join(folder, "snapshots")}
@@ -69,10 +76,10 @@ def main() -> int:
         raise SystemExit(f"error: {err}") from None
     if args.algo == "sepoa" and cfg.skill.pretrain_steps > 0:
         pretrain_once(cfg, default_snapshot_path(cfg))  # shared by both sides, not timed
-    rates: dict[str, list[float]] = {"eager": [], "graphed": []}
+    rates: dict[str, list[float]] = {side: [] for side in sides}
     profiles: dict[str, dict[str, float]] = {}
     for r in range(args.repeats):
-        for side in (("eager", "graphed") if r % 2 == 0 else ("graphed", "eager")):
+        for side in (sides if r % 2 == 0 else sides[::-1]):
             run_dir = os.path.join(folder, f"{side}-{r}")
             side_cfg = build_config(args.task, args.preset, base | {
                 "run_dir": run_dir, "sac.cuda_graph": side == "graphed"})
@@ -87,8 +94,9 @@ def main() -> int:
         shares = "  ".join(f"{phase} {profiles[side][phase] / total:.0%}"
                            for phase in (*PHASES, "other") if profiles[side][phase] > 0)
         print(f"{side:8s} {statistics.median(values):8.1f} steps/s   {shares}")
-    ratio = statistics.median(rates["graphed"]) / statistics.median(rates["eager"])
-    print(f"graphed / eager: {ratio:.2f}x")
+    if len(rates) == 2:
+        ratio = statistics.median(rates["graphed"]) / statistics.median(rates["eager"])
+        print(f"graphed / eager: {ratio:.2f}x")
     return 0
 
 

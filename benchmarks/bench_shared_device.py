@@ -119,7 +119,11 @@ def main() -> int:
     for n in args.workers:
         folder = top / f"workers-{n}"
         folder.mkdir()
+        began = time.strftime("%H:%M:%S")
         wall, runs = train(n, args, folder)
+        # To line up with a GPU utilisation log (gpu_check.sh samples one beside this command).
+        print(f"        ({n} worker(s) trained {began} to {time.strftime('%H:%M:%S')})",
+              file=sys.stderr)
         rates, shares = [], []
         for run in runs:
             steps, seconds = profile(str(run), args.from_step)

@@ -6,6 +6,9 @@
 #   doctor  EGL rendering
 #   shared  N runs sharing the GPU against one alone (`experiment run --device cuda`)
 #   tf32    `sac` and `shared` again with TF32 matrix products (`sac.tf32`), about 3.5 minutes
+#   sepoa   whole-run steps/s of a paper-preset S-EPOA run after its first round (graphed, TF32)
+# The `shared`, `tf32` and `sepoa` steps also sample the GPU's utilisation twice a second
+# (gpu_util_<step>.csv): whether N runs leave the GPU idle between their kernels.
 # No step named: test sac run doctor. On an H100, `test sac run shared doctor` took 406 s in one
 # call and `test doctor tf32` 234 s. Every figure is written to $OUT as it comes, so a run
 # stopped at its limit still leaves them.
@@ -21,11 +24,21 @@ set -uo pipefail
 steps=("$@")
 [ ${#steps[@]} -eq 0 ] && steps=(test sac run doctor)
 for step in "${steps[@]}"; do
-    case "$step" in test|sac|run|doctor|shared|tf32) ;;
-    *) echo "unknown step $step; valid: test sac run doctor shared tf32" >&2; exit 2 ;; esac
+    case "$step" in test|sac|run|doctor|shared|tf32|sepoa) ;;
+    *) echo "unknown step $step; valid: test sac run doctor shared tf32 sepoa" >&2; exit 2 ;; esac
 done
 source .gpu/device-env.sh || exit 1
 say() { echo "== $1" | tee -a "$OUT/summary.txt"; }
+sampling() {  # sampling FILE COMMAND...: the command, with the GPU's utilisation sampled beside it
+    local file=$1; shift
+    nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv,noheader \
+        -lms 500 > "$file" 2>&1 &
+    local sampler=$!
+    "$@"
+    kill "$sampler" 2>/dev/null
+    awk -F', ' '{gsub(/ %/, "", $2); n++; s += $2} END {if (n) printf "GPU utilisation: mean %.0f %% over %d samples\n", s / n, n}' \
+        "$file" >> "$OUT/summary.txt"
+}
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv > "$OUT/device.txt" 2>&1
 python3 -c "import torch; print(torch.__version__, torch.cuda.get_device_name())" \
     >> "$OUT/device.txt" 2>&1
@@ -52,20 +65,31 @@ for step in "${steps[@]}"; do
         tail -2 "$OUT/doctor.txt" >> "$OUT/summary.txt" ;;
     shared)
         say "1 and 4 paper-preset PEBBLE runs sharing the GPU (graphed updates)"
-        timeout 300 python3 benchmarks/bench_shared_device.py --device cuda --preset paper \
+        sampling "$OUT/gpu_util_shared.csv" \
+            timeout 300 python3 benchmarks/bench_shared_device.py --device cuda --preset paper \
             --algo pebble --steps 10000 --from-step 6000 --workers 1,4 --threads 2 \
             --set sac.cuda_graph=true > "$OUT/bench_shared_device.txt" 2>&1
-        tail -4 "$OUT/bench_shared_device.txt" >> "$OUT/summary.txt" ;;
+        tail -6 "$OUT/bench_shared_device.txt" >> "$OUT/summary.txt" ;;
     tf32)
         say "SAC updates/s with TF32 matrix products, SB3 / eager / graphed"
         timeout 120 python3 benchmarks/bench_sac.py --device cuda --threads 4 --tf32 \
             > "$OUT/bench_sac_tf32.txt" 2>&1
         tail -3 "$OUT/bench_sac_tf32.txt" >> "$OUT/summary.txt"
         say "1 and 4 paper-preset PEBBLE runs sharing the GPU (graphed updates, TF32)"
-        timeout 240 python3 benchmarks/bench_shared_device.py --device cuda --preset paper \
+        sampling "$OUT/gpu_util_tf32.csv" \
+            timeout 240 python3 benchmarks/bench_shared_device.py --device cuda --preset paper \
             --algo pebble --steps 10000 --from-step 6000 --workers 1,4 --threads 2 \
             --set sac.cuda_graph=true --set sac.tf32=true > "$OUT/bench_shared_tf32.txt" 2>&1
-        tail -4 "$OUT/bench_shared_tf32.txt" >> "$OUT/summary.txt" ;;
+        tail -6 "$OUT/bench_shared_tf32.txt" >> "$OUT/summary.txt" ;;
+    sepoa)
+        # Round 0 comes after 1 000 random steps and 20 rollouts of 1 000: steps 24-30 k are
+        # after it and its critic reset. A 5 000-step snapshot: pretraining is not timed.
+        say "whole run, paper preset S-EPOA, steps 24-30 k, graphed, TF32"
+        sampling "$OUT/gpu_util_sepoa.csv" \
+            timeout 300 python3 benchmarks/bench_run.py --device cuda --preset paper \
+            --algo sepoa --steps 30000 --from-step 24000 --threads 4 --sides graphed \
+            --set skill.pretrain_steps=5000 --set sac.tf32=true > "$OUT/bench_run_sepoa.txt" 2>&1
+        tail -2 "$OUT/bench_run_sepoa.txt" >> "$OUT/summary.txt" ;;
     esac
 done
 cat "$OUT/summary.txt"
