@@ -7,6 +7,8 @@
 #   shared  N runs sharing the GPU against one alone (`experiment run --device cuda`)
 #   tf32    `sac` and `shared` again with TF32 matrix products (`sac.tf32`), about 3.5 minutes
 #   sepoa   whole-run steps/s of a paper-preset S-EPOA run after its first round (graphed, TF32)
+#   profile 1 000 steps of a paper-preset PEBBLE run after round 0 under torch's profiler
+#           (graphed, TF32): how busy the GPU is, and the ops that hold the time
 # The `shared`, `tf32` and `sepoa` steps also sample the GPU's utilisation twice a second
 # (gpu_util_<step>.csv): whether N runs leave the GPU idle between their kernels.
 # No step named: test sac run doctor. On an H100, `test sac run shared doctor` took 406 s in one
@@ -24,8 +26,9 @@ set -uo pipefail
 steps=("$@")
 [ ${#steps[@]} -eq 0 ] && steps=(test sac run doctor)
 for step in "${steps[@]}"; do
-    case "$step" in test|sac|run|doctor|shared|tf32|sepoa) ;;
-    *) echo "unknown step $step; valid: test sac run doctor shared tf32 sepoa" >&2; exit 2 ;; esac
+    case "$step" in test|sac|run|doctor|shared|tf32|sepoa|profile) ;;
+    *) echo "unknown step $step; valid: test sac run doctor shared tf32 sepoa profile" >&2
+       exit 2 ;; esac
 done
 source .gpu/device-env.sh || exit 1
 say() { echo "== $1" | tee -a "$OUT/summary.txt"; }
@@ -90,6 +93,13 @@ for step in "${steps[@]}"; do
             --algo sepoa --steps 30000 --from-step 24000 --threads 4 --sides graphed \
             --set skill.pretrain_steps=5000 --set sac.tf32=true > "$OUT/bench_run_sepoa.txt" 2>&1
         tail -2 "$OUT/bench_run_sepoa.txt" >> "$OUT/summary.txt" ;;
+    profile)
+        say "1 000 steps of paper-preset PEBBLE under the profiler, graphed, TF32"
+        timeout 240 python3 benchmarks/profile_steps.py --device cuda --preset paper \
+            --algo pebble --from-step 10500 --steps 1000 --threads 4 \
+            --set sac.cuda_graph=true --set sac.tf32=true > "$OUT/profile_steps.txt" 2>&1
+        grep -E "ms a step|GPU busy|torch ops on the host" "$OUT/profile_steps.txt" \
+            >> "$OUT/summary.txt" ;;
     esac
 done
 cat "$OUT/summary.txt"
