@@ -98,7 +98,7 @@ for step in "${steps[@]}"; do
         timeout 240 python3 benchmarks/profile_steps.py --device cuda --preset paper \
             --algo pebble --from-step 10500 --steps 1000 --threads 4 \
             --set sac.cuda_graph=true --set sac.tf32=true > "$OUT/profile_steps.txt" 2>&1
-        grep -E "ms a step|GPU busy|torch ops on the host" "$OUT/profile_steps.txt" \
+        grep -E "ms a step|GPU busy|torch ops on the host|host waits for" "$OUT/profile_steps.txt" \
             >> "$OUT/summary.txt" ;;
     esac
 done

@@ -11,7 +11,9 @@ S-EPOA snapshot is pretrained first, untimed) until step `--from-step`, is profi
 `--steps` steps, and stops at the end of that episode. Printed: the window's wall time per step;
 on a GPU, the GPU's busy time (the kernels' own time, summed) as a share of the window's wall
 time, which says whether the run waits on the GPU or the GPU on the run; the host time torch's
-ops hold; then the ops that took the most time of their own, on the device and on the host.
+ops hold; then the ops that took the most time of their own, on the device and on the host; on
+a GPU, last, how often the host waited for it and at which lines (torch's sync debug mode, whose
+warning per wait adds a little to the window's time).
 `--trace FILE` also writes the window as a Chrome trace (chrome://tracing, Perfetto).
 """
 
@@ -22,6 +24,8 @@ import os
 import sys
 import tempfile
 import time
+import warnings
+from collections import Counter
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # as the CLI does; before mujoco is imported
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -37,6 +41,26 @@ from trainer.loop import TrainingRun  # noqa: E402
 from trainer.skills.pretrain import default_snapshot_path, pretrain_once  # noqa: E402
 
 
+class HostSyncs:
+    """The points where the host waited for the GPU: torch's sync debug mode warns at each
+    synchronising call (a read-back, a copy from pageable memory), and each warning names the
+    line of Python that made it."""
+
+    def start(self) -> None:
+        self._catcher = warnings.catch_warnings(record=True)
+        self.caught = self._catcher.__enter__()
+        warnings.simplefilter("always")
+        torch.cuda.set_sync_debug_mode("warn")
+
+    def stop(self) -> None:
+        torch.cuda.set_sync_debug_mode("default")
+        self._catcher.__exit__(None, None, None)
+
+    def by_line(self) -> Counter[str]:
+        return Counter(f"{os.path.relpath(w.filename)}:{w.lineno}" for w in self.caught
+                       if "synchronizing" in str(w.message))
+
+
 class ProfileWindow(RunHooks):
     """Profiles steps (start, start + steps], then asks the run to stop at its episode's end."""
 
@@ -44,20 +68,21 @@ class ProfileWindow(RunHooks):
         self.start, self.end, self.cuda = start, start + steps, cuda
         activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
         self.profiler = profile(activities=activities)
+        self.syncs = HostSyncs() if cuda else None
         self.wall = 0.0
         self.began: float | None = None
 
-    def _sync(self) -> None:
-        if self.cuda:
-            torch.cuda.synchronize()
-
     def stop_requested(self, step: int) -> bool:
         if step == self.start and self.began is None:
-            self._sync()
+            if self.syncs is not None:
+                torch.cuda.synchronize()
+                self.syncs.start()
             self.profiler.start()
             self.began = time.perf_counter()
         elif step == self.end and self.began is not None and not self.wall:
-            self._sync()
+            if self.syncs is not None:
+                self.syncs.stop()
+                torch.cuda.synchronize()
             self.wall = time.perf_counter() - self.began
             self.profiler.stop()
         return step >= self.end
@@ -106,6 +131,12 @@ def main() -> int:
         print(f"GPU busy {busy_us / 1e6:.2f} s of {window.wall:.2f} s "
               f"({busy_us / 1e6 / window.wall:.0%}; {busy_us / args.steps / 1e3:.2f} ms a step)")
         print(events.table(sort_by="self_device_time_total", row_limit=args.rows))
+    if window.syncs is not None:
+        lines = window.syncs.by_line()
+        print(f"host waits for the GPU: {sum(lines.values())} in the window "
+              f"({sum(lines.values()) / args.steps:.1f} a step), by line:")
+        for where, count in lines.most_common(args.rows):
+            print(f"  {count:8d}  {where}")
     host_s = sum(e.self_cpu_time_total for e in events) / 1e6
     print(f"torch ops on the host {host_s:.2f} s of {window.wall:.2f} s "
           f"({host_s / window.wall:.0%}); the rest is the environment, NumPy, Python and waiting")
