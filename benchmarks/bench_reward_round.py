@@ -3,6 +3,7 @@ of labels, with and without SURF, and how close it runs to the machine's matrix-
 
     .venv/bin/python benchmarks/bench_reward_round.py                  # 900 labels, 1 thread
     .venv/bin/python benchmarks/bench_reward_round.py --labels 300 --epochs 10 --threads 2
+    python3 benchmarks/bench_reward_round.py --device cuda --labels 1000 --epochs 5
 
 The reward model is the run's (3 members of 3 x 256 on cheetah's 17 + 6 inputs, batch 128;
 segments of 50 steps, or 60 with SURF, cropped to 45-55, as the presets set them). Labels and
@@ -47,12 +48,19 @@ def macs_per_row(cfg: RewardConfig) -> int:
     return d * w + (cfg.hidden_layers - 1) * w * w + w
 
 
-def matmul_gflops(rows: int, width: int, repeats: int = 20) -> float:
-    a, b = torch.randn(rows, width), torch.randn(width, width)
+def synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def matmul_gflops(rows: int, width: int, device: torch.device, repeats: int = 20) -> float:
+    a, b = torch.randn(rows, width, device=device), torch.randn(width, width, device=device)
     torch.mm(a, b)
+    synchronize(device)
     start = time.perf_counter()
     for _ in range(repeats):
         torch.mm(a, b)
+    synchronize(device)
     return 2 * rows * width * width * repeats / (time.perf_counter() - start) / 1e9
 
 
@@ -61,8 +69,12 @@ def main() -> int:
     p.add_argument("--labels", type=int, default=900)
     p.add_argument("--epochs", type=int, default=3, help="epochs timed (a run trains up to 50)")
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
     args = p.parse_args()
     torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("error: --device cuda, but torch finds no CUDA device")
     rng = np.random.default_rng(0)
     pool = rng.normal(size=(4096, 60, OBS + ACT)).astype(np.float32)
 
@@ -70,16 +82,20 @@ def main() -> int:
         i, j = rng.integers(len(pool), size=(2, n))
         return pool[i], pool[j]
 
-    peak = matmul_gflops(128 * 50 * 2, RewardConfig().hidden_dim)
-    print(f"torch {torch.__version__}, {args.threads} thread(s); {args.labels} labels, "
+    peak = matmul_gflops(128 * 50 * 2, RewardConfig().hidden_dim, device)
+    where = (torch.cuda.get_device_name(device) if device.type == "cuda"
+             else f"{args.threads} thread(s)")
+    print(f"torch {torch.__version__}, {where}; {args.labels} labels, "
           f"{args.epochs} epochs timed; plain matmul {peak:.1f} GFLOP/s")
     for surf in (False, True):
         pairs = random_pairs(args.labels, 60 if surf else 50, rng)
         cfg = dataclasses.replace(RewardConfig(), surf=surf, max_epochs=args.epochs,
                                   stop_accuracy=1.01)
-        model = RewardModel(OBS, ACT, cfg, torch.device("cpu"), seed=0)
+        model = RewardModel(OBS, ACT, cfg, device, seed=0)
+        synchronize(device)
         start = time.perf_counter()
         model.train_round(pairs, unlabelled if surf else None)
+        synchronize(device)
         seconds = time.perf_counter() - start
         e, per_row = cfg.ensemble_size, macs_per_row(cfg)
         crop = (cfg.surf_crop_min + cfg.surf_crop_max) / 2 if surf else 50

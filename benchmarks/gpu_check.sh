@@ -9,6 +9,8 @@
 #   sepoa   whole-run steps/s of a paper-preset S-EPOA run after its first round (graphed, TF32)
 #   profile 1 000 steps of a paper-preset PEBBLE run after round 0 under torch's profiler
 #           (graphed, TF32): how busy the GPU is, and the ops that hold the time
+#   reward  one round's reward training on the GPU at 100 and 1 000 labels, plain and SURF
+#   pretrain  APS skill pretraining steps/s at the paper's sizes, 12 000 steps (graphed, TF32)
 # The `shared`, `tf32` and `sepoa` steps also sample the GPU's utilisation twice a second
 # (gpu_util_<step>.csv): whether N runs leave the GPU idle between their kernels.
 # No step named: test sac run doctor. On an H100, `test sac run shared doctor` took 406 s in one
@@ -26,8 +28,9 @@ set -uo pipefail
 steps=("$@")
 [ ${#steps[@]} -eq 0 ] && steps=(test sac run doctor)
 for step in "${steps[@]}"; do
-    case "$step" in test|sac|run|doctor|shared|tf32|sepoa|profile) ;;
-    *) echo "unknown step $step; valid: test sac run doctor shared tf32 sepoa profile" >&2
+    case "$step" in test|sac|run|doctor|shared|tf32|sepoa|profile|reward|pretrain) ;;
+    *) echo "unknown step $step; valid: test sac run doctor shared tf32 sepoa profile" \
+            "reward pretrain" >&2
        exit 2 ;; esac
 done
 source .gpu/device-env.sh || exit 1
@@ -100,6 +103,20 @@ for step in "${steps[@]}"; do
             --set sac.cuda_graph=true --set sac.tf32=true > "$OUT/profile_steps.txt" 2>&1
         grep -E "ms a step|GPU busy|torch ops on the host|host waits for" "$OUT/profile_steps.txt" \
             >> "$OUT/summary.txt" ;;
+    reward)
+        say "one round's reward training on the GPU, 100 and 1 000 labels"
+        for labels in 100 1000; do
+            timeout 120 python3 benchmarks/bench_reward_round.py --device cuda --labels $labels \
+                --epochs 5 > "$OUT/bench_reward_round_$labels.txt" 2>&1
+            tail -3 "$OUT/bench_reward_round_$labels.txt" >> "$OUT/summary.txt"
+        done ;;
+    pretrain)
+        say "APS pretraining at the paper's sizes, 12 000 steps (4 000 random), graphed, TF32"
+        timeout 240 python3 -m sepoa pretrain --task dmc:cheetah_run --preset paper \
+            --steps 12000 --device cuda --threads 4 --sac.cuda_graph true --sac.tf32 true \
+            --out /tmp/gpu-check-pretrain/aps.pt --no-progress > "$OUT/pretrain.txt" 2>&1
+        cp /tmp/gpu-check-pretrain/aps.csv "$OUT/pretrain.csv" 2>/dev/null
+        tail -1 "$OUT/pretrain.txt" >> "$OUT/summary.txt" ;;
     esac
 done
 cat "$OUT/summary.txt"
