@@ -63,7 +63,7 @@ class RimeFilter:
 
     @property
     def sigma(self) -> float:
-        return self.kl.std
+        return float(self.kl.std)  # once an epoch: the read-back costs nothing here
 
     def select(self, target: torch.Tensor,
                p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:

@@ -83,7 +83,7 @@ def test_particle_entropy_matches_a_hand_computation():
     stats = RunningMeanStd()
     got = particle_entropy(h, k=2, stats=stats, clip=0.1)
     m = (0 * 1e-4 + 7.0) / (1e-4 + 8)  # the mean of the 8 distances 0,1,0,1,0,2,0,3 (and the prior)
-    assert stats.mean == pytest.approx(m)
+    assert float(stats.mean) == pytest.approx(m)
     hand = [math.log1p(np.mean([max(d / m - 0.1, 0) for d in ds]))
             for ds in ([0, 1], [0, 1], [0, 2], [0, 3])]
     torch.testing.assert_close(got, torch.tensor(hand, dtype=torch.float32)[:, None])
