@@ -77,6 +77,9 @@ def main() -> int:
     if args.algo == "sepoa" and cfg.skill.pretrain_steps > 0:
         pretrain_once(cfg, default_snapshot_path(cfg))  # shared by both sides, not timed
     rates: dict[str, list[float]] = {side: [] for side in sides}
+    # Evaluation is 10 episodes every eval_every steps: a short window holds one or none, so
+    # the rate without it is printed too (a whole run's cost adds its evaluations back).
+    training: dict[str, list[float]] = {side: [] for side in sides}
     profiles: dict[str, dict[str, float]] = {}
     for r in range(args.repeats):
         for side in (sides if r % 2 == 0 else sides[::-1]):
@@ -86,6 +89,7 @@ def main() -> int:
             TrainingRun(side_cfg, progress=False).train()
             steps, seconds = profile(run_dir, args.from_step)
             rates[side].append(steps / seconds["total"])
+            training[side].append(steps / (seconds["total"] - seconds["evaluation"]))
             profiles[side] = seconds
     print(f"{args.task} {args.algo} ({args.preset}), {args.steps} steps on {args.device}, "
           f"{args.threads} thread(s), {args.repeats} run(s) per side; folder {folder}")
@@ -93,7 +97,8 @@ def main() -> int:
         total = profiles[side]["total"]
         shares = "  ".join(f"{phase} {profiles[side][phase] / total:.0%}"
                            for phase in (*PHASES, "other") if profiles[side][phase] > 0)
-        print(f"{side:8s} {statistics.median(values):8.1f} steps/s   {shares}")
+        print(f"{side:8s} {statistics.median(values):8.1f} steps/s "
+              f"({statistics.median(training[side]):.1f} without evaluation)   {shares}")
     if len(rates) == 2:
         ratio = statistics.median(rates["graphed"]) / statistics.median(rates["eager"])
         print(f"graphed / eager: {ratio:.2f}x")

@@ -4,8 +4,9 @@
 #   sac     SAC updates/s, SB3 / eager / graphed, at both sizes
 #   run     whole-run steps/s, eager against graphed (paper preset PEBBLE)
 #   doctor  EGL rendering
-#   shared  N runs sharing the GPU against one alone (`experiment run --device cuda`)
-#   tf32    `sac` and `shared` again with TF32 matrix products (`sac.tf32`), about 3.5 minutes
+#   shared  N runs sharing the GPU against one alone (`experiment run --device cuda`), timed
+#           over steps 11-14 k: after round 0 (at 10 k) and the evaluation at 10 k
+#   tf32    `sac` and `shared` again with TF32 matrix products (`sac.tf32`)
 #   sepoa   whole-run steps/s of a paper-preset S-EPOA run after its first round (graphed, TF32)
 #   profile 1 000 steps of a paper-preset PEBBLE run after round 0 under torch's profiler
 #           (graphed, TF32): how busy the GPU is, and the ops that hold the time
@@ -70,10 +71,10 @@ for step in "${steps[@]}"; do
         timeout 60 python3 -m sepoa doctor --backend egl > "$OUT/doctor.txt" 2>&1
         tail -2 "$OUT/doctor.txt" >> "$OUT/summary.txt" ;;
     shared)
-        say "1 and 4 paper-preset PEBBLE runs sharing the GPU (graphed updates)"
+        say "1 and 4 paper-preset PEBBLE runs sharing the GPU, steps 11-14 k (graphed updates)"
         sampling "$OUT/gpu_util_shared.csv" \
-            timeout 300 python3 benchmarks/bench_shared_device.py --device cuda --preset paper \
-            --algo pebble --steps 10000 --from-step 6000 --workers 1,4 --threads 2 \
+            timeout 420 python3 benchmarks/bench_shared_device.py --device cuda --preset paper \
+            --algo pebble --steps 14000 --from-step 11000 --workers 1,4 --threads 2 \
             --set sac.cuda_graph=true > "$OUT/bench_shared_device.txt" 2>&1
         tail -6 "$OUT/bench_shared_device.txt" >> "$OUT/summary.txt" ;;
     tf32)
@@ -81,10 +82,10 @@ for step in "${steps[@]}"; do
         timeout 120 python3 benchmarks/bench_sac.py --device cuda --threads 4 --tf32 \
             > "$OUT/bench_sac_tf32.txt" 2>&1
         tail -3 "$OUT/bench_sac_tf32.txt" >> "$OUT/summary.txt"
-        say "1 and 4 paper-preset PEBBLE runs sharing the GPU (graphed updates, TF32)"
+        say "1 and 4 paper-preset PEBBLE runs sharing the GPU, steps 11-14 k (graphed, TF32)"
         sampling "$OUT/gpu_util_tf32.csv" \
-            timeout 240 python3 benchmarks/bench_shared_device.py --device cuda --preset paper \
-            --algo pebble --steps 10000 --from-step 6000 --workers 1,4 --threads 2 \
+            timeout 420 python3 benchmarks/bench_shared_device.py --device cuda --preset paper \
+            --algo pebble --steps 14000 --from-step 11000 --workers 1,4 --threads 2 \
             --set sac.cuda_graph=true --set sac.tf32=true > "$OUT/bench_shared_tf32.txt" 2>&1
         tail -6 "$OUT/bench_shared_tf32.txt" >> "$OUT/summary.txt" ;;
     sepoa)
