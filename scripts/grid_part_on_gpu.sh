@@ -12,11 +12,14 @@
 #   echo /.grid-code/ >> .git/info/exclude
 #   rm -rf .grid-code && mkdir .grid-code && git archive GRID_COMMIT | tar -x -C .grid-code
 # There, carrying .gpu (and .grid-code):
-#   OUT=/somewhere CODE=.grid-code LIMIT=540 WORKERS=14 bash scripts/grid_part_on_gpu.sh \
-#       specs/small/sepoa-fair.toml --variant PEBBLE --variant SURF --seed 16 --seed 17
+#   OUT=/somewhere CODE=.grid-code LIMIT=540 WORKERS=1 bash scripts/grid_part_on_gpu.sh \
+#       specs/small/sepoa-fair.toml --variant PEBBLE --seed 17
 # Back here:
 #   tar -xzf <files>/runs.tar.gz -C <results>
 # LIMIT (seconds) bounds the training, so that packing the results fits the command's limit.
+# WORKERS (default 1): runs trained at once. On an H100, 4 runs sharing the GPU made no more
+# steps/s together than one alone (benchmarks/README.md), so more workers share one run's rate
+# and may finish none in the time.
 # The workers train on each run's own device (`auto`: the GPU); DEVICE=D passes `--device D`,
 # for code whose `experiment run` has that option.
 set -uo pipefail
@@ -26,7 +29,7 @@ spec=$1; shift
 code=$(cd "${CODE:-.}" && pwd) || exit 2
 [ -f "$code/$spec" ] || { echo "no spec $spec under $code" >&2; exit 2; }
 limit=${LIMIT:-540}
-workers=${WORKERS:-14}
+workers=${WORKERS:-1}
 device=(); [ -n "${DEVICE:-}" ] && device=(--device "$DEVICE")
 source .gpu/device-env.sh || exit 1
 export PYTHONPATH=$code:$PYTHONPATH  # the grid's code first
