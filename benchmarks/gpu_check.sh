@@ -99,7 +99,7 @@ for step in "${steps[@]}"; do
         tail -2 "$OUT/bench_run_sepoa.txt" >> "$OUT/summary.txt" ;;
     profile)
         say "1 000 steps of paper-preset PEBBLE under the profiler, graphed, TF32"
-        timeout 240 python3 benchmarks/profile_steps.py --device cuda --preset paper \
+        timeout 300 python3 benchmarks/profile_steps.py --device cuda --preset paper \
             --algo pebble --from-step 10500 --steps 1000 --threads 4 \
             --set sac.cuda_graph=true --set sac.tf32=true > "$OUT/profile_steps.txt" 2>&1
         grep -E "ms a step|GPU busy|torch ops on the host|host waits for" "$OUT/profile_steps.txt" \
