@@ -46,6 +46,14 @@ sampling() {  # sampling FILE COMMAND...: the command, with the GPU's utilisatio
     awk -F', ' '{gsub(/ %/, "", $2); n++; s += $2} END {if (n) printf "GPU utilisation: mean %.0f %% over %d samples\n", s / n, n}' \
         "$file" >> "$OUT/summary.txt"
 }
+shared_runs() {  # shared_runs TXT CSV [--set KEY=VALUE ...]: 1 and 4 paper-preset PEBBLE runs
+    local txt=$1 csv=$2; shift 2
+    sampling "$csv" \
+        timeout 420 python3 benchmarks/bench_shared_device.py --device cuda --preset paper \
+        --algo pebble --steps 14000 --from-step 11000 --workers 1,4 --threads 2 \
+        --set sac.cuda_graph=true "$@" > "$txt" 2>&1
+    tail -6 "$txt" >> "$OUT/summary.txt"
+}
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv > "$OUT/device.txt" 2>&1
 python3 -c "import torch; print(torch.__version__, torch.cuda.get_device_name())" \
     >> "$OUT/device.txt" 2>&1
@@ -72,22 +80,14 @@ for step in "${steps[@]}"; do
         tail -2 "$OUT/doctor.txt" >> "$OUT/summary.txt" ;;
     shared)
         say "1 and 4 paper-preset PEBBLE runs sharing the GPU, steps 11-14 k (graphed updates)"
-        sampling "$OUT/gpu_util_shared.csv" \
-            timeout 420 python3 benchmarks/bench_shared_device.py --device cuda --preset paper \
-            --algo pebble --steps 14000 --from-step 11000 --workers 1,4 --threads 2 \
-            --set sac.cuda_graph=true > "$OUT/bench_shared_device.txt" 2>&1
-        tail -6 "$OUT/bench_shared_device.txt" >> "$OUT/summary.txt" ;;
+        shared_runs "$OUT/bench_shared_device.txt" "$OUT/gpu_util_shared.csv" ;;
     tf32)
         say "SAC updates/s with TF32 matrix products, SB3 / eager / graphed"
         timeout 120 python3 benchmarks/bench_sac.py --device cuda --threads 4 --tf32 \
             > "$OUT/bench_sac_tf32.txt" 2>&1
         tail -3 "$OUT/bench_sac_tf32.txt" >> "$OUT/summary.txt"
         say "1 and 4 paper-preset PEBBLE runs sharing the GPU, steps 11-14 k (graphed, TF32)"
-        sampling "$OUT/gpu_util_tf32.csv" \
-            timeout 420 python3 benchmarks/bench_shared_device.py --device cuda --preset paper \
-            --algo pebble --steps 14000 --from-step 11000 --workers 1,4 --threads 2 \
-            --set sac.cuda_graph=true --set sac.tf32=true > "$OUT/bench_shared_tf32.txt" 2>&1
-        tail -6 "$OUT/bench_shared_tf32.txt" >> "$OUT/summary.txt" ;;
+        shared_runs "$OUT/bench_shared_tf32.txt" "$OUT/gpu_util_tf32.csv" --set sac.tf32=true ;;
     sepoa)
         # Round 0 comes after 1 000 random steps and 20 rollouts of 1 000: steps 24-30 k are
         # after it and its critic reset. A 5 000-step snapshot: pretraining is not timed.
