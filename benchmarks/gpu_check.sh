@@ -7,6 +7,8 @@
 #   shared  N runs sharing the GPU against one alone (`experiment run --device cuda`), timed
 #           over steps 11-14 k: after round 0 (at 10 k) and the evaluation at 10 k
 #   tf32    `sac` and `shared` again with TF32 matrix products (`sac.tf32`)
+#   mps     `shared` (graphed, TF32) with CUDA's Multi-Process Service running: N processes'
+#           kernels in one GPU context instead of contexts taking turns (time-slicing)
 #   sepoa   whole-run steps/s of a paper-preset S-EPOA run after its first round (graphed, TF32)
 #   profile 1 000 steps of a paper-preset PEBBLE run after round 0 under torch's profiler
 #           (graphed, TF32): how busy the GPU is, and the ops that hold the time
@@ -29,8 +31,8 @@ set -uo pipefail
 steps=("$@")
 [ ${#steps[@]} -eq 0 ] && steps=(test sac run doctor)
 for step in "${steps[@]}"; do
-    case "$step" in test|sac|run|doctor|shared|tf32|sepoa|profile|reward|pretrain) ;;
-    *) echo "unknown step $step; valid: test sac run doctor shared tf32 sepoa profile" \
+    case "$step" in test|sac|run|doctor|shared|tf32|mps|sepoa|profile|reward|pretrain) ;;
+    *) echo "unknown step $step; valid: test sac run doctor shared tf32 mps sepoa profile" \
             "reward pretrain" >&2
        exit 2 ;; esac
 done
@@ -88,6 +90,23 @@ for step in "${steps[@]}"; do
         tail -3 "$OUT/bench_sac_tf32.txt" >> "$OUT/summary.txt"
         say "1 and 4 paper-preset PEBBLE runs sharing the GPU, steps 11-14 k (graphed, TF32)"
         shared_runs "$OUT/bench_shared_tf32.txt" "$OUT/gpu_util_tf32.csv" --set sac.tf32=true ;;
+    mps)
+        # The daemon is a user-space process with its own pipe and log folders: the GPU's
+        # settings (compute mode, MIG) stay as they are, and `quit` stops it afterwards.
+        say "1 and 4 paper-preset PEBBLE runs sharing the GPU under MPS, steps 11-14 k (graphed, TF32)"
+        export CUDA_MPS_PIPE_DIRECTORY=/tmp/gpu-check-mps/pipe CUDA_MPS_LOG_DIRECTORY=/tmp/gpu-check-mps/log
+        mkdir -p "$CUDA_MPS_PIPE_DIRECTORY" "$CUDA_MPS_LOG_DIRECTORY"
+        if nvidia-cuda-mps-control -d > "$OUT/mps.txt" 2>&1; then
+            shared_runs "$OUT/bench_shared_mps.txt" "$OUT/gpu_util_mps.csv" --set sac.tf32=true
+            echo quit | nvidia-cuda-mps-control >> "$OUT/mps.txt" 2>&1
+            # The control log's client lines say whether the runs' processes went through MPS.
+            cp "$CUDA_MPS_LOG_DIRECTORY/control.log" "$OUT/mps_control.log" 2>/dev/null
+            echo "MPS control log: $(grep -ci "client" "$OUT/mps_control.log" 2>/dev/null) client lines" \
+                >> "$OUT/summary.txt"
+        else
+            echo "MPS did not start: $(tail -1 "$OUT/mps.txt")" >> "$OUT/summary.txt"
+        fi
+        unset CUDA_MPS_PIPE_DIRECTORY CUDA_MPS_LOG_DIRECTORY ;;
     sepoa)
         # Round 0 comes after 1 000 random steps and 20 rollouts of 1 000: steps 24-30 k are
         # after it and its critic reset. A 5 000-step snapshot: pretraining is not timed.
