@@ -23,6 +23,7 @@ from trainer.feedback import Feedback, PreferenceFeedback
 from trainer.nets import NumpyMLP
 from trainer.replay_buffer import ReplayBuffer
 from trainer.rune import rune_beta
+from trainer.utils import to_device_async
 
 B = TypeVar("B", bound=Any)
 """a replay batch: SAC's, or one that also carries skills"""
@@ -79,17 +80,17 @@ class AgentReward:
         """After the first round: the agent trains on r_hat."""
         return self.feedback.rounds > 0
 
-    def at_step(self, obs: np.ndarray, action: np.ndarray, true_reward: float) -> float:
-        """The reward stored with a new transition."""
+    def at_step(self, obs: np.ndarray, action: np.ndarray,
+                true_reward: float) -> float | torch.Tensor:
+        """The reward stored with a new transition; on a GPU a one-element tensor there, which
+        the buffer stores without the host waiting for it."""
         if not self.learned:
             return 0.0  # the unsupervised reward is computed per batch
+        x = np.concatenate([obs, action])[None]
         if self._numpy_reward is not None:
-            x = np.concatenate([obs, action])[None]
             return float(self._numpy_reward(x).mean())
-        with torch.no_grad():
-            o = torch.as_tensor(obs, device=self.device)[None]
-            a = torch.as_tensor(action, device=self.device)[None]
-            return float(self.feedback.model.reward(o, a)[0])
+        x_t = to_device_async(x.astype(np.float32, copy=False), self.device)
+        return self.feedback.model.member_rewards(x_t).mean(0)
 
     def batch(self, batch: B, step: int) -> B:
         """`batch` carrying the reward the agent trains on at `step`."""

@@ -127,6 +127,8 @@ class SkillPolicy(Policy):
         self.estimator = ReturnEstimator(self.skills.skill_dim, cfg.skill, device)
         self.task_skill: np.ndarray | None = None
         """z_task, once R_theta is fitted"""
+        self._task_skill_copy: tuple[np.ndarray, torch.Tensor] | None = None
+        """z_task and its copy on the device: one copy per draw, not one per z_task update"""
         self._stored_skill_metrics: UpdateMetrics = {}
         """the last stored-skill update's metrics, logged beside a z_task update's"""
 
@@ -168,7 +170,10 @@ class SkillPolicy(Policy):
             self._stored_skill_metrics = self.agent.update(batch)
             return self._stored_skill_metrics
         # The acting skill learns from every transition, not only its own episode's share.
-        task = torch.as_tensor(self.task_skill, device=self.device).expand_as(batch.skill)
+        if self._task_skill_copy is None or self._task_skill_copy[0] is not self.task_skill:
+            self._task_skill_copy = (self.task_skill,
+                                     torch.as_tensor(self.task_skill, device=self.device))
+        task = self._task_skill_copy[1].expand_as(batch.skill)
         task_metrics = self.agent.update(batch._replace(skill=task))
         return self._stored_skill_metrics | {f"task_{k}": v for k, v in task_metrics.items()}
 

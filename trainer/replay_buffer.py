@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from trainer.sac import Batch
+from trainer.utils import to_device_async
 
 
 class ReplayBuffer:
@@ -28,34 +29,55 @@ class ReplayBuffer:
         self.cursor = 0
         # Indices are drawn where the buffer lives: on a GPU, sampling costs no host round trip.
         self.generator = torch.Generator(device=device).manual_seed(seed)
-        # On the CPU, `add` writes through NumPy views of the same memory: five plain array
-        # writes instead of five torch indexing calls (~1.5 us instead of ~15-25 us a step).
-        self._arrays = (
-            tuple(t.numpy() for t in (self.obs, self.action, self.next_obs, self.reward,
-                                      self.true_reward))
-            if self.device.type == "cpu" else None
-        )
+        self._fields: list[torch.Tensor] = []
+        """what `add` writes, in the order of its values"""
+        self._arrays: list[np.ndarray] | None = [] if device.type == "cpu" else None
+        for field in (self.obs, self.action, self.next_obs, self.reward, self.true_reward):
+            self._add_field(field)
+
+    def _add_field(self, field: torch.Tensor) -> None:
+        self._fields.append(field)
+        if self._arrays is not None:
+            # On the CPU, `add` writes through NumPy views of the same memory: plain array
+            # writes instead of torch indexing calls (~1.5 us instead of ~15-25 us a step).
+            self._arrays.append(field.numpy())
 
     def __len__(self) -> int:
         return self.size
 
-    def add(self, obs: np.ndarray, action: np.ndarray, reward: float, true_reward: float,
-            next_obs: np.ndarray, skill: np.ndarray | None = None) -> None:
+    def add(self, obs: np.ndarray, action: np.ndarray, reward: float | torch.Tensor,
+            true_reward: float, next_obs: np.ndarray, skill: np.ndarray | None = None) -> None:
         """Store one transition; `skill`, the episode's (`EpisodeMeta.skill`), is kept by
-        `SkillReplayBuffer` only."""
+        `SkillReplayBuffer` only. `reward` may be a one-element tensor on the buffer's device
+        (a reward model's output, left unread by the host)."""
+        self._write([obs, action, next_obs, reward, true_reward])
+
+    def _write(self, values: list) -> None:
+        """`values`, one per field, into the row at the cursor."""
         i = self.cursor
         if self._arrays is not None:
-            obs_a, action_a, next_obs_a, reward_a, true_reward_a = self._arrays
-            obs_a[i], action_a[i], next_obs_a[i] = obs, action, next_obs
-            reward_a[i, 0], true_reward_a[i, 0] = reward, true_reward
+            for array, value in zip(self._arrays, values, strict=True):
+                array[i] = value
         else:
-            self.obs[i] = torch.from_numpy(obs)
-            self.action[i] = torch.from_numpy(action)
-            self.next_obs[i] = torch.from_numpy(next_obs)
-            self.reward[i, 0] = reward
-            self.true_reward[i, 0] = true_reward
+            self._write_on_device(i, values)
         self.cursor = (i + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
+
+    def _write_on_device(self, i: int, values: list) -> None:
+        """One asynchronous copy of the whole row, split on the device: with a plain copy per
+        field a GPU run would wait for the GPU's queued work (the last update) once per field."""
+        fields = list(zip(self._fields, values, strict=True))
+        row = np.concatenate([
+            np.zeros(field.shape[1], np.float32) if isinstance(value, torch.Tensor)
+            else np.asarray(value, np.float32).reshape(field.shape[1])
+            for field, value in fields
+        ])
+        row_t, start = to_device_async(row, self.device), 0
+        for field, value in fields:
+            width = field.shape[1]
+            source = value if isinstance(value, torch.Tensor) else row_t[start : start + width]
+            field[i].copy_(source.reshape(width))
+            start += width
 
     def indices(self, batch_size: int) -> torch.Tensor:
         """`batch_size` uniform indices into the stored transitions, on the buffer's device."""

@@ -19,6 +19,7 @@ from torch import nn
 from runvocab.config import SACConfig
 from trainer.graphed_update import GraphedUpdate, Metrics
 from trainer.nets import EnsembleMLP, NumpyMLP, mlp
+from trainer.utils import to_device_async
 
 LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
 
@@ -142,12 +143,15 @@ class SAC:
 
     def act(self, obs: np.ndarray, rng: np.random.Generator, deterministic: bool = False):
         """One action for one observation (the environment loop's hot path)."""
+        d = self.action_dim
         if self._numpy_actor is None:
-            obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device).unsqueeze(0)
+            # One wait for the device a step: the observation goes in asynchronously and the
+            # two outputs come back in one copy.
+            obs_t = to_device_async(np.asarray(obs, np.float32), self.device).unsqueeze(0)
             with torch.no_grad():
-                mean, log_std = (t[0].cpu().numpy() for t in self.actor(obs_t))
+                mean, log_std = np.split(torch.cat(self.actor(obs_t), -1)[0].cpu().numpy(), [d])
         else:
-            out, d = self._numpy_actor(obs), self.action_dim
+            out = self._numpy_actor(obs)
             mean, log_std = out[:d], out[d:]
             # Actor.forward's soft clamp, in the same multiply-add form.
             half = 0.5 * (self.cfg.log_std_max - self.cfg.log_std_min)

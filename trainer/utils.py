@@ -1,4 +1,4 @@
-"""Small helpers for the training loop: seeding and device choice."""
+"""Small helpers for the training loop: seeding, device choice and host-to-device copies."""
 
 from __future__ import annotations
 
@@ -33,3 +33,14 @@ def pick_device(name: str) -> torch.device:
             raise ValueError(f"device {name!r}: torch sees {count} CUDA device(s) here, "
                              f"cuda:0 to cuda:{count - 1}")
     return torch.device(name)
+
+
+def to_device_async(array: np.ndarray, device: torch.device) -> torch.Tensor:
+    """`array` as a tensor on `device`, without waiting for the device. A plain copy from host
+    memory to a GPU first waits for all the GPU's queued work (a host sync); through pinned
+    memory it is queued like a kernel (torch's pinned-memory cache keeps the block until the
+    copy is done). On the CPU the tensor shares `array`'s memory."""
+    tensor = torch.from_numpy(array)
+    if device.type != "cuda":
+        return tensor.to(device)
+    return tensor.pin_memory().to(device, non_blocking=True)

@@ -99,17 +99,13 @@ class SkillReplayBuffer(ReplayBuffer):
                  device: torch.device, seed: int):
         super().__init__(obs_dim, action_dim, capacity, device, seed)
         self.skill = torch.empty(capacity, skill_dim, device=device)
-        self._skill_array = self.skill.numpy() if device.type == "cpu" else None
+        self._add_field(self.skill)
 
-    def add(self, obs: np.ndarray, action: np.ndarray, reward: float, true_reward: float,
-            next_obs: np.ndarray, skill: np.ndarray | None = None) -> None:
+    def add(self, obs: np.ndarray, action: np.ndarray, reward: float | torch.Tensor,
+            true_reward: float, next_obs: np.ndarray, skill: np.ndarray | None = None) -> None:
         if skill is None:
             raise TypeError("SkillReplayBuffer.add needs the transition's skill")
-        if self._skill_array is not None:
-            self._skill_array[self.cursor] = skill
-        else:
-            self.skill[self.cursor] = torch.from_numpy(np.asarray(skill, np.float32))
-        super().add(obs, action, reward, true_reward, next_obs)
+        self._write([obs, action, next_obs, reward, true_reward, skill])
 
     def sample(self, batch_size: int) -> SkillBatch:  # type: ignore[override]
         idx = self.indices(batch_size)

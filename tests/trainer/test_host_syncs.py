@@ -1,0 +1,133 @@
+"""A GPU run's step waits for the GPU once, when the action comes back: the transition, the
+learned reward and the observation go to the device asynchronously. On the CPU the paths a GPU
+takes are forced and must store and return what the NumPy paths do; on a GPU (skipped without
+one) torch's sync debug mode counts the waits."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from runvocab.config import SACConfig, build_config
+from trainer.agent_reward import AgentReward
+from trainer.feedback import LabelLog, PreferenceFeedback
+from trainer.replay_buffer import ReplayBuffer
+from trainer.reward_model import RewardModel
+from trainer.sac import SAC
+from trainer.skills.agent import SkillReplayBuffer
+from trainer.teachers import make_teacher
+
+OBS, ACT, SKILL = 4, 2, 3
+CPU = torch.device("cpu")
+needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device here")
+
+
+def transitions(n: int, seed: int = 0) -> list[tuple]:
+    rng = np.random.default_rng(seed)
+    f32 = np.float32
+    return [(rng.normal(size=OBS).astype(f32), rng.uniform(-1, 1, ACT).astype(f32),
+             float(rng.normal()), float(rng.normal()), rng.normal(size=OBS).astype(f32),
+             rng.normal(size=SKILL).astype(f32)) for _ in range(n)]
+
+
+def forced_device_path(buffer: ReplayBuffer) -> ReplayBuffer:
+    buffer._arrays = None  # what a GPU buffer has: no NumPy views of its memory
+    return buffer
+
+
+def stored(buffer: ReplayBuffer) -> list[torch.Tensor]:
+    return [field[: buffer.size].cpu() for field in buffer._fields]
+
+
+@pytest.mark.parametrize("with_skill", [False, True])
+def test_the_devices_one_copy_row_stores_what_the_numpy_views_store(with_skill: bool) -> None:
+    def make() -> ReplayBuffer:
+        if with_skill:
+            return SkillReplayBuffer(OBS, ACT, SKILL, 8, CPU, seed=0)
+        return ReplayBuffer(OBS, ACT, 8, CPU, seed=0)
+
+    plain, device_path = make(), forced_device_path(make())
+    for i, (obs, action, reward, true_reward, next_obs, skill) in enumerate(transitions(11)):
+        plain.add(obs, action, reward, true_reward, next_obs, skill)
+        # Every other reward comes as a reward model's one-element tensor.
+        stored_reward = torch.tensor([reward]) if i % 2 else reward
+        device_path.add(obs, action, stored_reward, true_reward, next_obs, skill)
+    assert plain.size == device_path.size == 8 and plain.cursor == device_path.cursor == 3
+    for a, b in zip(stored(plain), stored(device_path), strict=True):
+        assert torch.equal(a, b)
+    assert len(plain._fields) == (6 if with_skill else 5)
+
+
+def test_the_torch_actors_one_read_back_acts_as_the_numpy_actor() -> None:
+    torch.manual_seed(0)
+    agent = SAC(OBS, ACT, SACConfig(hidden_dim=16, hidden_layers=2, batch_size=8), CPU)
+    obs = np.random.default_rng(1).normal(size=OBS).astype(np.float32)
+    numpy_side = [agent.act(obs, np.random.default_rng(2), deterministic=d) for d in (True, False)]
+    agent._numpy_actor = None  # the path a GPU agent takes
+    torch_side = [agent.act(obs, np.random.default_rng(2), deterministic=d) for d in (True, False)]
+    for a, b in zip(numpy_side, torch_side, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(torch_side[0], torch_side[1])  # the second one drew noise
+
+
+def learned_reward(tmp_path, device: torch.device) -> AgentReward:
+    cfg = build_config("dmc:cheetah_run", "tiny", {"algo": "pebble"})
+    torch.manual_seed(0)
+    model = RewardModel(OBS, ACT, cfg.reward, device, 0)
+    teacher = make_teacher(cfg.teacher, 0, cfg.feedback.segment_length, 100)
+    feedback = PreferenceFeedback(cfg.feedback, model, teacher, "scripted:noisy",
+                                  LabelLog(str(tmp_path / "labels.jsonl")),
+                                  np.random.default_rng(1))
+    feedback.rounds = 1  # r_hat from here on
+    return AgentReward(cfg, ReplayBuffer(OBS, ACT, 16, device, seed=0), feedback, device)
+
+
+def test_the_device_paths_learned_reward_is_the_numpy_paths_as_a_tensor(tmp_path) -> None:
+    reward = learned_reward(tmp_path, CPU)
+    obs, action, *_ = transitions(1)[0]
+    on_host = reward.at_step(obs, action, 0.0)
+    reward._numpy_reward = None  # the path a GPU run takes
+    on_device = reward.at_step(obs, action, 0.0)
+    assert isinstance(on_host, float) and isinstance(on_device, torch.Tensor)
+    assert on_device.shape == (1,)
+    assert float(on_device[0]) == pytest.approx(on_host, abs=1e-6)
+
+
+def waits_for_the_gpu(action) -> int:
+    """How many times `action()` made the host wait for the GPU (torch's sync debug mode)."""
+    torch.cuda.synchronize()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            action()
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    return sum("synchroniz" in str(w.message) for w in caught)
+
+
+@needs_cuda
+def test_on_a_gpu_a_step_waits_once_when_the_action_comes_back(tmp_path) -> None:
+    cuda = torch.device("cuda")
+    obs, action, reward, true_reward, next_obs, skill = transitions(1)[0]
+    agent = SAC(OBS + SKILL, ACT, SACConfig(hidden_dim=16, hidden_layers=2, batch_size=8), cuda)
+    rng = np.random.default_rng(0)
+    agent.act(np.concatenate([obs, skill]), rng)  # the first call allocates pinned memory
+    assert waits_for_the_gpu(lambda: agent.act(np.concatenate([obs, skill]), rng)) == 1
+
+    r_hat = learned_reward(tmp_path, cuda)
+    buffer = SkillReplayBuffer(OBS, ACT, SKILL, 16, cuda, seed=0)
+
+    def store() -> None:
+        buffer.add(obs, action, r_hat.at_step(obs, action, true_reward), true_reward, next_obs,
+                   skill)
+
+    store()
+    assert waits_for_the_gpu(store) == 0
+    expected = r_hat.feedback.model.reward(torch.from_numpy(obs)[None].to(cuda),
+                                           torch.from_numpy(action)[None].to(cuda))
+    torch.testing.assert_close(buffer.reward[:2, 0], expected.expand(2))
+    torch.testing.assert_close(buffer.skill[1].cpu(), torch.from_numpy(skill))
