@@ -62,9 +62,10 @@ python3 -c "import torch; print(torch.__version__, torch.cuda.get_device_name())
 for step in "${steps[@]}"; do
     case "$step" in
     test)
-        say "graphed update equals eager on CUDA"
+        say "graphed update equals eager on CUDA; a step waits for the GPU once"
         timeout 120 python3 -m pytest -q -p no:cacheprovider tests/trainer/test_graphed_update.py \
-            tests/trainer/test_pick_device.py > "$OUT/test_graphed_update.txt" 2>&1
+            tests/trainer/test_pick_device.py tests/trainer/test_host_syncs.py \
+            > "$OUT/test_graphed_update.txt" 2>&1
         tail -1 "$OUT/test_graphed_update.txt" >> "$OUT/summary.txt" ;;
     sac)
         say "SAC updates/s, SB3 / eager / graphed"
