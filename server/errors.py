@@ -1,6 +1,5 @@
 """One place that turns refusals into JSON client errors `{"detail": "..."}`: the queue's errors,
-numbers the database cannot hold, 405s that name every method the path allows, and 422s whose
-refused value is nested too deeply to send back."""
+numbers the database cannot hold, and 405s that name every method the path allows."""
 
 from __future__ import annotations
 
@@ -8,8 +7,6 @@ import re
 from collections.abc import Awaitable, Callable, Iterable, Iterator
 
 from fastapi import FastAPI, Request
-from fastapi.encoders import jsonable_encoder
-from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from sqlalchemy.exc import DataError
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -75,19 +72,6 @@ def allowed_methods(request: Request) -> set[str]:
     return allowed
 
 
-async def _invalid(_request: Request, error: Exception) -> JSONResponse:
-    """FastAPI's 422, `{"detail": [{type, loc, msg, input, ...}]}`. A body nested almost as deep
-    as JSON decoding allows (some 900 levels, within the 64 KiB limit) is refused, but echoing it
-    back as `input` would recurse past Python's limit: such errors go without their `input`."""
-    assert isinstance(error, RequestValidationError)
-    errors = error.errors()
-    try:
-        return JSONResponse(status_code=422, content={"detail": jsonable_encoder(errors)})
-    except RecursionError:
-        shallow = [{key: e[key] for key in ("type", "loc", "msg") if key in e} for e in errors]
-        return JSONResponse(status_code=422, content={"detail": jsonable_encoder(shallow)})
-
-
 async def _http_error(request: Request, error: Exception) -> JSONResponse:
     assert isinstance(error, StarletteHTTPException)
     headers = dict(error.headers or {})
@@ -107,4 +91,3 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(OverflowError, _out_of_range)
     app.add_exception_handler(DataError, _out_of_range)
     app.add_exception_handler(StarletteHTTPException, _http_error)
-    app.add_exception_handler(RequestValidationError, _invalid)

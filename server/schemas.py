@@ -35,10 +35,7 @@ CONFIG_MAX_BYTES = 16 * 1024
 
 
 def _small_json(value: dict[str, Any]) -> dict[str, Any]:
-    try:
-        size = len(json.dumps(value, default=str).encode())
-    except RecursionError:  # hundreds of levels deep: no config is, and it cannot be stored
-        raise ValueError("is nested too deeply to store") from None
+    size = len(json.dumps(value, default=str).encode())  # middleware.JSON_DEPTH_LIMIT bounds it
     if size > CONFIG_MAX_BYTES:
         raise ValueError(f"is {size} bytes as JSON; at most {CONFIG_MAX_BYTES} are stored")
     return value
@@ -84,7 +81,7 @@ class InvalidOut(BaseModel):
 
 
 ERROR_TEXT: dict[int, str] = {
-    400: "the body cannot be read as JSON (not UTF-8)",
+    400: "the body cannot be read as JSON (not UTF-8 text, or nested deeper than 64 levels)",
     401: "missing, invalid or revoked bearer token",
     403: "the caller's role may not do this, a labeller was revoked, or a clip URL's signature "
     "is invalid or expired",

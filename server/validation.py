@@ -3,7 +3,7 @@
 A request's parts are checked with pydantic and refused in FastAPI's terms, so a client cannot
 tell these routes from FastAPI's own: a 422 `RequestValidationError` whose `loc` starts with
 "query", "path" or "body" (every refusal of a request together), and a 400 for a body that is
-not UTF-8 text or is nested too deeply to decode.
+not UTF-8 text (a body nested too deeply never gets here: `middleware.JSON_DEPTH_LIMIT`).
 """
 
 from __future__ import annotations
@@ -15,6 +15,8 @@ from fastapi import HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 from pydantic import TypeAdapter, ValidationError
 
+from server.middleware import is_json_content_type
+
 Problems = list[dict[str, Any]]
 
 
@@ -25,21 +27,11 @@ def check(adapter: TypeAdapter[Any], value: Any, *where: str) -> tuple[Any, Prob
         return adapter.validate_python(value, from_attributes=True), []
     except ValidationError as error:
         return None, [{**e, "loc": (*where, *e["loc"])} for e in error.errors(include_url=False)]
-    except RecursionError:  # a value nested some 900 levels deep, refused by repr()
-        return None, [{"type": "value_error", "loc": where, "input": None,
-                       "msg": "Value error, the body is nested too deeply"}]
 
 
 def check_query(adapter: TypeAdapter[Any], request: Request) -> tuple[Any, Problems]:
     """The query string as the model `adapter` validates it (the last of repeated names)."""
     return check(adapter, dict(request.query_params), "query")
-
-
-def _is_json(content_type: str) -> bool:
-    kind = content_type.partition(";")[0].strip().lower()
-    return kind == "application/json" or (
-        kind.startswith("application/") and kind.endswith("+json")
-    )
 
 
 async def json_body(request: Request) -> Any:
@@ -49,7 +41,7 @@ async def json_body(request: Request) -> Any:
     raw = await request.body()
     if not raw:
         return None
-    if not _is_json(request.headers.get("content-type", "")):
+    if not is_json_content_type(request.headers.get("content-type", "")):
         return raw
     try:
         return json.loads(raw)
@@ -58,7 +50,7 @@ async def json_body(request: Request) -> Any:
             "type": "json_invalid", "loc": ("body", error.pos),
             "msg": "JSON decode error", "input": {}, "ctx": {"error": error.msg},
         }]) from None
-    except (ValueError, RecursionError):  # not UTF-8 text, or nested too deep to decode
+    except ValueError:  # not UTF-8 text
         raise HTTPException(400, "There was an error parsing the body") from None
 
 

@@ -1,5 +1,6 @@
-"""Whatever a client sends, the answer is a clear 4xx: out-of-range numbers, oversized bodies,
-methods a path does not take; and every response carries the security headers."""
+"""Whatever a client sends, the answer is a clear 4xx: out-of-range numbers, oversized or too
+deeply nested bodies, methods a path does not take; and every response carries the security
+headers."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from server_helpers import OPERATOR, bearer, new_labeller, new_run, snapshot
 from sqlalchemy.orm import Session
 
 from server.app import create_app
+from server.middleware import JSON_DEPTH_LIMIT, nests_deeper_than
 from server.settings import Settings
 
 HUGE = 18446744073709551616  # 2**64: beyond every integer column
@@ -153,10 +155,57 @@ def _nested(depth: int, shape: str) -> bytes:
     return b'{"a":' * depth + b"1" + b"}" * depth
 
 
-# Around the depth where Python's JSON decoding gives up (its recursion limit, less the stack
-# already in use) a body decodes but cannot be echoed back in a 422; beyond it, it cannot be
-# decoded; 5000 levels (10 KB) is what the audit sent.
-DEPTHS = [1, 30, *range(850, 1001, 5), 5000]
+# Either side of the limit; around the depth where Python's JSON decoding would give up (its
+# recursion limit, less the stack in use), where a body decoded but could not be echoed back in
+# a 422 before the limit; 5000 levels (10 KB) is what the audit sent.
+DEPTHS = [1, 30, JSON_DEPTH_LIMIT - 1, JSON_DEPTH_LIMIT, JSON_DEPTH_LIMIT + 1, 900, 950, 5000]
+
+
+@pytest.mark.parametrize(("body", "deeper"), [
+    (b"[]", False),
+    (b"[" * 64 + b"]" * 64, False),
+    (b"[" * 65 + b"]" * 65, True),
+    (b'{"a":' * 65 + b"1" + b"}" * 65, True),
+    (b"[" * 65, True),  # unclosed: deep all the same
+    # Brackets inside strings are text, however many; escaped quotes do not end a string.
+    (b'{"a": "' + b"[" * 100 + b'"}', False),
+    (b'{"a": "\\\\"' + b", " + b"[" * 65 + b"]" * 65 + b"}", True),
+    (b'{"a": "\\\\\\"' + b"[" * 100 + b'"}', False),
+    (b'["\\u005b' + b"{" * 70 + b'"]', False),
+])
+def test_nesting_depth_counts_arrays_and_objects_outside_strings(body: bytes,
+                                                                 deeper: bool) -> None:
+    assert nests_deeper_than(body, 64) is deeper
+
+
+def test_a_body_nested_deeper_than_the_limit_is_a_400_that_names_it(client: TestClient,
+                                                                    session: Session) -> None:
+    before = snapshot(session)
+    config = b'{"a":' * (JSON_DEPTH_LIMIT - 1) + b"1" + b"}" * (JSON_DEPTH_LIMIT - 1)
+    body = b'{"task": "dmc:cheetah_run", "algo": "sac", "budget": 1, "config": %s}'
+    json_type = {"Content-Type": "application/json"}
+
+    def chunks(content: bytes) -> Iterator[bytes]:  # no Content-Length: it streams in parts
+        yield from (content[i : i + 7] for i in range(0, len(content), 7))
+
+    # 64 levels with the body's own: decoded, and refused by the route for what it says.
+    at_limit = client.post("/api/runs", content=body % config, headers=OPERATOR | json_type)
+    assert at_limit.status_code == 422, at_limit.text
+    assert "unknown config field 'a'" in at_limit.text
+    deeper = body % (b"[" + config + b"]")
+    # FastAPI decodes a body without a type as JSON, and an application/*+json one.
+    for content, content_type in [(deeper, json_type), (chunks(deeper), json_type), (deeper, {}),
+                                  (deeper, {"Content-Type": "application/merge-patch+json"})]:
+        refused = client.post("/api/runs", content=content, headers=OPERATOR | content_type)
+        assert refused.status_code == 400, refused.text
+        assert refused.json() == {
+            "detail": f"request body nests JSON deeper than {JSON_DEPTH_LIMIT} levels, the most "
+                      "accepted"}
+    # Not JSON by its type: the body's model refuses it as it refuses any text.
+    text = client.post("/api/runs", content=deeper, headers=OPERATOR | {"Content-Type":
+                                                                        "text/plain"})
+    assert text.status_code == 422
+    assert snapshot(session) == before
 
 
 def test_no_body_however_deeply_nested_is_a_500(client: TestClient, session: Session) -> None:
