@@ -1,6 +1,7 @@
 #!/bin/bash
 # The GPU figures of the training-speed work, in prepared runs on a GPU host. Steps:
-#   test    the graphed update's CUDA test (replayed graphs give the eager update's parameters)
+#   test    the CUDA tests: replayed graphs give the eager update's parameters; a step waits
+#           for the GPU once
 #   sac     SAC updates/s, SB3 / eager / graphed, at both sizes
 #   run     whole-run steps/s, eager against graphed (paper preset PEBBLE)
 #   doctor  EGL rendering
