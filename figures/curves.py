@@ -13,6 +13,7 @@ minus one sample standard deviation (ddof=1) across seeds; one seed draws no ban
 from __future__ import annotations
 
 import io
+import textwrap
 from collections.abc import Mapping, Sequence
 from typing import NamedTuple
 
@@ -70,14 +71,22 @@ def _band(curve: Sequence[Series] | Band) -> Band:
     return curve if isinstance(curve, Band) else align(curve)
 
 
-def grid_png(panels: Mapping[tuple[str, str], Curves], rows: Sequence[str],
-             cols: Sequence[str], *, title: str = "", ylabel: str = "return",
-             xlabel: str = "environment steps", dpi: int = 110) -> bytes:
+LEGEND_ROW_INCHES = 0.2
+"""the height a row of the legend adds to the figure, so the panels keep theirs"""
+FIT = 0.96
+"""the share of the figure's width a title or legend may take (the rest is its margins)"""
+
+
+def grid_figure(panels: Mapping[tuple[str, str], Curves], rows: Sequence[str],
+                cols: Sequence[str], *, title: str = "", ylabel: str = "return",
+                xlabel: str = "environment steps") -> Figure:
     """A figure of panels, `panels[(row, col)]` at that row and column (a missing one is left
-    blank), one colour per curve label across all panels, one legend below; PNG bytes."""
+    blank), one colour per curve label across all panels, one legend below. The legend takes
+    as many columns, and the title as many lines, as the figure's width holds."""
     labels = list(dict.fromkeys(label for curves in panels.values() for label in curves))
     colours = {label: f"C{i % 10}" for i, label in enumerate(labels)}
-    fig = Figure(figsize=(1.5 + 3.6 * len(cols), 0.9 + 2.8 * len(rows)), layout="constrained")
+    width = 1.5 + 3.6 * len(cols)
+    fig = Figure(figsize=(width, 0.9 + 2.8 * len(rows)), layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(len(rows), len(cols), squeeze=False, sharex=True)
     for i, row in enumerate(rows):
@@ -98,12 +107,28 @@ def grid_png(panels: Mapping[tuple[str, str], Curves], rows: Sequence[str],
                 low = band.mean - band.std if band.low is None else band.low
                 high = band.mean + band.std if band.high is None else band.high
                 ax.fill_between(band.steps, low, high, color=colours[label], alpha=0.2, lw=0)
+    renderer = fig.canvas.get_renderer()  # type: ignore[attr-defined]
     handles = [Line2D([], [], color=colours[label], label=label) for label in labels]
-    if handles:
-        fig.legend(handles=handles, loc="outside lower center", ncol=min(len(labels), 4),
-                   fontsize=9, frameon=False)
-    if title:
-        fig.suptitle(title, fontsize=11)
+    for ncol in range(min(len(labels), 4), 0, -1):  # as many columns as the width holds
+        legend = fig.legend(handles=handles, loc="outside lower center", ncol=ncol,
+                            fontsize=9, frameon=False)
+        if ncol == 1 or legend.get_window_extent(renderer).width <= FIT * fig.bbox.width:
+            fig.set_size_inches(width, fig.get_figheight()
+                                + LEGEND_ROW_INCHES * -(-len(labels) // ncol))
+            break
+        legend.remove()
+    for chars in range(len(title), 0, -1):  # as few lines as the width holds
+        suptitle = fig.suptitle("\n".join(textwrap.wrap(title, chars)), fontsize=11)
+        if suptitle.get_window_extent(renderer).width <= FIT * fig.bbox.width:
+            break
+    return fig
+
+
+def grid_png(panels: Mapping[tuple[str, str], Curves], rows: Sequence[str],
+             cols: Sequence[str], *, title: str = "", ylabel: str = "return",
+             xlabel: str = "environment steps", dpi: int = 110) -> bytes:
+    """`grid_figure` as PNG bytes."""
+    fig = grid_figure(panels, rows, cols, title=title, ylabel=ylabel, xlabel=xlabel)
     out = io.BytesIO()
     fig.savefig(out, format="png", dpi=dpi)
     return out.getvalue()

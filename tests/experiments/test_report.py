@@ -17,7 +17,7 @@ import pytest
 from experiments.report import curve_panels, mean_std, write_report
 from experiments.results import load_results
 from experiments.spec import SpecError
-from figures.curves import PNG_SIGNATURE, Band, align, curves_png
+from figures.curves import PNG_SIGNATURE, Band, align, curves_png, grid_figure
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -167,6 +167,28 @@ def test_figures_and_index(results: Path) -> None:
     band = curve_panels(res, "return", ["dmc:cheetah_run"], 200)[("eps 0.3", "dmc:cheetah_run")]
     assert band["B"].steps.tolist() == [200, 400] and band["B"].n == 2
     assert band["A"].steps.tolist() == [200, 400, 600]
+
+
+@pytest.mark.parametrize("cols", [["cheetah_run"], ["cheetah_run", "walker_run", "hopper"]])
+def test_a_figures_title_and_legend_fit_its_width(cols: list[str]) -> None:
+    """Long curve labels and a long title, as a spec's variants and title are, on one panel
+    and on three: the legend takes fewer columns and the title more lines, nothing is cut."""
+    labels = ["S-EPOA", "PEBBLE", "SURF", "S-EPOA, disagreement", "S-EPOA, z_task each episode",
+              "SAC oracle on the true reward"]
+    panel = {label: [([0, 5000, 10000], [0.0, i, 2.0 * i])] for i, label in enumerate(labels)}
+    title = ("S-EPOA against SURF and PEBBLE at equal updates and labels, cheetah_run, eps 0.3 "
+             "(small): IQM, 95 % CI")
+    fig = grid_figure({("eps 0.3", col): panel for col in cols}, ["eps 0.3"], cols, title=title)
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    legend = fig.legends[0]
+    assert [t.get_text() for t in legend.get_texts()] == labels
+    for artist in (fig._suptitle, legend):
+        box = artist.get_window_extent(renderer)
+        assert box.x0 >= 0 and box.x1 <= fig.bbox.width, artist
+        assert box.y0 >= 0 and box.y1 <= fig.bbox.height, artist
+    lines = fig._suptitle.get_text().splitlines()
+    assert " ".join(lines) == title and len(lines) == (2 if len(cols) == 1 else 1)
 
 
 def test_report_of_a_folder_without_spec_is_an_error(tmp_path: Path, capsys) -> None:
