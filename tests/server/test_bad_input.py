@@ -7,6 +7,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import httpx
@@ -65,8 +66,9 @@ def test_out_of_range_integers_are_a_422_naming_the_parameter(
     assert snapshot(session) == before
 
 
-def test_an_out_of_range_number_does_not_drop_the_connection(settings: Settings) -> None:
-    """Over a real socket: the next request on the same keep-alive connection still works."""
+@contextmanager
+def served(settings: Settings) -> Iterator[httpx.Client]:
+    """The app behind uvicorn on a free port, and a keep-alive client of it: a real socket."""
     config = uvicorn.Config(create_app(settings), host="127.0.0.1", port=0, log_level="error")
     server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, daemon=True)
@@ -78,13 +80,19 @@ def test_an_out_of_range_number_does_not_drop_the_connection(settings: Settings)
             time.sleep(0.05)
         port = server.servers[0].sockets[0].getsockname()[1]
         with httpx.Client(base_url=f"http://127.0.0.1:{port}") as http:
-            bad = http.get(f"/api/runs/{HUGE}", headers=OPERATOR)
-            assert bad.status_code == 422
-            assert http.get("/api/runs", headers=OPERATOR).status_code == 200
-            assert bad.headers.get("connection") != "close"
+            yield http
     finally:
         server.should_exit = True
         thread.join(timeout=20)
+
+
+def test_an_out_of_range_number_does_not_drop_the_connection(settings: Settings) -> None:
+    """Over a real socket: the next request on the same keep-alive connection still works."""
+    with served(settings) as http:
+        bad = http.get(f"/api/runs/{HUGE}", headers=OPERATOR)
+        assert bad.status_code == 422
+        assert http.get("/api/runs", headers=OPERATOR).status_code == 200
+        assert bad.headers.get("connection") != "close"
 
 
 def test_a_body_over_the_limit_is_a_413_and_nothing_is_stored(
@@ -250,25 +258,12 @@ def test_no_body_however_deeply_nested_is_a_500(client: TestClient, session: Ses
 def test_a_deeply_nested_label_does_not_drop_the_connection(settings: Settings) -> None:
     """Over a real socket, as the audit sent it: 10 KB of nested brackets to /api/label/{id} is
     a 400, and the keep-alive connection serves the next request."""
-    config = uvicorn.Config(create_app(settings), host="127.0.0.1", port=0, log_level="error")
-    server = uvicorn.Server(config)
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    try:
-        deadline = time.monotonic() + 20
-        while not server.started:
-            assert time.monotonic() < deadline, "uvicorn did not start"
-            time.sleep(0.05)
-        port = server.servers[0].sockets[0].getsockname()[1]
-        with httpx.Client(base_url=f"http://127.0.0.1:{port}") as http:
-            created = http.post("/api/labellers", json={"name": "alice"}, headers=OPERATOR)
-            labeller = bearer(created.json()["token"])
-            for depth in (5000, 950):
-                bad = http.post("/api/label/1", content=_nested(depth, "list"),
-                                headers=labeller | {"Content-Type": "application/json"})
-                assert bad.status_code in (400, 422), (depth, bad.text[:200])
-                assert bad.headers.get("connection") != "close"
-            assert http.get("/api/label/next", headers=labeller).status_code == 204
-    finally:
-        server.should_exit = True
-        thread.join(timeout=20)
+    with served(settings) as http:
+        created = http.post("/api/labellers", json={"name": "alice"}, headers=OPERATOR)
+        labeller = bearer(created.json()["token"])
+        for depth in (5000, 950):
+            bad = http.post("/api/label/1", content=_nested(depth, "list"),
+                            headers=labeller | {"Content-Type": "application/json"})
+            assert bad.status_code == 400, (depth, bad.text[:200])
+            assert bad.headers.get("connection") != "close"
+        assert http.get("/api/label/next", headers=labeller).status_code == 204
