@@ -24,6 +24,7 @@ from typing import Any
 
 from sqlalchemy.orm import Session, sessionmaker
 
+from experiments.progress import duration_text, seconds_left, summary, training_rate
 from experiments.spec import Run as GridRun
 from experiments.spec import Spec, SpecError, flatten
 from labelqueue import (
@@ -194,30 +195,20 @@ HELD = (RunStatus.RUNNING, RunStatus.PAUSED, RunStatus.STOPPING)
 """the statuses in which a worker holds a run, and its heartbeat age tells something"""
 
 
-def age_text(seconds: float) -> str:
-    """`42s`, `5m07s`, `2h03m`: how long ago, in a table cell."""
-    s = max(0, int(seconds))
-    if s < 60:
-        return f"{s}s"
-    if s < 3600:
-        return f"{s // 60}m{s % 60:02d}s"
-    return f"{s // 3600}h{s % 3600 // 60:02d}m"
-
-
 def _heartbeat(row: Run | None, now: datetime) -> tuple[str, str | None]:
     """A run's heartbeat cell, and a line about its worker when that worker has gone silent
     (it may be dead) or is presumed dead (another worker may take the run over)."""
     age = None if row is None else heartbeat_age(row, now)
     if row is None or age is None or row.status not in HELD:
         return "-", None
-    cell = age_text(age)
+    cell = duration_text(age)
     if row.status is not RunStatus.RUNNING or age <= SILENT_WORKER_AFTER_S:
         return cell, None
     if age > DEAD_WORKER_AFTER_S:
         return f"{cell} DEAD", (f"  {row.grid_key}: worker {row.worker_id} silent for "
                                 f"{cell}, presumed dead: the next worker to look takes the run "
                                 "over from its checkpoint")
-    left = age_text(math.ceil(DEAD_WORKER_AFTER_S - age))
+    left = duration_text(math.ceil(DEAD_WORKER_AFTER_S - age))
     return f"{cell} silent", (f"  {row.grid_key}: worker {row.worker_id} silent for {cell}: "
                               f"stopped or dead? Another worker may take the run over in "
                               f"{left} unless it comes back")
@@ -226,35 +217,46 @@ def _heartbeat(row: Run | None, now: datetime) -> tuple[str, str | None]:
 def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> str:
     """A table of the spec's runs: their status in the database (or "not queued"), the step
     reached of the planned steps, the worker and how long ago it heartbeat (flagged `silent`
-    past `SILENT_WORKER_AFTER_S`, `DEAD` past `DEAD_WORKER_AFTER_S`), and whether the folder
-    holds a checkpoint."""
+    past `SILENT_WORKER_AFTER_S`, `DEAD` past `DEAD_WORKER_AFTER_S`), whether the folder
+    holds a checkpoint, and about how long the run has left to train (`experiments.progress`);
+    then the time the grid has left."""
     rows = spec_rows(spec, sessions)
     now = utcnow()
     header = ("task", "variant", "eps", "budget", "seed", "status", "step", "worker",
-              "heartbeat", "folder")
-    lines, counts, silent = [], {}, []
+              "heartbeat", "folder", "left")
+    lines, counts, silent, progress = [], {}, [], []
     for run in spec.runs():
         key = grid_key(spec, run)
         row = rows.get(key)
         status = str(row.status) if row is not None else "not queued"
         counts[status] = counts.get(status, 0) + 1
         folder = results / key
-        held = ("done" if (folder / "done.json").exists() else
+        done = (folder / "done.json").exists()
+        held = ("done" if done else
                 "checkpoint" if (folder / "checkpoint.pt").exists() else
                 "-" if not folder.exists() else "started")
         beat, note = _heartbeat(row, now)
         if note is not None:
             silent.append(note)
-        lines.append((run.task, run.variant, f"{run.eps:g}",
+        reached = row.step if row is not None else 0
+        progress.append((key, run.steps, reached, done, training_rate(folder)))
+        lines.append([run.task, run.variant, f"{run.eps:g}",
                       "-" if run.budget is None else str(run.budget), str(run.seed), status,
-                      f"{row.step if row is not None else 0}/{run.steps}",
-                      (row.worker_id or "-") if row is not None else "-", beat, held))
+                      f"{reached}/{run.steps}",
+                      (row.worker_id or "-") if row is not None else "-", beat, held])
+    left = seconds_left(progress)
+    for line, (key, *_rest, done, _) in zip(lines, progress, strict=True):
+        seconds = left[key]
+        line.append("-" if done else "?" if seconds is None else duration_text(seconds))
     widths = [max(len(r[i]) for r in [header, *lines]) for i in range(len(header))]
     text = ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip()
             for r in [header, *lines]]
-    summary = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
+    summary_line = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
+    workers = len({row.worker_id for row in rows.values()
+                   if row.status is RunStatus.RUNNING and row.worker_id})
     errors = [f"  {key}: {row.error}" for key, row in sorted(rows.items())
               if row.status is RunStatus.FAILED and row.error]
-    return "\n".join([f"{spec.name}: {len(lines)} runs: {summary}", *text]
+    return "\n".join([f"{spec.name}: {len(lines)} runs: {summary_line}", *text,
+                      summary(left, workers)]
                      + (["failed:", *errors] if errors else [])
                      + (["workers gone silent:", *silent] if silent else []))

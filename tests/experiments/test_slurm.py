@@ -212,16 +212,17 @@ def test_status_shows_each_runs_worker_and_heartbeat_age_and_flags_dead_ones(
     table = capsys.readouterr().out
     lines = table.splitlines()
     assert lines[1].split() == ["task", "variant", "eps", "budget", "seed", "status", "step",
-                                "worker", "heartbeat", "folder"]
-    assert lines[2].split()[5:] == ["running", "0/400", "alive", "5s", "-"]
-    assert lines[3].split()[5:] == ["running", "0/400", "quiet", "1m40s", "silent", "-"]
-    assert lines[4].split()[5:] == ["running", "0/400", "gone", "6m40s", "DEAD", "-"]
-    assert lines[5].split()[5:] == ["queued", "0/400", "-", "-", "-"]
-    assert lines[6] == "workers gone silent:"
+                                "worker", "heartbeat", "folder", "left"]
+    assert lines[2].split()[5:] == ["running", "0/400", "alive", "5s", "-", "?"]
+    assert lines[3].split()[5:] == ["running", "0/400", "quiet", "1m40s", "silent", "-", "?"]
+    assert lines[4].split()[5:] == ["running", "0/400", "gone", "6m40s", "DEAD", "-", "?"]
+    assert lines[5].split()[5:] == ["queued", "0/400", "-", "-", "-", "?"]
+    assert lines[6].startswith("time left (estimated): 4 run(s) without an estimate yet")
+    assert lines[7] == "workers gone silent:"
     assert re.fullmatch(r"  tiny/dmc-cheetah_run/PEBBLE/eps0\.3/s1: worker quiet silent for "
                         r"1m4\ds: stopped or dead\? Another worker may take the run over in "
-                        r"3m[12]\ds unless it comes back", lines[7]), lines[7]
-    assert lines[8:] == [
+                        r"3m[12]\ds unless it comes back", lines[8]), lines[8]
+    assert lines[9:] == [
         "  tiny/dmc-cheetah_run/PEBBLE/eps0.3/s2: worker gone silent for 6m40s, presumed dead: "
         "the next worker to look takes the run over from its checkpoint"]
 

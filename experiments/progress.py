@@ -1,0 +1,97 @@
+"""How fast a grid's runs train, and about how long the rest will take (`sepoa experiment status`).
+
+A run's rate is environment steps per second of wall time, read from its own episodes.csv. The
+time a run has left is its steps to go at the median rate of the finished runs of its task and
+variant (a run's late steps cost more than its early ones: each feedback round trains on every
+label so far), else at its own rate so far, else at the median rate of its task and variant's
+started runs. An estimate: runs on another machine, or beside other work, train at other rates.
+"""
+
+from __future__ import annotations
+
+import csv
+import statistics
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+
+
+def training_rate(folder: Path) -> float | None:
+    """Steps per second over the run's episode rows: by their phase-clock `seconds_total`
+    (every phase since the row before) where the rows carry it, else the last row's `fps`
+    (the rate since its process started: after a resume, since the resume). None before the
+    first row."""
+    path = folder / "episodes.csv"
+    if not path.exists():
+        return None
+    steps = seconds = 0.0
+    previous, last_fps = 0, None
+    with path.open(newline="") as f:
+        for row in csv.DictReader(f):
+            try:  # the row being appended may be cut short
+                step = int(float(row["step"]))
+                total, fps = row.get("seconds_total"), row.get("fps")
+                if total:
+                    steps, seconds = steps + step - previous, seconds + float(total)
+                if fps:
+                    last_fps = float(fps)
+            except (KeyError, TypeError, ValueError):
+                continue
+            previous = step
+    if seconds > 0:
+        return steps / seconds
+    return last_fps if last_fps is not None and last_fps > 0 else None
+
+
+def seconds_left(runs: Iterable[tuple[str, int, int, bool, float | None]]
+                 ) -> dict[str, float | None]:
+    """Per run key, the seconds it has left (0 when done; None when no run of its group has a
+    rate). `runs`: (key, planned steps, steps reached, done, own rate), keys of the form
+    `<group>/...` are grouped by everything before their last part (the seed's folder)."""
+    runs = list(runs)
+    group = {key: key.rsplit("/", 1)[0] for key, *_ in runs}
+    finished: dict[str, list[float]] = {}
+    started: dict[str, list[float]] = {}
+    for key, _, _, done, rate in runs:
+        if rate is not None:
+            (finished if done else started).setdefault(group[key], []).append(rate)
+    left: dict[str, float | None] = {}
+    for key, planned, reached, done, rate in runs:
+        if done:
+            left[key] = 0.0
+            continue
+        pool = finished.get(group[key]) or ([rate] if rate is not None else
+                                            started.get(group[key]))
+        left[key] = (max(planned - reached, 0) / statistics.median(pool)) if pool else None
+    return left
+
+
+def duration_text(seconds: float) -> str:
+    """`42s`, `5m07s`, `2h03m`: a duration in a table cell."""
+    s = max(0, int(seconds))
+    if s < 60:
+        return f"{s}s"
+    if s < 3600:
+        return f"{s // 60}m{s % 60:02d}s"
+    return f"{s // 3600}h{s % 3600 // 60:02d}m"
+
+
+def summary(left: Mapping[str, float | None], workers: int) -> str:
+    """One line: the training time left over the unfinished runs, and over the workers now
+    holding runs."""
+    known = [s for s in left.values() if s is not None and s > 0]
+    unknown = sum(s is None for s in left.values())
+    if not known and not unknown:
+        return "time left: none, every run is done"
+    parts = []
+    if known:
+        total = sum(known)
+        part = f"{duration_text(total)} of training over {len(known)} run(s)"
+        if workers:
+            # No sooner than the longest run alone, however many workers share the rest.
+            wall = max(total / workers, max(known))
+            part += f", about {duration_text(wall)} with the {workers} worker(s) training now"
+        parts.append(part)
+    if unknown:
+        parts.append(f"{unknown} run(s) without an estimate yet (no run of their task and "
+                     "variant has logged an episode)")
+    return "time left (estimated): " + "; ".join(parts)

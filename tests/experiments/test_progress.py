@@ -1,0 +1,102 @@
+"""How long a grid has left: each run's rate from its episodes.csv, the finished runs of its task
+and variant first, and one line for the grid in `sepoa experiment status`."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import pytest
+
+from experiments.launch import run_experiment
+from experiments.progress import seconds_left, summary, training_rate
+from experiments.spec import load_spec
+from sepoa.cli import main
+
+SPEC = """
+name = "eta"
+preset = "tiny"
+steps = 1000
+tasks = ["dmc:cheetah_run"]
+eps = [0.3]
+seeds = [0, 1, 2]
+
+[variants.PEBBLE]
+algo = "pebble"
+
+[variants.SAC]
+algo = "sac"
+"""
+
+
+def write_episodes(folder: Path, rows: list[dict[str, object]], cut: str = "") -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    with (folder / "episodes.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+        f.write(cut)
+
+
+def test_a_runs_rate_is_its_steps_over_its_phase_clock_seconds(tmp_path: Path) -> None:
+    # 1000 steps in 10 s, then 1000 in 30 s (a feedback round): 2000 / 40 = 50 steps/s; the
+    # fps column (since the process started) is not what counts when seconds are there.
+    write_episodes(tmp_path, [{"step": 1000, "fps": 900.0, "seconds_total": 10.0},
+                              {"step": 2000, "fps": 900.0, "seconds_total": 30.0}],
+                   cut="3000,90")  # the row being appended, cut short
+    assert training_rate(tmp_path) == pytest.approx(50.0)
+
+
+def test_without_phase_clock_columns_the_last_rows_fps_is_the_rate(tmp_path: Path) -> None:
+    write_episodes(tmp_path, [{"step": 1000, "fps": 80.0}, {"step": 2000, "fps": 60.0}])
+    assert training_rate(tmp_path) == 60.0
+    assert training_rate(tmp_path / "not-started") is None
+
+
+def test_time_left_prefers_finished_runs_then_the_runs_own_rate() -> None:
+    left = seconds_left([
+        # A variant with finished runs: their median rate for every unfinished one.
+        ("g/A/s0", 1000, 1000, True, 10.0),
+        ("g/A/s1", 1000, 1000, True, 30.0),
+        ("g/A/s2", 1000, 1000, True, 20.0),
+        ("g/A/s3", 1000, 400, False, 100.0),  # its early steps were fast: not what counts
+        ("g/A/s4", 1000, 0, False, None),
+        # None finished: a started run's own rate, and queued ones at the started runs' median.
+        ("g/B/s0", 1000, 500, False, 5.0),
+        ("g/B/s1", 1000, 0, False, None),
+        # None started: no estimate.
+        ("g/C/s0", 1000, 0, False, None),
+    ])
+    assert left == {"g/A/s0": 0.0, "g/A/s1": 0.0, "g/A/s2": 0.0, "g/A/s3": 30.0,
+                    "g/A/s4": 50.0, "g/B/s0": 100.0, "g/B/s1": 200.0, "g/C/s0": None}
+    assert summary(left, workers=2) == (
+        "time left (estimated): 6m20s of training over 4 run(s), about 3m20s with the 2 "
+        "worker(s) training now; 1 run(s) without an estimate yet (no run of their task and "
+        "variant has logged an episode)")
+    # One long run bounds the wall time, however many workers there are.
+    assert summary({"a": 3600.0, "b": 60.0}, workers=8) == (
+        "time left (estimated): 1h01m of training over 2 run(s), about 1h00m with the 8 "
+        "worker(s) training now")
+    assert summary({"a": 0.0}, workers=0) == "time left: none, every run is done"
+
+
+def test_status_gives_each_run_and_the_grid_its_time_left(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    spec_path = tmp_path / "spec.toml"
+    spec_path.write_text(SPEC)
+    spec, results = load_spec(spec_path), tmp_path / "results"
+    assert run_experiment(spec, results=results, workers=0, echo=lambda line: None) == 0
+    pebble = results / "eta" / "dmc-cheetah_run" / "PEBBLE" / "eps0.3"
+    for seed, seconds in ((0, 100.0), (1, 25.0)):  # finished, at 10 and 40 steps/s
+        write_episodes(pebble / f"s{seed}", [{"step": 1000, "fps": 1.0,
+                                              "seconds_total": seconds}])
+        (pebble / f"s{seed}" / "done.json").write_text("{}")
+    assert main(["experiment", "status", str(spec_path), "--results", str(results)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[1].split()[-1] == "left"
+    left = {tuple(line.split()[1:5:3]): line.split()[-1] for line in lines[2:8]}
+    assert left == {("PEBBLE", "0"): "-", ("PEBBLE", "1"): "-", ("PEBBLE", "2"): "40s",
+                    ("SAC", "0"): "?", ("SAC", "1"): "?", ("SAC", "2"): "?"}
+    assert lines[8] == (
+        "time left (estimated): 40s of training over 1 run(s); 3 run(s) without an estimate "
+        "yet (no run of their task and variant has logged an episode)")
