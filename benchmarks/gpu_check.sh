@@ -15,6 +15,9 @@
 #           (graphed, TF32): how busy the GPU is, and the ops that hold the time
 #   reward  one round's reward training on the GPU at 100 and 1 000 labels, plain and SURF
 #   pretrain  APS skill pretraining steps/s at the paper's sizes, 12 000 steps (graphed, TF32)
+#   baseline  whole-run steps/s of paper-preset PEBBLE after round 0 (graphed, TF32), the code
+#           in $BASELINE (default .baseline) against this checkout's, one after the other: what
+#           a change to the step (e1d84f1: one wait for the GPU a step) did on this GPU
 # The `shared`, `tf32` and `sepoa` steps also sample the GPU's utilisation twice a second
 # (gpu_util_<step>.csv): whether N runs leave the GPU idle between their kernels.
 # No step named: test sac run doctor. On an H100, `test sac run shared doctor` took 406 s in one
@@ -25,6 +28,9 @@
 # queue's packages are for `shared`, whose runs go through `sepoa experiment run`):
 #   bash ../shared/gpu/prepare.sh pytest==9.2.0 pluggy==1.7.0 iniconfig==2.3.1 packaging==26.4 \
 #       SQLAlchemy==2.0.58 greenlet==3.5.6 alembic==1.20.1 Mako==1.4.3 MarkupSafe==3.0.4
+# For `baseline`, the code to compare with, here (ignored by git, carried with .gpu):
+#   grep -qx /.baseline/ .git/info/exclude || echo /.baseline/ >> .git/info/exclude
+#   rm -rf .baseline && mkdir .baseline && git archive 8846c94 | tar -x -C .baseline
 # There, with .gpu carried along:
 #   OUT=/somewhere bash benchmarks/gpu_check.sh [STEP ...]
 set -uo pipefail
@@ -32,9 +38,10 @@ set -uo pipefail
 steps=("$@")
 [ ${#steps[@]} -eq 0 ] && steps=(test sac run doctor)
 for step in "${steps[@]}"; do
-    case "$step" in test|sac|run|doctor|shared|tf32|mps|sepoa|profile|reward|pretrain) ;;
+    case "$step" in test|sac|run|doctor|shared|tf32|mps|sepoa|profile|reward|pretrain|baseline)
+        ;;
     *) echo "unknown step $step; valid: test sac run doctor shared tf32 mps sepoa profile" \
-            "reward pretrain" >&2
+            "reward pretrain baseline" >&2
        exit 2 ;; esac
 done
 source .gpu/device-env.sh || exit 1
@@ -78,6 +85,19 @@ for step in "${steps[@]}"; do
         timeout 300 python3 benchmarks/bench_run.py --device cuda --preset paper --algo pebble \
             --steps 12000 --threads 4 --from-step 10000 > "$OUT/bench_run.txt" 2>&1
         tail -3 "$OUT/bench_run.txt" >> "$OUT/summary.txt" ;;
+    baseline)
+        baseline=${BASELINE:-.baseline}
+        [ -f "$baseline/benchmarks/bench_run.py" ] || {
+            say "no baseline code in $baseline: skipped"; continue; }
+        say "whole run, paper preset PEBBLE, steps 11-13 k, graphed, TF32: $baseline / this"
+        for side in "$baseline" .; do
+            txt="$OUT/bench_run_$( [ "$side" = . ] && echo current || echo baseline ).txt"
+            # Each tree's bench_run.py puts its own root first on the import path.
+            (cd "$side" && timeout 240 python3 benchmarks/bench_run.py --device cuda \
+                --preset paper --algo pebble --steps 13000 --from-step 11000 --threads 4 \
+                --sides graphed --set sac.tf32=true) > "$txt" 2>&1
+            tail -2 "$txt" >> "$OUT/summary.txt"
+        done ;;
     doctor)
         say "EGL rendering"
         timeout 60 python3 -m sepoa doctor --backend egl > "$OUT/doctor.txt" 2>&1
