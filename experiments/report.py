@@ -14,7 +14,8 @@ The numbers, exactly (docs/EXPERIMENTS.md says the same):
   the means of its own `distinguishable_ratio` and of the compared rule's ratio over the same
   rounds, those after the first where the compared ratio is logged.
 - Round diagnostics: per run the mean `reward_corr` over all rounds and its last round's, and
-  the means of `max_trajectory_share` and `trajectory_pairs` over the rounds after the first.
+  the means of `max_trajectory_share` and `trajectory_pairs` (and S-EPOA's `task_skill_cosine`
+  and `task_skill_gain`) over the rounds after the first.
 - Proposition 1: Monte Carlo Var[P] against the return gap, and the measured curve of one
   finished, checkpointed run per query-selecting variant (its lowest seed); see proposition.py.
 - Curves: see `plots.align` (common step range of the seeds with at least one evaluation,
@@ -208,14 +209,20 @@ DIAGNOSTICS = {
     "reward_corr_last": "reward_corr",
     "max_trajectory_share": "max_trajectory_share",
     "trajectory_pairs": "trajectory_pairs",
+    "task_skill_cosine": "task_skill_cosine",
+    "task_skill_gain": "task_skill_gain",
 }
 """round-diagnostics column -> the rounds.csv column it comes from"""
+AFTER_FIRST_ROUND = ("max_trajectory_share", "trajectory_pairs", "task_skill_cosine",
+                     "task_skill_gain")
+"""diagnostics averaged over the rounds after the first (where the first has no meaning: its
+queries are uniform, and z_task has no predecessor)"""
 
 
 def diagnostics_per_run(results: Results) -> pd.DataFrame:
     """KEYS + DIAGNOSTICS, those whose rounds.csv column exists: a run's mean `reward_corr`
-    over all rounds and its last round's, and the means of `max_trajectory_share` and
-    `trajectory_pairs` over the rounds after the first (the first is uniform)."""
+    over all rounds and its last round's, and the means of `AFTER_FIRST_ROUND` over the
+    rounds after the first."""
     have = [c for c, source in DIAGNOSTICS.items() if source in results.rounds]
     rows = []
     for key, rounds in _run_rounds(results):
@@ -223,7 +230,7 @@ def diagnostics_per_run(results: Results) -> pd.DataFrame:
         if "reward_corr" in rounds:
             row |= {"reward_corr_mean": rounds["reward_corr"].mean(),
                     "reward_corr_last": rounds["reward_corr"].iloc[-1]}
-        for col in ("max_trajectory_share", "trajectory_pairs"):
+        for col in AFTER_FIRST_ROUND:
             if col in rounds:
                 row[col] = rounds[col].iloc[1:].mean() if len(rounds) > 1 else math.nan
         rows.append(row)
@@ -301,7 +308,9 @@ def same_agent_markdown(table: pd.DataFrame, seeds: int) -> str:
 DIAGNOSTICS_HEADER = {"reward_corr_mean": ("reward corr (mean over rounds)", 3),
                       "reward_corr_last": ("reward corr (last round)", 3),
                       "max_trajectory_share": ("max trajectory share", 3),
-                      "trajectory_pairs": ("trajectory pairs", 1)}
+                      "trajectory_pairs": ("trajectory pairs", 1),
+                      "task_skill_cosine": ("z_task cosine to the round before", 3),
+                      "task_skill_gain": ("R_θ gain of the new z_task", 2)}
 """diagnostic -> its Markdown column header and decimals"""
 
 
@@ -453,8 +462,11 @@ DIAGNOSTICS_DOC = (
     "the true reward over the replay buffer after each round) over all rounds and its last "
     "round's value, and the means of `max_trajectory_share` (the largest share of a round's "
     "queries one trajectory took part in) and `trajectory_pairs` (distinct trajectory pairs "
-    "among a round's queries) over the rounds after the first; then mean ± sample std across "
-    "seeds (unfinished runs count with the rounds they have).")
+    "among a round's queries) over the rounds after the first; for S-EPOA, whose z_task is "
+    "drawn again as each round closes, the means over those rounds of `task_skill_cosine` "
+    "(the new z_task's cosine with the one before: 1, unchanged) and `task_skill_gain` "
+    "(R_θ of the new z_task less R_θ of the one before, under the refitted R_θ); then mean ± "
+    "sample std across seeds (unfinished runs count with the rounds they have).")
 PROPOSITION_DOC = (
     "Proposition 1: if each member's segment returns are r̂ ~ N(r, c), the ensemble's Var[P] "
     "of P = sigmoid(r̂₁ − r̂₂) falls as the true gap r₁ − r₂ grows, so the disagreement rule "

@@ -282,7 +282,7 @@ class TrainingRun:
                                   after_epoch=lambda: self.hooks.reward_epoch(self.step))
         self.buffer.relabel(fb.model.reward)
         metrics["reward_corr"] = self.buffer.reward_correlation()
-        self.policy.round_closed(self.rng)
+        metrics |= self.policy.round_closed(self.rng)
         estimator = metrics.get("estimator_seconds", 0.0)
         self.clock.add("estimator", estimator)
         self.clock.add("reward_training", time.perf_counter() - start - estimator)

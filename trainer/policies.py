@@ -7,6 +7,7 @@ and the trajectory recorder keep its skill with each transition and trajectory.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import sys
 from collections.abc import Callable
@@ -93,8 +94,9 @@ class Policy:
     def _gradient_step(self, batches: Batches) -> UpdateMetrics:
         return self.agent.update(batches())
 
-    def round_closed(self, rng: np.random.Generator) -> None:
-        """R_theta was refitted (S-EPOA): nothing to do here."""
+    def round_closed(self, rng: np.random.Generator) -> dict[str, float]:
+        """R_theta was refitted (S-EPOA): nothing to do here, nothing to log."""
+        return {}
 
     @property
     def resets_critic(self) -> bool:
@@ -177,8 +179,25 @@ class SkillPolicy(Policy):
         task_metrics = self.agent.update(batch._replace(skill=task))
         return self._stored_skill_metrics | {f"task_{k}": v for k, v in task_metrics.items()}
 
-    def round_closed(self, rng: np.random.Generator) -> None:
-        self._draw_task_skill(rng)  # the updates after a critic reset train the new z_task
+    def round_closed(self, rng: np.random.Generator) -> dict[str, float]:
+        """z_task drawn again from the refitted R_theta (the updates after a critic reset
+        train the new one), and how far it moved, for rounds.csv: `task_skill_cosine`, its
+        cosine with the z_task before (1: unchanged; NaN at the first round), `task_skill_gain`,
+        R_theta(new) - R_theta(before), and `task_skill_predicted`, R_theta(new)."""
+        before = self.task_skill
+        self._draw_task_skill(rng)
+        assert self.task_skill is not None
+        if before is None:
+            with torch.no_grad():
+                predicted = float(self.estimator.predict(self.task_skill[None])[0])
+            return {"task_skill_cosine": math.nan, "task_skill_gain": math.nan,
+                    "task_skill_predicted": predicted}
+        with torch.no_grad():
+            new, old = self.estimator.predict(np.stack([self.task_skill, before])).tolist()
+        norms = float(np.linalg.norm(self.task_skill) * np.linalg.norm(before))
+        cosine = float(self.task_skill @ before) / norms if norms > 0 else math.nan
+        return {"task_skill_cosine": cosine, "task_skill_gain": new - old,
+                "task_skill_predicted": new}
 
     def _draw_task_skill(self, rng: np.random.Generator) -> None:
         assert self.estimator.fitted

@@ -245,15 +245,19 @@ algo = "sepoa"
 algo = "sac"
 """
 NEW_HEADER = ("step,round,distinguishable_ratio,reward_corr,trajectory_pairs,"
-              "max_trajectory_share,compare_distinguishable_ratio")
-# (variant, seed) -> rounds (distinguishable, reward_corr, pairs, max share, compared ratio);
-# A sets no compare_rule (empty column); B compares with disagreement from its second round.
+              "max_trajectory_share,compare_distinguishable_ratio,task_skill_cosine,"
+              "task_skill_gain")
+# (variant, seed) -> rounds (distinguishable, reward_corr, pairs, max share, compared ratio,
+# z_task cosine, z_task gain); A sets no compare_rule (empty column); B compares with
+# disagreement from its second round, and draws z_task as S-EPOA does (none before round 1).
 NEW_ROUNDS = {
-    ("A", 0): [(1.0, 0.0, 10, 0.2, ""), (0.5, 0.2, 4, 0.6, "")],
-    ("A", 1): [(1.0, 0.1, 10, 0.2, ""), (0.5, 0.3, 6, 0.4, "")],
-    ("B", 0): [(0.5, 0.1, 10, 0.2, ""), (0.8, 0.5, 8, 0.3, 0.4), (0.6, 0.7, 6, 0.5, 0.2)],
+    ("A", 0): [(1.0, 0.0, 10, 0.2, "", "", ""), (0.5, 0.2, 4, 0.6, "", "", "")],
+    ("A", 1): [(1.0, 0.1, 10, 0.2, "", "", ""), (0.5, 0.3, 6, 0.4, "", "", "")],
+    ("B", 0): [(0.5, 0.1, 10, 0.2, "", "", ""), (0.8, 0.5, 8, 0.3, 0.4, 0.5, 1.0),
+               (0.6, 0.7, 6, 0.5, 0.2, 1.0, 0.0)],
     # the last round logged no compared ratio: it is left out of both of its means
-    ("B", 1): [(0.5, 0.2, 10, 0.2, ""), (0.9, 0.6, 9, 0.2, 0.5), (1.0, 0.9, 7, 0.4, "")],
+    ("B", 1): [(0.5, 0.2, 10, 0.2, "", "", ""), (0.9, 0.6, 9, 0.2, 0.5, 0.9, 2.0),
+               (1.0, 0.9, 7, 0.4, "", 0.7, -1.0)],
 }
 NEW_FEEDBACK = {"A": {"selection": "disagreement"},
                 "B": {"selection": "skill", "compare_rule": "disagreement"},
@@ -317,13 +321,19 @@ def test_round_diagnostics(diagnosed: Path) -> None:
         (0.5, 0.35))
     assert (a.trajectory_pairs_mean, b.trajectory_pairs_mean) == pytest.approx((5.0, 7.5))
     assert a.trajectory_pairs_std == pytest.approx(math.sqrt(2.0)) and a.n == 2
+    # z_task, rounds after the first: B s0 cosine (0.5, 1.0), gain (1, 0); s1 (0.9, 0.7), (2, -1)
+    assert b.task_skill_cosine_mean == pytest.approx(0.775)
+    assert b.task_skill_cosine_std == pytest.approx(math.sqrt(0.00125))
+    assert (b.task_skill_gain_mean, b.task_skill_gain_std) == pytest.approx((0.5, 0.0))
+    assert math.isnan(a.task_skill_cosine_mean)  # not S-EPOA: no z_task
     md = (out / "round-diagnostics.md").read_text()
     assert ("| task | eps | budget | variant | reward corr (mean over rounds) "
-            "| reward corr (last round) | max trajectory share | trajectory pairs |") in md
+            "| reward corr (last round) | max trajectory share | trajectory pairs "
+            "| z_task cosine to the round before | R_θ gain of the new z_task |") in md
     assert "| dmc:cheetah_run | 0.3 | 100 | A | 0.150 ± 0.071 | 0.250 ± 0.071 | 0.500 ± 0.141 " \
-           "| 5.0 ± 1.4 |" in md
+           "| 5.0 ± 1.4 | – | – |" in md
     assert "| dmc:cheetah_run | 0.3 | 100 | B | 0.500 ± 0.094 | 0.800 ± 0.141 | 0.350 ± 0.071 " \
-           "| 7.5 ± 0.7 |" in md
+           "| 7.5 ± 0.7 | 0.775 ± 0.035 | 0.50 ± 0.00 |" in md
     index = (out / "report.md").read_text()
     assert "## Round diagnostics" in index
     assert "[round-diagnostics.csv](round-diagnostics.csv)" in index

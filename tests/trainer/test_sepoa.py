@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import math
 import os
 import subprocess
 import sys
@@ -117,6 +118,11 @@ def test_a_tiny_sepoa_run_pretrains_once_then_learns_from_labels_by_the_skill_ru
     rounds = _rows(tmp_path / "a" / "rounds.csv")
     assert [int(r["labels_used"]) for r in rounds] == [10, 20]
     assert all(0 <= float(r["distinguishable_ratio"]) <= 1 for r in rounds)
+    # z_task is drawn again as each round closes; the first has no predecessor to compare.
+    assert math.isnan(float(rounds[0]["task_skill_cosine"]))
+    assert -1 - 1e-6 <= float(rounds[1]["task_skill_cosine"]) <= 1 + 1e-6
+    assert math.isfinite(float(rounds[1]["task_skill_gain"]))
+    assert all(math.isfinite(float(r["task_skill_predicted"])) for r in rounds)
     with open(tmp_path / "a" / "labels.jsonl") as f:
         labels = [json.loads(line) for line in f]
     assert [lab["rule"] for lab in labels] == ["uniform"] * 10 + ["skill"] * 10
