@@ -367,6 +367,22 @@ def migrate(url: str) -> None:
     command.upgrade(alembic_config(url), "head")
 
 
+def schema_revisions(url: str) -> tuple[str | None, str | None]:
+    """The database's schema revision (None before any migration) and the newest this version
+    of the code knows, read without changing anything."""
+    from alembic.runtime.migration import MigrationContext
+    from alembic.script import ScriptDirectory
+
+    head = ScriptDirectory.from_config(alembic_config(url)).get_current_head()
+    engine = make_engine(url)
+    try:
+        with engine.connect() as connection:
+            current = MigrationContext.configure(connection).get_current_revision()
+    finally:
+        engine.dispose()
+    return current, head
+
+
 def sqlite_file(url: str) -> str | None:
     """The SQLite file `url` names, or None (another database, in memory, or a `file:` URI)."""
     parsed = make_url(url)

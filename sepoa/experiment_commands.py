@@ -168,13 +168,23 @@ def _status(spec, results: pathlib.Path, url: str | None) -> int:  # type: ignor
 
     from experiments.launch import default_database
     from experiments.queue import status_table
-    from labelqueue import make_engine, session_factory
+    from labelqueue import make_engine, mask_url, schema_revisions, session_factory
 
     url = url or default_database(results)
     parsed = make_url(url)
     if parsed.get_backend_name() == "sqlite" and not os.path.exists(parsed.database or ""):
         return fail(f"no queue database at {parsed.database}: nothing enqueued yet "
                      "(sepoa experiment run), or give --database-url / --results")
+    current, head = schema_revisions(url)
+    if current is None:
+        return fail(f"the queue database {mask_url(url)} has no schema yet: nothing enqueued "
+                    "(sepoa experiment run)")
+    if current != head:  # reading it would fail on a column one side lacks
+        return fail(
+            f"the queue database's schema is at revision {current}, this sepoa's at {head}: "
+            "run `experiment status` with the sepoa its workers run, or migrate the database "
+            "with this version's `sepoa experiment run --no-workers` (workers of the older "
+            "version may then fail)")
     engine = make_engine(url)
     try:
         say(status_table(spec, session_factory(engine), results))

@@ -341,6 +341,35 @@ def test_bad_input_gets_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert not (tmp_path / "r" / "queue.db").exists()  # refused before anything was stored
 
 
+def test_status_of_a_database_on_another_schema_says_so_in_one_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A grid's database made by an older sepoa (its workers still running that one): status
+    says which revisions differ and what to do, instead of failing on a column it lacks."""
+    from alembic import command
+
+    from labelqueue.db import alembic_config
+
+    spec_path = write(tmp_path, TINY.format(steps=400, seeds="[0]")
+                      + '[variants.PEBBLE]\nalgo = "pebble"\n')
+    results = tmp_path / "results"
+    results.mkdir()
+    (results / "queue.db").touch()
+    argv = ["experiment", "status", str(spec_path), "--results", str(results)]
+    assert main(argv) == 2
+    assert "has no schema yet: nothing enqueued" in capsys.readouterr().err
+    command.upgrade(alembic_config(f"sqlite:///{results / 'queue.db'}"), "0010")
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: the queue database's schema is at revision 0010, this "
+                          "sepoa's at ") and err.count("\n") == 1, err
+    # Migrated as the message says, it answers.
+    assert main(["experiment", "run", str(spec_path), "--results", str(results),
+                 "--no-workers"]) == 0
+    capsys.readouterr()
+    assert main(argv) == 0
+    assert "tiny: 1 runs: 1 queued" in capsys.readouterr().out
+
+
 def test_part_of_a_grid_trained_on_another_host_counts_as_finished_in_the_whole(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """`--variant`/`--seed` train part of a grid elsewhere (a GPU host); its finished run
