@@ -245,7 +245,7 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> 
                       f"{reached}/{run.steps}",
                       (row.worker_id or "-") if row is not None else "-", beat, held])
     left = seconds_left(progress)
-    for line, (key, *_rest, done, _) in zip(lines, progress, strict=True):
+    for line, (key, _, _, done, _) in zip(lines, progress, strict=True):
         seconds = left[key]
         line.append("-" if done else "?" if seconds is None else duration_text(seconds))
     widths = [max(len(r[i]) for r in [header, *lines]) for i in range(len(header))]

@@ -187,16 +187,15 @@ class SkillPolicy(Policy):
         before = self.task_skill
         self._draw_task_skill(rng)
         assert self.task_skill is not None
-        if before is None:
-            with torch.no_grad():
-                predicted = float(self.estimator.predict(self.task_skill[None])[0])
-            return {"task_skill_cosine": math.nan, "task_skill_gain": math.nan,
-                    "task_skill_predicted": predicted}
+        skills = [self.task_skill] if before is None else [self.task_skill, before]
         with torch.no_grad():
-            new, old = self.estimator.predict(np.stack([self.task_skill, before])).tolist()
-        norms = float(np.linalg.norm(self.task_skill) * np.linalg.norm(before))
-        cosine = float(self.task_skill @ before) / norms if norms > 0 else math.nan
-        return {"task_skill_cosine": cosine, "task_skill_gain": new - old,
+            new, *old = self.estimator.predict(np.stack(skills)).tolist()
+        cosine = gain = math.nan
+        if before is not None:
+            norms = float(np.linalg.norm(self.task_skill) * np.linalg.norm(before))
+            cosine = float(self.task_skill @ before) / norms if norms > 0 else math.nan
+            gain = new - old[0]
+        return {"task_skill_cosine": cosine, "task_skill_gain": gain,
                 "task_skill_predicted": new}
 
     def _draw_task_skill(self, rng: np.random.Generator) -> None:
