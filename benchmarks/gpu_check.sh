@@ -10,7 +10,8 @@
 #   tf32    `sac` and `shared` again with TF32 matrix products (`sac.tf32`)
 #   mps     `shared` (graphed, TF32) with CUDA's Multi-Process Service running: N processes'
 #           kernels in one GPU context instead of contexts taking turns (time-slicing)
-#   sepoa   whole-run steps/s of a paper-preset S-EPOA run after its first round (graphed, TF32)
+#   sepoa   whole-run steps/s of a paper-preset S-EPOA run over steps 22-62 k, two feedback
+#           rounds and four evaluations included (graphed, TF32)
 #   profile 1 000 steps of a paper-preset PEBBLE run after round 0 under torch's profiler
 #           (graphed, TF32): how busy the GPU is, and the ops that hold the time
 #   reward  one round's reward training on the GPU at 100 and 1 000 labels, plain and SURF
@@ -130,12 +131,13 @@ for step in "${steps[@]}"; do
         fi
         unset CUDA_MPS_PIPE_DIRECTORY CUDA_MPS_LOG_DIRECTORY ;;
     sepoa)
-        # Round 0 comes after 1 000 random steps and 20 rollouts of 1 000: steps 24-30 k are
-        # after it and its critic reset. A 5 000-step snapshot: pretraining is not timed.
-        say "whole run, paper preset S-EPOA, steps 24-30 k, graphed, TF32"
+        # Round 0 comes at 20 k, after the random steps and 20 rollouts; steps 22-62 k hold two
+        # more rounds (40 k, 60 k) and four evaluations of 10 episodes: the rate a 1 M-step run
+        # sees while its budget lasts. A 5 000-step snapshot: pretraining is not timed.
+        say "whole run, paper preset S-EPOA, steps 22-62 k (rounds and evaluations), graphed, TF32"
         sampling "$OUT/gpu_util_sepoa.csv" \
-            timeout 300 python3 benchmarks/bench_run.py --device cuda --preset paper \
-            --algo sepoa --steps 30000 --from-step 24000 --threads 4 --sides graphed \
+            timeout 360 python3 benchmarks/bench_run.py --device cuda --preset paper \
+            --algo sepoa --steps 62000 --from-step 22000 --threads 4 --sides graphed \
             --set skill.pretrain_steps=5000 --set sac.tf32=true > "$OUT/bench_run_sepoa.txt" 2>&1
         tail -2 "$OUT/bench_run_sepoa.txt" >> "$OUT/summary.txt" ;;
     profile)

@@ -96,8 +96,9 @@ def test_the_device_paths_learned_reward_is_the_numpy_paths_as_a_tensor(tmp_path
     assert float(on_device[0]) == pytest.approx(on_host, abs=1e-6)
 
 
-def waits_for_the_gpu(action) -> int:
-    """How many times `action()` made the host wait for the GPU (torch's sync debug mode)."""
+def waits_for_the_gpu(action) -> list[str]:
+    """Where `action()` made the host wait for the GPU (torch's sync debug mode), one entry a
+    wait: the caller's line and torch's message, so a failure names the wait."""
     torch.cuda.synchronize()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -106,7 +107,9 @@ def waits_for_the_gpu(action) -> int:
             action()
         finally:
             torch.cuda.set_sync_debug_mode("default")
-    return sum("synchroniz" in str(w.message) for w in caught)
+    # Only torch's per-wait message: the mode's one-time "is a prototype" notice is not a wait.
+    return [f"{w.filename}:{w.lineno}: {w.message}" for w in caught
+            if "called a synchronizing CUDA operation" in str(w.message)]
 
 
 @needs_cuda
@@ -116,7 +119,8 @@ def test_on_a_gpu_a_step_waits_once_when_the_action_comes_back(tmp_path) -> None
     agent = SAC(OBS + SKILL, ACT, SACConfig(hidden_dim=16, hidden_layers=2, batch_size=8), cuda)
     rng = np.random.default_rng(0)
     agent.act(np.concatenate([obs, skill]), rng)  # the first call allocates pinned memory
-    assert waits_for_the_gpu(lambda: agent.act(np.concatenate([obs, skill]), rng)) == 1
+    waits = waits_for_the_gpu(lambda: agent.act(np.concatenate([obs, skill]), rng))
+    assert len(waits) == 1, waits
 
     r_hat = learned_reward(tmp_path, cuda)
     buffer = SkillReplayBuffer(OBS, ACT, SKILL, 16, cuda, seed=0)
@@ -126,7 +130,7 @@ def test_on_a_gpu_a_step_waits_once_when_the_action_comes_back(tmp_path) -> None
                    skill)
 
     store()
-    assert waits_for_the_gpu(store) == 0
+    assert waits_for_the_gpu(store) == []
     expected = r_hat.feedback.model.reward(torch.from_numpy(obs)[None].to(cuda),
                                            torch.from_numpy(action)[None].to(cuda))
     torch.testing.assert_close(buffer.reward[:2, 0], expected.expand(2))
