@@ -12,6 +12,7 @@
 #           kernels in one GPU context instead of contexts taking turns (time-slicing)
 #   sepoa   whole-run steps/s of a paper-preset S-EPOA run over steps 22-62 k, two feedback
 #           rounds and four evaluations included (graphed, TF32)
+#   sepoa32 the same in float32, the default
 #   profile 1 000 steps of a paper-preset PEBBLE run after round 0 under torch's profiler
 #           (graphed, TF32): how busy the GPU is, and the ops that hold the time
 #   reward  one round's reward training on the GPU at 100 and 1 000 labels, plain and SURF
@@ -39,10 +40,10 @@ set -uo pipefail
 steps=("$@")
 [ ${#steps[@]} -eq 0 ] && steps=(test sac run doctor)
 for step in "${steps[@]}"; do
-    case "$step" in test|sac|run|doctor|shared|tf32|mps|sepoa|profile|reward|pretrain|baseline)
+    case "$step" in test|sac|run|doctor|shared|tf32|mps|sepoa|sepoa32|profile|reward|pretrain|baseline)
         ;;
-    *) echo "unknown step $step; valid: test sac run doctor shared tf32 mps sepoa profile" \
-            "reward pretrain baseline" >&2
+    *) echo "unknown step $step; valid: test sac run doctor shared tf32 mps sepoa sepoa32" \
+            "profile reward pretrain baseline" >&2
        exit 2 ;; esac
 done
 source .gpu/device-env.sh || exit 1
@@ -130,16 +131,18 @@ for step in "${steps[@]}"; do
             echo "MPS did not start: $(tail -1 "$OUT/mps.txt")" >> "$OUT/summary.txt"
         fi
         unset CUDA_MPS_PIPE_DIRECTORY CUDA_MPS_LOG_DIRECTORY ;;
-    sepoa)
+    sepoa|sepoa32)
         # Round 0 comes at 20 k, after the random steps and 20 rollouts; steps 22-62 k hold two
         # more rounds (40 k, 60 k) and four evaluations of 10 episodes: the rate a 1 M-step run
         # sees while its budget lasts. A 5 000-step snapshot: pretraining is not timed.
-        say "whole run, paper preset S-EPOA, steps 22-62 k (rounds and evaluations), graphed, TF32"
-        sampling "$OUT/gpu_util_sepoa.csv" \
+        # `sepoa32` is the same run in float32, the default (`sac.tf32` off).
+        tf32=$( [ "$step" = sepoa ] && echo true || echo false )
+        say "whole run, paper preset S-EPOA, steps 22-62 k (rounds and evaluations), graphed, TF32 $tf32"
+        sampling "$OUT/gpu_util_$step.csv" \
             timeout 360 python3 benchmarks/bench_run.py --device cuda --preset paper \
             --algo sepoa --steps 62000 --from-step 22000 --threads 4 --sides graphed \
-            --set skill.pretrain_steps=5000 --set sac.tf32=true > "$OUT/bench_run_sepoa.txt" 2>&1
-        tail -2 "$OUT/bench_run_sepoa.txt" >> "$OUT/summary.txt" ;;
+            --set skill.pretrain_steps=5000 --set sac.tf32=$tf32 > "$OUT/bench_run_$step.txt" 2>&1
+        tail -2 "$OUT/bench_run_$step.txt" >> "$OUT/summary.txt" ;;
     profile)
         say "1 000 steps of paper-preset PEBBLE under the profiler, graphed, TF32"
         timeout 300 python3 benchmarks/profile_steps.py --device cuda --preset paper \
