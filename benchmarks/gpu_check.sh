@@ -19,7 +19,8 @@
 #   pretrain  APS skill pretraining steps/s at the paper's sizes, 12 000 steps (graphed, TF32)
 #   baseline  whole-run steps/s of paper-preset PEBBLE after round 0 (graphed, TF32), the code
 #           in $BASELINE (default .baseline) against this checkout's, one after the other: what
-#           a change to the step (e1d84f1: one wait for the GPU a step) did on this GPU
+#           a change to the step did on this GPU (now: r_hat of each new transition computed on
+#           the host, against 3628eb1 before it; 8846c94 measured e1d84f1, one wait a step)
 # The `shared`, `tf32` and `sepoa` steps also sample the GPU's utilisation twice a second
 # (gpu_util_<step>.csv): whether N runs leave the GPU idle between their kernels.
 # No step named: test sac run doctor. On an H100, `test sac run shared doctor` took 406 s in one
@@ -32,7 +33,7 @@
 #       SQLAlchemy==2.0.58 greenlet==3.5.6 alembic==1.20.1 Mako==1.4.3 MarkupSafe==3.0.4
 # For `baseline`, the code to compare with, here (ignored by git, carried with .gpu):
 #   grep -qx /.baseline/ .git/info/exclude || echo /.baseline/ >> .git/info/exclude
-#   rm -rf .baseline && mkdir .baseline && git archive 8846c94 | tar -x -C .baseline
+#   rm -rf .baseline && mkdir .baseline && git archive 3628eb1 | tar -x -C .baseline
 # There, with .gpu carried along:
 #   OUT=/somewhere bash benchmarks/gpu_check.sh [STEP ...]
 set -uo pipefail

@@ -23,7 +23,6 @@ from trainer.feedback import Feedback, PreferenceFeedback
 from trainer.nets import NumpyMLP
 from trainer.replay_buffer import ReplayBuffer
 from trainer.rune import rune_beta
-from trainer.utils import to_device_async
 
 B = TypeVar("B", bound=Any)
 """a replay batch: SAC's, or one that also carries skills"""
@@ -65,10 +64,13 @@ class AgentReward:
         self.entropy_stats = RunningMeanStd()
         self.start_step: int | None = None
         """the step the first round closed at: RUNE's t counts from here"""
-        self._numpy_reward = (
-            NumpyMLP(list(feedback.model.ensemble.layers), "leaky_relu", "tanh")
-            if device.type == "cpu" else None
-        )
+        self._host_reward: NumpyMLP | None = None
+        """r_hat of one transition in NumPy, on every device: on a GPU its batch of one cost the
+        host more in launches and copies (about 0.4 ms a step on an H200's host, benchmarks/
+        README.md) than NumPy's arithmetic here (about 60 us for 3 x 256 x 3)"""
+        self._host_reward_round = -1
+        """the round `_host_reward` was made after: on a GPU it holds a copy of the parameters,
+        which change only as a round closes"""
 
     @property
     def unsupervised_steps(self) -> int:
@@ -80,17 +82,17 @@ class AgentReward:
         """After the first round: the agent trains on r_hat."""
         return self.feedback.rounds > 0
 
-    def at_step(self, obs: np.ndarray, action: np.ndarray,
-                true_reward: float) -> float | torch.Tensor:
-        """The reward stored with a new transition; on a GPU a one-element tensor there, which
-        the buffer stores without the host waiting for it."""
+    def at_step(self, obs: np.ndarray, action: np.ndarray, true_reward: float) -> float:
+        """The reward stored with a new transition: the ensemble's mean r_hat."""
         if not self.learned:
             return 0.0  # the unsupervised reward is computed per batch
-        x = np.concatenate([obs, action])[None]
-        if self._numpy_reward is not None:
-            return float(self._numpy_reward(x).mean())
-        x_t = to_device_async(x.astype(np.float32, copy=False), self.device)
-        return self.feedback.model.member_rewards(x_t).mean(0)
+        if self._host_reward_round != self.feedback.rounds:
+            # On the CPU, views of the parameters; on a GPU, a copy (one wait a round).
+            self._host_reward = NumpyMLP(list(self.feedback.model.ensemble.layers),
+                                         "leaky_relu", "tanh")
+            self._host_reward_round = self.feedback.rounds
+        assert self._host_reward is not None
+        return float(self._host_reward(np.concatenate([obs, action])[None]).mean())
 
     def batch(self, batch: B, step: int) -> B:
         """`batch` carrying the reward the agent trains on at `step`."""

@@ -84,12 +84,18 @@ class EnsembleMLP(nn.Module):
         return self.output_activation(x) if self.output_activation else x
 
 
+def _host(param: torch.Tensor) -> np.ndarray:
+    """A view of a CPU parameter; a copy of one on another device."""
+    return param.detach().cpu().numpy()
+
+
 class NumpyMLP:
     """Batch-of-one inference on the CPU through NumPy views of a torch MLP's parameters.
 
     The views share memory with the parameters, so optimiser steps and `load_state_dict` (both
     in place) show up without copying. A torch call costs ~100 us of overhead per step here;
-    this costs a few microseconds plus the arithmetic.
+    this costs a few microseconds plus the arithmetic. Parameters on a GPU are copied to the
+    host instead: such a copy is made anew when they change.
     """
 
     def __init__(self, layers: list[nn.Module], activation: str = "relu",
@@ -98,10 +104,10 @@ class NumpyMLP:
         for layer in layers:
             if isinstance(layer, nn.Linear):
                 # Kept (out, in) as torch stores it: w @ x is the fastest NumPy matvec here.
-                self.params.append((layer.weight.detach().numpy(), layer.bias.detach().numpy()))
+                self.params.append((_host(layer.weight), _host(layer.bias)))
             elif isinstance(layer, EnsembleLinear):
                 # x of shape (1, in) broadcasts against (n, in, out) to (n, 1, out).
-                self.params.append((layer.weight.detach().numpy(), layer.bias.detach().numpy()))
+                self.params.append((_host(layer.weight), _host(layer.bias)))
         self.ensemble = any(isinstance(layer, EnsembleLinear) for layer in layers)
         self.activation, self.output_activation = activation, output_activation
 

@@ -45,11 +45,10 @@ class ReplayBuffer:
     def __len__(self) -> int:
         return self.size
 
-    def add(self, obs: np.ndarray, action: np.ndarray, reward: float | torch.Tensor,
-            true_reward: float, next_obs: np.ndarray, skill: np.ndarray | None = None) -> None:
+    def add(self, obs: np.ndarray, action: np.ndarray, reward: float, true_reward: float,
+            next_obs: np.ndarray, skill: np.ndarray | None = None) -> None:
         """Store one transition; `skill`, the episode's (`EpisodeMeta.skill`), is kept by
-        `SkillReplayBuffer` only. `reward` may be a one-element tensor on the buffer's device
-        (a reward model's output, left unread by the host)."""
+        `SkillReplayBuffer` only."""
         self._write([obs, action, next_obs, reward, true_reward])
 
     def _write(self, values: list) -> None:
@@ -66,17 +65,12 @@ class ReplayBuffer:
     def _write_on_device(self, i: int, values: list) -> None:
         """One asynchronous copy of the whole row, split on the device: with a plain copy per
         field a GPU run would wait for the GPU's queued work (the last update) once per field."""
-        fields = list(zip(self._fields, values, strict=True))
-        row = np.concatenate([
-            np.zeros(field.shape[1], np.float32) if isinstance(value, torch.Tensor)
-            else np.asarray(value, np.float32).reshape(field.shape[1])
-            for field, value in fields
-        ])
+        row = np.concatenate([np.asarray(value, np.float32).reshape(field.shape[1])
+                              for field, value in zip(self._fields, values, strict=True)])
         row_t, start = to_device_async(row, self.device), 0
-        for field, value in fields:
+        for field in self._fields:
             width = field.shape[1]
-            source = value if isinstance(value, torch.Tensor) else row_t[start : start + width]
-            field[i].copy_(source.reshape(width))
+            field[i].copy_(row_t[start : start + width])
             start += width
 
     def indices(self, batch_size: int) -> torch.Tensor:

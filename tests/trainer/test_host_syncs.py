@@ -1,5 +1,6 @@
-"""A GPU run's step waits for the GPU once, when the action comes back: the transition, the
-learned reward and the observation go to the device asynchronously. On the CPU the paths a GPU
+"""A GPU run's step waits for the GPU once, when the action comes back: the transition and
+the observation go to the device asynchronously, and the learned reward of the transition is
+computed on the host. On the CPU the paths a GPU
 takes are forced and must store and return what the NumPy paths do; on a GPU (skipped without
 one) torch's sync debug mode counts the waits."""
 
@@ -50,11 +51,9 @@ def test_the_devices_one_copy_row_stores_what_the_numpy_views_store(with_skill: 
         return ReplayBuffer(OBS, ACT, 8, CPU, seed=0)
 
     plain, device_path = make(), forced_device_path(make())
-    for i, (obs, action, reward, true_reward, next_obs, skill) in enumerate(transitions(11)):
+    for obs, action, reward, true_reward, next_obs, skill in transitions(11):
         plain.add(obs, action, reward, true_reward, next_obs, skill)
-        # Every other reward comes as a reward model's one-element tensor.
-        stored_reward = torch.tensor([reward]) if i % 2 else reward
-        device_path.add(obs, action, stored_reward, true_reward, next_obs, skill)
+        device_path.add(obs, action, reward, true_reward, next_obs, skill)
     assert plain.size == device_path.size == 8 and plain.cursor == device_path.cursor == 3
     for a, b in zip(stored(plain), stored(device_path), strict=True):
         assert torch.equal(a, b)
@@ -85,15 +84,29 @@ def learned_reward(tmp_path, device: torch.device) -> AgentReward:
     return AgentReward(cfg, ReplayBuffer(OBS, ACT, 16, device, seed=0), feedback, device)
 
 
-def test_the_device_paths_learned_reward_is_the_numpy_paths_as_a_tensor(tmp_path) -> None:
+def test_the_learned_reward_of_a_new_transition_is_the_models_and_follows_each_round(
+        tmp_path) -> None:
     reward = learned_reward(tmp_path, CPU)
+    model = reward.feedback.model
     obs, action, *_ = transitions(1)[0]
-    on_host = reward.at_step(obs, action, 0.0)
-    reward._numpy_reward = None  # the path a GPU run takes
-    on_device = reward.at_step(obs, action, 0.0)
-    assert isinstance(on_host, float) and isinstance(on_device, torch.Tensor)
-    assert on_device.shape == (1,)
-    assert float(on_device[0]) == pytest.approx(on_host, abs=1e-6)
+
+    def models_reward() -> float:
+        with torch.no_grad():
+            return float(model.reward(torch.from_numpy(obs)[None], torch.from_numpy(action)[None]))
+
+    assert reward.at_step(obs, action, 0.0) == pytest.approx(models_reward(), abs=1e-6)
+    host_model = reward._host_reward
+    reward.at_step(obs, action, 0.0)
+    assert reward._host_reward is host_model  # not made again within a round
+    # A round replaces what the host model was made from (as a GPU run's copy goes stale):
+    # parameters that are new tensors, not the ones its views see.
+    with torch.no_grad():
+        for layer in model.ensemble.layers:
+            if hasattr(layer, "weight"):
+                layer.weight = torch.nn.Parameter(layer.weight * 2)
+    assert reward.at_step(obs, action, 0.0) != pytest.approx(models_reward(), abs=1e-6)
+    reward.feedback.rounds += 1
+    assert reward.at_step(obs, action, 0.0) == pytest.approx(models_reward(), abs=1e-6)
 
 
 def waits_for_the_gpu(action) -> list[str]:

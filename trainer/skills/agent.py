@@ -101,8 +101,8 @@ class SkillReplayBuffer(ReplayBuffer):
         self.skill = torch.empty(capacity, skill_dim, device=device)
         self._add_field(self.skill)
 
-    def add(self, obs: np.ndarray, action: np.ndarray, reward: float | torch.Tensor,
-            true_reward: float, next_obs: np.ndarray, skill: np.ndarray | None = None) -> None:
+    def add(self, obs: np.ndarray, action: np.ndarray, reward: float, true_reward: float,
+            next_obs: np.ndarray, skill: np.ndarray | None = None) -> None:
         if skill is None:
             raise TypeError("SkillReplayBuffer.add needs the transition's skill")
         self._write([obs, action, next_obs, reward, true_reward, skill])
