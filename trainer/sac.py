@@ -126,6 +126,8 @@ class SAC:
         self._critic_params = list(self.critic.parameters())
         self._target_params = list(self.critic_target.parameters())
         self._numpy_actor = NumpyMLP(list(self.actor.trunk)) if device.type == "cpu" else None
+        self._obs_pinned = (torch.empty(1, obs_dim, pin_memory=True)
+                            if device.type == "cuda" else None)
         self.graphed: GraphedUpdate[Batch] | None = None
         if graph_ready:
             self.graphed = GraphedUpdate(
@@ -146,19 +148,28 @@ class SAC:
         d = self.action_dim
         if self._numpy_actor is None:
             # One wait for the device a step: the observation goes in asynchronously and the
-            # two outputs come back in one copy.
-            obs_t = to_device_async(np.asarray(obs, np.float32), self.device).unsqueeze(0)
+            # trunk's output comes back in one copy. The rest is a few host flops, which as
+            # kernels would cost more to launch than to run.
             with torch.no_grad():
-                mean, log_std = np.split(torch.cat(self.actor(obs_t), -1)[0].cpu().numpy(), [d])
+                out = self.actor.trunk(self._obs_on_device(obs))[0].cpu().numpy()
         else:
             out = self._numpy_actor(obs)
-            mean, log_std = out[:d], out[d:]
-            # Actor.forward's soft clamp, in the same multiply-add form.
-            half = 0.5 * (self.cfg.log_std_max - self.cfg.log_std_min)
-            log_std = np.tanh(log_std) * half + (self.cfg.log_std_min + half)
+        mean, log_std = out[:d], out[d:]
+        # Actor.forward's soft clamp, in the same multiply-add form.
+        half = 0.5 * (self.cfg.log_std_max - self.cfg.log_std_min)
+        log_std = np.tanh(log_std) * half + (self.cfg.log_std_min + half)
         if deterministic:
             return np.tanh(mean)
         return np.tanh(mean + rng.standard_normal(self.action_dim, np.float32) * np.exp(log_std))
+
+    def _obs_on_device(self, obs: np.ndarray) -> torch.Tensor:
+        """(1, obs_dim) on the device, copied without waiting. On CUDA through one pinned
+        buffer: `act` waits for the device before it returns, so the previous copy from it
+        is done by the time it is overwritten."""
+        if self._obs_pinned is None:
+            return to_device_async(np.asarray(obs, np.float32), self.device).unsqueeze(0)
+        self._obs_pinned.numpy()[0] = obs
+        return self._obs_pinned.to(self.device, non_blocking=True)
 
     def update(self, batch: Batch) -> UpdateMetrics:
         """One update; its metrics stay on the device as 0-d tensors, read (one host sync each)

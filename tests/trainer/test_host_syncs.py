@@ -131,7 +131,7 @@ def test_on_a_gpu_a_step_waits_once_when_the_action_comes_back(tmp_path) -> None
     obs, action, reward, true_reward, next_obs, skill = transitions(1)[0]
     agent = SAC(OBS + SKILL, ACT, SACConfig(hidden_dim=16, hidden_layers=2, batch_size=8), cuda)
     rng = np.random.default_rng(0)
-    agent.act(np.concatenate([obs, skill]), rng)  # the first call allocates pinned memory
+    agent.act(np.concatenate([obs, skill]), rng)  # the first call sets up the device's libraries
     waits = waits_for_the_gpu(lambda: agent.act(np.concatenate([obs, skill]), rng))
     assert len(waits) == 1, waits
 
@@ -148,3 +148,19 @@ def test_on_a_gpu_a_step_waits_once_when_the_action_comes_back(tmp_path) -> None
                                            torch.from_numpy(action)[None].to(cuda))
     torch.testing.assert_close(buffer.reward[:2, 0], expected.expand(2))
     torch.testing.assert_close(buffer.skill[1].cpu(), torch.from_numpy(skill))
+
+
+@needs_cuda
+def test_on_a_gpu_successive_actions_are_the_cpu_actors_for_their_own_observations() -> None:
+    """The observation goes through one reused pinned buffer: each action must still be the
+    one for its own observation."""
+    torch.manual_seed(0)
+    cfg = SACConfig(hidden_dim=16, hidden_layers=2, batch_size=8)
+    on_gpu = SAC(OBS, ACT, cfg, torch.device("cuda"))
+    on_cpu = SAC(OBS, ACT, cfg, CPU)
+    on_cpu.actor.load_state_dict({k: v.cpu() for k, v in on_gpu.actor.state_dict().items()})
+    for obs, *_ in transitions(5, seed=3):
+        for deterministic in (True, False):
+            gpu_action = on_gpu.act(obs, np.random.default_rng(4), deterministic)
+            cpu_action = on_cpu.act(obs, np.random.default_rng(4), deterministic)
+            np.testing.assert_allclose(gpu_action, cpu_action, rtol=1e-5, atol=1e-6)
