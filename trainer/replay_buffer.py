@@ -13,34 +13,28 @@ import numpy as np
 import torch
 
 from trainer.sac import Batch
-from trainer.utils import to_device_async
+from trainer.utils import copy_async
 
 
 class ReplayBuffer:
     def __init__(self, obs_dim: int, action_dim: int, capacity: int, device: torch.device,
-                 seed: int):
+                 seed: int, skill_dim: int = 0):
+        """`skill_dim`: a column block for each transition's skill (`SkillReplayBuffer`)."""
         self.capacity, self.device = capacity, device
-        self.obs = torch.empty(capacity, obs_dim, device=device)
-        self.next_obs = torch.empty(capacity, obs_dim, device=device)
-        self.action = torch.empty(capacity, action_dim, device=device)
-        self.true_reward = torch.empty(capacity, 1, device=device)
-        self.reward = torch.empty(capacity, 1, device=device)
+        widths = [obs_dim, action_dim, obs_dim, 1, 1] + ([skill_dim] if skill_dim else [])
+        # One row per transition, each field a block of its columns: on a GPU `add` writes a
+        # transition in one copy instead of one per field.
+        self._rows = torch.empty(capacity, sum(widths), device=device)
+        self._fields: list[torch.Tensor] = list(self._rows.split(widths, dim=1))
+        """what `add` writes, in the order of its values"""
+        self.obs, self.action, self.next_obs, self.reward, self.true_reward = self._fields[:5]
         self.size = 0
         self.cursor = 0
         # Indices are drawn where the buffer lives: on a GPU, sampling costs no host round trip.
         self.generator = torch.Generator(device=device).manual_seed(seed)
-        self._fields: list[torch.Tensor] = []
-        """what `add` writes, in the order of its values"""
-        self._arrays: list[np.ndarray] | None = [] if device.type == "cpu" else None
-        for field in (self.obs, self.action, self.next_obs, self.reward, self.true_reward):
-            self._add_field(field)
-
-    def _add_field(self, field: torch.Tensor) -> None:
-        self._fields.append(field)
-        if self._arrays is not None:
-            # On the CPU, `add` writes through NumPy views of the same memory: plain array
-            # writes instead of torch indexing calls (~1.5 us instead of ~15-25 us a step).
-            self._arrays.append(field.numpy())
+        # On the CPU, `add` writes through NumPy views of the same memory: plain array writes
+        # instead of torch indexing calls (~1.5 us instead of ~15-25 us a step).
+        self._arrays = [f.numpy() for f in self._fields] if device.type == "cpu" else None
 
     def __len__(self) -> int:
         return self.size
@@ -63,15 +57,11 @@ class ReplayBuffer:
         self.size = min(self.size + 1, self.capacity)
 
     def _write_on_device(self, i: int, values: list) -> None:
-        """One asynchronous copy of the whole row, split on the device: with a plain copy per
-        field a GPU run would wait for the GPU's queued work (the last update) once per field."""
+        """The row in one asynchronous copy: with a plain copy per field a GPU run would wait
+        for the GPU's queued work (the last update) once per field."""
         row = np.concatenate([np.asarray(value, np.float32).reshape(field.shape[1])
                               for field, value in zip(self._fields, values, strict=True)])
-        row_t, start = to_device_async(row, self.device), 0
-        for field in self._fields:
-            width = field.shape[1]
-            field[i].copy_(row_t[start : start + width])
-            start += width
+        copy_async(row, self._rows[i])
 
     def indices(self, batch_size: int) -> torch.Tensor:
         """`batch_size` uniform indices into the stored transitions, on the buffer's device."""

@@ -19,7 +19,6 @@ from torch import nn
 from runvocab.config import SACConfig
 from trainer.graphed_update import GraphedUpdate, Metrics
 from trainer.nets import EnsembleMLP, NumpyMLP, mlp
-from trainer.utils import to_device_async
 
 LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
 
@@ -167,7 +166,7 @@ class SAC:
         buffer: `act` waits for the device before it returns, so the previous copy from it
         is done by the time it is overwritten."""
         if self._obs_pinned is None:
-            return to_device_async(np.asarray(obs, np.float32), self.device).unsqueeze(0)
+            return torch.from_numpy(np.asarray(obs, np.float32)).to(self.device).unsqueeze(0)
         self._obs_pinned.numpy()[0] = obs
         return self._obs_pinned.to(self.device, non_blocking=True)
 

@@ -35,12 +35,13 @@ def pick_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def to_device_async(array: np.ndarray, device: torch.device) -> torch.Tensor:
-    """`array` as a tensor on `device`, without waiting for the device. A plain copy from host
-    memory to a GPU first waits for all the GPU's queued work (a host sync); through pinned
-    memory it is queued like a kernel (torch's pinned-memory cache keeps the block until the
-    copy is done). On the CPU the tensor shares `array`'s memory."""
-    tensor = torch.from_numpy(array)
-    if device.type != "cuda":
-        return tensor.to(device)
-    return tensor.pin_memory().to(device, non_blocking=True)
+def copy_async(array: np.ndarray, target: torch.Tensor) -> None:
+    """`array` into `target` without waiting for the device. A plain copy from host memory to
+    a GPU first waits for all the GPU's queued work (a host sync); from pinned memory it is
+    queued like a kernel (torch's pinned-memory cache keeps the block until the copy is
+    done), straight into `target`."""
+    source = torch.from_numpy(array)
+    if target.device.type != "cuda":
+        target.copy_(source)
+        return
+    target.copy_(source.pin_memory(), non_blocking=True)

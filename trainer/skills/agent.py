@@ -97,9 +97,8 @@ class SkillReplayBuffer(ReplayBuffer):
 
     def __init__(self, obs_dim: int, action_dim: int, skill_dim: int, capacity: int,
                  device: torch.device, seed: int):
-        super().__init__(obs_dim, action_dim, capacity, device, seed)
-        self.skill = torch.empty(capacity, skill_dim, device=device)
-        self._add_field(self.skill)
+        super().__init__(obs_dim, action_dim, capacity, device, seed, skill_dim)
+        self.skill = self._fields[5]
 
     def add(self, obs: np.ndarray, action: np.ndarray, reward: float, true_reward: float,
             next_obs: np.ndarray, skill: np.ndarray | None = None) -> None:
