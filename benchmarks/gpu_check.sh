@@ -20,8 +20,8 @@
 #   baseline  whole-run steps/s of paper-preset PEBBLE after round 0 (graphed, TF32), the code
 #           in $BASELINE (default .baseline) against this checkout's, one after the other: what
 #           a change to the step did on this GPU (now: against 3628eb1, r_hat of a new
-#           transition on the host, act's soft clamp on the host, the buffer's row in one copy;
-#           8846c94 measured e1d84f1, one wait a step)
+#           transition on the host, act's soft clamp on the host, the buffer's row in one copy,
+#           the update before the simulator's step; 8846c94 measured e1d84f1, one wait a step)
 # The `shared`, `tf32` and `sepoa` steps also sample the GPU's utilisation twice a second
 # (gpu_util_<step>.csv): whether N runs leave the GPU idle between their kernels.
 # No step named: test sac run doctor. On an H100, `test sac run shared doctor` took 406 s in one

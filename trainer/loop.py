@@ -184,18 +184,23 @@ class TrainingRun:
                 action = self.rng.uniform(-1, 1, self.env.action_dim).astype(np.float32)
             else:
                 action = self.policy.act(obs, self.meta, self.rng).astype(np.float32)
+            acted = time.perf_counter()
+            # The update comes between the action and the environment's step, as in the
+            # authors' loops (URLB's, pytorch_sac's): on a GPU it runs while the host steps
+            # the simulator. It trains on the transitions before this one.
+            made = self.step + 1
+            if self.learning(made) and self.update_step(made) and len(self.buffer):
+                last_metrics = self._update()
+            updated = time.perf_counter()
             state = self.env.physics_state()
             result = self.env.step(action)
             reward = self.reward.at_step(obs, action, result.reward)
             self.buffer.add(obs, action, reward, result.reward, result.obs, self.meta.skill)
             self.recorder.record(obs, action, result.reward, state, result.success)
             obs, episode_return = result.obs, episode_return + result.reward
-            self.step += 1
-            acted = time.perf_counter()
-            if self.learning(self.step) and self.update_step(self.step):
-                last_metrics = self._update()
-            seconds["acting"] += acted - tick
-            seconds["updates"] += time.perf_counter() - acted
+            self.step = made
+            seconds["acting"] += (acted - tick) + (time.perf_counter() - updated)
+            seconds["updates"] += updated - acted
             bar.update(1)
             stopping = stopping or self.hooks.stop_requested(self.step)
 

@@ -248,3 +248,23 @@ def test_a_run_killed_after_a_round_resumes_past_its_reward_training(tmp_path):
         return [{k: v for k, v in r.items() if k != "answered_at"} for r in rows]
 
     assert strip(_labels(cfg.run_dir)) == strip(_labels(reference.run_dir))
+
+
+def test_an_update_comes_between_the_action_and_the_environments_step(tmp_path, monkeypatch):
+    """As in the authors' loops: the update trains on the transitions before the current one,
+    so on a GPU it runs while the host steps the simulator."""
+    cfg = build_config("dmc:cheetah_run", "tiny", {
+        "algo": "sac", "steps": 400, "threads": 1, "run_dir": str(tmp_path), "update_every": 4})
+    run = TrainingRun(cfg, progress=False)
+    seen: list[tuple[int, int]] = []
+    update = run._update
+
+    def recording_update():
+        seen.append((run.step, len(run.buffer)))
+        return update()
+
+    monkeypatch.setattr(run, "_update", recording_update)
+    run.train()
+    # Updates at the steps being made 204, 208, ..., 400: past the 200 seed steps, every 4th.
+    assert [step + 1 for step, _ in seen] == list(range(204, 401, 4))
+    assert all(stored == step for step, stored in seen)  # not yet the current transition
