@@ -187,7 +187,8 @@ class TrainingRun:
             acted = time.perf_counter()
             # The update comes between the action and the environment's step, as in the
             # authors' loops (URLB's, pytorch_sac's): on a GPU it runs while the host steps
-            # the simulator. It trains on the transitions before this one.
+            # the simulator. It trains on the transitions before this one (none yet at the
+            # first step of a run with `seed_steps` 0, which therefore skips that update).
             made = self.step + 1
             if self.learning(made) and self.update_step(made) and len(self.buffer):
                 last_metrics = self._update()

@@ -1,8 +1,8 @@
 """A GPU run's step waits for the GPU once, when the action comes back: the transition and
 the observation go to the device asynchronously, and the learned reward of the transition is
-computed on the host. On the CPU the paths a GPU
-takes are forced and must store and return what the NumPy paths do; on a GPU (skipped without
-one) torch's sync debug mode counts the waits."""
+computed on the host. On the CPU the paths a GPU takes are forced and must store and return
+what the NumPy paths do; on a GPU (skipped without one) torch's sync debug mode counts the
+waits."""
 
 from __future__ import annotations
 
