@@ -5,6 +5,7 @@ workers that `sepoa.supervisor` holds, or by workers elsewhere; and its report.
                               [--database-url URL] [--threads N] [--device D] [--force]
                               [--dry-run]
     sepoa experiment status SPEC [--results results] [--database-url URL]
+    sepoa experiment pack SPEC --out FILE.tar.gz [--results results] [--unfinished-only]
     sepoa experiment slurm SPEC --workers N [--results DIR] ...   # an sbatch array script
     sepoa report <results>/<spec name>           # figures + tables -> <folder>/report
     sepoa report --calibration labels.jsonl      # match ratio and fitted eps per labeller
@@ -86,6 +87,15 @@ def _experiment_arguments(p: argparse.ArgumentParser) -> None:
     status.add_argument("spec", help="the spec file (TOML)")
     status.add_argument("--results", default="results")
     _database(status)
+    pack = actions.add_parser(
+        "pack", help="one archive of what the grid needs to go on on another machine: "
+        "unfinished runs with their checkpoints, finished runs' results, skill snapshots and "
+        "the SQLite queue (there: tar -xzf FILE -C <results>, then experiment run)")
+    pack.add_argument("spec", help="the spec file (TOML)")
+    pack.add_argument("--results", default="results")
+    pack.add_argument("--out", required=True, metavar="FILE.tar.gz", help="the archive to write")
+    pack.add_argument("--unfinished-only", action="store_true",
+                      help="leave finished runs out (they travel another way)")
     slurm = actions.add_parser("slurm", help="print an sbatch array script of N workers",
                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     slurm.add_argument("spec", help="the spec file (TOML)")
@@ -132,6 +142,8 @@ def _run_experiment(args: argparse.Namespace) -> int:
 
     results = pathlib.Path(args.results)
     try:
+        if args.action == "pack":  # the queue it packs is the SQLite file in the results
+            return _pack(args, results)
         url = database_url(args.database_url, args.database_url_file)
         url = check_url(url) if url else None
         if args.action == "slurm":
@@ -190,6 +202,22 @@ def _status(spec, results: pathlib.Path, url: str | None) -> int:  # type: ignor
         say(status_table(spec, session_factory(engine), results))
     finally:
         engine.dispose()
+    return 0
+
+
+def _pack(args: argparse.Namespace, results: pathlib.Path) -> int:
+    from experiments.carry import pack
+    from experiments.spec import load_spec
+
+    if not results.is_dir():
+        return fail(f"--results {results}: no such folder")
+    spec = load_spec(args.spec, check=False)
+    packed = pack(spec, results, pathlib.Path(args.out), unfinished_only=args.unfinished_only)
+    say(f"{args.out}: {packed.unfinished} unfinished run(s) with their checkpoints, "
+        f"{packed.finished} finished, {packed.snapshots} snapshot file(s), "
+        f"{'the queue database' if packed.database else 'no queue database (not SQLite)'}; "
+        f"{packed.size / 2**20:.1f} MiB. There: tar -xzf {args.out} -C <results>, then "
+        f"sepoa experiment run {args.spec} --results <results>")
     return 0
 
 

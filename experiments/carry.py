@@ -1,0 +1,141 @@
+"""Carrying an unfinished grid to another machine: `sepoa experiment pack` writes one archive
+of what the grid's runs need to go on there from where they stopped.
+
+A run resumes from the checkpoint in its folder (`trainer.worker`), so the archive holds, under
+paths relative to the results folder:
+- every unfinished run's folder as it is on disk (checkpoint, metric files, labels), without
+  its TensorBoard files, which a resumed run writes again;
+- every finished run's results (`done.json` and the files beside it, not its checkpoint or
+  TensorBoard files), so that the launcher there counts it as finished; left out with
+  `unfinished_only` when the finished runs travel another way;
+- the skill snapshots, finished and partial (`<results>/snapshots`): a partial one is a
+  pretraining's checkpoint;
+- the queue database, when it is the launcher's SQLite file in the results folder, copied with
+  SQLite's backup (a consistent copy of a database in use): runs keep their ids, label counts
+  and statuses. A PostgreSQL queue stays where it is, reachable from the other machine.
+
+There: `tar -xzf ARCHIVE -C <results>` and `sepoa experiment run SPEC --results <results>`.
+
+A worker writes its run's checkpoint at episode ends, rounds' ends and when stopped, so packing
+while a worker trains would carry a checkpoint behind its run: a run held by a worker that
+heartbeat within `DEAD_WORKER_AFTER_S` is refused, with the worker named.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import tarfile
+import tempfile
+from contextlib import closing
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+
+from experiments.queue import HELD, grid_key
+from experiments.spec import Spec
+from labelqueue import DEAD_WORKER_AFTER_S
+
+LEFT_BEHIND_IN_RUNS = {"tb"}
+"""folders of a run that a resumed run writes again"""
+LEFT_BEHIND_WHEN_FINISHED = {"tb", "checkpoint.pt"}
+
+
+class PackError(ValueError):
+    """The grid cannot be packed now; the message says why and what to do."""
+
+
+@dataclass
+class Packed:
+    unfinished: int
+    finished: int
+    snapshots: int
+    database: bool
+    size: int
+
+
+def held_runs(database: Path, spec: Spec, now: datetime | None = None) -> list[str]:
+    """Lines naming the spec's runs that a live worker holds in the SQLite queue `database`.
+    Plain SQL on columns every schema of the queue has, so a grid trained by an older sepoa
+    can be packed by a newer one."""
+    now = now or datetime.now(UTC).replace(tzinfo=None)
+    with closing(sqlite3.connect(f"file:{database}?mode=ro", uri=True)) as db:
+        rows = db.execute("SELECT grid_key, status, worker_id, heartbeat_at FROM runs "
+                          "WHERE grid_key LIKE ?", (f"{spec.name}/%",)).fetchall()
+    lines = []
+    for key, status, worker, beat in rows:
+        if status not in HELD or worker is None or beat is None:
+            continue
+        age = (now - datetime.fromisoformat(beat)).total_seconds()
+        if age < DEAD_WORKER_AFTER_S:
+            lines.append(f"{key} ({status}, worker {worker}, heartbeat {age:.0f} s ago)")
+    return lines
+
+
+def pack(spec: Spec, results: Path, out: Path, unfinished_only: bool = False) -> Packed:
+    database = results / "queue.db"
+    try:
+        return _pack(spec, results, database, out, unfinished_only)
+    except sqlite3.Error as err:
+        raise PackError(f"the queue database {database}: {err}") from None
+
+
+def _pack(spec: Spec, results: Path, database: Path, out: Path,
+          unfinished_only: bool) -> Packed:
+    if database.exists() and (held := held_runs(database, spec)):
+        raise PackError(
+            f"{len(held)} run(s) are held by live workers: {'; '.join(held)}. Stop their "
+            "launcher or workers first (Ctrl-C or SIGTERM: each checkpoints its run and "
+            "releases it), so the archive holds each run's latest checkpoint")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    counts = {"unfinished": 0, "finished": 0, "snapshots": 0}
+    partial = out.with_name(out.name + ".partial")
+    try:
+        _write(tar_path=partial, spec=spec, results=results, database=database,
+               unfinished_only=unfinished_only, counts=counts)
+    except BaseException:
+        partial.unlink(missing_ok=True)
+        raise
+    partial.replace(out)
+    return Packed(counts["unfinished"], counts["finished"], counts["snapshots"],
+                  database.exists(), out.stat().st_size)
+
+
+def _write(tar_path: Path, spec: Spec, results: Path, database: Path, unfinished_only: bool,
+           counts: dict[str, int]) -> None:
+    with tarfile.open(tar_path, "w:gz") as tar:
+        for name in ("spec.toml",):
+            if (results / spec.name / name).exists():
+                tar.add(results / spec.name / name, f"{spec.name}/{name}")
+        for run in spec.runs():
+            key = grid_key(spec, run)
+            folder = results / key
+            if not folder.is_dir():
+                continue
+            finished = (folder / "done.json").exists()
+            if finished and unfinished_only:
+                continue
+            left_behind = LEFT_BEHIND_WHEN_FINISHED if finished else LEFT_BEHIND_IN_RUNS
+            _add_folder(tar, folder, key, left_behind)
+            counts["finished" if finished else "unfinished"] += 1
+        snapshots = results / "snapshots"
+        for path in sorted(snapshots.glob("*")) if snapshots.is_dir() else []:
+            if path.is_file() and path.suffix != ".lock":
+                tar.add(path, f"snapshots/{path.name}")
+                counts["snapshots"] += 1
+        if database.exists():
+            with tempfile.TemporaryDirectory() as tmp:
+                copy = Path(tmp) / "queue.db"
+                with closing(sqlite3.connect(database)) as source, \
+                        closing(sqlite3.connect(copy)) as target:
+                    source.backup(target)
+                tar.add(copy, "queue.db")
+
+
+def _add_folder(tar: tarfile.TarFile, folder: Path, name: str, left_behind: set[str]) -> None:
+    for path in sorted(folder.iterdir()):
+        if path.name in left_behind:
+            continue
+        if path.is_dir():
+            _add_folder(tar, path, f"{name}/{path.name}", set())
+        else:
+            tar.add(path, f"{name}/{path.name}")

@@ -1,0 +1,113 @@
+"""`sepoa experiment pack`: a grid stopped on one machine goes on on another from its checkpoints,
+its finished runs counted as finished; packing under a live worker is refused."""
+
+from __future__ import annotations
+
+import json
+import signal
+import sqlite3
+import subprocess
+import sys
+import tarfile
+from pathlib import Path
+
+import pytest
+from worker_helpers import wait_for, worker_config
+
+from sepoa.cli import main
+from trainer.worker import run_worker
+
+ROOT = Path(__file__).resolve().parents[2]
+
+SPEC = """
+name = "tiny"
+preset = "tiny"
+steps = 600
+tasks = ["dmc:cheetah_run"]
+eps = [0.3]
+seeds = [0, 1]
+
+[overrides]
+eval_every = 200
+"feedback.per_round" = 10
+
+[variants.PEBBLE]
+algo = "pebble"
+"""
+
+
+def test_a_packed_grid_resumes_on_another_machine_from_its_checkpoints(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    spec = tmp_path / "spec.toml"
+    spec.write_text(SPEC)
+    here, there = tmp_path / "here", tmp_path / "there"
+    runs = "tiny/dmc-cheetah_run/PEBBLE/eps0.3"
+    # Seed 1 finishes here; seed 0 is stopped after its first checkpoint.
+    assert main(["experiment", "run", str(spec), "--results", str(here), "--no-workers",
+                 "--seed", "1"]) == 0
+    run_worker(worker_config(f"sqlite:///{here / 'queue.db'}", tmp_path / "data",
+                             results_dir=here, threads=1))
+    launcher = subprocess.Popen(
+        [sys.executable, "-m", "sepoa.cli", "experiment", "run", str(spec), "--results",
+         str(here), "--workers", "1", "--threads", "1"],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    wait_for(lambda: (here / runs / "s0" / "checkpoint.pt").exists()
+             or launcher.poll() is not None, timeout=90, what="seed 0's first checkpoint")
+    capsys.readouterr()
+    archive = tmp_path / "carry" / "tiny.tar.gz"
+    # A worker still trains seed 0: its checkpoint would be behind the run.
+    assert main(["experiment", "pack", str(spec), "--results", str(here),
+                 "--out", str(archive)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "held by live workers" in err
+    assert f"{runs}/s0 (running, worker " in err and "Stop their launcher" in err
+    assert not archive.exists()
+
+    launcher.send_signal(signal.SIGTERM)
+    out, _ = launcher.communicate(timeout=60)
+    assert "stopping 1 worker(s)" in out
+    assert not (here / runs / "s0" / "done.json").exists()
+    assert main(["experiment", "pack", str(spec), "--results", str(here),
+                 "--out", str(archive)]) == 0
+    out = capsys.readouterr().out
+    assert "1 unfinished run(s) with their checkpoints, 1 finished" in out
+    assert "the queue database" in out
+    with tarfile.open(archive) as tar:
+        names = set(tar.getnames())
+        tar.extractall(there, filter="data")
+    assert {f"{runs}/s0/checkpoint.pt", f"{runs}/s1/done.json", "queue.db",
+            "tiny/spec.toml"} <= names
+    assert f"{runs}/s1/checkpoint.pt" not in names
+    assert not any("/tb/" in name for name in names)
+    with sqlite3.connect(there / "queue.db") as db:
+        statuses = dict(db.execute("SELECT grid_key, status FROM runs").fetchall())
+    assert statuses == {f"{runs}/s0": "queued", f"{runs}/s1": "finished"}  # s0 released
+
+    finished_here = (here / runs / "s1" / "done.json").read_text()
+    assert main(["experiment", "run", str(spec), "--results", str(there),
+                 "--threads", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "0 enqueued" in out and "tiny: 2 finished" in out
+    assert json.loads((there / runs / "s0" / "done.json").read_text())["step"] == 600
+    assert (there / runs / "s1" / "done.json").read_text() == finished_here
+    log = (there / "workers.log").read_text()
+    assert "resuming dmc:cheetah_run pebble" in log and "starting" not in log
+    steps = [int(line.split(",")[0]) for line in
+             (there / runs / "s0" / "episodes.csv").read_text().splitlines()[1:]]
+    assert steps == sorted(set(steps)) and steps[-1] == 600
+
+
+def test_bad_input_to_pack_gets_one_line(tmp_path: Path,
+                                         capsys: pytest.CaptureFixture[str]) -> None:
+    spec = tmp_path / "spec.toml"
+    spec.write_text(SPEC)
+    out = str(tmp_path / "a.tar.gz")
+    results = tmp_path / "results"
+    assert main(["experiment", "pack", str(spec), "--results", str(results), "--out", out]) == 2
+    assert "no such folder" in capsys.readouterr().err
+    results.mkdir()
+    (results / "queue.db").write_text("not a database")
+    assert main(["experiment", "pack", str(spec), "--results", str(results), "--out", out]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "queue database" in err and "not a database" in err
+    assert not Path(out).exists() and not Path(out + ".partial").exists()
