@@ -17,6 +17,9 @@
 #           (graphed, TF32): how busy the GPU is, and the ops that hold the time
 #   reward  one round's reward training on the GPU at 100 and 1 000 labels, plain and SURF
 #   pretrain  APS skill pretraining steps/s at the paper's sizes, 12 000 steps (graphed, TF32)
+#   tf32learn  learning with TF32: specs/paper/tf32-learning.toml (SAC oracle, float32 / TF32,
+#           4 seeds each, 100 k steps), its 8 runs sharing the GPU under MPS; the runs' result
+#           files come back in $OUT/tf32-learning (`sepoa report` on them here)
 #   baseline  whole-run steps/s of paper-preset PEBBLE after round 0 (graphed, TF32), the code
 #           in $BASELINE (default .baseline) against this checkout's, one after the other: what
 #           a change to the step did on this GPU (now: against 3628eb1, r_hat of a new
@@ -42,10 +45,10 @@ set -uo pipefail
 steps=("$@")
 [ ${#steps[@]} -eq 0 ] && steps=(test sac run doctor)
 for step in "${steps[@]}"; do
-    case "$step" in test|sac|run|doctor|shared|tf32|mps|sepoa|sepoa32|profile|reward|pretrain|baseline)
+    case "$step" in test|sac|run|doctor|shared|tf32|mps|sepoa|sepoa32|profile|reward|pretrain|baseline|tf32learn)
         ;;
     *) echo "unknown step $step; valid: test sac run doctor shared tf32 mps sepoa sepoa32" \
-            "profile reward pretrain baseline" >&2
+            "profile reward pretrain baseline tf32learn" >&2
        exit 2 ;; esac
 done
 source .gpu/device-env.sh || exit 1
@@ -67,6 +70,25 @@ shared_runs() {  # shared_runs TXT CSV [--set KEY=VALUE ...]: 1 and 4 paper-pres
         --algo pebble --steps 14000 --from-step 11000 --workers 1,4 --threads 2 \
         --set sac.cuda_graph=true "$@" > "$txt" 2>&1
     tail -6 "$txt" >> "$OUT/summary.txt"
+}
+# CUDA's Multi-Process Service for the runs that share the GPU: a user-space daemon with its own
+# pipe and log folders; the GPU's settings (compute mode, MIG) stay as they are, and `quit`
+# stops it afterwards.
+mps_start() {  # mps_start NAME: 0 when the daemon started (its output in $OUT/NAME.txt)
+    export CUDA_MPS_PIPE_DIRECTORY=/tmp/gpu-check-mps/pipe CUDA_MPS_LOG_DIRECTORY=/tmp/gpu-check-mps/log
+    mkdir -p "$CUDA_MPS_PIPE_DIRECTORY" "$CUDA_MPS_LOG_DIRECTORY"
+    nvidia-cuda-mps-control -d > "$OUT/$1.txt" 2>&1 && return 0
+    echo "MPS did not start: $(tail -1 "$OUT/$1.txt")" >> "$OUT/summary.txt"
+    unset CUDA_MPS_PIPE_DIRECTORY CUDA_MPS_LOG_DIRECTORY
+    return 1
+}
+mps_stop() {  # mps_stop NAME
+    echo quit | nvidia-cuda-mps-control >> "$OUT/$1.txt" 2>&1
+    # The control log's client lines say whether the runs' processes went through MPS.
+    cp "$CUDA_MPS_LOG_DIRECTORY/control.log" "$OUT/$1_control.log" 2>/dev/null
+    echo "MPS control log: $(grep -ci "client" "$OUT/$1_control.log" 2>/dev/null) client lines" \
+        >> "$OUT/summary.txt"
+    unset CUDA_MPS_PIPE_DIRECTORY CUDA_MPS_LOG_DIRECTORY
 }
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv > "$OUT/device.txt" 2>&1
 python3 -c "import torch; print(torch.__version__, torch.cuda.get_device_name())" \
@@ -117,22 +139,25 @@ for step in "${steps[@]}"; do
         say "1 and 4 paper-preset PEBBLE runs sharing the GPU, steps 11-14 k (graphed, TF32)"
         shared_runs "$OUT/bench_shared_tf32.txt" "$OUT/gpu_util_tf32.csv" --set sac.tf32=true ;;
     mps)
-        # The daemon is a user-space process with its own pipe and log folders: the GPU's
-        # settings (compute mode, MIG) stay as they are, and `quit` stops it afterwards.
         say "1 and 4 paper-preset PEBBLE runs sharing the GPU under MPS, steps 11-14 k (graphed, TF32)"
-        export CUDA_MPS_PIPE_DIRECTORY=/tmp/gpu-check-mps/pipe CUDA_MPS_LOG_DIRECTORY=/tmp/gpu-check-mps/log
-        mkdir -p "$CUDA_MPS_PIPE_DIRECTORY" "$CUDA_MPS_LOG_DIRECTORY"
-        if nvidia-cuda-mps-control -d > "$OUT/mps.txt" 2>&1; then
+        if mps_start mps; then
             shared_runs "$OUT/bench_shared_mps.txt" "$OUT/gpu_util_mps.csv" --set sac.tf32=true
-            echo quit | nvidia-cuda-mps-control >> "$OUT/mps.txt" 2>&1
-            # The control log's client lines say whether the runs' processes went through MPS.
-            cp "$CUDA_MPS_LOG_DIRECTORY/control.log" "$OUT/mps_control.log" 2>/dev/null
-            echo "MPS control log: $(grep -ci "client" "$OUT/mps_control.log" 2>/dev/null) client lines" \
-                >> "$OUT/summary.txt"
-        else
-            echo "MPS did not start: $(tail -1 "$OUT/mps.txt")" >> "$OUT/summary.txt"
+            mps_stop mps
+        fi ;;
+    tf32learn)
+        say "learning with TF32: SAC oracle, paper preset, float32 / TF32, 4 seeds each, 100 k steps"
+        results=/tmp/gpu-check-tf32learn
+        if mps_start mps_tf32learn; then
+            sampling "$OUT/gpu_util_tf32learn.csv" \
+                timeout "${TF32LEARN_LIMIT:-500}" python3 -m sepoa experiment run \
+                specs/paper/tf32-learning.toml --results "$results" --workers 8 --threads 2 \
+                --device cuda > "$OUT/tf32learn.txt" 2>&1
+            mps_stop mps_tf32learn
         fi
-        unset CUDA_MPS_PIPE_DIRECTORY CUDA_MPS_LOG_DIRECTORY ;;
+        tail -3 "$OUT/tf32learn.txt" >> "$OUT/summary.txt"
+        # Each run's result files (not its checkpoint or TensorBoard files), finished or not.
+        (cd "$results" && tar -czf "$OUT/tf32-learning.tar.gz" --exclude=checkpoint.pt \
+            --exclude=tb --exclude='*.lock' tf32-learning) 2>> "$OUT/summary.txt" ;;
     sepoa|sepoa32)
         # Round 0 comes at 20 k, after the random steps and 20 rollouts; steps 22-62 k hold two
         # more rounds (40 k, 60 k) and four evaluations of 10 episodes: the rate a 1 M-step run
