@@ -103,9 +103,8 @@ def _pack(spec: Spec, results: Path, database: Path, out: Path,
 def _write(tar_path: Path, spec: Spec, results: Path, database: Path, unfinished_only: bool,
            counts: dict[str, int]) -> None:
     with tarfile.open(tar_path, "w:gz") as tar:
-        for name in ("spec.toml",):
-            if (results / spec.name / name).exists():
-                tar.add(results / spec.name / name, f"{spec.name}/{name}")
+        if (results / spec.name / "spec.toml").exists():  # what `sepoa report` reads
+            tar.add(results / spec.name / "spec.toml", f"{spec.name}/spec.toml")
         for run in spec.runs():
             key = grid_key(spec, run)
             folder = results / key
