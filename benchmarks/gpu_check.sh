@@ -146,15 +146,16 @@ for step in "${steps[@]}"; do
         fi ;;
     tf32learn)
         say "learning with TF32: SAC oracle, paper preset, float32 / TF32, 4 seeds each, 100 k steps"
+        # The launcher's own MPS daemon (`--mps`), its control log in $results/mps.
         results=/tmp/gpu-check-tf32learn
-        if mps_start mps_tf32learn; then
-            sampling "$OUT/gpu_util_tf32learn.csv" \
-                timeout "${TF32LEARN_LIMIT:-500}" python3 -m sepoa experiment run \
-                specs/paper/tf32-learning.toml --results "$results" --workers 8 --threads 2 \
-                --device cuda > "$OUT/tf32learn.txt" 2>&1
-            mps_stop mps_tf32learn
-        fi
+        sampling "$OUT/gpu_util_tf32learn.csv" \
+            timeout "${TF32LEARN_LIMIT:-500}" python3 -m sepoa experiment run \
+            specs/paper/tf32-learning.toml --results "$results" --workers 8 --threads 2 \
+            --device cuda --mps > "$OUT/tf32learn.txt" 2>&1
         tail -3 "$OUT/tf32learn.txt" >> "$OUT/summary.txt"
+        cp "$results/mps/control.log" "$OUT/mps_tf32learn_control.log" 2>/dev/null
+        echo "MPS control log: $(grep -ci "client" "$OUT/mps_tf32learn_control.log" 2>/dev/null) client lines" \
+            >> "$OUT/summary.txt"
         # Each run's result files (not its checkpoint or TensorBoard files), finished or not.
         (cd "$results" && tar -czf "$OUT/tf32-learning.tar.gz" --exclude=checkpoint.pt \
             --exclude=tb --exclude='*.lock' tf32-learning) 2>> "$OUT/summary.txt" ;;

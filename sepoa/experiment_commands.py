@@ -2,8 +2,8 @@
 workers that `sepoa.supervisor` holds, or by workers elsewhere; and its report.
 
     sepoa experiment run SPEC [--results results] [--workers N | --no-workers]
-                              [--database-url URL] [--threads N] [--device D] [--force]
-                              [--dry-run]
+                              [--database-url URL] [--threads N] [--device D [--mps]]
+                              [--force] [--dry-run]
     sepoa experiment status SPEC [--results results] [--database-url URL]
     sepoa experiment pack SPEC --out FILE.tar.gz [--results results] [--unfinished-only]
     sepoa experiment slurm SPEC --workers N [--results DIR] ...   # an sbatch array script
@@ -19,6 +19,7 @@ is not an error: the command does its work without printing.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import os
 import pathlib
@@ -73,6 +74,11 @@ def _experiment_arguments(p: argparse.ArgumentParser) -> None:
     run.add_argument("--device", default=None,
                      help="the device every local worker trains on (auto | cpu | cuda | "
                      "cuda:N), instead of each run's own; the workers may share one GPU")
+    run.add_argument("--mps", action="store_true",
+                     help="with --device cuda: start CUDA's Multi-Process Service for the "
+                     "local workers and stop it afterwards, so that the runs' kernels share "
+                     "the GPU instead of taking turns (4 runs: 2.9x one run's steps/s with it, "
+                     "1.3x without, on an H200)")
     run.add_argument("--variant", action="append", default=None, metavar="LABEL",
                      help="only this variant's runs (repeat for more): part of a grid for "
                      "another host, whose finished run folders, copied into these results, "
@@ -137,6 +143,7 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
 def _run_experiment(args: argparse.Namespace) -> int:
     from sqlalchemy.exc import DBAPIError
 
+    from experiments.mps import MpsError
     from experiments.spec import SpecError, load_spec
     from labelqueue import check_url, database_url
 
@@ -162,11 +169,19 @@ def _run_experiment(args: argparse.Namespace) -> int:
                 return fail("--device is for local workers: give it to `sepoa worker` where "
                             "the workers run")
             check_device(args.device)
+        if args.mps:
+            from experiments.mps import check_available
+
+            if not workers or not (args.device or "").startswith("cuda"):
+                return fail("--mps is for local workers on a GPU: give --device cuda "
+                            "(or cuda:N) and --workers N")
+            check_available()
         return run_experiment(spec, results=results, database_url=url, workers=workers,
                               threads=args.threads, force=args.force, dry_run=args.dry_run,
                               echo=say, train=functools.partial(train_locally,
-                                                                device=args.device))
-    except (SpecError, ValueError) as err:
+                                                                device=args.device,
+                                                                mps=args.mps))
+    except (SpecError, ValueError, MpsError) as err:
         return fail(str(err))
     except DBAPIError as err:
         first = str(err.orig or err).strip().splitlines()[0]
@@ -330,16 +345,25 @@ def check_device(name: str) -> None:
 
 
 def train_locally(url: str, results: Path, workers: int, threads: int,
-                  echo: Callable[[str], None], device: str | None = None) -> int | None:
+                  echo: Callable[[str], None], device: str | None = None,
+                  mps: bool = False) -> int | None:
     """Run `workers` local `sepoa worker --once` processes to their end (the grid is done when
-    the last one exits), on `device` when one is given; the signal that stopped the launcher,
-    if one did."""
+    the last one exits), on `device` when one is given, with an MPS daemon of their own when
+    `mps` (experiments/mps.py); the signal that stopped the launcher, if one did."""
     from experiments.launch import worker_argv, worker_slots
+    from experiments.mps import mps_daemon
 
     env = os.environ | {"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
                         "PYTHONUNBUFFERED": "1", "SEPOA_DATABASE_URL": url}
-    with (results / "workers.log").open("a") as log, worker_slots(results, workers) as names, \
-            Supervisor(grace_s=STOP_GRACE_S) as children:
+    # Left in reverse: the workers stop before their MPS daemon does.
+    with contextlib.ExitStack() as stack:
+        if mps:
+            env |= stack.enter_context(mps_daemon(results / "mps"))
+            echo(f"MPS daemon started for the workers (pipe {env['CUDA_MPS_PIPE_DIRECTORY']}, "
+                 f"log {results / 'mps'})")
+        log = stack.enter_context((results / "workers.log").open("a"))
+        names = stack.enter_context(worker_slots(results, workers))
+        children = stack.enter_context(Supervisor(grace_s=STOP_GRACE_S))
         for name in names:
             child = children.start(name, worker_argv(results, name, threads, device), stdout=log,
                                    stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
