@@ -24,8 +24,6 @@ import os
 import sys
 import tempfile
 import time
-import warnings
-from collections import Counter
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # as the CLI does; before mujoco is imported
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -36,31 +34,10 @@ from bench_run import overrides_of  # noqa: E402
 from torch.profiler import ProfilerActivity, profile  # noqa: E402
 
 from runvocab.config import build_config  # noqa: E402
+from trainer.gpu_waits import GpuWaits  # noqa: E402
 from trainer.hooks import RunHooks  # noqa: E402
 from trainer.loop import TrainingRun  # noqa: E402
 from trainer.skills.pretrain import default_snapshot_path, pretrain_once  # noqa: E402
-
-
-class HostSyncs:
-    """The points where the host waited for the GPU: torch's sync debug mode warns at each
-    synchronising call (a read-back, a copy from pageable memory), and each warning names the
-    line of Python that made it."""
-
-    def start(self) -> None:
-        self._catcher = warnings.catch_warnings(record=True)
-        self.caught = self._catcher.__enter__()
-        warnings.simplefilter("always")
-        torch.cuda.set_sync_debug_mode("warn")
-
-    def stop(self) -> None:
-        torch.cuda.set_sync_debug_mode("default")
-        self._catcher.__exit__(None, None, None)
-
-    def by_line(self) -> Counter[str]:
-        # Torch's per-wait message only: its one-time notice that the mode is a prototype
-        # also speaks of "synchronizing operations" but is not a wait.
-        return Counter(f"{os.path.relpath(w.filename)}:{w.lineno}" for w in self.caught
-                       if "called a synchronizing CUDA operation" in str(w.message))
 
 
 class ProfileWindow(RunHooks):
@@ -70,7 +47,7 @@ class ProfileWindow(RunHooks):
         self.start, self.end, self.cuda = start, start + steps, cuda
         activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
         self.profiler = profile(activities=activities)
-        self.syncs = HostSyncs() if cuda else None
+        self.syncs = GpuWaits() if cuda else None
         self.wall = 0.0
         self.began: float | None = None
 

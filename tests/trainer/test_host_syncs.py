@@ -15,6 +15,7 @@ import torch
 from runvocab.config import SACConfig, build_config
 from trainer.agent_reward import AgentReward
 from trainer.feedback import LabelLog, PreferenceFeedback
+from trainer.gpu_waits import GpuWaits, waits_in
 from trainer.replay_buffer import ReplayBuffer
 from trainer.reward_model import RewardModel
 from trainer.sac import SAC
@@ -110,19 +111,21 @@ def test_the_learned_reward_of_a_new_transition_is_the_models_and_follows_each_r
 
 
 def waits_for_the_gpu(action) -> list[str]:
-    """Where `action()` made the host wait for the GPU (torch's sync debug mode), one entry a
-    wait: the caller's line and torch's message, so a failure names the wait."""
+    """Where `action()` made the host wait for the GPU, one entry a wait: the caller's line and
+    torch's message, so a failure names the wait."""
     torch.cuda.synchronize()
+    with GpuWaits() as waits:
+        action()
+    return waits.where()
+
+
+def test_only_torchs_per_wait_message_counts_as_a_wait() -> None:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        torch.cuda.set_sync_debug_mode("warn")
-        try:
-            action()
-        finally:
-            torch.cuda.set_sync_debug_mode("default")
-    # Only torch's per-wait message: the mode's one-time "is a prototype" notice is not a wait.
-    return [f"{w.filename}:{w.lineno}: {w.message}" for w in caught
-            if "called a synchronizing CUDA operation" in str(w.message)]
+        warnings.warn("Synchronization debug mode is a prototype feature and does not yet "
+                      "detect all synchronizing operations", stacklevel=1)
+        warnings.warn("called a synchronizing CUDA operation", stacklevel=1)
+    assert [str(w.message) for w in waits_in(caught)] == ["called a synchronizing CUDA operation"]
 
 
 @needs_cuda
