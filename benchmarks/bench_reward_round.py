@@ -3,6 +3,7 @@ of labels, with and without SURF, and how close it runs to the machine's matrix-
 
     .venv/bin/python benchmarks/bench_reward_round.py                  # 900 labels, 1 thread
     .venv/bin/python benchmarks/bench_reward_round.py --labels 300 --epochs 10 --threads 2
+    .venv/bin/python benchmarks/bench_reward_round.py --labels 300 --epochs 2 --bf16
     python3 benchmarks/bench_reward_round.py --device cuda --labels 1000 --epochs 5
 
 The reward model is the run's (3 members of 3 x 256 on cheetah's 17 + 6 inputs, batch 128;
@@ -70,6 +71,9 @@ def main() -> int:
     p.add_argument("--epochs", type=int, default=3, help="epochs timed (a run trains up to 50)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
+    p.add_argument("--bf16", action="store_true",
+                   help="also time each round with `reward.bf16` (bfloat16 autocast), and "
+                   "print its time against float32's")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
@@ -87,16 +91,23 @@ def main() -> int:
              else f"{args.threads} thread(s)")
     print(f"torch {torch.__version__}, {where}; {args.labels} labels, "
           f"{args.epochs} epochs timed; plain matmul {peak:.1f} GFLOP/s")
-    for surf in (False, True):
+    float32: dict[bool, float] = {}
+    for surf, bf16 in [(surf, bf16) for surf in (False, True)
+                       for bf16 in ((False, True) if args.bf16 else (False,))]:
         pairs = random_pairs(args.labels, 60 if surf else 50, rng)
         cfg = dataclasses.replace(RewardConfig(), surf=surf, max_epochs=args.epochs,
-                                  stop_accuracy=1.01)
+                                  stop_accuracy=1.01, bf16=bf16)
         model = RewardModel(OBS, ACT, cfg, device, seed=0)
         synchronize(device)
         start = time.perf_counter()
         model.train_round(pairs, unlabelled if surf else None)
         synchronize(device)
         seconds = time.perf_counter() - start
+        if bf16:
+            print(f"{'SURF' if surf else 'plain':5s}, bf16: {seconds / args.epochs:6.2f} s per "
+                  f"epoch; float32/bf16 {float32[surf] / seconds:.2f}x")
+            continue
+        float32[surf] = seconds
         e, per_row = cfg.ensemble_size, macs_per_row(cfg)
         crop = (cfg.surf_crop_min + cfg.surf_crop_max) / 2 if surf else 50
         labelled = args.labels * 2 * crop * e * per_row * 3  # forward and backward

@@ -123,9 +123,10 @@ class RewardModel:
         return torch.cat(parts)
 
     def _segment_returns(self, segments: torch.Tensor) -> torch.Tensor:
-        """(E, B, H, D) member-specific segments -> (E, B) summed member rewards."""
+        """(E, B, H, D) member-specific segments -> (E, B) summed member rewards, summed in
+        float32 (under bfloat16 autocast a sum of 50 rewards would keep 3 significant digits)."""
         e, b, h, d = segments.shape
-        return self.ensemble(segments.reshape(e, b * h, d)).reshape(e, b, h).sum(-1)
+        return self.ensemble(segments.reshape(e, b * h, d)).float().reshape(e, b, h).sum(-1)
 
     def train_round(self, pairs: LabelledPairs, unlabelled: PairSampler | None = None,
                     after_epoch: Callable[[], None] | None = None) -> dict[str, float]:
@@ -163,13 +164,17 @@ class RewardModel:
                                                (), generator=self.generator))
                     s0, s1 = (c.reshape(e, -1, length, c.shape[-1]) for c in random_crops(
                         s0.flatten(0, 1), s1.flatten(0, 1), length, self.generator))
-                r0, r1 = self._segment_returns(s0), self._segment_returns(s1)
-                loss = bradley_terry_loss(r0, r1, y).sum()
-                if length is not None and unlabelled is not None:
-                    extra, kept = self._pseudo_label_loss(unlabelled, idx.shape[1], length)
-                    loss = loss + self.cfg.surf_weight * extra
-                    confident, pseudo = confident + kept, pseudo + e * idx.shape[1] * (
-                        self.cfg.surf_unlabelled_ratio)
+                # Autocast for this batch's forward passes only: autocast keeps its low-precision
+                # copies of the weights until its block ends, so a block around several
+                # optimiser steps would go on computing with the weights it first copied.
+                with torch.autocast(self.device.type, torch.bfloat16, enabled=self.cfg.bf16):
+                    r0, r1 = self._segment_returns(s0), self._segment_returns(s1)
+                    loss = bradley_terry_loss(r0, r1, y).sum()
+                    if length is not None and unlabelled is not None:
+                        extra, kept = self._pseudo_label_loss(unlabelled, idx.shape[1], length)
+                        loss = loss + self.cfg.surf_weight * extra
+                        confident, pseudo = confident + kept, pseudo + e * idx.shape[1] * (
+                            self.cfg.surf_unlabelled_ratio)
                 self.opt.zero_grad(set_to_none=True)
                 loss.backward()
                 self.opt.step()
