@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -214,6 +215,14 @@ def _heartbeat(row: Run | None, now: datetime) -> tuple[str, str | None]:
                               f"{left} unless it comes back")
 
 
+def training_workers(rows: Iterable[Run], now: datetime) -> set[str]:
+    """The workers holding a running run that are not presumed dead (a heartbeat within
+    `DEAD_WORKER_AFTER_S`): the ones the grid's time left is divided among."""
+    return {row.worker_id for row in rows
+            if row.status is RunStatus.RUNNING and row.worker_id
+            and (age := heartbeat_age(row, now)) is not None and age <= DEAD_WORKER_AFTER_S}
+
+
 def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> str:
     """A table of the spec's runs: their status in the database (or "not queued"), the step
     reached of the planned steps, the worker and how long ago it heartbeat (flagged `silent`
@@ -252,8 +261,7 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> 
     text = ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip()
             for r in [header, *lines]]
     summary_line = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
-    workers = len({row.worker_id for row in rows.values()
-                   if row.status is RunStatus.RUNNING and row.worker_id})
+    workers = len(training_workers(rows.values(), now))
     errors = [f"  {key}: {row.error}" for key, row in sorted(rows.items())
               if row.status is RunStatus.FAILED and row.error]
     return "\n".join([f"{spec.name}: {len(lines)} runs: {summary_line}", *text,

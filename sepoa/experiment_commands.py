@@ -27,6 +27,7 @@ import shlex
 import signal
 import subprocess
 import sys
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -206,18 +207,40 @@ def _status(spec, results: pathlib.Path, url: str | None) -> int:  # type: ignor
     if current is None:
         return fail(f"the queue database {mask_url(url)} has no schema yet: nothing enqueued "
                     "(sepoa experiment run)")
-    if current != head:  # reading it would fail on a column one side lacks
-        return fail(
+    if current != head and parsed.get_backend_name() != "sqlite":
+        return fail(  # reading it would fail on a column one side lacks
             f"the queue database's schema is at revision {current}, this sepoa's at {head}: "
             "run `experiment status` with the sepoa its workers run, or migrate the database "
             "with this version's `sepoa experiment run --no-workers` (workers of the older "
             "version may then fail)")
-    engine = make_engine(url)
-    try:
-        say(status_table(spec, session_factory(engine), results))
-    finally:
-        engine.dispose()
+    with tempfile.TemporaryDirectory() as tmp:
+        if current != head:
+            # An older sepoa's workers may still use the file: read a migrated copy of it.
+            url = _migrated_copy(parsed.database or "", Path(tmp) / "queue.db")
+        engine = make_engine(url)
+        try:
+            say(status_table(spec, session_factory(engine), results))
+        finally:
+            engine.dispose()
+    if current != head:
+        say(f"(read from a migrated copy: the database's schema is at revision {current}, "
+            f"this sepoa's at {head}; the database itself is left as it is)")
     return 0
+
+
+def _migrated_copy(database: str, copy: Path) -> str:
+    """A copy of a SQLite queue (SQLite's backup: consistent while workers write to it),
+    migrated to this sepoa's schema; its URL."""
+    import sqlite3
+
+    from labelqueue import migrate
+
+    with contextlib.closing(sqlite3.connect(database)) as source, \
+            contextlib.closing(sqlite3.connect(copy)) as target:
+        source.backup(target)
+    url = f"sqlite:///{copy}"
+    migrate(url)
+    return url
 
 
 def _pack(args: argparse.Namespace, results: pathlib.Path) -> int:

@@ -29,6 +29,7 @@ from labelqueue import (
     grid_runs,
     make_engine,
     migrate,
+    schema_revisions,
     session_factory,
 )
 from sepoa.cli import main
@@ -341,10 +342,10 @@ def test_bad_input_gets_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert not (tmp_path / "r" / "queue.db").exists()  # refused before anything was stored
 
 
-def test_status_of_a_database_on_another_schema_says_so_in_one_line(
+def test_status_of_a_sqlite_database_on_an_older_schema_reads_a_migrated_copy(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A grid's database made by an older sepoa (its workers still running that one): status
-    says which revisions differ and what to do, instead of failing on a column it lacks."""
+    reads a migrated copy and says so, leaving the database at its own revision."""
     from alembic import command
 
     from labelqueue.db import alembic_config
@@ -357,17 +358,20 @@ def test_status_of_a_database_on_another_schema_says_so_in_one_line(
     argv = ["experiment", "status", str(spec_path), "--results", str(results)]
     assert main(argv) == 2
     assert "has no schema yet: nothing enqueued" in capsys.readouterr().err
-    command.upgrade(alembic_config(f"sqlite:///{results / 'queue.db'}"), "0010")
-    assert main(argv) == 2
-    err = capsys.readouterr().err
-    assert err.startswith("error: the queue database's schema is at revision 0010, this "
-                          "sepoa's at ") and err.count("\n") == 1, err
-    # Migrated as the message says, it answers.
+    url = f"sqlite:///{results / 'queue.db'}"
+    command.upgrade(alembic_config(url), "0010")
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "tiny: 1 runs: 1 not queued" in out
+    assert "(read from a migrated copy: the database's schema is at revision 0010" in out
+    assert schema_revisions(url)[0] == "0010"  # left as it was
+    # Migrated by this version's launcher, it is read as it is.
     assert main(["experiment", "run", str(spec_path), "--results", str(results),
                  "--no-workers"]) == 0
     capsys.readouterr()
     assert main(argv) == 0
-    assert "tiny: 1 runs: 1 queued" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "tiny: 1 runs: 1 queued" in out and "migrated copy" not in out
 
 
 def test_part_of_a_grid_trained_on_another_host_counts_as_finished_in_the_whole(

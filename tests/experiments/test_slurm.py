@@ -17,9 +17,10 @@ from datetime import timedelta
 from pathlib import Path
 
 import pytest
-from sqlalchemy import update
+from sqlalchemy import select, update
 
 from experiments.launch import run_experiment
+from experiments.queue import training_workers
 from experiments.slurm import URL_FILE, running_sepoa, seconds
 from experiments.spec import load_spec
 from labelqueue import Run, claim_run, make_engine, migrate, session_factory
@@ -225,6 +226,10 @@ def test_status_shows_each_runs_worker_and_heartbeat_age_and_flags_dead_ones(
     assert lines[9:] == [
         "  tiny/dmc-cheetah_run/PEBBLE/eps0.3/s2: worker gone silent for 6m40s, presumed dead: "
         "the next worker to look takes the run over from its checkpoint"]
+    # The time left is divided among the workers that may still be training: not "gone".
+    with session_factory(make_engine(url))() as session:
+        rows = session.scalars(select(Run)).all()
+        assert training_workers(rows, utcnow()) == {"alive", "quiet"}
 
 
 def test_a_closed_standard_output_is_not_an_error(tmp_path: Path) -> None:
