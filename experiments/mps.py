@@ -46,16 +46,21 @@ def mps_daemon(log_dir: Path) -> Iterator[dict[str, str]]:
     folder = tempfile.mkdtemp(prefix="sepoa-mps-")
     log_dir.mkdir(parents=True, exist_ok=True)
     env = {"CUDA_MPS_PIPE_DIRECTORY": folder, "CUDA_MPS_LOG_DIRECTORY": str(log_dir)}
-    started = subprocess.run([CONTROL, "-d"], env=os.environ | env, capture_output=True,
-                             text=True, stdin=subprocess.DEVNULL)
+    # Its output to a file, not a pipe: a daemon that kept the pipe open would hold `run`
+    # until it exits.
+    start_log = log_dir / "start.txt"
+    with start_log.open("w") as out:
+        started = subprocess.run([CONTROL, "-d"], env=os.environ | env, stdout=out,
+                                 stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
     if started.returncode != 0:
         shutil.rmtree(folder, ignore_errors=True)
-        said = (started.stderr or started.stdout).strip().splitlines()
+        said = start_log.read_text().strip().splitlines()
         raise MpsError(f"--mps: {CONTROL} -d exited with status {started.returncode}"
                        + (f": {said[-1]}" if said else ""))
     try:
         yield env
     finally:
-        subprocess.run([CONTROL], input="quit\n", env=os.environ | env, capture_output=True,
-                       text=True)
+        with (log_dir / "quit.txt").open("w") as out:
+            subprocess.run([CONTROL], input=b"quit\n", env=os.environ | env, stdout=out,
+                           stderr=subprocess.STDOUT, timeout=60)
         shutil.rmtree(folder, ignore_errors=True)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import functools
 import os
+import time
 from pathlib import Path
 
 import pytest
@@ -22,6 +23,7 @@ FAKE = """#!/bin/bash
 input=$( [ "$1" = -d ] || cat )
 there=$(test -d "$CUDA_MPS_PIPE_DIRECTORY" && echo yes)
 echo "$* | $CUDA_MPS_PIPE_DIRECTORY | $input | pipe folder there: $there" >> {log}
+[ {status} = 0 ] || echo "An instance of this daemon is already running" >&2
 exit {status}
 """
 
@@ -55,10 +57,23 @@ def test_the_daemon_runs_for_the_block_in_a_folder_of_its_own(
     assert (tmp_path / "mps").is_dir()
 
 
+def test_a_daemon_that_keeps_its_output_open_does_not_hold_the_launcher(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    fake_control(tmp_path, monkeypatch)
+    program = tmp_path / "bin" / "nvidia-cuda-mps-control"
+    # As a daemon may: a child that lives on with the caller's standard output.
+    lives_on = '[ "$1" = -d ] && sleep 30 &\nexit 0'
+    program.write_text(program.read_text().replace("exit 0", lives_on))
+    start = time.monotonic()
+    with mps_daemon(tmp_path / "mps"):
+        assert time.monotonic() - start < 10
+
+
 def test_a_daemon_that_does_not_start_is_said_in_one_line(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     fake_control(tmp_path, monkeypatch, status=1)
-    with pytest.raises(MpsError, match=r"-d exited with status 1"), mps_daemon(tmp_path / "mps"):
+    with pytest.raises(MpsError, match=r"-d exited with status 1: An instance of this daemon "
+                       "is already running"), mps_daemon(tmp_path / "mps"):
         pass
     monkeypatch.setenv("PATH", str(tmp_path / "nowhere"))
     with pytest.raises(MpsError, match="is not on the PATH"):
