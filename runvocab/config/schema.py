@@ -73,8 +73,8 @@ class RewardConfig:
     """stop a round's training once the mean training accuracy reaches this"""
     bf16: bool = False
     """train the members' forward passes in bfloat16 autocast (weights and optimiser stay in
-    float32): a round 2.4x faster on a CPU with AVX-512 BF16 (benchmarks/README.md); slower
-    where the CPU lacks it"""
+    float32): a round 2.1-2.8x faster on a CPU with AVX-512 BF16 (benchmarks/README.md);
+    slower where the CPU lacks it"""
     surf: bool = False
     """SURF: temporal crops of labelled pairs and confident pseudo-labels of unlabelled ones"""
     surf_crop_min: int = 45
