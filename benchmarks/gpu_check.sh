@@ -82,12 +82,15 @@ mps_start() {  # mps_start NAME: 0 when the daemon started (its output in $OUT/N
     unset CUDA_MPS_PIPE_DIRECTORY CUDA_MPS_LOG_DIRECTORY
     return 1
 }
+mps_clients() {  # mps_clients LOG_DIR NAME: the daemon's control log to $OUT/NAME_control.log
+    # Its client lines say whether the runs' processes went through MPS.
+    cp "$1/control.log" "$OUT/$2_control.log" 2>/dev/null
+    echo "MPS control log: $(grep -ci "client" "$OUT/$2_control.log" 2>/dev/null) client lines" \
+        >> "$OUT/summary.txt"
+}
 mps_stop() {  # mps_stop NAME
     echo quit | nvidia-cuda-mps-control >> "$OUT/$1.txt" 2>&1
-    # The control log's client lines say whether the runs' processes went through MPS.
-    cp "$CUDA_MPS_LOG_DIRECTORY/control.log" "$OUT/$1_control.log" 2>/dev/null
-    echo "MPS control log: $(grep -ci "client" "$OUT/$1_control.log" 2>/dev/null) client lines" \
-        >> "$OUT/summary.txt"
+    mps_clients "$CUDA_MPS_LOG_DIRECTORY" "$1"
     unset CUDA_MPS_PIPE_DIRECTORY CUDA_MPS_LOG_DIRECTORY
 }
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv > "$OUT/device.txt" 2>&1
@@ -153,9 +156,7 @@ for step in "${steps[@]}"; do
             specs/paper/tf32-learning.toml --results "$results" --workers 8 --threads 2 \
             --device cuda --mps > "$OUT/tf32learn.txt" 2>&1
         tail -3 "$OUT/tf32learn.txt" >> "$OUT/summary.txt"
-        cp "$results/mps/control.log" "$OUT/mps_tf32learn_control.log" 2>/dev/null
-        echo "MPS control log: $(grep -ci "client" "$OUT/mps_tf32learn_control.log" 2>/dev/null) client lines" \
-            >> "$OUT/summary.txt"
+        mps_clients "$results/mps" mps_tf32learn
         # Each run's result files (not its checkpoint or TensorBoard files), finished or not.
         (cd "$results" && tar -czf "$OUT/tf32-learning.tar.gz" --exclude=checkpoint.pt \
             --exclude=tb --exclude='*.lock' tf32-learning) 2>> "$OUT/summary.txt" ;;

@@ -87,11 +87,9 @@ def _pack(spec: Spec, results: Path, database: Path, out: Path,
             "launcher or workers first (Ctrl-C or SIGTERM: each checkpoints its run and "
             "releases it), so the archive holds each run's latest checkpoint")
     out.parent.mkdir(parents=True, exist_ok=True)
-    counts = {"unfinished": 0, "finished": 0, "snapshots": 0}
     partial = out.with_name(out.name + ".partial")
     try:
-        _write(tar_path=partial, spec=spec, results=results, database=database,
-               unfinished_only=unfinished_only, counts=counts)
+        counts = _write(partial, spec, results, database, unfinished_only)
     except BaseException:
         partial.unlink(missing_ok=True)
         raise
@@ -100,8 +98,18 @@ def _pack(spec: Spec, results: Path, database: Path, out: Path,
                   database.exists(), out.stat().st_size)
 
 
-def _write(tar_path: Path, spec: Spec, results: Path, database: Path, unfinished_only: bool,
-           counts: dict[str, int]) -> None:
+def copy_sqlite(database: Path | str, copy: Path) -> None:
+    """`database` copied to `copy` with SQLite's backup: a consistent copy of a file that
+    workers may be writing to."""
+    with closing(sqlite3.connect(database)) as source, closing(sqlite3.connect(copy)) as target:
+        source.backup(target)
+
+
+def _write(tar_path: Path, spec: Spec, results: Path, database: Path,
+           unfinished_only: bool) -> dict[str, int]:
+    """The archive at `tar_path`; how many unfinished and finished runs and snapshot files it
+    holds."""
+    counts = {"unfinished": 0, "finished": 0, "snapshots": 0}
     with tarfile.open(tar_path, "w:gz") as tar:
         if (results / spec.name / "spec.toml").exists():  # what `sepoa report` reads
             tar.add(results / spec.name / "spec.toml", f"{spec.name}/spec.toml")
@@ -124,10 +132,9 @@ def _write(tar_path: Path, spec: Spec, results: Path, database: Path, unfinished
         if database.exists():
             with tempfile.TemporaryDirectory() as tmp:
                 copy = Path(tmp) / "queue.db"
-                with closing(sqlite3.connect(database)) as source, \
-                        closing(sqlite3.connect(copy)) as target:
-                    source.backup(target)
+                copy_sqlite(database, copy)
                 tar.add(copy, "queue.db")
+    return counts
 
 
 def _add_folder(tar: tarfile.TarFile, folder: Path, name: str, left_behind: set[str]) -> None:

@@ -231,13 +231,10 @@ def _status(spec, results: pathlib.Path, url: str | None) -> int:  # type: ignor
 def _migrated_copy(database: str, copy: Path) -> str:
     """A copy of a SQLite queue (SQLite's backup: consistent while workers write to it),
     migrated to this sepoa's schema; its URL."""
-    import sqlite3
-
+    from experiments.carry import copy_sqlite
     from labelqueue import migrate
 
-    with contextlib.closing(sqlite3.connect(database)) as source, \
-            contextlib.closing(sqlite3.connect(copy)) as target:
-        source.backup(target)
+    copy_sqlite(database, copy)
     url = f"sqlite:///{copy}"
     migrate(url)
     return url
