@@ -9,7 +9,9 @@ export MUJOCO_GL=${MUJOCO_GL:-egl}
 .venv/bin/python -m ruff check sepoa server trainer labelqueue labelstats runvocab experiments figures migrations tests benchmarks
 .venv/bin/python -m mypy
 set +e
-bash scripts/with_postgres.sh .venv/bin/python -m pytest "$@"
+# One pytest process per core (pytest-xdist): every test keeps its own files, ports, schema
+# and queue, so they run side by side.
+bash scripts/with_postgres.sh .venv/bin/python -m pytest -n auto "$@"
 rc=$?
 set -e
 if [ "$rc" -eq 5 ]; then
