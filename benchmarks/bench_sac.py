@@ -44,11 +44,11 @@ class BoxEnv(gym.Env):
     action_space = gym.spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32)
 
 
-def random_transitions(n: int, seed: int):
+def random_transitions(n: int, seed: int, obs_dim: int = OBS_DIM, action_dim: int = ACTION_DIM):
     rng = np.random.default_rng(seed)
-    obs = rng.normal(size=(n, OBS_DIM)).astype(np.float32)
-    next_obs = rng.normal(size=(n, OBS_DIM)).astype(np.float32)
-    action = rng.uniform(-1, 1, (n, ACTION_DIM)).astype(np.float32)
+    obs = rng.normal(size=(n, obs_dim)).astype(np.float32)
+    next_obs = rng.normal(size=(n, obs_dim)).astype(np.float32)
+    action = rng.uniform(-1, 1, (n, action_dim)).astype(np.float32)
     reward = rng.random(n).astype(np.float32)
     return obs, action, reward, next_obs
 
@@ -75,9 +75,10 @@ def make_sb3(cfg: SACConfig, data, device: torch.device) -> SB3SAC:
 
 
 def make_ours(cfg: SACConfig, data, device: torch.device) -> tuple[SAC, ReplayBuffer]:
-    n = len(data[0])
-    agent = SAC(OBS_DIM, ACTION_DIM, cfg, device)
-    buffer = ReplayBuffer(OBS_DIM, ACTION_DIM, n, device, seed=0)
+    """Our SAC and a replay buffer filled with `data` (its sizes are the data's)."""
+    n, obs_dim, action_dim = len(data[0]), data[0].shape[1], data[1].shape[1]
+    agent = SAC(obs_dim, action_dim, cfg, device)
+    buffer = ReplayBuffer(obs_dim, action_dim, n, device, seed=0)
     obs, action, reward, next_obs = (torch.from_numpy(x).to(device) for x in data)
     buffer.obs[:], buffer.action[:], buffer.next_obs[:] = obs, action, next_obs
     buffer.reward[:, 0] = buffer.true_reward[:, 0] = reward
