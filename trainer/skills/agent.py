@@ -98,7 +98,7 @@ class SkillReplayBuffer(ReplayBuffer):
     def __init__(self, obs_dim: int, action_dim: int, skill_dim: int, capacity: int,
                  device: torch.device, seed: int):
         super().__init__(obs_dim, action_dim, capacity, device, seed, skill_dim)
-        self.skill = self._fields[5]
+        (self.skill,) = self._fields[5:]  # the block after ReplayBuffer's five fields
 
     def add(self, obs: np.ndarray, action: np.ndarray, reward: float, true_reward: float,
             next_obs: np.ndarray, skill: np.ndarray | None = None) -> None:
