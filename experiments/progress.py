@@ -1,10 +1,15 @@
 """How fast a grid's runs train, and about how long the rest will take (`sepoa experiment status`).
 
-A run's rate is environment steps per second of wall time, read from its own episodes.csv. The
-time a run has left is its steps to go at the median rate of the finished runs of its task and
-variant (a run's late steps cost more than its early ones: each feedback round trains on every
-label so far), else at its own rate so far, else at the median rate of its task and variant's
-started runs. An estimate: runs on another machine, or beside other work, train at other rates.
+A run's rate is environment steps per second of wall time, read from its own episodes.csv. A
+run's late steps cost more than its early ones (each feedback round trains on every label so
+far), so the time a run has left is, in this order of preference:
+- the median, over the finished runs of its task and variant whose every episode row carries
+  the phase clock's seconds, of the time those runs took from the step it has reached to their
+  end;
+- its steps to go at the median rate of the finished runs of its task and variant;
+- its steps to go at its own rate so far, else at the median rate of its task and variant's
+  started runs.
+An estimate: runs on another machine, or beside other work, train at other rates.
 """
 
 from __future__ import annotations
@@ -42,22 +47,66 @@ def training_rate(folder: Path) -> float | None:
     return last_fps if last_fps is not None and last_fps > 0 else None
 
 
-def seconds_left(runs: Iterable[tuple[str, int, int, bool, float | None]]
+Clock = list[tuple[int, float]]
+"""(step, seconds since the run began) at each of a run's episode rows"""
+
+
+def training_clock(folder: Path) -> Clock | None:
+    """The run's clock, when every episode row carries the phase clock's `seconds_total`; None
+    for a run without rows or with rows written before the clock."""
+    path = folder / "episodes.csv"
+    if not path.exists():
+        return None
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    clock: Clock = []
+    elapsed = 0.0
+    for i, row in enumerate(rows):
+        try:
+            step, seconds = int(float(row["step"])), float(row["seconds_total"])
+        except (KeyError, TypeError, ValueError):
+            if i == len(rows) - 1:
+                break  # the row being appended, cut short
+            return None
+        elapsed += seconds
+        clock.append((step, elapsed))
+    return clock or None
+
+
+def seconds_after(clock: Clock, step: int) -> float:
+    """The seconds a run with this clock took from `step` to its last row (linear between
+    rows, from step 0 at 0 s)."""
+    before_step, before_s = 0, 0.0
+    for at, elapsed in clock:
+        if at >= step:
+            share = (step - before_step) / (at - before_step) if at > before_step else 1.0
+            return clock[-1][1] - (before_s + share * (elapsed - before_s))
+        before_step, before_s = at, elapsed
+    return 0.0
+
+
+def seconds_left(runs: Iterable[tuple[str, int, int, bool, float | None, Clock | None]]
                  ) -> dict[str, float | None]:
     """Per run key, the seconds it has left (0 when done; None when no run of its group has a
-    rate). `runs`: (key, planned steps, steps reached, done, own rate), keys of the form
-    `<group>/...` are grouped by everything before their last part (the seed's folder)."""
+    rate). `runs`: (key, planned steps, steps reached, done, own rate, own clock), keys of the
+    form `<group>/...` are grouped by everything before their last part (the seed's folder)."""
     runs = list(runs)
     group = {key: key.rsplit("/", 1)[0] for key, *_ in runs}
     finished: dict[str, list[float]] = {}
     started: dict[str, list[float]] = {}
-    for key, _, _, done, rate in runs:
+    clocks: dict[str, list[Clock]] = {}
+    for key, _, _, done, rate, clock in runs:
         if rate is not None:
             (finished if done else started).setdefault(group[key], []).append(rate)
+        if done and clock is not None:
+            clocks.setdefault(group[key], []).append(clock)
     left: dict[str, float | None] = {}
-    for key, planned, reached, done, rate in runs:
+    for key, planned, reached, done, rate, _ in runs:
         if done:
             left[key] = 0.0
+            continue
+        if group[key] in clocks:
+            left[key] = statistics.median(seconds_after(c, reached) for c in clocks[group[key]])
             continue
         pool = finished.get(group[key]) or ([rate] if rate is not None else
                                             started.get(group[key]))

@@ -25,7 +25,7 @@ from typing import Any
 
 from sqlalchemy.orm import Session, sessionmaker
 
-from experiments.progress import duration_text, seconds_left, summary, training_rate
+from experiments.progress import duration_text, seconds_left, summary, training_clock, training_rate
 from experiments.spec import Run as GridRun
 from experiments.spec import Spec, SpecError, flatten
 from labelqueue import (
@@ -248,13 +248,14 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> 
         if note is not None:
             silent.append(note)
         reached = row.step if row is not None else 0
-        progress.append((key, run.steps, reached, done, training_rate(folder)))
+        progress.append((key, run.steps, reached, done, training_rate(folder),
+                         training_clock(folder)))
         lines.append([run.task, run.variant, f"{run.eps:g}",
                       "-" if run.budget is None else str(run.budget), str(run.seed), status,
                       f"{reached}/{run.steps}",
                       (row.worker_id or "-") if row is not None else "-", beat, held])
     left = seconds_left(progress)
-    for line, (key, _, _, done, _) in zip(lines, progress, strict=True):
+    for line, (key, _, _, done, _, _) in zip(lines, progress, strict=True):
         seconds = left[key]
         line.append("-" if done else "?" if seconds is None else duration_text(seconds))
     widths = [max(len(r[i]) for r in [header, *lines]) for i in range(len(header))]

@@ -1,5 +1,6 @@
-"""How long a grid has left: each run's rate from its episodes.csv, the finished runs of its task
-and variant first, and one line for the grid in `sepoa experiment status`."""
+"""How long a grid has left: from its episodes.csv files, the finished runs of each task and
+variant first (their clocks from the step reached on, else their rates), and one line for the
+grid in `sepoa experiment status`."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from experiments.launch import run_experiment
-from experiments.progress import seconds_left, summary, training_rate
+from experiments.progress import seconds_after, seconds_left, summary, training_clock, training_rate
 from experiments.spec import load_spec
 from sepoa.cli import main
 
@@ -56,16 +57,16 @@ def test_without_phase_clock_columns_the_last_rows_fps_is_the_rate(tmp_path: Pat
 def test_time_left_prefers_finished_runs_then_the_runs_own_rate() -> None:
     left = seconds_left([
         # A variant with finished runs: their median rate for every unfinished one.
-        ("g/A/s0", 1000, 1000, True, 10.0),
-        ("g/A/s1", 1000, 1000, True, 30.0),
-        ("g/A/s2", 1000, 1000, True, 20.0),
-        ("g/A/s3", 1000, 400, False, 100.0),  # its early steps were fast: not what counts
-        ("g/A/s4", 1000, 0, False, None),
+        ("g/A/s0", 1000, 1000, True, 10.0, None),
+        ("g/A/s1", 1000, 1000, True, 30.0, None),
+        ("g/A/s2", 1000, 1000, True, 20.0, None),
+        ("g/A/s3", 1000, 400, False, 100.0, None),  # its early steps were fast: not what counts
+        ("g/A/s4", 1000, 0, False, None, None),
         # None finished: a started run's own rate, and queued ones at the started runs' median.
-        ("g/B/s0", 1000, 500, False, 5.0),
-        ("g/B/s1", 1000, 0, False, None),
+        ("g/B/s0", 1000, 500, False, 5.0, None),
+        ("g/B/s1", 1000, 0, False, None, None),
         # None started: no estimate.
-        ("g/C/s0", 1000, 0, False, None),
+        ("g/C/s0", 1000, 0, False, None, None),
     ])
     assert left == {"g/A/s0": 0.0, "g/A/s1": 0.0, "g/A/s2": 0.0, "g/A/s3": 30.0,
                     "g/A/s4": 50.0, "g/B/s0": 100.0, "g/B/s1": 200.0, "g/C/s0": None}
@@ -95,8 +96,52 @@ def test_status_gives_each_run_and_the_grid_its_time_left(
     lines = capsys.readouterr().out.splitlines()
     assert lines[1].split()[-1] == "left"
     left = {tuple(line.split()[1:5:3]): line.split()[-1] for line in lines[2:8]}
-    assert left == {("PEBBLE", "0"): "-", ("PEBBLE", "1"): "-", ("PEBBLE", "2"): "40s",
+    # The queued seed: the median of the finished runs' whole clocks, 100 s and 25 s.
+    assert left == {("PEBBLE", "0"): "-", ("PEBBLE", "1"): "-", ("PEBBLE", "2"): "1m02s",
                     ("SAC", "0"): "?", ("SAC", "1"): "?", ("SAC", "2"): "?"}
     assert lines[8] == (
-        "time left (estimated): 40s of training over 1 run(s); 3 run(s) without an estimate "
+        "time left (estimated): 1m02s of training over 1 run(s); 3 run(s) without an estimate "
         "yet (no run of their task and variant has logged an episode)")
+
+
+def test_a_runs_clock_adds_up_its_phase_clock_seconds(tmp_path: Path) -> None:
+    write_episodes(tmp_path, [{"step": 500, "fps": 9.0, "seconds_total": 10.0},
+                              {"step": 1000, "fps": 9.0, "seconds_total": 90.0}],
+                   cut="1500,90")
+    assert training_clock(tmp_path) == [(500, 10.0), (1000, 100.0)]
+    # Rows from before the phase clock: no clock, whatever later rows carry.
+    write_episodes(tmp_path, [{"step": 500, "fps": 9.0, "seconds_total": ""},
+                              {"step": 1000, "fps": 9.0, "seconds_total": 90.0}])
+    assert training_clock(tmp_path) is None
+    write_episodes(tmp_path, [{"step": 500, "fps": 9.0}])
+    assert training_clock(tmp_path) is None
+    assert training_clock(tmp_path / "not-started") is None
+
+
+def test_the_time_after_a_step_is_read_off_the_clock_between_rows() -> None:
+    clock = [(500, 10.0), (1000, 100.0)]
+    assert seconds_after(clock, 0) == 100.0
+    assert seconds_after(clock, 250) == 95.0
+    assert seconds_after(clock, 500) == 90.0
+    assert seconds_after(clock, 750) == 45.0
+    assert seconds_after(clock, 1000) == 0.0
+    assert seconds_after(clock, 1200) == 0.0
+
+
+def test_finished_runs_clocks_charge_the_late_costly_steps() -> None:
+    # Two finished runs whose second half (its feedback rounds) took 9x their first half.
+    late_rounds = [(500, 10.0), (1000, 100.0)]
+    slower = [(500, 20.0), (1000, 200.0)]
+    left = seconds_left([
+        ("g/A/s0", 1000, 1000, True, 10.0, late_rounds),
+        ("g/A/s1", 1000, 1000, True, 5.0, slower),
+        ("g/A/s2", 1000, 500, False, 50.0, None),
+        ("g/A/s3", 1000, 0, False, None, None),
+        # A finished run without a clock leaves its group to the rates.
+        ("g/B/s0", 1000, 1000, True, 10.0, None),
+        ("g/B/s1", 1000, 500, False, 50.0, None),
+    ])
+    # At 500 steps: the median of 90 s and 180 s, where the finished runs' median rate
+    # (7.5 steps/s) would say 67 s.
+    assert left == {"g/A/s0": 0.0, "g/A/s1": 0.0, "g/A/s2": 135.0, "g/A/s3": 150.0,
+                    "g/B/s0": 0.0, "g/B/s1": 50.0}
