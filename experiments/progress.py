@@ -85,11 +85,22 @@ def seconds_after(clock: Clock, step: int) -> float:
     return 0.0
 
 
-def seconds_left(runs: Iterable[tuple[str, int, int, bool, float | None, Clock | None]]
-                 ) -> dict[str, float | None]:
+class TimeLeft(dict[str, float | None]):
     """Per run key, the seconds it has left (0 when done; None when no run of its group has a
-    rate). `runs`: (key, planned steps, steps reached, done, own rate, own clock), keys of the
-    form `<group>/...` are grouped by everything before their last part (the seed's folder)."""
+    rate); `by_rate` holds the unfinished runs estimated from rates, where no finished run of
+    their group has a clock: a rate spreads the late, dearer rounds over every step, so those
+    estimates run short for a run past its first steps."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.by_rate: set[str] = set()
+
+
+def seconds_left(runs: Iterable[tuple[str, int, int, bool, float | None, Clock | None]]
+                 ) -> TimeLeft:
+    """Each run's time left. `runs`: (key, planned steps, steps reached, done, own rate, own
+    clock), keys of the form `<group>/...` are grouped by everything before their last part
+    (the seed's folder)."""
     runs = list(runs)
     group = {key: key.rsplit("/", 1)[0] for key, *_ in runs}
     finished: dict[str, list[float]] = {}
@@ -100,7 +111,7 @@ def seconds_left(runs: Iterable[tuple[str, int, int, bool, float | None, Clock |
             (finished if done else started).setdefault(group[key], []).append(rate)
         if done and clock is not None:
             clocks.setdefault(group[key], []).append(clock)
-    left: dict[str, float | None] = {}
+    left = TimeLeft()
     for key, planned, reached, done, rate, _ in runs:
         if done:
             left[key] = 0.0
@@ -111,6 +122,8 @@ def seconds_left(runs: Iterable[tuple[str, int, int, bool, float | None, Clock |
         pool = finished.get(group[key]) or ([rate] if rate is not None else
                                             started.get(group[key]))
         left[key] = (max(planned - reached, 0) / statistics.median(pool)) if pool else None
+        if pool:
+            left.by_rate.add(key)
     return left
 
 
@@ -124,9 +137,9 @@ def duration_text(seconds: float) -> str:
     return f"{s // 3600}h{s % 3600 // 60:02d}m"
 
 
-def summary(left: Mapping[str, float | None], workers: int) -> str:
+def summary(left: Mapping[str, float | None], workers: int, by_rate: int = 0) -> str:
     """One line: the training time left over the unfinished runs, and over the workers now
-    holding runs."""
+    holding runs; `by_rate`: how many of the estimates came from rates (`TimeLeft.by_rate`)."""
     known = [s for s in left.values() if s is not None and s > 0]
     unknown = sum(s is None for s in left.values())
     if not known and not unknown:
@@ -143,4 +156,8 @@ def summary(left: Mapping[str, float | None], workers: int) -> str:
     if unknown:
         parts.append(f"{unknown} run(s) without an estimate yet (no run of their task and "
                      "variant has logged an episode)")
+    if by_rate:
+        parts.append(f"{by_rate} of them from average rates (no finished run of their variant "
+                     "has the phase clock): likely short, as late steps hold the largest "
+                     "feedback rounds")
     return "time left (estimated): " + "; ".join(parts)

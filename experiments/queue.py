@@ -266,6 +266,6 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> 
     errors = [f"  {key}: {row.error}" for key, row in sorted(rows.items())
               if row.status is RunStatus.FAILED and row.error]
     return "\n".join([f"{spec.name}: {len(lines)} runs: {summary_line}", *text,
-                      summary(left, workers)]
+                      summary(left, workers, len(left.by_rate))]
                      + (["failed:", *errors] if errors else [])
                      + (["workers gone silent:", *silent] if silent else []))

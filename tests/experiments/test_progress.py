@@ -70,10 +70,13 @@ def test_time_left_prefers_finished_runs_then_the_runs_own_rate() -> None:
     ])
     assert left == {"g/A/s0": 0.0, "g/A/s1": 0.0, "g/A/s2": 0.0, "g/A/s3": 30.0,
                     "g/A/s4": 50.0, "g/B/s0": 100.0, "g/B/s1": 200.0, "g/C/s0": None}
-    assert summary(left, workers=2) == (
+    assert left.by_rate == {"g/A/s3", "g/A/s4", "g/B/s0", "g/B/s1"}
+    assert summary(left, workers=2, by_rate=len(left.by_rate)) == (
         "time left (estimated): 6m20s of training over 4 run(s), about 3m20s with the 2 "
         "worker(s) training now; 1 run(s) without an estimate yet (no run of their task and "
-        "variant has logged an episode)")
+        "variant has logged an episode); 4 of them from average rates (no finished run of "
+        "their variant has the phase clock): likely short, as late steps hold the largest "
+        "feedback rounds")
     # One long run bounds the wall time, however many workers there are.
     assert summary({"a": 3600.0, "b": 60.0}, workers=8) == (
         "time left (estimated): 1h01m of training over 2 run(s), about 1h00m with the 8 "
@@ -145,3 +148,4 @@ def test_finished_runs_clocks_charge_the_late_costly_steps() -> None:
     # (7.5 steps/s) would say 67 s.
     assert left == {"g/A/s0": 0.0, "g/A/s1": 0.0, "g/A/s2": 135.0, "g/A/s3": 150.0,
                     "g/B/s0": 0.0, "g/B/s1": 50.0}
+    assert left.by_rate == {"g/B/s1"}
