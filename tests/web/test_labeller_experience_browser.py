@@ -207,6 +207,34 @@ def labels_for_queries_of(live: LiveServer, query_id: int) -> list[Any]:
         return labels_for_queries(session, query_ids=[query_id])
 
 
+def test_on_laptop_windows_the_clips_player_and_answers_are_all_in_view_uncovered(
+    live: LiveServer, browser: Any, runs: list[int]
+) -> None:
+    # cheetah_run's instruction is five lines at these widths: the clips take what it leaves.
+    labeller = live.new_labeller("gil")
+    runs.append(run_id := live.new_human_run())
+    live.push_rendered_queries(run_id, 1)
+    heights = {}
+    for width, height in ((1366, 768), (1280, 900), (1280, 1000)):
+        page = context_page(browser, width, height)
+        page.goto(f"{live.url}/label?run={run_id}#token={labeller.token}")
+        page.wait_for_function(DECODED, arg=SHOWN)
+        page.wait_for_selector(ANSWERABLE)
+        page.wait_for_timeout(200)  # the clips' fit runs on the next frame
+        # Nothing needs a scroll, and the sticky answers cover no control.
+        for selector in (f"{SHOWN} .clip:first-child video", f"{SHOWN} .clip:last-child video",
+                         "#instruction", "#play", "#frame-back", "#scrub", "#frame-next",
+                         '[data-choice="left"]', '[data-choice="right"]', "#replay",
+                         '[data-choice="skip"]'):
+            assert in_view(page, selector), (width, height, selector)
+        heights[height] = page.eval_on_selector(
+            f"{SHOWN} video", "v => v.getBoundingClientRect().height")
+        page.context.close()
+    # A taller window gives the clips the height it adds.
+    assert heights[768] < heights[900] < heights[1000]
+    assert heights[1000] - heights[900] == pytest.approx(100, abs=2)
+
+
 def test_a_phone_width_stacks_the_clips_and_keeps_the_answers_in_view(
     live: LiveServer, browser: Any, runs: list[int]
 ) -> None:

@@ -23,6 +23,7 @@ const SEEK_S = 0.3; // a clip this far off the clock is seeked; nearer, its rate
 const END_HOLD_S = 0.3; // both clips hold their last frame this long before looping
 const MAX_TICK_S = 0.1; // a long frame (a background tab) does not make the clock jump
 const MAX_ZOOM = 2; // a clip is shown at most twice its own size
+const FIT_SPARE_PX = 4; // room left below the answers when the clips fit the window
 const NEW_TASK_MS = 4000; // how long "New task" stays up after the run changes
 const UNDO_MS = 10_000; // an answer can be taken back this long (the server has the last word)
 const JUMP_FRAMES = 10; // J and L move the timeline this many frames
@@ -96,6 +97,28 @@ function sizeVideo(video, width, height) {
   if (!(width > 0 && height > 0)) return;
   video.style.setProperty("--aspect", `${width / height}`);
   video.style.setProperty("--max-width", `${MAX_ZOOM * width}px`);
+  fitClips();
+}
+
+/**
+ * The clips' height (--fit-room, per clip): what the window leaves beside the page down to the
+ * player and the answers under it, whose height varies with the run's instruction and the
+ * window's width, so that clips, player and answers are all in view. CSS keeps a least height,
+ * below which a short window scrolls (the instruction and the answers stay in view, sticky).
+ */
+function fitClips() {
+  cancelAnimationFrame(fitClips.frame);
+  fitClips.frame = requestAnimationFrame(() => {
+    const videos = [...document.querySelectorAll("#pairs .pair:not([hidden]) video")];
+    if ($("stage").hidden || videos.length !== 2) return;
+    const [a, b] = videos.map((video) => video.getBoundingClientRect());
+    const stacked = b.top >= a.bottom - 1; // a phone's layout: one above the other
+    const clips = stacked ? a.height + b.height : Math.max(a.height, b.height);
+    const player = $("player").getBoundingClientRect().bottom + scrollY;
+    const rest = player + $("answer-bar").offsetHeight - clips;
+    const room = (innerHeight - rest - FIT_SPARE_PX) / (stacked ? 2 : 1);
+    $("stage").style.setProperty("--fit-room", `${Math.floor(room)}px`);
+  });
 }
 
 // ---- the clock: one master time for both clips ----------------------------------------------
@@ -271,6 +294,7 @@ function show(pair) {
   showInstruction(pair.brief);
   showSpeedNote();
   updateButtons();
+  fitClips();
   if (pair.broken) pair.failed();
 }
 
@@ -707,7 +731,9 @@ start(() => {
     const open = $("instruction").classList.toggle("open");
     $("instruction-more").setAttribute("aria-expanded", String(open));
     $("instruction-more").textContent = open ? "Show less" : "Show all";
+    fitClips();
   });
+  addEventListener("resize", fitClips);
   startStudy(() => schedule(loadCurrent, 0));
   serial(() => loadProgress().catch(() => {})); // a nicety: "–" if it fails
   schedule(loadCurrent, 0);
