@@ -229,6 +229,9 @@ def test_on_laptop_windows_the_clips_player_and_answers_are_all_in_view_uncovere
             assert in_view(page, selector), (width, height, selector)
         heights[height] = page.eval_on_selector(
             f"{SHOWN} video", "v => v.getBoundingClientRect().height")
+        if height > 768:  # above the least clip height: the answers end at the window's foot
+            foot = page.eval_on_selector("#answer-bar", "b => b.getBoundingClientRect().bottom")
+            assert height - 12 <= foot <= height, (width, height, foot)
         page.context.close()
     # A taller window gives the clips the height it adds.
     assert heights[768] < heights[900] < heights[1000]

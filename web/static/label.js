@@ -343,7 +343,7 @@ function updateButtons() {
     const escape = pair?.broken && ["cant_tell", "skip"].includes(button.dataset.choice);
     button.disabled = !pair || state.submitting || !(watched || escape);
   }
-  $("watch-hint").hidden = watched;
+  $("watch-hint").classList.toggle("watched", watched);
   $("flag").disabled = !pair || state.submitting;
 }
 
