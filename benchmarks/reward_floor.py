@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import functools
 import json
 import os
 import sys
@@ -36,9 +37,8 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from bench_sac import make_ours, our_side, random_transitions, timed  # noqa: E402
 
 from runvocab.config import SACConfig  # noqa: E402
+from trainer.envs import make_env  # noqa: E402
 
-OBS_DIMS = {"dmc:cheetah_run": (17, 6), "dmc:walker_run": (24, 6)}
-"""(observation, action) sizes of the tasks the grids train on"""
 GOAL = 0.25
 """issue's goal: work other than the SAC update at most this share of a run"""
 
@@ -53,6 +53,13 @@ class Floor:
     @property
     def share(self) -> float:
         return self.reward_seconds / (self.reward_seconds + self.update_seconds)
+
+
+@functools.cache
+def task_dims(task: str) -> tuple[int, int]:
+    """(observation, action) sizes of `task`, from its environment."""
+    env = make_env(task, seed=0)
+    return env.obs_dim, env.action_dim
 
 
 def matmul_gflops(rows: int, width: int, dtype: torch.dtype = torch.float32,
@@ -72,7 +79,7 @@ def matmul_gflops(rows: int, width: int, dtype: torch.dtype = torch.float32,
 def reward_gflop(config: dict, rounds: list[dict]) -> float:
     """The least arithmetic of a run's reward rounds, in GFLOP (multiply-adds count two)."""
     reward = config["reward"]
-    obs, act = OBS_DIMS[config["task"]]
+    obs, act = task_dims(config["task"])
     d, w, e = obs + act, reward["hidden_dim"], reward["ensemble_size"]
     forward = e * (d * w + (reward["hidden_layers"] - 1) * w * w + w)  # per segment step
     # Backward: every layer's weight gradient, and the input gradient of all but the first
@@ -93,7 +100,7 @@ def reward_gflop(config: dict, rounds: list[dict]) -> float:
 def sac_rate(config: dict, skill_dim: int) -> float:
     """Updates/s of trainer.sac.SAC with the run's SAC shapes on this machine (median of 5)."""
     sac = config["sac"]
-    obs, act = OBS_DIMS[config["task"]]
+    obs, act = task_dims(config["task"])
     cfg = SACConfig(hidden_dim=sac["hidden_dim"], hidden_layers=sac["hidden_layers"],
                     batch_size=sac["batch_size"], lr=sac["lr"], tau=sac["tau"],
                     target_update_every=sac["target_update_every"],
@@ -130,10 +137,6 @@ def main() -> int:
             updates = int(read_csv(os.path.join(run_dir, "episodes.csv"))[-1]["updates"])
         except (OSError, KeyError, IndexError) as e:
             print(f"error: {run_dir} is not a finished run's folder ({e})", file=sys.stderr)
-            return 2
-        if config["task"] not in OBS_DIMS:
-            print(f"error: {run_dir}: task {config['task']} is not one of {sorted(OBS_DIMS)}",
-                  file=sys.stderr)
             return 2
         if rounds:
             runs.append((run_dir, config, rounds, updates))

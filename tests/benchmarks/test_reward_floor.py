@@ -15,7 +15,7 @@ from runvocab.config import RewardConfig
 from trainer.reward_model import LabelledPairs, RewardModel
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
-from reward_floor import OBS_DIMS, reward_gflop  # noqa: E402
+from reward_floor import reward_gflop, task_dims  # noqa: E402
 
 TASK = "dmc:cheetah_run"
 LENGTH = 10
@@ -23,7 +23,7 @@ LENGTH = 10
 
 def counted_round(cfg: RewardConfig, pairs: int) -> tuple[float, dict]:
     """(GFLOP torch counts, rounds.csv's row) of one round of `cfg` on random pairs."""
-    obs, act = OBS_DIMS[TASK]
+    obs, act = task_dims(TASK)
     rng = np.random.default_rng(0)
     labelled = LabelledPairs()
     for _ in range(pairs):
