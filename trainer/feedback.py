@@ -32,8 +32,8 @@ from trainer.query_selection import (
     select_queries,
 )
 from trainer.return_estimator import ReturnEstimator
-from trainer.reward_model import LabelledPairs, RewardModel
-from trainer.surf import PairSampler
+from trainer.reward_model import LabelledPairs, RewardModel, TrainingProgress
+from trainer.round_progress import RoundProgress, round_key
 from trainer.teachers import QueryTruth, choice_target, is_correct, recent_mean
 from trainer.trajectories import Trajectory, TrajectoryPool
 
@@ -208,21 +208,6 @@ class PreferenceFeedback:
         answers = copy.deepcopy(self.teacher).answer(truths, pool.returns)
         return _mean([a.distinguishable for a in answers])
 
-    def _unlabelled_pairs(self, pool: TrajectoryPool) -> PairSampler:
-        """SURF's unlabelled pairs: random segments of different pooled trajectories."""
-        trajectories, h = list(pool.trajectories), self.cfg.segment_length
-        lengths = np.array([t.length for t in trajectories])
-        # A stream of its own, drawn once per round: the selection's stays as without SURF.
-        rng = np.random.default_rng(self.rng.integers(2**63))
-
-        def sample(n: int) -> tuple[np.ndarray, np.ndarray]:
-            c = sample_candidates(lengths, n, h, rng)
-            return tuple(  # type: ignore[return-value]
-                np.stack([_segment(trajectories[i], s, h) for i, s in zip(t, st, strict=True)])
-                for t, st in ((c.traj0, c.start0), (c.traj1, c.start1)))
-
-        return sample
-
     def fit_estimator(self, pool: TrajectoryPool,
                       rewards: PoolRewards | None = None) -> dict[str, float]:
         """S-EPOA: refit R_theta on the pool's skills and summed predicted rewards (`rewards`:
@@ -241,9 +226,12 @@ class PreferenceFeedback:
                 for q in self.pending}
 
     def finish_round(self, pool: TrajectoryPool, answers: Mapping[str, GivenAnswer],
-                     after_epoch: Callable[[], None] | None = None) -> dict[str, float]:
+                     after_epoch: Callable[[], None] | None = None,
+                     progress: RoundProgress | None = None) -> dict[str, float]:
         """Close the open round with `answers` (by query id; a query without one is dropped and
-        costs no budget), log the new ones, and train the reward model on every label so far."""
+        costs no budget), log the new ones, and train the reward model on every label so far
+        (saving its training as it goes to `progress`, and going on from what that holds for
+        this round)."""
         queries, by_id = self.pending, {t.id: t for t in pool.trajectories}
         unknown = set(answers) - {q.query_id for q in queries}
         if unknown:
@@ -289,13 +277,52 @@ class PreferenceFeedback:
         if self.cfg.compare_rule:
             metrics["compare_distinguishable_ratio"] = self.compare_ratio
         if len(self.pairs):
-            unlabelled = self._unlabelled_pairs(pool) if self.model.cfg.surf else None
-            metrics |= self.model.train_round(self.pairs, unlabelled, after_epoch)
+            metrics |= self._train(pool, after_epoch, progress)
         if self.estimator is not None:  # z_task follows the reward model from now on
             metrics |= self.fit_estimator(pool)
         self.rounds += 1
         self.pending = []
         return metrics
+
+    def _train(self, pool: TrajectoryPool, after_epoch: Callable[[], None] | None,
+               progress: RoundProgress | None) -> dict[str, float]:
+        start = time.perf_counter()
+        unlabelled = None
+        if self.model.cfg.surf:  # its stream is drawn from the run's once per round
+            unlabelled = UnlabelledPairs(pool, self.cfg.segment_length,
+                                         int(self.rng.integers(2**63)))
+        key, resume, seconds_before = "", None, 0.0
+        if progress is not None:
+            key = self._round_key(pool, unlabelled)
+            saved = progress.load(key)
+            if saved is not None:
+                self.model.load_state_dict(saved["model"])
+                if unlabelled is not None:
+                    unlabelled.rng.bit_generator.state = saved["unlabelled_rng"]
+                resume = TrainingProgress(**saved["training"])
+                seconds_before = saved["seconds"]
+            progress.start()
+
+        def epoch_done(p: TrainingProgress) -> None:
+            if after_epoch is not None:
+                after_epoch()
+            if progress is not None and (p.finished or progress.due()):
+                progress.save(key, {
+                    "model": self.model.state_dict(), "training": p,
+                    "seconds": seconds_before + time.perf_counter() - start,
+                } | ({"unlabelled_rng": unlabelled.rng.bit_generator.state}
+                     if unlabelled is not None else {}))
+
+        return self.model.train_round(self.pairs, unlabelled, epoch_done, resume)
+
+    def _round_key(self, pool: TrajectoryPool, unlabelled: UnlabelledPairs | None) -> str:
+        """What this round's reward training depends on besides the model it starts from."""
+        seg0, seg1 = (np.stack(s) for s in (self.pairs.seg0, self.pairs.seg1))
+        return round_key([
+            self.rounds, asdict(self.model.cfg), seg0, seg1,
+            np.asarray(self.pairs.targets, np.float32),
+            [t.id for t in pool.trajectories], unlabelled and unlabelled.seed,
+        ])
 
     def state_dict(self) -> dict:
         return {
@@ -319,6 +346,25 @@ class PreferenceFeedback:
         self.model.load_state_dict(state["model"])
         if self.estimator is not None:
             self.estimator.load_state_dict(state["estimator"])
+
+
+class UnlabelledPairs:
+    """SURF's unlabelled pairs: random segments of different pooled trajectories, from a stream
+    of their own (seeded from the run's once per round, so that the selection's stream stays
+    as without SURF)."""
+
+    def __init__(self, pool: TrajectoryPool, segment_length: int, seed: int):
+        self.trajectories, self.h, self.seed = list(pool.trajectories), segment_length, seed
+        self.lengths = np.array([t.length for t in self.trajectories])
+        self.rng = np.random.default_rng(seed)
+
+    def __call__(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        c = sample_candidates(self.lengths, n, self.h, self.rng)
+        seg0, seg1 = (
+            np.stack([_segment(self.trajectories[i], s, self.h) for i, s in zip(t, st,
+                                                                                  strict=True)])
+            for t, st in ((c.traj0, c.start0), (c.traj1, c.start1)))
+        return seg0, seg1
 
 
 def _pairs(trajectories: list[Trajectory], q: Candidates) -> list[tuple[Trajectory, int,

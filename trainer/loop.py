@@ -30,9 +30,10 @@ After any critic reset, `reset_updates` updates on the relabelled buffer follow 
 (PEBBLE's reset_update).
 
 Rounds, evaluations and checkpoints happen at episode boundaries, so a checkpoint never has to
-capture a half-run episode. The loop itself does not branch on the algorithm: the reward the
-agent trains on is `agent_reward.py`'s, and how the agent acts and learns (S-EPOA's skills
-included) is `policies.py`'s.
+capture a half-run episode; the one thing a checkpoint cannot wait for, a round's reward
+training, saves its own progress beside it (`round_progress.py`). The loop itself does not
+branch on the algorithm: the reward the agent trains on is `agent_reward.py`'s, and how the
+agent acts and learns (S-EPOA's skills included) is `policies.py`'s.
 """
 
 from __future__ import annotations
@@ -54,6 +55,7 @@ from trainer.hooks import RunHooks
 from trainer.metrics import Metrics
 from trainer.policies import Meta, make_policy
 from trainer.reward_model import RewardModel
+from trainer.round_progress import ROUND_PROGRESS, RoundProgress
 from trainer.schedule import After, Every, Period, Until
 from trainer.teachers import make_teacher
 from trainer.trajectories import EpisodeRecorder, TrajectoryPool
@@ -129,6 +131,10 @@ class TrainingRun:
         self.learning, self.update_step = After(cfg.seed_steps), Every(cfg.update_every)
         self.evaluations = Period(cfg.eval_every)
         self.checkpoints = Period(max(cfg.checkpoint_every, 1))  # 0: at every episode's end
+        self.round_progress = RoundProgress(os.path.join(self.run_dir, ROUND_PROGRESS))
+        """the open round's reward training, saved as it goes (trainer/round_progress.py)"""
+        if not resume:
+            self.round_progress.clear()
         if resume:
             self._load()
         else:
@@ -250,13 +256,15 @@ class TrainingRun:
             # episodes after it opened must not be re-lived, its wait having depended on when
             # people answered.
             self._save()
+            self.round_progress.clear()
 
     def _finish_round(self, answers: dict[str, GivenAnswer]) -> None:
         fb = self.feedback
         assert fb is not None
         first = fb.rounds == 0
         metrics = fb.finish_round(self.pool, answers,
-                                  after_epoch=lambda: self.hooks.reward_epoch(self.step))
+                                  after_epoch=lambda: self.hooks.reward_epoch(self.step),
+                                  progress=self.round_progress)
         self.buffer.relabel(fb.model.reward)
         metrics["reward_corr"] = self.buffer.reward_correlation()
         self.policy.round_closed(self.rng)

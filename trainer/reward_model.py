@@ -8,6 +8,7 @@ that the second segment is preferred: 0 (first), 1 (second) or 0.5 (equal).
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -60,6 +61,23 @@ class LabelledPairs:
 
     def load_state_dict(self, state: dict) -> None:
         self.seg0, self.seg1, self.targets = state["seg0"], state["seg1"], list(state["targets"])
+
+
+@dataclass
+class TrainingProgress:
+    """Where a round's reward training stands after an epoch: what a resumed training needs
+    besides the model's own state to go on as if it had never stopped."""
+
+    epochs: int = 0
+    loss: float = float("nan")
+    accuracy: float = 0.0
+    confident: int = 0
+    """SURF: the member-pairs pseudo-labelled with confidence so far"""
+    pseudo: int = 0
+    """SURF: the member-pairs drawn for pseudo-labels so far"""
+    rime: dict[str, float] = field(default_factory=dict)
+    finished: bool = False
+    """training stopped early (accuracy reached, or RIME trusted no label) or ran all epochs"""
 
 
 class RewardModel:
@@ -125,26 +143,29 @@ class RewardModel:
         return self.ensemble(segments.reshape(e, b * h, d)).reshape(e, b, h).sum(-1)
 
     def train_round(self, pairs: LabelledPairs, unlabelled: PairSampler | None = None,
-                    after_epoch: Callable[[], None] | None = None) -> dict[str, float]:
+                    after_epoch: Callable[[TrainingProgress], None] | None = None,
+                    resume: TrainingProgress | None = None) -> dict[str, float]:
         """Train on every label so far: up to `max_epochs` passes, each member on its own
         shuffle, stopping once the mean training accuracy reaches `stop_accuracy`. With
         `cfg.surf`, batches are temporally cropped and, given `unlabelled` pairs, pseudo-labelled
         pairs join the loss (trainer/surf.py). With `cfg.rime`, each epoch trains on the labels
-        RIME's filter keeps, some flipped (trainer/rime.py)."""
+        RIME's filter keeps, some flipped (trainer/rime.py).
+
+        `after_epoch` hears where training stands after each epoch; `resume` goes on from such a
+        point, the model's state (and `unlabelled`'s stream) having been put back as it was."""
         seg0, seg1, all_targets = pairs.tensors(self.device)
         e = self.cfg.ensemble_size
-        loss_value, accuracy, epochs = float("nan"), 0.0, 0
-        confident, pseudo = 0, 0
-        rime: dict[str, float] = {}
-        while epochs < self.cfg.max_epochs:
-            epochs += 1
+        p = resume or TrainingProgress()
+        while p.epochs < self.cfg.max_epochs and not p.finished:
+            p.epochs += 1
             active, target = torch.arange(len(all_targets), device=self.device), all_targets
             if self.rime is not None:
-                active, kept, rime = self.rime.select(all_targets, self._mean_p(seg0, seg1))
+                active, kept, p.rime = self.rime.select(all_targets, self._mean_p(seg0, seg1))
                 target = all_targets.clone()
                 target[active] = kept
             n = len(active)
             if n == 0:
+                p.finished = True
                 break  # nothing trusted this epoch: keep the model as it is
             order = torch.stack([torch.randperm(n, generator=self.generator) for _ in range(e)])
             order = active[order.to(self.device)]
@@ -165,8 +186,8 @@ class RewardModel:
                 if length is not None and unlabelled is not None:
                     extra, kept = self._pseudo_label_loss(unlabelled, idx.shape[1], length)
                     loss = loss + self.cfg.surf_weight * extra
-                    confident, pseudo = confident + kept, pseudo + e * idx.shape[1] * (
-                        self.cfg.surf_unlabelled_ratio)
+                    p.confident += kept
+                    p.pseudo += e * idx.shape[1] * self.cfg.surf_unlabelled_ratio
                 self.opt.zero_grad(set_to_none=True)
                 loss.backward()
                 self.opt.step()
@@ -175,16 +196,15 @@ class RewardModel:
                 decisive = y != 0.5
                 correct += (((r1 > r0) == (y > 0.5)) & decisive).sum(1).float()
                 counted += int(decisive[0].sum())
-            loss_value = total_loss / (n * e)
-            accuracy = correct.sum().item() / (e * max(counted, 1))
-            if after_epoch is not None:  # a round is minutes of CPU: the caller's heartbeat
-                after_epoch()
-            if accuracy >= self.cfg.stop_accuracy:
-                break
-        metrics = {"reward_loss": loss_value, "reward_accuracy": accuracy,
-                   "reward_epochs": epochs} | rime
-        if pseudo:
-            metrics["surf_confident_ratio"] = confident / pseudo
+            p.loss = total_loss / (n * e)
+            p.accuracy = correct.sum().item() / (e * max(counted, 1))
+            p.finished = p.accuracy >= self.cfg.stop_accuracy or p.epochs >= self.cfg.max_epochs
+            if after_epoch is not None:  # a round is minutes of CPU: heartbeats, saves
+                after_epoch(p)
+        metrics = {"reward_loss": p.loss, "reward_accuracy": p.accuracy,
+                   "reward_epochs": p.epochs} | p.rime
+        if p.pseudo:
+            metrics["surf_confident_ratio"] = p.confident / p.pseudo
         return metrics
 
     def _pseudo_label_loss(self, unlabelled: PairSampler, batch: int,
