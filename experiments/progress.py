@@ -15,6 +15,8 @@ An estimate: runs on another machine, or beside other work, train at other rates
 from __future__ import annotations
 
 import csv
+import json
+import pickle
 import statistics
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -45,6 +47,30 @@ def training_rate(folder: Path) -> float | None:
     if seconds > 0:
         return steps / seconds
     return last_fps if last_fps is not None and last_fps > 0 else None
+
+
+ROUND_PROGRESS = "round-progress.pt"
+"""trainer.round_progress's file, named here so that status needs no torch outside a round"""
+
+
+def reward_epochs(folder: Path) -> tuple[int, int] | None:
+    """Where the run's open round stands in its reward training: (epochs done, the run's
+    `reward.max_epochs`), from the round's progress file (trainer/round_progress.py). None
+    outside a round's training, in its first minute (before its first save), or where the file
+    cannot be read (being replaced, say). A long round otherwise looks like a stuck run: its
+    step does not move for as long as it trains."""
+    path = folder / ROUND_PROGRESS
+    if not path.exists():
+        return None
+    from trainer.checkpoint import load_checkpoint  # torch: imported only inside a round
+
+    try:
+        done = int(load_checkpoint(str(path))["state"]["training"]["epochs"])
+        most = int(json.loads((folder / "config.json").read_text())["reward"]["max_epochs"])
+    except (OSError, EOFError, pickle.UnpicklingError, RuntimeError, KeyError, TypeError,
+            ValueError):
+        return None
+    return done, most
 
 
 Clock = list[tuple[int, float]]

@@ -25,7 +25,14 @@ from typing import Any
 
 from sqlalchemy.orm import Session, sessionmaker
 
-from experiments.progress import duration_text, seconds_left, summary, training_clock, training_rate
+from experiments.progress import (
+    duration_text,
+    reward_epochs,
+    seconds_left,
+    summary,
+    training_clock,
+    training_rate,
+)
 from experiments.spec import Run as GridRun
 from experiments.spec import Spec, SpecError, flatten
 from labelqueue import (
@@ -227,7 +234,8 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> 
     """A table of the spec's runs: their status in the database (or "not queued"), the step
     reached of the planned steps, the worker and how long ago it heartbeat (flagged `silent`
     past `SILENT_WORKER_AFTER_S`, `DEAD` past `DEAD_WORKER_AFTER_S`), whether the folder
-    holds a checkpoint, and about how long the run has left to train (`experiments.progress`);
+    holds a checkpoint (and, inside a round, the reward epoch its training has saved), and
+    about how long the run has left to train (`experiments.progress`);
     then the time the grid has left."""
     rows = spec_rows(spec, sessions)
     now = utcnow()
@@ -244,6 +252,8 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> 
         held = ("done" if done else
                 "checkpoint" if (folder / "checkpoint.pt").exists() else
                 "-" if not folder.exists() else "started")
+        if not done and (epochs := reward_epochs(folder)) is not None:
+            held += f", round: reward epoch {epochs[0]}/{epochs[1]}"
         beat, note = _heartbeat(row, now)
         if note is not None:
             silent.append(note)

@@ -5,14 +5,25 @@ grid in `sepoa experiment status`."""
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 
 import pytest
 
+from experiments import progress
 from experiments.launch import run_experiment
-from experiments.progress import seconds_after, seconds_left, summary, training_clock, training_rate
+from experiments.progress import (
+    reward_epochs,
+    seconds_after,
+    seconds_left,
+    summary,
+    training_clock,
+    training_rate,
+)
 from experiments.spec import load_spec
 from sepoa.cli import main
+from trainer import round_progress
+from trainer.reward_model import TrainingProgress
 
 SPEC = """
 name = "eta"
@@ -149,3 +160,29 @@ def test_finished_runs_clocks_charge_the_late_costly_steps() -> None:
     assert left == {"g/A/s0": 0.0, "g/A/s1": 0.0, "g/A/s2": 135.0, "g/A/s3": 150.0,
                     "g/B/s0": 0.0, "g/B/s1": 50.0}
     assert left.by_rate == {"g/B/s1"}
+
+
+def test_status_shows_the_reward_epoch_a_rounds_training_has_saved(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A long round holds a run's step still for as long as it trains: status says how far
+    that training has got, from the file the trainer saves it in."""
+    spec_path = tmp_path / "spec.toml"
+    spec_path.write_text(SPEC)
+    spec, results = load_spec(spec_path), tmp_path / "results"
+    assert run_experiment(spec, results=results, workers=0, echo=lambda line: None) == 0
+    folder = results / "eta" / "dmc-cheetah_run" / "PEBBLE" / "eps0.3" / "s1"
+    folder.mkdir(parents=True)
+    (folder / "config.json").write_text(json.dumps({"reward": {"max_epochs": 50}}))
+    assert reward_epochs(folder) is None  # no round training
+    saved = round_progress.RoundProgress(str(folder / progress.ROUND_PROGRESS))
+    saved.save("round 7", {"training": TrainingProgress(epochs=23, loss=0.4, accuracy=0.8)})
+    assert reward_epochs(folder) == (23, 50)
+
+    assert main(["experiment", "status", str(spec_path), "--results", str(results)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    row = next(line for line in lines if line.split()[1:5:3] == ["PEBBLE", "1"])
+    assert "started, round: reward epoch 23/50" in row
+
+    (folder / progress.ROUND_PROGRESS).write_bytes(b"cut short")  # caught being replaced
+    assert reward_epochs(folder) is None
+    assert progress.ROUND_PROGRESS == round_progress.ROUND_PROGRESS
