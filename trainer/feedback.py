@@ -39,7 +39,7 @@ from trainer.query_selection import (
 )
 from trainer.return_estimator import ReturnEstimator
 from trainer.reward_model import LabelledPairs, RewardModel, TrainingProgress
-from trainer.round_progress import RoundProgress, round_key
+from trainer.round_progress import RoundLeft, RoundProgress, round_key
 from trainer.teachers import QueryTruth, choice_target, is_correct, recent_mean
 from trainer.trajectories import Trajectory, TrajectoryPool
 
@@ -240,7 +240,7 @@ class PreferenceFeedback:
                 for q in self.pending}
 
     def finish_round(self, pool: TrajectoryPool, answers: Mapping[str, GivenAnswer],
-                     after_epoch: Callable[[], None] | None = None,
+                     after_epoch: Callable[[], bool | None] | None = None,
                      progress: RoundProgress | None = None) -> dict[str, float]:
         """Close the open round with `answers` (by query id; a query without one is dropped and
         costs no budget; one with an answer costs the answers it stands for), log the new ones,
@@ -302,8 +302,11 @@ class PreferenceFeedback:
         self.pending = []
         return metrics
 
-    def _train(self, pool: TrajectoryPool, after_epoch: Callable[[], None] | None,
+    def _train(self, pool: TrajectoryPool, after_epoch: Callable[[], bool | None] | None,
                progress: RoundProgress | None) -> dict[str, float]:
+        """Train the reward model on every label so far, going on from `progress` where it
+        holds this round's training; `after_epoch` returning True leaves the round after saving
+        (`RoundLeft`)."""
         start = time.perf_counter()
         unlabelled = None
         if self.model.cfg.surf:  # its stream is drawn from the run's once per round
@@ -322,14 +325,17 @@ class PreferenceFeedback:
             progress.start()
 
         def epoch_done(p: TrainingProgress) -> None:
-            if after_epoch is not None:
-                after_epoch()
-            if progress is not None and (p.finished or progress.due()):
+            leave = bool(after_epoch()) if after_epoch is not None else False
+            if progress is None:
+                return  # nowhere to keep the training: a run told to go finishes the round
+            if p.finished or leave or progress.due():
                 progress.save(key, {
                     "model": self.model.state_dict(), "training": p,
                     "seconds": seconds_before + time.perf_counter() - start,
                 } | ({"unlabelled_rng": unlabelled.rng.bit_generator.state}
                      if unlabelled is not None else {}))
+            if leave and not p.finished:
+                raise RoundLeft(p.epochs)
 
         metrics = self.model.train_round(self.pairs, unlabelled, epoch_done, resume)
         # The round's training time, over the runs it took if a kill cut it.

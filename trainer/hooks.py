@@ -24,9 +24,12 @@ class RunHooks:
         """Called after each step of the skill pretraining an S-EPOA run does first when its
         snapshot is missing (keep it cheap)."""
 
-    def reward_epoch(self, step: int) -> None:
+    def reward_epoch(self, step: int) -> bool:
         """Called after each epoch of a round's reward-model training, which can take many
-        minutes on a CPU with SURF (keep it cheap)."""
+        minutes on a CPU with SURF (keep it cheap). True: leave the run now, its round's
+        training saved (`round_progress.RoundLeft`), rather than at the end of an episode the
+        round would first have to finish."""
+        return False
 
     def metrics(self, stream: str, row: dict[str, Any]) -> None:
         """A metric row the run just logged (stream: episodes | eval | rounds)."""

@@ -61,7 +61,7 @@ from trainer.metrics import Metrics
 from trainer.phase_clock import PhaseClock
 from trainer.policies import EpisodeMeta, make_policy
 from trainer.reward_model import RewardModel
-from trainer.round_progress import ROUND_PROGRESS, RoundProgress
+from trainer.round_progress import ROUND_PROGRESS, RoundLeft, RoundProgress
 from trainer.sac import UpdateMetrics
 from trainer.schedule import After, Every, Period, Until
 from trainer.teachers import make_teacher
@@ -171,8 +171,18 @@ class TrainingRun:
         self.hooks.metrics(stream, row)
 
     def train(self) -> dict[str, float]:
-        """Train until `cfg.steps`, or until the hooks ask to stop (then at an episode's end,
-        after a checkpoint: `summary()["stopped"]` is 1)."""
+        """Train until `cfg.steps`, or until the hooks ask to stop: at an episode's end, after a
+        checkpoint (`summary()["stopped"]` is 1), or, asked inside a round's reward training, at
+        once, that training saved beside the checkpoint written as the round opened (the
+        summary's `round_epochs_saved` says how far it got)."""
+        try:
+            return self._train()
+        except RoundLeft as left:
+            self.stopped = True
+            self.metrics.close()
+            return self.summary() | {"round_epochs_saved": left.epochs}
+
+    def _train(self) -> dict[str, float]:
         cfg, feedback = self.cfg, self.feedback
         if feedback.pending:  # resumed inside a round
             self.hooks.round_opened(feedback.pending, self.pool)

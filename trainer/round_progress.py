@@ -4,8 +4,8 @@ its last saved epoch instead of training the whole round again.
 A late round of a small-preset S-EPOA run is 50 reward epochs of about a minute each on a busy
 core, and the run's checkpoint is written only as the round opens and closes: a kill in between
 used to throw all of those epochs away. The file beside the checkpoint holds the reward model,
-its optimiser, its random streams and the epoch counters, at most once a minute and once more
-when training ends.
+its optimiser, its random streams and the epoch counters, at most once a minute, once more
+when training ends, and at once when the run is told to go (`RoundLeft`).
 
 The saved state is tied to what the round trains on (`round_key`): a resumed run whose round
 has other labels, another trajectory pool or another configuration trains from the start, as it
@@ -22,6 +22,17 @@ from collections.abc import Iterable
 import numpy as np
 
 from trainer.checkpoint import load_checkpoint, save_checkpoint
+
+
+class RoundLeft(Exception):
+    """Told to go inside a round (a worker's SIGTERM or Slurm's warning): the round's reward
+    training is saved up to epoch `epochs`, and the run's checkpoint stays the one written as
+    the round opened, which a resumed run goes on from."""
+
+    def __init__(self, epochs: int):
+        super().__init__(f"left inside a round, its reward training saved at epoch {epochs}")
+        self.epochs = epochs
+
 
 ROUND_PROGRESS = "round-progress.pt"
 SAVE_EVERY_SECONDS = 60.0

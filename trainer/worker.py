@@ -27,9 +27,12 @@ A worker told to go (SIGTERM: `kill`, `scancel`, a scheduler's preemption, its l
 SIGUSR1: the warning Slurm sends before the time limit with `--signal`) ends its run at the end
 of the current episode, after a checkpoint, and releases it (`labelqueue.release_run`): the run
 is queued again at once, and the next worker resumes it from that checkpoint without waiting
-for the heartbeat timeout. A second such signal ends the worker at once. A worker with `once`
-that finds nothing to claim but a run held by a worker that has gone silent says so, and when
-the run may be taken over, and waits for it rather than exit.
+for the heartbeat timeout. Told inside a round's reward training, which can outlast the
+warning, it leaves after the current reward epoch with that training saved
+(`trainer/round_progress.py`), and the next worker goes on from that epoch. A second such
+signal ends the worker at once. A worker with `once` that finds nothing to claim but a run held
+by a worker that has gone silent says so, and when the run may be taken over, and waits for it
+rather than exit.
 
 A round's labels are read back by query id (`labels_for_queries`), which does not care whether a
 label was consumed before: a worker killed after labels arrived resumes from the checkpoint
@@ -332,10 +335,18 @@ class QueueHooks(RunHooks):
                   "the run", file=sys.stderr, flush=True)
         return self.departure.due or status in (RunStatus.STOPPING, RunStatus.STOPPED)
 
-    def reward_epoch(self, step: int) -> None:
+    def reward_epoch(self, step: int) -> bool:
         # A round's reward training ran 45 min under load: without a heartbeat the run looked
-        # dead (300 s) and another worker took it over, throwing the round away.
+        # dead (300 s) and another worker took it over, throwing the round away. Told to go,
+        # the worker leaves after this epoch, its round's training saved: the round could
+        # outlast Slurm's warning, and the launcher's grace.
         self.beat(step)
+        if self.departure.due and not self.departure.announced:
+            self.departure.announced = True
+            print(f"[worker {self.worker.worker_id}] run {self.run_id}: {self.departure.name} "
+                  f"inside the round at step {step}: saving its reward training, then "
+                  "releasing the run", file=sys.stderr, flush=True)
+        return self.departure.due
 
     def pretraining(self, step: int) -> None:
         # Heartbeats keep the run ours while its skill snapshot is made (minutes to hours);
@@ -600,6 +611,11 @@ def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerC
         if "cfg" in locals():
             _mark(cfg.run_dir, FAILED, {"reason": error})
         return _end(sessions, run.id, worker, RunStatus.FAILED, error)
+    if departure.due and "round_epochs_saved" in summary:
+        return _release(sessions, run.id, worker, f"{log}: {departure.name}: the round at step "
+                        f"{summary['step']} saved at reward epoch "
+                        f"{summary['round_epochs_saved']:.0f} and released; the next worker "
+                        "resumes it there")
     if departure.due and summary.get("stopped"):
         return _release(sessions, run.id, worker, f"{log}: {departure.name}: checkpointed at "
                         f"step {summary['step']} and released; the next worker resumes it")

@@ -1,7 +1,8 @@
 """A worker told to go (SIGTERM: kill, scancel, preemption; SIGUSR1: Slurm's warning before the
-time limit) checkpoints at its episode's end and releases its run at once, so another worker
-resumes it from there and ends with what an uninterrupted run learns; a worker that finds a
-run held by a worker gone silent says so, and when the run is free, and waits to take it."""
+time limit) checkpoints at its episode's end, or inside a round saves the round's reward
+training after the current epoch, and releases its run at once, so another worker resumes it
+from there and ends with what an uninterrupted run learns; a worker that finds a run held by a
+worker gone silent says so, and when the run is free, and waits to take it."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from worker_helpers import (
     RUN,
     database,
     decisions,
+    round_accuracies,
     run_row,
     standalone_run,
     wait_for,
@@ -27,7 +29,11 @@ from worker_helpers import (
 
 from labelqueue import DEAD_WORKER_AFTER_S, Run, RunStatus, claim_run, create_run
 from labelqueue.models import utcnow
-from trainer.worker import run_worker
+from runvocab.config import build_config
+from trainer.checkpoint import load_checkpoint
+from trainer.loop import TrainingRun
+from trainer.round_progress import ROUND_PROGRESS
+from trainer.worker import QueueHooks, run_worker
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -78,6 +84,59 @@ def test_a_signalled_worker_checkpoints_and_releases_its_run_for_the_next_worker
     steps = [int(row["step"]) for row in csv.DictReader((run_dir / "episodes.csv").open())]
     assert steps == sorted(set(steps)) and steps[-1] == 1000
     assert decisions(run_dir) == decisions(reference)  # nothing lost or used twice
+
+
+def test_a_worker_told_to_go_inside_a_round_saves_its_reward_training_and_releases_the_run(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A late round trains for most of an hour on a busy core: longer than Slurm's warning or
+    the launcher's grace. Told to go in it, the worker leaves after the current reward epoch
+    with that training saved, and the next worker trains only the epochs left."""
+    epochs = 6
+    config = RUN["config"] | {"reward.max_epochs": epochs, "reward.stop_accuracy": 1.0}
+    reference = tmp_path / "reference"
+    TrainingRun(build_config(RUN["task"], RUN["preset"], {
+        "algo": RUN["algo"], "seed": RUN["seed"], "feedback.budget": RUN["budget"],
+        "teacher.eps": RUN["teacher_params"]["eps"], **config, "run_dir": str(reference)}),
+        progress=False).train()
+
+    url, sessions = database(tmp_path)
+    with sessions() as session:
+        run = create_run(session, name="preempted in a round", teacher="scripted",
+                         **RUN | {"config": config})
+    heard: list[int] = []
+    reward_epoch = QueueHooks.reward_epoch
+
+    def told_to_go_in_the_second_round(self: QueueHooks, step: int) -> bool:
+        heard.append(step)
+        if step >= 800 and heard.count(step) == 2:  # the second round's second epoch
+            self.departure.signum = signal.SIGTERM
+        return reward_epoch(self, step)
+
+    monkeypatch.setattr(QueueHooks, "reward_epoch", told_to_go_in_the_second_round)
+    data = tmp_path / "data"
+    assert run_worker(worker_config(url, data, worker_id="w1")) == 1
+    err = capsys.readouterr().err
+    round_step = heard[-1]
+    assert f"run {run.id}: SIGTERM inside the round at step {round_step}" in err
+    assert (f"run {run.id}: SIGTERM: the round at step {round_step} saved at reward epoch 2 "
+            "and released; the next worker resumes it there (now queued)") in err
+    released = run_row(sessions, run.id)
+    assert released.status is RunStatus.QUEUED and released.worker_id is None
+    run_dir = data / "runs" / f"run-{run.id}"
+    saved = load_checkpoint(str(run_dir / ROUND_PROGRESS))["state"]["training"]
+    assert (saved["epochs"], saved["finished"]) == (2, False)
+    assert load_checkpoint(str(run_dir / "checkpoint.pt"))["feedback"]["pending"]  # as opened
+
+    heard.clear()
+    monkeypatch.setattr(QueueHooks, "reward_epoch", lambda self, step: (
+        heard.append(step), reward_epoch(self, step))[1])
+    assert run_worker(worker_config(url, data, worker_id="w2")) == 1
+    assert run_row(sessions, run.id).status is RunStatus.FINISHED
+    assert heard.count(round_step) == epochs - 2  # only the epochs the round had left
+    assert not (run_dir / ROUND_PROGRESS).exists()
+    assert decisions(run_dir) == decisions(reference)
+    assert round_accuracies(run_dir) == round_accuracies(reference)
 
 
 def test_slurms_warning_before_the_time_limit_ends_an_idle_worker_cleanly(
