@@ -21,6 +21,7 @@ from __future__ import annotations
 import copy
 import json
 import os
+import sys
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
@@ -322,6 +323,9 @@ class PreferenceFeedback:
                     unlabelled.rng.bit_generator.state = saved["unlabelled_rng"]
                 resume = TrainingProgress(**saved["training"])
                 seconds_before = saved["seconds"]
+                print(f"round {self.rounds}: reward training goes on from epoch {resume.epochs} "
+                      f"of {self.model.cfg.max_epochs} ({progress.path})", file=sys.stderr,
+                      flush=True)
             progress.start()
 
         def epoch_done(p: TrainingProgress) -> None:

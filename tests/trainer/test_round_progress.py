@@ -79,7 +79,7 @@ def _without_seconds(metrics: dict) -> dict:
     {"reward.rime": True}],
                          ids=["plain", "surf", "rime"])
 def test_a_round_killed_in_its_reward_training_goes_on_from_its_last_saved_epoch(tmp_path,
-                                                                                 reward):
+                                                                                 reward, capsys):
     (tmp_path / "reference").mkdir()
     (tmp_path / "cut").mkdir()
     reference = _second_round_open(tmp_path / "reference", reward)
@@ -105,6 +105,8 @@ def test_a_round_killed_in_its_reward_training_goes_on_from_its_last_saved_epoch
     heard.clear()
     metrics = resumed.finish_round(_pool(), answers, lambda: heard.append(1), progress)
     assert len(heard) == EPOCHS - 2  # epochs 1 and 2 were saved; the third is trained again
+    assert (f"round 1: reward training goes on from epoch 2 of {EPOCHS} ({progress.path})"
+            in capsys.readouterr().err)
     assert _without_seconds(metrics) == _without_seconds(expected)
     for got, want in zip(_params(resumed), _params(reference), strict=True):
         assert torch.equal(got, want)
