@@ -34,8 +34,10 @@ from pathlib import Path
 from sepoa.parser import Command, fail
 from sepoa.supervisor import Supervisor
 
-STOP_GRACE_S = 30.0
-"""how long a local worker has to checkpoint and release its run once the launcher is stopped"""
+STOP_GRACE_S = 120.0
+"""how long a local worker has to checkpoint and release its run once the launcher is stopped:
+the rest of an episode, or of a reward epoch inside a round (about a minute for a late
+small-preset S-EPOA round on a busy core); a second Ctrl-C ends the workers at once"""
 
 
 def _database(p: argparse.ArgumentParser, default: str = "sqlite:///<results>/queue.db") -> None:
@@ -393,7 +395,9 @@ def train_locally(url: str, results: Path, workers: int, threads: int,
         outcome = children.wait(until="all")
         if outcome.signal is not None:
             echo(f"stopping {len(children.running())} worker(s): each checkpoints its run and "
-                 "releases it; the runs resume from there on the next call")
+                 "releases it, at its episode's end or, inside a round, after the current "
+                 f"reward epoch (up to {STOP_GRACE_S:.0f} s; Ctrl-C again ends them at once); "
+                 "the runs resume from there on the next call")
         children.stop()
         for child in children.children:
             if outcome.signal is None and child.returncode not in (0, -signal.SIGTERM,
