@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -146,8 +147,9 @@ def test_the_printed_script_trains_the_grid_and_survives_a_cancelled_task(
     assert runs()[other].status is RunStatus.RUNNING, "both tasks train side by side"
     assert any(f"{SEPOA} worker" in text for text in processes)
 
-    # scancel: the task's worker checkpoints at its episode's end and releases the run, which
-    # task 0 takes over once its own run is done (not after the 300 s heartbeat timeout).
+    # scancel: the task's worker checkpoints at its episode's end (or, inside a round, saves
+    # the round's reward training after the current epoch) and releases the run, which task 0
+    # takes over once its own run is done (not after the 300 s heartbeat timeout).
     cluster.run("scancel", f"{job}_1")
     cancelled = time.monotonic()
     wait_for(lambda: runs()[key].worker_id != second, 20, "the cancelled task's release",
@@ -157,7 +159,9 @@ def test_the_printed_script_trains_the_grid_and_survives_a_cancelled_task(
 
     logs = {path.name: path.read_text() for path in results.glob("slurm-*.log")}
     first_log, second_log = logs[f"slurm-{job}_0.log"], logs[f"slurm-{job}_1.log"]
-    assert "SIGTERM at step" in second_log and "released; the next worker resumes it" in second_log
+    assert re.search(r"SIGTERM (inside the round )?at step", second_log), second_log
+    assert re.search(r"released; the next worker resumes it( there)? \(now queued\)",
+                     second_log), second_log
     final = runs()
     assert {k: r.status for k, r in final.items()} == {k: RunStatus.FINISHED for k in final}
     assert final[key].worker_id == f"slurm-{job}-0"  # taken over by the surviving task

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -67,9 +68,12 @@ def test_a_signalled_worker_checkpoints_and_releases_its_run_for_the_next_worker
         if worker.poll() is None:
             worker.kill()
     assert worker.returncode == 0, err
-    assert f"run {run.id}: {sig.name} at step" in err
-    assert f"run {run.id}: {sig.name}: checkpointed at step" in err
-    assert "released; the next worker resumes it (now queued)" in err
+    # At an episode's end, or, told inside a round's reward training, after its current epoch
+    # (the test that follows takes that path on purpose).
+    assert re.search(rf"run {run.id}: {sig.name} (inside the round )?at step", err), err
+    assert re.search(rf"run {run.id}: {sig.name}: (checkpointed at step \d+|the round at step "
+                     r"\d+ saved at reward epoch \d+) and released; the next worker resumes it"
+                     r"( there)? \(now queued\)", err), err
 
     released = run_row(sessions, run.id)
     assert released.status is RunStatus.QUEUED and released.worker_id is None
