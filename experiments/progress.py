@@ -22,28 +22,35 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 
-def training_rate(folder: Path) -> float | None:
-    """Steps per second over the run's episode rows: by their phase-clock `seconds_total`
-    (every phase since the row before) where the rows carry it, else the last row's `fps`
-    (the rate since its process started: after a resume, since the resume). None before the
-    first row."""
+def episode_rows(folder: Path) -> list[dict[str, str]] | None:
+    """The run's episodes.csv rows (the last may be cut short, being appended); None before
+    the file exists."""
     path = folder / "episodes.csv"
     if not path.exists():
         return None
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def training_rate(folder: Path, rows: list[dict[str, str]] | None = None) -> float | None:
+    """Steps per second over the run's episode rows (`rows`, else read from its folder): by
+    their phase-clock `seconds_total` (every phase since the row before) where the rows carry
+    it, else the last row's `fps` (the rate since its process started: after a resume, since
+    the resume). None before the first row."""
+    rows = episode_rows(folder) if rows is None else rows
     steps = seconds = 0.0
     previous, last_fps = 0, None
-    with path.open(newline="") as f:
-        for row in csv.DictReader(f):
-            try:  # the row being appended may be cut short
-                step = int(float(row["step"]))
-                total, fps = row.get("seconds_total"), row.get("fps")
-                if total:
-                    steps, seconds = steps + step - previous, seconds + float(total)
-                if fps:
-                    last_fps = float(fps)
-            except (KeyError, TypeError, ValueError):
-                continue
-            previous = step
+    for row in rows or []:
+        try:  # the row being appended may be cut short
+            step = int(float(row["step"]))
+            total, fps = row.get("seconds_total"), row.get("fps")
+            if total:
+                steps, seconds = steps + step - previous, seconds + float(total)
+            if fps:
+                last_fps = float(fps)
+        except (KeyError, TypeError, ValueError):
+            continue
+        previous = step
     if seconds > 0:
         return steps / seconds
     return last_fps if last_fps is not None and last_fps > 0 else None
@@ -77,14 +84,13 @@ Clock = list[tuple[int, float]]
 """(step, seconds since the run began) at each of a run's episode rows"""
 
 
-def training_clock(folder: Path) -> Clock | None:
-    """The run's clock, when every episode row carries the phase clock's `seconds_total`; None
-    for a run without rows or with rows written before the clock."""
-    path = folder / "episodes.csv"
-    if not path.exists():
+def training_clock(folder: Path, rows: list[dict[str, str]] | None = None) -> Clock | None:
+    """The run's clock (from `rows`, else read from its folder), when every episode row
+    carries the phase clock's `seconds_total`; None for a run without rows or with rows
+    written before the clock."""
+    rows = episode_rows(folder) if rows is None else rows
+    if not rows:
         return None
-    with path.open(newline="") as f:
-        rows = list(csv.DictReader(f))
     clock: Clock = []
     elapsed = 0.0
     for i, row in enumerate(rows):

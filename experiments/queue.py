@@ -27,6 +27,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from experiments.progress import (
     duration_text,
+    episode_rows,
     reward_epochs,
     seconds_left,
     summary,
@@ -258,8 +259,9 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> 
         if note is not None:
             silent.append(note)
         reached = row.step if row is not None else 0
-        progress.append((key, run.steps, reached, done, training_rate(folder),
-                         training_clock(folder)))
+        episodes = episode_rows(folder)  # read once, for both
+        progress.append((key, run.steps, reached, done, training_rate(folder, episodes),
+                         training_clock(folder, episodes)))
         lines.append([run.task, run.variant, f"{run.eps:g}",
                       "-" if run.budget is None else str(run.budget), str(run.seed), status,
                       f"{reached}/{run.steps}",
