@@ -10,6 +10,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from trajectory_helpers import random_pool
 
 from runvocab.answers import Answer
 from runvocab.config import build_config
@@ -19,7 +20,7 @@ from trainer.hooks import RunHooks
 from trainer.loop import TrainingRun
 from trainer.reward_model import RewardModel
 from trainer.teachers import make_teacher
-from trainer.trajectories import Trajectory, TrajectoryPool
+from trainer.trajectories import TrajectoryPool
 
 OBS, ACT, LENGTH, SEGMENT = 3, 2, 30, 10
 
@@ -37,15 +38,7 @@ def _feedback(tmp_path, **overrides) -> PreferenceFeedback:
 
 
 def _pool(n: int = 6) -> TrajectoryPool:
-    rng = np.random.default_rng(0)
-    pool = TrajectoryPool(n)
-    for i in range(n):
-        pool.add(Trajectory(
-            id=i, obs=rng.normal(size=(LENGTH, OBS)).astype(np.float32),
-            actions=rng.uniform(-1, 1, (LENGTH, ACT)).astype(np.float32),
-            true_rewards=rng.uniform(0, 1, LENGTH).astype(np.float32),
-            states=np.zeros((LENGTH, 4)), context=0, success=False))
-    return pool
+    return random_pool(n, LENGTH, OBS, ACT)
 
 
 def _answers(queries, answers_each: int) -> dict[str, GivenAnswer]:
