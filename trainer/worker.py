@@ -328,11 +328,7 @@ class QueueHooks(RunHooks):
         while status is RunStatus.PAUSED and not self.departure.due:
             time.sleep(self.worker.poll_seconds)
             status = self.beat(step, force=True)
-        if self.departure.due and not self.departure.announced:
-            self.departure.announced = True
-            print(f"[worker {self.worker.worker_id}] run {self.run_id}: {self.departure.name} "
-                  f"at step {step}: checkpointing at the end of this episode, then releasing "
-                  "the run", file=sys.stderr, flush=True)
+        self._announce_departure(f"at step {step}: checkpointing at the end of this episode")
         return self.departure.due or status in (RunStatus.STOPPING, RunStatus.STOPPED)
 
     def reward_epoch(self, step: int) -> bool:
@@ -341,12 +337,16 @@ class QueueHooks(RunHooks):
         # the worker leaves after this epoch, its round's training saved: the round could
         # outlast Slurm's warning, and the launcher's grace.
         self.beat(step)
+        self._announce_departure(f"inside the round at step {step}: saving its reward training")
+        return self.departure.due
+
+    def _announce_departure(self, where: str) -> None:
+        """Once, when told to go: where the run is and what the worker does before releasing
+        it."""
         if self.departure.due and not self.departure.announced:
             self.departure.announced = True
             print(f"[worker {self.worker.worker_id}] run {self.run_id}: {self.departure.name} "
-                  f"inside the round at step {step}: saving its reward training, then "
-                  "releasing the run", file=sys.stderr, flush=True)
-        return self.departure.due
+                  f"{where}, then releasing the run", file=sys.stderr, flush=True)
 
     def pretraining(self, step: int) -> None:
         # Heartbeats keep the run ours while its skill snapshot is made (minutes to hours);
