@@ -17,6 +17,12 @@
   of the round before scored on a round's new labels before it trains on them (rounds after
   the first).
 
+- Secondary, not pre-registered, where the analysis variants' finished runs end with different
+  counts of SAC updates on r_hat (S-EPOA learns only after its initial skill rollouts): each
+  run's mean evaluation return while its updates on r_hat lay in the last quarter of the
+  fewest any of those runs made, so every arm is scored after the same number of updates on
+  its learned reward; the same IQM and probability-of-improvement tables on that score.
+
 Interval estimates are resampled with a fixed seed, so a report is reproducible.
 """
 
@@ -76,6 +82,28 @@ def final_quarter(evals: pd.DataFrame, steps: int) -> float:
     """A run's mean evaluation return over its evaluations in the last quarter of `steps`."""
     last = evals[evals["step"] >= (1 - FINAL_SHARE) * steps]
     return float(last["return"].mean()) if len(last) else math.nan
+
+
+def _reward_updates(folder: Any) -> pd.Series:
+    """A run's cumulative SAC updates on r_hat by step (episodes.csv; a resumed run's rewritten
+    rows count once, the last)."""
+    try:
+        frame = pd.read_csv(folder / "episodes.csv", usecols=["step", "reward_updates"])
+    except (OSError, ValueError, pd.errors.EmptyDataError):
+        return pd.Series(dtype=float)
+    frame = frame.drop_duplicates("step", keep="last").sort_values("step", kind="stable")
+    return frame.set_index("step")["reward_updates"].astype(float)
+
+
+def score_at_updates(evals: pd.DataFrame, updates: pd.Series, budget: float) -> float:
+    """A run's mean evaluation return over the evaluations taken while its updates on r_hat
+    (the last episode row at or before the evaluation's step) lay in the last quarter of
+    `budget`; NaN if it took none there."""
+    if updates.empty:
+        return math.nan
+    at = updates.reindex(evals["step"].to_numpy(), method="ffill").to_numpy()
+    keep = (at >= (1 - FINAL_SHARE) * budget) & (at <= budget)
+    return float(evals["return"].to_numpy(float)[keep].mean()) if keep.any() else math.nan
 
 
 def _last_episode_row(folder: Any) -> dict[str, Any]:
@@ -162,6 +190,36 @@ def per_run(results: Results) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def equal_updates_budget(results: Results, runs: pd.DataFrame) -> float | None:
+    """The fewest updates on r_hat a finished run of the analysis variants made, where their
+    finished runs' counts differ; None where they are all equal (the primary metric already
+    compares them at equal updates) or unknown."""
+    analysis = results.spec.analysis
+    assert analysis is not None
+    compared = runs[runs["variant"].isin([analysis.reference, *analysis.compare_to])
+                    & (runs["state"] == "done")]["reward_updates"].dropna()
+    if compared.empty or compared.min() == compared.max() or compared.min() <= 0:
+        return None
+    return float(compared.min())
+
+
+def with_equal_updates_scores(results: Results, runs: pd.DataFrame, budget: float
+                              ) -> pd.DataFrame:
+    """`runs` with `score_equal_updates`: each finished run's `score_at_updates` at
+    `budget` (NaN for runs that never made that many updates on r_hat)."""
+    evals_by_run = dict(iter(results.evals.groupby(KEYS, sort=False)))
+    folders = {tuple(getattr(run, k) for k in KEYS): results.folder / run.dir
+               for run in results.runs.itertuples()}
+    scores = []
+    for run in runs.itertuples():
+        key = tuple(getattr(run, k) for k in KEYS)
+        evals = evals_by_run.get(key)
+        done = run.state == "done" and evals is not None and run.reward_updates >= budget
+        scores.append(score_at_updates(evals, _reward_updates(folders[key]), budget)
+                      if done else math.nan)
+    return runs.assign(score_equal_updates=scores)
+
+
 def _scores(runs: pd.DataFrame, column: str, variants: list[str]) -> dict[str, np.ndarray]:
     """{variant: (runs, tasks)} of `column` over runs with a value: rliable's layout, the tasks
     its strata. With several tasks a variant's array is as long as its task with the fewest
@@ -177,11 +235,12 @@ def _scores(runs: pd.DataFrame, column: str, variants: list[str]) -> dict[str, n
     return out
 
 
-def primary_table(results: Results, runs: pd.DataFrame) -> pd.DataFrame:
-    """Per variant: finished and planned runs, IQM and mean of the primary metric with their
-    95 % intervals."""
+def primary_table(results: Results, runs: pd.DataFrame, column: str = "score"
+                  ) -> pd.DataFrame:
+    """Per variant: finished and planned runs, IQM and mean of the primary metric (or another
+    per-run score `column`) with their 95 % intervals."""
     variants = [v.label for v in results.spec.variants]
-    scores = _scores(runs, "score", variants)
+    scores = _scores(runs, column, variants)
     iqm = _bootstrap(scores, _iqm, REPS) if scores else {}
     mean = _bootstrap(scores, _mean, REPS) if scores else {}
     rows = []
@@ -198,12 +257,13 @@ def primary_table(results: Results, runs: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def improvement_table(results: Results, runs: pd.DataFrame) -> pd.DataFrame:
-    """P(reference > other) of the primary metric, with its 95 % interval, per compared
-    variant that has finished runs."""
+def improvement_table(results: Results, runs: pd.DataFrame, column: str = "score"
+                      ) -> pd.DataFrame:
+    """P(reference > other) of the primary metric (or `column`), with its 95 % interval, per
+    compared variant that has finished runs."""
     analysis = results.spec.analysis
     assert analysis is not None
-    scores = _scores(runs, "score", [analysis.reference, *analysis.compare_to])
+    scores = _scores(runs, column, [analysis.reference, *analysis.compare_to])
     rows = []
     for other in analysis.compare_to:
         row = {"reference": analysis.reference, "other": other,

@@ -496,6 +496,14 @@ MECHANISM_DOC = (
     "ratios' difference, so its interval is that of a paired comparison. Held-out accuracy: "
     "`model_agreement`, the reward model before a round "
     "scored on that round's new labels, which it has not trained on (rounds after the first).")
+EQUAL_UPDATES_DOC = (
+    "Secondary, not pre-registered. The finished runs of the compared variants end with "
+    "different counts of SAC updates on r̂ (episodes.csv `reward_updates`; S-EPOA learns only "
+    "after its initial skill rollouts), the fewest {budget:.0f}. Here each run is scored by its "
+    "mean evaluation return over the evaluations taken while its updates on r̂ lay in the last "
+    "quarter of that count, [{low:.0f}, {budget:.0f}], so every arm is scored after the same "
+    "number of updates on its learned reward; then the same IQM and probability-of-improvement "
+    "estimates as the pre-registered comparison. Per run: runs.csv `score_equal_updates`.")
 ROUNDS_DOC = ("Per variant and round: the mean across runs of the distinguishable ratio of the "
               "selected queries (and of the compared rule's picks on the same agent).")
 RUNS_DOC = ("Every planned run with its state (done, stopped by an operator, failed, partial "
@@ -531,7 +539,20 @@ def preregistered_sections(results: Results, out: Path
              ""]
     tables = {"primary": primary, "improvement": improvement, "runs": runs,
               "mechanism": mechanism, "rounds-distinguishability": rounds}
-    sections = {
+    sections = {}
+    budget = preregistered.equal_updates_budget(results, runs)
+    if budget is not None:
+        runs = preregistered.with_equal_updates_scores(results, runs, budget)
+        tables["runs"] = runs
+        equal = preregistered.primary_table(results, runs, "score_equal_updates")
+        tables["equal-updates"] = equal = equal[equal["iqm"].notna()] if "iqm" in equal else equal
+        tables["equal-updates-improvement"] = equal_improvement = (
+            preregistered.improvement_table(results, runs, "score_equal_updates"))
+        sections["equal-updates"] = (
+            "At equal updates on r̂ (not pre-registered)", EQUAL_UPDATES_DOC.format(
+                budget=budget, low=(1 - preregistered.FINAL_SHARE) * budget),
+            preregistered.primary_markdown(equal, equal_improvement))
+    sections |= {
         "mechanism": ("Mechanism", MECHANISM_DOC, preregistered.mechanism_markdown(mechanism)),
         "rounds-distinguishability": ("Distinguishable ratio per round", ROUNDS_DOC,
                                       preregistered.rounds_markdown(rounds)),

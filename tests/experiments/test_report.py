@@ -480,3 +480,57 @@ def test_runs_trained_on_another_host_say_where_in_the_runs_table(analysed: Path
     assert "| R | 0 | done | 800 | 11.0 | 800 | 600 | 30 | the grid's workers |" in lines
     assert any(line.startswith("| R | 1 | done |") and line.endswith("| NVIDIA H100 80GB HBM3 |")
                for line in lines)
+
+
+def test_arms_with_unequal_updates_on_r_hat_are_also_scored_at_equal_updates(
+        analysed: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """R learns on r_hat from step 200, X from step 0: the secondary table scores both over
+    the last quarter of R's 600 updates on r_hat, R at step 800 and X at step 600."""
+    import shutil
+
+    from experiments import preregistered
+
+    # Equal counts (the fixture): no secondary table, the primary metric already is at equal
+    # updates.
+    assert not (analysed / "report" / "equal-updates.md").exists()
+    copy = tmp_path / "analysed"
+    shutil.copytree(analysed, copy, ignore=shutil.ignore_patterns("report"))
+    for seed in range(4):
+        run = copy / "dmc-cheetah_run" / "R" / "eps0.3" / f"s{seed}"
+        _write_csv(run / "episodes.csv", "step,episode,return,updates,reward_updates",
+                   [f"{s},{s // 200},0,{s},{max(s - 200, 0)}" for s in (200, 400, 600, 800)])
+        run = copy / "dmc-cheetah_run" / "X" / "eps0.3" / f"s{seed}"
+        if seed < 3:  # X s3 stopped at 400; a resumed run rewrote its row at 600: the last counts
+            _write_csv(run / "episodes.csv", "step,episode,return,updates,reward_updates",
+                       ["200,1,0,200,200", "400,2,0,400,400", "600,3,0,600,999",
+                        "600,3,0,600,600", "800,4,0,800,800"])
+    # The SAC oracle learns on the true reward: no updates on r_hat.
+    _write_csv(copy / "dmc-cheetah_run" / "O" / "eps0.3" / "s0" / "episodes.csv",
+               "step,episode,return,updates,reward_updates", ["800,4,0,800,0"])
+    results = load_results(copy)
+    runs = preregistered.per_run(results)
+    assert preregistered.equal_updates_budget(results, runs) == 600
+    runs = preregistered.with_equal_updates_scores(results, runs, 600).set_index(
+        ["variant", "seed"])
+    for seed in range(3):
+        a, b = LAST_TWO[("R", seed)]
+        assert runs.loc[("R", seed), "score_equal_updates"] == b  # step 800 only
+        assert runs.loc[("X", seed), "score_equal_updates"] == LAST_TWO[("X", seed)][0]  # 600
+    # Unfinished runs and runs that never learned on r_hat get no score.
+    assert math.isnan(runs.loc[("X", 3), "score_equal_updates"])
+    assert math.isnan(runs.loc[("O", 0), "score_equal_updates"])
+
+    monkeypatch.setattr(preregistered, "REPS", 300)  # as the fixture's: coarser intervals
+    monkeypatch.setattr(preregistered, "CURVE_REPS", 50)
+    write_report(copy)
+    out = copy / "report"
+    table = pd.read_csv(out / "equal-updates.csv").set_index("variant")
+    assert list(table.index) == ["R", "X"]  # O, the SAC oracle, has no updates on r_hat
+    # IQM of 12, 22, 32, 102: the middle half, 22 and 32.
+    assert table.loc["R", "iqm"] == pytest.approx(27.0)
+    improvement = pd.read_csv(out / "equal-updates-improvement.csv").iloc[0]
+    # R: 12, 22, 32, 102 against X: 5, 15, 25: R is higher in 1 + 2 + 3 + 3 of the 12 pairs.
+    assert improvement.probability == pytest.approx(9 / 12)
+    index = (out / "report.md").read_text()
+    assert "## At equal updates on r̂ (not pre-registered)" in index
+    assert "the fewest 600" in index and "[450, 600]" in index
