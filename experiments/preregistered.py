@@ -54,10 +54,17 @@ def _bootstrap(scores: dict[str, Any], func: Callable, reps: int
                ) -> dict[str, tuple[float, float, float]]:
     """{name: (point estimate, low, high)}: rliable's estimates with 95 % stratified-bootstrap
     intervals, resampled with a fixed seed."""
-    with warnings.catch_warnings():  # rliable passes arch a RandomState, which arch deprecates
-        warnings.simplefilter("ignore", FutureWarning)
-        point, ci = rly.get_interval_estimates(scores, func, reps=reps,
-                                               random_state=np.random.RandomState(0))
+    # rliable's bootstraps draw their indices from NumPy's global generator, not from the
+    # `random_state` they are given: seed that one for the call, and give it back as it was.
+    outside = np.random.get_state()
+    np.random.seed(0)
+    try:
+        with warnings.catch_warnings():  # rliable passes arch a RandomState, deprecated there
+            warnings.simplefilter("ignore", FutureWarning)
+            point, ci = rly.get_interval_estimates(scores, func, reps=reps,
+                                                   random_state=np.random.RandomState(0))
+    finally:
+        np.random.set_state(outside)
     return {name: (float(np.ravel(point[name])[0]), float(np.ravel(ci[name])[0]),
                    float(np.ravel(ci[name])[-1])) for name in scores}
 

@@ -534,3 +534,19 @@ def test_arms_with_unequal_updates_on_r_hat_are_also_scored_at_equal_updates(
     index = (out / "report.md").read_text()
     assert "## At equal updates on r̂ (not pre-registered)" in index
     assert "the fewest 600" in index and "[450, 600]" in index
+
+
+def test_bootstrap_intervals_are_the_same_on_every_call() -> None:
+    """rliable resamples from NumPy's global generator whatever random_state it is given: a
+    report's intervals must not depend on what drew from that generator before."""
+    from experiments import preregistered
+
+    scores = {"a": np.array([111.9, 165.2, 54.9, 89.4, 113.7, 103.6, 221.3])[:, None]}
+    first = preregistered._bootstrap(scores, preregistered._iqm, 500)
+    np.random.seed(123)
+    np.random.random(7)  # other code drawing from the global generator in between
+    outside = np.random.get_state()
+    assert preregistered._bootstrap(scores, preregistered._iqm, 500) == first
+    assert preregistered._bootstrap(scores, preregistered._mean, 500) != first
+    # ... and the global generator is left where the caller had it.
+    assert np.array_equal(np.random.get_state()[1], outside[1])
