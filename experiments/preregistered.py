@@ -39,7 +39,7 @@ import pandas as pd
 from rliable import library as rly
 from rliable import metrics
 
-from experiments.results import KEYS, Results
+from experiments.results import KEYS, Results, read_metrics
 from figures.curves import Band
 
 REPS = 20_000
@@ -94,11 +94,9 @@ def final_quarter(evals: pd.DataFrame, steps: int) -> float:
 def _reward_updates(folder: Any) -> pd.Series:
     """A run's cumulative SAC updates on r_hat by step (episodes.csv; a resumed run's rewritten
     rows count once, the last)."""
-    try:
-        frame = pd.read_csv(folder / "episodes.csv", usecols=["step", "reward_updates"])
-    except (OSError, ValueError, pd.errors.EmptyDataError):
+    frame = read_metrics(folder / "episodes.csv")
+    if frame is None or "reward_updates" not in frame:
         return pd.Series(dtype=float)
-    frame = frame.drop_duplicates("step", keep="last").sort_values("step", kind="stable")
     return frame.set_index("step")["reward_updates"].astype(float)
 
 

@@ -71,7 +71,8 @@ def run_state(folder: Path) -> tuple[str, int | None]:
     return "not started", None
 
 
-def _csv(path: Path) -> pd.DataFrame | None:
+def read_metrics(path: Path) -> pd.DataFrame | None:
+    """A run's metrics CSV by step, or None where it is missing, empty or has no step."""
     try:
         frame = pd.read_csv(path)
     except (FileNotFoundError, pd.errors.EmptyDataError):
@@ -98,7 +99,7 @@ def load_results(folder: str | Path) -> Results:
                            "state": state, "step": step, "planned_steps": run.steps,
                            "dir": str(run.dir)})
         for name, frames in (("eval.csv", evals), ("rounds.csv", rounds)):
-            frame = _csv(path / name)
+            frame = read_metrics(path / name)
             if frame is not None:
                 frames.append(frame.assign(**key)[KEYS + list(frame.columns)])
     empty = pd.DataFrame(columns=[*KEYS, "step"])
