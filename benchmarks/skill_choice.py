@@ -28,10 +28,7 @@ from __future__ import annotations
 
 import argparse
 import csv
-import dataclasses
-import glob
 import os
-import shutil
 import sys
 import tempfile
 from dataclasses import dataclass
@@ -42,15 +39,12 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-from runvocab.config import RunConfig, load_json  # noqa: E402
+from run_copy import resume_copy  # noqa: E402
+
 from trainer.envs import make_env  # noqa: E402
 from trainer.feedback import PreferenceFeedback  # noqa: E402
-from trainer.loop import CHECKPOINT, TrainingRun  # noqa: E402
+from trainer.loop import TrainingRun  # noqa: E402
 from trainer.policies import EpisodeMeta, SkillPolicy  # noqa: E402
-from trainer.skills.pretrain import snapshot_path  # noqa: E402
-
-RUN_FILES = (CHECKPOINT, "config.json", "labels.jsonl", "episodes.csv", "eval.csv", "rounds.csv")
-"""what a resumed run reads; copied, so that the run's own folder is only read"""
 
 
 @dataclass(frozen=True)
@@ -114,37 +108,11 @@ def _ranks(x: np.ndarray) -> np.ndarray:
     return ranks
 
 
-def find_snapshot(cfg: RunConfig, run_dir: str) -> str:
-    """The run's skill snapshot (the agent is built from it, then the checkpoint loaded): by its
-    name, or else the one snapshot of its task, backend, length and seed (the name's digest
-    covers configuration fields that other commits may name differently)."""
-    path = snapshot_path(cfg)
-    if os.path.exists(path):
-        return path
-    stem = os.path.basename(path).rsplit("-", 1)[0]
-    found = glob.glob(os.path.join(glob.escape(cfg.skill.snapshot_dir), f"{stem}-*.pt"))
-    if len(found) != 1:
-        raise SystemExit(f"{run_dir}: its skill snapshot {path} is missing and "
-                         f"{len(found)} others match {stem}-*.pt: name one with --snapshot")
-    return found[0]
-
-
-def resume_copy(run_dir: str, into: str, threads: int, snapshot: str = "") -> TrainingRun:
-    """The run as its checkpoint left it, from a copy of its files in `into`, on the CPU."""
-    if not os.path.exists(os.path.join(run_dir, CHECKPOINT)):
-        raise SystemExit(f"{run_dir}: no {CHECKPOINT} (a finished run's is removed); give the "
-                         "folder of a run that is training or was stopped")
-    for name in RUN_FILES:
-        if os.path.exists(os.path.join(run_dir, name)):
-            shutil.copy(os.path.join(run_dir, name), into)
-    cfg = load_json(os.path.join(into, "config.json"))
-    if cfg.algo != "sepoa":
-        raise SystemExit(f"{run_dir}: a {cfg.algo} run; only S-EPOA acts with skills")
-    cfg = dataclasses.replace(cfg, run_dir=into, threads=threads, device="cpu")
-    if cfg.skill.pretrain_steps:
-        cfg = dataclasses.replace(cfg, skill=dataclasses.replace(
-            cfg.skill, snapshot=snapshot or find_snapshot(cfg, run_dir)))
-    run = TrainingRun(cfg, resume=True, progress=False)
+def resume_skill_run(run_dir: str, into: str, threads: int, snapshot: str = "") -> TrainingRun:
+    """An S-EPOA run resumed from a copy of its files (run_copy.py), once it has a z_task."""
+    run = resume_copy(run_dir, into, threads, snapshot)
+    if run.cfg.algo != "sepoa":
+        raise SystemExit(f"{run_dir}: a {run.cfg.algo} run; only S-EPOA acts with skills")
     if not isinstance(run.policy, SkillPolicy) or run.policy.task_skill is None:
         raise SystemExit(f"{run_dir}: no z_task yet (before the first round)")
     return run
@@ -176,7 +144,7 @@ def skill_returns(run: TrainingRun, env, skill: np.ndarray, episodes: int,
 def measure(run_dir: str, skills: int, episodes: int, threads: int, seed: int,
             snapshot: str = "") -> SkillChoice:
     with tempfile.TemporaryDirectory() as into:
-        run = resume_copy(run_dir, into, threads, snapshot)
+        run = resume_skill_run(run_dir, into, threads, snapshot)
         policy = run.policy
         assert isinstance(policy, SkillPolicy) and policy.task_skill is not None
         rng = np.random.default_rng(seed)

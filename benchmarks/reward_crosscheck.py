@@ -1,0 +1,247 @@
+"""Is a low score the reward model's fault or the policy's? Every run's reward model scores
+every run's policy, on the same episodes.
+
+For each run folder given (its checkpoint is read from a copy; the run itself is not touched),
+its policy plays `--episodes` deterministic episodes as the loop evaluates it (S-EPOA with its
+z_task), every policy on fresh environments of the same seeds, so that all face the same
+starts. Then each run's reward model (the SAC oracle has none) is judged on all of them:
+
+- which policy it scores highest (the mean of r_hat summed over each episode), where it ranks
+  its own run's policy among them (1: first) against where the true return ranks it, and the
+  rank correlation of its scores with the policies' true returns;
+- how well it orders what every policy did, one set for all models: the rank correlation of
+  summed r_hat with the true return over all episodes; the share of random segment pairs
+  from two different episodes it orders as their true returns do (the pairs `sepoa reward
+  fit` scores, the same pairs for every model); the Pearson correlation of r_hat with the
+  true reward over every step (a run's own `reward_corr` is taken over its own replay buffer,
+  which another arm's agent filled differently);
+- the same pair accuracy on its own policy's episodes only.
+
+How to read it: a reward model that ranks its own policy below another run's policy that
+truly returns more knew of better behaviour that its policy did not reach (the policy fell
+short of its own reward). One that ranks its own policy above policies that truly return more
+scores the better behaviour too low: where the other models rank the same policy near its true
+rank, that is the model's own error, which its policy found (it trained on this model's reward)
+or which the model makes off the states its labels came from; the cross-check does not tell
+these two apart.
+
+    .venv/bin/python benchmarks/reward_crosscheck.py RUN_DIR [RUN_DIR ...] [--episodes 5] \\
+        [--pairs 2000] [--segment 50] [--csv scores.csv]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+from run_copy import resume_copy  # noqa: E402
+from skill_choice import spearman  # noqa: E402
+
+from labelqueue.dataset import DatasetEpisode, LabelledDataset  # noqa: E402
+from trainer.envs import make_env  # noqa: E402
+from trainer.feedback import PreferenceFeedback  # noqa: E402
+from trainer.loop import TrainingRun  # noqa: E402
+from trainer.reward_fit import pair_accuracy, reward_correlation, true_order_pairs  # noqa: E402
+from trainer.reward_model import RewardModel  # noqa: E402
+
+
+@dataclass(frozen=True)
+class Played:
+    """One run's policy's episodes, and its reward model."""
+
+    label: str
+    algo: str
+    step: int
+    episodes: list[DatasetEpisode]
+    model: RewardModel | None
+    """None for the SAC oracle, which learns from the true reward"""
+
+    @property
+    def true_return(self) -> float:
+        return float(np.mean([e.rewards.sum(dtype=np.float64) for e in self.episodes]))
+
+
+@dataclass(frozen=True)
+class Judgement:
+    """One reward model's view of every policy (`played` in order)."""
+
+    learned_returns: np.ndarray
+    """(policies,) mean summed r_hat over each policy's episodes"""
+    own: int
+    """the index of the model's own run"""
+    own_true_rank: int
+    """1 + the policies that truly return more than the model's own run's"""
+    policy_rank_corr: float
+    """over the policies: mean summed r_hat against true return"""
+    episode_rank_corr: float
+    pair_accuracy: float
+    own_pair_accuracy: float
+    step_corr: float
+
+    def rank_of(self, policy: int) -> int:
+        """1 + the policies this model scores above `policy`"""
+        return 1 + int(np.sum(self.learned_returns > self.learned_returns[policy]))
+
+    @property
+    def own_rank(self) -> int:
+        return self.rank_of(self.own)
+
+    @property
+    def favourite(self) -> int:
+        return int(np.argmax(self.learned_returns))
+
+
+def play(run: TrainingRun, episodes: int, seed: int) -> list[DatasetEpisode]:
+    """Deterministic episodes of the run's policy as the loop's evaluation acts, on a fresh
+    environment seeded `seed`."""
+    env = make_env(run.cfg.task, seed, run.cfg.episode_length or None)
+    rng = np.random.default_rng(seed)
+    played = []
+    for _ in range(episodes):
+        obs, done = env.reset(), False
+        seen, actions, rewards = [obs], [], []
+        while not done:
+            action = run.policy.act(obs, run.policy.eval_meta(run.meta), rng, True)
+            result = env.step(action)
+            obs, done = result.obs, result.done
+            seen.append(obs)
+            actions.append(action)
+            rewards.append(result.reward)
+        observations = np.asarray(seen, np.float32)
+        played.append(DatasetEpisode(observations=observations,
+                                     actions=np.asarray(actions, np.float32),
+                                     rewards=np.asarray(rewards, np.float32),
+                                     states=np.zeros((len(seen), 0)), context=0))
+    return played
+
+
+def load(run_dir: str, episodes: int, seed: int, threads: int) -> Played:
+    with tempfile.TemporaryDirectory() as into:
+        run = resume_copy(run_dir, into, threads)
+        model = run.feedback.model if isinstance(run.feedback, PreferenceFeedback) else None
+        label = "/".join(Path(os.path.abspath(run_dir)).parts[-3:])
+        return Played(label, run.cfg.algo, run.step, play(run, episodes, seed), model)
+
+
+def as_dataset(episodes: list[DatasetEpisode]) -> LabelledDataset:
+    """Episodes in the form `sepoa reward fit`'s measures read."""
+    return LabelledDataset(path=Path("crosscheck"), info={}, episodes=episodes, queries=[])
+
+
+@torch.no_grad()
+def learned_return(model: RewardModel, episode: DatasetEpisode) -> float:
+    r_hat = model.reward(torch.as_tensor(episode.observations[:-1], device=model.device),
+                         torch.as_tensor(episode.actions, device=model.device))
+    return float(r_hat.sum(dtype=torch.float64))
+
+
+def judge(played: list[Played], pairs: int, segment: int, seed: int) -> dict[int, Judgement]:
+    """Each reward model's judgement of every policy, keyed by its run's index in `played`."""
+    everything = as_dataset([e for p in played for e in p.episodes])
+    shared_pairs = true_order_pairs(everything, pairs, segment, seed)
+    true_returns = np.array([e.rewards.sum(dtype=np.float64) for e in everything.episodes])
+    policy_returns = np.array([p.true_return for p in played])
+    judged = {}
+    for i, p in enumerate(played):
+        if p.model is None:
+            continue
+        per_policy = [[learned_return(p.model, e) for e in q.episodes] for q in played]
+        own_pairs = true_order_pairs(as_dataset(p.episodes), pairs, segment, seed)
+        learned = np.array([np.mean(r) for r in per_policy])
+        judged[i] = Judgement(
+            learned_returns=learned, own=i,
+            own_true_rank=1 + int(np.sum(policy_returns > policy_returns[i])),
+            policy_rank_corr=spearman(learned, policy_returns),
+            episode_rank_corr=spearman(np.concatenate(per_policy), true_returns),
+            pair_accuracy=pair_accuracy(p.model, shared_pairs),
+            own_pair_accuracy=pair_accuracy(p.model, own_pairs),
+            step_corr=reward_correlation(p.model, everything))
+    return judged
+
+
+def print_by_variant(played: list[Played], judged: dict[int, Judgement]) -> None:
+    """Each variant's (the label's first part: an arm of a grid) means over its models."""
+    variants: dict[str, list[Judgement]] = {}
+    for i, j in judged.items():
+        variants.setdefault(played[i].label.split("/")[0], []).append(j)
+    print("\nvariant  models  ranks own first  | means: rank corr over policies  | over every "
+          "episode: rank corr  pair acc  step corr  | pair acc on its own policy")
+    for name, js in variants.items():
+        def mean(field: str, js: list[Judgement] = js) -> float:
+            return float(np.mean([getattr(j, field) for j in js]))
+        print(f"{name}  {len(js)}  {sum(j.own_rank == 1 for j in js)}  | "
+              f"{mean('policy_rank_corr'):+.2f}  | {mean('episode_rank_corr'):+.2f}  "
+              f"{mean('pair_accuracy'):.3f}  {mean('step_corr'):+.2f}  | "
+              f"{mean('own_pair_accuracy'):.3f}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run_dirs", nargs="+", metavar="RUN_DIR",
+                        help="run folders holding a checkpoint, of one task")
+    parser.add_argument("--episodes", type=int, default=5,
+                        help="deterministic episodes per policy")
+    parser.add_argument("--pairs", type=int, default=2000,
+                        help="random segment pairs each model orders")
+    parser.add_argument("--segment", type=int, default=50, help="steps per segment")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="the environments' and the pairs' seed")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--csv", help="also write every model's score of every policy here")
+    args = parser.parse_args()
+    if args.episodes < 2 or args.pairs < 1 or args.segment < 1:
+        parser.error("--episodes must be at least 2 (pairs come from two different episodes), "
+                     "--pairs and --segment at least 1")
+    torch.set_num_threads(args.threads)
+
+    played = [load(d, args.episodes, args.seed, args.threads) for d in args.run_dirs]
+    tasks = {p.episodes[0].observations.shape[1] for p in played}
+    if len(tasks) > 1:
+        raise SystemExit("the runs' observations differ in size: give runs of one task")
+    if min(e.length for p in played for e in p.episodes) < args.segment:
+        raise SystemExit(f"an episode is shorter than --segment {args.segment}")
+    judged = judge(played, args.pairs, args.segment, args.seed)
+
+    by_truth = np.argsort([-p.true_return for p in played], kind="stable")
+    print(f"{len(played)} policies, {args.episodes} episodes each; true return, best first:")
+    for rank, i in enumerate(by_truth, 1):
+        p = played[i]
+        print(f"  {rank:2d}. {p.label}  ({p.algo}, step {p.step})  {p.true_return:.1f}")
+    print(f"\nreward model of  | its own policy's rank of {len(played)}: by its r_hat, by the "
+          "other models' (median), by truth  | favourite (its true return)  | rank corr over "
+          "policies  | over every episode: rank corr  pair acc  step corr  | pair acc on its own "
+          "policy")
+    for i, j in judged.items():
+        fav = played[j.favourite]
+        others = [k.rank_of(i) for m, k in judged.items() if m != i]
+        by_others = f"{np.median(others):4.1f}" if others else "   -"
+        print(f"{played[i].label}  | {j.own_rank:2d}  {by_others}  {j.own_true_rank:2d}  | "
+              f"{fav.label} "
+              f"({fav.true_return:.1f})  | {j.policy_rank_corr:+.2f}  | "
+              f"{j.episode_rank_corr:+.2f}  {j.pair_accuracy:.3f}  {j.step_corr:+.2f}  | "
+              f"{j.own_pair_accuracy:.3f}", flush=True)
+    print_by_variant(played, judged)
+    if args.csv:
+        with open(args.csv, "w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(["model", "policy", "policy_algo", "learned_return", "true_return"])
+            for i, j in judged.items():
+                for k, q in enumerate(played):
+                    writer.writerow([played[i].label, q.label, q.algo,
+                                     f"{j.learned_returns[k]:.6g}", f"{q.true_return:.6g}"])
+
+
+if __name__ == "__main__":
+    main()

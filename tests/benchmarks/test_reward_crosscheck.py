@@ -1,0 +1,133 @@
+"""benchmarks/reward_crosscheck.py: every run's reward model judges every run's policy."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+import sys
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
+
+import reward_crosscheck  # noqa: E402
+
+from runvocab.config import build_config  # noqa: E402
+from trainer.envs import make_env  # noqa: E402
+from trainer.loop import TrainingRun  # noqa: E402
+
+
+def _digests(folder) -> dict[str, str]:
+    return {name: hashlib.sha256((folder / name).read_bytes()).hexdigest()
+            for name in sorted(os.listdir(folder)) if (folder / name).is_file()}
+
+
+def _train(root, variant: str, algo: str, steps: int) -> tuple:
+    folder = root / variant / "eps0.3" / "s0"
+    cfg = build_config("dmc:cheetah_run", "tiny", {
+        "algo": algo, "steps": steps, "threads": 1, "teacher.eps": 0.3, "run_dir": str(folder)})
+    run = TrainingRun(cfg, progress=False)
+    run.train()
+    return folder, run
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """A tiny PEBBLE run past its first round and a tiny SAC oracle, with their checkpoints."""
+    root = tmp_path_factory.mktemp("crosscheck")
+    return _train(root, "PEBBLE", "pebble", 600), _train(root, "SAC", "sac", 400)
+
+
+def test_each_policy_plays_as_the_loop_evaluates_it_and_the_runs_are_only_read(runs):
+    (pebble_dir, pebble), (sac_dir, _) = runs
+    before = {d: _digests(d) for d in (pebble_dir, sac_dir)}
+    played = [reward_crosscheck.load(str(d), episodes=2, seed=5, threads=1)
+              for d in (pebble_dir, sac_dir)]
+    assert {d: _digests(d) for d in (pebble_dir, sac_dir)} == before
+
+    assert [(p.label, p.algo, p.step) for p in played] == [
+        ("PEBBLE/eps0.3/s0", "pebble", 600), ("SAC/eps0.3/s0", "sac", 400)]
+    assert played[0].model is not None and played[1].model is None
+    for e in played[0].episodes:
+        assert e.observations.shape == (201, 17) and e.actions.shape == (200, 6)
+        assert e.rewards.shape == (200,)
+
+    # The loop's own evaluation of the same policy: two episodes on a fresh env of the seed.
+    pebble.cfg = dataclasses.replace(pebble.cfg, eval_episodes=2)
+    pebble.eval_env = make_env(pebble.cfg.task, 5, pebble.cfg.episode_length or None)
+    assert played[0].true_return == pytest.approx(pebble.evaluate()["return"], rel=1e-6)
+
+
+def test_a_models_learned_return_sums_r_hat_over_the_episode(runs, monkeypatch):
+    (pebble_dir, _), _ = runs
+    played = reward_crosscheck.load(str(pebble_dir), episodes=2, seed=0, threads=1)
+    monkeypatch.setattr(played.model, "reward", lambda obs, action: action[:, 0] + 2)
+    episode = played.episodes[1]
+    assert reward_crosscheck.learned_return(played.model, episode) == pytest.approx(
+        float(episode.actions[:, 0].astype(np.float64).sum() + 2 * 200), rel=1e-5)
+
+
+def test_judging_ranks_by_the_models_scores_and_the_truth(runs, monkeypatch):
+    (pebble_dir, _), (sac_dir, _) = runs
+    played = [reward_crosscheck.load(str(d), episodes=2, seed=0, threads=1)
+              for d in (pebble_dir, sac_dir)]
+    model = played[0].model
+    # A model whose reward is minus the ninth observation: its scores are known by hand.
+    monkeypatch.setattr(model, "reward", lambda obs, action: -obs[:, 8])
+    judged = reward_crosscheck.judge(played, pairs=50, segment=20, seed=0)
+    assert list(judged) == [0]  # the oracle has no reward model
+    j = judged[0]
+    by_hand = [np.mean([-e.observations[:-1, 8].astype(np.float64).sum() for e in p.episodes])
+               for p in played]
+    np.testing.assert_allclose(j.learned_returns, by_hand, rtol=1e-5)
+    assert j.own_rank == (1 if by_hand[0] >= by_hand[1] else 2)
+    assert j.favourite == int(np.argmax(by_hand))
+    truth = [p.true_return for p in played]
+    assert j.own_true_rank == (1 if truth[0] >= truth[1] else 2)
+    assert -1 <= j.episode_rank_corr <= 1 and -1 <= j.step_corr <= 1
+    assert 0 <= j.pair_accuracy <= 1 and 0 <= j.own_pair_accuracy <= 1
+
+
+def test_own_rank_counts_the_policies_scored_above_it():
+    j = reward_crosscheck.Judgement(
+        learned_returns=np.array([3.0, 5.0, 1.0, 3.0]), own=0, own_true_rank=4,
+        policy_rank_corr=0.0, episode_rank_corr=0.0, pair_accuracy=0.5, own_pair_accuracy=0.5,
+        step_corr=0.0)
+    assert j.own_rank == j.rank_of(0) == j.rank_of(3) == 2  # a tie does not rank above it
+    assert j.rank_of(1) == 1 and j.rank_of(2) == 4
+    assert j.favourite == 1
+
+
+def test_the_command_prints_every_model_and_writes_every_score(runs, tmp_path, monkeypatch,
+                                                                capsys):
+    (pebble_dir, _), (sac_dir, _) = runs
+    out = tmp_path / "scores.csv"
+    monkeypatch.setattr(sys, "argv", [
+        "reward_crosscheck.py", str(pebble_dir), str(sac_dir), "--episodes", "2",
+        "--pairs", "30", "--segment", "20", "--csv", str(out)])
+    reward_crosscheck.main()
+    printed = capsys.readouterr().out
+    assert printed.startswith("2 policies, 2 episodes each")
+    assert "\nPEBBLE/eps0.3/s0  | " in printed and "\nSAC/eps0.3/s0  | " not in printed
+    assert "\nPEBBLE  1  " in printed  # the by-variant summary
+    lines = out.read_text().splitlines()
+    assert lines[0] == "model,policy,policy_algo,learned_return,true_return"
+    assert [line.split(",")[:3] for line in lines[1:]] == [
+        ["PEBBLE/eps0.3/s0", "PEBBLE/eps0.3/s0", "pebble"],
+        ["PEBBLE/eps0.3/s0", "SAC/eps0.3/s0", "sac"]]
+
+
+def test_what_it_cannot_judge_is_refused_with_the_reason(runs, tmp_path, monkeypatch):
+    (pebble_dir, _), _ = runs
+    monkeypatch.setattr(sys, "argv", ["reward_crosscheck.py", str(pebble_dir),
+                                      "--episodes", "1"])
+    with pytest.raises(SystemExit):
+        reward_crosscheck.main()
+    monkeypatch.setattr(sys, "argv", ["reward_crosscheck.py", str(pebble_dir), "--episodes",
+                                      "2", "--segment", "500"])
+    with pytest.raises(SystemExit, match="an episode is shorter than --segment 500"):
+        reward_crosscheck.main()
+    with pytest.raises(SystemExit, match="no checkpoint.pt"):
+        reward_crosscheck.load(str(tmp_path), episodes=2, seed=0, threads=1)
