@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import os
 import sys
 import tempfile
@@ -66,6 +67,8 @@ class Played:
     episodes: list[DatasetEpisode]
     model: RewardModel | None
     """None for the SAC oracle, which learns from the true reward"""
+    refitted: RewardModel | None = None
+    """with --refit: a fresh model on the run's own labels, which its policy never trained on"""
 
     @property
     def true_return(self) -> float:
@@ -88,6 +91,8 @@ class Judgement:
     pair_accuracy: float
     own_pair_accuracy: float
     step_corr: float
+    refitted_rank: int | None = None
+    """where a fresh model on the same labels (--refit) ranks the run's own policy"""
 
     def rank_of(self, policy: int) -> int:
         """1 + the policies this model scores above `policy`"""
@@ -126,12 +131,29 @@ def play(run: TrainingRun, episodes: int, seed: int) -> list[DatasetEpisode]:
     return played
 
 
-def load(run_dir: str, episodes: int, seed: int, threads: int) -> Played:
+def refit(run: TrainingRun, feedback: PreferenceFeedback, seed: int) -> RewardModel:
+    """A fresh reward model (initialised from `seed`) trained once on every label the run holds,
+    with the run's reward configuration: SURF's crops, not its unlabelled pairs, which come from
+    the run's pool as each round closed."""
+    cfg = dataclasses.replace(run.cfg.reward, init_from="")
+    model = RewardModel(run.env.obs_dim, run.env.action_dim, cfg, torch.device("cpu"), seed)
+    model.train_round(feedback.pairs)
+    return model
+
+
+def load(run_dir: str, episodes: int, seed: int, threads: int,
+         refit_seed: int | None = None) -> Played:
+    """`refit_seed`: also fit a fresh model on the run's labels, initialised from it."""
     with tempfile.TemporaryDirectory() as into:
         run = resume_copy(run_dir, into, threads)
-        model = run.feedback.model if isinstance(run.feedback, PreferenceFeedback) else None
+        feedback = run.feedback if isinstance(run.feedback, PreferenceFeedback) else None
         label = "/".join(Path(os.path.abspath(run_dir)).parts[-3:])
-        return Played(label, run.cfg.algo, run.step, play(run, episodes, seed), model)
+        played = play(run, episodes, seed)
+        refitted = None
+        if feedback is not None and refit_seed is not None:
+            refitted = refit(run, feedback, refit_seed)
+        return Played(label, run.cfg.algo, run.step, played,
+                      feedback.model if feedback else None, refitted)
 
 
 def as_dataset(episodes: list[DatasetEpisode]) -> LabelledDataset:
@@ -159,8 +181,13 @@ def judge(played: list[Played], pairs: int, segment: int, seed: int) -> dict[int
         per_policy = [[learned_return(p.model, e) for e in q.episodes] for q in played]
         own_pairs = true_order_pairs(as_dataset(p.episodes), pairs, segment, seed)
         learned = np.array([np.mean(r) for r in per_policy])
+        refitted_rank = None
+        if p.refitted is not None:
+            scores = np.array([np.mean([learned_return(p.refitted, e) for e in q.episodes])
+                               for q in played])
+            refitted_rank = 1 + int(np.sum(scores > scores[i]))
         judged[i] = Judgement(
-            learned_returns=learned, own=i,
+            learned_returns=learned, own=i, refitted_rank=refitted_rank,
             own_true_rank=1 + int(np.sum(policy_returns > policy_returns[i])),
             policy_rank_corr=spearman(learned, policy_returns),
             episode_rank_corr=spearman(np.concatenate(per_policy), true_returns),
@@ -199,6 +226,10 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0,
                         help="the environments' and the pairs' seed")
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--refit", type=int, metavar="SEED",
+                        help="also train a fresh reward model on each run's labels, initialised "
+                             "from SEED, and say where it ranks the run's own policy (up to the "
+                             "run's max_epochs passes over every label: minutes a run on a CPU)")
     parser.add_argument("--csv", help="also write every model's score of every policy here")
     args = parser.parse_args()
     if args.episodes < 2 or args.pairs < 1 or args.segment < 1:
@@ -206,7 +237,8 @@ def main() -> None:
                      "--pairs and --segment at least 1")
     torch.set_num_threads(args.threads)
 
-    played = [load(d, args.episodes, args.seed, args.threads) for d in args.run_dirs]
+    played = [load(d, args.episodes, args.seed, args.threads, args.refit)
+              for d in args.run_dirs]
     tasks = {p.episodes[0].observations.shape[1] for p in played}
     if len(tasks) > 1:
         raise SystemExit("the runs' observations differ in size: give runs of one task")
@@ -219,15 +251,17 @@ def main() -> None:
     for rank, i in enumerate(by_truth, 1):
         p = played[i]
         print(f"  {rank:2d}. {p.label}  ({p.algo}, step {p.step})  {p.true_return:.1f}")
-    print(f"\nreward model of  | its own policy's rank of {len(played)}: by its r_hat, by the "
-          "other models' (median), by truth  | favourite (its true return)  | rank corr over "
-          "policies  | over every episode: rank corr  pair acc  step corr  | pair acc on its own "
-          "policy")
+    refitted = " (by a fresh model on its labels)" if args.refit is not None else ""
+    print(f"\nreward model of  | its own policy's rank of {len(played)}: by its r_hat{refitted}, "
+          "by the other models' (median), by truth  | favourite (its true return)  | rank corr "
+          "over policies  | over every episode: rank corr  pair acc  step corr  | pair acc on "
+          "its own policy")
     for i, j in judged.items():
         fav = played[j.favourite]
         others = [k.rank_of(i) for m, k in judged.items() if m != i]
         by_others = f"{np.median(others):4.1f}" if others else "   -"
-        print(f"{played[i].label}  | {j.own_rank:2d}  {by_others}  {j.own_true_rank:2d}  | "
+        again = f" ({j.refitted_rank:2d})" if j.refitted_rank is not None else ""
+        print(f"{played[i].label}  | {j.own_rank:2d}{again}  {by_others}  {j.own_true_rank:2d}  | "
               f"{fav.label} "
               f"({fav.true_return:.1f})  | {j.policy_rank_corr:+.2f}  | "
               f"{j.episode_rank_corr:+.2f}  {j.pair_accuracy:.3f}  {j.step_corr:+.2f}  | "

@@ -9,6 +9,7 @@ import sys
 
 import numpy as np
 import pytest
+import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
 
@@ -17,6 +18,7 @@ import reward_crosscheck  # noqa: E402
 from runvocab.config import build_config  # noqa: E402
 from trainer.envs import make_env  # noqa: E402
 from trainer.loop import TrainingRun  # noqa: E402
+from trainer.reward_model import RewardModel  # noqa: E402
 
 
 def _digests(folder) -> dict[str, str]:
@@ -131,3 +133,25 @@ def test_what_it_cannot_judge_is_refused_with_the_reason(runs, tmp_path, monkeyp
         reward_crosscheck.main()
     with pytest.raises(SystemExit, match="no checkpoint.pt"):
         reward_crosscheck.load(str(tmp_path), episodes=2, seed=0, threads=1)
+
+
+def test_a_refit_trains_a_fresh_model_on_the_runs_own_labels(runs, monkeypatch):
+    (pebble_dir, _), (sac_dir, _) = runs
+    played = [reward_crosscheck.load(str(d), episodes=2, seed=0, threads=1, refit_seed=3)
+              for d in (pebble_dir, sac_dir)]
+    refitted, model = played[0].refitted, played[0].model
+    assert refitted is not None and model is not None and played[1].refitted is None
+
+    untrained = RewardModel(17, 6, refitted.cfg, torch.device("cpu"), 3)
+    again = reward_crosscheck.load(str(pebble_dir), episodes=2, seed=0, threads=1,
+                                   refit_seed=3).refitted
+    for mine, fresh, same in zip(refitted.ensemble.parameters(), untrained.ensemble.parameters(),
+                                 again.ensemble.parameters(), strict=True):
+        assert not torch.equal(mine, fresh)  # it trained
+        assert torch.equal(mine, same)  # seeded
+
+    # Its rank of the run's own policy comes from its own scores, not the run's model's.
+    monkeypatch.setattr(model, "reward", lambda obs, action: obs[:, 8])
+    monkeypatch.setattr(refitted, "reward", lambda obs, action: -obs[:, 8])
+    j = reward_crosscheck.judge(played, pairs=20, segment=20, seed=0)[0]
+    assert {j.own_rank, j.refitted_rank} == {1, 2}
