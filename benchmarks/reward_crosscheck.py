@@ -50,11 +50,12 @@ from run_copy import resume_copy  # noqa: E402
 from skill_choice import spearman  # noqa: E402
 
 from labelqueue.dataset import DatasetEpisode, LabelledDataset  # noqa: E402
+from runvocab.config import RewardConfig  # noqa: E402
 from trainer.envs import make_env  # noqa: E402
 from trainer.feedback import PreferenceFeedback  # noqa: E402
 from trainer.loop import TrainingRun  # noqa: E402
 from trainer.reward_fit import pair_accuracy, reward_correlation, true_order_pairs  # noqa: E402
-from trainer.reward_model import RewardModel  # noqa: E402
+from trainer.reward_model import LabelledPairs, RewardModel  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -69,6 +70,13 @@ class Played:
     """None for the SAC oracle, which learns from the true reward"""
     refitted: RewardModel | None = None
     """with --refit: a fresh model on the run's own labels, which its policy never trained on"""
+    labels: LabelledPairs | None = None
+    reward_cfg: RewardConfig | None = None
+
+    @property
+    def variant(self) -> str:
+        """the label's first part: the run's arm in a grid"""
+        return self.label.split("/")[0]
 
     @property
     def true_return(self) -> float:
@@ -153,7 +161,32 @@ def load(run_dir: str, episodes: int, seed: int, threads: int,
         if feedback is not None and refit_seed is not None:
             refitted = refit(run, feedback, refit_seed)
         return Played(label, run.cfg.algo, run.step, played,
-                      feedback.model if feedback else None, refitted)
+                      feedback.model if feedback else None, refitted,
+                      feedback.pairs if feedback else None, run.cfg.reward)
+
+
+def pooled_model(played: list[Played], variants: set[str], seed: int) -> tuple[RewardModel,
+                                                                             list[Played]]:
+    """A fresh model (initialised from `seed`) trained once on the labels of every run of
+    `variants` (all runs with labels when empty) together, with the first such run's reward
+    configuration; and those runs."""
+    sources = [p for p in played if p.labels is not None and (not variants or
+                                                               p.variant in variants)]
+    if not sources:
+        raise SystemExit(f"--pooled-from {','.join(sorted(variants))}: no such run has labels "
+                         f"(variants: {', '.join(sorted({p.variant for p in played}))})")
+    pairs = LabelledPairs()
+    for p in sources:
+        assert p.labels is not None
+        for s0, s1, y in zip(p.labels.seg0, p.labels.seg1, p.labels.targets, strict=True):
+            pairs.add(s0, s1, y)
+    assert sources[0].reward_cfg is not None
+    cfg = dataclasses.replace(sources[0].reward_cfg, init_from="")
+    first = sources[0].episodes[0]
+    model = RewardModel(first.observations.shape[1], first.actions.shape[1], cfg,
+                        torch.device("cpu"), seed)
+    model.train_round(pairs)
+    return model, sources
 
 
 def as_dataset(episodes: list[DatasetEpisode]) -> LabelledDataset:
@@ -213,6 +246,26 @@ def print_by_variant(played: list[Played], judged: dict[int, Judgement]) -> None
               f"{mean('own_pair_accuracy'):.3f}")
 
 
+def print_pooled(played: list[Played], judged: dict[int, Judgement], model: RewardModel,
+                 sources: list[Played], pairs: int, segment: int, seed: int) -> None:
+    """Where a model of several runs' labels ranks every policy, against the truth and each
+    policy's own model."""
+    everything = as_dataset([e for p in played for e in p.episodes])
+    scores = np.array([np.mean([learned_return(model, e) for e in p.episodes]) for p in played])
+    truth = np.array([p.true_return for p in played])
+    accuracy = pair_accuracy(model, true_order_pairs(everything, pairs, segment, seed))
+    print(f"\na fresh model on the labels of {len(sources)} runs "
+          f"({', '.join(sorted({p.variant for p in sources}))}; "
+          f"{sum(len(p.labels or ()) for p in sources)} labels): rank corr over policies "
+          f"{spearman(scores, truth):+.2f}, pair acc {accuracy:.3f}")
+    print("policy  | rank by truth  by the pooled model  by its own model  | its labels pooled")
+    for i in np.argsort(-truth, kind="stable"):
+        own = f"{judged[i].own_rank:2d}" if i in judged else " -"
+        print(f"{played[i].label}  | {1 + int(np.sum(truth > truth[i])):2d}  "
+              f"{1 + int(np.sum(scores > scores[i])):2d}  {own}  | "
+              f"{'yes' if any(p is played[i] for p in sources) else 'no'}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -230,6 +283,12 @@ def main() -> None:
                         help="also train a fresh reward model on each run's labels, initialised "
                              "from SEED, and say where it ranks the run's own policy (up to the "
                              "run's max_epochs passes over every label: minutes a run on a CPU)")
+    parser.add_argument("--pooled", type=int, metavar="SEED",
+                        help="also train one fresh reward model on the labels of several runs "
+                             "together, initialised from SEED, and rank every policy by it")
+    parser.add_argument("--pooled-from", default="", metavar="VARIANTS",
+                        help="the variants (a run label's first part, comma-separated) whose "
+                             "runs' labels --pooled trains on; default: every run with labels")
     parser.add_argument("--csv", help="also write every model's score of every policy here")
     args = parser.parse_args()
     if args.episodes < 2 or args.pairs < 1 or args.segment < 1:
@@ -267,6 +326,10 @@ def main() -> None:
               f"{j.episode_rank_corr:+.2f}  {j.pair_accuracy:.3f}  {j.step_corr:+.2f}  | "
               f"{j.own_pair_accuracy:.3f}", flush=True)
     print_by_variant(played, judged)
+    if args.pooled is not None:
+        variants = {v for v in args.pooled_from.split(",") if v}
+        print_pooled(played, judged, *pooled_model(played, variants, args.pooled), args.pairs,
+                     args.segment, args.seed)
     if args.csv:
         with open(args.csv, "w", newline="") as f:
             writer = csv.writer(f)

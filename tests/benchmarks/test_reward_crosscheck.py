@@ -155,3 +155,33 @@ def test_a_refit_trains_a_fresh_model_on_the_runs_own_labels(runs, monkeypatch):
     monkeypatch.setattr(refitted, "reward", lambda obs, action: -obs[:, 8])
     j = reward_crosscheck.judge(played, pairs=20, segment=20, seed=0)[0]
     assert {j.own_rank, j.refitted_rank} == {1, 2}
+
+
+def test_a_pooled_model_trains_on_the_chosen_variants_labels(runs, monkeypatch, capsys):
+    (pebble_dir, _), (sac_dir, _) = runs
+    played = [reward_crosscheck.load(str(d), episodes=2, seed=0, threads=1)
+              for d in (pebble_dir, sac_dir)]
+    assert played[0].labels is not None and len(played[0].labels) > 0
+    assert played[1].labels is None  # the oracle has none
+
+    model, sources = reward_crosscheck.pooled_model(played, {"PEBBLE"}, seed=4)
+    assert sources == [played[0]]
+    untrained = RewardModel(17, 6, model.cfg, torch.device("cpu"), 4)
+    assert not all(torch.equal(a, b) for a, b in zip(
+        model.ensemble.parameters(), untrained.ensemble.parameters(), strict=True))
+    with pytest.raises(SystemExit, match="--pooled-from SURF: no such run has labels"):
+        reward_crosscheck.pooled_model(played, {"SURF"}, seed=4)
+
+    # Its ranks come from its own scores: minus the ninth observation here.
+    monkeypatch.setattr(model, "reward", lambda obs, action: -obs[:, 8])
+    judged = reward_crosscheck.judge(played, pairs=20, segment=20, seed=0)
+    reward_crosscheck.print_pooled(played, judged, model, sources, 20, 20, 0)
+    rows = capsys.readouterr().out.splitlines()[-2:]
+    scores = [np.mean([-e.observations[:-1, 8].astype(np.float64).sum() for e in p.episodes])
+              for p in played]
+    pooled_ranks = {p.label: 1 + int(np.sum(np.array(scores) > s))
+                    for p, s in zip(played, scores, strict=True)}
+    for row in rows:
+        label, rest = row.split("  | ", 1)
+        assert int(rest.split()[1]) == pooled_ranks[label]
+        assert rest.endswith("yes" if label.startswith("PEBBLE") else "no")
