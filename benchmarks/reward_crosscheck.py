@@ -139,37 +139,42 @@ def play(run: TrainingRun, episodes: int, seed: int) -> list[DatasetEpisode]:
     return played
 
 
-def refit(run: TrainingRun, feedback: PreferenceFeedback, seed: int) -> RewardModel:
-    """A fresh reward model (initialised from `seed`) trained once on every label the run holds,
-    with the run's reward configuration: SURF's crops, not its unlabelled pairs, which come from
-    the run's pool as each round closed."""
-    cfg = dataclasses.replace(run.cfg.reward, init_from="")
-    model = RewardModel(run.env.obs_dim, run.env.action_dim, cfg, torch.device("cpu"), seed)
-    model.train_round(feedback.pairs)
+def fresh_model(pairs: LabelledPairs, cfg: RewardConfig, like: DatasetEpisode,
+                seed: int) -> RewardModel:
+    """A reward model initialised from `seed` and trained once on `pairs` with `cfg`: SURF's
+    crops where `cfg` has them, not its unlabelled pairs, which a run draws from its pool as each
+    round closes. `like`: an episode of the task, for the model's input sizes."""
+    with torch.random.fork_rng():  # the initial weights come from torch's global stream
+        torch.manual_seed(seed)
+        model = RewardModel(like.observations.shape[1], like.actions.shape[1],
+                            dataclasses.replace(cfg, init_from=""), torch.device("cpu"), seed)
+    model.train_round(pairs)
     return model
 
 
-def load(run_dir: str, episodes: int, seed: int, threads: int,
-         refit_seed: int | None = None) -> Played:
-    """`refit_seed`: also fit a fresh model on the run's labels, initialised from it."""
+def load(run_dir: str, episodes: int, seed: int, threads: int) -> Played:
     with tempfile.TemporaryDirectory() as into:
         run = resume_copy(run_dir, into, threads)
         feedback = run.feedback if isinstance(run.feedback, PreferenceFeedback) else None
         label = "/".join(Path(os.path.abspath(run_dir)).parts[-3:])
-        played = play(run, episodes, seed)
-        refitted = None
-        if feedback is not None and refit_seed is not None:
-            refitted = refit(run, feedback, refit_seed)
-        return Played(label, run.cfg.algo, run.step, played,
-                      feedback.model if feedback else None, refitted,
-                      feedback.pairs if feedback else None, run.cfg.reward)
+        return Played(label, run.cfg.algo, run.step, play(run, episodes, seed),
+                      feedback.model if feedback else None,
+                      labels=feedback.pairs if feedback else None, reward_cfg=run.cfg.reward)
+
+
+def refit(p: Played, seed: int) -> Played:
+    """`p` with a fresh model on its own labels (none for the oracle)."""
+    if p.labels is None or p.reward_cfg is None:
+        return p
+    return dataclasses.replace(p, refitted=fresh_model(p.labels, p.reward_cfg, p.episodes[0],
+                                                       seed))
 
 
 def pooled_model(played: list[Played], variants: set[str], seed: int) -> tuple[RewardModel,
                                                                              list[Played]]:
-    """A fresh model (initialised from `seed`) trained once on the labels of every run of
-    `variants` (all runs with labels when empty) together, with the first such run's reward
-    configuration; and those runs."""
+    """A fresh model trained once on the labels of every run of `variants` (all runs with
+    labels when empty) together, with the first such run's reward configuration; and those
+    runs."""
     sources = [p for p in played if p.labels is not None and (not variants or
                                                                p.variant in variants)]
     if not sources:
@@ -181,12 +186,7 @@ def pooled_model(played: list[Played], variants: set[str], seed: int) -> tuple[R
         for s0, s1, y in zip(p.labels.seg0, p.labels.seg1, p.labels.targets, strict=True):
             pairs.add(s0, s1, y)
     assert sources[0].reward_cfg is not None
-    cfg = dataclasses.replace(sources[0].reward_cfg, init_from="")
-    first = sources[0].episodes[0]
-    model = RewardModel(first.observations.shape[1], first.actions.shape[1], cfg,
-                        torch.device("cpu"), seed)
-    model.train_round(pairs)
-    return model, sources
+    return fresh_model(pairs, sources[0].reward_cfg, sources[0].episodes[0], seed), sources
 
 
 def as_dataset(episodes: list[DatasetEpisode]) -> LabelledDataset:
@@ -296,8 +296,9 @@ def main() -> None:
                      "--pairs and --segment at least 1")
     torch.set_num_threads(args.threads)
 
-    played = [load(d, args.episodes, args.seed, args.threads, args.refit)
-              for d in args.run_dirs]
+    played = [load(d, args.episodes, args.seed, args.threads) for d in args.run_dirs]
+    if args.refit is not None:
+        played = [refit(p, args.refit) for p in played]
     tasks = {p.episodes[0].observations.shape[1] for p in played}
     if len(tasks) > 1:
         raise SystemExit("the runs' observations differ in size: give runs of one task")

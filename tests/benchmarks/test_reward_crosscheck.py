@@ -120,6 +120,15 @@ def test_the_command_prints_every_model_and_writes_every_score(runs, tmp_path, m
         ["PEBBLE/eps0.3/s0", "PEBBLE/eps0.3/s0", "pebble"],
         ["PEBBLE/eps0.3/s0", "SAC/eps0.3/s0", "sac"]]
 
+    monkeypatch.setattr(sys, "argv", [
+        "reward_crosscheck.py", str(pebble_dir), str(sac_dir), "--episodes", "2",
+        "--pairs", "30", "--segment", "20", "--refit", "2", "--pooled", "2"])
+    reward_crosscheck.main()
+    printed = capsys.readouterr().out
+    row = next(line for line in printed.splitlines() if line.startswith("PEBBLE/eps0.3/s0  | "))
+    assert row.split("|")[1].split()[1].startswith("(")  # the refit's rank beside the model's
+    assert "\na fresh model on the labels of 1 runs (PEBBLE; " in printed
+
 
 def test_what_it_cannot_judge_is_refused_with_the_reason(runs, tmp_path, monkeypatch):
     (pebble_dir, _), _ = runs
@@ -137,14 +146,16 @@ def test_what_it_cannot_judge_is_refused_with_the_reason(runs, tmp_path, monkeyp
 
 def test_a_refit_trains_a_fresh_model_on_the_runs_own_labels(runs, monkeypatch):
     (pebble_dir, _), (sac_dir, _) = runs
-    played = [reward_crosscheck.load(str(d), episodes=2, seed=0, threads=1, refit_seed=3)
+    played = [reward_crosscheck.refit(reward_crosscheck.load(str(d), episodes=2, seed=0,
+                                                             threads=1), seed=3)
               for d in (pebble_dir, sac_dir)]
     refitted, model = played[0].refitted, played[0].model
     assert refitted is not None and model is not None and played[1].refitted is None
 
-    untrained = RewardModel(17, 6, refitted.cfg, torch.device("cpu"), 3)
-    again = reward_crosscheck.load(str(pebble_dir), episodes=2, seed=0, threads=1,
-                                   refit_seed=3).refitted
+    with torch.random.fork_rng():  # the same initial weights, untrained
+        torch.manual_seed(3)
+        untrained = RewardModel(17, 6, refitted.cfg, torch.device("cpu"), 3)
+    again = reward_crosscheck.refit(played[0], seed=3).refitted
     for mine, fresh, same in zip(refitted.ensemble.parameters(), untrained.ensemble.parameters(),
                                  again.ensemble.parameters(), strict=True):
         assert not torch.equal(mine, fresh)  # it trained
@@ -166,7 +177,9 @@ def test_a_pooled_model_trains_on_the_chosen_variants_labels(runs, monkeypatch, 
 
     model, sources = reward_crosscheck.pooled_model(played, {"PEBBLE"}, seed=4)
     assert sources == [played[0]]
-    untrained = RewardModel(17, 6, model.cfg, torch.device("cpu"), 4)
+    with torch.random.fork_rng():  # the same initial weights, untrained
+        torch.manual_seed(4)
+        untrained = RewardModel(17, 6, model.cfg, torch.device("cpu"), 4)
     assert not all(torch.equal(a, b) for a, b in zip(
         model.ensemble.parameters(), untrained.ensemble.parameters(), strict=True))
     with pytest.raises(SystemExit, match="--pooled-from SURF: no such run has labels"):
