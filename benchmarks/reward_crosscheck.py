@@ -103,8 +103,7 @@ class Judgement:
     """where a fresh model on the same labels (--refit) ranks the run's own policy"""
 
     def rank_of(self, policy: int) -> int:
-        """1 + the policies this model scores above `policy`"""
-        return 1 + int(np.sum(self.learned_returns > self.learned_returns[policy]))
+        return rank(self.learned_returns, policy)
 
     @property
     def own_rank(self) -> int:
@@ -113,6 +112,11 @@ class Judgement:
     @property
     def favourite(self) -> int:
         return int(np.argmax(self.learned_returns))
+
+
+def rank(scores: np.ndarray, i: int) -> int:
+    """1 + the entries of `scores` above entry `i` (a tie does not rank above it)"""
+    return 1 + int(np.sum(scores > scores[i]))
 
 
 def play(run: TrainingRun, episodes: int, seed: int) -> list[DatasetEpisode]:
@@ -201,6 +205,11 @@ def learned_return(model: RewardModel, episode: DatasetEpisode) -> float:
     return float(r_hat.sum(dtype=torch.float64))
 
 
+def policy_scores(model: RewardModel, played: list[Played]) -> np.ndarray:
+    """(policies,) the model's mean summed r_hat over each policy's episodes"""
+    return np.array([np.mean([learned_return(model, e) for e in p.episodes]) for p in played])
+
+
 def judge(played: list[Played], pairs: int, segment: int, seed: int) -> dict[int, Judgement]:
     """Each reward model's judgement of every policy, keyed by its run's index in `played`."""
     everything = as_dataset([e for p in played for e in p.episodes])
@@ -216,12 +225,10 @@ def judge(played: list[Played], pairs: int, segment: int, seed: int) -> dict[int
         learned = np.array([np.mean(r) for r in per_policy])
         refitted_rank = None
         if p.refitted is not None:
-            scores = np.array([np.mean([learned_return(p.refitted, e) for e in q.episodes])
-                               for q in played])
-            refitted_rank = 1 + int(np.sum(scores > scores[i]))
+            refitted_rank = rank(policy_scores(p.refitted, played), i)
         judged[i] = Judgement(
             learned_returns=learned, own=i, refitted_rank=refitted_rank,
-            own_true_rank=1 + int(np.sum(policy_returns > policy_returns[i])),
+            own_true_rank=rank(policy_returns, i),
             policy_rank_corr=spearman(learned, policy_returns),
             episode_rank_corr=spearman(np.concatenate(per_policy), true_returns),
             pair_accuracy=pair_accuracy(p.model, shared_pairs),
@@ -234,7 +241,7 @@ def print_by_variant(played: list[Played], judged: dict[int, Judgement]) -> None
     """Each variant's (the label's first part: an arm of a grid) means over its models."""
     variants: dict[str, list[Judgement]] = {}
     for i, j in judged.items():
-        variants.setdefault(played[i].label.split("/")[0], []).append(j)
+        variants.setdefault(played[i].variant, []).append(j)
     print("\nvariant  models  ranks own first  | means: rank corr over policies  | over every "
           "episode: rank corr  pair acc  step corr  | pair acc on its own policy")
     for name, js in variants.items():
@@ -251,7 +258,7 @@ def print_pooled(played: list[Played], judged: dict[int, Judgement], model: Rewa
     """Where a model of several runs' labels ranks every policy, against the truth and each
     policy's own model."""
     everything = as_dataset([e for p in played for e in p.episodes])
-    scores = np.array([np.mean([learned_return(model, e) for e in p.episodes]) for p in played])
+    scores = policy_scores(model, played)
     truth = np.array([p.true_return for p in played])
     accuracy = pair_accuracy(model, true_order_pairs(everything, pairs, segment, seed))
     print(f"\na fresh model on the labels of {len(sources)} runs "
@@ -261,8 +268,7 @@ def print_pooled(played: list[Played], judged: dict[int, Judgement], model: Rewa
     print("policy  | rank by truth  by the pooled model  by its own model  | its labels pooled")
     for i in np.argsort(-truth, kind="stable"):
         own = f"{judged[i].own_rank:2d}" if i in judged else " -"
-        print(f"{played[i].label}  | {1 + int(np.sum(truth > truth[i])):2d}  "
-              f"{1 + int(np.sum(scores > scores[i])):2d}  {own}  | "
+        print(f"{played[i].label}  | {rank(truth, i):2d}  {rank(scores, i):2d}  {own}  | "
               f"{'yes' if any(p is played[i] for p in sources) else 'no'}")
 
 
@@ -297,13 +303,17 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     played = [load(d, args.episodes, args.seed, args.threads) for d in args.run_dirs]
-    if args.refit is not None:
-        played = [refit(p, args.refit) for p in played]
     tasks = {p.episodes[0].observations.shape[1] for p in played}
     if len(tasks) > 1:
         raise SystemExit("the runs' observations differ in size: give runs of one task")
     if min(e.length for p in played for e in p.episodes) < args.segment:
         raise SystemExit(f"an episode is shorter than --segment {args.segment}")
+    if args.refit is not None:  # minutes a run: only once the runs are known to fit together
+        played = [refit(p, args.refit) for p in played]
+    pooled = None  # trained before the judging, so that a --pooled-from typo costs no wait
+    if args.pooled is not None:
+        variants = {v for v in args.pooled_from.split(",") if v}
+        pooled = pooled_model(played, variants, args.pooled)
     judged = judge(played, args.pairs, args.segment, args.seed)
 
     by_truth = np.argsort([-p.true_return for p in played], kind="stable")
@@ -327,10 +337,8 @@ def main() -> None:
               f"{j.episode_rank_corr:+.2f}  {j.pair_accuracy:.3f}  {j.step_corr:+.2f}  | "
               f"{j.own_pair_accuracy:.3f}", flush=True)
     print_by_variant(played, judged)
-    if args.pooled is not None:
-        variants = {v for v in args.pooled_from.split(",") if v}
-        print_pooled(played, judged, *pooled_model(played, variants, args.pooled), args.pairs,
-                     args.segment, args.seed)
+    if pooled is not None:
+        print_pooled(played, judged, *pooled, args.pairs, args.segment, args.seed)
     if args.csv:
         with open(args.csv, "w", newline="") as f:
             writer = csv.writer(f)
