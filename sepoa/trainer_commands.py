@@ -55,9 +55,27 @@ def _pretrain_arguments(p: argparse.ArgumentParser) -> None:
                    type=value_type("skill.pretrain_steps"), help="pretraining environment steps")
     p.add_argument("--out", default=None, help="snapshot file; default "
                    "<skill.snapshot_dir>/<task>-<backend>-<steps>-s<seed>.pt")
+    p.add_argument("--quality-skills", type=integer("a count of skills", low=0), default=50,
+                   metavar="N",
+                   help="beside each snapshot, the task return of N random skills (one "
+                   "deterministic episode each) against N episodes of random actions; 0: none")
+    p.add_argument("--snapshots-at", type=_steps_list, default=(), metavar="STEPS",
+                   help="also write a snapshot (and its quality) at these steps, "
+                   "comma-separated, e.g. 100000,200000,500000")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     # --steps is the pretraining length here, not the online run's.
     add_config_arguments(p, exclude=("steps",))
+
+
+def _steps_list(text: str) -> tuple[int, ...]:
+    try:
+        steps = tuple(int(float(part)) for part in text.split(",") if part.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"takes whole step counts, comma-separated (100000,200000), got {text!r}") from None
+    if not steps or min(steps) < 1:
+        raise argparse.ArgumentTypeError(f"takes positive step counts, got {text!r}")
+    return steps
 
 
 def _run_pretrain(args: argparse.Namespace) -> int:
@@ -71,13 +89,19 @@ def _run_pretrain(args: argparse.Namespace) -> int:
     try:
         cfg = build_config(args.task or "dmc:cheetah_run", args.preset or "paper",
                            overrides_from_args(args))
-        path = pretrain(cfg, out=args.out, progress=not args.no_progress)
+        path = pretrain(cfg, out=args.out, progress=not args.no_progress,
+                        quality_skills=args.quality_skills, snapshots_at=args.snapshots_at)
     except (ValueError, UnknownTaskError, FileExistsError) as err:
         return fail(str(err))
     seconds = time.time() - start
     steps = cfg.skill.pretrain_steps
+    from trainer.skills import quality
+
+    measured = quality.read(path)
     print(json.dumps({"snapshot": path, "steps": steps, "seconds": round(seconds, 1),
-                      "steps_per_second": round(steps / max(seconds, 1e-9), 1)}))
+                      "steps_per_second": round(steps / max(seconds, 1e-9), 1)}
+                     | ({"skill_quality": {k: measured[k] for k in ("skill", "random_actions")}}
+                        if measured else {})))
     return 0
 
 

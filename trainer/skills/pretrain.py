@@ -4,7 +4,10 @@
 backend's intrinsic reward, with a fresh skill every `skill.update_skill_every` steps and at
 every episode start (URLB's schedule). It writes one snapshot and, beside it, a CSV of
 per-episode metrics (the task's own return, for information only; the mean intrinsic reward,
-losses and steps/s). The snapshot is a plain state dict (tensors, numbers, strings; loadable
+losses and steps/s), and the snapshot's skill quality: the task return of 50 random skills
+against uniform random actions (`trainer.skills.quality`, `<snapshot>.quality.json`);
+`snapshots_at` adds snapshots on the way (`intermediate_path`), each with its quality. The
+snapshot is a plain state dict (tensors, numbers, strings; loadable
 with `torch.load(weights_only=True)`, written atomically) holding the task, backend, sizes,
 the configuration used, the agent's weights and the backend's nets, and no path: any number of
 online runs of the task load it with `load_snapshot` and `build_skill_agent`.
@@ -50,6 +53,7 @@ from trainer.skills import (
     SkillBackend,
     SkillReplayBuffer,
     make_skill_backend,
+    quality,
     resolve_skill_config,
 )
 from trainer.skills.common import mean_metrics
@@ -80,7 +84,8 @@ ONLINE_SKILL_FIELDS = (
     "estimator_ensemble", "estimator_hidden_dim", "estimator_hidden_layers", "estimator_lr",
     "estimator_steps", "task_skill_samples", "task_skill_draw", "task_skill_update",
     "initial_rollouts", "reset_critic", "score_spread", "snapshot", "snapshot_dir",
-    "snapshot_seed",
+    "snapshot_seed", "free_initial_rollouts", "estimator_data", "actor", "actor_std",
+    "actor_clip",
 )
 """skill fields only the online phase reads: they leave a pretrained snapshot unchanged"""
 
@@ -214,11 +219,24 @@ class SkillPretraining:
     trains and writes the snapshot."""
 
     def __init__(self, cfg: RunConfig, out: str | None = None, progress: bool = True,
-                 tick: Callable[[int], None] | None = None):
+                 tick: Callable[[int], None] | None = None, quality_skills: int = 50,
+                 snapshots_at: tuple[int, ...] = ()):
         cfg = check_pretrain_config(cfg)
         self.cfg, self.progress = cfg, progress
         self.tick = tick
         """called with the step after every step (a worker heartbeats from it)"""
+        self.quality_skills = quality_skills
+        """random skills whose task return is measured beside each snapshot (0: none)"""
+        if quality_skills and quality_skills < quality.TOP:
+            raise ValueError(f"--quality-skills takes 0 (no measurement) or at least "
+                             f"{quality.TOP}, got {quality_skills}")
+        bad = [s for s in snapshots_at if not 0 < s < cfg.skill.pretrain_steps]
+        if bad:
+            raise ValueError(f"intermediate snapshots must lie between 0 and the pretraining "
+                             f"length {cfg.skill.pretrain_steps}, got {bad}")
+        self.snapshots_at = tuple(sorted(set(snapshots_at)))
+        """steps at which a snapshot is also written, `intermediate_path` (at episode ends:
+        the first episode end at or after each)"""
         self.path = out or default_snapshot_path(cfg)
         if os.path.exists(self.path):
             raise FileExistsError(f"{self.path} exists already; remove it or choose another "
@@ -294,7 +312,7 @@ class SkillPretraining:
 
     def run(self) -> str:
         """Pretrain for `skill.pretrain_steps` steps, save the snapshot, return its path."""
-        cfg, s, env, rng = self.cfg, self.cfg.skill, self.env, self.rng
+        s, env, rng = self.cfg.skill, self.env, self.rng
         os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
         metrics_path = os.path.splitext(self.path)[0] + ".csv"
         if self.resumed_from:
@@ -338,16 +356,36 @@ class SkillPretraining:
                 if updates:
                     bar.set_postfix(r_int=f"{row['intrinsic_reward']:.3f}", refresh=False)
                 updates, episode_return = [], 0.0
+                self._intermediate_snapshots()
                 if self.checkpoints.due(self.step) and self.step < s.pretrain_steps:
                     self._save_progress()  # before the reset, whose RNG draws it keeps
                 obs, new_episode = env.reset(), True
         bar.close()
         env.close()
-        save_snapshot(self.path, cfg, self.agent, self.backend, self.obs_dim, self.action_dim,
-                      self.step)
+        self._snapshot(self.path)
         if os.path.exists(self.progress_file):
             os.remove(self.progress_file)
         return self.path
+
+    def _intermediate_snapshots(self) -> None:
+        """The snapshots due by now that are not written yet (a resumed run wrote some)."""
+        for at in self.snapshots_at:
+            path = intermediate_path(self.path, at)
+            if self.step >= at and not os.path.exists(path):
+                self._snapshot(path)
+
+    def _snapshot(self, path: str) -> None:
+        """Write a snapshot of the agent as it is, and its skill quality beside it."""
+        save_snapshot(path, self.cfg, self.agent, self.backend, self.obs_dim, self.action_dim,
+                      self.step)
+        if not self.quality_skills:
+            return
+        measured = quality.measure(self.agent, self.backend, self.cfg.task, self.cfg.seed,
+                                   self.cfg.episode_length or None, self.quality_skills)
+        quality.write(path, measured, self.step)
+        if self.progress:
+            print(f"{os.path.basename(path)} at {self.step} steps: {quality.line(measured)}",
+                  file=sys.stderr, flush=True)
 
 
 def _differences(saved: dict, ours: dict, prefix: str = "") -> list[str]:
@@ -362,13 +400,22 @@ def _differences(saved: dict, ours: dict, prefix: str = "") -> list[str]:
     return out
 
 
+def intermediate_path(path: str, step: int) -> str:
+    """The snapshot a pretraining bound for `path` writes on the way, at `step`."""
+    root, ext = os.path.splitext(path)
+    return f"{root}-at{step}{ext}"
+
+
 def pretrain(cfg: RunConfig, out: str | None = None, progress: bool = True,
-             tick: Callable[[int], None] | None = None) -> str:
+             tick: Callable[[int], None] | None = None, quality_skills: int = 50,
+             snapshots_at: tuple[int, ...] = ()) -> str:
     """Pretrain skills for `cfg.task` with `cfg.skill`; returns the snapshot's path (`out`, by
     default `default_snapshot_path(cfg)`). Refuses to overwrite an existing snapshot; goes on
     from `<out>.partial` where an unfinished pretraining left one. `tick` is called with the
-    step after every step."""
-    return SkillPretraining(cfg, out, progress, tick).run()
+    step after every step. Beside each snapshot (the final one and those at `snapshots_at`)
+    goes the task return of `quality_skills` random skills against random actions
+    (`trainer.skills.quality`)."""
+    return SkillPretraining(cfg, out, progress, tick, quality_skills, snapshots_at).run()
 
 
 def pretrain_once(cfg: RunConfig, path: str, tick: Callable[[int], None] | None = None,
