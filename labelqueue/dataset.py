@@ -115,7 +115,8 @@ def write_dataset(session: Session, *, run_id: int, clips_root: Path, root: Path
             raise NotFound(f"run {run_id} does not exist")
         info = _run_info(run)
     dataset_id = check_dataset_id(dataset_id or default_dataset_id(info["task"], run_id))
-    final = Path(root) / dataset_id
+    # Absolute: Minari 0.5.4's arrow storage doubles a relative path as it writes the episodes.
+    final = Path(root).absolute() / dataset_id
     if final.exists():
         raise DatasetError(f"{final} already exists; remove it or give another dataset id")
     folder = episodes_dir(clips_root, run_id)

@@ -183,3 +183,16 @@ def test_bad_input_gets_one_line_and_leaves_nothing(trained, capsys):
     other = roots.parent / "other"
     assert main(base + ["--dataset", str(other), "--run", "2"]) == 2
     assert not other.exists()  # not even the folders made for it
+
+
+def test_a_relative_datasets_folder_works_as_the_docs_show_it(trained, tmp_path, monkeypatch,
+                                                              capsys):
+    monkeypatch.chdir(tmp_path)
+    args = [*trained["args"][:5], "--dataset", "datasets", "--run", "1"]
+    assert main(args) == 0, capsys.readouterr().err
+    assert "MINARI_DATASETS_PATH=datasets" in capsys.readouterr().err
+    import minari
+
+    monkeypatch.setenv("MINARI_DATASETS_PATH", "datasets")
+    assert minari.load_dataset(DATASET_ID).total_steps == _load(trained).total_steps
+    assert not (tmp_path / "datasets" / "datasets").exists()
