@@ -337,7 +337,10 @@ def proposition_runs(results: Results) -> pd.DataFrame:
     """The runs whose ensemble the Proposition 1 figure measures: finished, query-selecting,
     with a checkpoint.pt; the lowest seed of each variant."""
     runs = results.runs[(results.runs["state"] == "done") & (results.runs["algo"] != "sac")]
-    runs = runs[[(results.folder / d / "checkpoint.pt").exists() for d in runs["dir"]]]
+    # A boolean Series, not a list: an empty list would select no columns of an empty frame.
+    kept = pd.Series([(results.folder / d / "checkpoint.pt").exists() for d in runs["dir"]],
+                     index=runs.index, dtype=bool)
+    runs = runs[kept]
     return runs.sort_values("seed", kind="stable").drop_duplicates("variant")
 
 

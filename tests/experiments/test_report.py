@@ -550,3 +550,26 @@ def test_bootstrap_intervals_are_the_same_on_every_call() -> None:
     assert preregistered._bootstrap(scores, preregistered._mean, 500) != first
     # ... and the global generator is left where the caller had it.
     assert np.array_equal(np.random.get_state()[1], outside[1])
+
+
+def test_a_grid_whose_query_selecting_runs_have_not_finished_reports_as_partial(
+        tmp_path: Path, capsys) -> None:
+    """Mid-grid, or after a release at a time limit: only the SAC arm is done."""
+    from sepoa.cli import main
+
+    folder = tmp_path / "midway"
+    folder.mkdir()
+    (folder / "spec.toml").write_text(NEW_SPEC)
+    for variant in ("A", "S"):
+        run = folder / "dmc-cheetah_run" / variant / "eps0.3" / "budget100" / "s0"
+        run.mkdir(parents=True)
+        (run / "config.json").write_text(json.dumps(
+            {"feedback": {"budget": 100} | NEW_FEEDBACK[variant]}))
+        _write_csv(run / "eval.csv", "step,return", ["200,1.0"])
+        _write_csv(run / "episodes.csv", "step,episode,return", ["200,0,1.0"])
+        if variant == "S":
+            (run / "done.json").write_text(json.dumps({"step": 600}))
+    assert main(["report", str(folder)]) == 0, capsys.readouterr().err
+    index = (folder / "report" / "report.md").read_text()
+    assert "No finished query-selecting run with a checkpoint.pt: Monte Carlo only." in index
+    assert "6 planned: 1 done, 0 stopped, 1 partial, 0 failed, 4 not started." in index
