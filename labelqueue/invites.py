@@ -404,8 +404,9 @@ def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
             return Progress(labels, None, None, None, counted=labels)
         invite, participant = row
         on_runs = [Label.run_id == invite.run_id] if invite.run_id is not None else []
+        # Practice answers never count toward a target (labelqueue.practice).
         counted = session.scalar(select(func.count(Label.id)).where(
-            *standing, Label.answer.in_(DECISIVE), *on_runs)) or 0
+            *standing, Label.answer.in_(DECISIVE), Label.practice.is_(False), *on_runs)) or 0
         if invite.run_id is not None:
             run = session.get(Run, invite.run_id)
             assert run is not None

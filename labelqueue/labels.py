@@ -31,7 +31,6 @@ from labelqueue.models import (
     UTCDateTime,
     utcnow,
 )
-from labelqueue.practice import practice_step
 from labelqueue.prepared import DriverConnection, Prepared
 from labelqueue.queries import LABELLABLE, one_of
 from labelqueue.transaction import (
@@ -55,6 +54,7 @@ _ASKED = Prepared(select(
     QUERIES.c.run_id,
     QUERIES.c.leased_at,
     QUERIES.c.gold,
+    QUERIES.c.practice,
     _STORED.with_only_columns(LABELS.c.id).scalar_subquery().label("stored"),
 ).where(QUERIES.c.id == _QUERY))
 def _take_answer(*, token: bool) -> Prepared:
@@ -90,8 +90,33 @@ def _take_answer(*, token: bool) -> Prepared:
     )
 
 
+def _take_practice(*, token: bool) -> Prepared:
+    """The conditional update that takes a practice answer: the labeller active (and with
+    `token`, its token the one `token_hash` names), the practice pair open, its run running or
+    paused. A practice pair is shown to everyone at once, without a lease: the update changes
+    nothing but orders concurrent answers to the pair (a row lock on PostgreSQL)."""
+    labeller = [LABELLERS.c.id == _LABELLER, LABELLERS.c.active.is_(True)]
+    if token:
+        labeller.append(LABELLERS.c.token_hash == bindparam("token_hash", type_=String()))
+    return Prepared(
+        update(QUERIES)
+        .where(
+            QUERIES.c.id == _QUERY,
+            QUERIES.c.practice.is_(True),
+            one_of(QUERIES.c.status, (QueryStatus.PENDING, QueryStatus.LEASED)),
+            select(LABELLERS.c.id).where(*labeller).exists(),
+            select(RUNS.c.id)
+            .where(RUNS.c.id == QUERIES.c.run_id, one_of(RUNS.c.status, LABELLABLE))
+            .exists(),
+        )
+        .values(label_count=QUERIES.c.label_count)
+    )
+
+
 _TAKE_ANSWER = _take_answer(token=False)
 _TAKE_ANSWER_WITH_TOKEN = _take_answer(token=True)
+_TAKE_PRACTICE = _take_practice(token=False)
+_TAKE_PRACTICE_WITH_TOKEN = _take_practice(token=True)
 _LABEL_COLUMNS = [column for column in LABELS.c if not column.primary_key]
 _INSERT_LABEL = Prepared(
     insert(LABELS)
@@ -220,8 +245,9 @@ def submit_label(
     too), unless the query is a gold pair: a gold answer costs no budget, and may pause the
     labeller on the run (`labelqueue.gold`).
 
-    A gold answer in the labeller's practice round on the run (`labelqueue.practice`) is stored
-    with `practice` set and checks no gold threshold.
+    An answer to one of the run's practice pairs (`labelqueue.practice`) needs no lease (the
+    pair is shown to every newcomer at once): it is stored with `practice` set, costs no
+    budget and checks no gold threshold.
 
     `flag` marks the pair as one nobody can judge (`runvocab.answers.Flag`), with an optional
     `flag_note`; only a skip may carry one (ValueError otherwise), so a flagged pair is never
@@ -241,15 +267,18 @@ def submit_label(
             label = _stored_label(connection, params)
             assert label is not None
             return label, False
-        # Before this answer is stored: whether it is one of the labeller's practice round.
-        practice = bool(asked.gold) and practice_step(
-            connection, labeller_id=labeller_id, run_id=asked.run_id) is not None
-        take = _TAKE_ANSWER if token_hash is None else _TAKE_ANSWER_WITH_TOKEN
-        if not take.count(connection, params | {"token_hash": token_hash}):
-            # A concurrent twin of this very submit may have won (PostgreSQL).
-            label = _stored_label(connection, params)
-            if label is not None:
-                return label, False
+        practice = bool(asked.practice)
+        if practice:
+            take = _TAKE_PRACTICE if token_hash is None else _TAKE_PRACTICE_WITH_TOKEN
+        else:
+            take = _TAKE_ANSWER if token_hash is None else _TAKE_ANSWER_WITH_TOKEN
+        took = take.count(connection, params | {"token_hash": token_hash})
+        # A concurrent twin of this very submit may have won (PostgreSQL; for a practice pair,
+        # seen once the update above has waited for it).
+        label = _stored_label(connection, params) if not took or practice else None
+        if label is not None:
+            return label, False
+        if not took:
             raise _why_refused(connection, params | {"token_hash": token_hash})
         values: dict[str, Any] = {
             "query_id": query_id,
@@ -268,10 +297,12 @@ def submit_label(
             "practice": practice,
         }
         [inserted] = _INSERT_LABEL.rows(connection, values)
-        if asked.gold and not practice:  # practice answers do not count in gold accuracy
-            pause_if_below(connection, labeller_id=labeller_id, run_id=asked.run_id)
-        else:
+        # Only real answers spend the budget: a gold answer measures the labeller instead, and
+        # a practice answer (to a gold pair kept apart) does neither.
+        if not asked.gold:
             _COUNT_LABEL.count(connection, {"run": asked.run_id})
+        elif not practice:
+            pause_if_below(connection, labeller_id=labeller_id, run_id=asked.run_id)
     return snapshot(Label, {"id": inserted.id, **values}), True
 
 

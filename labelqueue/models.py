@@ -231,6 +231,9 @@ class Invite(Base):
     pause_message: Mapped[str | None] = mapped_column(Text)
     """what a participant paused by check pairs is told instead of being given their code;
     none: they get their code"""
+    wait_limit_s: Mapped[int | None] = mapped_column(Integer)
+    """after asking this long for a pair and getting none, a participant may finish with their
+    code ("nothing left to label"); none: `labelqueue.invites.WAIT_LIMIT_S`"""
 
 
 class Invitee(Base):
@@ -241,8 +244,17 @@ class Invitee(Base):
     labeller_id: Mapped[int] = mapped_column(ForeignKey("labellers.id"), primary_key=True)
     invite_id: Mapped[int] = mapped_column(ForeignKey("invites.id"), index=True)
     participant: Mapped[str | None] = mapped_column(String(100))
-    """the `participant` the link was opened with (a crowdsourcing platform's worker id)"""
+    """the `participant` the link was opened with (a crowdsourcing platform's worker id); one
+    labeller per participant and invite (joining again returns it)"""
     joined_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    asked_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    """when the participant last asked for a pair (`labelqueue.waiting`)"""
+    waiting_since: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    """since when they have asked without getting a pair, asking at least every
+    `labelqueue.waiting.GAP_S`; none while they have one"""
+
+
+Index("ix_invitees_invite_id_participant", Invitee.invite_id, Invitee.participant)
 
 
 class Worker(Base):
@@ -325,6 +337,9 @@ class Query(Base):
     gold: Mapped[bool] = mapped_column(Boolean, default=False)
     """a known-answer pair (`labelqueue.gold`): answered to measure labellers, never trained on
     and never counted against the budget; its answer is the segment with the larger return"""
+    practice: Mapped[bool] = mapped_column(Boolean, default=False)
+    """one of the run's practice pairs (`labelqueue.practice`), reserved from its first gold
+    pairs: shown to every newcomer at once, never leased, never a check pair"""
     label_count: Mapped[int] = mapped_column(Integer, default=0)
     status: Mapped[QueryStatus] = mapped_column(_enum(QueryStatus, "status"))
     lease_holder: Mapped[int | None] = mapped_column(ForeignKey("labellers.id"), index=True)
@@ -417,3 +432,5 @@ RUNS = cast(Table, Run.__table__)
 QUERIES = cast(Table, Query.__table__)
 LABELS = cast(Table, Label.__table__)
 PAUSES = cast(Table, LabellerPause.__table__)
+INVITEES = cast(Table, Invitee.__table__)
+INVITES = cast(Table, Invite.__table__)

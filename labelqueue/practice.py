@@ -1,46 +1,43 @@
-"""The practice round: a run's `feedback.practice_pairs` gold pairs, served to each labeller
-before their first real answer on the run, each explained once answered (which clip the true
-reward prefers, and by how much). Practice answers are stored with `labels.practice`, never
-trained on (gold answers never are), and left out of the labeller's gold accuracy and of their
-share of gold answers (`labelqueue.gold`); the quality table shows them apart.
+"""The practice round: a run's `feedback.practice_pairs` pairs, shown to every newcomer before
+their first real answer on the run, each explained once answered (which clip the true reward
+prefers, and by how much).
 
-A labeller is in the practice round while every standing answer they gave on the run is a
-practice answer and there are fewer than the run's practice pairs; the lease then serves a gold
-pair first whenever one is open to them. With no gold pair open (the worker pushes at least
-`practice_pairs` gold pairs a round), a labeller starts on real pairs and the round is over.
+Practice pairs are reserved: the first gold pairs the worker pushes to the run (it pushes at
+least `practice_pairs` a round) are marked `queries.practice` as they are stored (`reserve`)
+and are the run's practice pairs for good, never check pairs. So:
+
+- a practice pair is never leased to one labeller alone: every newcomer is shown it, at once if
+  need be (`next_practice`), so nobody starts on real pairs because others hold the practice;
+- a practice answer (`labels.practice`) is never charged to the run's budget, never counts
+  toward a study's target or a completion code, never trained on, and left out of gold
+  accuracy and the gold share (`labelqueue.gold`);
+- taking one back leaves a practice pair: answered again, it is practice again, never a check;
+- a gold pair served to measure someone is never one they practised on (practice pairs are
+  never served as gold).
+
+A labeller is a newcomer on a run while they have no standing answer there but practice ones;
+the lease then serves the run's practice pairs they have not answered, in order, before
+anything else of the run (none rendered yet: nothing, until one is).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from datetime import datetime
 from typing import Any
 
-from sqlalchemy import Integer, bindparam, func, select
+from sqlalchemy import Integer, and_, bindparam, exists, func, or_, select
 from sqlalchemy.orm import Session
 
-from labelqueue.models import LABELS, QUERIES, RUNS, QueryStatus
+from labelqueue.models import LABELS, PAUSES, QUERIES, RUNS, QueryStatus, RunStatus, TeacherKind
 from labelqueue.prepared import DriverConnection, Prepared
 from labelqueue.run_config import FEEDBACK, run_feedback
-from labelqueue.transaction import driver_transaction
+from labelqueue.transaction import reading
 from runvocab.config import FeedbackConfig
 
-_LABELLER = bindparam("practice_labeller", type_=Integer())
-_RUN = bindparam("practice_run", type_=Integer())
-_COUNTS = Prepared(
-    select(func.count().label("answers"),
-           func.coalesce(func.sum(LABELS.c.practice.cast(Integer)), 0).label("practice"))
-    .where(LABELS.c.labeller_id == _LABELLER, LABELS.c.run_id == _RUN,
-           LABELS.c.withdrawn_at.is_(None))
-)
-_CONFIG = Prepared(select(RUNS.c.config, FEEDBACK).where(RUNS.c.id == _RUN))
-# Gold pairs of the run the labeller holds a lease on (the one shown, the one preloaded), and
-# those leased before a given one (gold pairs are served oldest first).
-_HELD_WHERE = (QUERIES.c.lease_holder == _LABELLER, QUERIES.c.run_id == _RUN,
-               QUERIES.c.gold.is_(True), QUERIES.c.status == QueryStatus.LEASED.value)
-_HELD = Prepared(select(func.count()).select_from(QUERIES).where(*_HELD_WHERE))
-_HELD_BELOW = Prepared(select(func.count()).select_from(QUERIES).where(
-    *_HELD_WHERE, QUERIES.c.id < bindparam("practice_below", type_=Integer())))
+_LABELLER = bindparam("labeller", type_=Integer())
+_SHOWN = bindparam("practice_shown", type_=Integer())
 
 
 def practice_pairs(feedback: Mapping[str, Any]) -> int:
@@ -49,36 +46,96 @@ def practice_pairs(feedback: Mapping[str, Any]) -> int:
     return int(feedback.get("practice_pairs", FeedbackConfig().practice_pairs))
 
 
+def reserve(session: Session, *, run_id: int, specs: Sequence[dict[str, Any]]) -> None:
+    """Mark the first gold pairs among `specs` (a push's new rows, in order) as the run's
+    practice pairs, until the run has `feedback.practice_pairs` of them. Called inside the
+    push's transaction."""
+    row = session.execute(select(RUNS.c.config, FEEDBACK).where(RUNS.c.id == run_id)).one()
+    wanted = practice_pairs(run_feedback(row))
+    if wanted <= 0:
+        return
+    have = session.scalar(select(func.count()).select_from(QUERIES).where(
+        QUERIES.c.run_id == run_id, QUERIES.c.practice.is_(True))) or 0
+    for spec in sorted((s for s in specs if s["gold"]), key=lambda s: (s["round"],
+                                                                     s["position"])):
+        if have >= wanted:
+            break
+        spec["practice"] = True
+        have += 1
+
+
+def _standing(*where: Any) -> Any:
+    return exists().where(LABELS.c.labeller_id == _LABELLER, LABELS.c.withdrawn_at.is_(None),
+                          *where)
+
+
+def _next_practice(*, of_run: bool) -> Prepared:
+    """The labeller's next practice pair: the oldest rendered practice pair of a run they are a
+    newcomer on (one run, or any taught by people), unanswered by them and not the one shown."""
+    practice = QUERIES.alias("practice")
+    which = (practice.c.run_id == bindparam("run") if of_run
+             else RUNS.c.teacher == TeacherKind.HUMAN)
+    return Prepared(
+        select(*practice.c)
+        .join(RUNS, RUNS.c.id == practice.c.run_id)
+        .where(
+            practice.c.gold.is_(True), practice.c.practice.is_(True), which,
+            # Spelled out: an IN list is rendered anew at each execution (`queries.one_of`).
+            or_(practice.c.status == QueryStatus.PENDING, practice.c.status == QueryStatus.LEASED),
+            practice.c.first_clip.is_not(None), practice.c.second_clip.is_not(None),
+            or_(RUNS.c.status == RunStatus.RUNNING, RUNS.c.status == RunStatus.PAUSED),
+            practice.c.id != _SHOWN,
+            ~_standing(LABELS.c.query_id == practice.c.id),
+            ~_standing(LABELS.c.run_id == practice.c.run_id, LABELS.c.practice.is_(False)),
+            ~exists().where(PAUSES.c.run_id == practice.c.run_id,
+                            PAUSES.c.labeller_id == _LABELLER),
+        )
+        .order_by(practice.c.id)
+        .limit(1)
+    )
+
+
+_NEXT_OF_RUN = _next_practice(of_run=True)
+_NEXT_OF_ANY_HUMAN_RUN = _next_practice(of_run=False)
+
+
+def next_practice(connection: DriverConnection, params: dict[str, Any], *,
+                  shown: int | None, until: datetime) -> dict[str, Any] | None:
+    """The practice pair to show the labeller next (`params`: the lease's `labeller` and
+    `run`), as a query row leased to them until `until`; None when they are no newcomer, or
+    have answered every practice pair. The row in the database is not leased: others see it
+    too."""
+    statement = _NEXT_OF_ANY_HUMAN_RUN if params["run"] is None else _NEXT_OF_RUN
+    row = statement.first(connection, params | {"practice_shown": shown or 0})
+    if row is None:
+        return None
+    return row._asdict() | {"status": QueryStatus.LEASED, "lease_holder": params["labeller"],
+                            "leased_at": params["at"], "lease_expires_at": until}
+
+
 @dataclass(frozen=True)
 class PracticeStep:
     index: int
-    """1-based: which practice pair the next gold pair is"""
+    """1-based: which practice pair this is"""
     of: int
     """the run's practice pairs"""
 
 
-def practice_step(connection: DriverConnection, *, labeller_id: int, run_id: int,
-                  feedback: Mapping[str, Any] | None = None,
-                  held: str | int | None = None) -> PracticeStep | None:
-    """The practice pair the labeller's next gold pair on the run would be; None once the round
-    is over (or the run has none). `feedback`: the run's settings (None: they are read). `held`:
-    "all" counts the gold pairs the labeller holds leases on as practice pairs to come (a
-    lease), a query id those leased before it (a pair shown); None, none (an answer)."""
-    if feedback is None:
-        feedback = run_feedback(_CONFIG.rows(connection, {"practice_run": run_id})[0])
-    pairs = practice_pairs(feedback)
-    if pairs <= 0:
-        return None
-    params: dict[str, Any] = {"practice_labeller": labeller_id, "practice_run": run_id}
-    [(answers, practice)] = _COUNTS.rows(connection, params)
-    ahead = 0
-    if held == "all":
-        ahead = int(_HELD.rows(connection, params)[0][0])
-    elif held is not None:
-        ahead = int(_HELD_BELOW.rows(connection, params | {"practice_below": held})[0][0])
-    if int(answers) != int(practice) or int(practice) + ahead >= pairs:
-        return None
-    return PracticeStep(index=int(practice) + ahead + 1, of=pairs)
+def practice_step(session: Session, *, run_id: int, query_id: int) -> PracticeStep:
+    """Which of the run's practice pairs this one is."""
+    with reading(session):
+        ids = list(session.scalars(select(QUERIES.c.id).where(
+            QUERIES.c.run_id == run_id, QUERIES.c.practice.is_(True)).order_by(QUERIES.c.id)))
+    return PracticeStep(index=ids.index(query_id) + 1 if query_id in ids else len(ids),
+                        of=len(ids))
+
+
+def practice_answered(session: Session, *, labeller_id: int, run_id: int) -> int:
+    """The labeller's standing practice answers on the run."""
+    with reading(session):
+        return int(session.scalar(select(func.count()).select_from(LABELS).where(
+            and_(LABELS.c.labeller_id == labeller_id, LABELS.c.run_id == run_id,
+                 LABELS.c.practice.is_(True), LABELS.c.withdrawn_at.is_(None)))) or 0)
 
 
 def explain(*, left_return: float, right_return: float) -> tuple[str, str]:
@@ -97,17 +154,3 @@ def explain(*, left_return: float, right_return: float) -> tuple[str, str]:
     else:
         how = f"it did clearly better than the {other} one"
     return side, f"The {side} clip is better: by the task's reward {how}."
-
-
-def practice_progress(session: Session, *, labeller_id: int, run_id: int,
-                      shown: int | None = None) -> tuple[int, int, PracticeStep | None]:
-    """(the labeller's standing practice answers on the run, the run's practice pairs, the
-    practice pair their next gold pair would be, or with `shown`, the practice pair that gold
-    pair, leased to them, is)."""
-    with driver_transaction(session) as connection:
-        [(_, practice)] = _COUNTS.rows(
-            connection, {"practice_labeller": labeller_id, "practice_run": run_id})
-        feedback = run_feedback(_CONFIG.rows(connection, {"practice_run": run_id})[0])
-        step = practice_step(connection, labeller_id=labeller_id, run_id=run_id,
-                             feedback=feedback, held=shown)
-    return int(practice), practice_pairs(feedback), step

@@ -54,7 +54,7 @@ from labelqueue.models import (
     UTCDateTime,
     utcnow,
 )
-from labelqueue.practice import practice_step
+from labelqueue.practice import next_practice, reserve
 from labelqueue.prepared import DriverConnection, Prepared
 from labelqueue.run_config import FEEDBACK, run_feedback
 from labelqueue.transaction import (
@@ -144,7 +144,8 @@ def push_queries(
         for spec in specs:
             row = stored.get((spec["round"], spec["position"]))
             if row is None:
-                fresh = {"run_id": run_id, "status": QueryStatus.PENDING, "created_at": now}
+                fresh = {"run_id": run_id, "status": QueryStatus.PENDING, "created_at": now,
+                         "practice": False}
                 new.append(spec | fresh)
             elif any(getattr(row, name) != spec[name] for name in PROVENANCE):
                 raise Conflict(
@@ -153,6 +154,7 @@ def push_queries(
                 )
         ids = {key: row.id for key, row in stored.items()}
         if new:
+            reserve(session, run_id=run_id, specs=new)
             try:
                 inserted = session.execute(
                     insert(QUERIES).returning(QUERIES.c.id, sort_by_parameter_order=True), new
@@ -298,6 +300,8 @@ def _oldest(*, of_run: bool, gold: bool, only_id: bool = False, after: bool = Fa
         .order_by(candidate.c.id)
         .limit(1)
     )
+    if gold:  # practice pairs are gold pairs kept apart: never a check pair (practice.py)
+        oldest = oldest.where(candidate.c.practice.is_(False))
     if after:
         oldest = oldest.where(candidate.c.id > bindparam("after", type_=Integer()))
     return oldest.with_for_update(of=candidate, skip_locked=True) if lock else oldest
@@ -379,6 +383,11 @@ def lease_next_query(
     with driver_transaction(session) as connection:
         holder = _HOLDER.rows(connection, params)
         _check_asker(holder, params, for_people=for_people, token_hash=token_hash)
+        # A newcomer's practice pairs come first, shown without a lease of their own.
+        practice = (next_practice(connection, params, shown=ahead_of, until=params["until"])
+                    if gold else None)
+        if practice is not None:
+            return snapshot(Query, practice)
         row = _renew_or_release(connection, holder, params, ahead_of=ahead_of)
         if row is None:
             row = _take_next(connection, params, key=key, ahead_of=ahead_of)
@@ -444,7 +453,7 @@ def _take_next(connection: DriverConnection, params: dict[str, Any], *, key: byt
 def _lease_gold(connection: DriverConnection, params: dict[str, Any], key: bytes,
                 ahead_of: int | None) -> Any | None:
     """A gold pair for the labeller when one is open and their share of gold answers is due
-    (`labelqueue.gold`; or their practice round wants one), in the order the other queries
+    (`labelqueue.gold`), in the order the other queries
     come in: never one behind the furthest query they answered on the run or the one they are
     shown (`ahead_of`), and never one after the next ordinary query, which then comes first.
     So neither the ids a labeller is served nor their order tell a gold pair from the others."""
@@ -453,21 +462,18 @@ def _lease_gold(connection: DriverConnection, params: dict[str, Any], key: bytes
     candidate = oldest.first(connection, params)
     if candidate is None:
         return None
-    practising = practice_step(connection, labeller_id=labeller, run_id=candidate.run_id,
-                               feedback=run_feedback(candidate), held="all")
-    if practising is None:  # the practice round is said to be one; the rest is hidden
-        share = gold_share(connection, labeller_id=labeller, run_id=candidate.run_id)
-        if not gold_due(share, key=key, labeller_id=labeller, run_id=candidate.run_id,
-                        rate=GoldSettings.of(run_feedback(candidate)).rate):
+    share = gold_share(connection, labeller_id=labeller, run_id=candidate.run_id)
+    if not gold_due(share, key=key, labeller_id=labeller, run_id=candidate.run_id,
+                    rate=GoldSettings.of(run_feedback(candidate)).rate):
+        return None
+    reached = max(share.furthest, ahead_of or 0)
+    if candidate.id <= reached:
+        ahead = params | {"run": candidate.run_id, "after": reached}
+        candidate = _GOLD_OF_RUN_AFTER.first(connection, ahead)
+        if candidate is None:
             return None
-        reached = max(share.furthest, ahead_of or 0)
-        if candidate.id <= reached:
-            ahead = params | {"run": candidate.run_id, "after": reached}
-            candidate = _GOLD_OF_RUN_AFTER.first(connection, ahead)
-            if candidate is None:
-                return None
-        first = (_FIRST_OF_ANY_HUMAN_RUN if params["run"] is None else _FIRST_OF_RUN).first(
-            connection, params)
-        if first is not None and first.id < candidate.id:
-            return None
+    first = (_FIRST_OF_ANY_HUMAN_RUN if params["run"] is None else _FIRST_OF_RUN).first(
+        connection, params)
+    if first is not None and first.id < candidate.id:
+        return None
     return _TAKE_GOLD.first(connection, params | {"gold_pair": candidate.id})

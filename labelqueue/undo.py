@@ -1,5 +1,6 @@
 """Taking an answer back: for `UNDO_SECONDS` after answering, and only while the trainer has not
-taken the answer, a labeller may withdraw it; the query is leased to that labeller again.
+taken the answer, a labeller may withdraw it; the query is leased to that labeller again (a practice pair, leased to nobody, is simply shown again: answered again, it is
+still practice, never a check pair).
 
 The label is not deleted: it stays with its `withdrawn_at`, so the export shows what was
 answered and taken back. The trainer's reads (`consume_labels`, `labels_for_queries`) skip
@@ -101,36 +102,17 @@ def withdraw_label(
         if run.status not in LABELLABLE:
             raise RunClosed(f"run {run.id} is {run.status}: it takes no more answers, so the "
                             "answer stands")
-        leased = changed(
-            session,
-            update(Query)
-            .where(
-                Query.id == query_id,
-                or_(
-                    Query.status.in_((QueryStatus.LABELLED, QueryStatus.PENDING)),
-                    and_(Query.status == QueryStatus.LEASED,
-                         or_(Query.lease_holder == labeller_id, Query.lease_expires_at <= now)),
-                ),
-            )
-            .values(
-                label_count=Query.label_count - 1,
-                status=QueryStatus.LEASED,
-                lease_holder=labeller_id,
-                lease_expires_at=now + timedelta(seconds=lease_seconds),
-                leased_at=now,
-            ),
-        )
-        if not leased:
-            query = get_row(session, Query, query_id)
-            raise Conflict(
-                f"query {query_id} was cancelled when its round closed: the answer stands"
-                if query.status is QueryStatus.CANCELLED
-                else f"another labeller is answering query {query_id} now: the answer stands"
-            )
-        # A gold pair's answer never counted against the budget (labelqueue.gold).
-        gold = select(Query.gold).where(Query.id == query_id).scalar_subquery()
-        changed(session, update(Run).where(Run.id == run.id, gold.is_(False))
-                .values(labels_used=Run.labels_used - 1))
+        query = get_row(session, Query, query_id)
+        if query.practice:  # shown to everyone at once, leased to nobody: it stays practice
+            if query.status is QueryStatus.CANCELLED:
+                raise Conflict(f"query {query_id} was cancelled: the answer stands")
+        else:
+            _lease_again(session, query_id=query_id, labeller_id=labeller_id, now=now,
+                         lease_seconds=lease_seconds)
+            # A gold pair's answer never counted against the budget (labelqueue.gold).
+            if not query.gold:
+                changed(session, update(Run).where(Run.id == run.id)
+                        .values(labels_used=Run.labels_used - 1))
         changed(
             session,
             update(Query)
@@ -142,7 +124,42 @@ def withdraw_label(
         label = get_row(session, Label, label.id)
         query = get_row(session, Query, query_id)
         detach(session, label, query)
+    if query.practice:  # shown again as a lease would show it
+        query.status, query.lease_holder = QueryStatus.LEASED, labeller_id
+        query.leased_at, query.lease_expires_at = now, now + timedelta(seconds=lease_seconds)
     return Withdrawn(label=label, query=query)
+
+
+def _lease_again(session: Session, *, query_id: int, labeller_id: int, now: datetime,
+                 lease_seconds: float) -> None:
+    """Give the query its answer back and lease it to the labeller again; Conflict when its
+    round was cancelled or another labeller holds it now."""
+    leased = changed(
+        session,
+        update(Query)
+        .where(
+            Query.id == query_id,
+            or_(
+                Query.status.in_((QueryStatus.LABELLED, QueryStatus.PENDING)),
+                and_(Query.status == QueryStatus.LEASED,
+                     or_(Query.lease_holder == labeller_id, Query.lease_expires_at <= now)),
+            ),
+        )
+        .values(
+            label_count=Query.label_count - 1,
+            status=QueryStatus.LEASED,
+            lease_holder=labeller_id,
+            lease_expires_at=now + timedelta(seconds=lease_seconds),
+            leased_at=now,
+        ),
+    )
+    if not leased:
+        query = get_row(session, Query, query_id)
+        raise Conflict(
+            f"query {query_id} was cancelled when its round closed: the answer stands"
+            if query.status is QueryStatus.CANCELLED
+            else f"another labeller is answering query {query_id} now: the answer stands"
+        )
 
 
 def settled(answered_at: datetime, now: datetime | None = None) -> bool:

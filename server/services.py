@@ -26,7 +26,7 @@ from labelqueue import (
     withdraw_label,
 )
 from labelqueue import reading as reading  # the routes' own reads (stats, curves) use it too
-from labelqueue.practice import explain, practice_progress
+from labelqueue.practice import explain, practice_step
 from server import clips
 from server.schemas import (
     LabelOut,
@@ -122,8 +122,8 @@ def next_query(
 def shown_query(*, settings: Settings, query: Query, labeller_id: int,
                 session: Session | None = None) -> NextQuery:
     """A query leased to the labeller as its page shows it: signed clip URLs in the labeller's
-    side order, and nothing that hints the answer; with `session`, whether a gold pair is one
-    of the labeller's practice round (said so: its answer is explained once given)."""
+    side order, and nothing that hints the answer; with `session`, which practice pair a
+    practice pair is (said so: its answer is explained once given)."""
     assert query.lease_expires_at is not None
     first_left = clips.left_is_first(settings=settings, query_id=query.id, labeller_id=labeller_id)
     now = time.time()
@@ -141,16 +141,17 @@ def shown_query(*, settings: Settings, query: Query, labeller_id: int,
         segment_length=query.segment_length,
         left_start_step=query.first_start if first_left else query.second_start,
         right_start_step=query.second_start if first_left else query.first_start,
-        practice=None if session is None or not query.gold
-        else practice_of(session, query=query, labeller_id=labeller_id),
+        practice=practice_of(session, query=query) if query.practice else None,
     )
 
 
-def practice_of(session: Session, *, query: Query, labeller_id: int) -> PracticeOut | None:
-    """Which pair of the labeller's practice round a gold pair is; None outside the round."""
-    _, _, step = practice_progress(session, labeller_id=labeller_id, run_id=query.run_id,
-                                   shown=query.id)
-    return None if step is None else PracticeOut(index=step.index, of=step.of)
+def practice_of(session: Session | None, *, query: Query) -> PracticeOut | None:
+    """Which of the run's practice pairs this one is (a gold or ordinary pair takes no trip
+    here: nothing about it tells it apart)."""
+    if session is None:
+        return None
+    step = practice_step(session, run_id=query.run_id, query_id=query.id)
+    return PracticeOut(index=step.index, of=step.of)
 
 
 def answer_out(
@@ -167,10 +168,10 @@ def answer_out(
         first, second = query.first_segment_return, query.second_segment_return
         left, right = (first, second) if label.left_is_first else (second, first)
         better, text = explain(left_return=left, right_return=right)
-        done, pairs, _ = practice_progress(session, labeller_id=labeller_id, run_id=query.run_id)
+        step = practice_step(session, run_id=query.run_id, query_id=query.id)
         choice = str(getattr(label.choice, "value", label.choice))
         out.practice_feedback = PracticeFeedback(
-            index=done, of=pairs, better=better,  # type: ignore[arg-type]
+            index=step.index, of=step.of, better=better,  # type: ignore[arg-type]
             correct=choice == better if choice in ("left", "right", "equal") else None,
             explanation=text)
     return out, created

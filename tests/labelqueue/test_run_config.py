@@ -9,11 +9,12 @@ from typing import Any
 
 import pytest
 from queue_helpers import query_spec
-from sqlalchemy import update
+from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
 from labelqueue import (
     Paused,
+    Query,
     Run,
     TeacherKind,
     claim_run,
@@ -25,7 +26,6 @@ from labelqueue import (
     set_teacher,
     submit_label,
 )
-from labelqueue.practice import practice_progress
 from labelqueue.run_config import run_config
 from runvocab.answers import Answer, click_of_answer
 from runvocab.config import PRESETS, TASK_PRESETS
@@ -136,9 +136,12 @@ def test_practice_pairs_a_preset_gives_are_honoured(
                         TASK_PRESETS["dmc:cheetah_run"] | {"feedback.practice_pairs": 2})
     run = create_run(session, **RUN, teacher=TeacherKind.HUMAN)
     monkeypatch.undo()
-    ann, _ = create_labeller(session, name="ann")
-    assert practice_progress(session, labeller_id=ann.id, run_id=run.id)[1] == 2
     old = create_run(session, **RUN | {"name": "old"}, teacher=TeacherKind.HUMAN,
                      config={"feedback.practice_pairs": 3})
     forget_resolved(session, old.id)
-    assert practice_progress(session, labeller_id=ann.id, run_id=old.id)[1] == 3
+    for run_id, reserved in ((run.id, 2), (old.id, 3)):
+        push_queries(session, run_id=run_id, queries=[query_spec(i, gold=True) for i in range(5)])
+        practice = session.scalar(select(func.count()).select_from(Query).where(
+            Query.run_id == run_id, Query.practice.is_(True)))
+        session.commit()
+        assert practice == reserved

@@ -40,7 +40,7 @@ from runvocab.query_fields import QUERY_FIELD_NAMES, QUERY_FIELDS, FieldType
 
 # The queue's own bookkeeping of a query, which the worker never pushes.
 QUEUE_COLUMNS = {"id", "run_id", "label_count", "status", "lease_holder", "lease_expires_at",
-                 "leased_at", "created_at"}
+                 "leased_at", "created_at", "practice"}
 SQL_TYPES: dict[FieldType, type] = {"int": Integer, "float": Float, "bool": Boolean,
                                     "str": String, "floats": JSON, "answer": Enum, "clip": String}
 
