@@ -30,7 +30,7 @@ from sqlalchemy import ColumnElement, exists, func, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from labelqueue.errors import Conflict, NotFound, QueueError
+from labelqueue.errors import Conflict, NotFound, QueueError, Revoked
 from labelqueue.keys import server_key
 from labelqueue.labellers import hash_token
 from labelqueue.models import (
@@ -135,6 +135,9 @@ def check_redirect_url(url: str | None) -> str | None:
     if parts.scheme not in ("http", "https") or not parts.netloc or len(url) > REDIRECT_MAX:
         raise ValueError("redirect_url must be an absolute http:// or https:// URL of at most "
                          f"{REDIRECT_MAX} characters (got {url[:80]!r})")
+    if "{" in parts.netloc or "}" in parts.netloc:
+        raise ValueError("redirect_url: {participant} and {code} may be filled in the path or "
+                         f"the query, never the host (got {parts.netloc[:80]!r})")
     return url
 
 
@@ -150,13 +153,17 @@ def create_invite(
     redirect_url: str | None = None,
     consent_text: str | None = None,
     pause_message: str | None = None,
+    wait_limit_s: int | None = None,
 ) -> Invite:
     """A new invite with a random code. NotFound for an unknown run; ValueError for an expiry
     in the past, a limit below 1 or a redirect URL that is not http(s). `completion_code`: the
-    study's code, the prefix of each participant's own (`participant_code`)."""
+    study's code, the prefix of each participant's own (`participant_code`). `wait_limit_s`:
+    a participant who asked this long with nothing to label finishes with their code
+    (`labelqueue.waiting`; None: `WAIT_LIMIT_S`)."""
     if expires_at <= utcnow():
         raise ValueError("expires_at is in the past: an invite must expire in the future")
-    for name, value in (("max_uses", max_uses), ("target_answers", target_answers)):
+    for name, value in (("max_uses", max_uses), ("target_answers", target_answers),
+                        ("wait_limit_s", wait_limit_s)):
         if value is not None and value < 1:
             raise ValueError(f"{name} must be at least 1 (or left out), got {value}")
     redirect_url = check_redirect_url(redirect_url)
@@ -168,7 +175,7 @@ def create_invite(
             expires_at=expires_at, max_uses=max_uses, uses=0, target_answers=target_answers,
             completion_code=completion_code, redirect_url=redirect_url,
             consent_text=(consent_text or "").strip() or None,
-            pause_message=(pause_message or "").strip() or None,
+            pause_message=(pause_message or "").strip() or None, wait_limit_s=wait_limit_s,
         )
         session.add(invite)
         detach(session, invite)
@@ -209,6 +216,8 @@ class Joined:
     labeller: Labeller
     token: str
     invite: Invite
+    rejoined: bool = False
+    """the participant had joined before: their labeller, with a new token"""
 
 
 def join_invite(session: Session, *, code: str, participant: str | None = None,
@@ -217,20 +226,32 @@ def join_invite(session: Session, *, code: str, participant: str | None = None,
     name is taken). NotFound for an unknown code; InviteClosed when the invite is revoked,
     expired, used up or its runs are over; ValueError for a `participant` that is not 1-64 of
     A-Z a-z 0-9 _ . @ + -, or without `consent` to an invite that has a consent text.
+
+    One person, one labeller: a `participant` who joined the invite before (from another
+    browser, or again) gets the same labeller back, with a new token (the old one stops), and
+    takes no use of the link, even a used-up one; their answers, count and code are theirs
+    still. Revoked for a participant whose labeller was deactivated.
     """
     if participant is not None and not PARTICIPANT.fullmatch(participant):
         raise ValueError("participant must be 1 to 64 letters, digits or _ . @ + - "
                          f"(got {participant[:80]!r})")
     now = utcnow()
     with transaction(session):
+        # Joins by one link take turns (a row lock on PostgreSQL; SQLite's writes do anyway),
+        # so one participant's two joins at once make one labeller.
         invite = session.scalars(
-            select(Invite).where(Invite.code == code).execution_options(populate_existing=True)
+            select(Invite).where(Invite.code == code).with_for_update()
+            .execution_options(populate_existing=True)
         ).one_or_none()
         if invite is None:
             raise NotFound("no such invite link: check that it was copied whole")
         if invite.consent_text and not consent:
             raise ValueError("this study asks for consent first: read its consent text on the "
                              "invite's page and agree to it (consent: true)")
+        if participant is not None:
+            again = _rejoin(session, invite, participant, now)
+            if again is not None:
+                return again
         took = changed(
             session,
             update(Invite)
@@ -263,6 +284,28 @@ def join_invite(session: Session, *, code: str, participant: str | None = None,
                             participant=participant, joined_at=now))
         detach(session, labeller, invite)
     return Joined(labeller=labeller, token=token, invite=invite)
+
+
+def _rejoin(session: Session, invite: Invite, participant: str, now: datetime) -> Joined | None:
+    """The participant's labeller on the invite, with a new token; None when they never joined.
+    A link revoked, expired or whose runs are over admits nobody, not even again."""
+    labeller = session.scalars(
+        select(Labeller).join(Invitee, Invitee.labeller_id == Labeller.id)
+        .where(Invitee.invite_id == invite.id, Invitee.participant == participant)
+        .order_by(Labeller.id).limit(1)
+    ).one_or_none()
+    if labeller is None:
+        return None
+    runs_open = bool(session.scalar(select(_open_runs_of(invite.run_id))))
+    state = invite_state(invite, now, runs_open)
+    if state not in ("open", "used_up"):
+        raise InviteClosed(CLOSED_TEXT[state], state)
+    if not labeller.active:
+        raise Revoked(f"participant {participant}'s labeller is deactivated on this study")
+    token = f"{labeller.id}.{secrets.token_urlsafe(32)}"
+    labeller.token_hash = hash_token(token)
+    detach(session, labeller, invite)
+    return Joined(labeller=labeller, token=token, invite=invite, rejoined=True)
 
 
 def _free_name(session: Session, base: str) -> str:
@@ -312,7 +355,7 @@ class Verified:
     target_answers: int | None
     complete: bool
     why: str | None
-    """"target", "runs_over" or "paused" (see `Progress.why`)"""
+    """"target", "runs_over", "paused" or "nothing_left" (see `Progress.why`)"""
 
 
 def verify_code(session: Session, code: str) -> Verified | None:
@@ -380,7 +423,8 @@ class Progress:
     complete: bool = False
     why: str | None = None
     """why the study is complete: "target" (reached), "runs_over" (its runs ended, or the run's
-    budget is spent) or "paused" (check pairs paused the participant)"""
+    budget is spent), "paused" (check pairs paused the participant) or "nothing_left" (they
+    asked for pairs and got none for the invite's `wait_limit_s`: `labelqueue.waiting`)"""
     participant: str | None = None
     redirect_url: str | None = None
     """where to send the participant now, filled in for them; none until complete"""
@@ -390,19 +434,21 @@ class Progress:
 
 def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
     """How far the labeller is. For one who joined by an invite: decisive answers on the
-    invite's runs against its target, and whether the study is complete for them (target
-    reached, runs over or budget spent, or paused by check pairs), with their own code."""
+    invite's runs against its target (practice answers never count), and whether the study is
+    complete for them (target reached, runs over or budget spent, paused by check pairs, or
+    nothing left to label after waiting), with their own code."""
     with reading(session):
         standing = (Label.labeller_id == labeller_id, Label.source == LabelSource.HUMAN,
                     Label.withdrawn_at.is_(None))
         labels = session.scalar(select(func.count(Label.id)).where(*standing)) or 0
         row = session.execute(
-            select(Invite, Invitee.participant).join(Invitee, Invitee.invite_id == Invite.id)
+            select(Invite, Invitee.participant, Invitee.nothing_left_at)
+            .join(Invitee, Invitee.invite_id == Invite.id)
             .where(Invitee.labeller_id == labeller_id)
         ).one_or_none()
         if row is None:
             return Progress(labels, None, None, None, counted=labels)
-        invite, participant = row
+        invite, participant, nothing_left = row
         on_runs = [Label.run_id == invite.run_id] if invite.run_id is not None else []
         # Practice answers never count toward a target (labelqueue.practice).
         counted = session.scalar(select(func.count(Label.id)).where(
@@ -423,7 +469,8 @@ def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
             paused = not over and not session.scalar(select(unpaused))
         session.expunge_all()
     reached = invite.target_answers is not None and counted >= invite.target_answers
-    why = "target" if reached else "runs_over" if over else "paused" if paused else None
+    why = ("target" if reached else "runs_over" if over else "paused" if paused
+           else "nothing_left" if nothing_left is not None else None)
     progress = Progress(labels, invite.target_answers, None, invite.run_id, counted=counted,
                         invited=True, complete=why is not None, why=why,
                         participant=participant)

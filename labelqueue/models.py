@@ -252,6 +252,9 @@ class Invitee(Base):
     waiting_since: Mapped[datetime | None] = mapped_column(UTCDateTime)
     """since when they have asked without getting a pair, asking at least every
     `labelqueue.waiting.GAP_S`; none while they have one"""
+    nothing_left_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    """when they had waited the invite's `wait_limit_s` with nothing to label: their study is
+    complete from then on ("nothing left to label")"""
 
 
 Index("ix_invitees_invite_id_participant", Invitee.invite_id, Invitee.participant)

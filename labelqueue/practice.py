@@ -109,7 +109,8 @@ def next_practice(connection: DriverConnection, params: dict[str, Any], *,
     row = statement.first(connection, params | {"practice_shown": shown or 0})
     if row is None:
         return None
-    return row._asdict() | {"status": QueryStatus.LEASED, "lease_holder": params["labeller"],
+    leased: dict[str, Any] = row._asdict()
+    return leased | {"status": QueryStatus.LEASED, "lease_holder": params["labeller"],
                             "leased_at": params["at"], "lease_expires_at": until}
 
 

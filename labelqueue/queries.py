@@ -65,6 +65,7 @@ from labelqueue.transaction import (
     snapshot,
     transaction,
 )
+from labelqueue.waiting import asked
 from runvocab.answers import Answer
 from runvocab.query_fields import PROVENANCE, QUERY_FIELD_NAMES, QUERY_FIELDS, FieldType, QueryField
 
@@ -386,11 +387,14 @@ def lease_next_query(
         # A newcomer's practice pairs come first, shown without a lease of their own.
         practice = (next_practice(connection, params, shown=ahead_of, until=params["until"])
                     if gold else None)
-        if practice is not None:
-            return snapshot(Query, practice)
-        row = _renew_or_release(connection, holder, params, ahead_of=ahead_of)
-        if row is None:
+        row = None if practice is not None else _renew_or_release(
+            connection, holder, params, ahead_of=ahead_of)
+        if practice is None and row is None:
             row = _take_next(connection, params, key=key, ahead_of=ahead_of)
+        if for_people:  # how long a participant waits with nothing to label
+            asked(connection, params, got=practice is not None or row is not None)
+    if practice is not None:
+        return snapshot(Query, practice)
     return None if row is None else snapshot(Query, row._asdict())
 
 

@@ -1,6 +1,7 @@
 """Taking an answer back: for `UNDO_SECONDS` after answering, and only while the trainer has not
-taken the answer, a labeller may withdraw it; the query is leased to that labeller again (a practice pair, leased to nobody, is simply shown again: answered again, it is
-still practice, never a check pair).
+taken the answer, a labeller may withdraw it; the query is leased to that labeller again (a
+practice pair, leased to nobody, is simply shown again: answered again, it is still practice,
+never a check pair).
 
 The label is not deleted: it stays with its `withdrawn_at`, so the export shows what was
 answered and taken back. The trainer's reads (`consume_labels`, `labels_for_queries`) skip

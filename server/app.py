@@ -18,6 +18,7 @@ from server.deps import LabelThreads, TokenCache
 from server.errors import install_error_handlers
 from server.export_job import ExportProcess
 from server.middleware import HardeningMiddleware
+from server.ratelimit import RateLimit
 from server.routes import (
     browse,
     instructions,
@@ -25,6 +26,7 @@ from server.routes import (
     label,
     labellers,
     pages,
+    participants,
     quality,
     runs,
     stats,
@@ -73,6 +75,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     app.state.export_process = ExportProcess()  # started at the first export
+    app.state.join_limit = RateLimit(settings.join_per_s, settings.join_burst)
+    app.state.lease_limit = RateLimit(settings.lease_per_s, settings.lease_burst)
     install_error_handlers(app)
     app.add_middleware(HardeningMiddleware, limit=settings.body_limit_bytes)
     # The label API first: it is the busiest, and a request tries the routes in turn. Next
@@ -87,11 +91,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(export_routes.router)
     app.include_router(stats.router)
     app.include_router(instructions.router)
+    app.include_router(participants.router)  # before invites: /api/invites/verify-codes
     app.include_router(invites.router)
     app.include_router(undo.router)
     app.include_router(quality.router)
     app.include_router(browse.router)
     app.include_router(pages.router)
+    app.include_router(participants.pages)
     app.mount("/static", pages.static_files(), name="static")
 
     @app.get("/healthz", tags=["health"])

@@ -90,6 +90,8 @@ ERROR_TEXT: dict[int, str] = {
     "forbids, a lease that ran out, a stopped run)",
     413: "the request body is larger than the server accepts (64 KiB by default)",
     422: "a malformed request, or values the queue refuses",
+    429: "too many requests from this labeller or by this invite link: wait the seconds "
+    "`Retry-After` says",
     503: "the queue database is damaged (SQLite's integrity check found it so): restore it from "
     "a backup",
 }
@@ -418,6 +420,8 @@ class RunBrief(BaseModel):
 
 
 InviteDays = Annotated[float, Field(gt=0, le=366)]
+StudyEnd = Literal["target", "runs_over", "paused", "nothing_left"]
+"""why a participant's study is complete (`labelqueue.invites.Progress.why`)"""
 
 
 class InviteCreate(Body):
@@ -450,6 +454,9 @@ class InviteCreate(Body):
     """shown on the invite's page: nobody joins without agreeing to it"""
     pause_message: str | None = Field(default=None, min_length=1, max_length=2000)
     """what a participant paused by check pairs is told instead of being given their code"""
+    wait_limit_s: Annotated[int, Field(ge=1, le=INT32_MAX)] | None = None
+    """a participant who asks this long for pairs and gets none finishes with their code
+    ("nothing left to label"); null: 300 s"""
 
 
 class InviteOut(Out):
@@ -470,6 +477,7 @@ class InviteOut(Out):
     redirect_url: str | None
     consent_text: str | None
     pause_message: str | None
+    wait_limit_s: int | None
     state: Literal["open", "revoked", "expired", "used_up", "closed"]
     """closed: its run is over (stopping, stopped, finished or failed; for an all-runs link, no
     run taught by people is queued, running or paused)"""
@@ -491,12 +499,16 @@ class JoinedOut(BaseModel):
     token: str
     run_id: int | None
     target_answers: int | None
+    rejoined: bool = False
+    """the participant had joined before: the same labeller (its answers and code), with this
+    new token; the browser it joined from before is signed out"""
 
 
 class ProgressOut(BaseModel):
     """The caller's answers so far and, for one who joined by an invite, where their study
     stands: complete once the target is reached, the run is over (or its budget spent), or
-    check pairs paused them; then their own completion code."""
+    check pairs paused them, or they waited the invite's limit with nothing to label; then
+    their own completion code."""
 
     labels: int
     """answers given on any run, skips included"""
@@ -510,7 +522,7 @@ class ProgressOut(BaseModel):
     """what the target counts: decisive answers on the invite's run (`labels` for others)"""
     invited: bool = False
     complete: bool = False
-    why: Literal["target", "runs_over", "paused"] | None = None
+    why: StudyEnd | None = None
     participant: str | None = None
     redirect_url: str | None = None
     """where to go now that the study is complete, filled in for the caller"""
@@ -608,7 +620,7 @@ class VerifiedOut(BaseModel):
     """decisive answers on the invite's run"""
     target_answers: int | None
     complete: bool
-    why: Literal["target", "runs_over", "paused"] | None
+    why: StudyEnd | None
 
 
 class TakeBack(Body):

@@ -41,6 +41,13 @@ class Settings(BaseSettings):
     revoked labeller can still read for this long, but cannot lease or answer"""
     body_limit_bytes: int = Field(default=64 * 1024, ge=1024)
     """the largest request body read; a larger one is refused with 413"""
+    join_per_s: float = Field(default=1.0, gt=0)
+    """joins by one invite link a second, after a burst of `join_burst` (429 beyond)"""
+    join_burst: int = Field(default=30, ge=1)
+    lease_per_s: float = Field(default=2.0, gt=0)
+    """pairs one labeller may ask for a second (next), after a burst of `lease_burst` (429
+    beyond); the label page asks every 2 s while it waits"""
+    lease_burst: int = Field(default=20, ge=1)
     opentelemetry: bool = False
     """FastAPI's native OpenTelemetry spans and metrics, through the global providers (off: it
     cost every request a look at them)"""

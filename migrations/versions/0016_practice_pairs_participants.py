@@ -35,6 +35,8 @@ def upgrade() -> None:
     with op.batch_alter_table("invitees") as batch:
         batch.add_column(sa.Column("asked_at", sa.DateTime(timezone=True), nullable=True))
         batch.add_column(sa.Column("waiting_since", sa.DateTime(timezone=True), nullable=True))
+        batch.add_column(sa.Column("nothing_left_at", sa.DateTime(timezone=True),
+                                   nullable=True))
     op.create_index("ix_invitees_invite_id_participant", "invitees",
                     ["invite_id", "participant"])
     with op.batch_alter_table("invites") as batch:
@@ -46,6 +48,7 @@ def downgrade() -> None:
         batch.drop_column("wait_limit_s")
     op.drop_index("ix_invitees_invite_id_participant", table_name="invitees")
     with op.batch_alter_table("invitees") as batch:
+        batch.drop_column("nothing_left_at")
         batch.drop_column("waiting_since")
         batch.drop_column("asked_at")
     with op.batch_alter_table("queries") as batch:

@@ -33,6 +33,7 @@ from labelqueue import (
 from labelqueue.activity import labeller_waiting
 from labelqueue.invites import CLOSED_TEXT, Progress
 from labelqueue.models import utcnow
+from labelqueue.waiting import finish_if_waited
 from runvocab.instructions import run_instruction
 from server import services
 from server.deps import LabellerDep, OperatorDep, SessionDep
@@ -109,6 +110,7 @@ def post_invite(
         redirect_url=body.redirect_url,
         consent_text=body.consent_text,
         pause_message=body.pause_message,
+        wait_limit_s=body.wait_limit_s,
     )
     return invite_out(request, session, invite)
 
@@ -157,15 +159,19 @@ def post_revoke(
     status_code=201,
     response_model=JoinedOut,
     responses=errors(
-        400, 404, 409, 413, 422,
+        400, 403, 404, 409, 413, 422, 429,
         also={410: {"model": ErrorOut, "description": "the link was revoked, has expired or "
                     "is used up"}},
     ),
 )
-def post_join(code: InviteCode, session: SessionDep, body: JoinRequest | None = None) -> JoinedOut:
+def post_join(code: InviteCode, request: Request, session: SessionDep,
+              body: JoinRequest | None = None) -> JoinedOut:
     """Join by an invite link: a new labeller and its bearer token (shown this once). No token
-    needed: the link is the permission. 404 for an unknown link; 410 when it was revoked, has
-    expired or is used up."""
+    needed: the link is the permission. A participant id that joined the link before gets its
+    labeller back with a new token, and takes no use (`rejoined`). 404 for an unknown link;
+    410 when it was revoked, has expired or is used up; 403 for a participant whose labeller
+    was revoked; 429 (with `Retry-After`) when the link is joined too fast."""
+    request.app.state.join_limit.check(code, "this invite link")
     joined = join_invite(session, code=code, participant=body.participant if body else None,
                          consent=body.consent if body else False)
     return JoinedOut(
@@ -174,6 +180,7 @@ def post_join(code: InviteCode, session: SessionDep, body: JoinRequest | None = 
         token=joined.token,
         run_id=joined.invite.run_id,
         target_answers=joined.invite.target_answers,
+        rejoined=joined.rejoined,
     )
 
 
@@ -204,8 +211,11 @@ def get_status(session: SessionDep, caller: LabellerDep, run_id: RunFilter = Non
     """What the label page shows when it has no pair: the caller's progress and, unless their
     study is complete, why nothing is there (the run waits for a worker, pretrains, explores or
     trains, with an estimate; the round's pairs are with others; no run is open). For one who
-    joined by an invite for one run, that run is asked about whatever `run_id` says."""
+    joined by an invite for one run, that run is asked about whatever `run_id` says. A
+    participant who has asked for pairs and got none for the invite's `wait_limit_s` is done:
+    complete, `why` "nothing_left", with their code."""
     assert caller.labeller_id is not None
+    finish_if_waited(session, labeller_id=caller.labeller_id)  # nobody waits unpaid
     progress = labeller_progress(session, labeller_id=caller.labeller_id)
     waiting = None
     if not progress.complete:

@@ -66,7 +66,8 @@ class NextParams(BaseModel):
     "/label/next",
     response_model=NextQuery,
     responses=errors(
-        401, 403, 404, 409, 422, also={204: {"description": "nothing to label now; poll again"}}
+        401, 403, 404, 409, 422, 429,
+        also={204: {"description": "nothing to label now; poll again"}}
     ),
     openapi_extra=BEARER_SECURITY,
 )
@@ -105,6 +106,7 @@ async def serve_next_query(request: Request) -> Response:
     call: LabellerCall = await get_labeller_call(request)
     params, problems = check_query(NEXT_PARAMS, request)
     refuse_if(problems)
+    request.app.state.lease_limit.check(call.labeller_id, f"labeller {call.labeller_id}")
     return await next_query(call, params)
 
 

@@ -54,14 +54,23 @@ def test_an_invite_link_makes_a_labeller_named_after_the_participant(
                                      "invited", "complete", "participant")} == {
         "labels": 0, "target_answers": None, "completion_code": None, "run_id": run["id"],
         "invited": True, "complete": False, "participant": "P123"}
-    # The same participant again (another browser): another labeller, another name.
-    again = join(client, invite["code"], participant="P123").json()
-    assert again["name"] == "P123-2" and again["labeller_id"] != body["labeller_id"]
+    # The same participant again (another browser): the same labeller, no use of the link;
+    # the first browser's token stops (one person, one labeller, one code).
+    again = join(client, invite["code"], participant="P123")
+    assert again.status_code == 201 and again.json()["rejoined"] is True
+    assert (again.json()["name"], again.json()["labeller_id"]) == ("P123", body["labeller_id"])
+    assert client.get("/api/label/next", headers=bearer(body["token"])).status_code == 401
+    assert client.get("/api/label/progress",
+                      headers=bearer(again.json()["token"])).status_code == 200
     nameless = join(client, invite["code"]).json()
     assert nameless["name"].startswith("guest-")
+    other = join(client, invite["code"], participant="Q9").json()
+    assert other["name"] == "Q9"
     with session.begin():
         invitees = session.query(Invitee).order_by(Invitee.labeller_id).all()
-    assert [i.participant for i in invitees] == ["P123", "P123", None]
+    assert [i.participant for i in invitees] == ["P123", None, "Q9"]
+    # A used-up link still lets a participant who joined back in, and no one new.
+    assert join(client, invite["code"], participant="P123").status_code == 201
 
     # Three uses, then it is used up: a clear page and a 410.
     used = join(client, invite["code"], participant="late")

@@ -1,0 +1,160 @@
+"""A list to pay from: everyone who joined a study (an invite), with what they did and their
+completion code, and the check of many codes at once.
+
+Each participant's row counts their standing answers by hand on the invite's run (on any run
+for an all-runs invite): decisive (left or right), equal, can't tell, skips and, of the skips,
+flags; practice answers apart (they earn nothing); their gold score (correct of gold answers,
+practice left out); whether check pairs paused them; their study's state and their code, valid
+once the study is complete for them (`labelqueue.invites.labeller_progress`).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Iterable
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from labelqueue.errors import NotFound
+from labelqueue.gold import gold_answer
+from labelqueue.invites import labeller_progress, participant_code, verify_code
+from labelqueue.keys import server_key
+from labelqueue.models import (
+    Invite,
+    Invitee,
+    Label,
+    Labeller,
+    LabellerPause,
+    LabelSource,
+    Query,
+)
+from labelqueue.transaction import reading
+from runvocab.answers import Answer
+
+
+@dataclass(frozen=True)
+class Participant:
+    """One person of a study, as the operator pays them."""
+
+    participant: str | None
+    labeller_id: int
+    labeller: str
+    joined_at: datetime
+    time_on_task_s: float
+    """from joining to their last answer or last request for a pair"""
+    decisive: int
+    """left or right answers"""
+    equal: int
+    cant_tell: int
+    skips: int
+    flags: int
+    """skips that flagged the pair"""
+    practice: int
+    """practice answers (they count for nothing)"""
+    gold_answers: int
+    gold_correct: int
+    paused: bool
+    counted: int
+    """what the target counts: decisive and equal answers on the invite's run"""
+    complete: bool
+    why: str | None
+    completion_code: str
+    """their code, whether earned or not"""
+    code_valid: bool
+    """the code is earned: their study is complete (a paused participant's too)"""
+
+
+def participants(session: Session, *, invite_id: int) -> list[Participant]:
+    """Everyone who joined the invite, in the order they joined. NotFound for an unknown one."""
+    key = server_key(session)
+    with reading(session):
+        invite = session.get(Invite, invite_id)
+        if invite is None:
+            raise NotFound(f"invite {invite_id} does not exist")
+        people = session.execute(
+            select(Invitee, Labeller.name).join(Labeller, Labeller.id == Invitee.labeller_id)
+            .where(Invitee.invite_id == invite_id).order_by(Invitee.joined_at, Invitee.labeller_id)
+        ).all()
+        ids = [invitee.labeller_id for invitee, _ in people]
+        on_run = [Label.run_id == invite.run_id] if invite.run_id is not None else []
+        labels = session.execute(
+            select(Label.labeller_id, Label.answer, Label.flag, Label.practice,
+                   Label.answered_at, Query.gold, Query.first_segment_return,
+                   Query.second_segment_return)
+            .join(Query, Query.id == Label.query_id)
+            .where(Label.labeller_id.in_(ids), Label.withdrawn_at.is_(None),
+                   Label.source == LabelSource.HUMAN, *on_run)
+        ).all() if ids else []
+        paused = set(session.scalars(select(LabellerPause.labeller_id).where(
+            LabellerPause.labeller_id.in_(ids),
+            *([LabellerPause.run_id == invite.run_id] if invite.run_id is not None else []))))
+        session.expunge_all()
+    by_labeller: dict[int, list[Any]] = {}
+    for row in labels:
+        by_labeller.setdefault(row.labeller_id, []).append(row)
+    out = []
+    for invitee, name in people:
+        rows = by_labeller.get(invitee.labeller_id, [])
+        real = [r for r in rows if not r.practice]
+        kinds = Counter(r.answer for r in real)
+        gold = [r for r in real if r.gold and r.answer != Answer.SKIP]
+        correct = sum(r.answer == gold_answer(r.first_segment_return,
+                                              r.second_segment_return)
+                      for r in gold)
+        last = max([invitee.joined_at, *(r.answered_at for r in rows),
+                    *([invitee.asked_at] if invitee.asked_at else [])])
+        progress = labeller_progress(session, labeller_id=invitee.labeller_id)
+        out.append(Participant(
+            participant=invitee.participant, labeller_id=invitee.labeller_id, labeller=name,
+            joined_at=invitee.joined_at,
+            time_on_task_s=round((last - invitee.joined_at).total_seconds(), 1),
+            decisive=kinds[Answer.FIRST] + kinds[Answer.SECOND], equal=kinds[Answer.EQUAL],
+            cant_tell=kinds[Answer.CANT_TELL], skips=kinds[Answer.SKIP],
+            flags=sum(r.flag is not None for r in real),
+            practice=len(rows) - len(real), gold_answers=len(gold), gold_correct=correct,
+            paused=invitee.labeller_id in paused, counted=progress.counted,
+            complete=progress.complete, why=progress.why,
+            completion_code=participant_code(key, invite, invitee.labeller_id),
+            code_valid=progress.complete,
+        ))
+    return out
+
+
+CSV_COLUMNS = ("participant", "labeller_id", "labeller", "joined_at", "time_on_task_s",
+               "decisive", "equal", "cant_tell", "skips", "flags", "practice", "gold_answers",
+               "gold_correct", "paused", "counted", "complete", "why", "completion_code",
+               "code_valid")
+
+
+@dataclass(frozen=True)
+class CodeCheck:
+    """One completion code of a list, checked."""
+
+    code: str
+    valid: bool
+    """the code is a participant's and their study is complete: pay them"""
+    participant: str | None
+    labeller_id: int | None
+    invite_id: int | None
+    why: str | None
+    """why their study is complete, or "not_complete", or "unknown" (nobody's code)"""
+
+
+def verify_codes(session: Session, codes: Iterable[str]) -> list[CodeCheck]:
+    """Each code of a list, in order: whose it is and whether it is earned. Blank lines are
+    left out; a code given twice is checked twice (and said so by the caller if it wants)."""
+    out = []
+    for code in (c.strip() for c in codes):
+        if not code:
+            continue
+        found = verify_code(session, code)
+        if found is None:
+            out.append(CodeCheck(code, False, None, None, None, "unknown"))
+            continue
+        out.append(CodeCheck(code, found.complete, found.participant, found.labeller_id,
+                             found.invite_id, found.why if found.complete else "not_complete"))
+    return out
