@@ -327,10 +327,10 @@ def resolve_dataset(name: str) -> Path:
     """A dataset export's folder from a path, or from a Minari id under the Minari datasets
     folder (`MINARI_DATASETS_PATH`, else ~/.minari/datasets)."""
     path = Path(name)
-    if path.is_dir():
+    if _is_dir(path, name):
         return path
     root = os.environ.get("MINARI_DATASETS_PATH") or str(Path.home() / ".minari" / "datasets")
-    if (Path(root) / name).is_dir() and ".." not in name.split("/"):
+    if ".." not in name.split("/") and _is_dir(Path(root) / name, name):
         return Path(root) / name
     raise DatasetError(f"no dataset at {name}: give a dataset folder (sepoa export --dataset) "
                        f"or a Minari dataset id under {root}")
@@ -350,20 +350,22 @@ def read_dataset(name: str) -> LabelledDataset:
                                f"{needed.name} (sepoa export --dataset writes one)")
     try:
         info = json.loads(info_path.read_text())
-    except (OSError, ValueError) as err:
+    except (OSError, ValueError, RecursionError) as err:
         raise DatasetError(f"{info_path}: not readable JSON ({err})") from None
+    if not isinstance(info, dict):
+        raise DatasetError(f"{info_path}: not a JSON object (sepoa export --dataset writes one "
+                           f"with the run's task and sizes), but a {type(info).__name__}")
     task = info.get("task")
-    if task not in all_tasks():
+    if not isinstance(task, str) or task not in all_tasks():
         raise DatasetError(f"{path}: task {task!r} is not one this project knows "
                            "(sepoa tasks lists them)")
     episodes = _read_minari(path, info)
     try:
-        queries = pq.read_table(queries_path).to_pylist()
+        table = pq.read_table(queries_path)
     except Exception as err:  # noqa: BLE001 - pyarrow raises several kinds for a bad file
         raise DatasetError(f"{queries_path}: not a readable Parquet table ({err})") from None
-    missing = set(QUERY_TABLE_COLUMNS[:7]) - set(queries[0] if queries else QUERY_TABLE_COLUMNS)
-    if missing:
-        raise DatasetError(f"{queries_path}: columns {sorted(missing)} are missing")
+    _check_query_columns(table, queries_path)
+    queries = table.to_pylist()
     for row in queries:
         for side in ("first", "second"):
             episode, start = row[f"{side}_episode"], row[f"{side}_start"]
@@ -380,6 +382,28 @@ def read_dataset(name: str) -> LabelledDataset:
     return LabelledDataset(path=path, info=info, episodes=episodes, queries=queries)
 
 
+def _is_dir(path: Path, name: str) -> bool:
+    try:
+        return path.is_dir()
+    except (OSError, ValueError) as err:  # a name the system refuses: too long, a NUL byte
+        raise DatasetError(f"dataset {name[:100]!r} cannot be read: "
+                           f"{getattr(err, 'strerror', None) or err}") from None
+
+
+def _check_query_columns(table: Any, queries_path: Path) -> None:
+    import pyarrow as pa
+
+    pointers = QUERY_TABLE_COLUMNS[:7]
+    missing = [c for c in pointers if c not in table.column_names]
+    if missing:
+        raise DatasetError(f"{queries_path}: columns {missing} are missing")
+    for column in pointers[:6]:  # the ids, episodes, starts and length
+        kind = table.schema.field(column).type
+        if not (pa.types.is_integer(kind) or pa.types.is_null(kind)):
+            raise DatasetError(f"{queries_path}: column {column} holds {kind} values; "
+                               "it holds integers in an export (docs/EXPORT.md)")
+
+
 def _read_minari(path: Path, info: dict[str, Any]) -> list[DatasetEpisode]:
     from minari import MinariDataset
 
@@ -394,7 +418,12 @@ def _read_minari(path: Path, info: dict[str, Any]) -> list[DatasetEpisode]:
             f"not match sepoa.json (obs_dim {info.get('obs_dim')}, action_dim "
             f"{info.get('action_dim')})")
     episodes = []
-    for episode in dataset.iterate_episodes():
+    for index in dataset.episode_indices:
+        try:  # Minari reads an episode's files only now
+            [episode] = dataset.iterate_episodes([int(index)])
+        except Exception as err:  # noqa: BLE001 - pyarrow, h5py and the OS raise several kinds
+            raise DatasetError(f"{path}: episode {index} cannot be read "
+                               f"({_first_line(err)})") from None
         infos = episode.infos
         if "state" not in infos:
             raise DatasetError(f"{path}: episode {episode.id} has no physics states "
@@ -414,3 +443,8 @@ def _read_minari(path: Path, info: dict[str, Any]) -> list[DatasetEpisode]:
     if not episodes:
         raise DatasetError(f"{path}: the Minari dataset holds no episodes")
     return episodes
+
+
+def _first_line(err: BaseException) -> str:
+    text = str(err).strip().splitlines()
+    return f"{type(err).__name__}: {text[0][:300]}" if text else type(err).__name__

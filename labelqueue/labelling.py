@@ -27,8 +27,11 @@ from typing import Any
 from sqlalchemy.orm import Session
 
 from labelqueue.dataset import DatasetError, LabelledDataset, read_dataset
+from labelqueue.instructions import checked_instruction
 from labelqueue.models import Run
+from labelqueue.run_config import resolve
 from labelqueue.runs import create_run
+from runvocab.clip_format import parse_clip_size
 from runvocab.config import build_config
 from runvocab.names import ConfigError
 
@@ -97,7 +100,22 @@ def create_labelling_run(session: Session, *, dataset: str, budget: int,
     """A queued labelling-only run over `dataset` (a dataset export's folder, or its Minari id
     under `MINARI_DATASETS_PATH`). LabellingError (a ConfigError: its `field` names the input)
     for a dataset or a configuration no worker could serve; nothing is stored then."""
-    found = labelling_dataset(dataset)
+    return create_run(session, **labelling_run(
+        labelling_dataset(dataset), budget=budget, per_round=per_round, selection=selection,
+        segment_length=segment_length, name=name, preset=preset, seed=seed, teacher=teacher,
+        teacher_params=teacher_params, config=config, instruction=instruction,
+        clip_size=clip_size))
+
+
+def labelling_run(found: LabelledDataset, *, budget: int, per_round: int | None = None,
+                  selection: str = "disagreement", segment_length: int | None = None,
+                  name: str | None = None, preset: str = "small", seed: int = 0,
+                  teacher: str = "human", teacher_params: Mapping[str, Any] | None = None,
+                  config: Mapping[str, Any] | None = None, instruction: str | None = None,
+                  clip_size: str | None = None) -> dict[str, Any]:
+    """`create_run`'s arguments for a labelling-only run over the checked dataset `found`,
+    checked as `create_run` checks them, without a database: LabellingError naming a bad
+    input, ValueError for a bad instruction or clip size."""
     if budget < 1:
         raise LabellingError("feedback.budget", f"budget {budget}: give at least 1 answer")
     if per_round is not None and per_round < 1:
@@ -107,8 +125,15 @@ def create_labelling_run(session: Session, *, dataset: str, budget: int,
     overrides = labelling_config(found, per_round=per_round, selection=selection,
                                  segment_length=segment_length, preset=preset, config=config)
     path = Path(found.path).resolve()
-    return create_run(
-        session, name=name or f"label {found.info.get('dataset_id') or path.name}",
-        task=found.task, algo=LABELLING_ALGO, budget=budget, preset=preset, seed=seed,
-        teacher=teacher, teacher_params=teacher_params, config=overrides,
-        instruction=instruction, clip_size=clip_size, dataset=str(path))
+    fields: dict[str, Any] = {
+        "name": name or f"label {found.info.get('dataset_id') or path.name}",
+        "task": found.task, "algo": LABELLING_ALGO, "budget": budget, "preset": preset,
+        "seed": seed, "teacher": teacher, "teacher_params": teacher_params,
+        "config": overrides, "instruction": instruction, "clip_size": clip_size,
+        "dataset": str(path)}
+    checked_instruction(instruction)
+    if clip_size is not None:
+        parse_clip_size(clip_size)
+    resolve(task=found.task, algo=LABELLING_ALGO, preset=preset, seed=seed, budget=budget,
+            teacher_params=teacher_params or {}, config=overrides)
+    return fields

@@ -219,11 +219,15 @@ def _overrides(pairs: list[str]) -> dict[str, object]:
     return out
 
 
+ANSWERED_BY = {"human": "people label it on the label page",
+               "scripted": "the scripted teacher answers from the dataset's true rewards"}
+
+
 def _label_dataset(args: argparse.Namespace) -> int:
     from sqlalchemy.exc import DBAPIError
 
-    from labelqueue import session_factory
-    from labelqueue.labelling import create_labelling_run, labelling_dataset
+    from labelqueue import create_run, session_factory
+    from labelqueue.labelling import labelling_dataset, labelling_run
     from runvocab.names import ConfigError
 
     overrides = _overrides(args.set)
@@ -240,14 +244,18 @@ def _label_dataset(args: argparse.Namespace) -> int:
             dataset_pool(found, found.task)
         except ValueError as err:
             return fail(str(err))
+    try:  # every check before the database is opened: a refusal leaves no queue.db behind
+        fields = labelling_run(
+            found, budget=args.budget, per_round=args.per_round, selection=args.selection,
+            segment_length=args.segment_length, name=args.name, preset=args.preset,
+            seed=args.seed, teacher=args.teacher, config=overrides,
+            instruction=args.instruction, clip_size=args.clip_size)
+    except ConfigError as err:
+        return fail(str(err))
     engine = _migrated_engine(args)
     try:
         with session_factory(engine)() as session:
-            run = create_labelling_run(
-                session, dataset=args.dataset, budget=args.budget, per_round=args.per_round,
-                selection=args.selection, segment_length=args.segment_length, name=args.name,
-                preset=args.preset, seed=args.seed, teacher=args.teacher, config=overrides,
-                instruction=args.instruction, clip_size=args.clip_size)
+            run = create_run(session, **fields)
     except ConfigError as err:
         return fail(str(err))
     except DBAPIError as err:
@@ -259,7 +267,7 @@ def _label_dataset(args: argparse.Namespace) -> int:
     print(f"run {run.id} ({run.name!r}) queued: {run.budget} answers on pairs of {h}-step "
           f"segments of {len(found.episodes)} episodes of {run.task} in {run.dataset}, "
           f"{args.selection} after a uniform first round; a worker serves it "
-          f"(sepoa worker), people label it on the label page")
+          f"(sepoa worker), {ANSWERED_BY[args.teacher]}")
     return 0
 
 

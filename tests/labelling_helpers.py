@@ -86,3 +86,40 @@ def drop_states(path: Path) -> None:
     storage.update_metadata({"dataset_id": "sepoa/dmc-cheetah_run/source-v0",
                              "minari_version": minari.__version__})
     storage.update_episodes(episodes)
+
+
+def malformed_copies(source: Path, folder: Path) -> dict[str, tuple[Path, str]]:
+    """Copies of the dataset `source` under `folder`, each damaged in one way a dataset
+    received from elsewhere can be: {case: (its path, what its one-line refusal says)}."""
+    import shutil
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from labelqueue.dataset import QUERIES_FILE, QUERY_TABLE_COLUMNS
+
+    def copy(name: str) -> Path:
+        path = folder / name
+        shutil.copytree(source, path)
+        return path
+
+    listed = copy("listed")
+    (listed / INFO_FILE).write_text("[1, 2]")
+    deep = copy("deep")
+    (deep / INFO_FILE).write_text("[" * 100_000 + "]" * 100_000)
+    strings = copy("strings")
+    pq.write_table(pa.table({c: ["0"] for c in QUERY_TABLE_COLUMNS[:7]}),
+                   strings / QUERIES_FILE)
+    truncated = copy("truncated")
+    part = truncated / "data" / "1" / "part-0.arrow"
+    part.write_bytes(part.read_bytes()[:200])
+    gone = copy("gone")
+    shutil.rmtree(gone / "data" / "2")
+    return {
+        "long name": (folder / ("x" * 300), "cannot be read"),
+        "sepoa.json a list": (listed, "sepoa.json: not a JSON object"),
+        "sepoa.json too deep": (deep, "sepoa.json: not readable JSON"),
+        "string columns": (strings, "queries.parquet: column query_id holds string values"),
+        "truncated part": (truncated, "episode 1 cannot be read"),
+        "missing episode": (gone, "episode 2 cannot be read"),
+    }

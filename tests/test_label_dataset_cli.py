@@ -6,7 +6,7 @@ from __future__ import annotations
 import shutil
 
 import pytest
-from labelling_helpers import drop_states, edit_info, exported_dataset
+from labelling_helpers import drop_states, edit_info, exported_dataset, malformed_copies
 from sqlalchemy import select
 
 from labelqueue import Run, make_engine, session_factory
@@ -103,4 +103,25 @@ def test_a_dataset_no_worker_could_serve_is_refused_in_one_line_and_nothing_is_s
         assert status == 2, name
         err = capsys.readouterr().err
         assert message in err and len(err.strip().splitlines()) == 1, (name, err)
-        assert _runs(data) == [], name
+        assert not (data / "queue.db").exists(), name
+
+
+def test_a_scripted_run_says_who_answers(source, tmp_path, capsys):
+    assert main(["label-dataset", str(source), "--data-dir", str(tmp_path / "data"),
+                 "--budget", "5", "--teacher", "scripted"]) == 0
+    out = capsys.readouterr().out
+    assert "the scripted teacher answers from the dataset's true rewards" in out
+    assert "people label it" not in out
+
+
+def test_malformed_datasets_get_one_line_from_label_dataset_and_reward_fit(
+        source, tmp_path, capsys):
+    data = tmp_path / "data"
+    for name, (path, message) in malformed_copies(source, tmp_path / "bad").items():
+        for args in (["label-dataset", str(path), "--data-dir", str(data), "--budget", "10"],
+                     ["reward", "fit", str(path), "--out", str(tmp_path / "r.pt")]):
+            capsys.readouterr()
+            assert main(args) == 2, (name, args[0])
+            err = capsys.readouterr().err
+            assert message in err and len(err.strip().splitlines()) == 1, (name, args[0], err)
+    assert not data.exists() and not (tmp_path / "r.pt").exists()

@@ -87,7 +87,11 @@ def create_labelling_run(spec: LabellingRunCreate, session: SessionDep, _: Opera
     from labelqueue.labelling import create_labelling_run as create
 
     root = settings.data_dir / "datasets"
-    if ".." in spec.dataset.split("/") or not (root / spec.dataset).is_dir():
+    try:
+        found = ".." not in spec.dataset.split("/") and (root / spec.dataset).is_dir()
+    except OSError:  # a name the system refuses (a segment over 255 bytes)
+        found = False
+    if not found:
         raise RequestValidationError([{
             "type": "value_error", "loc": ("body", "dataset"),
             "msg": f"no dataset {spec.dataset!r} in the server's datasets folder {root} "

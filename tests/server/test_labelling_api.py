@@ -8,7 +8,7 @@ import shutil
 
 import pytest
 from fastapi.testclient import TestClient
-from labelling_helpers import drop_states, edit_info, exported_dataset
+from labelling_helpers import drop_states, edit_info, exported_dataset, malformed_copies
 from server_helpers import OPERATOR, bearer, new_labeller
 
 from server.settings import Settings
@@ -90,4 +90,17 @@ def test_only_operators_queue_labelling_runs(client: TestClient, datasets):
     token = new_labeller(client, "bob")
     assert client.post("/api/runs/labelling", headers=bearer(token), json=body).status_code \
         == 403
+    assert client.get("/api/runs", headers=OPERATOR).json() == []
+
+
+def test_a_malformed_dataset_is_a_422_naming_its_problem(client: TestClient, datasets):
+    cases = {name: (str(path.relative_to(datasets)), message) for name, (path, message)
+             in malformed_copies(datasets / DATASET, datasets / "bad").items()}
+    cases["long name"] = ("bad/" + "x" * 290, "no dataset 'bad/xxx")
+    for name, (dataset, message) in cases.items():
+        answer = client.post("/api/runs/labelling", headers=OPERATOR,
+                             json={"dataset": dataset, "budget": 10})
+        assert answer.status_code == 422, (name, answer.text)
+        [detail] = answer.json()["detail"]
+        assert detail["loc"] == ["body", "dataset"] and message in detail["msg"], (name, detail)
     assert client.get("/api/runs", headers=OPERATOR).json() == []
