@@ -34,8 +34,10 @@ from labelqueue.transaction import reading
 
 LIVE_WORKER_S = 60.0
 """a worker heard from within this is alive (they report every few seconds, even when idle)"""
-ACTIVE_LABELLER_S = 300.0
-"""a labeller who answered one of the run's pairs, or holds one, within this is active"""
+ACTIVE_LABELLER_S = 120.0
+"""a labeller is active while leasing or answering: they answered one of the run's pairs
+within this, or hold a live lease taken within this (a page left open renews its leases, but
+the lease it took long ago says nobody answers there)"""
 
 WorkerStateName = Literal["training", "idle", "silent", "dead"]
 
@@ -144,7 +146,7 @@ def runs_activity(session: Session, runs: list[Run], now: datetime | None = None
                 Label.answered_at > since),
             select(Query.run_id, Query.lease_holder.label("labeller_id")).where(
                 Query.run_id.in_(ids), Query.lease_holder.is_not(None),
-                Query.lease_expires_at > now),
+                Query.lease_expires_at > now, Query.leased_at > since),
         ).subquery()
         paused_rows = session.execute(
             select(LabellerPause.run_id, LabellerPause.labeller_id)

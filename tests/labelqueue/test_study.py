@@ -15,12 +15,14 @@ from sqlalchemy.orm import Session
 from labelqueue import (
     InviteClosed,
     LabellerPause,
+    Query,
     Run,
     RunStatus,
     TeacherKind,
     Worker,
     claim_run,
     create_invite,
+    create_labeller,
     create_run,
     heartbeat,
     invite_runs_open,
@@ -30,6 +32,7 @@ from labelqueue import (
     lease_next_query,
     list_invites,
     push_queries,
+    read_run,
     set_run_status,
     submit_label,
     verify_code,
@@ -220,3 +223,28 @@ def test_workers_are_listed_with_their_host_and_dead_ones_as_dead(session: Sessi
     assert states["worker-a"].host
     assert states["worker-idle"].state == "idle"
     assert states["worker-gone"].state == "dead" and states["worker-gone"].silent_s > 500
+
+
+def test_a_labeller_is_active_only_while_leasing_or_answering(session: Session) -> None:
+    run = running_run(session, teacher=TeacherKind.HUMAN)
+    push_queries(session, run_id=run.id, queries=[
+        query_spec(i, needs_labels=2) for i in range(3)])
+    ann, _ = create_labeller(session, name="ann")
+    bob, _ = create_labeller(session, name="bob")
+    for who in (ann, bob):
+        query = lease_next_query(session, labeller_id=who.id, run_id=run.id)
+        assert query is not None
+        submit_label(session, query_id=query.id, labeller_id=who.id, choice="left",
+                     left_is_first=True)
+    lease_next_query(session, labeller_id=bob.id, run_id=run.id)
+    [activity] = runs_activity(session, [read_run(session, run_id=run.id)])
+    assert activity.labellers_active == 2
+    # Three minutes on: ann answered nothing since; bob's page still renews the lease it took
+    # then, but nobody answers there. Neither is active, and the run says so.
+    later = utcnow() + timedelta(minutes=3)
+    with session.begin():
+        session.execute(update(Query).where(Query.lease_holder == bob.id)
+                        .values(lease_expires_at=later + timedelta(minutes=1)))
+    heartbeat(session, run_id=run.id, worker_id="worker-a", step=1)
+    [activity] = runs_activity(session, [read_run(session, run_id=run.id)], now=later)
+    assert activity.labellers_active == 0
