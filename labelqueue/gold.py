@@ -80,6 +80,14 @@ def _offset(key: bytes, labeller_id: int, run_id: int, answers: int) -> float:
     return int.from_bytes(digest[:8], "big") / 2.0**64
 
 
+def gold_pick(key: bytes, *, labeller_id: int, run_id: int, answers: int, among: int) -> int:
+    """Which of `among` gold pairs that may come next the labeller gets (0-based), drawn with
+    `key` per labeller, run and answer count: two newcomers' first checks differ."""
+    digest = hmac.new(key, f"gold-pick:{labeller_id}:{run_id}:{answers}".encode(),
+                      hashlib.sha256).digest()
+    return int.from_bytes(digest[:8], "big") % among
+
+
 _LABELLER = bindparam("labeller", type_=Integer())
 _RUN = bindparam("gold_run", type_=Integer())
 _SHARE = Prepared(

@@ -36,6 +36,7 @@ from labelqueue.gold import (
     GoldSettings,
     Paused,
     gold_due,
+    gold_pick,
     gold_share,
     pause_notice,
 )
@@ -267,7 +268,7 @@ _RELEASE = Prepared(
 
 
 def _oldest(*, of_run: bool, gold: bool, only_id: bool = False, after: bool = False,
-            lock: bool = True) -> Select[Any]:
+            lock: bool = True, between: int = 0) -> Select[Any]:
     """The oldest open query (gold pair or not) the labeller has not answered, of one run or of
     any human-taught run, on a run that has not paused the labeller: its id, run and the run's
     config; with `after`, the oldest whose id is above the parameter `after`. Locked with SKIP
@@ -303,8 +304,11 @@ def _oldest(*, of_run: bool, gold: bool, only_id: bool = False, after: bool = Fa
     )
     if gold:  # practice pairs are gold pairs kept apart: never a check pair (practice.py)
         oldest = oldest.where(candidate.c.practice.is_(False))
-    if after:
+    if after or between:
         oldest = oldest.where(candidate.c.id > bindparam("after", type_=Integer()))
+    if between:  # up to `between` of them, below the parameter `before`
+        oldest = oldest.where(candidate.c.id < bindparam("before", type_=Integer()))
+        oldest = oldest.limit(between)
     return oldest.with_for_update(of=candidate, skip_locked=True) if lock else oldest
 
 
@@ -325,12 +329,17 @@ def _lease(which: ColumnElement[Any]) -> Prepared:
 
 _TAKE_OF_ANY_HUMAN_RUN = _lease(_oldest(of_run=False, gold=False, only_id=True).scalar_subquery())
 _TAKE_OF_RUN = _lease(_oldest(of_run=True, gold=False, only_id=True).scalar_subquery())
-_GOLD_OF_ANY_HUMAN_RUN = Prepared(_oldest(of_run=False, gold=True))
-_GOLD_OF_RUN = Prepared(_oldest(of_run=True, gold=True))
-_GOLD_OF_RUN_AFTER = Prepared(_oldest(of_run=True, gold=True, after=True))
+_GOLD_OF_ANY_HUMAN_RUN = Prepared(_oldest(of_run=False, gold=True, lock=False))
+_GOLD_OF_RUN = Prepared(_oldest(of_run=True, gold=True, lock=False))
+NO_ID = 2**31 - 1
+"""above every query id (the column is a 32-bit integer)"""
+GOLD_CHOICES = 64
+"""gold pairs a check is drawn among at most (the oldest of those that may come next)"""
+_GOLD_BETWEEN = Prepared(
+    _oldest(of_run=True, gold=True, only_id=True, lock=False, between=GOLD_CHOICES))
 _FIRST_OF_ANY_HUMAN_RUN = Prepared(_oldest(of_run=False, gold=False, only_id=True, lock=False))
 _FIRST_OF_RUN = Prepared(_oldest(of_run=True, gold=False, only_id=True, lock=False))
-_TAKE_GOLD = _lease(bindparam("gold_pair", type_=Integer()))
+_TAKE_PAIR = _lease(bindparam("pair", type_=Integer()))
 # Why nothing was leased, when the labeller is paused on the runs asked about.
 _PAUSE_STATEMENT = (
     select(PAUSES.c.gold_answers, PAUSES.c.gold_correct, RUNS.c.config, FEEDBACK)
@@ -440,10 +449,11 @@ def _renew_or_release(connection: DriverConnection, holder: Sequence[Any],
 
 def _take_next(connection: DriverConnection, params: dict[str, Any], *, key: bytes | None,
                ahead_of: int | None) -> Any | None:
-    """Lease a gold pair when one is due (`key`: the gold schedule's, None for no gold), else
-    the oldest open query; None when there is none, or Paused when a pause is why."""
-    row = _lease_gold(connection, params, key, ahead_of) if key is not None else None
-    if row is None:
+    """Lease the pair `_choose` picks (`key`: the gold schedule's, None for no gold), else the
+    oldest open query; None when there is none, or Paused when a pause is why."""
+    chosen = _choose(connection, params, key, ahead_of) if key is not None else None
+    row = None if chosen is None else _TAKE_PAIR.first(connection, params | {"pair": chosen})
+    if row is None:  # no gold on these runs, or the pair was taken meanwhile (PostgreSQL)
         take = _TAKE_OF_ANY_HUMAN_RUN if params["run"] is None else _TAKE_OF_RUN
         row = take.first(connection, params)
     if row is None:
@@ -454,30 +464,32 @@ def _take_next(connection: DriverConnection, params: dict[str, Any], *, key: byt
     return row
 
 
-def _lease_gold(connection: DriverConnection, params: dict[str, Any], key: bytes,
-                ahead_of: int | None) -> Any | None:
-    """A gold pair for the labeller when one is open and their share of gold answers is due
-    (`labelqueue.gold`), in the order the other queries
-    come in: never one behind the furthest query they answered on the run or the one they are
-    shown (`ahead_of`), and never one after the next ordinary query, which then comes first.
-    So neither the ids a labeller is served nor their order tell a gold pair from the others."""
-    labeller = params["labeller"]
-    oldest = _GOLD_OF_ANY_HUMAN_RUN if params["run"] is None else _GOLD_OF_RUN
-    candidate = oldest.first(connection, params)
-    if candidate is None:
+def _choose(connection: DriverConnection, params: dict[str, Any], key: bytes,
+            ahead_of: int | None) -> int | None:
+    """The labeller's next pair where the runs asked about have gold pairs: a gold pair when
+    their share of gold answers is due (`labelqueue.gold`), else the oldest open query; None
+    where they have no gold pair (the plain lease then).
+
+    A gold pair comes in the order the other queries come in: never one behind the furthest
+    query they answered on the run or the one they are shown (`ahead_of`), never one after the
+    next ordinary query; among those that may come, it is drawn at random under `key`, per
+    labeller and answer (so newcomers do not all get the run's oldest). A gold lease and an
+    ordinary one make the same statements, in the same order: neither the ids a labeller is
+    served, nor their order, nor the time a lease takes tell a gold pair from the others."""
+    oldest = (_GOLD_OF_ANY_HUMAN_RUN if params["run"] is None else _GOLD_OF_RUN).first(
+        connection, params)
+    if oldest is None:
         return None
-    share = gold_share(connection, labeller_id=labeller, run_id=candidate.run_id)
-    if not gold_due(share, key=key, labeller_id=labeller, run_id=candidate.run_id,
-                    rate=GoldSettings.of(run_feedback(candidate)).rate):
-        return None
-    reached = max(share.furthest, ahead_of or 0)
-    if candidate.id <= reached:
-        ahead = params | {"run": candidate.run_id, "after": reached}
-        candidate = _GOLD_OF_RUN_AFTER.first(connection, ahead)
-        if candidate is None:
-            return None
+    labeller, run_id = params["labeller"], oldest.run_id
+    share = gold_share(connection, labeller_id=labeller, run_id=run_id)
     first = (_FIRST_OF_ANY_HUMAN_RUN if params["run"] is None else _FIRST_OF_RUN).first(
         connection, params)
-    if first is not None and first.id < candidate.id:
-        return None
-    return _TAKE_GOLD.first(connection, params | {"gold_pair": candidate.id})
+    golds = _GOLD_BETWEEN.rows(connection, params | {
+        "run": run_id, "after": max(share.furthest, ahead_of or 0),
+        "before": NO_ID if first is None else first.id})
+    due = gold_due(share, key=key, labeller_id=labeller, run_id=run_id,
+                   rate=GoldSettings.of(run_feedback(oldest)).rate)
+    if due and golds:
+        return int(golds[gold_pick(key, labeller_id=labeller, run_id=run_id,
+                                   answers=share.answers, among=len(golds))].id)
+    return None if first is None else int(first.id)

@@ -29,6 +29,8 @@ from labelqueue import (
     submit_label,
     withdraw_label,
 )
+from labelqueue.gold import SCHEDULE_KEY
+from labelqueue.models import ServerKey, utcnow
 from runvocab.answers import Answer, click_of_answer
 
 # query_spec's returns: first 1.5, second 2.5, so a gold pair's answer is the second segment.
@@ -300,3 +302,34 @@ def test_taking_back_a_gold_answer_leaves_the_budget_as_it_was(session: Session)
     withdraw_label(session, query_id=gold, labeller_id=ann.id)
     # The gold answer never cost budget, so taking it back gives none back.
     assert read_run(session, run_id=run.id).labels_used == used
+
+
+def test_newcomers_first_checks_are_drawn_at_random_among_the_runs_gold(
+        session: Session) -> None:
+    # A fixed schedule key, so that the draws (random to labellers) are the same each time.
+    session.add(ServerKey(name=SCHEDULE_KEY, value="5e" * 32, created_at=utcnow()))
+    session.commit()
+    run = gold_run(session, gold_rate=0.3)
+    # An early round, its ordinary pairs all answered; its gold pairs stay open to newcomers.
+    plain, golds = push(session, run, plain=10, gold=8)
+    veteran, _ = create_labeller(session, name="veteran")
+    while any(q.status != "labelled" for q in (
+            session.get(Query, i, populate_existing=True) for i in plain)):
+        assert answer_next(session, veteran.id, run.id, golds) is not None
+    session.commit()
+    later = [query_spec(i, round=1, gold=i % 10 == 5) for i in range(200)]
+    ids = push_queries(session, run_id=run.id, queries=later)
+    golds += [i for i, spec in zip(ids, later, strict=True) if spec["gold"]]
+    newcomers = [create_labeller(session, name=f"new{i}")[0].id for i in range(16)]
+    first_check: dict[int, int] = {}
+    for _ in range(30):  # a crowd: each newcomer answers in turn, until their first check
+        for who in newcomers:
+            if who not in first_check:
+                query = answer_next(session, who, run.id, golds)
+                assert query is not None
+                if query.gold:
+                    first_check[who] = query.id
+    firsts = list(first_check.values())
+    # Not the run's oldest for all: newcomers' first checks are spread over its gold pairs.
+    assert len(firsts) == 16 and len(set(firsts)) >= 5
+    assert max(firsts.count(f) for f in set(firsts)) <= len(firsts) // 2
