@@ -2,7 +2,9 @@
 
     write_dataset(session, run_id=3, clips_root=Path("data/clips"), root=Path("datasets"))
 
-writes `datasets/sepoa/dmc-cheetah_run/run-3-v0/`, a local Minari dataset (arrow storage):
+writes `datasets/sepoa/dmc-cheetah_run/run-3-v0/`, a local Minari dataset (arrow storage, or
+HDF5 with `data_format="hdf5"`; its `env_spec` names the task's environment,
+`labelqueue.dataset_env`):
 
 - `data/`: Minari's own files. One Minari episode per episode of the run that a query points
   into (the run's episode store, `labelqueue.episodes`), in the run's order: observations
@@ -37,6 +39,7 @@ from typing import Any
 import numpy as np
 from sqlalchemy.orm import Session
 
+from labelqueue.dataset_env import env_spec, requirements
 from labelqueue.episodes import StoredEpisode, episodes_dir, read_episode, stored_trajectories
 from labelqueue.errors import NotFound
 from labelqueue.export import QUERY_COLUMNS, SCHEMA_VERSION, export_rows
@@ -58,8 +61,9 @@ QUERY_TABLE_COLUMNS = (
     + tuple(c.name for c in QUERY_COLUMNS
             if c.name not in ("first_start", "second_start", "segment_length")))
 """queries.parquet's columns: the pointers and the aggregate first, then the query's fields"""
-REQUIREMENTS = ["mujoco==3.3.0", "dm-control==1.0.28", "metaworld==3.1.1"]
-"""what restores the physics states (`trainer.envs`)"""
+DATA_FORMATS = ("arrow", "hdf5")
+"""Minari's storage formats: arrow (the default), or HDF5, which TorchRL's
+`MinariExperienceReplay` reads (it reads no other)"""
 
 
 class DatasetError(ValueError):
@@ -104,11 +108,15 @@ def check_dataset_id(dataset_id: str) -> str:
 
 
 def write_dataset(session: Session, *, run_id: int, clips_root: Path, root: Path,
-                  dataset_id: str | None = None) -> DatasetSummary:
-    """Write run `run_id`'s episodes and labels as the Minari dataset `root/<dataset_id>`.
+                  dataset_id: str | None = None, data_format: str = "arrow") -> DatasetSummary:
+    """Write run `run_id`'s episodes and labels as the Minari dataset `root/<dataset_id>`, in
+    Minari's `data_format` (`DATA_FORMATS`).
 
     NotFound for an unknown run; DatasetError when it has no stored episodes, the destination
     exists, or the episodes disagree with each other. Nothing is left behind on an error."""
+    if data_format not in DATA_FORMATS:
+        raise DatasetError(f"format {data_format!r}: a dataset is stored as "
+                           f"{' or '.join(DATA_FORMATS)}")
     with reading(session):
         run = session.get(Run, run_id)
         if run is None:
@@ -131,7 +139,8 @@ def write_dataset(session: Session, *, run_id: int, clips_root: Path, root: Path
     tmp = final.parent / f".{final.name}.partial-{os.getpid()}"
     try:
         tmp.mkdir(parents=True)
-        summary = _write(tmp, final, dataset_id, info, folder, trajectories, rows)
+        summary = _write(tmp, final, dataset_id, info, folder, trajectories, rows,
+                         data_format)
         os.rename(tmp, final)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -157,7 +166,8 @@ def _run_info(run: Run) -> dict[str, Any]:
 
 
 def _write(tmp: Path, final: Path, dataset_id: str, info: dict[str, Any], folder: Path,
-           trajectories: list[int], rows: list[dict[str, Any]]) -> DatasetSummary:
+           trajectories: list[int], rows: list[dict[str, Any]],
+           data_format: str) -> DatasetSummary:
     import gymnasium as gym
     from minari import __version__ as minari_version  # type: ignore[import-untyped]
     from minari.dataset.minari_storage import MinariStorage  # type: ignore[import-untyped]
@@ -166,11 +176,13 @@ def _write(tmp: Path, final: Path, dataset_id: str, info: dict[str, Any], folder
     _check_shapes(episodes, folder)
     first = episodes[0]
     obs_dim, action_dim = first.observations.shape[1], first.actions.shape[1]
+    lengths = {e.length for e in episodes}
     storage = MinariStorage.new(
         tmp / "data",
         observation_space=gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32),
         action_space=gym.spaces.Box(-1.0, 1.0, (action_dim,), np.float32),
-        data_format="arrow")
+        env_spec=env_spec(info["task"], lengths.pop() if len(lengths) == 1 else None),
+        data_format=data_format)
     storage.update_metadata({
         "dataset_id": dataset_id,
         "algorithm_name": f"sepoa {info['algo']}",
@@ -180,14 +192,14 @@ def _write(tmp: Path, final: Path, dataset_id: str, info: dict[str, Any], folder
             "preference queries point into. Rewards are the task's true rewards; "
             "infos['state'] is the physics state at each observation. Labels: "
             f"{LABELS_FILE} and {QUERIES_FILE} beside data/."),
-        "requirements": REQUIREMENTS,
+        "requirements": requirements(info["task"]),
         "minari_version": minari_version,
     })
     storage.update_episodes(_buffers(episodes))
 
     index = {t: i for i, t in enumerate(trajectories)}
-    lengths = {t: e.length for t, e in zip(trajectories, episodes, strict=True)}
-    labels, left_out = _label_rows(rows, index, lengths)
+    labels, left_out = _label_rows(
+        rows, index, {t: e.length for t, e in zip(trajectories, episodes, strict=True)})
     queries = _query_rows(labels)
     _write_tables(tmp, labels, queries, episodes)
     steps = sum(e.length for e in episodes)

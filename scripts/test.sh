@@ -5,6 +5,10 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
+# d3rlpy and TorchRL, which tests/test_dataset_readers.py reads a dataset export with, in an
+# environment of their own (their pins clash with the project's; about two minutes when new).
+bash scripts/readers_env.sh
+export SEPOA_READERS_PYTHON="$PWD/.venv-readers/bin/python"
 export MUJOCO_GL=${MUJOCO_GL:-egl}
 .venv/bin/python -m ruff check sepoa server trainer labelqueue labelstats runvocab experiments figures migrations tests benchmarks
 .venv/bin/python -m mypy

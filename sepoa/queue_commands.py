@@ -36,6 +36,9 @@ LABELLER_ACTIONS = {
     "SEPOA_AUTH_CACHE_SECONDS (5 s)",
 }
 NAME_MAX = 100
+LABEL_FORMATS = ("jsonl", "csv", "parquet")
+DATASET_FORMATS = ("arrow", "hdf5")
+"""`labelqueue.dataset.DATA_FORMATS` (not imported here: it would load the dataset module)"""
 
 
 def database_url(args: argparse.Namespace) -> str:
@@ -47,7 +50,9 @@ def database_url(args: argparse.Namespace) -> str:
 
 def _export_arguments(p: argparse.ArgumentParser) -> None:
     database_args(p)
-    p.add_argument("--format", choices=("jsonl", "csv", "parquet"), default="jsonl")
+    p.add_argument("--format", choices=(*LABEL_FORMATS, *DATASET_FORMATS), default=None,
+                   help="the label file's: jsonl (default), csv or parquet; with --dataset, "
+                   "Minari's storage: arrow (default) or hdf5 (which TorchRL reads)")
     p.add_argument("--run", type=RUN_ID, default=None, help="one run's labels only")
     p.add_argument("--out", default="-", help="file to write; - for standard output")
     p.add_argument("--dataset", default=None, metavar="DIR",
@@ -78,6 +83,9 @@ def _export(args: argparse.Namespace) -> int:
     check_database(url)
     if args.dataset is not None:
         return _export_dataset(args, url)
+    if args.format in DATASET_FORMATS:
+        return fail(f"--format {args.format} is a dataset's storage: it goes with --dataset DIR")
+    fmt = args.format or "jsonl"
     if args.out != "-":
         folder = os.path.dirname(os.path.abspath(args.out))
         if not os.path.isdir(folder):
@@ -91,11 +99,10 @@ def _export(args: argparse.Namespace) -> int:
     try:
         with session_factory(engine)() as session:
             if args.out == "-":
-                rows = write_export(session, fmt=args.format, out=sys.stdout.buffer,
-                                    run_id=args.run)
+                rows = write_export(session, fmt=fmt, out=sys.stdout.buffer, run_id=args.run)
             else:
                 with open(tmp, "wb") as f:
-                    rows = write_export(session, fmt=args.format, out=f, run_id=args.run)
+                    rows = write_export(session, fmt=fmt, out=f, run_id=args.run)
                 os.replace(tmp, args.out)
     except NotFound as err:
         return fail(str(err))
@@ -123,8 +130,9 @@ def _export_dataset(args: argparse.Namespace, url: str) -> int:
 
     if args.run is None:
         return fail("--dataset needs --run N: a dataset holds one run's episodes")
-    if args.format != "jsonl" or args.out != "-":
-        return fail("--dataset writes a folder; --format and --out are for the label file")
+    if args.format in LABEL_FORMATS or args.out != "-":
+        return fail(f"--dataset writes a folder; --format {'/'.join(LABEL_FORMATS)} and --out "
+                    f"are for the label file (a dataset's --format: {'/'.join(DATASET_FORMATS)})")
     if os.path.exists(args.dataset) and not os.path.isdir(args.dataset):
         return fail(f"--dataset {args.dataset} is a file; give a folder")
     clips_dir = args.clips_dir or os.environ.get("SEPOA_CLIPS_DIR")
@@ -133,7 +141,8 @@ def _export_dataset(args: argparse.Namespace, url: str) -> int:
     try:
         with session_factory(engine)() as session:
             summary = write_dataset(session, run_id=args.run, clips_root=clips,
-                                    root=Path(args.dataset), dataset_id=args.dataset_id)
+                                    root=Path(args.dataset), dataset_id=args.dataset_id,
+                                    data_format=args.format or "arrow")
     except (NotFound, DatasetError) as err:
         return fail(str(err))
     except DBAPIError as err:

@@ -43,8 +43,9 @@ def write_export_file(
 
 
 def write_dataset_zip(*, database_url: str, clips_root: str, run_id: int,
-                      dataset_id: str | None, path: str) -> str:
-    """Run `run_id`'s Minari dataset (`labelqueue.dataset.write_dataset`) as the zip file
+                      dataset_id: str | None, path: str, data_format: str = "arrow") -> str:
+    """Run `run_id`'s Minari dataset (`labelqueue.dataset.write_dataset`, in Minari's
+    `data_format`) as the zip file
     `path`, its members under `<dataset id>/`, so that it unpacks into a Minari datasets
     folder; the dataset id. Runs in the export process."""
     from labelqueue.dataset import write_dataset
@@ -54,7 +55,8 @@ def write_dataset_zip(*, database_url: str, clips_root: str, run_id: int,
         with tempfile.TemporaryDirectory(prefix="sepoa-dataset-") as root, \
                 session_factory(engine)() as session:
             summary = write_dataset(session, run_id=run_id, clips_root=Path(clips_root),
-                                    root=Path(root), dataset_id=dataset_id)
+                                    root=Path(root), dataset_id=dataset_id,
+                                    data_format=data_format)
             with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as archive:
                 for file in sorted(summary.path.rglob("*")):
                     if file.is_file():
@@ -82,11 +84,11 @@ class ExportProcess:
         return rows
 
     def write_dataset(self, *, database_url: str, clips_root: str, run_id: int,
-                      dataset_id: str | None, path: str) -> str:
+                      dataset_id: str | None, path: str, data_format: str = "arrow") -> str:
         """`write_dataset_zip` in the export process (blocking); the dataset id."""
         written: str = self._run(write_dataset_zip, database_url=database_url,
                                  clips_root=clips_root, run_id=run_id, dataset_id=dataset_id,
-                                 path=path)
+                                 path=path, data_format=data_format)
         return written
 
     def _run(self, job: Callable[..., Any], **kwargs: Any) -> Any:

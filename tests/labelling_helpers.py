@@ -16,11 +16,12 @@ TASK = "dmc:cheetah_run"
 
 
 def exported_dataset(folder: Path, *, episodes: int = 4, length: int = 60,
-                     dataset_id: str = "sepoa/dmc-cheetah_run/source-v0", seed: int = 0) -> Path:
-    """`episodes` random-action cheetah episodes of `length` steps, kept in a run's episode
-    store as a worker keeps them and exported with `write_dataset` under `folder` (a Minari
-    datasets folder); the dataset's path. Its source run, in a database of its own, has no
-    labels: the dataset is unlabelled."""
+                     dataset_id: str = "sepoa/dmc-cheetah_run/source-v0", seed: int = 0,
+                     task: str = TASK, data_format: str = "arrow") -> Path:
+    """`episodes` random-action episodes of `task` (cheetah) of `length` steps, kept in a run's
+    episode store as a worker keeps them and exported with `write_dataset` under `folder` (a
+    Minari datasets folder, in Minari's `data_format`); the dataset's path. Its source run, in a
+    database of its own, has no labels: the dataset is unlabelled."""
     from trainer.envs import make_env
 
     source = folder.parent / f"{folder.name}-source"
@@ -30,11 +31,11 @@ def exported_dataset(folder: Path, *, episodes: int = 4, length: int = 60,
     engine = make_engine(url)
     sessions = session_factory(engine)
     with sessions() as session:
-        run = create_run(session, name="source", task=TASK, algo="pebble", preset="tiny",
+        run = create_run(session, name="source", task=task, algo="pebble", preset="tiny",
                          budget=1, teacher="scripted")
     store = episodes_dir(source / "clips", run.id)
     rng = np.random.default_rng(seed)
-    with make_env(TASK, seed, length) as env:
+    with make_env(task, seed, length) as env:
         for trajectory in range(episodes):
             observations, states = [env.reset()], [env.physics_state()]
             actions, rewards = [], []
@@ -51,7 +52,7 @@ def exported_dataset(folder: Path, *, episodes: int = 4, length: int = 60,
                 states=np.array(states), context=env.episode_context(), success=False))
     with sessions() as session:
         summary = write_dataset(session, run_id=run.id, clips_root=source / "clips",
-                                root=folder, dataset_id=dataset_id)
+                                root=folder, dataset_id=dataset_id, data_format=data_format)
     engine.dispose()
     return summary.path
 

@@ -196,3 +196,24 @@ def test_a_relative_datasets_folder_works_as_the_docs_show_it(trained, tmp_path,
     monkeypatch.setenv("MINARI_DATASETS_PATH", "datasets")
     assert minari.load_dataset(DATASET_ID).total_steps == _load(trained).total_steps
     assert not (tmp_path / "datasets" / "datasets").exists()
+
+
+def test_format_hdf5_writes_minaris_hdf5_storage(trained, tmp_path, capsys, monkeypatch):
+    base = trained["args"][:5]
+    assert main([*base, "--dataset", str(tmp_path), "--run", "1", "--format", "hdf5"]) == 0
+    assert (tmp_path / DATASET_ID / "data" / "main_data.hdf5").is_file()
+    import minari
+
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path))
+    again, first = minari.load_dataset(DATASET_ID), _load(trained)
+    assert again.total_steps == first.total_steps
+    np.testing.assert_array_equal(again[1].infos["state"], first[1].infos["state"])
+    for extra, message in (
+            (["--format", "hdf5"], "--format hdf5 is a dataset's storage: it goes with "
+                                   "--dataset DIR"),
+            (["--dataset", str(tmp_path / "x"), "--run", "1", "--format", "csv"],
+             "--format jsonl/csv/parquet and --out are for the label file")):
+        capsys.readouterr()
+        assert main([*base, *extra]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1, err

@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 import tempfile
 from collections.abc import Iterator
-from typing import IO, Annotated
+from typing import IO, Annotated, Literal
 
 from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import StreamingResponse
@@ -97,6 +97,9 @@ def export_dataset(
     dataset_id: Annotated[str | None, Query(
         max_length=200, description="the Minari dataset id (default sepoa/<task>/run-<id>-v0)",
     )] = None,
+    data_format: Annotated[Literal["arrow", "hdf5"], Query(
+        alias="format", description="Minari's storage: arrow, or hdf5 (which TorchRL reads)",
+    )] = "arrow",
 ) -> StreamingResponse:
     """The run's episodes and labels as a Minari dataset (docs/EXPORT.md), zipped under its
     dataset id: unzip it into a Minari datasets folder. 409 when the run kept no episodes."""
@@ -108,7 +111,8 @@ def export_dataset(
     try:
         written = export.write_dataset(database_url=settings.database_url,
                                        clips_root=str(settings.clips_root), run_id=run_id,
-                                       dataset_id=dataset_id, path=path)
+                                       dataset_id=dataset_id, data_format=data_format,
+                                       path=path)
         file = open(path, "rb")  # closed by _blocks once sent
     except NoEpisodes as err:
         raise HTTPException(409, str(err)) from None

@@ -63,6 +63,11 @@ def test_an_operator_downloads_a_run_as_a_minari_dataset(
     assert [(r["labeller_name"], r["first_episode"], r["second_episode"], r["first_start"])
             for r in labels] == [("alice", 0, 1, 10)]
 
+    hdf5 = client.get(f"/api/runs/{run_id}/dataset?format=hdf5", headers=OPERATOR)
+    assert hdf5.status_code == 200, hdf5.text
+    with zipfile.ZipFile(io.BytesIO(hdf5.content)) as archive:
+        assert f"{name}/data/main_data.hdf5" in archive.namelist()
+
 
 def test_refusals_name_the_problem(
     client: TestClient, session: Session, settings: Settings
@@ -79,3 +84,5 @@ def test_refusals_name_the_problem(
     for bad_id in ("no spaces allowed", "no-version", "0000"):
         bad = client.get(url, params={"dataset_id": bad_id}, headers=OPERATOR)
         assert bad.status_code == 422 and "not a Minari id" in bad.json()["detail"], bad_id
+    bad = client.get(url, params={"format": "parquet"}, headers=OPERATOR)
+    assert bad.status_code == 422 and bad.json()["detail"][0]["loc"] == ["query", "format"]
