@@ -40,12 +40,14 @@ class RateLimit:
 
     def __init__(self, per_s: float, burst: int):
         self.per_s, self.burst = per_s, burst
+        self.clock = time.monotonic
+        """seconds, for the buckets (a test may run them on a clock of its own)"""
         self._buckets: dict[object, _Bucket] = {}
         self._lock = threading.Lock()
 
     def wait_s(self, key: object, now: float | None = None) -> float:
         """Take one request for `key`: 0 when it may go ahead, else the seconds until it may."""
-        now = time.monotonic() if now is None else now
+        now = self.clock() if now is None else now
         with self._lock:
             bucket = self._buckets.get(key)
             if bucket is None:

@@ -174,6 +174,8 @@ def post_join(code: InviteCode, request: Request, session: SessionDep,
     request.app.state.join_limit.check(code, "this invite link")
     joined = join_invite(session, code=code, participant=body.participant if body else None,
                          consent=body.consent if body else False)
+    if joined.rejoined:  # the old token stops in this process at once (others: the cache's s)
+        request.app.state.token_cache.forget(joined.labeller.id)
     return JoinedOut(
         labeller_id=joined.labeller.id,
         name=joined.labeller.name,
