@@ -12,6 +12,7 @@ from sepoa.parser import ID_MAX, RUN_ID, Command, fail, integer, refusing
 
 if TYPE_CHECKING:
     from sqlalchemy.engine import Engine
+    from sqlalchemy.orm import Session
 
 
 def database_args(p: argparse.ArgumentParser, inherit: bool = False) -> None:
@@ -349,7 +350,7 @@ def _invite(args: argparse.Namespace) -> int:
     from sqlalchemy.engine import make_url
     from sqlalchemy.exc import DBAPIError
 
-    from labelqueue import make_engine, session_factory, verify_code
+    from labelqueue import NotFound, make_engine, session_factory
 
     url = database_url(args)
     parsed = make_url(url)
@@ -358,23 +359,67 @@ def _invite(args: argparse.Namespace) -> int:
     engine = make_engine(url)
     try:
         with session_factory(engine)() as session:
-            verified = verify_code(session, args.code)
+            if args.action == "participants":
+                return _participants(session, args.invite_id, as_csv=args.csv)
+            return _verify(session, args.code)
+    except NotFound as err:
+        return fail(str(err))
     except DBAPIError as err:
         return fail(f"cannot read the queue database: "
                     f"{str(err.orig or err).strip().splitlines()[0]}")
     finally:
         engine.dispose()
-    if verified is None:
-        print(f"{args.code!r} is no participant's completion code (check it was copied whole)",
-              file=sys.stderr)
-        return 1
-    why = {"target": "complete: reached the target", "runs_over": "complete: the run ended",
-           "paused": "complete: paused by check pairs", None: "not complete yet"}[verified.why]
-    target = "" if verified.target_answers is None else f" of {verified.target_answers}"
-    print(f"valid: {verified.participant or '-'} (labeller {verified.labeller!r}, id "
-          f"{verified.labeller_id}), invite {verified.invite_id}, run "
-          f"{verified.run_id if verified.run_id is not None else 'all'}: "
-          f"{verified.counted}{target} decisive answers; {why}")
+
+
+WHY = {"target": "complete: reached the target", "runs_over": "complete: the run ended",
+       "paused": "complete: paused by check pairs",
+       "nothing_left": "complete: nothing left to label", None: "not complete yet"}
+
+
+def _verify(session: Session, given: list[str]) -> int:
+    """One code (its words joined: a code typed with spaces is one code), or with `-`, one a
+    line from stdin; exit 1 when any is nobody's or not earned."""
+    from labelqueue.participants import verify_codes
+
+    codes = sys.stdin.read().splitlines() if given == ["-"] else [" ".join(given)]
+    checked = verify_codes(session, codes)
+    for check in checked:
+        if check.why == "unknown":
+            print(f"{check.code!r} is no participant's completion code (check it was copied "
+                  "whole)", file=sys.stderr)
+            continue
+        from labelqueue import verify_code
+
+        verified = verify_code(session, check.code)
+        assert verified is not None
+        target = "" if verified.target_answers is None else f" of {verified.target_answers}"
+        print(f"{'valid' if check.valid else 'not earned'}: {verified.participant or '-'} "
+              f"(labeller {verified.labeller!r}, id {verified.labeller_id}), invite "
+              f"{verified.invite_id}, run "
+              f"{verified.run_id if verified.run_id is not None else 'all'}: "
+              f"{verified.counted}{target} decisive answers; {WHY[verified.why]}")
+    return 0 if checked and all(check.valid for check in checked) else 1
+
+
+def _participants(session: Session, invite_id: int, *, as_csv: bool) -> int:
+    import csv
+    from dataclasses import asdict
+
+    from labelqueue.participants import CSV_COLUMNS, participants
+
+    people = participants(session, invite_id=invite_id)
+    if as_csv:
+        writer = csv.writer(sys.stdout)
+        writer.writerow(CSV_COLUMNS)
+        for person in people:
+            row = asdict(person)
+            writer.writerow(["" if row[c] is None else row[c] for c in CSV_COLUMNS])
+        return 0
+    for p in people:
+        print(f"{p.participant or p.labeller}: {p.decisive + p.equal} decisive, {p.skips} skips"
+              f", gold {p.gold_correct}/{p.gold_answers}, {p.completion_code} "
+              f"{'earned' if p.code_valid else 'not earned'} ({WHY[p.why]})")
+    print(f"{len(people)} joined, {sum(p.code_valid for p in people)} earned their code")
     return 0
 
 
@@ -382,9 +427,15 @@ def _invite_arguments(p: argparse.ArgumentParser) -> None:
     database_args(p)
     invite_sub = p.add_subparsers(dest="action", required=True)
     verify = invite_sub.add_parser(
-        "verify", help="whose completion code it is and how far they got (exit 1: nobody's)")
-    verify.add_argument("code")
+        "verify", help="whose completion code it is and whether it is earned (exit 1: nobody's"
+                       " or not earned); `-` checks one code a line from stdin")
+    verify.add_argument("code", nargs="+")
     database_args(verify, inherit=True)
+    listed = invite_sub.add_parser(
+        "participants", help="everyone who joined the invite: answers, gold score and code")
+    listed.add_argument("invite_id", type=integer("an invite id", 1, ID_MAX), metavar="ID")
+    listed.add_argument("--csv", action="store_true", help="as CSV, to pay from")
+    database_args(listed, inherit=True)
 
 
 COMMANDS = {

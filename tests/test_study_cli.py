@@ -4,6 +4,8 @@ starts or once it runs, stops it and its children without a traceback."""
 
 from __future__ import annotations
 
+import csv
+import io
 import os
 import signal
 import socket
@@ -35,8 +37,8 @@ from sepoa.cli import main
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_invite_verify_says_whose_code_it_is(tmp_path: Path, capsys: pytest.CaptureFixture[str]
-                                             ) -> None:
+def test_invite_verify_says_whose_code_it_is(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
     data = tmp_path / "data"
     url = sqlite_url(str(data))
     migrate(url)
@@ -69,6 +71,24 @@ def test_invite_verify_says_whose_code_it_is(tmp_path: Path, capsys: pytest.Capt
     assert "is no participant's completion code" in capsys.readouterr().err
     assert main(["invite", "verify", code, "--data-dir", str(tmp_path / "none")]) == 2
     assert "no queue database" in capsys.readouterr().err
+    # A code typed with spaces inside, as several words, is one code.
+    spaced = code.replace("-", " - ").split()
+    assert main(["invite", "verify", *spaced, "--data-dir", str(data)]) == 0
+    assert capsys.readouterr().out.startswith("valid: P-1")
+    # Many codes, one a line from stdin: exit 1 when any is not to be paid.
+    monkeypatch.setattr("sys.stdin", io.StringIO(f"{code}\n\nPILOT-AAAA-BBBB-CCCC\n"))
+    assert main(["invite", "verify", "-", "--data-dir", str(data)]) == 1
+    captured = capsys.readouterr()
+    assert captured.out.startswith("valid: P-1") and "no participant's" in captured.err
+
+    # The list to pay from.
+    assert main(["invite", "participants", str(invite.id), "--csv", "--data-dir",
+                 str(data)]) == 0
+    rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
+    assert [(r["participant"], r["decisive"], r["code_valid"], r["completion_code"])
+            for r in rows] == [("P-1", "1", "True", code)]
+    assert main(["invite", "participants", "999", "--data-dir", str(data)]) == 2
+    assert "invite 999 does not exist" in capsys.readouterr().err
 
 
 def test_a_bad_public_url_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
