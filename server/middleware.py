@@ -46,7 +46,12 @@ def is_json_content_type(content_type: str) -> bool:
 
 def nests_deeper_than(body: bytes, limit: int) -> bool:
     """Whether `body`, read as JSON, opens more than `limit` arrays or objects inside each
-    other. Brackets inside strings do not count; malformed JSON is left to the decoder."""
+    other. Brackets inside strings do not count; malformed JSON is left to the decoder. A body
+    in UTF-16 or UTF-32, which `json.loads` decodes by itself, is scanned as the decoder reads
+    it."""
+    encoding = json.detect_encoding(body)
+    if encoding != "utf-8":
+        body = body.decode(encoding, errors="replace").encode()
     if body.count(b"[") + body.count(b"{") <= limit:
         return False  # the common case, at C speed: too few brackets to nest that deep
     depth, in_string = 0, False

@@ -267,3 +267,14 @@ def test_a_deeply_nested_label_does_not_drop_the_connection(settings: Settings) 
             assert bad.status_code == 400, (depth, bad.text[:200])
             assert bad.headers.get("connection") != "close"
         assert http.get("/api/label/next", headers=labeller).status_code == 204
+
+
+@pytest.mark.parametrize("encoding", ["utf-16", "utf-16-le", "utf-32", "utf-32-be"])
+def test_a_deep_body_in_utf16_or_utf32_is_a_400_too(client: TestClient, encoding: str) -> None:
+    deep = ("[" * 5000 + "]" * 5000).encode(encoding)
+    assert nests_deeper_than(deep, JSON_DEPTH_LIMIT)
+    refused = client.post("/api/label/1", content=deep, headers=OPERATOR | {
+        "Content-Type": "application/json"})
+    assert refused.status_code == 400, refused.text
+    shallow = '{"choice": "left"}'.encode(encoding)
+    assert not nests_deeper_than(shallow, JSON_DEPTH_LIMIT)

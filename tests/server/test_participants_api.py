@@ -182,3 +182,13 @@ def test_a_redirect_url_fills_in_no_host(client: TestClient) -> None:
         assert refused.status_code == 422 and "host" in refused.text
     assert client.post("/api/invites", headers=OPERATOR, json={
         "redirect_url": "https://example.org/done?pid={participant}&cc={code}"}).status_code == 201
+
+
+def test_participants_see_no_operator_link_and_may_decline_consent(client: TestClient) -> None:
+    made = invite(client, consent_text="We record your answers.")
+    for path in ("/label", f"/join/{made['code']}"):
+        page = client.get(path).text
+        assert 'href="/runs"' not in page and 'href="/labels"' not in page
+    assert 'href="/runs"' in client.get("/runs").text
+    join_page = client.get(f"/join/{made['code']}").text
+    assert 'id="consent-decline"' in join_page and "nothing was recorded" in join_page

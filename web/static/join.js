@@ -33,6 +33,7 @@ async function join() {
   }
   if (document.body.dataset.consent === "required") {
     $("consent-agree").addEventListener("click", () => joinNow(true).catch(failed), { once: true });
+    $("consent-decline").addEventListener("click", decline, { once: true });
     return;
   }
   await joinNow(false);
@@ -48,6 +49,12 @@ async function joinNow(consent) {
     body: JSON.stringify(body),
   });
   const data = await response.json().catch(() => null);
+  if (response.status === 429) { // the link is joined fast just now: wait as the server says
+    const seconds = Number(response.headers.get("retry-after")) || 5;
+    $("join-status").textContent = `Many people are joining right now: trying again in ${seconds} s…`;
+    setTimeout(() => joinNow(consent).catch(failed), seconds * 1000);
+    return;
+  }
   if (!response.ok) {
     $("join-status").hidden = true;
     $("join-error").textContent = describe(data?.detail) || `HTTP ${response.status}`;
@@ -57,6 +64,13 @@ async function joinNow(consent) {
   keepToken("labeller", data.token);
   localStorage.setItem(joinedKey, data.name);
   ready(data.name);
+}
+
+/** Declining the consent text: nothing is sent, nobody joins. */
+function decline() {
+  $("consent-agree").disabled = $("consent-decline").disabled = true;
+  $("join-status").hidden = true;
+  $("declined").hidden = false;
 }
 
 function failed(error) {

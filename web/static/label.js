@@ -529,6 +529,9 @@ function answer(choice, flag = null) {
     shown_at: (done.shownAt ?? serverNow()).toISOString(),
     ...(flag || {}),
   };
+  // A practice answer's explanation is a screen of its own: the next pair waits behind it.
+  const practising = done.query.practice != null;
+  if (practising) $("stage").hidden = true;
   if (state.next) {
     show(state.next); // at once; the answer is sent below
     state.next = null;
@@ -540,6 +543,7 @@ function answer(choice, flag = null) {
       await submit(done.query.query_id, body);
     } finally {
       state.submitting = false;
+      if (practising && !$("practice-dialog").open) $("stage").hidden = false;
     }
     if (state.current === done) await loadCurrent(); // nothing was preloaded
     else {
@@ -703,7 +707,10 @@ start(() => {
   });
   $("flag-form").addEventListener("submit", sendFlag);
   $("flag-cancel").addEventListener("click", () => $("flag-dialog").close());
-  $("practice-dialog").addEventListener("close", () => setPaused(false));
+  $("practice-dialog").addEventListener("close", () => {
+    $("stage").hidden = false; // the next pair, once the explanation is read
+    setPaused(false);
+  });
   $("play").addEventListener("click", (event) => {
     event.currentTarget.blur();
     setPaused(!clock.paused);

@@ -12,6 +12,8 @@ const WHY = {
     + "label. Your answers are kept.",
   paused: "Your answers on the check pairs (pairs whose better clip is known) did not match "
     + "often enough, so this study gives you no more pairs. Your answers so far are kept.",
+  nothing_left: "You waited a while and there was nothing left for you to label: thank you "
+    + "for your time. Your answers so far are kept.",
 };
 
 /** The page's state for the study: what the last status said. */
@@ -49,7 +51,9 @@ export function showProgress(progress, always = false) {
   const box = $("completion");
   box.dataset.why = progress.why;
   $("completion-title").textContent = progress.why === "paused"
-    ? "Your part in this study has ended" : "Study complete: thank you";
+    ? "Your part in this study has ended"
+    : progress.why === "nothing_left" ? "Finished: nothing left to label"
+      : "Study complete: thank you";
   $("completion-why").textContent = WHY[progress.why] || "";
   const code = progress.completion_code;
   $("completion-code-row").hidden = !code;
