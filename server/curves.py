@@ -6,7 +6,7 @@ evaluation return, on the steps all of them reached (figures/curves.py). The run
 itself is drawn alone as well, so it can be told from its group.
 
 Drawing a figure takes about a second of CPU (matplotlib), so it is done by a process of its own
-at a lower priority (`server.export_job.NICENESS`), started at the first figure and kept: in the
+at a lower priority (`server.side_process`), started at the first figure and kept: in the
 server's process it held the interpreter's lock against the labellers' requests all that time.
 Figures are kept by their data: every open run page asks again after each new evaluation, and
 all but the first get the PNG drawn for the first (the data is read each time; only an unchanged
@@ -16,8 +16,6 @@ by the run page whenever the run's label count changes) is drawn there too, kept
 
 from __future__ import annotations
 
-import multiprocessing
-import os
 import threading
 from collections import Counter, OrderedDict
 from collections.abc import Callable, Hashable
@@ -28,8 +26,8 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from labelqueue import Run, read_metrics
-from server.export_job import NICENESS
 from server.services import reading
+from server.side_process import side_process_pool
 
 if TYPE_CHECKING:
     from labelstats.calibration import CalibrationReport
@@ -42,10 +40,6 @@ _drawing = threading.Lock()
 _pool: ProcessPoolExecutor | None = None
 """the drawing process, once a figure has been asked for (`close` ends it)"""
 _kept: OrderedDict[Hashable, bytes] = OrderedDict()
-
-
-def _lower_priority() -> None:
-    os.nice(NICENESS)
 
 
 def _eps(run: Run) -> float:
@@ -112,12 +106,7 @@ def _in_drawing_process(function: Callable[..., bytes], *args: object) -> bytes:
     """`function(*args)` in the drawing process, started at the first call (blocking)."""
     global _pool
     if _pool is None:
-        _pool = ProcessPoolExecutor(
-            max_workers=1,
-            # Not forked: the server has threads (and a database pool) to not copy.
-            mp_context=multiprocessing.get_context("spawn"),
-            initializer=_lower_priority,
-        )
+        _pool = side_process_pool()
     return _pool.submit(function, *args).result()
 
 

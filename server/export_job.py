@@ -2,15 +2,14 @@
 
 Writing 100 000 labels takes the better part of a minute of CPU. In a thread of the server it
 held the interpreter's lock against every labeller's request for all that time; in a child
-process at `NICENESS` the operating system runs the labellers' requests first and nothing is
-shared but the database, which the export only reads (short read transactions that take no
-lock, see `labelqueue.export`). The file goes to disk, so memory stays bounded.
+process at a lower priority (`server.side_process`, which also ends it with the server) the
+operating system runs the labellers' requests first and nothing is shared but the database,
+which the export only reads (short read transactions that take no lock, see
+`labelqueue.export`). The file goes to disk, so memory stays bounded.
 """
 
 from __future__ import annotations
 
-import multiprocessing
-import os
 import tempfile
 import threading
 import zipfile
@@ -20,13 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from labelqueue import ExportFormat, make_engine, session_factory, write_export
-
-NICENESS = 10
-"""how much lower the export process's scheduling priority is than the server's"""
-
-
-def _lower_priority() -> None:
-    os.nice(NICENESS)
+from server.side_process import side_process_pool
 
 
 def write_export_file(
@@ -94,12 +87,7 @@ class ExportProcess:
     def _run(self, job: Callable[..., Any], **kwargs: Any) -> Any:
         with self._lock:
             if self._pool is None:
-                self._pool = ProcessPoolExecutor(
-                    max_workers=1,
-                    # Not forked: the server has threads (and a database pool) to not copy.
-                    mp_context=multiprocessing.get_context("spawn"),
-                    initializer=_lower_priority,
-                )
+                self._pool = side_process_pool()
             pool = self._pool
         return pool.submit(job, **kwargs).result()
 

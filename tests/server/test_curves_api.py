@@ -14,7 +14,7 @@ from sqlalchemy.orm import Session
 from figures import curves as plots
 from labelqueue import write_metrics
 from server import curves
-from server.export_job import NICENESS
+from server.side_process import NICENESS
 
 
 @pytest.fixture

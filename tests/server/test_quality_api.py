@@ -20,8 +20,8 @@ from labelqueue import claim_run, export_rows, push_queries, set_clips
 from labelqueue.export_read import read_export
 from labelstats.calibration import calibration_report
 from server import curves
-from server.export_job import NICENESS
 from server.settings import Settings
+from server.side_process import NICENESS
 
 
 def human_run(client: TestClient, session: Session, settings: Settings, *, algo: str,
