@@ -42,9 +42,10 @@ def test_a_practice_round_is_explained_then_real_pairs_follow(
     fay = live.new_labeller("fay-practice")
     run_id = live.new_human_run(config={"feedback.practice_pairs": 2})
     real, gold1, gold2 = live.push_rendered_queries(run_id, 3)
-    with live.sessions() as session:  # two of them gold pairs (a worker pushes them so)
+    with live.sessions() as session:  # two of them the run's practice pairs: gold pairs a
+        # push reserves so (labelqueue.practice)
         session.execute(update(Query).where(Query.id.in_([gold1, gold2]))
-                        .values(gold=True, needs_labels=GOLD_NEEDS_LABELS))
+                        .values(gold=True, needs_labels=GOLD_NEEDS_LABELS, practice=True))
         session.commit()
     try:
         page.goto(f"{live.url}/label?run={run_id}#token={fay.token}")
@@ -68,6 +69,7 @@ def test_a_practice_round_is_explained_then_real_pairs_follow(
         assert "lost some" in explanation  # the other segment's return is below zero
         assert not any(str(v) in page.content() for v in SECRET_RETURNS.values())
         assert "Practice pair 1 of 2" in page.inner_text("#practice-title")
+        assert page.is_hidden("#stage")  # a screen of its own: the next pair waits behind it
         screenshot(page, "label-page-practice.png", "#practice-dialog")
         # Keys do not answer the pair behind the dialog; Enter continues.
         page.keyboard.press("ArrowRight")

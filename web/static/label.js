@@ -284,7 +284,7 @@ function show(pair) {
   showClipInfo(pair);
   $("pair-id").textContent = `${pair.query.query_id} · run ${pair.query.run_id}`;
   $("waiting").hidden = true;
-  $("stage").hidden = false;
+  $("stage").hidden = $("practice-dialog").open; // shown once a practice explanation is read
   const practice = pair.query.practice;
   $("practice-banner").hidden = !practice;
   if (practice) {
@@ -531,11 +531,11 @@ function answer(choice, flag = null) {
   };
   // A practice answer's explanation is a screen of its own: the next pair waits behind it.
   const practising = done.query.practice != null;
-  if (practising) $("stage").hidden = true;
   if (state.next) {
     show(state.next); // at once; the answer is sent below
     state.next = null;
   }
+  if (practising) $("stage").hidden = true;
   updateButtons();
   offerUndo(done);
   serial(() => attempt(async () => {

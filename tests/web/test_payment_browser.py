@@ -1,0 +1,56 @@
+"""A paid study on a phone, in a real headless Chromium: the practice pair's explanation is a
+screen of its own, a participant left with nothing to label finishes with their code after the
+invite's wait, and the operator's participants page lists them with the code earned. With
+SEPOA_SCREENSHOT_DIR=docs it writes the three phone screenshots."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sqlalchemy import update
+from test_study_browser import join_and_start, phone, runs, screenshot  # noqa: F401
+from web_helpers import OPERATOR_TOKEN, LiveServer
+
+from labelqueue.gold import GOLD_NEEDS_LABELS
+from labelqueue.models import Query
+
+
+def test_practice_nothing_left_and_the_list_to_pay_from_on_a_phone(
+    live: LiveServer, browser: Any, runs: list[int]  # noqa: F811
+) -> None:
+    runs.append(run_id := live.new_human_run(config={"feedback.practice_pairs": 1}))
+    practice, real = live.push_rendered_queries(run_id, 2)
+    with live.sessions() as session:  # reserved as the run's practice pair, as a push does
+        session.execute(update(Query).where(Query.id == practice).values(
+            gold=True, practice=True, needs_labels=GOLD_NEEDS_LABELS))
+        session.commit()
+    invite = live.api("POST", "/api/invites", json={
+        "run_id": run_id, "target_answers": 5, "wait_limit_s": 1, "completion_code": "PAY"})
+    page = phone(browser)
+    join_and_start(page, invite["url"], "P-pay")
+
+    page.wait_for_selector('[data-choice="left"]:not([disabled])')
+    page.click('[data-choice="left"]')
+    page.wait_for_selector("#practice-dialog[open]")
+    assert page.is_hidden("#stage")  # the next pair waits behind the explanation
+    screenshot(page, "practice-phone.png")
+    page.click("#practice-continue")
+
+    page.wait_for_selector('[data-choice="right"]:not([disabled])')
+    assert int(page.get_attribute("#pairs .pair:not([hidden])", "data-query-id")) == real
+    page.click('[data-choice="right"]')
+    # One real answer of five, and nothing left: after the invite's wait, finished, with a code.
+    page.wait_for_selector("#completion:not([hidden])", timeout=30_000)
+    assert page.inner_text("#completion-title") == "Finished: nothing left to label"
+    code = page.inner_text("#completion-code")
+    assert code.startswith("PAY-")
+    screenshot(page, "nothing-left-phone.png")
+    page.context.close()
+
+    operator = phone(browser)
+    operator.goto(f"{live.url}/invites/{invite['id']}/participants#token={OPERATOR_TOKEN}")
+    operator.wait_for_selector("#participants-body tr[data-valid]")
+    row = operator.inner_text("#participants-body tr")
+    assert "P-pay" in row and code in row and "earned" in row and "1 practice" in row
+    screenshot(operator, "participants-phone.png")
+    operator.context.close()
