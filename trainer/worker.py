@@ -681,6 +681,25 @@ def _report_silent(sessions: sessionmaker[Session], worker: WorkerConfig,
     return bool(held)
 
 
+def _held_elsewhere(sessions: sessionmaker[Session], worker: WorkerConfig) -> str:
+    """The runs other workers hold, each with its heartbeat's age and when any worker may take
+    it over should its worker be dead (one killed a moment ago still looks alive), as the end
+    of the exit line."""
+    with sessions() as session:
+        held = silent_holders(session, worker_id=worker.worker_id, silent_after=0.0)
+    parts = []
+    for run in held:
+        if run.heartbeat_at is None:
+            continue
+        age = heartbeat_age(run) or 0.0
+        free_at = run.heartbeat_at + timedelta(seconds=DEAD_WORKER_AFTER_S)
+        parts.append(f"run {run.id} ({run.grid_key or run.name}) is held by worker "
+                     f"{run.worker_id}, last heartbeat {age:.0f} s ago (if that worker is "
+                     f"dead, a worker started after {free_at:%H:%M:%S} UTC, in "
+                     f"{max(0.0, DEAD_WORKER_AFTER_S - age):.0f} s, takes it over)")
+    return "; " + "; ".join(parts) if parts else ""
+
+
 def _leave_on_signals(departure: Departure) -> dict[int, Any]:
     """Install `departure`'s handler for `LEAVE_SIGNALS`; the handlers it replaced (none
     outside the main thread, where signals cannot be handled)."""
@@ -720,8 +739,8 @@ def run_worker(worker: WorkerConfig, departure: Departure | None = None) -> int:
                 run = claim_run(session, worker_id=worker.worker_id)
             if run is None:
                 if not _report_silent(sessions, worker, told) and worker.once:
-                    print(f"[worker {worker.worker_id}] no run left to claim: exiting",
-                          file=sys.stderr, flush=True)
+                    print(f"[worker {worker.worker_id}] no run left to claim: exiting"
+                          f"{_held_elsewhere(sessions, worker)}", file=sys.stderr, flush=True)
                     return trained
                 time.sleep(worker.poll_seconds)
                 continue

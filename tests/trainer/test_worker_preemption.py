@@ -187,3 +187,21 @@ def test_a_worker_says_which_run_a_silent_worker_holds_and_takes_it_when_it_is_f
     assert f"run {run.id}: starting dmc:cheetah_run pebble" in err
     finished = run_row(sessions, run.id)
     assert (finished.status, finished.worker_id) == (RunStatus.FINISHED, "w2")
+
+
+def test_a_worker_with_nothing_to_claim_names_the_runs_others_hold_as_it_exits(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A task resubmitted right after a kill -9: its run's worker looks alive for a minute."""
+    url, sessions = database(tmp_path)
+    with sessions() as session:
+        run = create_run(session, name="held", teacher="scripted", **RUN)
+        assert claim_run(session, worker_id="killed") is not None
+        session.execute(update(Run).where(Run.id == run.id).values(
+            heartbeat_at=utcnow() - timedelta(seconds=20)))
+        session.commit()
+    assert run_worker(worker_config(url, tmp_path / "data", worker_id="w2")) == 0
+    err = capsys.readouterr().err
+    assert re.search(
+        rf"\[worker w2\] no run left to claim: exiting; run {run.id} \(held\) is held by "
+        r"worker killed, last heartbeat 2\d s ago \(if that worker is dead, a worker started "
+        r"after \d\d:\d\d:\d\d UTC, in 2[78]\d s, takes it over\)\n", err), err
