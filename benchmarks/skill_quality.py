@@ -19,20 +19,24 @@ reach it; the report says so.
 from __future__ import annotations
 
 import argparse
-import csv
-import glob
-import json
 import os
 import shutil
 import subprocess
 import sys
 import tomllib
+from pathlib import Path
 from typing import Any
 
-import numpy as np
+import pandas as pd
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
-TOP = 5
+sys.path.insert(0, ROOT)
+
+from experiments.skill_quality import (  # noqa: E402
+    quality_files,
+    quality_markdown,
+    quality_table,
+)
 
 
 def load_spec(path: str) -> dict[str, Any]:
@@ -81,102 +85,49 @@ def run(spec: dict[str, Any], results: str, workers: int) -> int:
 
 
 def _finished(spec: dict[str, Any], seed: int, results: str) -> bool:
-    finals = [p for p in _quality_files(spec, results) if _steps_of(p)[1] == seed
-              and _steps_of(p)[0] == spec["steps"]]
-    return bool(finals)
-
-
-def _quality_files(spec: dict[str, Any], results: str) -> list[str]:
-    return sorted(glob.glob(os.path.join(snapshot_dir(spec, results), "*.quality.json")))
-
-
-def _steps_of(path: str) -> tuple[int, int]:
-    """(pretraining steps asked for, seed) of a quality file, from its JSON."""
-    with open(path) as f:
-        data = json.load(f)
-    name = data["snapshot"]
-    at = name.rsplit("-at", 1)[1].split(".")[0] if "-at" in name else None
-    return (int(at) if at else int(data["pretrain_steps"])), int(data["seed"])
-
-
-def bootstrap_top(returns: list[float], resamples: int, rng: np.random.Generator,
-                  ) -> tuple[float, float, float]:
-    """The top-5 mean of `returns` and its 95 % percentile-bootstrap interval."""
-    values = np.asarray(returns, dtype=np.float64)
-    draws = rng.choice(values, size=(resamples, len(values)), replace=True)
-    tops = np.sort(draws, axis=1)[:, -TOP:].mean(axis=1)
-    low, high = np.percentile(tops, [2.5, 97.5])
-    return float(np.sort(values)[-TOP:].mean()), float(low), float(high)
+    table = quality_table(Path(snapshot_dir(spec, results)), resamples=1)
+    return bool(((table["seed"] == seed) & (table["steps"] == spec["steps"])).any())
 
 
 def report(spec: dict[str, Any], results: str, out: str) -> int:
-    rng = np.random.default_rng(0)
-    rows = []
-    for path in _quality_files(spec, results):
-        steps, seed = _steps_of(path)
-        with open(path) as f:
-            q = json.load(f)
-        skill = bootstrap_top(q["skill_returns"], spec.get("bootstrap", 10_000), rng)
-        rand = bootstrap_top(q["random_action_returns"], spec.get("bootstrap", 10_000), rng)
-        rows.append({
-            "steps": steps, "seed": seed,
-            "skill_median": q["skill"]["median"], "skill_top5": skill[0],
-            "skill_top5_low": skill[1], "skill_top5_high": skill[2], "skill_max": q["skill"]["max"],
-            "random_median": q["random_actions"]["median"], "random_top5": rand[0],
-            "random_top5_low": rand[1], "random_top5_high": rand[2],
-            "random_max": q["random_actions"]["max"],
-            "passes": skill[1] > rand[2] and skill[0] >= 2 * rand[0],
-        })
-    rows.sort(key=lambda r: (r["steps"], r["seed"]))
+    folder = Path(snapshot_dir(spec, results))
+    table = quality_table(folder, spec.get("bootstrap", 10_000))
+    table["passes"] = ((table["skill_top5_low"] > table["random_top5_high"])
+                       & (table["skill_top5"] >= 2 * table["random_top5"]))
     os.makedirs(out, exist_ok=True)
-    if rows:
-        with open(os.path.join(out, "quality.csv"), "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
-    for path in _quality_files(spec, results):
+    table.to_csv(os.path.join(out, "quality.csv"), index=False)
+    for path in quality_files(folder):
         shutil.copy(path, out)
-    lengths = [spec["steps"], *spec["snapshots_at"]]
+    lengths = sorted([spec["steps"], *spec["snapshots_at"]])
+    text = _markdown(spec, table, lengths)
     with open(os.path.join(out, "report.md"), "w") as f:
-        f.write(_markdown(spec, rows, sorted(lengths)))
-    print(open(os.path.join(out, "report.md")).read())
+        f.write(text)
+    print(text)
     return 0
 
 
-def _markdown(spec: dict[str, Any], rows: list[dict], lengths: list[int]) -> str:
-    seeds = spec["seeds"]
+def _markdown(spec: dict[str, Any], table: pd.DataFrame, lengths: list[int]) -> str:
+    seeds = set(spec["seeds"])
     lines = [f"# {spec['name']}: skill quality against pretraining length", "",
              f"{spec['backend'].upper()} on `{spec['task']}`, preset `{spec['preset']}`, seeds "
-             f"{', '.join(map(str, seeds))}; per snapshot, "
+             f"{', '.join(map(str, spec['seeds']))}; per snapshot, "
              f"{spec.get('quality_skills', 50)} random skills (one deterministic episode each) "
              "against as many episodes of uniform random actions. Top-5 means with 95 % "
-             "bootstrap intervals over the episodes.", "",
-             "| steps | seed | skills: median | skills: top-5 mean [95 %] | skills: max | "
-             "random: median | random: top-5 mean [95 %] | random: max | passes |",
-             "|---:|---:|---:|---|---:|---:|---|---:|---|"]
-    for r in rows:
-        lines.append(
-            f"| {r['steps']:,} | {r['seed']} | {r['skill_median']:.1f} | {r['skill_top5']:.1f} "
-            f"[{r['skill_top5_low']:.1f}, {r['skill_top5_high']:.1f}] | {r['skill_max']:.1f} | "
-            f"{r['random_median']:.1f} | {r['random_top5']:.1f} [{r['random_top5_low']:.1f}, "
-            f"{r['random_top5_high']:.1f}] | {r['random_max']:.1f} | "
-            f"{'yes' if r['passes'] else 'no'} |")
-    lines += ["", "The pre-registered rule (the spec): a length carries task behaviour when, on "
-              "every seed, the skills' top-5 lower bound is above the random actions' top-5 "
-              "upper bound and the skills' top-5 mean is at least twice the random actions'.", ""]
-    verdicts, complete = [], True
+             "bootstrap intervals over the episodes.", "", quality_markdown(table), "",
+             "The pre-registered rule (the spec): a length carries task behaviour when, on "
+             "every seed, the skills' top-5 lower bound is above the random actions' top-5 "
+             "upper bound and the skills' top-5 mean is at least twice the random actions'.", ""]
+    passing, complete = [], True
     for length in lengths:
-        at = [r for r in rows if r["steps"] == length]
-        if {r["seed"] for r in at} != set(seeds):
+        at = table[table["steps"] == length]
+        if set(at["seed"]) != seeds:
             complete = False
-            verdicts.append(f"- {length:,} steps: not measured on every seed yet "
-                            f"({len(at)} of {len(seeds)}).")
+            lines.append(f"- {length:,} steps: not measured on every seed yet "
+                         f"({len(at)} of {len(seeds)}).")
             continue
-        ok = all(r["passes"] for r in at)
-        verdicts.append(f"- {length:,} steps: {'passes' if ok else 'does not pass'}.")
-    lines += verdicts
-    passing = [n for n in lengths if (at := [r for r in rows if r["steps"] == n])
-               and {r["seed"] for r in at} == set(seeds) and all(r["passes"] for r in at)]
+        ok = bool(at["passes"].all())
+        passing += [length] if ok else []
+        lines.append(f"- {length:,} steps: {'passes' if ok else 'does not pass'}.")
     lines.append("")
     if passing:
         lines.append(f"**Answer:** the skills carry task behaviour from {min(passing):,} steps "

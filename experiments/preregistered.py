@@ -5,8 +5,9 @@
   comparison drawn while runs are missing is marked partial.
 - Per variant: the interquartile mean (IQM) of the runs' metric with a 95 % stratified-bootstrap
   interval (rliable; the strata are the tasks), and the plain mean with its interval.
-- Probability of improvement of the reference variant over each compared one, P(X > Y) over
-  pairs of runs (ties count half), with its 95 % stratified-bootstrap interval (rliable).
+- Probability of improvement of the reference variant over each compared one (and of any
+  further pair `[analysis] also` names), P(X > Y) over pairs of runs (ties count half), with
+  its 95 % stratified-bootstrap interval (rliable).
 - Curves: the IQM over a variant's finished runs at each evaluation step, with its 95 % interval.
 - Mechanism, per run then per variant (mean and 95 % percentile-bootstrap interval over runs):
   SAC updates and those on r_hat (episodes.csv's last row), pretraining steps, labels used, the
@@ -268,15 +269,15 @@ def improvement_table(results: Results, runs: pd.DataFrame, column: str = "score
     compared variant that has finished runs."""
     analysis = results.spec.analysis
     assert analysis is not None
-    scores = _scores(runs, column, [analysis.reference, *analysis.compare_to])
+    pairs = analysis.pairs()
+    scores = _scores(runs, column, list(dict.fromkeys(x for pair in pairs for x in pair)))
     rows = []
-    for other in analysis.compare_to:
-        row = {"reference": analysis.reference, "other": other,
-               "n_reference": len(scores.get(analysis.reference, [])),
+    for reference, other in pairs:
+        row = {"reference": reference, "other": other,
+               "n_reference": len(scores.get(reference, [])),
                "n_other": len(scores.get(other, []))}
-        if analysis.reference in scores and other in scores:
-            pair = {f"{analysis.reference},{other}": (scores[analysis.reference],
-                                                      scores[other])}
+        if reference in scores and other in scores:
+            pair = {f"{reference},{other}": (scores[reference], scores[other])}
             (estimate,) = _bootstrap(pair, metrics.probability_of_improvement, REPS).values()
             row |= dict(zip(("probability", "low", "high"), estimate, strict=True))
         rows.append(row)

@@ -40,6 +40,7 @@ from experiments.proposition import (
     simulated_disagreement,
 )
 from experiments.results import KEYS, STATES, Results, load_results
+from experiments.skill_quality import quality_markdown, quality_table
 from experiments.spec import METRICS
 from figures.curves import Band, align, grid_png
 
@@ -586,6 +587,15 @@ def _grid_markdown(results: Results) -> list[str]:
     ]
 
 
+SKILL_QUALITY_DOC = (
+    "Each skill snapshot in the results folder's `snapshots/` (S-EPOA's pretraining), as "
+    "`sepoa pretrain` measured it: the task return of random skills, one deterministic "
+    "episode each, against as many episodes of uniform random actions (the median, the mean "
+    "of the best 5 with a 95 % bootstrap interval over the episodes, the maximum). A snapshot "
+    "whose skills do no better than random actions gives S-EPOA no skill near the task to "
+    "start from.")
+
+
 def write_report(folder: str | Path, out: str | Path | None = None) -> list[Path]:
     """Write the figures and tables of the results in `folder` (default out:
     `<folder>/report`); returns the files written."""
@@ -620,6 +630,11 @@ def write_report(folder: str | Path, out: str | Path | None = None) -> list[Path
         tables["round-diagnostics"] = diagnostics
         sections["round-diagnostics"] = ("Round diagnostics", DIAGNOSTICS_DOC,
                                          diagnostics_markdown(diagnostics, seeds))
+    quality = quality_table(results.folder.parent / "snapshots")
+    if len(quality):
+        tables["skill-quality"] = quality
+        sections["skill-quality"] = ("Skill quality of the snapshots", SKILL_QUALITY_DOC,
+                                     quality_markdown(quality))
     figures_extra = []
     if any(v.algo != "sac" for v in spec.variants):
         tables["proposition1"], body = proposition_section(results, out)

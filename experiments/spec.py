@@ -61,6 +61,13 @@ class Analysis:
     metric: str
     reference: str
     compare_to: tuple[str, ...]
+    also: tuple[tuple[str, str], ...] = ()
+    """further pairs (X, Y) whose P(X > Y) the report estimates, beside the reference's"""
+
+    def pairs(self) -> list[tuple[str, str]]:
+        """Every (X, Y) whose P(X > Y) is pre-registered: the reference against each compared
+        variant, then `also`."""
+        return [(self.reference, other) for other in self.compare_to] + list(self.also)
 
 
 @dataclass(frozen=True)
@@ -284,8 +291,8 @@ def _analysis(table: Any, labels: list[str], fail: Fail) -> Analysis | None:
     if table is None:
         return None
     keys = ("metric", "reference", "compare_to")
-    if not isinstance(table, dict) or set(table) != set(keys):
-        raise fail(f"[analysis] takes exactly the keys {', '.join(keys)}")
+    if not isinstance(table, dict) or not set(keys) <= set(table) <= {*keys, "also"}:
+        raise fail(f"[analysis] takes the keys {', '.join(keys)}, and optionally also")
     if table["metric"] not in METRICS:
         raise fail(f"[analysis] unknown metric {table['metric']!r}; valid: "
                    + ", ".join(f"{k} ({v})" for k, v in METRICS.items()))
@@ -297,7 +304,16 @@ def _analysis(table: Any, labels: list[str], fail: Fail) -> Analysis | None:
             raise fail(f"[analysis] {label!r} is not a variant; variants: {', '.join(labels)}")
     if table["reference"] in compare_to:
         raise fail("[analysis] 'compare_to' lists the reference variant itself")
-    return Analysis(table["metric"], table["reference"], tuple(compare_to))
+    also = table.get("also", [])
+    if not isinstance(also, list) or not all(
+            isinstance(p, list) and len(p) == 2 and p[0] != p[1] for p in also):
+        raise fail("[analysis] 'also' must be a list of pairs of two variant labels, "
+                   'e.g. [["C", "A"]] for P(C > A)')
+    for label in [x for pair in also for x in pair]:
+        if label not in labels:
+            raise fail(f"[analysis] {label!r} is not a variant; variants: {', '.join(labels)}")
+    return Analysis(table["metric"], table["reference"], tuple(compare_to),
+                    tuple((x, y) for x, y in also))
 
 
 def flatten(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:

@@ -24,7 +24,11 @@ TEACHER_KINDS = ("noisy", "bpref")
 TIES = ("equal", "random", "first")
 SKILL_BACKENDS = ("aps", "diayn", "cic")
 SCORE_SPREADS = ("var", "std")
-TASK_SKILL_DRAWS = ("refit", "episode")
+TASK_SKILL_DRAWS = ("episode", "refit")
+ESTIMATOR_DATA = ("pool", "replay")
+"""what S-EPOA's R_theta is fitted on (`skill.estimator_data`)"""
+SKILL_ACTORS = ("sac", "ddpg")
+"""S-EPOA's actor at fine-tuning (`skill.actor`)"""
 DEVICES = ("auto", "cpu", "cuda")
 FAMILIES = ("dmc", "metaworld")
 

@@ -11,10 +11,12 @@ from typing import Any
 from runvocab.config import RunConfig
 from runvocab.names import (
     ALGOS,
+    ESTIMATOR_DATA,
     SCORE_SPREADS,
     SELECTION_MODES,
     SELECTION_RULES,
     SIZE_PRESETS,
+    SKILL_ACTORS,
     SKILL_BACKENDS,
     TASK_SKILL_DRAWS,
     TEACHER_KINDS,
@@ -43,6 +45,8 @@ def validate(cfg: RunConfig, pretraining: bool = False) -> None:
         _check_rime(cfg)
     if pretraining or cfg.algo == "sepoa":
         _check_skill(cfg, pretraining)
+    if cfg.reward.true_reward:
+        _check_true_reward(cfg)
 
 
 def _positive(values: dict[str, float]) -> None:
@@ -106,6 +110,8 @@ def _check_names(cfg: RunConfig) -> None:
         "skill.backend": (cfg.skill.backend, SKILL_BACKENDS),
         "skill.task_skill_draw": (cfg.skill.task_skill_draw, TASK_SKILL_DRAWS),
         "skill.score_spread": (cfg.skill.score_spread, SCORE_SPREADS),
+        "skill.estimator_data": (cfg.skill.estimator_data, ESTIMATOR_DATA),
+        "skill.actor": (cfg.skill.actor, SKILL_ACTORS),
     }
     for name, (value, valid) in choices.items():
         if value not in valid:
@@ -243,6 +249,7 @@ def _check_skill(cfg: RunConfig, pretraining: bool) -> None:
         "skill.temperature": s.temperature, "skill.estimator_ensemble": s.estimator_ensemble,
         "skill.estimator_hidden_dim": s.estimator_hidden_dim,
         "skill.estimator_lr": s.estimator_lr, "skill.task_skill_samples": s.task_skill_samples,
+        "skill.actor_std": s.actor_std, "skill.actor_clip": s.actor_clip,
     })
     _not_negative({"skill.estimator_steps": s.estimator_steps})
     if (pretraining or s.pretrain_steps > 0) and s.knn_k > cfg.sac.batch_size:
@@ -250,3 +257,15 @@ def _check_skill(cfg: RunConfig, pretraining: bool) -> None:
                           f"skill.knn_k ({s.knn_k}) exceeds the batch (sac.batch_size "
                           f"{cfg.sac.batch_size}) its neighbours come from")
 
+
+def _check_true_reward(cfg: RunConfig) -> None:
+    """The diagnostic replaces r_hat for an agent that would learn one: a preference run whose
+    reward adds nothing that needs a reward model."""
+    if cfg.algo == "sac":
+        raise ConfigError("reward.true_reward", "reward.true_reward applies to preference "
+                          "runs (pebble, surf, sepoa); algo sac trains on the true reward "
+                          "already")
+    for name in ("rune", "rime"):
+        if getattr(cfg.reward, name):
+            raise ConfigError("reward.true_reward", f"reward.true_reward cannot go with "
+                              f"reward.{name}, whose reward needs the learned model")

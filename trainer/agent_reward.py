@@ -6,7 +6,8 @@
   batch (each stored transition holds 0 until then). RIME also warm-starts r_hat on it.
   S-EPOA does not update before its first round.
 - After the first round: r_hat on every stored and every new transition (the buffer is
-  relabelled at each round), plus RUNE's bonus beta_t times the ensemble's std of r_hat.
+  relabelled at each round), plus RUNE's bonus beta_t times the ensemble's std of r_hat; or,
+  in the true-reward diagnostic (`reward.true_reward`), the environment's reward.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from trainer.feedback import Feedback, PreferenceFeedback
 from trainer.nets import NumpyMLP
 from trainer.replay_buffer import ReplayBuffer
 from trainer.rune import rune_beta
+from trainer.true_reward_rounds import TrueRewardRounds
 
 B = TypeVar("B", bound=Any)
 """a replay batch: SAC's, or one that also carries skills"""
@@ -58,8 +60,8 @@ class AgentReward:
     """The reward of a preference-learning run's agent, per step (what the buffer stores) and
     per batch (what an update trains on)."""
 
-    def __init__(self, cfg: RunConfig, buffer: ReplayBuffer, feedback: PreferenceFeedback,
-                 device: torch.device):
+    def __init__(self, cfg: RunConfig, buffer: ReplayBuffer,
+                 feedback: PreferenceFeedback | TrueRewardRounds, device: torch.device):
         self.cfg, self.buffer, self.feedback, self.device = cfg, buffer, feedback, device
         self.entropy_stats = RunningMeanStd()
         self.start_step: int | None = None
@@ -86,6 +88,8 @@ class AgentReward:
         """The reward stored with a new transition: the ensemble's mean r_hat."""
         if not self.learned:
             return 0.0  # the unsupervised reward is computed per batch
+        if isinstance(self.feedback, TrueRewardRounds):
+            return true_reward
         if self._host_reward_round != self.feedback.rounds:
             # On the CPU, views of the parameters; on a GPU, a copy (one wait a round).
             self._host_reward = NumpyMLP(list(self.feedback.model.ensemble.layers),
@@ -148,6 +152,6 @@ def make_agent_reward(cfg: RunConfig, buffer: ReplayBuffer, feedback: Feedback,
                       device: torch.device) -> TrueReward | AgentReward:
     """The true reward for a run without preference feedback (the SAC oracle), else the
     learned one."""
-    if isinstance(feedback, PreferenceFeedback):
+    if isinstance(feedback, PreferenceFeedback | TrueRewardRounds):
         return AgentReward(cfg, buffer, feedback, device)
     return TrueReward()

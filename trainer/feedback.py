@@ -38,11 +38,13 @@ from trainer.query_selection import (
     sample_candidates,
     select_queries,
 )
-from trainer.return_estimator import ReturnEstimator
+from trainer.replay_buffer import ReplayBuffer
+from trainer.return_estimator import ReplayEpisodes, ReturnEstimator
 from trainer.reward_model import LabelledPairs, RewardModel, TrainingProgress
 from trainer.round_progress import RoundLeft, RoundProgress, round_key
 from trainer.teachers import QueryTruth, choice_target, is_correct, recent_mean
 from trainer.trajectories import Trajectory, TrajectoryPool
+from trainer.true_reward_rounds import TrueRewardRounds
 
 
 @dataclass(frozen=True)
@@ -146,11 +148,15 @@ class PreferenceFeedback:
 
     def __init__(self, cfg: FeedbackConfig, reward_model: RewardModel, teacher, labeller: str,
                  label_log: LabelLog, rng: np.random.Generator,
-                 estimator: ReturnEstimator | None = None, spread: str = "var"):
+                 estimator: ReturnEstimator | None = None, spread: str = "var",
+                 replay: ReplayEpisodes | None = None):
         self.cfg, self.model, self.teacher = cfg, reward_model, teacher
         self.labeller, self.log, self.rng = labeller, label_log, rng
         self.estimator, self.spread = estimator, spread
         """S-EPOA's R_theta(z) (skill rule only), refitted as each round selects"""
+        self.replay = replay
+        """R_theta's data where it is every replay episode (`skill.estimator_data`); None: the
+        pool's trajectories"""
         self.pairs = LabelledPairs()
         self.labels_used = 0
         """answers paid for so far (the queue's `runs.labels_used` once the round closed)"""
@@ -226,8 +232,10 @@ class PreferenceFeedback:
     def fit_estimator(self, pool: TrajectoryPool,
                       rewards: PoolRewards | None = None) -> dict[str, float]:
         """S-EPOA: refit R_theta on the pool's skills and summed predicted rewards (`rewards`:
-        the pool already scored by the current model)."""
+        the pool already scored by the current model), or on every replay episode's."""
         assert self.estimator is not None
+        if self.replay is not None:
+            return self.estimator.fit(*self.replay.skills_and_returns(self.model.reward))
         trajectories = list(pool.trajectories)
         if rewards is None:
             rewards = pool_rewards(self.model, trajectories)
@@ -355,6 +363,10 @@ class PreferenceFeedback:
             [t.id for t in pool.trajectories], unlabelled and unlabelled.seed,
         ])
 
+    def relabel(self, buffer: ReplayBuffer) -> None:
+        """Every stored transition trains on the current r_hat from now on."""
+        buffer.relabel(self.model.reward)
+
     def summary(self) -> dict[str, int]:
         """What a run's summary reports of its feedback."""
         return {"labels_used": self.labels_used, "rounds": self.rounds}
@@ -406,8 +418,9 @@ class NoFeedback:
         """A SAC checkpoint holds no feedback: nothing to restore."""
 
 
-Feedback = PreferenceFeedback | NoFeedback
-"""a run's feedback: preference rounds, or none (the SAC oracle)"""
+Feedback = PreferenceFeedback | NoFeedback | TrueRewardRounds
+"""a run's feedback: preference rounds, none (the SAC oracle), or rounds on the true reward
+(a diagnostic, `reward.true_reward`)"""
 
 
 class UnlabelledPairs:

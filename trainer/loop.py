@@ -27,7 +27,12 @@ budgets; episodes.csv counts them (`updates`, and `reward_updates` on r_hat). Qu
 selected by the skill rule, each the best of its own candidates (query_selection.py).
 
 After any critic reset, `reset_updates` updates on the relabelled buffer follow at once
-(PEBBLE's reset_update).
+(PEBBLE's reset_update). S-EPOA can also run as its authors' code does (docs/SEPOA.md): with
+`skill.free_initial_rollouts` its initial rollouts are played on the evaluation env before
+step 0, uncounted, the first round opens at once and the agent learns from step 0.
+
+`reward.true_reward` is a diagnostic: the rounds keep their schedule but ask nothing
+(trainer/true_reward_rounds.py) and the agent trains on the environment's reward.
 
 Rounds, evaluations and checkpoints happen at episode boundaries, so a checkpoint never has to
 capture a half-run episode; the one thing a checkpoint cannot wait for, a round's reward
@@ -60,12 +65,14 @@ from trainer.hooks import RunHooks
 from trainer.metrics import Metrics
 from trainer.phase_clock import PhaseClock
 from trainer.policies import EpisodeMeta, make_policy
+from trainer.return_estimator import ReplayEpisodes
 from trainer.reward_model import RewardModel
 from trainer.round_progress import ROUND_PROGRESS, RoundLeft, RoundProgress
 from trainer.sac import UpdateMetrics
 from trainer.schedule import After, Every, Period, Until
 from trainer.teachers import make_teacher
 from trainer.trajectories import EpisodeRecorder, TrajectoryPool
+from trainer.true_reward_rounds import TrueRewardRounds
 from trainer.utils import pick_device, set_seed
 
 CHECKPOINT = "checkpoint.pt"
@@ -118,7 +125,10 @@ class TrainingRun:
         self.recorder = EpisodeRecorder(obs_dim, act_dim, state_dim, self.env.episode_length)
 
         self.feedback: Feedback = NoFeedback()
-        if cfg.algo != "sac":
+        if cfg.reward.true_reward:
+            self.feedback = TrueRewardRounds(cfg.feedback, self.policy.estimator,
+                                             self._replay_episodes())
+        elif cfg.algo != "sac":
             model = RewardModel(obs_dim, act_dim, cfg.reward, self.device, cfg.seed)
             teacher = make_teacher(cfg.teacher, cfg.seed, cfg.feedback.segment_length,
                                    self.env.episode_length)
@@ -126,7 +136,7 @@ class TrainingRun:
                 cfg.feedback, model, teacher, f"scripted:{cfg.teacher.kind}",
                 LabelLog(os.path.join(self.run_dir, "labels.jsonl")),
                 np.random.default_rng(cfg.seed + 1), self.policy.estimator,
-                cfg.skill.score_spread,
+                cfg.skill.score_spread, self._replay_episodes(),
             )
 
         self.step = 0
@@ -135,7 +145,8 @@ class TrainingRun:
         self.reward = make_agent_reward(cfg, self.buffer, self.feedback, self.device)
         self.next_round_step = cfg.seed_steps + self.reward.unsupervised_steps
         self.random_actions = Until(self.policy.random_seed_steps)
-        self.learning, self.update_step = After(cfg.seed_steps), Every(cfg.update_every)
+        self.learning = After(self.policy.learning_starts)
+        self.update_step = Every(cfg.update_every)
         self.evaluations = Period(cfg.eval_every)
         self.checkpoints = Period(max(cfg.checkpoint_every, 1))  # 0: at every episode's end
         self.round_progress = RoundProgress(os.path.join(self.run_dir, ROUND_PROGRESS))
@@ -151,6 +162,12 @@ class TrainingRun:
         """where the wall time goes, written with every episode row"""
         if resume:
             self._trim_metrics()
+
+    def _replay_episodes(self) -> ReplayEpisodes | None:
+        """R_theta's data when it is fitted on the replay buffer (`skill.estimator_data`)."""
+        if self.policy.estimator is None or self.cfg.skill.estimator_data != "replay":
+            return None
+        return ReplayEpisodes(self.buffer, self.env.episode_length)
 
     # ----------------------------------------------------------------------------------------
     def _start_episode(self) -> np.ndarray:
@@ -187,6 +204,10 @@ class TrainingRun:
         if feedback.pending:  # resumed inside a round
             self.hooks.round_opened(feedback.pending, self.pool)
             self._try_finish_round()
+        if self.step == 0 and self.episode == 0 and self.policy.free_initial_rollouts:
+            self._free_initial_rollouts()
+            self.next_round_step = 0
+            self._open_round()
         obs = self._start_episode()
         episode_return, last_metrics = 0.0, {}  # the last update's, read as an episode ends
         stopping = False
@@ -258,21 +279,49 @@ class TrainingRun:
         if self.feedback.pending:
             self._try_finish_round()
         # No round at the very end: its labels could no longer shape the policy.
-        elif (self.next_round_step <= self.step < cfg.steps and self.feedback.budget_left > 0
-                and len(self.pool) >= self._pool_needed()):
-            fb = self._preferences()
-            with self.clock("selection"):
-                fb.open_round(self.pool, self.step)
-            self._save()  # the chosen queries survive a kill; their answers go to labels.jsonl
-            self.hooks.round_opened(fb.pending, self.pool)
-            self._try_finish_round()
+        elif self.next_round_step <= self.step < cfg.steps:
+            self._open_round()
         if self.checkpoints.due(self.step):
             self._save()
 
-    def _preferences(self) -> PreferenceFeedback:
-        """The run's feedback where a round opens or closes: only a preference run's ever does
-        (the SAC oracle's budget is 0)."""
-        assert isinstance(self.feedback, PreferenceFeedback)
+    def _open_round(self) -> None:
+        """Open a round where the budget and the pool allow one."""
+        if self.feedback.budget_left <= 0 or len(self.pool) < self._pool_needed():
+            return
+        fb = self._preferences()
+        if isinstance(fb, TrueRewardRounds):  # nothing to select or answer
+            self._finish_round({})
+            self._save()
+            return
+        with self.clock("selection"):
+            fb.open_round(self.pool, self.step)
+        self._save()  # the chosen queries survive a kill; their answers go to labels.jsonl
+        self.hooks.round_opened(fb.pending, self.pool)
+        self._try_finish_round()
+
+    def _free_initial_rollouts(self) -> None:
+        """S-EPOA as the authors run it: episodes of random skills on the evaluation env
+        before step 0, uncounted, stored in the replay buffer and the pool for the first
+        round."""
+        env = self.eval_env
+        for _ in range(self.policy.free_initial_rollouts):
+            obs, done = env.reset(), False
+            meta = self.policy.episode_meta(self.rng)
+            while not done:
+                action = self.policy.act(obs, meta, self.rng).astype(np.float32)
+                state = env.physics_state()
+                result = env.step(action)
+                reward = self.reward.at_step(obs, action, result.reward)
+                self.buffer.add(obs, action, reward, result.reward, result.obs, meta.skill)
+                self.recorder.record(obs, action, result.reward, state, result.success)
+                obs, done = result.obs, result.done
+            self.pool.add(self.recorder.finish(self.episode, env.episode_context(), meta.skill))
+            self.episode += 1
+
+    def _preferences(self) -> PreferenceFeedback | TrueRewardRounds:
+        """The run's feedback where a round opens or closes: only a preference run's (or its
+        true-reward diagnostic's) ever does (the SAC oracle's budget is 0)."""
+        assert isinstance(self.feedback, PreferenceFeedback | TrueRewardRounds)
         return self.feedback
 
     def _pool_needed(self) -> int:
@@ -284,7 +333,7 @@ class TrainingRun:
         """Finish the open round if its answers are in; it must close once the next round is
         due, or at the end of the run."""
         fb = self._preferences()
-        assert fb.pending
+        assert isinstance(fb, PreferenceFeedback) and fb.pending
         due = min(fb.pending[0].step + self.cfg.feedback.every, self.cfg.steps)
         with self.clock("waiting"):
             answers = self.hooks.answers(fb, self.pool, final=self.step >= due)
@@ -304,7 +353,7 @@ class TrainingRun:
         metrics = fb.finish_round(self.pool, answers,
                                   after_epoch=lambda: self.hooks.reward_epoch(self.step),
                                   progress=self.round_progress)
-        self.buffer.relabel(fb.model.reward)
+        fb.relabel(self.buffer)
         metrics["reward_corr"] = self.buffer.reward_correlation()
         metrics |= self.policy.round_closed(self.rng)
         estimator = metrics.get("estimator_seconds", 0.0)
@@ -314,10 +363,10 @@ class TrainingRun:
             self.reward.first_round_closed(self.step)
             if self.policy.resets_critic:
                 self.agent.reset_critic()
-                # PEBBLE's reset_update: the fresh critic catches up on the learned reward.
-                with self.clock("updates"):
-                    for _ in range(self.cfg.reset_updates):
-                        self._update()
+            # PEBBLE's reset_update: a fresh critic catches up on the learned reward.
+            with self.clock("updates"):
+                for _ in range(self.policy.updates_after_first_round):
+                    self._update()
         self.next_round_step = self.step + self.cfg.feedback.every
         self._log("rounds", {"step": self.step} | metrics)
 

@@ -64,6 +64,21 @@ class Policy:
         """Steps of uniformly random actions at the start."""
         return self.cfg.seed_steps
 
+    @property
+    def learning_starts(self) -> int:
+        """The first step whose update may run (on whatever reward the run has then)."""
+        return self.cfg.seed_steps
+
+    free_initial_rollouts = 0
+    """episodes played before step 0, uncounted, for the first round (S-EPOA as the authors
+    run it)"""
+
+    @property
+    def updates_after_first_round(self) -> int:
+        """Updates at once after the first round: PEBBLE's reset_update, where the critic was
+        reset."""
+        return self.cfg.reset_updates if self.resets_critic else 0
+
     def trajectories_for_first_round(self) -> int:
         return 2
 
@@ -137,6 +152,21 @@ class SkillPolicy(Policy):
     @property
     def random_seed_steps(self) -> int:
         return 0  # it explores with its pretrained skills from the start
+
+    @property
+    def learning_starts(self) -> int:
+        return 0  # it updates from the first round on (`update`), whenever that comes
+
+    @property
+    def free_initial_rollouts(self) -> int:  # type: ignore[override]
+        return self.cfg.skill.initial_rollouts if self.cfg.skill.free_initial_rollouts else 0
+
+    @property
+    def updates_after_first_round(self) -> int:
+        """After uncounted initial rollouts the authors' code makes these updates whether or
+        not the critic was reset."""
+        reset_or_free = self.resets_critic or self.cfg.skill.free_initial_rollouts
+        return self.cfg.reset_updates if reset_or_free else 0
 
     def trajectories_for_first_round(self) -> int:
         """Its initial rollouts, each with its own random skill, so round 0 compares many."""
@@ -228,7 +258,8 @@ def _load_skill_agent(cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.
     """pi(a|s,z) from the run's pretraining snapshot (pretrained first when missing), or fresh
     when skill.pretrain_steps is 0."""
     if cfg.skill.pretrain_steps == 0:
-        return build_skill_agent(cfg, obs_dim, act_dim, device)
+        agent, backend = build_skill_agent(cfg, obs_dim, act_dim, device)
+        return _online_actor(cfg, agent), backend
     path = snapshot_path(cfg)
     if not os.path.exists(path):
         print(f"no skill snapshot at {path}: pretraining {cfg.skill.backend} for "
@@ -238,4 +269,16 @@ def _load_skill_agent(cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.
                       tick=hooks.pretraining, waiting=lambda: hooks.pretraining(0))
         set_seed(cfg.seed)  # the online run starts from the same state as with a snapshot at hand
     snapshot = load_snapshot(path, cfg.task, cfg.skill.backend)
-    return build_skill_agent(cfg, obs_dim, act_dim, device, snapshot)
+    agent, backend = build_skill_agent(cfg, obs_dim, act_dim, device, snapshot)
+    return _online_actor(cfg, agent), backend
+
+
+DDPG_ALPHA = 1.0
+"""the temperature of the authors' fine-tuning (their initial value, not the snapshot's)"""
+
+
+def _online_actor(cfg: RunConfig, agent: SkillAgent) -> SkillAgent:
+    """The agent with the actor fine-tuning uses (`skill.actor`)."""
+    if cfg.skill.actor == "ddpg":
+        agent.sac.fix_actor_std(cfg.skill.actor_std, cfg.skill.actor_clip, DDPG_ALPHA)
+    return agent

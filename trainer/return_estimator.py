@@ -16,6 +16,8 @@ before each feedback round, and gives
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -24,6 +26,10 @@ from torch import nn
 from runvocab.config import SkillConfig
 from runvocab.names import SCORE_SPREADS
 from trainer.nets import EnsembleMLP
+from trainer.skills.agent import SkillReplayBuffer
+
+RewardFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+"""r_hat of (obs, action) rows: (n,)"""
 
 SPREADS = SCORE_SPREADS
 
@@ -43,6 +49,45 @@ def skill_scores(value0: torch.Tensor, value1: torch.Tensor, p: torch.Tensor,
         raise ValueError(f"unknown spread {spread!r}; valid: {', '.join(SPREADS)}")
     s = p.var(dim=0, unbiased=False) if spread == "var" else p.std(dim=0, unbiased=False)
     return (1 + minmax((value0 - value1).abs())) * (1 + minmax(s))
+
+
+class ReplayEpisodes:
+    """R_theta's data as the authors' code takes it: every complete episode in the replay buffer
+    (its skill, and its summed reward), not only the query pool's. Episodes are exactly
+    `episode_length` transitions, stored in order, so episode i is rows [i L, (i + 1) L) as
+    long as the ring has not wrapped; after that, with a capacity that is a multiple of L, the
+    same blocks, less the one being overwritten."""
+
+    def __init__(self, buffer: SkillReplayBuffer, episode_length: int):
+        self.buffer, self.length = buffer, episode_length
+
+    def blocks(self) -> list[int]:
+        """The first row of each complete episode held."""
+        b, n = self.buffer, self.length
+        if b.size < b.capacity:
+            return list(range(0, b.size // n * n, n))
+        if b.capacity % n:  # a wrapped ring whose rows no longer line up with episodes
+            raise ValueError(f"skill.estimator_data replay needs replay_capacity "
+                             f"{b.capacity} to be a multiple of the episode length {n}")
+        return [start for start in range(0, b.capacity, n)
+                if not start < b.cursor < start + n]
+
+    @torch.no_grad()
+    def skills_and_returns(self, reward_fn: RewardFn | None) -> tuple[np.ndarray, np.ndarray]:
+        """Each complete episode's skill and summed reward: `reward_fn(obs, action)` (the
+        current r_hat), or the true reward where it is None."""
+        b, n = self.buffer, self.length
+        starts = self.blocks()
+        if not starts:
+            raise ValueError("R_theta has no complete episode in the replay buffer to fit on")
+        skills = torch.stack([b.skill[start] for start in starts]).cpu().numpy()
+        sums = []
+        for start in starts:
+            rows = slice(start, start + n)
+            reward = (b.true_reward[rows, 0] if reward_fn is None
+                      else reward_fn(b.obs[rows], b.action[rows]))
+            sums.append(float(reward.double().sum()))
+        return skills, np.array(sums)
 
 
 class ReturnEstimator:

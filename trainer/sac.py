@@ -64,6 +64,25 @@ class Actor(nn.Module):
         return action, log_prob.sum(-1, keepdim=True) - const
 
 
+class FixedStdActor(Actor):
+    """URLB's DDPG actor, as S-EPOA's authors fine-tune with it: the action is tanh of the
+    trunk's mean plus Gaussian noise of a fixed `std`, clipped at `clip`. Its log-probability
+    (of a plain Gaussian, as URLB's truncated normal computes it) does not depend on the
+    actor's weights, so an entropy term gives the actor no gradient and the temperature only
+    shifts the critic's target."""
+
+    def __init__(self, obs_dim: int, action_dim: int, cfg: SACConfig, std: float, clip: float):
+        super().__init__(obs_dim, action_dim, cfg)
+        self.std, self.clip = std, clip
+
+    def sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mean = torch.tanh(self.trunk(obs).chunk(2, dim=-1)[0])
+        noise = (torch.randn_like(mean) * self.std).clamp(-self.clip, self.clip)
+        action = (mean + noise).clamp(-1.0, 1.0)
+        log_prob = -0.5 * (noise / self.std) ** 2 - math.log(self.std) - LOG_SQRT_2PI
+        return action, log_prob.sum(-1, keepdim=True)
+
+
 class Critic(nn.Module):
     """Two Q-functions Q_i(s, a) evaluated together: returns (2, batch, 1)."""
 
@@ -157,6 +176,12 @@ class SAC:
         # Actor.forward's soft clamp, in the same multiply-add form.
         half = 0.5 * (self.cfg.log_std_max - self.cfg.log_std_min)
         log_std = np.tanh(log_std) * half + (self.cfg.log_std_min + half)
+        if isinstance(self.actor, FixedStdActor):
+            if deterministic:
+                return np.tanh(mean)
+            noise = rng.standard_normal(self.action_dim, np.float32) * self.actor.std
+            noise = np.clip(noise, -self.actor.clip, self.actor.clip)
+            return np.clip(np.tanh(mean) + noise, -1.0, 1.0)
         if deterministic:
             return np.tanh(mean)
         return np.tanh(mean + rng.standard_normal(self.action_dim, np.float32) * np.exp(log_std))
@@ -219,6 +244,12 @@ class SAC:
         q = self.critic(obs, action, detach_params=True).min(dim=0).values
         actor_loss = (alpha.detach() * log_prob - q).mean()
         mean_log_prob = log_prob.detach().mean()
+        if isinstance(self.actor, FixedStdActor):  # a fixed temperature: nothing to tune
+            self.actor_opt.zero_grad(set_to_none=True)
+            actor_loss.backward()
+            self.actor_opt.step()
+            return {"actor_loss": actor_loss.detach(), "alpha": alpha.detach(),
+                    "entropy": -mean_log_prob}
         alpha_loss = alpha * (-mean_log_prob - self.target_entropy)
         # Each loss sees the other's parameters detached, so one backward pass through their
         # sum gives exactly the two separate gradients.
@@ -233,6 +264,20 @@ class SAC:
     @torch.no_grad()
     def _update_target(self) -> None:
         torch._foreach_lerp_(self._target_params, self._critic_params, self.cfg.tau)
+
+    def fix_actor_std(self, std: float, clip: float, alpha: float) -> None:
+        """From now on act and learn with `FixedStdActor` (the same weights; the log-std half
+        of the trunk's output goes unused) and a fixed temperature `alpha`."""
+        fixed = FixedStdActor(self.obs_dim, self.action_dim, self.cfg, std, clip).to(self.device)
+        fixed.load_state_dict(self.actor.state_dict())
+        self.actor = fixed
+        self.actor_opt = _adam(self.actor.parameters(), self.cfg, self.device, self.capturable)
+        self._numpy_actor = (NumpyMLP(list(self.actor.trunk)) if self.device.type == "cpu"
+                             else None)
+        with torch.no_grad():
+            self.log_alpha.fill_(math.log(alpha))
+        if self.graphed is not None:
+            self.graphed.forget()
 
     def reset_critic(self) -> None:
         """PEBBLE's critic reset after unsupervised pretraining: fresh critic, target and

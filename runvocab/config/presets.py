@@ -152,7 +152,9 @@ def build_config(task: str, preset: str, overrides: dict[str, Any] | None = None
 
 # A run's configuration as JSON: config.json in its folder, a queued run's stored copy.
 
-WRITTEN_WHEN_SET = ("reward.init_from", "sac.cuda_graph", "sac.tf32")
+WRITTEN_WHEN_SET = ("reward.init_from", "reward.true_reward", "sac.cuda_graph", "sac.tf32",
+                    "skill.free_initial_rollouts", "skill.estimator_data", "skill.actor",
+                    "skill.actor_std", "skill.actor_clip")
 """fields added after runs were stored: a config's dict holds them only when they differ from
 their default, so a stored config.json stays equal to the same run's config today (a results
 folder's finished runs are recognised by that equality, `experiments.queue`)"""

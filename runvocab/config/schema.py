@@ -108,6 +108,11 @@ class RewardConfig:
     """RIME: 3 ln 10; cap of the spread term and the KL beyond which a label is flipped"""
     rime_warm_start_updates: int = 5
     """RIME: reward-model regression steps on the intrinsic reward per pretraining update"""
+    true_reward: bool = False
+    """diagnostic: the agent trains on the environment's true reward where it would train on
+    r_hat; rounds keep their schedule and budget but ask nothing and train no reward model, and
+    S-EPOA's R_theta is refitted on true returns (the agent side alone:
+    specs/small/sepoa-true-reward.toml)"""
     init_from: str = ""
     """a reward model file (`sepoa reward fit --out`) whose ensemble weights the run's reward
     model starts from instead of random ones; empty: random (its observation and action sizes
@@ -230,10 +235,10 @@ class SkillConfig:
     """online: full-batch steps refitting R_theta before each round"""
     task_skill_samples: int = 50
     """online: N_z, fresh random skills z_task is chosen from"""
-    task_skill_draw: str = "refit"
-    """online: when z_task is drawn anew: refit (when a round has refitted R_theta, held in
-    between) | episode (also at every episode start, as the authors' code; behind on the
-    return in specs/small/sepoa-choices.toml)"""
+    task_skill_draw: str = "episode"
+    """online: when z_task is drawn anew: episode (at every episode start, the paper's
+    Algorithm 1 and the authors' code) | refit (only when a round has refitted R_theta, held in
+    between; the fair grid's setting)"""
     task_skill_update: bool = True
     """online: every other update trains on its batch with z_task in place of every stored
     skill (valid off-policy: r_hat does not depend on z), taking turns with the update on the
@@ -241,6 +246,24 @@ class SkillConfig:
     initial_rollouts: int = 20
     """online: episodes, each with its own random skill, before the first round (the authors'
     reward_start_rollouts)"""
+    free_initial_rollouts: bool = False
+    """online: the initial rollouts are played on the evaluation env before step 0 and are not
+    counted as environment steps; the first round follows at once, then `reset_updates`
+    updates, and the agent learns from step 0 (the authors' code). false: they are the run's
+    first steps, and it learns from the first round on"""
+    estimator_data: str = "pool"
+    """online: what R_theta is fitted on: pool (the query pool's trajectories, some 16-20
+    distinct skills at the small preset) | replay (every complete episode in the replay
+    buffer, the authors' code)"""
+    actor: str = "sac"
+    """online: sac (a learned sigma, alpha from the snapshot) | ddpg (URLB's actor as the
+    authors fine-tune it: the pretrained mean with a fixed sigma `actor_std`, noise clipped at
+    `actor_clip`, and a fixed alpha of 1 (their initial value) that only shifts the critic's
+    target)"""
+    actor_std: float = 0.2
+    """online, actor ddpg: the fixed standard deviation of the exploration noise"""
+    actor_clip: float = 0.3
+    """online, actor ddpg: the bound of the noise in the actor's and the target's actions"""
     reset_critic: bool = True
     """online: at the first round, reset the pretrained critic and its target (the actor is
     kept), then run `reset_updates` updates on the learned reward (kept, the agent waited

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -573,3 +574,27 @@ def test_a_grid_whose_query_selecting_runs_have_not_finished_reports_as_partial(
     index = (folder / "report" / "report.md").read_text()
     assert "No finished query-selecting run with a checkpoint.pt: Monte Carlo only." in index
     assert "6 planned: 1 done, 0 stopped, 1 partial, 0 failed, 4 not started." in index
+
+
+def test_the_snapshots_skill_quality_is_reported_beside_the_grid(results: Path,
+                                                                 tmp_path: Path) -> None:
+    from trainer.skills import quality
+
+    grid = tmp_path / "results" / "synthetic"
+    shutil.copytree(results, grid, ignore=shutil.ignore_patterns("report"))
+    snapshots = tmp_path / "results" / "snapshots"
+    snapshots.mkdir()
+    skills, randoms = [float(r) for r in range(50)], [1.0] * 49 + [3.0]
+    measured = {"format": quality.QUALITY_FORMAT, "task": "dmc:cheetah_run", "seed": 10,
+                "skills": 50, "skill": quality.summary(skills),
+                "random_actions": quality.summary(randoms), "skill_returns": skills,
+                "random_action_returns": randoms, "best_skill": [0.0]}
+    quality.write(str(snapshots / "dmc-cheetah_run-aps-200000-s10-abc-at100000.pt"), measured,
+                  100_000)
+    write_report(grid)
+    text = (grid / "report" / "report.md").read_text()
+    assert "## Skill quality of the snapshots" in text
+    # median 24.5, top-5 mean of 45..49 = 47, max 49; random: median 1, top-5 mean 1.4, max 3.
+    assert "| dmc:cheetah_run | 100,000 | 10 | 24.5 | 47.0 [" in text
+    assert "| 49.0 | 1.0 | 1.4 [" in text
+    assert (grid / "report" / "skill-quality.csv").exists()

@@ -108,11 +108,30 @@ def test_a_variant_can_have_its_own_seeds_and_runs_are_queued_seed_first(tmp_pat
      "'SURF' is not a variant; variants: PEBBLE, S-EPOA w/o pretraining"),
     ('metric = "best"\nreference = "PEBBLE"\ncompare_to = ["PEBBLE"]',
      "unknown metric 'best'; valid: final_quarter"),
-    ('metric = "final_quarter"\nreference = "PEBBLE"', "takes exactly the keys"),
+    ('metric = "final_quarter"\nreference = "PEBBLE"', "takes the keys"),
+    ('metric = "final_quarter"\nreference = "PEBBLE"\ncompare_to = ["S-EPOA w/o pretraining"]'
+     '\nalso = [["PEBBLE"]]', "'also' must be a list of pairs"),
+    ('metric = "final_quarter"\nreference = "PEBBLE"\ncompare_to = ["S-EPOA w/o pretraining"]'
+     '\nalso = [["SAC", "PEBBLE"]]', "'SAC' is not a variant"),
 ])
 def test_a_bad_analysis_is_refused_by_name(tmp_path: Path, analysis: str, message: str) -> None:
     with pytest.raises(SpecError, match=message.replace("(", r"\(")):
         load_spec(write(tmp_path, GRID + "\n[analysis]\n" + analysis + "\n"))
+
+
+def test_the_true_reward_decomposition_preregisters_its_three_comparisons() -> None:
+    spec = load_spec(ROOT / "specs" / "small" / "sepoa-true-reward.toml")
+    assert spec.analysis is not None
+    b, c = "S-EPOA agent, true reward", "S-EPOA agent, true reward, no pretraining"
+    assert spec.analysis.pairs() == [(b, "SAC"), (b, c), (c, "SAC")]
+    configs = {r.variant: r.config() for r in spec.runs() if r.seed == 10}
+    assert configs[b].reward.true_reward and configs[c].reward.true_reward
+    assert configs[b].skill.pretrain_steps == 200_000 and configs[c].skill.pretrain_steps == 0
+    # The fair grid's S-EPOA settings, written out: its run is the labelled counterpart.
+    fair = {r.variant: r.config() for r in load_spec(
+        ROOT / "specs" / "small" / "sepoa-fair.toml").runs() if r.seed == 10}["S-EPOA"]
+    assert configs[b].skill == fair.skill and configs[b].feedback.every == fair.feedback.every
+    assert [r.seed for r in spec.runs_seed_first()][:3] == [10, 10, 10]
 
 
 def test_the_fair_comparison_spec_preregisters_its_analysis() -> None:
