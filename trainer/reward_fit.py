@@ -171,15 +171,15 @@ def fit(dataset: LabelledDataset, *, holdout: float = 0.2, seed: int = 0,
                 labelled.add(s0, s1, float(y))
         epochs_run += int(model.train_round(labelled, unlabelled)["reward_epochs"])
     truth = true_order_pairs(dataset, TRUE_ORDER_PAIRS, pairs.seg0.shape[1], seed)
-    metrics = {
-        "pairs": float(len(pairs.targets)), "train_pairs": float(len(train.targets)),
-        "heldout_pairs": float(len(held.targets)),
-        "heldout_decisive": float((held.targets != 0.5).sum()),
+    metrics: dict[str, float] = {  # the counts as ints, so that they print as counts
+        "pairs": len(pairs.targets), "train_pairs": len(train.targets),
+        "heldout_pairs": len(held.targets),
+        "heldout_decisive": int((held.targets != 0.5).sum()),
         "heldout_accuracy": pair_accuracy(model, held),
         "train_accuracy": pair_accuracy(model, train),
         "reward_corr": reward_correlation(model, dataset),
         "true_order_accuracy": pair_accuracy(model, truth),
-        "trainings": float(len(steps)), "epochs": float(epochs_run),
+        "trainings": len(steps), "epochs": epochs_run,
         "seconds": time.perf_counter() - start,
     }
     return FitResult(model, metrics, train, held)

@@ -55,6 +55,8 @@ def test_the_fit_reaches_the_runs_own_reward_model_and_a_run_starts_from_it(expo
                         "--compare", str(exported["checkpoint"]))
     assert code == 0, err
     assert (m["pairs"], m["train_pairs"], m["heldout_pairs"]) == (120, 84, 36)
+    counts = ("pairs", "train_pairs", "heldout_pairs", "heldout_decisive", "trainings", "epochs")
+    assert all(type(m[k]) is int for k in counts), {k: m[k] for k in counts}  # 120, not 120.0
     assert "held-out accuracy" in err and "the run's own reward model" in err
     assert 0 <= m["heldout_accuracy"] <= 1 and 0 <= m["run_heldout_accuracy"] <= 1
     assert m["true_order_accuracy"] >= m["run_true_order_accuracy"] - TOLERANCE
