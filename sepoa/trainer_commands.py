@@ -170,7 +170,11 @@ def _run_worker(args: argparse.Namespace) -> int:
         except ValueError as err:
             return fail(str(err))
     threads = args.threads or max(1, cpu_cores() // args.host_processes)
-    extra = {"worker_id": args.worker_id} if args.worker_id else {}
+    # WorkerConfig's default name, chosen here so that every line the worker prints has it
+    import socket
+
+    worker_id = args.worker_id or f"{socket.gethostname()}-{os.getpid()}"
+    prefix = f"[worker {worker_id}]"
     try:
         url = check_url(database_url(args.database_url, args.database_url_file)
                         or sqlite_url(args.data_dir))
@@ -179,7 +183,7 @@ def _run_worker(args: argparse.Namespace) -> int:
     from trainer.doctor import RenderingUnavailable, choose_backend
 
     try:  # a probe process per backend: a broken EGL cannot take this process down
-        choose_backend(lambda line: print(f"[worker] {line}", file=sys.stderr, flush=True))
+        choose_backend(lambda line: print(f"{prefix} {line}", file=sys.stderr, flush=True))
     except RenderingUnavailable as err:
         print(f"error: {err}", file=sys.stderr)
         return 1
@@ -188,13 +192,13 @@ def _run_worker(args: argparse.Namespace) -> int:
     why = ("--threads" if args.threads is not None else
            f"{cpu_cores()} cores shared by {args.host_processes} processes; --threads or "
            "--host-processes to change")
-    print(f"[worker] torch threads: {threads} ({why})", file=sys.stderr, flush=True)
+    print(f"{prefix} torch threads: {threads} ({why})", file=sys.stderr, flush=True)
     worker = WorkerConfig(
         database_url=url, data_dir=Path(args.data_dir),
         clips_dir=Path(args.clips_dir) if args.clips_dir else None, once=args.once,
         results_dir=Path(args.results) if args.results else None,
         poll_seconds=args.poll_seconds, device=args.device, threads=threads, clip=clip,
-        **extra,
+        worker_id=worker_id,
     )
     try:
         run_worker(worker)

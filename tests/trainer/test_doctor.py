@@ -131,7 +131,7 @@ def test_a_worker_with_a_broken_egl_falls_back_to_osmesa_and_renders_clips(tmp_p
             worker.kill()
             worker.wait()
     text = log.read_text()
-    assert ("[worker] rendering: egl fails (ImportError: Cannot initialize a headless EGL "
+    assert ("[worker w1] rendering: egl fails (ImportError: Cannot initialize a headless EGL "
             "display.); falling back to osmesa (MUJOCO_GL=osmesa") in text, text
     frames = imageio.mimread(tmp_path / "data" / "clips" / keys[0])
     assert len(frames) == 20  # the tiny preset's segment length

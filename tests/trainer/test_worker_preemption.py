@@ -153,9 +153,11 @@ def test_slurms_warning_before_the_time_limit_ends_an_idle_worker_cleanly(
                "0.1", "--threads", "1"]
     env = os.environ | {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     worker = subprocess.Popen(command, env=env, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    lines = []
     try:
         assert worker.stderr is not None
         for line in worker.stderr:
+            lines.append(line)
             if "waiting for runs in" in line:
                 break
         worker.send_signal(signal.SIGUSR1)
@@ -165,6 +167,9 @@ def test_slurms_warning_before_the_time_limit_ends_an_idle_worker_cleanly(
             worker.kill()
     assert worker.returncode == 0
     assert "[worker idle] SIGUSR1: exiting" in err
+    # Every line names the worker: the rendering check's and the threads' too.
+    lines += err.splitlines(keepends=True)
+    assert len(lines) >= 4 and all(line.startswith("[worker idle] ") for line in lines), lines
 
 
 def test_a_worker_says_which_run_a_silent_worker_holds_and_takes_it_when_it_is_free(
