@@ -224,11 +224,12 @@ def _heartbeat(row: Run | None, now: datetime) -> tuple[str, str | None]:
 
 
 def training_workers(rows: Iterable[Run], now: datetime) -> set[str]:
-    """The workers holding a running run that are not presumed dead (a heartbeat within
-    `DEAD_WORKER_AFTER_S`): the ones the grid's time left is divided among."""
+    """The workers training a run now (a heartbeat within `SILENT_WORKER_AFTER_S`; one
+    silent longer, killed a moment ago or stopped, trains nothing): the ones the grid's time
+    left is divided among."""
     return {row.worker_id for row in rows
             if row.status is RunStatus.RUNNING and row.worker_id
-            and (age := heartbeat_age(row, now)) is not None and age <= DEAD_WORKER_AFTER_S}
+            and (age := heartbeat_age(row, now)) is not None and age <= SILENT_WORKER_AFTER_S}
 
 
 def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> str:
