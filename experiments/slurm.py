@@ -14,7 +14,7 @@ when asked (`--requeue`). Each array task is one worker named after the job and 
 claims the queue's runs until none is waiting and exits. On SIGTERM (`scancel`, preemption) or
 SIGUSR1 (sent `signal_before` seconds ahead of the time limit, `--signal=B:USR1@...`), the
 worker checkpoints its run at the end of the episode and releases it: the next worker, or the
-task requeued under the same name, resumes it from that checkpoint at once.
+task requeued under the same name, resumes it from that checkpoint as soon as it starts.
 
 No secret is written into the script: a URL without a password is written as it is; a URL with
 one is read by the tasks from a file of mode 600 (the one given with --database-url-file, or

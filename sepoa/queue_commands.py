@@ -127,7 +127,8 @@ def _export_dataset(args: argparse.Namespace, url: str) -> int:
     from sqlalchemy.exc import DBAPIError
 
     from labelqueue import NotFound, make_engine, session_factory
-    from labelqueue.dataset import DatasetError, write_dataset
+    from labelqueue.dataset import DatasetError, NoEpisodes, write_dataset
+    from labelqueue.episodes import episodes_dir
 
     if args.run is None:
         return fail("--dataset needs --run N: a dataset holds one run's episodes")
@@ -144,6 +145,14 @@ def _export_dataset(args: argparse.Namespace, url: str) -> int:
             summary = write_dataset(session, run_id=args.run, clips_root=clips,
                                     root=Path(args.dataset), dataset_id=args.dataset_id,
                                     data_format=args.format or "arrow")
+    except NoEpisodes as err:
+        if episodes_dir(clips, args.run).is_dir():
+            return fail(str(err))
+        return fail(f"run {args.run} has no stored episodes in the clips folder {clips} "
+                    f"({episodes_dir(clips, args.run)} does not exist): give the clips folder "
+                    "its worker wrote to with --clips-dir (a run trained by `sepoa experiment "
+                    "run` or the Slurm script: --clips-dir <results>/clips); a run that never "
+                    "opened a round, or trained before this version, has none")
     except (NotFound, DatasetError) as err:
         return fail(str(err))
     except DBAPIError as err:

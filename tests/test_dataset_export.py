@@ -170,6 +170,11 @@ def test_bad_input_gets_one_line_and_leaves_nothing(trained, capsys):
         "exists": (["--dataset", str(roots), "--run", "1"], "already exists"),
         "unknown run": (["--dataset", str(roots), "--run", "9"], "run 9 does not exist"),
         "no episodes": (["--dataset", str(roots), "--run", "2"], "no stored episodes"),
+        "other clips folder": (
+            ["--dataset", str(roots), "--run", "1", "--dataset-id", "sepoa/other-v0",
+             "--clips-dir", str(roots.parent / "c")],
+            "give the clips folder its worker wrote to with --clips-dir (a run trained by "
+            "`sepoa experiment run` or the Slurm script: --clips-dir <results>/clips)"),
         "no run": (["--dataset", str(roots)], "--dataset needs --run"),
         "bad id": (["--dataset", str(roots), "--run", "1", "--dataset-id", "a b"],
                    "not a Minari id"),
