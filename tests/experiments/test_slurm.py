@@ -251,3 +251,14 @@ def test_a_closed_standard_output_is_not_an_error(tmp_path: Path) -> None:
     finally:
         os.close(write_end)
     assert (results / "queue.db").exists() and (results / "tiny" / "spec.toml").exists()
+
+
+def test_the_docs_step_by_step_keeps_the_password_out_of_the_jobs_environment() -> None:
+    """sbatch saves the environment it runs in into the job, and each task's process shows it:
+    the documented steps name the URL's file, never the URL."""
+    docs = (ROOT / "docs" / "EXPERIMENTS.md").read_text()
+    block = docs.split("Step by step, with the URL", 1)[1].split("```", 2)[1]
+    commands = " ".join(block.replace("\\\n", " ").splitlines())
+    assert "SEPOA_DATABASE_URL=" not in commands and "sbatch workers.sbatch" in commands
+    sepoa = commands.split(".venv/bin/sepoa ")[1:]
+    assert len(sepoa) == 3 and all("--database-url-file " in c for c in sepoa), sepoa
