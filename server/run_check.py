@@ -11,6 +11,7 @@ from fastapi.exceptions import RequestValidationError
 
 from runvocab.clip_format import CLIP_FPS, step_seconds
 from runvocab.config import build_config, typed_overrides
+from runvocab.first_round import first_round_step
 from runvocab.names import ConfigError
 from runvocab.queued_run import TOP_LEVEL_FIELDS
 
@@ -52,13 +53,7 @@ def run_defaults(*, task: str, algo: str, preset: str, config: Mapping[str, Any]
         raise RequestValidationError([{
             "type": "value_error", "msg": str(err), "loc": ("query", "config", err.field),
         }]) from None
-    episode = cfg.episode_length or (500 if task.startswith("metaworld:") else 1000)
-    if algo == "sac":
-        first = 0
-    elif algo == "sepoa":
-        first = max(cfg.seed_steps, max(2, cfg.skill.initial_rollouts) * episode)
-    else:
-        first = max(-(-(cfg.seed_steps + cfg.unsup_steps) // episode), 2) * episode
+    first = first_round_step(cfg)
     pretrain = cfg.skill.pretrain_steps if algo == "sepoa" else 0
     pace = measured_pace or DEFAULT_PRETRAIN_STEPS_PER_S
     step_s = step_seconds(task)

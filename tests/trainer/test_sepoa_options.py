@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from runvocab.config import SACConfig, build_config
+from runvocab.first_round import first_round_step
 from runvocab.names import ConfigError
 from runvocab.validate import validate
 from trainer.loop import TrainingRun
@@ -92,7 +93,7 @@ def test_free_initial_rollouts_come_before_step_0_and_learning_starts_at_once(tm
     run = TrainingRun(cfg, progress=False)
     run.train()
     rounds = _rows(cfg.run_dir, "rounds")
-    assert rounds[0]["step"] == "0"  # the first round at step 0, on the 4 rollouts
+    assert rounds[0]["step"] == "0" == str(first_round_step(cfg))  # on the 4 rollouts
     episodes = _rows(cfg.run_dir, "episodes")
     # 1200 counted steps are 6 episodes of 200; the 4 rollouts come before, uncounted.
     assert [int(r["step"]) for r in episodes] == [200, 400, 600, 800, 1000, 1200]
@@ -109,7 +110,7 @@ def test_counted_initial_rollouts_stay_the_default_and_wait_for_the_first_round(
     TrainingRun(cfg, progress=False).train()
     episodes = _rows(cfg.run_dir, "episodes")
     assert [int(r["updates"]) for r in episodes[:3]][:2] == [0, 0]
-    assert _rows(cfg.run_dir, "rounds")[0]["step"] == "600"
+    assert _rows(cfg.run_dir, "rounds")[0]["step"] == "600" == str(first_round_step(cfg))
 
 
 def test_r_theta_fits_every_complete_replay_episode_when_asked(tmp_path, monkeypatch):
