@@ -29,7 +29,7 @@ from labelqueue.models import (
     Worker,
     utcnow,
 )
-from labelqueue.runs import DEAD_WORKER_AFTER_S, budget_spent
+from labelqueue.runs import DEAD_WORKER_AFTER_S, EXTERNAL, budget_spent
 from labelqueue.transaction import reading
 
 LIVE_WORKER_S = 60.0
@@ -221,6 +221,10 @@ def _activity(run: Run, now: datetime, opened: tuple[int, int, int], active: int
         if unrendered:
             text += f"; {unrendered} of {_plural(pairs, 'pair')} still rendering"
         return make("labelling", text)
+    if run.algo == EXTERNAL:  # no worker: its client pushes pairs when it has some
+        if budget_spent(run):
+            return make("training", "the label budget is spent, no more pairs")
+        return make("training", "waiting for its client to push pairs")
     step = int(run.step or 0)
     pre_step = progress.get("pretraining_step")
     pre_total = progress.get("pretraining_steps")

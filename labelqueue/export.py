@@ -31,7 +31,7 @@ from sqlalchemy.orm import Session
 
 from labelqueue.errors import NotFound
 from labelqueue.instructions import InstructionHistory, instructions_at
-from labelqueue.models import Label, Labeller, Query, Run
+from labelqueue.models import ExternalPair, Label, Labeller, Query, Run
 from labelqueue.transaction import reading
 from runvocab.answers import Answer, aggregate
 from runvocab.instructions import instruction_sha256, run_instruction
@@ -178,6 +178,7 @@ _STORED: dict[str, Any] = {
     "seed": Run.seed,
     **{column.name: getattr(Query, column.name) for column in QUERY_COLUMNS},
     "needs_labels": Query.needs_labels,
+    "gold_answer": ExternalPair.gold_answer,  # an external gold pair known by its answer only
     "labeller_id": Label.labeller_id,
     "labeller_name": Labeller.name,
     "source": Label.source,
@@ -224,7 +225,8 @@ def _row(stored: Mapping[str, Any], instructions: InstructionHistory,
     answer, shadow = got["answer"], got["shadow_choice"]
     preferred = answer if answer in _SEGMENT_ANSWERS else None
     given_to_query = answers.get(got["query_id"], [])
-    truth = correct_answer(got["first_segment_return"], got["second_segment_return"])
+    truth = got["gold_answer"] or correct_answer(got["first_segment_return"],
+                                                 got["second_segment_return"])
     shown, answered = got["shown_at"], got["answered_at"]
     derived = {
         "schema_version": SCHEMA_VERSION,
@@ -271,6 +273,7 @@ def export_rows(
                 chunk = session.execute(
                     select(*(column.label(name) for name, column in _STORED.items()))
                     .join(Query, Query.id == Label.query_id)
+                    .outerjoin(ExternalPair, ExternalPair.query_id == Query.id)
                     .join(Run, Run.id == Label.run_id)
                     .join(Labeller, Labeller.id == Label.labeller_id)
                     .where(Label.id > after, Label.id <= last, *condition)

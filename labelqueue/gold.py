@@ -31,7 +31,15 @@ from sqlalchemy import Integer, bindparam, delete, func, insert, select
 from sqlalchemy.orm import Session
 
 from labelqueue.errors import QueueError
-from labelqueue.models import LABELS, PAUSES, QUERIES, RUNS, LabellerPause, utcnow
+from labelqueue.models import (
+    EXTERNAL_PAIRS,
+    LABELS,
+    PAUSES,
+    QUERIES,
+    RUNS,
+    LabellerPause,
+    utcnow,
+)
 from labelqueue.prepared import DriverConnection, Prepared
 from labelqueue.run_config import FEEDBACK, run_feedback
 from labelqueue.transaction import reading, transaction
@@ -63,8 +71,13 @@ class GoldSettings:
                    int(feedback.get("gold_min_answers", default.gold_min_answers)))
 
 
-def gold_answer(first_return: float, second_return: float) -> Answer:
-    """A gold pair's answer: the segment with the larger true return."""
+def gold_answer(first_return: float | None, second_return: float | None,
+                known: Answer | str | None = None) -> Answer:
+    """A gold pair's answer: the one its external client gave (`known`), else the segment with
+    the larger true return."""
+    if known is not None:
+        return Answer(known)
+    assert first_return is not None and second_return is not None, "a gold pair without truth"
     return Answer.FIRST if first_return > second_return else Answer.SECOND
 
 
@@ -128,8 +141,10 @@ def gold_due(share: GoldShare, *, key: bytes, labeller_id: int, run_id: int,
 
 
 _GOLD_ANSWERS = Prepared(
-    select(LABELS.c.answer, QUERIES.c.first_segment_return, QUERIES.c.second_segment_return)
-    .select_from(LABELS.join(QUERIES, QUERIES.c.id == LABELS.c.query_id))
+    select(LABELS.c.answer, QUERIES.c.first_segment_return, QUERIES.c.second_segment_return,
+           EXTERNAL_PAIRS.c.gold_answer)
+    .select_from(LABELS.join(QUERIES, QUERIES.c.id == LABELS.c.query_id)
+                 .outerjoin(EXTERNAL_PAIRS, EXTERNAL_PAIRS.c.query_id == QUERIES.c.id))
     .where(LABELS.c.labeller_id == _LABELLER, LABELS.c.run_id == _RUN,
            LABELS.c.withdrawn_at.is_(None), QUERIES.c.gold.is_(True),
            LABELS.c.practice.is_(False))  # the practice round is not measured
@@ -141,8 +156,8 @@ def gold_record(connection: DriverConnection, *, labeller_id: int,
     """(gold answers, correct ones) of the labeller on the run; skips are not answers."""
     rows = _GOLD_ANSWERS.rows(connection, {"labeller": labeller_id, "gold_run": run_id})
     answered = [row for row in rows if row.answer != Answer.SKIP]
-    correct = sum(row.answer == gold_answer(row.first_segment_return, row.second_segment_return)
-                  for row in answered)
+    correct = sum(row.answer == gold_answer(row.first_segment_return, row.second_segment_return,
+                                            row.gold_answer) for row in answered)
     return len(answered), correct
 
 

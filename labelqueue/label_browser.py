@@ -79,8 +79,8 @@ class LabelDetail:
     second_start: int
     first_trajectory: int
     second_trajectory: int
-    first_segment_return: float
-    second_segment_return: float
+    first_segment_return: float | None
+    second_segment_return: float | None
     true_answer: str | None
     """first, second or equal: what the true segment returns call for"""
     model_p: float | None

@@ -309,15 +309,16 @@ class Query(Base):
     first_skill: Mapped[list[float] | None] = mapped_column(JSON)
     first_clip: Mapped[str | None] = mapped_column(String(500))
     """storage key of the rendered clip, relative to the clips folder"""
-    first_segment_return: Mapped[float] = mapped_column(Float)
-    first_trajectory_return: Mapped[float] = mapped_column(Float)
+    # The four returns are null only for an external client's pair pushed without them.
+    first_segment_return: Mapped[float | None] = mapped_column(Float)
+    first_trajectory_return: Mapped[float | None] = mapped_column(Float)
 
     second_trajectory: Mapped[int] = mapped_column(Integer)
     second_start: Mapped[int] = mapped_column(Integer)
     second_skill: Mapped[list[float] | None] = mapped_column(JSON)
     second_clip: Mapped[str | None] = mapped_column(String(500))
-    second_segment_return: Mapped[float] = mapped_column(Float)
-    second_trajectory_return: Mapped[float] = mapped_column(Float)
+    second_segment_return: Mapped[float | None] = mapped_column(Float)
+    second_trajectory_return: Mapped[float | None] = mapped_column(Float)
 
     model_p: Mapped[float | None] = mapped_column(Float)
     """the reward model's P[second preferred] at selection time"""
@@ -400,6 +401,55 @@ Index("uq_labels_query_id_labeller_id_standing", Label.query_id, Label.labeller_
       sqlite_where=_STANDING, postgresql_where=_STANDING)
 
 
+class RunToken(Base):
+    """A bearer token scoped to one run (`labelqueue.external`): it pushes the run's pairs and
+    reads its answers, and nothing else. The token reads `"run.<id>.<secret>"`; only its sha256
+    is stored."""
+
+    __tablename__ = "run_tokens"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id"))
+    token_hash: Mapped[str] = mapped_column(String(64))
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    revoked_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+
+
+class ExternalPair(Base):
+    """What an external client pushed with one of its run's queries (`labelqueue.external`):
+    never shown to a labeller."""
+
+    __tablename__ = "external_pairs"
+    __table_args__ = (UniqueConstraint("run_id", "key"),)
+
+    query_id: Mapped[int] = mapped_column(ForeignKey("queries.id"), primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id"))
+    key: Mapped[str] = mapped_column(String(200))
+    """the client's idempotency key: a push again under it returns the same query"""
+    digest: Mapped[str] = mapped_column(String(64))
+    """sha256 of what was pushed under the key: the same key with other content is refused"""
+    meta: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    """the client's own hidden metadata (its ids), returned with the pair's answers"""
+    gold_answer: Mapped[Answer | None] = mapped_column(_enum(Answer, "gold_answer"))
+    """a gold pair's known answer (first or second); none: not gold, or known from its true
+    returns"""
+
+
+class Withdrawal(Base):
+    """An answer taken back (`labelqueue.undo`), in the order they happened: the answers feed
+    resumes after one as after an answer."""
+
+    __tablename__ = "withdrawals"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    label_id: Mapped[int] = mapped_column(ForeignKey("labels.id"))
+    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id"))
+    withdrawn_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+Index("ix_withdrawals_run_id", Withdrawal.run_id, Withdrawal.id)
+
+
 class LabellerPause(Base):
     """A labeller kept from a run's queries because their accuracy on its gold pairs fell below
     the run's threshold (`labelqueue.gold`); their answers stay stored. An operator lifts it."""
@@ -437,3 +487,4 @@ LABELS = cast(Table, Label.__table__)
 PAUSES = cast(Table, LabellerPause.__table__)
 INVITEES = cast(Table, Invitee.__table__)
 INVITES = cast(Table, Invite.__table__)
+EXTERNAL_PAIRS = cast(Table, ExternalPair.__table__)

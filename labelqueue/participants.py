@@ -24,6 +24,7 @@ from labelqueue.gold import gold_answer
 from labelqueue.invites import labeller_progress, participant_code, verify_code
 from labelqueue.keys import server_key
 from labelqueue.models import (
+    ExternalPair,
     Invite,
     Invitee,
     Label,
@@ -84,8 +85,9 @@ def participants(session: Session, *, invite_id: int) -> list[Participant]:
         labels = session.execute(
             select(Label.labeller_id, Label.answer, Label.flag, Label.practice,
                    Label.answered_at, Query.gold, Query.first_segment_return,
-                   Query.second_segment_return)
+                   Query.second_segment_return, ExternalPair.gold_answer)
             .join(Query, Query.id == Label.query_id)
+            .outerjoin(ExternalPair, ExternalPair.query_id == Query.id)
             .where(Label.labeller_id.in_(ids), Label.withdrawn_at.is_(None),
                    Label.source == LabelSource.HUMAN, *on_run)
         ).all() if ids else []
@@ -103,7 +105,7 @@ def participants(session: Session, *, invite_id: int) -> list[Participant]:
         kinds = Counter(r.answer for r in real)
         gold = [r for r in real if r.gold and r.answer != Answer.SKIP]
         correct = sum(r.answer == gold_answer(r.first_segment_return,
-                                              r.second_segment_return)
+                                              r.second_segment_return, r.gold_answer)
                       for r in gold)
         last = max([invitee.joined_at, *(r.answered_at for r in rows),
                     *([invitee.asked_at] if invitee.asked_at else [])])

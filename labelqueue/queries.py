@@ -117,10 +117,11 @@ def push_queries(
     """Store a round's queries as pending; their ids, in order.
 
     Each dict holds the fields `runvocab.query_fields.QUERY_FIELDS` declares, by name: the
-    required ones (round, position, segment_length, the trajectory and start of both sides, the
-    four ground-truth returns) and any optional ones; a gold pair (`labelqueue.gold`) takes
-    every labeller's answer whatever its needs_labels says. ValueError for an unknown or
-    missing field, a null where the field takes none, or a clip key outside the clips folder.
+    required ones (round, position, segment_length, the trajectory and start of both sides) and
+    any optional ones (the trainer always gives the four ground-truth returns); a gold pair
+    (`labelqueue.gold`) takes every labeller's answer whatever its needs_labels says.
+    ValueError for an unknown or missing field, a null where the field takes none, or a clip
+    key outside the clips folder.
     Idempotent per (run, round, position): a run resumed from an older checkpoint that pushes
     the same round again gets the stored ids back; a different pair at a stored position
     raises Conflict.

@@ -31,6 +31,8 @@ from labelqueue.run_config import resolve, with_teacher
 from labelqueue.transaction import changed, detach, get_row, reading, transaction
 from runvocab.clip_format import parse_clip_size
 
+EXTERNAL = "external"
+"""the `algo` of a run no worker trains (`labelqueue.external`): never claimed"""
 HOST = socket.gethostname()[:200]
 """this process's host, recorded on its worker row (`workers.host`)"""
 DEAD_WORKER_AFTER_S = 300.0
@@ -48,6 +50,12 @@ OPERATOR_MOVES: dict[RunStatus, tuple[RunStatus, ...]] = {
     RunStatus.STOPPED: (RunStatus.QUEUED, RunStatus.STOPPING),
     RunStatus.QUEUED: (RunStatus.STOPPED, RunStatus.FAILED),
 }
+EXTERNAL_MOVES: dict[RunStatus, tuple[RunStatus, ...]] = {
+    RunStatus.PAUSED: (RunStatus.RUNNING,),
+    RunStatus.RUNNING: (RunStatus.PAUSED, RunStatus.STOPPED),
+    RunStatus.STOPPED: (RunStatus.RUNNING, RunStatus.PAUSED),
+}
+"""an external run's moves (no worker): a stop ends it at once, a requeue runs it again"""
 WORKER_ENDS = (RunStatus.FINISHED, RunStatus.FAILED, RunStatus.STOPPED)
 """the statuses a worker may end its run with"""
 OWNED = (RunStatus.RUNNING, RunStatus.PAUSED, RunStatus.STOPPING)
@@ -155,13 +163,13 @@ def claim_run(
     """
     now = utcnow()
     dead = now - timedelta(seconds=stale_after)
-    claimable = or_(
+    claimable = and_(Run.algo != EXTERNAL, or_(
         Run.status == RunStatus.QUEUED,
         and_(Run.status == RunStatus.RUNNING, Run.heartbeat_at < dead),
         # Released while paused, then resumed by the operator: nobody holds it.
         and_(Run.status == RunStatus.RUNNING, Run.worker_id.is_(None)),
         and_(Run.status.in_(OWNED), Run.worker_id == worker_id),
-    )
+    ))  # an external run is no worker's: its client pushes its pairs
     mine_first = case((Run.worker_id == worker_id, 0), else_=1)
     with transaction(session):
         candidates = session.scalars(
@@ -299,16 +307,22 @@ def set_run_status(session: Session, *, run_id: int, status: RunStatus | str) ->
     InvalidTransition for any other move; requeueing clears the worker, times and error.
     """
     target = RunStatus(status)
+    with reading(session):
+        external = get_row(session, Run, run_id).algo == EXTERNAL
+    if external:  # no worker to acknowledge a stop, nor to claim it again
+        target = {RunStatus.STOPPING: RunStatus.STOPPED,
+                  RunStatus.QUEUED: RunStatus.RUNNING}.get(target, target)
     values: dict[str, Any] = {"status": target}
     if target is RunStatus.STOPPED:
         values["finished_at"] = utcnow()
-    if target is RunStatus.QUEUED:
+    if target is RunStatus.QUEUED or external and target is RunStatus.RUNNING:
         values |= {"worker_id": None, "heartbeat_at": None, "finished_at": None, "error": None}
     with transaction(session):
         moved = changed(
             session,
             update(Run)
-            .where(Run.id == run_id, Run.status.in_(OPERATOR_MOVES.get(target, ())))
+            .where(Run.id == run_id, Run.status.in_(
+                EXTERNAL_MOVES.get(target, ()) if external else OPERATOR_MOVES.get(target, ())))
             .values(**values),
         )
         run = get_row(session, Run, run_id)

@@ -24,7 +24,7 @@ from sqlalchemy import and_, or_, select, update
 from sqlalchemy.orm import Session
 
 from labelqueue.errors import Conflict, NotFound, Revoked, RunClosed, StaleToken
-from labelqueue.models import Label, Labeller, Query, QueryStatus, Run, utcnow
+from labelqueue.models import Label, Labeller, Query, QueryStatus, Run, Withdrawal, utcnow
 from labelqueue.queries import LABELLABLE, LEASE_SECONDS
 from labelqueue.transaction import changed, detach, get_row, transaction
 
@@ -103,6 +103,7 @@ def withdraw_label(
         if run.status not in LABELLABLE:
             raise RunClosed(f"run {run.id} is {run.status}: it takes no more answers, so the "
                             "answer stands")
+        session.add(Withdrawal(label_id=label.id, run_id=run.id, withdrawn_at=now))
         query = get_row(session, Query, query_id)
         if query.practice:  # shown to everyone at once, leased to nobody: it stays practice
             if query.status is QueryStatus.CANCELLED:

@@ -21,6 +21,7 @@ from server.middleware import HardeningMiddleware
 from server.ratelimit import RateLimit
 from server.routes import (
     browse,
+    external,
     instructions,
     invites,
     label,
@@ -78,13 +79,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.join_limit = RateLimit(settings.join_per_s, settings.join_burst)
     app.state.lease_limit = RateLimit(settings.lease_per_s, settings.lease_burst)
     install_error_handlers(app)
-    app.add_middleware(HardeningMiddleware, limit=settings.body_limit_bytes)
+    app.add_middleware(HardeningMiddleware, limit=settings.body_limit_bytes,
+                       uploads=(external.UPLOADS, settings.clip_upload_bytes))
     # The label API first: it is the busiest, and a request tries the routes in turn. Next
     # and submit are plain Starlette routes on the app's own router (an included router's
     # routes are matched twice per request), documented by `label.documented`.
     app.router.routes.extend(label.hot_routes)
     document_also(app, label.documented.routes)
     app.include_router(label.router)
+    app.include_router(external.router)  # before runs: /api/runs/external
     app.include_router(runs.router)
     app.include_router(runs.workers_router)
     app.include_router(labellers.router)

@@ -92,9 +92,12 @@ class HardeningMiddleware:
     streams in) and JSON bodies nested deeper than `JSON_DEPTH_LIMIT` with 400, before any
     route decodes them; adds `SECURITY_HEADERS` to every response."""
 
-    def __init__(self, app: ASGIApp, limit: int = BODY_LIMIT_BYTES) -> None:
+    def __init__(self, app: ASGIApp, limit: int = BODY_LIMIT_BYTES,
+                 uploads: tuple[re.Pattern[str], int] | None = None) -> None:
         self.app = app
-        self.limit = limit
+        self.default_limit = limit
+        self.uploads = uploads
+        """the paths that take uploads (an external run's clips), and their larger limit"""
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -108,9 +111,12 @@ class HardeningMiddleware:
                 message = {**message, "headers": headers}
             await send(message)
 
+        limit = self.default_limit
+        if self.uploads is not None and self.uploads[0].match(scope["path"]):
+            limit = self.uploads[1]
         declared = next((v for k, v in scope["headers"] if k == b"content-length"), None)
-        if declared is not None and (not declared.isdigit() or int(declared) > self.limit):
-            for message in _too_large(self.limit):
+        if declared is not None and (not declared.isdigit() or int(declared) > limit):
+            for message in _too_large(limit):
                 await send_with_headers(message)
             return
         # FastAPI decodes a body without a content type as JSON too.
@@ -125,8 +131,8 @@ class HardeningMiddleware:
                 body = message.get("body", b"")
                 received += len(body)
                 # Raised here, the app's error handler answers (a chunked body's 413 too).
-                if received > self.limit:
-                    raise HTTPException(413, too_large_detail(self.limit))
+                if received > limit:
+                    raise HTTPException(413, too_large_detail(limit))
                 if check_depth:
                     chunks.append(body)
                     if (not message.get("more_body", False)

@@ -88,7 +88,9 @@ ERROR_TEXT: dict[int, str] = {
     404: "no such run, query, labeller or clip",
     409: "the request contradicts the stored state (a taken name, a move the run's status "
     "forbids, a lease that ran out, a stopped run)",
-    413: "the request body is larger than the server accepts (64 KiB by default)",
+    413: "the request body is larger than the server accepts (64 KiB by default; an external "
+    "run's clip, `clip_upload_bytes`)",
+    415: "the body's content type is not one the operation takes",
     422: "a malformed request, or values the queue refuses",
     429: "too many requests from this labeller or by this invite link: wait the seconds "
     "`Retry-After` says",

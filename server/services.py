@@ -26,7 +26,9 @@ from labelqueue import (
     withdraw_label,
 )
 from labelqueue import reading as reading  # the routes' own reads (stats, curves) use it too
+from labelqueue.external import known_answer
 from labelqueue.practice import explain, practice_step
+from runvocab.answers import Answer
 from server import clips
 from server.schemas import (
     LabelOut,
@@ -166,8 +168,13 @@ def answer_out(
     if label.practice:  # an answer of the practice round
         query = get_query(session, query_id=query_id)
         first, second = query.first_segment_return, query.second_segment_return
-        left, right = (first, second) if label.left_is_first else (second, first)
-        better, text = explain(left_return=left, right_return=right)
+        if first is None or second is None:  # an external gold pair known by its answer only
+            first_better = known_answer(session, query_id=query_id) == Answer.FIRST
+            better = "left" if first_better == label.left_is_first else "right"
+            text = f"The {better} clip is better."
+        else:
+            left, right = (first, second) if label.left_is_first else (second, first)
+            better, text = explain(left_return=left, right_return=right)
         step = practice_step(session, run_id=query.run_id, query_id=query.id)
         choice = str(getattr(label.choice, "value", label.choice))
         out.practice_feedback = PracticeFeedback(

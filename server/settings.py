@@ -41,6 +41,12 @@ class Settings(BaseSettings):
     revoked labeller can still read for this long, but cannot lease or answer"""
     body_limit_bytes: int = Field(default=64 * 1024, ge=1024)
     """the largest request body read; a larger one is refused with 413"""
+    clip_upload_bytes: int = Field(default=16 * 1024 * 1024, ge=1024)
+    """the largest clip (or frame array) an external run's client may upload"""
+    clip_max_seconds: float = Field(default=60.0, gt=0)
+    """the longest clip an external run's client may upload"""
+    clip_max_frames: int = Field(default=1000, ge=1)
+    """the most frames a clip an external run's client uploads may hold"""
     join_per_s: float = Field(default=1.0, gt=0)
     """joins by one invite link a second, after a burst of `join_burst` (429 beyond)"""
     join_burst: int = Field(default=30, ge=1)

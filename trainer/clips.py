@@ -42,15 +42,14 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import uuid
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import imageio.v2 as imageio
 import numpy as np
 
+from labelqueue import clip_codec
 from runvocab.clip_format import CLIP_FPS, CLIP_SIZES, DEFAULT_CLIP_SIZE, dmc_domain
 from trainer.trajectories import Trajectory
 
@@ -76,6 +75,24 @@ runner never leaves the frame. Other domains, and Metaworld, keep their env's de
 MARKER_ROWS: dict[str, float] = {"cheetah": 0.7, "walker": 0.7, "hopper": 0.9}
 """per planar DMC runner, the y (m) of the row of distance posts: behind the body as its side
 camera sees it, on the far half of the floor"""
+CAMERA_DISTANCES: dict[str, float] = {"cheetah": 2.3, "walker": 3.1, "hopper": 2.45,
+                                      "quadruped": 2.6}
+"""per DMC domain, metres from the clip camera to the body it follows, along its line of sight:
+the body standing as modelled fills `BODY_SHARE` of the frame's height, or less where its length
+would then fill more than `BODY_WIDTH_SHARE` of a square frame's width (cheetah, quadruped). The
+model's own: cheetah 3, walker 2, hopper 2.8, quadruped 4.5 (`tests/trainer/test_clip_scene.py`
+measures the shares; `benchmarks/bench_ground.py` over many clips)"""
+BODY_SHARE = 0.6
+"""the share of the frame's height the standing body fills (`CAMERA_DISTANCES`)"""
+BODY_WIDTH_SHARE = 0.75
+"""the most of a square frame's width a standing body's length may take (`CAMERA_DISTANCES`)"""
+GROUND_REACH = 50.0
+"""metres the floors are drawn either side of their centre at least: from the bottom of a
+side-filmed frame to the horizon (DMC's runners' tracks are 1.6-2 m wide)"""
+SKY_RGB = (0.6, 0.75, 0.9)
+"""the plain sky of DMC clips, in place of the skybox's starfield"""
+METAWORLD_ARM = "right_arm_base_link"
+"""the body at the root of Metaworld's Sawyer arm: what its clips film (`subject_geoms`)"""
 GROUND_MIN_FRACTION = 0.01
 """a frame with less than this share of its pixels on a floor counts as one without ground"""
 
@@ -152,14 +169,17 @@ def clip_camera(task: str) -> str | None:
 
 def motion_cues(task: str) -> MotionCues | None:
     """What a task's clips draw to show motion (`trainer.envs.MotionCues`): on DMC, the floor
-    that follows the camera and, for planar runners (`MARKER_ROWS`), distance posts; None on
-    Metaworld, whose cameras are fixed."""
+    that follows the camera, drawn to the horizon under a plain sky, the camera at its task's
+    distance (`CAMERA_DISTANCES`) and, for planar runners (`MARKER_ROWS`), distance posts; None
+    on Metaworld, whose cameras are fixed."""
     family, _, name = task.partition(":")
     if family != "dmc":
         return None
     from trainer.envs import MotionCues  # here: the worker imports this module before MuJoCo
 
-    return MotionCues(marker_row=MARKER_ROWS.get(dmc_domain(name)))
+    domain = dmc_domain(name)
+    return MotionCues(marker_row=MARKER_ROWS.get(domain), ground_reach=GROUND_REACH,
+                      sky_rgb=SKY_RGB, camera_distance=CAMERA_DISTANCES.get(domain))
 
 
 def sized(cfg: ClipConfig, clip_size: str | None) -> ClipConfig:
@@ -205,14 +225,51 @@ def ground_fractions(env: Env, traj_states: np.ndarray, context: int, start: int
     """float (length,): per frame of the clip `iter_segment_frames` renders, the share of its
     pixels that show a floor (MuJoCo's segmentation render of the same scene, motion cues
     included). Below `GROUND_MIN_FRACTION`, a frame has no ground to see motion against."""
+    return frame_shares(env, traj_states, context, start, length, cfg)["ground"]
+
+
+def frame_shares(env: Env, traj_states: np.ndarray, context: int, start: int, length: int,
+                 cfg: ClipConfig) -> dict[str, np.ndarray]:
+    """Per frame of the clip `iter_segment_frames` renders, from MuJoCo's segmentation render of
+    the same scene (motion cues included), float (length,) arrays:
+
+    - "ground": the share of its pixels that show a floor;
+    - "sky_below": the share of its lowest quarter that shows the sky (nothing drawn);
+    - "body_height", "body_width": the height and width of the body's bounding box as shares
+      of the frame's (`subject_geoms`; 0 where the body is out of the frame)."""
     # Sets the env up exactly as for the clip (and checks the segment).
     iter_segment_frames(env, traj_states, context, start, length, cfg)
     camera = cfg.camera if cfg.camera is not None else clip_camera(env.task)
-    out = np.empty(length)
+    import mujoco  # here: the worker imports this module before MuJoCo
+
+    floors, body = env.floor_geoms(), subject_geoms(env)
+    out = {k: np.empty(length) for k in ("ground", "sky_below", "body_height", "body_width")}
     for i, state in enumerate(np.asarray(traj_states)[start:start + length]):
         env.restore(state, context)
-        out[i] = env.ground_fraction(cfg.width, cfg.height, camera)
+        ids = env.segmentation(cfg.width, cfg.height, camera)
+        geoms = np.where(ids[..., 1] == mujoco.mjtObj.mjOBJ_GEOM, ids[..., 0], -1)
+        out["ground"][i] = np.isin(geoms, floors).mean()
+        out["sky_below"][i] = (ids[-(cfg.height // 4):, :, 1] < 0).mean()
+        shown = np.isin(geoms, body)
+        rows, cols = np.flatnonzero(shown.any(axis=1)), np.flatnonzero(shown.any(axis=0))
+        out["body_height"][i] = (rows[-1] - rows[0] + 1) / cfg.height if len(rows) else 0.0
+        out["body_width"][i] = (cols[-1] - cols[0] + 1) / cfg.width if len(cols) else 0.0
     return out
+
+
+def subject_geoms(env: Env) -> np.ndarray:
+    """The geoms of what a task's clips film: on DMC every body but the world's (the agent), on
+    Metaworld the arm (`METAWORLD_ARM` and the bodies below it), not the table or the objects."""
+    model = env._model  # read only
+    if env.task.startswith("metaworld:"):
+        arm = {model.body(METAWORLD_ARM).id}
+        for b in range(model.nbody):  # parents come before their children
+            if model.body_parentid[b] in arm:
+                arm.add(b)
+        bodies = np.array(sorted(arm))
+    else:
+        bodies = np.arange(1, model.nbody)
+    return np.flatnonzero(np.isin(model.geom_bodyid, bodies))
 
 
 def moved_states(env: Env, traj_states: np.ndarray, dx: float, dy: float = 0.0) -> np.ndarray:
@@ -238,37 +295,11 @@ def moved_states(env: Env, traj_states: np.ndarray, dx: float, dy: float = 0.0) 
 
 def encode_mp4(frames: Iterable[np.ndarray], path: str | os.PathLike, cfg: ClipConfig) -> Path:
     """Writes the frames (uint8 (height, width, 3) each, an array or any iterable: frames are
-    encoded as they come) to an h264 mp4 at `path`, atomically. Returns the path."""
-    path = Path(path)
-    if path.suffix != ".mp4":
-        raise ValueError(f"clip path must end in .mp4, got {str(path)!r}")
-    # Same folder (so the rename is atomic), hidden, and still .mp4 for ffmpeg's muxer choice.
-    tmp = path.with_name(f".{path.stem}.{uuid.uuid4().hex[:12]}.tmp.mp4")
-    writer = imageio.get_writer(
-        tmp, format="FFMPEG", fps=cfg.fps, codec="libx264", pixelformat=cfg.pixel_format,
-        macro_block_size=cfg.macro_block_size, quality=None,  # None: rate control from -crf
-        ffmpeg_params=["-crf", str(cfg.crf), "-preset", cfg.preset, "-movflags", "+faststart",
-                       # One encoder thread: the renderer has the other cores, and a clip of a
-                       # few dozen frames gains nothing from x264's frame threads.
-                       "-threads", "1"],
-    )
-    n = 0
-    try:
-        with writer:
-            for frame in frames:
-                if frame.shape != (cfg.height, cfg.width, 3) or frame.dtype != np.uint8:
-                    raise ValueError(f"frame {n}: expected uint8 {(cfg.height, cfg.width, 3)}, "
-                                     f"got {frame.dtype} {frame.shape}")
-                writer.append_data(frame)
-                n += 1
-            if n == 0:
-                raise ValueError("no frames to encode")
-        with open(tmp, "rb") as f:  # on disk before it has its name, even after a crash
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    encoded as they come) to an h264 mp4 at `path`, atomically, with `cfg`'s encoder settings
+    (`labelqueue.clip_codec.encode_mp4`, which external clients' frames go through too)."""
+    return clip_codec.encode_mp4(frames, path, fps=cfg.fps, width=cfg.width, height=cfg.height,
+                                 crf=cfg.crf, preset=cfg.preset, pixel_format=cfg.pixel_format,
+                                 macro_block_size=cfg.macro_block_size)
 
 
 def render_query_clips(env: Env, traj0: Trajectory, start0: int, traj1: Trajectory, start1: int,

@@ -141,8 +141,9 @@ hot_routes = [
     responses=errors(
         401, 403, 404, 422,
         also={
-            200: {"content": {"video/mp4": {}}},
-            206: {"description": "the byte range asked for", "content": {"video/mp4": {}}},
+            200: {"content": {"video/mp4": {}, "video/webm": {}}},
+            206: {"description": "the byte range asked for",
+                  "content": {"video/mp4": {}, "video/webm": {}}},
         },
     ),
     openapi_extra=BEARER_OR_SIGNED,
@@ -175,4 +176,5 @@ def get_clip(
     else:
         caller_from_token(session=session, settings=settings, token=bearer_token(request))
     path = services.clip_path(session, settings=settings, query_id=query_id, side=side)
-    return FileResponse(path, media_type="video/mp4")
+    # An external run's client may upload WebM; every other clip is an h264 mp4.
+    return FileResponse(path, media_type="video/webm" if path.suffix == ".webm" else "video/mp4")

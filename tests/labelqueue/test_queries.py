@@ -121,10 +121,10 @@ def test_a_push_stores_each_declared_field_and_the_defaults_of_those_left_out(
     assert bare is not None and stored is not None
     for field in QUERY_FIELDS:
         value = getattr(bare, field.name)
-        if field.optional:
-            assert value == field.default, field.name
-        else:
+        if field.name in spec:
             assert value == spec[field.name], field.name
+        else:
+            assert field.optional and value == field.default, field.name
     assert (stored.first_skill, stored.shadow_choice, stored.distinguishable) == (
         [0.25], Answer.FIRST, True)
     assert (stored.score, stored.needs_labels, stored.gold) == (None, 2, False)

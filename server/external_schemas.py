@@ -1,0 +1,140 @@
+"""The bodies of external runs (`labelqueue.external`): a run no worker trains, the clips and
+pairs its client pushes, and the answers it reads back."""
+
+from __future__ import annotations
+
+import math
+from datetime import datetime
+from typing import Annotated, Any, Literal
+
+from pydantic import AfterValidator, Field
+
+from server.schemas import INT32_MAX, Body, InstructionText, Out, SmallJson
+
+
+def _finite(values: tuple[float, float] | None) -> tuple[float, float] | None:
+    if values is not None and not all(math.isfinite(v) for v in values):
+        raise ValueError("returns must be finite numbers")
+    return values
+
+
+Returns = Annotated[tuple[float, float] | None, AfterValidator(_finite)]
+ClipId = Annotated[str, Field(pattern=r"^[0-9a-f]{32}$",
+                              description="an id `POST /api/runs/{id}/clips` gave")]
+
+
+class ExternalRunCreate(Body):
+    """A run no worker trains: a client holding its run token pushes its pairs."""
+
+    task: str = Field(min_length=1, max_length=100, examples=["gym:HalfCheetah-v5"])
+    """what is being trained, in free text (the instruction's default names it)"""
+    name: str | None = Field(default=None, max_length=200)
+    instruction: InstructionText | None = None
+    """what labellers are told "better" means; null: a generic one from the task's name"""
+    budget: int = Field(ge=1, le=INT32_MAX)
+    """answers to ordinary pairs the run may take in all (gold and practice ones are free)"""
+    labels_per_query: int = Field(default=1, ge=1, le=50)
+    """k: distinct labellers' answers per pair, aggregated by majority"""
+    gold_rate: float = Field(default=0.0, ge=0.0, le=0.5)
+    """the share of each labeller's answers given to the gold pairs the client pushes"""
+    gold_min_accuracy: float = Field(default=0.0, ge=0.0, le=1.0)
+    """pause a labeller whose accuracy on gold pairs falls below this (0: never)"""
+    gold_min_answers: int = Field(default=10, ge=1, le=10_000)
+    practice_pairs: int = Field(default=0, ge=0, le=20)
+    """a practice round of this many of the client's first gold pairs for each newcomer"""
+
+
+class RunTokenOut(Out):
+    run_id: int
+    token: str
+    """shown once: it pushes the run's pairs and reads its answers, and nothing else"""
+
+
+class ClipOut(Out):
+    """An uploaded clip, as the decoder read it."""
+
+    clip_id: str
+    container: Literal["mp4", "webm"]
+    codec: str
+    width: int
+    height: int
+    frames: int
+    seconds: float
+
+
+class PairIn(Body):
+    """One pair of uploaded clips to compare."""
+
+    key: str = Field(min_length=1, max_length=200)
+    """the idempotency key, unique in the run: a pair pushed again under it is not stored
+    twice; other content under a used key is a 409"""
+    first_clip: ClipId
+    second_clip: ClipId
+    gold: Literal["first", "second"] | None = None
+    """a gold pair's known answer; null: an ordinary pair"""
+    returns: Returns = None
+    """hidden: the two segments' true returns, for accuracy and the calibration report"""
+    trajectory_returns: Returns = None
+    """hidden: their whole episodes' returns; null: `returns`"""
+    meta: SmallJson | None = None
+    """hidden: the client's own ids, given back with the pair's answers"""
+
+
+class PairsIn(Body):
+    pairs: list[PairIn] = Field(min_length=1, max_length=500)
+
+
+class PushedOut(Out):
+    key: str
+    query_id: int
+    created: bool
+    """false: the key was stored before (a retried push), and this is its query"""
+
+
+class PushOut(Out):
+    pairs: list[PushedOut]
+
+
+class GivenAnswer(Out):
+    labeller_id: int
+    labeller: str
+    answer: str
+
+
+class AnswerEvent(Out):
+    """An answer to one of the run's pairs, or an answer taken back, with the pair as it
+    stands after it."""
+
+    kind: Literal["answer", "withdrawal"]
+    label_id: int
+    labeller_id: int
+    labeller: str
+    answer: str
+    """first, second, equal, cant_tell or skip (for a withdrawal: the answer taken back)"""
+    at: datetime
+    flag: str | None
+    query_id: int
+    key: str | None
+    meta: dict[str, Any] | None
+    gold: bool
+    k: int | None
+    """answers the pair takes (null for a gold pair: everyone's)"""
+    answers: list[GivenAnswer]
+    """the pair's standing answers, one per labeller"""
+    aggregate: str | None
+    """their majority (`runvocab.answers.aggregate`): cant_tell when most cannot tell or two
+    decisive answers tie; null with no answer standing"""
+    tie: bool
+    """two decisive answers tie for the most"""
+    complete: bool
+    """the pair has its k answers"""
+
+
+class AnswersOut(Out):
+    events: list[AnswerEvent]
+    cursor: str
+    """pass it as `after` to read on from here (keep it: it resumes after a crash)"""
+    open_pairs: int
+    """ordinary pairs still short of their k answers"""
+    status: str
+    """the run's status"""

@@ -1,0 +1,275 @@
+"""External runs over REST (`labelqueue.external`): an operator creates a run no worker trains
+and issues its token; the client holding the token uploads clips (MP4 or WebM as they are, or
+frame arrays the server encodes), pushes pairs of them and long-polls the answers.
+
+A run token reaches only these routes of its own run: any other route answers it 401, another
+run's routes 403. An operator's token reaches every run's.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import io
+import json
+import os
+import re
+import time
+import uuid
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
+from sqlalchemy import select
+from starlette.concurrency import run_in_threadpool
+
+from labelqueue import Run, RunStatus, read_run, reading
+from labelqueue.clip_codec import ClipInfo, encode_mp4, probe_clip
+from labelqueue.external import (
+    EXTERNAL,
+    Cursor,
+    PairSpec,
+    answers_after,
+    clip_key,
+    create_external_run,
+    is_external,
+    issue_run_token,
+    push_pairs,
+    run_of_token,
+)
+from runvocab.answers import Answer
+from runvocab.clip_format import CLIP_FPS
+from server.deps import OperatorDep, SessionDep, SettingsDep, bearer_token, known_caller
+from server.deps import checked_caller as labeller_caller
+from server.external_schemas import (
+    AnswersOut,
+    ClipOut,
+    ExternalRunCreate,
+    PairsIn,
+    PushOut,
+    RunTokenOut,
+)
+from server.schemas import RunId, RunOut, errors
+from server.settings import Settings
+
+router = APIRouter(prefix="/api/runs", tags=["external runs"], responses=errors(401, 403))
+
+UPLOADS = re.compile(r"^/api/runs/[0-9]+/clips$")
+"""the paths that take a clip's bytes, up to the settings' `clip_upload_bytes`"""
+NPY = "application/x-npy"
+VIDEO_TYPES = {"video/mp4": "mp4", "video/webm": "webm"}
+POLL_S = 0.5
+"""how often a waiting answers request looks again"""
+
+
+@router.post("/external", status_code=201, response_model=RunOut,
+             responses=errors(400, 413, 422))
+def create_run(spec: ExternalRunCreate, session: SessionDep, _: OperatorDep) -> RunOut:
+    """A running run that no worker trains: its client, holding a token from
+    `POST /api/runs/{id}/tokens`, pushes pairs of clips and reads the answers people give."""
+    run = create_external_run(
+        session, name=spec.name or f"external: {spec.task}", task=spec.task, budget=spec.budget,
+        labels_per_query=spec.labels_per_query, gold_rate=spec.gold_rate,
+        gold_min_accuracy=spec.gold_min_accuracy, gold_min_answers=spec.gold_min_answers,
+        practice_pairs=spec.practice_pairs, instruction=spec.instruction)
+    return RunOut.model_validate(run)
+
+
+@router.get("/external", response_model=list[RunOut])
+def list_runs(session: SessionDep, _: OperatorDep) -> list[RunOut]:
+    """The external runs, oldest first."""
+    with reading(session):
+        runs = session.scalars(select(Run).where(Run.algo == EXTERNAL).order_by(Run.id))
+        return [RunOut.model_validate(run) for run in runs]
+
+
+@router.post("/{run_id}/tokens", status_code=201, response_model=RunTokenOut,
+             responses=errors(404, 409, 422))
+def create_token(run_id: RunId, session: SessionDep, _: OperatorDep) -> RunTokenOut:
+    """A new token scoped to the external run, shown once: it uploads clips, pushes pairs and
+    reads answers of this run, and nothing else (409 for a run a worker trains)."""
+    return RunTokenOut(run_id=run_id, token=issue_run_token(session, run_id=run_id))
+
+
+async def run_client(run_id: RunId, request: Request, session: SessionDep,
+                     settings: SettingsDep) -> Run:
+    """The external run a request may reach: its own run token's, or any with an operator's
+    token (401 for no valid token, 403 for another run's token or a labeller's, 404 for no run,
+    409 for a run a worker trains)."""
+    token = bearer_token(request)
+    caller = known_caller(settings=settings, token=token)  # 401 without a token
+    if caller is None:
+        assert token is not None
+        scoped = await run_in_threadpool(run_of_token, session, token=token)
+        if scoped is None:
+            caller = await run_in_threadpool(labeller_caller, session=session, token=token)
+            if caller.role.value != "operator":
+                raise HTTPException(403, f"labeller {caller.name!r} is neither an operator nor "
+                                         "this run's client")
+        elif scoped != run_id:
+            raise HTTPException(403, f"this token is scoped to run {scoped}, not run {run_id}")
+    run = await run_in_threadpool(read_run, session, run_id=run_id)
+    if not is_external(run):
+        raise HTTPException(409, f"run {run_id} is trained by a worker, not an external client")
+    return run
+
+
+ClientRun = Annotated[Run, Depends(run_client)]
+
+
+def _folder(settings: Settings, run_id: int) -> Path:
+    folder = settings.clips_root / "external" / str(run_id)
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def stored_clip(settings: Settings, run_id: int, clip_id: str) -> ClipInfo | None:
+    """What an uploaded clip holds, from the note written beside it; None when not uploaded."""
+    note = settings.clips_root / "external" / str(run_id) / f"{clip_id}.json"
+    try:
+        return ClipInfo(**json.loads(note.read_text()))
+    except (OSError, ValueError, TypeError):
+        return None
+
+
+def _frames(body: bytes, settings: Settings) -> np.ndarray:
+    """A frame array sent as a NumPy .npy file: uint8, (frames, height, width, 3)."""
+    try:
+        frames: np.ndarray = np.load(io.BytesIO(body), allow_pickle=False)
+    except (ValueError, OSError, EOFError):
+        raise ValueError("the body is not a NumPy .npy array (numpy.save writes one)") from None
+    if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[3] != 3:
+        raise ValueError(f"frames must be uint8 of shape (frames, height, width, 3); got "
+                         f"{frames.dtype} {tuple(frames.shape)}")
+    count, height, width = frames.shape[:3]
+    if not 1 <= count <= settings.clip_max_frames:
+        raise ValueError(f"{count} frames; a clip holds 1 to {settings.clip_max_frames}")
+    if height % 2 or width % 2 or not (16 <= height <= 1024 and 16 <= width <= 1024):
+        raise ValueError(f"frames are {width}x{height}; width and height must be even, in "
+                         "[16, 1024] (yuv420p halves the colour planes)")
+    return frames
+
+
+def store_clip(settings: Settings, run_id: int, body: bytes, kind: str, fps: float) -> ClipOut:
+    """Check an uploaded clip with the decoder (or encode a frame array) and keep it under the
+    clips folder; the same bytes uploaded again are the same clip. ValueError naming what is
+    wrong; nothing is kept then."""
+    if not body:
+        raise ValueError("the body is empty: send the clip's bytes")
+    clip_id = hashlib.sha256(body).hexdigest()[:32]
+    info = stored_clip(settings, run_id, clip_id)
+    if info is None:
+        folder = _folder(settings, run_id)
+        tmp = folder / f".{clip_id}.{uuid.uuid4().hex[:8]}.tmp.{'mp4' if kind == NPY else kind}"
+        try:
+            if kind == NPY:
+                frames = _frames(body, settings)
+                encode_mp4(frames, tmp, fps=fps, width=frames.shape[2], height=frames.shape[1])
+            else:
+                tmp.write_bytes(body)
+            info = probe_clip(tmp)
+            if kind != NPY and info.container != kind:
+                raise ValueError(f"the body is {info.container.upper()}, sent as video/{kind}")
+            if info.frames > settings.clip_max_frames:
+                raise ValueError(f"the clip has {info.frames} frames; at most "
+                                 f"{settings.clip_max_frames}")
+            if info.seconds > settings.clip_max_seconds:
+                raise ValueError(f"the clip lasts {info.seconds:.1f} s; at most "
+                                 f"{settings.clip_max_seconds:.0f} s")
+            os.replace(tmp, settings.clips_root / clip_key(run_id, clip_id, info.container))
+            note = folder / f"{clip_id}.json"
+            note_tmp = note.with_name(f".{note.name}.{uuid.uuid4().hex[:8]}")
+            note_tmp.write_text(json.dumps(info.as_json()))
+            os.replace(note_tmp, note)  # last: a clip is uploaded once its note exists
+        finally:
+            tmp.unlink(missing_ok=True)
+    return ClipOut(clip_id=clip_id, **info.as_json())
+
+
+BYTES = {"schema": {"type": "string", "format": "binary"}}
+
+
+@router.post("/{run_id}/clips", status_code=201, response_model=ClipOut,
+             responses=errors(404, 409, 413, 415, 422), openapi_extra={"requestBody": {
+                 "required": True,
+                 "content": {kind: BYTES for kind in ("video/mp4", "video/webm", NPY)}}})
+async def upload_clip(
+    run: ClientRun, request: Request, response: Response, settings: SettingsDep,
+    fps: Annotated[float, Query(gt=0, le=240, description="a frame array's frame rate")] =
+        CLIP_FPS,
+) -> ClipOut:
+    """One clip, as the body: an MP4 (h264) or WebM (VP8, VP9, AV1) file, decoded whole to
+    check it against the server's limits (`clip_upload_bytes`, `clip_max_seconds`,
+    `clip_max_frames`), or a frame array (`application/x-npy`: uint8 (frames, height, width,
+    3), as `numpy.save` writes it), encoded with the app's own clip encoder (h264, yuv420p).
+    Its id names it in `POST /api/runs/{id}/pairs`; the same bytes again give the same id
+    (200). An unreadable file, a codec browsers do not play, a clip over a limit: 422, nothing
+    kept."""
+    content_type = request.headers.get("content-type", "").partition(";")[0].strip().lower()
+    kind = NPY if content_type == NPY else VIDEO_TYPES.get(content_type)
+    if kind is None:
+        raise HTTPException(415, f"content type {content_type or 'none'!r}: send video/mp4, "
+                                 f"video/webm or {NPY}")
+    body = await request.body()
+    clip_id = hashlib.sha256(body).hexdigest()[:32]
+    known = stored_clip(settings, run.id, clip_id) is not None
+    out = await run_in_threadpool(store_clip, settings, run.id, body, kind, fps)
+    if known:
+        response.status_code = 200
+    return out
+
+
+@router.post("/{run_id}/pairs", status_code=201, response_model=PushOut,
+             responses=errors(400, 404, 409, 413, 422))
+def push(run_id: RunId, body: PairsIn, run: ClientRun, response: Response, session: SessionDep,
+         settings: SettingsDep) -> PushOut:
+    """Pairs of uploaded clips for people to compare, all stored or none. Each carries an
+    idempotency key: pushed again under its key, a pair is not stored twice (its query comes
+    back with `created` false, 200 when none is new); other content under a used key is a 409.
+    `returns`, `trajectory_returns` and `meta` are hidden from labellers; a `gold` pair's
+    known answer measures them. 422 for a clip not uploaded to the run or two clips of
+    different shapes; 409 past the budget or once the run is stopped."""
+    ids = {clip for pair in body.pairs for clip in (pair.first_clip, pair.second_clip)}
+    clips = {clip: info for clip in ids
+             if (info := stored_clip(settings, run.id, clip)) is not None}
+    pushed = push_pairs(session, run_id=run.id, clips=clips, pairs=[
+        PairSpec(key=pair.key, first_clip=pair.first_clip, second_clip=pair.second_clip,
+                 gold=None if pair.gold is None else Answer(pair.gold), returns=pair.returns,
+                 trajectory_returns=pair.trajectory_returns, meta=pair.meta)
+        for pair in body.pairs])
+    if not any(item.created for item in pushed):
+        response.status_code = 200
+    return PushOut.model_validate({"pairs": [vars(item) for item in pushed]})
+
+
+@router.get("/{run_id}/answers", response_model=AnswersOut, responses=errors(404, 409, 422))
+async def answers(
+    run: ClientRun, session: SessionDep,
+    after: Annotated[str, Query(max_length=40, description="the cursor the last read gave "
+                                                          "('0.0': from the start)")] = "0.0",
+    wait: Annotated[float, Query(ge=0, le=60, description="seconds to wait for an answer when "
+                                                         "there is none yet")] = 0.0,
+) -> AnswersOut:
+    """The run's answers and withdrawals after the cursor `after`, oldest first: each with its
+    pair's key and hidden metadata, each labeller's standing answer, their aggregate (the
+    majority of k; can't-tell on a tie, `tie` set) and whether the pair has its k answers. An
+    answer taken back after it was read comes again as a withdrawal. With `wait`, the request
+    is held until there is something new or the seconds pass. Keep the `cursor` it gives: read
+    from it after a crash, nothing is lost and nothing comes twice. 422 for a cursor this run
+    never gave (one ahead of its answers)."""
+    try:
+        cursor = Cursor.parse(after)
+    except ValueError as err:
+        raise HTTPException(422, str(err)) from None
+    deadline = time.monotonic() + wait
+    settle = 0.0 if session.get_bind().dialect.name == "sqlite" else 1.0
+    while True:
+        feed = await run_in_threadpool(answers_after, session, run_id=run.id, cursor=cursor,
+                                       settle_seconds=settle)
+        if feed.events or time.monotonic() >= deadline or feed.status not in (
+                RunStatus.RUNNING.value, RunStatus.PAUSED.value):
+            break
+        await asyncio.sleep(min(POLL_S, max(0.0, deadline - time.monotonic())))
+    return AnswersOut(events=feed.events, cursor=str(feed.cursor),  # type: ignore[arg-type]
+                      open_pairs=feed.open_pairs, status=feed.status)

@@ -1,0 +1,266 @@
+"""External runs over REST: a client with a run token uploads clips, pushes pairs and reads the
+answers people give on the label page; bad input is a 4xx that stores nothing."""
+
+from __future__ import annotations
+
+import io
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from server_helpers import OPERATOR, bearer, new_labeller, new_run
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from labelqueue import Query, claim_run
+from labelqueue.clip_codec import probe_clip
+from server.settings import Settings
+
+NPY = {"content-type": "application/x-npy"}
+SECRET_ID = "client-episode-31337"
+
+
+def frames(seed: int, count: int = 6, size: tuple[int, int] = (32, 48)) -> bytes:
+    """A frame array as `numpy.save` writes it."""
+    array = np.random.default_rng(seed).integers(0, 255, (count, *size, 3), dtype=np.uint8)
+    buffer = io.BytesIO()
+    np.save(buffer, array)
+    return buffer.getvalue()
+
+
+def external_run(client: TestClient, **body: Any) -> tuple[int, dict[str, str]]:
+    """An external run and its client's auth header."""
+    response = client.post("/api/runs/external", headers=OPERATOR,
+                           json={"task": "gym:HalfCheetah-v5", "budget": 10} | body)
+    assert response.status_code == 201, response.text
+    run_id = response.json()["id"]
+    token = client.post(f"/api/runs/{run_id}/tokens", headers=OPERATOR)
+    assert token.status_code == 201, token.text
+    return run_id, bearer(token.json()["token"])
+
+
+def upload(client: TestClient, run_id: int, auth: dict[str, str], body: bytes,
+           content_type: str = "application/x-npy") -> str:
+    response = client.post(f"/api/runs/{run_id}/clips", content=body,
+                           headers=auth | {"content-type": content_type})
+    assert response.status_code in (200, 201), response.text
+    clip_id: str = response.json()["clip_id"]
+    return clip_id
+
+
+def pair(key: str, first: str, second: str, **extra: Any) -> dict[str, Any]:
+    return {"key": key, "first_clip": first, "second_clip": second} | extra
+
+
+def answer(client: TestClient, token: dict[str, str], shown: dict[str, Any],
+           click: str) -> Any:
+    return client.post(f"/api/label/{shown['query_id']}", headers=token, json={
+        "choice": click, "left_is_first": shown["left_is_first"],
+        "shown_at": datetime.now(UTC).isoformat()})
+
+
+def queries(session: Session) -> int:
+    count = session.scalar(select(func.count()).select_from(Query)) or 0
+    session.commit()
+    return count
+
+
+def test_pushed_frames_are_labelled_on_the_label_page_and_the_answers_come_back(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    run_id, auth = external_run(client, labels_per_query=2)
+    first, second = upload(client, run_id, auth, frames(1)), upload(client, run_id, auth,
+                                                                    frames(2))
+    pushed = client.post(f"/api/runs/{run_id}/pairs", headers=auth, json={"pairs": [pair(
+        "ep7-vs-ep9", first, second, returns=[987.125, -654.375], meta={"ids": [SECRET_ID]})]})
+    assert pushed.status_code == 201, pushed.text
+    [query] = pushed.json()["pairs"]
+    assert claim_run(session, worker_id="w") is None  # no worker ever trains it
+    given = {}
+    for name, click in (("ann", "left"), ("bob", "right")):
+        token = new_labeller(client, name)
+        shown = client.get(f"/api/label/next?run_id={run_id}", headers=bearer(token))
+        assert shown.status_code == 200, shown.text
+        assert shown.json()["query_id"] == query["query_id"]
+        # The hidden metadata never reaches a labeller's browser.
+        assert SECRET_ID not in shown.text and "987.125" not in shown.text
+        clip = client.get(shown.json()["left_clip_url"])
+        assert clip.status_code == 200 and clip.headers["content-type"] == "video/mp4"
+        path = settings.data_dir / f"{name}.mp4"
+        path.write_bytes(clip.content)
+        info = probe_clip(path)  # decodes whole: what the browser plays
+        assert (info.codec, info.width, info.height, info.frames) == ("h264", 48, 32, 6)
+        answered = answer(client, bearer(token), shown.json(), click)
+        assert answered.status_code == 201, answered.text
+        given[name] = answered.json()["answer"]
+    feed = client.get(f"/api/runs/{run_id}/answers", headers=auth).json()
+    assert [e["labeller"] for e in feed["events"]] == ["ann", "bob"]
+    last = feed["events"][-1]
+    assert last["key"] == "ep7-vs-ep9" and last["meta"] == {"ids": [SECRET_ID]}
+    assert last["complete"] and last["k"] == 2
+    assert {a["labeller"]: a["answer"] for a in last["answers"]} == given
+    if given["ann"] != given["bob"]:  # one says first, the other second: an explicit tie
+        assert (last["aggregate"], last["tie"]) == ("cant_tell", True)
+    assert feed["open_pairs"] == 0
+    run = client.get(f"/api/runs/{run_id}", headers=OPERATOR).json()
+    assert (run["labels_used"], run["status"], run["algo"]) == (2, "running", "external")
+
+
+def test_a_retried_push_makes_no_second_query_and_a_reused_key_is_refused(
+    client: TestClient, session: Session
+) -> None:
+    run_id, auth = external_run(client)
+    a, b = upload(client, run_id, auth, frames(1)), upload(client, run_id, auth, frames(2))
+    assert upload(client, run_id, auth, frames(1)) == a  # the same bytes: the same clip
+    body = {"pairs": [pair("k1", a, b), pair("k2", b, a)]}
+    first = client.post(f"/api/runs/{run_id}/pairs", headers=auth, json=body)
+    again = client.post(f"/api/runs/{run_id}/pairs", headers=auth, json=body)
+    assert (first.status_code, again.status_code) == (201, 200)
+    assert [p["query_id"] for p in first.json()["pairs"]] == [
+        p["query_id"] for p in again.json()["pairs"]]
+    assert [p["created"] for p in again.json()["pairs"]] == [False, False]
+    assert queries(session) == 2
+    other = client.post(f"/api/runs/{run_id}/pairs", headers=auth,
+                        json={"pairs": [pair("k3", a, b), pair("k1", a, b, meta={"x": 1})]})
+    assert other.status_code == 409 and "'k1' was pushed before" in other.json()["detail"]
+    keyless = client.post(f"/api/runs/{run_id}/pairs", headers=auth,
+                          json={"pairs": [{"first_clip": a, "second_clip": b}]})
+    assert keyless.status_code == 422 and keyless.json()["detail"][0]["loc"][-1] == "key"
+    assert queries(session) == 2  # k3 was not stored either: all or none
+
+
+def test_bad_clips_and_pairs_are_refused_by_name_and_nothing_is_kept(
+    client: TestClient, session: Session, settings: Settings, tmp_path: Path
+) -> None:
+    run_id, auth = external_run(client, budget=2)
+    url = f"/api/runs/{run_id}/clips"
+    garbage = client.post(url, content=b"\x00\x00\x00\x18ftypmp42" + b"x" * 500,
+                          headers=auth | {"content-type": "video/mp4"})
+    assert garbage.status_code == 422 and "does not decode" in garbage.json()["detail"]
+    mpeg4 = tmp_path / "mpeg4.mp4"
+    with imageio.get_writer(mpeg4, format="FFMPEG", fps=10, codec="mpeg4",
+                            macro_block_size=2) as writer:
+        for frame in np.zeros((3, 32, 32, 3), np.uint8):
+            writer.append_data(frame)
+    codec = client.post(url, content=mpeg4.read_bytes(), headers=auth | {
+        "content-type": "video/mp4"})
+    assert codec.status_code == 422 and "codec is mpeg4" in codec.json()["detail"]
+    odd = client.post(url, content=frames(1, size=(31, 32)), headers=auth | NPY)
+    assert odd.status_code == 422 and "must be even" in odd.json()["detail"]
+    flat = client.post(url, content=frames(1)[:-10], headers=auth | NPY)
+    assert flat.status_code == 422 and "not a NumPy" in flat.json()["detail"]
+    text = client.post(url, content=b"hello", headers=auth | {"content-type": "text/plain"})
+    assert text.status_code == 415
+    big = client.post(url, content=b"\0" * (settings.clip_upload_bytes + 1),
+                      headers=auth | {"content-type": "video/mp4"})
+    assert big.status_code == 413
+    folder = settings.clips_root / "external" / str(run_id)
+    assert not folder.exists() or list(folder.iterdir()) == []
+    small, wide = upload(client, run_id, auth, frames(1)), upload(
+        client, run_id, auth, frames(2, size=(32, 64)))
+    shapes = client.post(f"/api/runs/{run_id}/pairs", headers=auth,
+                         json={"pairs": [pair("k", small, wide)]})
+    assert shapes.status_code == 422 and "differ in shape" in shapes.json()["detail"]
+    missing = client.post(f"/api/runs/{run_id}/pairs", headers=auth,
+                          json={"pairs": [pair("k", small, "0" * 32)]})
+    assert missing.status_code == 422 and "no clip uploaded" in missing.json()["detail"]
+    wrong_gold = client.post(f"/api/runs/{run_id}/pairs", headers=auth, json={"pairs": [
+        pair("g", small, small, gold="first", returns=[1.0, 2.0])]})
+    assert wrong_gold.status_code == 422 and "contradicts" in wrong_gold.json()["detail"]
+    over = client.post(f"/api/runs/{run_id}/pairs", headers=auth,
+                       json={"pairs": [pair(f"k{i}", small, small) for i in range(3)]})
+    assert over.status_code == 409 and "budget is 2 answers" in over.json()["detail"]
+    assert queries(session) == 0
+
+
+def test_a_run_token_reaches_its_own_run_and_nothing_else(client: TestClient) -> None:
+    run_id, auth = external_run(client)
+    other, _ = external_run(client)
+    trained = new_run(client)["id"]
+    assert client.get(f"/api/runs/{other}/answers", headers=auth).status_code == 403
+    assert client.post(f"/api/runs/{other}/clips", content=frames(1),
+                       headers=auth | NPY).status_code == 403
+    assert client.get("/api/runs", headers=auth).status_code == 401
+    assert client.get("/api/label/next", headers=auth).status_code == 401
+    labeller = bearer(new_labeller(client, "carol"))
+    assert client.get(f"/api/runs/{run_id}/answers", headers=labeller).status_code == 403
+    assert client.get(f"/api/runs/{run_id}/answers", headers=OPERATOR).status_code == 200
+    assert client.post(f"/api/runs/{trained}/tokens", headers=OPERATOR).status_code == 409
+    forged = bearer(auth["Authorization"].removeprefix("Bearer ")[:-2] + "xx")
+    assert client.get(f"/api/runs/{run_id}/answers", headers=forged).status_code == 401
+
+
+def test_the_cursor_resumes_and_an_answer_taken_back_comes_as_a_withdrawal(
+    client: TestClient,
+) -> None:
+    run_id, auth = external_run(client)
+    a, b = upload(client, run_id, auth, frames(1)), upload(client, run_id, auth, frames(2))
+    client.post(f"/api/runs/{run_id}/pairs", headers=auth,
+                json={"pairs": [pair("k1", a, b), pair("k2", b, a)]})
+    token = bearer(new_labeller(client, "dan"))
+    url = f"/api/runs/{run_id}/answers"
+    started = time.monotonic()
+    empty = client.get(f"{url}?wait=0.6", headers=auth).json()
+    assert empty["events"] == [] and time.monotonic() - started >= 0.5  # it waited
+    shown = client.get(f"/api/label/next?run_id={run_id}", headers=token).json()
+    assert answer(client, token, shown, "left").status_code == 201
+    read = client.get(f"{url}?after={empty['cursor']}&wait=5", headers=auth).json()
+    assert [e["kind"] for e in read["events"]] == ["answer"]
+    # The client crashed here and lost what it read: from the same cursor it reads it again.
+    assert client.get(f"{url}?after={empty['cursor']}", headers=auth).json() == read
+    taken = client.post(f"/api/label/{shown['query_id']}/withdraw", headers=token, json={})
+    assert taken.status_code == 200, taken.text
+    after = client.get(f"{url}?after={read['cursor']}", headers=auth).json()
+    [event] = after["events"]
+    assert (event["kind"], event["key"], event["answers"], event["aggregate"]) == (
+        "withdrawal", "k1", [], None)
+    assert client.get(f"{url}?after={after['cursor']}", headers=auth).json()["events"] == []
+    for cursor in ("99.0", "0.5", "x"):
+        future = client.get(f"{url}?after={cursor}", headers=auth)
+        assert future.status_code == 422, cursor
+
+
+def test_a_gold_pair_known_by_its_answer_measures_labellers_and_costs_no_budget(
+    client: TestClient,
+) -> None:
+    run_id, auth = external_run(client, gold_rate=0.5)
+    a, b = upload(client, run_id, auth, frames(1)), upload(client, run_id, auth, frames(2))
+    # A gold pair comes no earlier than the ordinary pairs around it: pushed after one here.
+    client.post(f"/api/runs/{run_id}/pairs", headers=auth, json={"pairs": [
+        pair("plain", b, a), pair("gold", a, b, gold="second")]})
+    token = bearer(new_labeller(client, "eve"))
+    for _ in range(2):  # eve answers "first" to both
+        shown = client.get(f"/api/label/next?run_id={run_id}", headers=token).json()
+        click = "left" if shown["left_is_first"] else "right"
+        assert answer(client, token, shown, click).status_code == 201
+    run = client.get(f"/api/runs/{run_id}", headers=OPERATOR).json()
+    assert run["labels_used"] == 1  # the gold answer was free
+    [eve] = client.get(f"/api/quality/labellers?run_id={run_id}", headers=OPERATOR).json()
+    assert (eve["gold_accuracy"]["k"], eve["gold_accuracy"]["n"]) == (0, 1)
+    events = client.get(f"/api/runs/{run_id}/answers", headers=auth).json()["events"]
+    assert sorted((e["key"], e["gold"]) for e in events) == [("gold", True), ("plain", False)]
+
+
+@pytest.mark.parametrize("fmt", ["webm"])
+def test_an_uploaded_webm_is_served_as_webm(client: TestClient, tmp_path: Path,
+                                            fmt: str) -> None:
+    run_id, auth = external_run(client)
+    path = tmp_path / f"clip.{fmt}"
+    with imageio.get_writer(path, format="FFMPEG", fps=10, codec="libvpx",
+                            macro_block_size=2) as writer:
+        for frame in np.full((4, 32, 32, 3), 99, np.uint8):
+            writer.append_data(frame)
+    response = client.post(f"/api/runs/{run_id}/clips", content=path.read_bytes(),
+                           headers=auth | {"content-type": "video/webm"})
+    assert response.status_code == 201, response.text
+    assert (response.json()["codec"], response.json()["frames"]) == ("vp8", 4)
+    clip = response.json()["clip_id"]
+    client.post(f"/api/runs/{run_id}/pairs", headers=auth, json={"pairs": [pair("w", clip, clip)]})
+    token = bearer(new_labeller(client, "fay"))
+    shown = client.get(f"/api/label/next?run_id={run_id}", headers=token).json()
+    assert client.get(shown["left_clip_url"]).headers["content-type"] == "video/webm"
