@@ -1,0 +1,389 @@
+"""A Python client of an external run: ask people which of two clips is better, from any RL code.
+
+    from sepoa.client import Pair, Study
+
+    study = Study("http://127.0.0.1:8000", token, run=3, cursor_file="run3.cursor")
+    queries = study.ask([Pair(frames_a, frames_b, returns=(12.5, 3.0), meta={"ids": [7, 9]})])
+    answers = study.wait_for(queries)          # {key: "first" | "second" | "equal" | "cant_tell"}
+
+`token` is the run's token (`POST /api/runs/{id}/tokens`, an operator's call). A clip is a frame
+array (uint8 (frames, height, width, 3): the server encodes it as the app's own clips are), an
+MP4 or WebM file, or such a file's bytes. Each pair's idempotency key is its own `key`, or one
+made from its content: pushing the same pairs again (a retry, a client restarted after a crash)
+makes no second query. Requests that fail on the way (a connection error, a 5xx, a 429) are
+retried with exponential backoff; a 4xx is a `StudyError` naming the problem. The answers feed
+is read from a cursor, kept in `cursor_file` when given, so a client killed while it waits
+reads on from where it was: nothing is lost, nothing comes twice.
+
+`AsyncStudy` is the same over asyncio.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import io
+import json
+import os
+import time
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import httpx
+import numpy as np
+from tqdm import tqdm  # type: ignore[import-untyped]
+
+Clip = np.ndarray | str | os.PathLike[str] | bytes
+"""a frame array (uint8, (frames, height, width, 3)), an .mp4/.webm/.npy file, or its bytes"""
+MEDIA = {".mp4": "video/mp4", ".webm": "video/webm", ".npy": "application/x-npy"}
+LONGEST_WAIT_S = 60.0
+"""the longest one answers request waits on the server"""
+
+
+class StudyError(Exception):
+    """The server refused a request (a 4xx), or kept failing it past the retries."""
+
+    def __init__(self, status: int | None, detail: Any):
+        super().__init__(f"{status}: {detail}" if status is not None else str(detail))
+        self.status = status
+        self.detail = detail
+
+
+@dataclass(frozen=True)
+class Pair:
+    """Two clips to compare, and what the client knows of them (hidden from labellers)."""
+
+    first: Clip
+    second: Clip
+    key: str | None = None
+    """the idempotency key; None: one made from the pair's content"""
+    gold: Literal["first", "second"] | None = None
+    """a gold pair's known answer: it measures labellers and costs no budget"""
+    returns: tuple[float, float] | None = None
+    """the two segments' true returns, for accuracy and the calibration report"""
+    trajectory_returns: tuple[float, float] | None = None
+    meta: Mapping[str, Any] | None = None
+    """the client's own ids, given back with the pair's answers"""
+
+
+@dataclass(frozen=True)
+class Query:
+    """A pushed pair: its key, its query on the server, and whether this push stored it."""
+
+    key: str
+    query_id: int
+    created: bool
+
+
+@dataclass(frozen=True)
+class AnswerEvent:
+    """An answer to one of the run's pairs, or one taken back, with the pair as it stands."""
+
+    kind: Literal["answer", "withdrawal"]
+    key: str
+    query_id: int
+    labeller: str
+    answer: str
+    aggregate: str | None
+    """the majority of the pair's standing answers: first, second, equal, or cant_tell (when
+    most cannot tell or two answers tie); None with none standing"""
+    tie: bool
+    complete: bool
+    """the pair has its k answers"""
+    gold: bool
+    answers: dict[str, str]
+    """each labeller's standing answer"""
+    meta: Mapping[str, Any] | None
+    raw: Mapping[str, Any] = field(repr=False)
+
+    @classmethod
+    def of(cls, event: Mapping[str, Any]) -> AnswerEvent:
+        return cls(kind=event["kind"], key=event["key"], query_id=event["query_id"],
+                   labeller=event["labeller"], answer=event["answer"],
+                   aggregate=event["aggregate"], tie=event["tie"], complete=event["complete"],
+                   gold=event["gold"], meta=event["meta"], raw=event,
+                   answers={given["labeller"]: given["answer"] for given in event["answers"]})
+
+
+# What both forms share: requests as plain data, and what to make of the answers.
+
+@dataclass(frozen=True)
+class Call:
+    method: str
+    path: str
+    params: Mapping[str, Any] | None = None
+    json: Any = None
+    content: bytes | None = None
+    content_type: str | None = None
+    timeout: float | None = None
+
+
+def clip_body(clip: Clip) -> tuple[bytes, str]:
+    """A clip's bytes and content type."""
+    if isinstance(clip, np.ndarray):
+        buffer = io.BytesIO()
+        np.save(buffer, np.ascontiguousarray(clip, dtype=np.uint8) if clip.dtype != np.uint8
+                else clip)
+        return buffer.getvalue(), MEDIA[".npy"]
+    if isinstance(clip, bytes):
+        return clip, "video/webm" if clip[:4] == b"\x1a\x45\xdf\xa3" else "video/mp4"
+    path = Path(clip)
+    if path.suffix.lower() not in MEDIA:
+        raise ValueError(f"{path}: a clip file is .mp4, .webm or .npy")
+    return path.read_bytes(), MEDIA[path.suffix.lower()]
+
+
+def pair_body(pair: Pair, first: str, second: str) -> dict[str, Any]:
+    """A pair as the server takes it, with its clips' ids and its key."""
+    body: dict[str, Any] = {"first_clip": first, "second_clip": second, "gold": pair.gold,
+                            "returns": pair.returns, "trajectory_returns": pair.trajectory_returns,
+                            "meta": None if pair.meta is None else dict(pair.meta)}
+    content = json.dumps(body, sort_keys=True, separators=(",", ":"))
+    key = pair.key or "auto-" + hashlib.sha256(content.encode()).hexdigest()[:40]
+    return {"key": key, **{name: value for name, value in body.items() if value is not None}}
+
+
+def retry_after(response: httpx.Response | None, attempt: int, backoff: float) -> float | None:
+    """Seconds to wait before trying again, or None when the request is not to be retried: a
+    connection error (no response), a 5xx or a 429 is retried."""
+    if response is not None and response.status_code < 500 and response.status_code != 429:
+        return None
+    header = None if response is None else response.headers.get("retry-after")
+    if header is not None and header.replace(".", "", 1).isdigit():
+        return float(header)
+    return float(min(backoff * 2**attempt, 10.0))
+
+
+def checked(response: httpx.Response) -> Any:
+    if response.status_code >= 400:
+        try:
+            detail = response.json().get("detail")
+        except ValueError:
+            detail = response.text
+        raise StudyError(response.status_code, detail)
+    return response.json()
+
+
+@dataclass(frozen=True)
+class Done:
+    value: Any
+
+
+class _Core:
+    """The state both forms keep: where the run is, its cursor, how to retry."""
+
+    def __init__(self, url: str, token: str, run: int, *, retries: int, backoff: float,
+                 cursor_file: str | os.PathLike[str] | None, progress: bool):
+        self.url, self.run, self.retries, self.backoff = url.rstrip("/"), run, retries, backoff
+        self.headers = {"Authorization": f"Bearer {token}"}
+        self.cursor_file = None if cursor_file is None else Path(cursor_file)
+        self.progress = progress
+        self.cursor = "0.0"
+        if self.cursor_file is not None and self.cursor_file.exists():
+            self.cursor = self.cursor_file.read_text().strip() or "0.0"
+
+    def keep(self, cursor: str) -> None:
+        """Move the cursor on, on disk first (atomically) when a file keeps it."""
+        if self.cursor_file is not None:
+            tmp = self.cursor_file.with_name(self.cursor_file.name + ".tmp")
+            tmp.write_text(cursor)
+            os.replace(tmp, self.cursor_file)
+        self.cursor = cursor
+
+    def request(self, call: Call) -> dict[str, Any]:
+        headers = dict(self.headers)
+        if call.content_type is not None:
+            headers["content-type"] = call.content_type
+        return {"method": call.method, "url": f"{self.url}/api/runs/{self.run}{call.path}",
+                "params": call.params, "json": call.json, "content": call.content,
+                "headers": headers, "timeout": call.timeout}
+
+    def outcome(self, response: httpx.Response | httpx.TransportError,
+                attempt: int) -> Done | float:
+        """What a try came to: the body (`Done`), seconds to wait before the next try, or a
+        StudyError (a 4xx, or the last try failed)."""
+        failed = response if isinstance(response, httpx.TransportError) else None
+        answered = None if failed is not None else response
+        assert answered is None or isinstance(answered, httpx.Response)
+        wait = retry_after(answered, attempt, self.backoff)
+        if wait is None:
+            assert answered is not None
+            return Done(checked(answered))
+        if attempt >= self.retries:
+            raise StudyError(None if answered is None else answered.status_code,
+                             f"gave up after {self.retries + 1} tries: "
+                             f"{failed if answered is None else answered.text}")
+        return wait
+
+    def answers_call(self, wait: float) -> Call:
+        wait = max(0.0, min(wait, LONGEST_WAIT_S))
+        return Call("GET", "/answers", params={"after": self.cursor, "wait": wait},
+                    timeout=wait + 30.0)
+
+    def read(self, body: Mapping[str, Any]) -> list[AnswerEvent]:
+        events = [AnswerEvent.of(event) for event in body["events"]]
+        self.keep(body["cursor"])
+        return events
+
+
+class Waiting:
+    """Asked pairs waited for: each one's aggregate once it has its k answers (a withdrawal
+    can undo that), a tqdm bar of how many have, and the time left."""
+
+    def __init__(self, queries: Sequence[Query], timeout: float | None, progress: bool):
+        self.pending: dict[str, str | None] = {query.key: None for query in queries}
+        self.deadline = None if timeout is None else time.monotonic() + timeout
+        self.bar = tqdm(total=len(self.pending), desc="answered pairs", unit="pair",
+                        disable=not progress)
+
+    def done(self) -> int:
+        return sum(value is not None for value in self.pending.values())
+
+    def next_wait(self) -> float | None:
+        """Seconds the next answers request may wait; None once every pair is answered.
+        TimeoutError once the time is up."""
+        if self.done() == len(self.pending):
+            return None
+        left = LONGEST_WAIT_S if self.deadline is None else self.deadline - time.monotonic()
+        if left <= 0:
+            raise TimeoutError(f"{len(self.pending) - self.done()} of {len(self.pending)} "
+                               "pairs still want answers")
+        return min(left, LONGEST_WAIT_S)
+
+    def note(self, events: Iterable[AnswerEvent]) -> None:
+        for event in events:
+            if event.key in self.pending:
+                self.pending[event.key] = event.aggregate if event.complete else None
+        self.bar.n = self.done()
+        self.bar.refresh()
+
+    def result(self) -> dict[str, str]:
+        return {key: str(value) for key, value in self.pending.items()}
+
+
+class Study:
+    """An external run, from its client's side (synchronous; `AsyncStudy` for asyncio)."""
+
+    def __init__(self, url: str, token: str, run: int, *, retries: int = 6,
+                 backoff: float = 0.5, cursor_file: str | os.PathLike[str] | None = None,
+                 progress: bool = True, client: httpx.Client | None = None):
+        self.core = _Core(url, token, run, retries=retries, backoff=backoff,
+                          cursor_file=cursor_file, progress=progress)
+        self.http = client or httpx.Client(timeout=60.0)
+
+    def close(self) -> None:
+        self.http.close()
+
+    def __enter__(self) -> Study:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+    @property
+    def cursor(self) -> str:
+        return self.core.cursor
+
+    def call(self, call: Call) -> Any:
+        """One request, retried on connection errors, 5xx and 429."""
+        for attempt in range(self.core.retries + 1):
+            try:
+                outcome = self.core.outcome(self.http.request(**self.core.request(call)),
+                                            attempt)
+            except httpx.TransportError as error:
+                outcome = self.core.outcome(error, attempt)
+            if not isinstance(outcome, float):
+                return outcome.value
+            time.sleep(outcome)
+        raise AssertionError("unreachable: the last attempt returns or raises")
+
+    def upload(self, clip: Clip) -> str:
+        """Upload one clip (the same bytes again are the same clip); its id."""
+        content, kind = clip_body(clip)
+        body = self.call(Call("POST", "/clips", content=content, content_type=kind))
+        return str(body["clip_id"])
+
+    def ask(self, pairs: Sequence[Pair]) -> list[Query]:
+        """Push the pairs for people to compare (all stored or none); their queries, in
+        order. Pushing them again makes no second query."""
+        bodies = [pair_body(pair, self.upload(pair.first), self.upload(pair.second))
+                  for pair in pairs]
+        out = self.call(Call("POST", "/pairs", json={"pairs": bodies}))
+        return [Query(item["key"], item["query_id"], item["created"]) for item in out["pairs"]]
+
+    def answers(self, wait: float = 0.0) -> list[AnswerEvent]:
+        """The answers and withdrawals since the cursor (waiting up to `wait` s, 60 at most,
+        for one), and the cursor moved past them."""
+        return self.core.read(self.call(self.core.answers_call(wait)))
+
+    def wait_for(self, queries: Sequence[Query], timeout: float | None = None) -> dict[str, str]:
+        """Read answers until each query has its k answers (a tqdm bar counts them); the
+        aggregate answer of each, by key. TimeoutError past `timeout` seconds."""
+        waiting = Waiting(queries, timeout, self.core.progress)
+        with waiting.bar:
+            while (wait := waiting.next_wait()) is not None:
+                waiting.note(self.answers(wait=wait))
+        return waiting.result()
+
+
+class AsyncStudy:
+    """`Study` over asyncio (httpx's AsyncClient): the same calls, awaited."""
+
+    def __init__(self, url: str, token: str, run: int, *, retries: int = 6,
+                 backoff: float = 0.5, cursor_file: str | os.PathLike[str] | None = None,
+                 progress: bool = True, client: httpx.AsyncClient | None = None):
+        self.core = _Core(url, token, run, retries=retries, backoff=backoff,
+                          cursor_file=cursor_file, progress=progress)
+        self.http = client or httpx.AsyncClient(timeout=60.0)
+
+    async def aclose(self) -> None:
+        await self.http.aclose()
+
+    async def __aenter__(self) -> AsyncStudy:
+        return self
+
+    async def __aexit__(self, *_: object) -> None:
+        await self.aclose()
+
+    @property
+    def cursor(self) -> str:
+        return self.core.cursor
+
+    async def call(self, call: Call) -> Any:
+        """One request, retried on connection errors, 5xx and 429."""
+        for attempt in range(self.core.retries + 1):
+            try:
+                outcome = self.core.outcome(
+                    await self.http.request(**self.core.request(call)), attempt)
+            except httpx.TransportError as error:
+                outcome = self.core.outcome(error, attempt)
+            if not isinstance(outcome, float):
+                return outcome.value
+            await asyncio.sleep(outcome)
+        raise AssertionError("unreachable: the last attempt returns or raises")
+
+    async def upload(self, clip: Clip) -> str:
+        content, kind = clip_body(clip)
+        body = await self.call(Call("POST", "/clips", content=content, content_type=kind))
+        return str(body["clip_id"])
+
+    async def ask(self, pairs: Sequence[Pair]) -> list[Query]:
+        ids = await asyncio.gather(*(self.upload(clip) for pair in pairs
+                                     for clip in (pair.first, pair.second)))
+        bodies = [pair_body(pair, ids[2 * i], ids[2 * i + 1]) for i, pair in enumerate(pairs)]
+        out = await self.call(Call("POST", "/pairs", json={"pairs": bodies}))
+        return [Query(item["key"], item["query_id"], item["created"]) for item in out["pairs"]]
+
+    async def answers(self, wait: float = 0.0) -> list[AnswerEvent]:
+        return self.core.read(await self.call(self.core.answers_call(wait)))
+
+    async def wait_for(self, queries: Sequence[Query],
+                       timeout: float | None = None) -> dict[str, str]:
+        """`Study.wait_for`, awaited."""
+        waiting = Waiting(queries, timeout, self.core.progress)
+        with waiting.bar:
+            while (wait := waiting.next_wait()) is not None:
+                waiting.note(await self.answers(wait=wait))
+        return waiting.result()

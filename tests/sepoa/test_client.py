@@ -1,0 +1,176 @@
+"""`sepoa.client` against the app: pairs asked, answered on the label API and read back; a
+retried push makes no second query; a client killed while waiting resumes from its cursor."""
+
+from __future__ import annotations
+
+import asyncio
+import sys
+from collections.abc import Callable, Iterator
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import func, select
+
+from labelqueue import Query, make_engine, session_factory
+from sepoa.client import AsyncStudy, Pair, Study, StudyError
+from server.app import create_app
+from server.settings import Settings
+
+sys.path.insert(0, str(Path(__file__).parents[1] / "server"))
+from server_helpers import OPERATOR, OPERATOR_TOKEN, bearer, new_labeller  # noqa: E402
+
+URL = "http://testserver"
+
+
+@pytest.fixture
+def app_client(tmp_path: Path) -> Iterator[TestClient]:
+    settings = Settings(database_url=f"sqlite:///{tmp_path / 'queue.db'}", data_dir=tmp_path,
+                        operator_token=OPERATOR_TOKEN, secret_key="test-secret-key-0123456789")
+    with TestClient(create_app(settings)) as client:
+        yield client
+
+
+def run_and_token(client: TestClient, **body: Any) -> tuple[int, str]:
+    run = client.post("/api/runs/external", headers=OPERATOR,
+                      json={"task": "gym:HalfCheetah-v5", "budget": 20} | body).json()
+    token = client.post(f"/api/runs/{run['id']}/tokens", headers=OPERATOR).json()["token"]
+    return run["id"], token
+
+
+def clip(seed: int) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 255, (4, 16, 16, 3), dtype=np.uint8)
+
+
+def pairs(n: int) -> list[Pair]:
+    return [Pair(clip(2 * i), clip(2 * i + 1), returns=(float(i), -1.0), meta={"i": i})
+            for i in range(n)]
+
+
+def label_all(client: TestClient, run_id: int, name: str, pick: str = "left",
+              most: int = 100) -> int:
+    """A person answers up to `most` pairs of the run on the label API."""
+    token, answered = bearer(new_labeller(client, name)), 0
+    while answered < most:
+        shown = client.get(f"/api/label/next?run_id={run_id}", headers=token)
+        if shown.status_code == 204:
+            break
+        body = {"choice": pick, "left_is_first": shown.json()["left_is_first"],
+                "shown_at": datetime.now(UTC).isoformat()}
+        assert client.post(f"/api/label/{shown.json()['query_id']}", headers=token,
+                           json=body).status_code == 201
+        answered += 1
+    return answered
+
+
+def stored_queries(client: TestClient) -> int:
+    engine = make_engine(client.app.state.settings.database_url)  # type: ignore[attr-defined]
+    with session_factory(engine)() as session:
+        count = session.scalar(select(func.count()).select_from(Query)) or 0
+    engine.dispose()
+    return count
+
+
+class Flaky(httpx.BaseTransport):
+    """The app's transport, failing as `fail(request, attempt)` says: "before" (a connection
+    refused), "after" (the server did the work, the answer was lost) or a status code."""
+
+    def __init__(self, inner: httpx.BaseTransport,
+                 fail: Callable[[httpx.Request, int], str | int | None]):
+        self.inner, self.fail, self.seen = inner, fail, 0
+
+    def handle_request(self, request: httpx.Request) -> httpx.Response:
+        self.seen += 1
+        how = self.fail(request, self.seen)
+        if how == "before":
+            raise httpx.ConnectError("connection refused", request=request)
+        response = self.inner.handle_request(request)
+        if how == "after":
+            response.read()
+            raise httpx.ReadError("connection reset", request=request)
+        if isinstance(how, int):
+            return httpx.Response(how, json={"detail": "overloaded"}, request=request)
+        return response
+
+
+def test_asked_pairs_come_back_with_the_answers_people_gave(app_client: TestClient) -> None:
+    run_id, token = run_and_token(app_client, labels_per_query=2)
+    study = Study(URL, token, run_id, client=app_client, progress=False)
+    queries = study.ask(pairs(3))
+    assert [q.created for q in queries] == [True] * 3
+    assert label_all(app_client, run_id, "ann", "left") == 3
+    assert label_all(app_client, run_id, "bob", "left") == 3
+    answers = study.wait_for(queries, timeout=10)
+    events = [e for e in study.answers()]  # nothing more
+    assert events == [] and set(answers) == {q.key for q in queries}
+    # Both clicked left: the same side, so the pair's two answers agree whichever it showed.
+    assert all(value in ("first", "second", "cant_tell") for value in answers.values())
+    with pytest.raises(StudyError) as refused:
+        study.ask([Pair(clip(1), np.zeros((4, 16, 32, 3), np.uint8))])
+    assert refused.value.status == 422 and "differ in shape" in str(refused.value)
+
+
+def test_a_retried_push_makes_no_second_query(app_client: TestClient) -> None:
+    run_id, token = run_and_token(app_client)
+    tries: dict[str, int] = {}
+
+    def fail(request: httpx.Request, _seen: int) -> str | int | None:
+        path = request.url.path.rsplit("/", 1)[-1]
+        tries[path] = tries.get(path, 0) + 1
+        if path == "clips" and tries[path] == 1:
+            return 503
+        if path == "clips" and tries[path] == 2:
+            return "before"
+        return "after" if path == "pairs" and tries[path] == 1 else None
+
+    app_client._transport = Flaky(app_client._transport, fail)
+    study = Study(URL, token, run_id, client=app_client, progress=False, backoff=0.01)
+    queries = study.ask(pairs(2))
+    assert tries["pairs"] == 2  # the first push was stored, its answer lost, then retried
+    assert [q.created for q in queries] == [False, False] and stored_queries(app_client) == 2
+    assert [q.query_id for q in study.ask(pairs(2))] == [q.query_id for q in queries]
+    assert stored_queries(app_client) == 2
+    study.core.retries = 1
+    app_client._transport = Flaky(app_client._transport, lambda _r, _n: 502)
+    with pytest.raises(StudyError, match="gave up after 2 tries"):
+        study.answers()
+
+
+def test_a_client_killed_while_waiting_resumes_from_its_cursor(
+    app_client: TestClient, tmp_path: Path
+) -> None:
+    run_id, token = run_and_token(app_client)
+    cursor = tmp_path / "run.cursor"
+    first = Study(URL, token, run_id, client=app_client, progress=False, cursor_file=cursor)
+    queries = first.ask(pairs(4))
+    label_all(app_client, run_id, "cat", most=2)
+    seen = [event.key for event in first.answers()]
+    assert len(seen) == 2 and cursor.read_text() == first.cursor
+    del first  # killed here: what it read is in its cursor file
+    label_all(app_client, run_id, "dan", most=2)
+    again = Study(URL, token, run_id, client=app_client, progress=False, cursor_file=cursor)
+    assert [q.created for q in again.ask(pairs(4))] == [False] * 4  # re-asked: no duplicate
+    rest = [event.key for event in again.answers()]
+    assert len(rest) == 2 and not set(rest) & set(seen)
+    assert set(seen) | set(rest) == {q.key for q in queries}  # nothing lost
+    assert stored_queries(app_client) == 4
+
+
+def test_the_asyncio_client_asks_and_reads_the_same(app_client: TestClient) -> None:
+    run_id, token = run_and_token(app_client)
+
+    async def main() -> tuple[list[Any], list[Any]]:
+        transport = httpx.ASGITransport(app=app_client.app)  # type: ignore[arg-type]
+        async with AsyncStudy(URL, token, run_id, progress=False, client=httpx.AsyncClient(
+                transport=transport, base_url=URL)) as study:
+            queries = await study.ask(pairs(2))
+            await asyncio.to_thread(label_all, app_client, run_id, "eve")
+            return queries, list((await study.wait_for(queries, timeout=10)).items())
+
+    queries, answers = asyncio.run(main())
+    assert [q.created for q in queries] == [True, True]
+    assert {key for key, _ in answers} == {q.key for q in queries}
