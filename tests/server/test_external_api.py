@@ -264,3 +264,21 @@ def test_an_uploaded_webm_is_served_as_webm(client: TestClient, tmp_path: Path,
     token = bearer(new_labeller(client, "fay"))
     shown = client.get(f"/api/label/next?run_id={run_id}", headers=token).json()
     assert client.get(shown["left_clip_url"]).headers["content-type"] == "video/webm"
+
+
+def test_an_operator_stops_an_external_run_at_once_and_can_run_it_again(
+    client: TestClient,
+) -> None:
+    run_id, auth = external_run(client)
+    a = upload(client, run_id, auth, frames(1))
+    stopped = client.post(f"/api/runs/{run_id}/stop", headers=OPERATOR)
+    assert stopped.status_code == 200 and stopped.json()["status"] == "stopped"  # no worker
+    refused = client.post(f"/api/runs/{run_id}/pairs", headers=auth,
+                          json={"pairs": [pair("k", a, a)]})
+    assert refused.status_code == 409 and "takes no more pairs" in refused.json()["detail"]
+    again = client.post(f"/api/runs/{run_id}/requeue", headers=OPERATOR)
+    assert again.status_code == 200 and again.json()["status"] == "running"
+    assert client.post(f"/api/runs/{run_id}/pairs", headers=auth,
+                       json={"pairs": [pair("k", a, a)]}).status_code == 201
+    activity = client.get(f"/api/runs/{run_id}/activity", headers=OPERATOR).json()
+    assert activity["text"] == "waiting for 1 answer from 0 active labellers"
