@@ -5,7 +5,9 @@ the start and 50-250 m ahead; fish's 1 m tank floor stays put and the fish is mo
 rendered with and without `ClipConfig.motion_cues`. Per task it
 prints how many frames show no ground (less than `GROUND_MIN_FRACTION` of their pixels on a
 floor, by MuJoCo's segmentation render of the clip's scene), the smallest share of ground in any
-frame, and the frames checked per second.
+frame, the most sky in the lowest quarter of any frame (none: ground fills the lower part), the
+body's height as a share of the frame's (median and 10th-90th percentiles: a random-action
+body spends most of its clips fallen, lower than standing), and the frames checked per second.
 
     .venv/bin/python benchmarks/bench_ground.py                     # cheetah, walker, hopper,
                                                                     # quadruped, 40 clips each
@@ -31,7 +33,7 @@ from trainer.clips import (
     CLIP_CAMERAS,
     GROUND_MIN_FRACTION,
     ClipConfig,
-    ground_fractions,
+    frame_shares,
     moved_states,
 )
 from trainer.envs import make_env
@@ -77,7 +79,8 @@ def main() -> int:
           f"moved {-args.behind:g} to +{args.ahead:g} m along the run; no ground: < "
           f"{GROUND_MIN_FRACTION:.0%} of a frame on a floor (MUJOCO_GL={os.environ['MUJOCO_GL']})")
     print(f"{'task':<24} {'setting':<10} {'frames':>7} {'no ground':>9} {'clips hit':>9} "
-          f"{'min share':>9} {'median':>7} {'frames/s':>8}")
+          f"{'min share':>9} {'median':>7} {'sky low':>7} {'body h [p10-p90]':>17} "
+          f"{'frames/s':>8}")
     failed = False
     for task in tasks:
         with make_env(task, args.seed) as env:
@@ -88,19 +91,22 @@ def main() -> int:
                      float(rng.uniform(low, high)), float(rng.uniform(low, high)))
                     for _ in range(args.clips)]
             for name, setting in settings.items():
-                shares, hit = [], 0
+                clips, hit = [], 0
                 t0 = time.perf_counter()
                 for start, dx, dy in cuts:
                     moved = moved_states(env, states, dx, dy)
-                    f = ground_fractions(env, moved, 0, start, args.length, setting)
-                    shares.append(f)
-                    hit += bool((f < GROUND_MIN_FRACTION).any())
+                    shares = frame_shares(env, moved, 0, start, args.length, setting)
+                    clips.append(shares)
+                    hit += bool((shares["ground"] < GROUND_MIN_FRACTION).any())
                 seconds = time.perf_counter() - t0
-                all_f = np.concatenate(shares)
+                all_f, sky, body = (np.concatenate([c[k] for c in clips])
+                                    for k in ("ground", "sky_below", "body_height"))
                 bad = int((all_f < GROUND_MIN_FRACTION).sum())
                 failed |= name == "with cues" and bad > 0
+                p10, p50, p90 = np.percentile(body, [10, 50, 90])
                 print(f"{task:<24} {name:<10} {len(all_f):>7} {bad:>9} {hit:>9} "
-                      f"{all_f.min():>9.3f} {np.median(all_f):>7.3f} "
+                      f"{all_f.min():>9.3f} {np.median(all_f):>7.3f} {sky.max():>7.3f} "
+                      f"{f'{p50:.2f} [{p10:.2f}-{p90:.2f}]':>17} "
                       f"{len(all_f) / seconds:>8.0f}")
     print("verdict:", "a frame with the cues has no ground" if failed
           else "every frame with the cues shows the ground")

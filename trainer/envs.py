@@ -199,6 +199,18 @@ class MotionCues:
     every episode starts) tallest and red"""
     marker_span: float = 8.0
     """posts are drawn this far (m) either side of the camera's subject"""
+    ground_reach: float | None = None
+    """each floor with a uniform grid is drawn at least this far (m) either side of its centre,
+    across the track as along it, so that a camera filming from the side sees ground from the
+    bottom of the frame to the horizon rather than the skybox under a narrow track (None: the
+    floors' own sizes; planes collide as infinite whatever size they are drawn at)"""
+    sky_rgb: tuple[float, float, float] | None = None
+    """the skybox drawn in this one colour (0-1 each): DMC's starfield moves with a following
+    camera, a motion nobody should judge by (None: the model's own)"""
+    camera_distance: float | None = None
+    """a camera that follows a subject is moved along its line of sight to this distance (m)
+    from it, so that the body fills the share of the frame its task's clips are made for (None:
+    where the model puts it)"""
 
 
 @dataclass(frozen=True, slots=True)
@@ -207,9 +219,11 @@ class _Floor:
     center: np.ndarray
     """(x, y) of the plane's centre in the model"""
     half: np.ndarray
-    """(x, y) half sizes, as drawn"""
+    """(x, y) half sizes, as modelled"""
     period: np.ndarray
     """(x, y) distances the plane can move by and look the same"""
+    uniform: bool
+    """its grid keeps its scale at any size (a texture stretched over the plane does not)"""
 
 
 def _floor_planes(model: mujoco.MjModel) -> tuple[_Floor, ...]:
@@ -224,15 +238,16 @@ def _floor_planes(model: mujoco.MjModel) -> tuple[_Floor, ...]:
             continue
         size = model.geom_size[i, :2]
         mat = int(model.geom_matid[i])
+        uniform = mat < 0 or bool(model.mat_texuniform[mat])
         if mat >= 0:
             repeat = np.maximum(model.mat_texrepeat[mat], 1e-9)
             # A uniform texture repeats `texrepeat` times per 2 m of plane (one checker square
             # per metre at texrepeat 1); otherwise it is stretched over the whole plane.
-            period = 2 / repeat if model.mat_texuniform[mat] else 2 * size / repeat
+            period = 2 / repeat if uniform else 2 * size / repeat
         else:
             period = np.array([1.0, 1.0])
         floors.append(_Floor(i, model.geom_pos[i, :2].copy(), size.copy(),
-                             np.asarray(period, np.float64)))
+                             np.asarray(period, np.float64), uniform))
     return tuple(floors)
 
 
@@ -258,6 +273,7 @@ def _add_distance_markers(scene: mujoco.MjvScene, focus_x: float, cues: MotionCu
                             np.array([k * step, cues.marker_row, half]), eye,
                             np.array(_POST_RGBA[kind], np.float32))
         geom.category = mujoco.mjtCatBit.mjCAT_DECOR
+        geom.objtype, geom.objid = mujoco.mjtObj.mjOBJ_UNKNOWN, -1  # left unset by initGeom
         geom.segid = scene.ngeom  # as mjv_updateScene numbers its own
         scene.ngeom += 1
 
@@ -294,6 +310,7 @@ class Env(abc.ABC):
         self._reflectance: np.ndarray | None = None  # the model's own, once reflections are set
         self._floors = _floor_planes(model)
         self._cues: MotionCues | None = None  # set_motion_cues()
+        self._sky: np.ndarray | None = None  # the skybox's own texels, once painted
         self._closed = False
 
     # -- the simulator-specific parts
@@ -349,50 +366,85 @@ class Env(abc.ABC):
         """uint8 (height, width, 3) off-screen frame of the current state. Cameras by index or
         name; None: DMC's camera 0 (2 for quadruped), Metaworld's "corner" (turned upright)."""
         camera_id = self._camera_id(self._default_camera if camera is None else camera)
-        renderer = self._renderers.get((height, width))
+        frame = self._render_scene(width, height, camera_id, segmentation=False)
+        if camera_id in self._upside_down:
+            frame = np.ascontiguousarray(frame[::-1, ::-1])
+        return frame
+
+    def segmentation(self, width: int, height: int,
+                     camera: int | str | None = None) -> np.ndarray:
+        """int32 (height, width, 2): per pixel of render()'s frame of the current state (with the
+        motion cues set, as render() draws them), the MuJoCo object id and type it shows;
+        (-1, -1) where nothing is drawn (the sky). From MuJoCo's segmentation render."""
+        camera_id = self._camera_id(self._default_camera if camera is None else camera)
+        ids = self._render_scene(width, height, camera_id, segmentation=True)
+        if camera_id in self._upside_down:
+            ids = np.ascontiguousarray(ids[::-1, ::-1])
+        return ids
+
+    def floor_geoms(self) -> np.ndarray:
+        """The geom ids of the world's floor planes (those motion cues move and widen)."""
+        return np.array([f.geom for f in self._floors], np.int64)
+
+    def _render_scene(self, width: int, height: int, camera_id: int,
+                      segmentation: bool) -> np.ndarray:
+        key = (height, width, "segmentation") if segmentation else (height, width)
+        renderer = self._renderers.get(key)
         if renderer is None:
             # mujoco.Renderer refuses sizes beyond the model's off-screen buffer; grow it.
             vis = self._model.vis.global_
             vis.offwidth, vis.offheight = max(vis.offwidth, width), max(vis.offheight, height)
             renderer = mujoco.Renderer(self._model, height, width)
-            _open_renderers.add(renderer)
-            _close_renderers_at_exit()
-            self._renderers[(height, width)] = renderer
-        renderer.update_scene(self._data, camera=camera_id)
-        if self._cues is not None:
-            self._add_motion_cues(renderer.scene, camera_id)
-        frame = renderer.render()
-        if camera_id in self._upside_down:
-            frame = np.ascontiguousarray(frame[::-1, ::-1])
-        return frame
-
-    def ground_fraction(self, width: int, height: int, camera: int | str | None = None) -> float:
-        """The share of render()'s frame of the current state that shows a floor plane (with
-        the motion cues set, as render() draws them), from MuJoCo's segmentation render: what
-        the no-ground check (`trainer.clips.ground_fractions`) counts."""
-        camera_id = self._camera_id(self._default_camera if camera is None else camera)
-        key = (height, width, "segmentation")
-        renderer = self._renderers.get(key)
-        if renderer is None:
-            vis = self._model.vis.global_
-            vis.offwidth, vis.offheight = max(vis.offwidth, width), max(vis.offheight, height)
-            renderer = mujoco.Renderer(self._model, height, width)
-            renderer.enable_segmentation_rendering()
+            if segmentation:
+                renderer.enable_segmentation_rendering()
             _open_renderers.add(renderer)
             _close_renderers_at_exit()
             self._renderers[key] = renderer
         renderer.update_scene(self._data, camera=camera_id)
         if self._cues is not None:
             self._add_motion_cues(renderer.scene, camera_id)
-        ids = renderer.render()
-        floor = np.isin(ids[..., 0], [f.geom for f in self._floors]) & (
-            ids[..., 1] == mujoco.mjtObj.mjOBJ_GEOM)
-        return float(floor.mean())
+        return renderer.render()
 
     def set_motion_cues(self, cues: MotionCues | None) -> None:
         """What render() adds so that a clip shows motion wherever the agent is (`MotionCues`);
-        None: the model's scene as it is."""
+        None: the model's scene as it is. A renderer builds the floors' drawn sizes and the
+        skybox into its GL context, so a change to either drops the cached renderers."""
         self._cues = cues
+        reach = cues.ground_reach if cues is not None else None
+        sky = cues.sky_rgb if cues is not None else None
+        if self._draw_floors(reach) | self._paint_sky(sky):
+            for renderer in self._renderers.values():
+                renderer.close()
+            self._renderers.clear()
+
+    def _draw_floors(self, reach: float | None) -> bool:
+        """Floors with a uniform grid drawn at least `reach` m either way (None: as modelled);
+        whether a drawn size changed."""
+        sizes = self._model.geom_size
+        changed = False
+        for f in self._floors:
+            half = np.maximum(f.half, reach) if reach is not None and f.uniform else f.half
+            changed |= not np.array_equal(sizes[f.geom, :2], half)
+            sizes[f.geom, :2] = half
+        return changed
+
+    def _paint_sky(self, rgb: tuple[float, float, float] | None) -> bool:
+        """The skybox in one colour (None: its own texels); whether its texels changed."""
+        m = self._model
+        boxes = [i for i in range(m.ntex)
+                 if m.tex_type[i] == mujoco.mjtTexture.mjTEXTURE_SKYBOX and m.tex_nchannel[i] == 3]
+        if not boxes:
+            return False
+        adr, n = int(m.tex_adr[boxes[0]]), int(m.tex_width[boxes[0]] * m.tex_height[boxes[0]] * 3)
+        texels = m.tex_data[adr:adr + n]
+        if self._sky is None:
+            self._sky = texels.copy()
+        paint = (self._sky if rgb is None
+                 else np.resize(np.round(np.asarray(rgb) * 255).astype(np.uint8), n))
+        if np.array_equal(texels, paint):
+            return False
+        texels[:] = paint
+        return True
 
     def _focus(self, camera_id: int) -> np.ndarray | None:
         """The world point a camera follows (the centre of mass of the subtree it tracks or is
@@ -419,16 +471,22 @@ class Env(abc.ABC):
             # Only along an axis where the floor is at least a period wide, so that the shifted
             # floor still reaches half a period either side of the subject: fish's 1 m tank
             # floor (2 m period) stays where it is, and so do the runners' 1.6-2 m wide tracks
-            # across (they run along x). mjvGeom's size is not what a plane is drawn at.
+            # across (they run along x) unless drawn wider (`ground_reach`). mjvGeom's size is
+            # not what a plane is drawn at: the model's, when the renderer was made, is.
             floors = {f.geom: f for f in self._floors}
             for g in scene.geoms[:scene.ngeom]:
                 if g.objtype != mujoco.mjtObj.mjOBJ_GEOM or g.objid not in floors:
                     continue
                 f = floors[g.objid]
                 shift = np.round((focus[:2] - f.center) / f.period) * f.period
-                g.pos[:2] += np.where(2 * f.half >= f.period, shift, 0.0)
+                g.pos[:2] += np.where(2 * self._model.geom_size[f.geom, :2] >= f.period, shift, 0.0)
         if cues.marker_row is not None:
             _add_distance_markers(scene, float(focus[0]), cues)
+        if cues.camera_distance is not None:
+            for cam in scene.camera:  # both eyes of MuJoCo's stereo pair
+                pos, forward = np.array(cam.pos), np.array(cam.forward)
+                along = float(np.dot(focus - pos, forward))
+                cam.pos[:] = pos + (along - cues.camera_distance) * forward
 
     def set_render_quality(self, **quality: int) -> None:
         """Sets fields of the model's `vis.quality` (shadowsize, offsamples, numslices, ...)
