@@ -35,6 +35,13 @@ stays fixed in the world and the ground is in every frame, and the planar runner
 walker, hopper: `MARKER_ROWS`) get a row of posts behind the track, one a metre, yellow every
 5 m, red at the start. `ground_fractions()` measures the ground in each frame; tests and
 `benchmarks/bench_ground.py` check that no frame is without it.
+
+The scene around the body: DMC's runners' tracks are 1.6-2 m wide, so a camera filming from the
+side saw a thin strip of floor with the skybox's starfield above and below it. Clips draw their
+floors `GROUND_REACH` m either way (ground from the bottom of the frame to the horizon), every
+DMC sky plain (`SKY_RGB`), and put each runner's camera at a distance of its own
+(`CAMERA_DISTANCES`), so that the standing body fills `BODY_SHARE` of the frame's height.
+`frame_shares()` measures the body's height and the sky in the lowest quarter per frame.
 """
 
 from __future__ import annotations
@@ -87,8 +94,8 @@ BODY_SHARE = 0.6
 BODY_WIDTH_SHARE = 0.75
 """the most of a square frame's width a standing body's length may take (`CAMERA_DISTANCES`)"""
 GROUND_REACH = 50.0
-"""metres the floors are drawn either side of their centre at least: from the bottom of a
-side-filmed frame to the horizon (DMC's runners' tracks are 1.6-2 m wide)"""
+"""metres the planar runners' floors are drawn either side of the body, across their 1.6-2 m
+wide tracks as along them: ground from the bottom of a side-filmed frame to the horizon"""
 SKY_RGB = (0.6, 0.75, 0.9)
 """the plain sky of DMC clips, in place of the skybox's starfield"""
 METAWORLD_ARM = "right_arm_base_link"
@@ -169,17 +176,19 @@ def clip_camera(task: str) -> str | None:
 
 def motion_cues(task: str) -> MotionCues | None:
     """What a task's clips draw to show motion (`trainer.envs.MotionCues`): on DMC, the floor
-    that follows the camera, drawn to the horizon under a plain sky, the camera at its task's
-    distance (`CAMERA_DISTANCES`) and, for planar runners (`MARKER_ROWS`), distance posts; None
-    on Metaworld, whose cameras are fixed."""
+    that follows the camera under a plain sky, the camera at its task's distance
+    (`CAMERA_DISTANCES`) and, for planar runners (`MARKER_ROWS`), distance posts and the floor
+    drawn to the horizon; None on Metaworld, whose cameras are fixed."""
     family, _, name = task.partition(":")
     if family != "dmc":
         return None
     from trainer.envs import MotionCues  # here: the worker imports this module before MuJoCo
 
     domain = dmc_domain(name)
-    return MotionCues(marker_row=MARKER_ROWS.get(domain), ground_reach=GROUND_REACH,
-                      sky_rgb=SKY_RGB, camera_distance=CAMERA_DISTANCES.get(domain))
+    runner = domain in MARKER_ROWS
+    return MotionCues(marker_row=MARKER_ROWS.get(domain),
+                      ground_reach=GROUND_REACH if runner else None, sky_rgb=SKY_RGB,
+                      camera_distance=CAMERA_DISTANCES.get(domain))
 
 
 def sized(cfg: ClipConfig, clip_size: str | None) -> ClipConfig:
