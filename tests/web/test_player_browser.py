@@ -31,7 +31,7 @@ def screenshot(page: Any, name: str, selector: str | None = None) -> None:
 
 
 def frame_shown(page: Any) -> int:
-    match = re.match(r"frame (\d+) / (\d+)", page.text_content("#frame-info"))
+    match = re.fullmatch(r"frame (\d+) of (\d+)", page.text_content("#frame-info"))
     assert match, page.text_content("#frame-info")
     assert int(match[2]) == SEGMENT
     return int(match[1])
@@ -60,8 +60,8 @@ def test_pause_step_jump_and_scrub_keep_both_clips_on_one_frame(
         page.wait_for_function(DECODED, arg=SHOWN)
         left_is_first = page.get_attribute(SHOWN, "data-left-is-first") == "true"
         left_start, right_start = (0, 40) if left_is_first else (40, 0)  # the pushed starts
-        info = page.text_content("#clip-info")
-        assert f"Each clip: {SEGMENT} steps, 1.2 s at 1×" in info
+        info = page.inner_text("#clip-info")  # as shown: left and right on a wide window
+        assert f"Each clip: {SEGMENT} steps" in info
         assert f"left starts at step {left_start} of its episode" in info
         assert f"right at step {right_start}" in info
 
@@ -76,12 +76,10 @@ def test_pause_step_jump_and_scrub_keep_both_clips_on_one_frame(
         page.wait_for_timeout(300)
         assert frame_shown(page) == frame
 
-        # "." and "," step one frame; both clips show the same frame, the steps both starts.
+        # "." and "," step one frame; both clips show the same frame.
         page.keyboard.press(".")
         a, b = settled(page, frame + 1)
         assert abs(a["t"] - b["t"]) < 1e-3
-        assert (f"step {left_start + frame} | {right_start + frame}"
-                in page.text_content("#frame-info"))
         page.keyboard.press(",")
         page.keyboard.press(",")
         settled(page, frame - 1)

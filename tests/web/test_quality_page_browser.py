@@ -105,6 +105,10 @@ def test_two_labellers_answer_one_query_and_the_operator_sees_their_agreement(
             assert "[" in row.locator("td.left-share").inner_text()  # a share with its interval
             assert "paused" not in row.inner_text()
         assert page.locator("table.quality th[scope=col]").count() == 13  # with Practice
+        # The table fits its card: no sideways scroll.
+        wrap = page.eval_on_selector("#labeller-quality .table-wrap",
+                                     "w => [w.scrollWidth, w.clientWidth]")
+        assert wrap[0] <= wrap[1], wrap
 
         # The run page's Agreement card: half the pairs agree; κ below chance.
         page.goto(f"{live.url}/runs/{run_id}#token={OPERATOR_TOKEN}")

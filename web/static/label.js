@@ -43,6 +43,8 @@ const state = {
   speed: 1, // playback speed of both clips: 0.5, 1 or 2
   briefs: new Map(), // run id -> its instruction and clip timing (GET /api/label/runs/<id>)
   shownRun: null, // the run whose instruction is on screen
+  briefedRuns: new Set(), // runs a pair of which was shown with the instruction open
+  keptOpen: false, // the labeller opened the instruction: it stays open until they fold it
   target: null, // answers after which the caller's invite shows a completion code
   last: null, // the last answer, while it may be taken back: {pair, counted}
 };
@@ -101,10 +103,11 @@ function sizeVideo(video, width, height) {
 }
 
 /**
- * The clips' height (--fit-room, per clip): what the window leaves beside the page down to the
- * player and the answers under it, whose height varies with the run's instruction and the
- * window's width, so that clips, player and answers are all in view. CSS keeps a least height,
- * below which a short window scrolls (the instruction and the answers stay in view, sticky).
+ * The clips' height (--fit-room, per clip): what the window leaves beside the page above them
+ * and the answer bar under them (the player and the answers), whose heights vary with the
+ * run's instruction, whether it is folded and the window's width, so that clips, player and
+ * answers are all in view. CSS keeps a least height, below which a short window scrolls (the
+ * instruction and the answer bar stay in view, sticky). A phone's clips take the full width.
  */
 function fitClips() {
   cancelAnimationFrame(fitClips.frame);
@@ -114,8 +117,10 @@ function fitClips() {
     const [a, b] = videos.map((video) => video.getBoundingClientRect());
     const stacked = b.top >= a.bottom - 1; // a phone's layout: one above the other
     const clips = stacked ? a.height + b.height : Math.max(a.height, b.height);
-    const player = $("player").getBoundingClientRect().bottom + scrollY;
-    const rest = player + $("answer-bar").offsetHeight - clips;
+    // The page above the clips and around them, down to where the answer bar starts (it holds
+    // the player and the answers; sticky, so its own place on screen is not where it starts).
+    const above = $("pairs").getBoundingClientRect().bottom + scrollY - clips;
+    const rest = above + $("answer-bar").offsetHeight;
     const room = (innerHeight - rest - FIT_SPARE_PX) / (stacked ? 2 : 1);
     $("stage").style.setProperty("--fit-room", `${Math.floor(room)}px`);
   });
@@ -201,8 +206,7 @@ function showFrame(pair) {
   scrub.max = String(count - 1);
   if (document.activeElement !== scrub || clock.paused) scrub.value = String(frame);
   const q = pair.query;
-  $("frame-info").textContent =
-    `frame ${frame + 1} / ${count} · step ${q.left_start_step + frame} | ${q.right_start_step + frame}`;
+  $("frame-info").textContent = `frame ${frame + 1} of ${count}`;
 }
 
 /** Pauses or plays both clips; paused, the timeline stays where it is. */
@@ -229,13 +233,17 @@ function seekFrame(frame) {
 
 const stepFrames = (n) => state.current && seekFrame(frameAt(state.current) + n);
 
-/** The clip's length and where each clip starts in its episode. */
+/** The clip's length and where each clip starts in its episode (top and bottom on a phone). */
 function showClipInfo(pair) {
-  const { count, fps } = frames(pair);
+  const { count } = frames(pair);
   const q = pair.query;
-  $("clip-info").textContent = `Each clip: ${count} steps, ${round(count / fps)} s at 1×`
-    + ` · left starts at step ${q.left_start_step} of its episode,`
-    + ` right at step ${q.right_start_step}`;
+  const side = (wide, narrow) => [
+    Object.assign(document.createElement("span"), { className: "wide", textContent: wide }),
+    Object.assign(document.createElement("span"), { className: "narrow", textContent: narrow }),
+  ];
+  $("clip-info").replaceChildren(`Each clip: ${count} steps · `, ...side("left", "top"),
+    ` starts at step ${q.left_start_step} of its episode, `, ...side("right", "bottom"),
+    ` at step ${q.right_start_step}`);
 }
 
 function replay() {
@@ -252,22 +260,29 @@ function setSpeed(speed) {
   showSpeedNote();
 }
 
-/** How the clips' speed relates to the task's own time, at the chosen speed. */
+/** How the clips' speed relates to the task's own time, at the chosen speed: one sentence. */
 function showSpeedNote() {
   const brief = state.current?.brief;
-  const note = $("speed-note");
   if (!brief) return;
-  if (brief.real_time_ratio == null) {
-    note.textContent = `One frame per step, ${round(brief.fps * state.speed)} frames a second.`;
-    return;
+  $("speed-note").textContent = brief.real_time_ratio == null
+    ? `One frame per step, ${round(brief.fps * state.speed)} frames a second.`
+    : `${speedWords(brief.real_time_ratio * state.speed)}.`;
+}
+
+/** 1/3 -> "Slowed to 1/3 of real time"; 1 -> "Real time"; 4/3 -> "Sped up to 1.3× real time". */
+function speedWords(ratio) {
+  if (Math.abs(ratio - 1) < 0.03) return "Real time";
+  if (ratio > 1) return `Sped up to ${round(ratio)}× real time`;
+  return `Slowed to ${fraction(ratio)} of real time`;
+}
+
+/** A share below 1 as the simplest fraction within 2% of it ("1/3", "5/6"), else a percentage. */
+function fraction(x) {
+  for (let below = 2; below <= 12; below += 1) {
+    const above = Math.round(x * below);
+    if (above >= 1 && Math.abs(above / below - x) <= 0.02 * x) return `${above}/${below}`;
   }
-  const ratio = brief.real_time_ratio * state.speed;
-  const wide = (text) => Object.assign(document.createElement("span"), {
-    className: "wide", textContent: text, // left out on a phone
-  });
-  const how = ratio < 0.95 ? ", slow motion" : ratio > 1.05 ? ", sped up" : "";
-  note.replaceChildren(wide("Clips play at "), `${round(ratio)}× real time`,
-    wide(`${how} (${round(brief.step_seconds * 1000)} ms a step)`));
+  return `${Math.round(100 * x)}%`;
 }
 
 const round = (x) => Number(x.toPrecision(2));
@@ -310,6 +325,10 @@ function showInstruction(brief) {
   $("instruction-task").textContent = taskTitle(brief.task);
   box.dataset.run = brief.run_id;
   box.dataset.sha256 = brief.instruction_sha256;
+  // Open for a run's first pair on this page, folded to one line from its second pair on.
+  const first = !state.briefedRuns.has(brief.run_id);
+  state.briefedRuns.add(brief.run_id);
+  setFolded(!first && !state.keptOpen);
   const changed = state.shownRun !== null && state.shownRun !== brief.run_id;
   state.shownRun = brief.run_id;
   if (!changed) return;
@@ -322,6 +341,20 @@ function showInstruction(brief) {
     $("instruction-new").hidden = true;
     box.classList.remove("changed");
   }, NEW_TASK_MS);
+}
+
+function setFolded(folded) {
+  $("instruction").classList.toggle("folded", folded);
+  $("instruction-more").setAttribute("aria-expanded", String(!folded));
+  $("instruction-more-label").textContent = folded ? "Show all" : "Fold";
+  fitClips();
+}
+
+/** The button or I: the labeller opens the instruction (kept open) or folds it. */
+function toggleInstruction() {
+  const open = $("instruction").classList.contains("folded");
+  state.keptOpen = open;
+  setFolded(!open);
 }
 
 /** "dmc:cheetah_run" -> "cheetah run"; "metaworld:door-open" -> "door open". */
@@ -654,6 +687,11 @@ function onKey(event) {
     replay();
     return;
   }
+  if (event.key === "i" || event.key === "I") {
+    event.preventDefault();
+    toggleInstruction();
+    return;
+  }
   const player = {
     " ": () => setPaused(!clock.paused), k: () => setPaused(!clock.paused),
     ",": () => stepFrames(-1), ".": () => stepFrames(1),
@@ -734,11 +772,9 @@ start(() => {
       setSpeed(Number(button.dataset.speed));
     });
   }
-  $("instruction-more").addEventListener("click", () => {
-    const open = $("instruction").classList.toggle("open");
-    $("instruction-more").setAttribute("aria-expanded", String(open));
-    $("instruction-more").textContent = open ? "Show less" : "Show all";
-    fitClips();
+  $("instruction-more").addEventListener("click", (event) => {
+    event.currentTarget.blur();
+    toggleInstruction();
   });
   addEventListener("resize", fitClips);
   startStudy(() => schedule(loadCurrent, 0));

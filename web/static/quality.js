@@ -17,11 +17,13 @@ export function fixed(value, digits = 2) {
   return value == null || Number.isNaN(value) ? DASH : Number(value).toFixed(digits);
 }
 
-/** A share {k, n, rate, low, high} as "0.92 [0.81, 0.97]"; "—" with no n. */
-export function shareText(share) {
+/** A share {k, n, rate, low, high} as "0.92 [0.81, 0.97]" (the interval kept on one line, so
+ * that a narrow column breaks before it); "—" with no n. */
+function shareText(share) {
   if (!share || share.rate == null) return DASH;
-  const interval = share.low == null ? "" : ` [${fixed(share.low)}, ${fixed(share.high)}]`;
-  return `${fixed(share.rate)}${interval}`;
+  if (share.low == null) return fixed(share.rate);
+  return [`${fixed(share.rate)} `,
+    el("span", { class: "interval" }, `[${fixed(share.low)}, ${fixed(share.high)}]`)];
 }
 
 function pValue(p) {
