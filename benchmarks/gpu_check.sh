@@ -20,6 +20,15 @@
 #   tf32learn  learning with TF32: specs/paper/tf32-learning.toml (SAC oracle, float32 / TF32,
 #           4 seeds each, 100 k steps), its 8 runs sharing the GPU under MPS; the runs' result
 #           files come back in $OUT/tf32-learning (`sepoa report` on them here)
+#   grid    the paper's DMC grid's throughput (specs/paper/dmc-grid.toml): every algorithm, N = 1,
+#           4 and 8 runs sharing the GPU under MPS, timed in the learning phase, one row each
+#           to $OUT/grid/throughput.csv as it comes (benchmarks/grid_throughput.py); GRID_TASKS
+#           (default dmc:cheetah_run) and GRID_BUDGET (seconds, default 480) size one call,
+#           and a later call with the same $OUT/grid goes on with the rows still missing
+#   skills  skill quality against APS pretraining length at the paper's width: 2 seeds at
+#           once on cheetah_run, snapshots at 100 k, 200 k and 500 k on the way to 1 M, each
+#           measured as 50 random skills against random actions; the quality files reached
+#           within SKILLS_LIMIT seconds (default 540) come back in $OUT/skills
 #   baseline  whole-run steps/s of paper-preset PEBBLE after round 0 (graphed, TF32), the code
 #           in $BASELINE (default .baseline) against this checkout's, one after the other: what
 #           a change to the step did on this GPU (now: against 3628eb1, r_hat of a new
@@ -45,10 +54,10 @@ set -uo pipefail
 steps=("$@")
 [ ${#steps[@]} -eq 0 ] && steps=(test sac run doctor)
 for step in "${steps[@]}"; do
-    case "$step" in test|sac|run|doctor|shared|tf32|mps|sepoa|sepoa32|profile|reward|pretrain|baseline|tf32learn)
+    case "$step" in test|sac|run|doctor|shared|tf32|mps|sepoa|sepoa32|profile|reward|pretrain|baseline|tf32learn|grid|skills)
         ;;
     *) echo "unknown step $step; valid: test sac run doctor shared tf32 mps sepoa sepoa32" \
-            "profile reward pretrain baseline tf32learn" >&2
+            "profile reward pretrain baseline tf32learn grid skills" >&2
        exit 2 ;; esac
 done
 source .gpu/device-env.sh || exit 1
@@ -193,6 +202,34 @@ for step in "${steps[@]}"; do
             --out /tmp/gpu-check-pretrain/aps.pt --no-progress > "$OUT/pretrain.txt" 2>&1
         cp /tmp/gpu-check-pretrain/aps.csv "$OUT/pretrain.csv" 2>/dev/null
         tail -1 "$OUT/pretrain.txt" >> "$OUT/summary.txt" ;;
+    grid)
+        say "DMC grid throughput: N = 1, 4, 8 runs under MPS per algorithm, learning phase"
+        mkdir -p "$OUT/grid"
+        if mps_start mps_grid; then
+            # shellcheck disable=SC2086
+            timeout $(( ${GRID_BUDGET:-480} + 120 )) python3 benchmarks/grid_throughput.py \
+                measure specs/paper/dmc-grid.toml --device cuda --workers 1,4,8 \
+                --tasks ${GRID_TASKS:-dmc:cheetah_run} --budget-seconds "${GRID_BUDGET:-480}" \
+                --out "$OUT/grid" > "$OUT/grid/measure.txt" 2>&1
+            mps_stop mps_grid
+        fi
+        tail -20 "$OUT/grid/measure.txt" >> "$OUT/summary.txt"
+        python3 benchmarks/grid_throughput.py project specs/paper/dmc-grid.toml \
+            "$OUT/grid/throughput.csv" --workers 8 >> "$OUT/summary.txt" 2>&1 ;;
+    skills)
+        say "APS skill quality at the paper's width, 2 seeds, snapshots at 100/200/500 k (graphed)"
+        mkdir -p "$OUT/skills"
+        for seed in 10 11; do
+            timeout "${SKILLS_LIMIT:-540}" python3 -m sepoa pretrain --task dmc:cheetah_run \
+                --preset paper --steps 1000000 --seed $seed --device cuda --threads 4 \
+                --sac.cuda_graph true --snapshots-at 100000,200000,500000 \
+                --skill.snapshot_dir /tmp/gpu-check-skills --no-progress \
+                > "$OUT/skills/seed-$seed.txt" 2>&1 &
+        done
+        wait
+        cp /tmp/gpu-check-skills/*.quality.json /tmp/gpu-check-skills/*.csv "$OUT/skills/" \
+            2>/dev/null
+        grep -h "skill quality" "$OUT"/skills/seed-*.txt >> "$OUT/summary.txt" ;;
     esac
 done
 cat "$OUT/summary.txt"

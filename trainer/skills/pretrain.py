@@ -383,9 +383,8 @@ class SkillPretraining:
         measured = quality.measure(self.agent, self.backend, self.cfg.task, self.cfg.seed,
                                    self.cfg.episode_length or None, self.quality_skills)
         quality.write(path, measured, self.step)
-        if self.progress:
-            print(f"{os.path.basename(path)} at {self.step} steps: {quality.line(measured)}",
-                  file=sys.stderr, flush=True)
+        print(f"{os.path.basename(path)} at {self.step} steps: {quality.line(measured)}",
+              file=sys.stderr, flush=True)
 
 
 def _differences(saved: dict, ours: dict, prefix: str = "") -> list[str]:
