@@ -246,7 +246,7 @@ def test_the_figure_is_drawn_by_the_run_pages_drawing_process(
     assert png.content == curves.draw_calibration(report, f"Teacher calibration · Run {run_id}")
     assert curves._pool is not None
     assert curves._pool.submit(os.getpid).result() != os.getpid()
-    assert curves._pool.submit(os.nice, 0).result() == os.nice(0) + NICENESS
+    assert curves._pool.submit(os.nice, 0).result() == min(19, os.nice(0) + NICENESS)
 
 
 def test_pages_share_one_drawing_until_the_labels_change(
