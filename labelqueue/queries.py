@@ -473,8 +473,9 @@ def _choose(connection: DriverConnection, params: dict[str, Any], key: bytes,
 
     A gold pair comes in the order the other queries come in: never one behind the furthest
     query they answered on the run or the one they are shown (`ahead_of`), never one after the
-    next ordinary query; among those that may come, it is drawn at random under `key`, per
-    labeller and answer (so newcomers do not all get the run's oldest). A gold lease and an
+    next ordinary query. A labeller's first check is drawn among those that may come, at
+    random under `key` (so newcomers do not all get the run's oldest); later ones are the
+    oldest that may come, as a check passed over could never come later. A gold lease and an
     ordinary one make the same statements, in the same order: neither the ids a labeller is
     served, nor their order, nor the time a lease takes tell a gold pair from the others."""
     oldest = (_GOLD_OF_ANY_HUMAN_RUN if params["run"] is None else _GOLD_OF_RUN).first(
@@ -491,6 +492,9 @@ def _choose(connection: DriverConnection, params: dict[str, Any], key: bytes,
     due = gold_due(share, key=key, labeller_id=labeller, run_id=run_id,
                    rate=GoldSettings.of(run_feedback(oldest)).rate)
     if due and golds:
+        # A newcomer's first check is drawn among them while ordinary pairs are left to hide
+        # it among; later checks are the oldest that may come, so none is skipped for good.
+        among = len(golds) if share.gold == 0 and first is not None else 1
         return int(golds[gold_pick(key, labeller_id=labeller, run_id=run_id,
-                                   answers=share.answers, among=len(golds))].id)
+                                   answers=share.answers, among=among)].id)
     return None if first is None else int(first.id)
