@@ -129,9 +129,14 @@ def _markdown(spec: dict[str, Any], table: pd.DataFrame, lengths: list[int]) -> 
         passing += [length] if ok else []
         lines.append(f"- {length:,} steps: {'passes' if ok else 'does not pass'}.")
     lines.append("")
+    failing = [n for n in lengths if n not in passing
+               and set(table[table["steps"] == n]["seed"]) == seeds]
     if passing:
-        lines.append(f"**Answer:** the skills carry task behaviour from {min(passing):,} steps "
-                     "of pretraining on.")
+        lines.append(f"**Answer (the rule's):** the shortest length whose skills carry task "
+                     f"behaviour is {min(passing):,} steps."
+                     + (f" Measured on every seed and not passing: "
+                        f"{', '.join(f'{n:,}' for n in failing)}." if failing else "")
+                     + ("" if complete else " Partial: longer lengths are not measured yet."))
     elif complete:
         lines.append(f"**Answer:** no length up to {max(lengths):,} steps passes: the skills do "
                      "not carry task behaviour by this measure (a null answer).")
