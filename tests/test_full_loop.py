@@ -34,7 +34,8 @@ def test_people_label_over_rest_and_the_run_learns_from_them(tmp_path: Path) -> 
     data = tmp_path / "data"
     settings = Settings(database_url=url, data_dir=data,
                         operator_token=OPERATOR["Authorization"].removeprefix("Bearer "),
-                        secret_key="full-loop-secret-key-0123")
+                        secret_key="full-loop-secret-key-0123",
+                        lease_per_s=1000.0, lease_burst=1000)  # scripted, full speed
     with TestClient(create_app(settings)) as client:
         made = client.post("/api/labellers", json={"name": "bob"}, headers=OPERATOR)
         bob = {"Authorization": f"Bearer {made.json()['token']}"}

@@ -23,6 +23,8 @@ def settings(tmp_path: Path) -> Settings:
         data_dir=data,
         operator_token=OPERATOR_TOKEN,
         secret_key="test-secret-key-0123456789",
+        # Scripted labellers lease at full speed; the tests of the rate limits set their own.
+        lease_per_s=1000.0, lease_burst=1000,
     )
 
 

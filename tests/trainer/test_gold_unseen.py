@@ -49,7 +49,8 @@ def test_a_labellers_view_tells_gold_pairs_from_the_others_in_no_way(tmp_path: P
 
     monkeypatch.setattr(trainer.worker, "set_clips", attach)
     settings = Settings(database_url=url, data_dir=data, operator_token=OPERATOR_TOKEN,
-                        secret_key="gold-test-secret-key-0123")
+                        secret_key="gold-test-secret-key-0123",
+                        lease_per_s=1000.0, lease_burst=1000)  # scripted, full speed
     seen: dict[str, list[dict]] = {}
     clip_headers: dict[int, set[str]] = {}
     with TestClient(create_app(settings)) as client:
