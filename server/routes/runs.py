@@ -13,6 +13,7 @@ from sqlalchemy import select
 from labelqueue import Run, RunStatus, read_metrics, reading, set_run_status, set_teacher
 from labelqueue.activity import list_workers, runs_activity
 from labelqueue.run_config import as_json, fields, overridden, run_config
+from runvocab.config import typed_overrides
 from runvocab.names import ConfigError
 from server import curves, services
 from server.deps import OperatorDep, SessionDep, SettingsDep
@@ -47,13 +48,14 @@ workers_router = APIRouter(prefix="/api/workers", tags=["runs"], responses=error
 @router.post("", status_code=201, response_model=RunOut, responses=errors(400, 413, 422))
 def create_run(spec: RunCreate, session: SessionDep, _: OperatorDep) -> RunOut:
     """A queued run; without `budget`, its preset's (or its config's `feedback.budget`)."""
-    if spec.budget is None:
-        given = spec.config.get("feedback.budget")
-        budget = given if isinstance(given, int) and not isinstance(given, bool) else \
-            run_defaults(task=spec.task, algo=spec.algo, preset=spec.preset, config={},
-                         measured_pace=None)["budget"]
-        spec = spec.model_copy(update={"budget": budget})
     try:
+        if spec.budget is None:  # the config's, read as any config value is ("500" is 500)
+            given = typed_overrides({k: v for k, v in spec.config.items()
+                                     if k == "feedback.budget"}).get("feedback.budget")
+            budget = given if given is not None else run_defaults(
+                task=spec.task, algo=spec.algo, preset=spec.preset, config={},
+                measured_pace=None)["budget"]
+            spec = spec.model_copy(update={"budget": budget})
         run = services.new_run(session, spec=spec)
     except ConfigError as err:
         raise refusal(err, teacher_params=spec.teacher_params, config=spec.config) from None

@@ -126,6 +126,16 @@ def test_a_new_run_defaults_to_its_presets_budget_and_the_form_learns_the_clip_l
                                           "preset": "tiny", "config": {"feedback.budget": 12}},
                        headers=OPERATOR)
     assert told.status_code == 201 and told.json()["budget"] == 12
+    # A config value as text is read as any config value is: the budget it gives, not a
+    # contradiction of a top-level field the caller never sent.
+    text = client.post("/api/runs", json={"task": "dmc:cheetah_run", "algo": "pebble",
+                                          "preset": "tiny", "config": {"feedback.budget": "500"}},
+                       headers=OPERATOR)
+    assert text.status_code == 201 and text.json()["budget"] == 500, text.text
+    bad = client.post("/api/runs", json={"task": "dmc:cheetah_run", "algo": "pebble",
+                                         "preset": "tiny", "config": {"feedback.budget": "lots"}},
+                      headers=OPERATOR)
+    assert bad.status_code == 422 and bad.json()["detail"][0]["loc"][-1] == "feedback.budget"
 
 
 def test_invite_and_clip_links_use_the_public_url(tmp_path: Path) -> None:
