@@ -29,7 +29,8 @@ StreamName = Literal["episodes", "eval", "rounds"]
 INT32_MAX = 2**31 - 1
 """the largest value an INTEGER column holds on PostgreSQL: ids, budgets, seeds and steps"""
 INT64_MAX = 2**63 - 1
-StoredInt = Annotated[int, Field(ge=0, le=INT32_MAX)]
+StoredInt = Annotated[int, Field(ge=0, le=INT32_MAX, strict=True)]
+"""a whole number as JSON writes one: `false`, `1.0` or `"1"` are no seed or budget"""
 CONFIG_MAX_BYTES = 16 * 1024
 """the most a run's `config` (or `teacher_params`) may take as JSON"""
 
