@@ -57,13 +57,20 @@ _ASKED = Prepared(select(
     QUERIES.c.practice,
     _STORED.with_only_columns(LABELS.c.id).scalar_subquery().label("stored"),
 ).where(QUERIES.c.id == _QUERY))
+def _asker(*, token: bool) -> list[ColumnElement[bool]]:
+    """The answering labeller active, and with `token` its token the one whose hash
+    `token_hash` names."""
+    labeller = [LABELLERS.c.id == _LABELLER, LABELLERS.c.active.is_(True)]
+    if token:
+        labeller.append(LABELLERS.c.token_hash == bindparam("token_hash", type_=String()))
+    return labeller
+
+
 def _take_answer(*, token: bool) -> Prepared:
     """The conditional update that takes an answer: the labeller active (and with `token`, its
     token the one whose hash `token_hash` names), holding a live lease on a running run's
     query."""
-    labeller = [LABELLERS.c.id == _LABELLER, LABELLERS.c.active.is_(True)]
-    if token:
-        labeller.append(LABELLERS.c.token_hash == bindparam("token_hash", type_=String()))
+    labeller = _asker(token=token)
     return Prepared(
         update(QUERIES)
         .where(
@@ -95,9 +102,7 @@ def _take_practice(*, token: bool) -> Prepared:
     `token`, its token the one `token_hash` names), the practice pair open, its run running or
     paused. A practice pair is shown to everyone at once, without a lease: the update changes
     nothing but orders concurrent answers to the pair (a row lock on PostgreSQL)."""
-    labeller = [LABELLERS.c.id == _LABELLER, LABELLERS.c.active.is_(True)]
-    if token:
-        labeller.append(LABELLERS.c.token_hash == bindparam("token_hash", type_=String()))
+    labeller = _asker(token=token)
     return Prepared(
         update(QUERIES)
         .where(
