@@ -73,11 +73,12 @@ from labelqueue.labellers import (
     authenticate,
     create_labeller,
     find_labeller,
+    labeller_names,
     rotate_token,
     set_labeller_active,
     update_labeller,
 )
-from labelqueue.labels import consume_labels, labels_for_queries, submit_label
+from labelqueue.labels import consume_labels, labels_for_queries, submit_answer, submit_label
 from labelqueue.metrics import read_metrics, write_metrics
 from labelqueue.models import (
     Invite,
@@ -171,6 +172,7 @@ __all__ = [
     "create_run",
     "export_rows",
     "find_labeller",
+    "labeller_names",
     "finish_run",
     "heartbeat",
     "labels_for_queries",
@@ -190,6 +192,7 @@ __all__ = [
     "sqlite_url",
     "set_teacher",
     "session_factory",
+    "submit_answer",
     "submit_label",
     "update_labeller",
     "write_export",

@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import hmac
 import secrets
+from collections.abc import Collection
 
 from sqlalchemy import Integer, bindparam, select, update
 from sqlalchemy.exc import IntegrityError
@@ -132,3 +133,12 @@ def find_labeller(session: Session, *, name: str) -> Labeller | None:
         if labeller is not None:
             detach(session, labeller)
     return labeller
+
+
+def labeller_names(session: Session, *, ids: Collection[int]) -> dict[int, str]:
+    """The names of the labellers with these ids, by id (an unknown id is left out)."""
+    with reading(session):
+        rows = session.execute(
+            select(Labeller.id, Labeller.name).where(Labeller.id.in_(list(ids)))
+        ).all()
+    return {labeller_id: name for labeller_id, name in rows}

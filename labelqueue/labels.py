@@ -40,7 +40,14 @@ from labelqueue.transaction import (
     snapshot,
     transaction,
 )
-from runvocab.answers import FLAG_NOTE_MAX, Click, Flag, answer_of_click
+from runvocab.answers import (
+    FLAG_NOTE_MAX,
+    Answer,
+    Click,
+    Flag,
+    answer_of_click,
+    click_of_answer,
+)
 
 _LABELLER = bindparam("labeller", type_=Integer())
 _QUERY = bindparam("query", type_=Integer())
@@ -260,7 +267,45 @@ def submit_label(
     """
     choice = Click(choice)
     flag, flag_note = check_flag(choice, flag, flag_note)
-    source = LabelSource(source)
+    return _store(session, query_id=query_id, labeller_id=labeller_id,
+                  answer=answer_of_click(choice, left_is_first), choice=choice,
+                  left_is_first=left_is_first, shown_at=shown_at, source=LabelSource(source),
+                  flag=flag, flag_note=flag_note, token_hash=token_hash)
+
+
+def submit_answer(
+    session: Session,
+    *,
+    query_id: int,
+    labeller_id: int,
+    answer: Answer | str,
+    source: LabelSource | str = LabelSource.SCRIPTED,
+) -> tuple[Label, bool]:
+    """Store the answer, in segment terms, of a labeller that sees no screen (the scripted
+    teacher) and holds the query's lease; (label, created), on `submit_label`'s terms. The label
+    records the first segment on the left, and the click that gives `answer` there."""
+    answer = Answer(answer)
+    return _store(session, query_id=query_id, labeller_id=labeller_id, answer=answer,
+                  choice=click_of_answer(answer, left_is_first=True), left_is_first=True,
+                  shown_at=None, source=LabelSource(source), flag=None, flag_note=None,
+                  token_hash=None)
+
+
+def _store(
+    session: Session,
+    *,
+    query_id: int,
+    labeller_id: int,
+    answer: Answer,
+    choice: Click,
+    left_is_first: bool,
+    shown_at: datetime | None,
+    source: LabelSource,
+    flag: Flag | None,
+    flag_note: str | None,
+    token_hash: str | None,
+) -> tuple[Label, bool]:
+    """`submit_label`'s store, given the answer and what the screen showed."""
     now = utcnow()
     # Bound parameters are named apart from every column (see lease_next_query).
     params: dict[str, Any] = {"query": query_id, "labeller": labeller_id, "at": now}
@@ -289,7 +334,7 @@ def submit_label(
             "query_id": query_id,
             "run_id": asked.run_id,
             "labeller_id": labeller_id,
-            "answer": answer_of_click(choice, left_is_first),
+            "answer": answer,
             "choice": choice,
             "left_is_first": left_is_first,
             "source": source,

@@ -15,6 +15,7 @@ from labelqueue import (
     Role,
     authenticate,
     create_labeller,
+    labeller_names,
     rotate_token,
     set_labeller_active,
     update_labeller,
@@ -87,3 +88,12 @@ def test_a_new_token_replaces_the_old_one(session: Session) -> None:
     assert authenticate(session, token=old) is None
     authenticated = authenticate(session, token=new)
     assert authenticated is not None and authenticated.id == labeller.id
+
+
+def test_names_are_read_by_id(session: Session) -> None:
+    alice, _ = create_labeller(session, name="alice")
+    bob, _ = create_labeller(session, name="bob")
+    assert labeller_names(session, ids={alice.id, bob.id, bob.id + 100}) == {
+        alice.id: "alice", bob.id: "bob"}
+    assert labeller_names(session, ids=set()) == {}
+    assert not session.in_transaction()  # the read is ended: SQLite writers never wait on it

@@ -28,6 +28,7 @@ from labelqueue import (
     push_queries,
     set_labeller_active,
     set_run_status,
+    submit_answer,
     submit_label,
 )
 from runvocab.answers import Answer, Click, answer_of_click
@@ -64,6 +65,21 @@ def test_the_screen_choice_maps_to_the_preferred_segment(
     assert created and label.answer == preferred and label.choice is choice
     stored = session.get(Label, label.id)
     assert stored is not None and stored.answer == preferred
+
+
+@pytest.mark.parametrize("answer", list(Answer))
+def test_an_answer_in_segment_terms_is_stored_as_given(session: Session, answer: Answer) -> None:
+    run = running_run(session)
+    [query_id] = push_queries(session, run_id=run.id, queries=[query_spec(0)])
+    teacher, _ = create_labeller(session, name="teacher")
+    lease_next_query(session, labeller_id=teacher.id, run_id=run.id)
+    label, created = submit_answer(session, query_id=query_id, labeller_id=teacher.id,
+                                   answer=answer)
+    assert created and label.answer is answer and label.source is LabelSource.SCRIPTED
+    # On record as if shown with the first segment on the left.
+    assert label.left_is_first and answer_of_click(label.choice, True) is answer
+    assert session.scalars(select(Query.status).where(Query.id == query_id)).one() == (
+        QueryStatus.LABELLED)
 
 
 def test_a_repeated_submit_returns_the_stored_label(session: Session) -> None:
