@@ -1,11 +1,11 @@
 """External runs: runs no worker trains, whose pairs a client pushes over REST.
 
 An external run (`algo` "external") is created running, with no worker: a client holding a
-token scoped to the run (`issue_run_token`) pushes pairs of clips (`push_pairs`) and reads the
-answers people give them (`answers_after`). Everything else is the queue's as for any run:
-the pairs are queries, leased and answered through the same operations, with k answers each
-(`feedback.labels_per_query`), gold and practice pairs, invites and the quality pages. A worker
-never claims one (`labelqueue.runs.claim_run`).
+token scoped to the run (`issue_run_token`; `revoke_run_token` ends one at once) pushes pairs
+of clips (`push_pairs`) and reads the answers people give them (`answers_after`). Everything
+else is the queue's as for any run: the pairs are queries, leased and answered through the same
+operations, with k answers each (`feedback.labels_per_query`), gold and practice pairs, invites
+and the quality pages. A worker never claims one (`labelqueue.runs.claim_run`).
 
 How its answers count: an answer to an ordinary pair spends one of the run's budget (skips
 and can't-tells too), counts toward a study's target and code when decisive, and is given to
@@ -38,7 +38,7 @@ from sqlalchemy import func, insert, select
 from sqlalchemy.orm import Session
 
 from labelqueue.clip_codec import ClipInfo
-from labelqueue.errors import Conflict
+from labelqueue.errors import Conflict, NotFound
 from labelqueue.instructions import checked_instruction, record_instruction
 from labelqueue.models import (
     EXTERNAL_PAIRS,
@@ -124,6 +124,31 @@ def issue_run_token(session: Session, *, run_id: int) -> str:
         token = f"{TOKEN_PREFIX}{row.id}.{secrets.token_urlsafe(32)}"
         row.token_hash = hashlib.sha256(token.encode()).hexdigest()
     return token
+
+
+def run_tokens(session: Session, *, run_id: int) -> list[RunToken]:
+    """The external run's tokens, oldest first, revoked ones too (a row keeps the token's hash
+    only: its secret is shown once). NotFound for an unknown run."""
+    with reading(session):
+        get_row(session, Run, run_id)
+        rows = list(session.scalars(select(RunToken).where(RunToken.run_id == run_id)
+                                    .order_by(RunToken.id)))
+        session.expunge_all()
+    return rows
+
+
+def revoke_run_token(session: Session, *, run_id: int, token_id: int) -> RunToken:
+    """Revoke one of the run's tokens: from the next request on, it reaches nothing (each
+    request reads its token's row, `run_of_token`; no server caches one). Revoking a revoked
+    token changes nothing. NotFound for a token that is not this run's."""
+    with transaction(session):
+        row = session.get(RunToken, token_id, populate_existing=True)
+        if row is None or row.run_id != run_id:
+            raise NotFound(f"run {run_id} has no token {token_id}")
+        if row.revoked_at is None:
+            row.revoked_at = utcnow()
+        detach(session, row)
+    return row
 
 
 def run_of_token(session: Session, *, token: str) -> int | None:

@@ -6,14 +6,15 @@
     queries = study.ask([Pair(frames_a, frames_b, returns=(12.5, 3.0), meta={"ids": [7, 9]})])
     answers = study.wait_for(queries)          # {key: "first" | "second" | "equal" | "cant_tell"}
 
-`token` is the run's token (`POST /api/runs/{id}/tokens`, an operator's call). A clip is a frame
-array (uint8 (frames, height, width, 3): the server encodes it as the app's own clips are), an
-MP4 or WebM file, or such a file's bytes. Each pair's idempotency key is its own `key`, or one
-made from its content: pushing the same pairs again (a retry, a client restarted after a crash)
-makes no second query. Requests that fail on the way (a connection error, a 5xx, a 429) are
-retried with exponential backoff; a 4xx is a `StudyError` naming the problem. The answers feed
-is read from a cursor, kept in `cursor_file` when given, so a client killed while it waits
-reads on from where it was: nothing is lost, nothing comes twice.
+`token` is the run's token (`POST /api/runs/{id}/tokens`, an operator's call; an operator revokes
+it with `POST /api/runs/{id}/tokens/{token_id}/revoke`, after which every call is a `StudyError`
+with status 401). A clip is a frame array (uint8 (frames, height, width, 3): the server encodes it
+as the app's own clips are), an MP4 or WebM file, or such a file's bytes. Each pair's idempotency
+key is its own `key`, or one made from its content: pushing the same pairs again (a retry, a client
+restarted after a crash) makes no second query. Requests that fail on the way (a connection error,
+a 5xx, a 429) are retried with exponential backoff; a 4xx is a `StudyError` naming the problem. The
+answers feed is read from a cursor, kept in `cursor_file` when given, so a client killed while it
+waits reads on from where it was: nothing is lost, nothing comes twice.
 
 `AsyncStudy` is the same over asyncio.
 """

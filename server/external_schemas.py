@@ -50,6 +50,17 @@ class RunTokenOut(Out):
     """shown once: it pushes the run's pairs and reads its answers, and nothing else"""
 
 
+class RunTokenInfo(Out):
+    """One of an external run's tokens, without its secret (shown once, when it was made)."""
+
+    id: int
+    """the number after `run.` in the token, as in `run.3.Xq...`"""
+    run_id: int
+    created_at: datetime
+    revoked_at: datetime | None
+    """when an operator revoked it: it reaches nothing since; null for a live token"""
+
+
 class ClipOut(Out):
     """An uploaded clip, as the decoder read it."""
 

@@ -21,6 +21,7 @@ from typing import Annotated
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
+from fastapi import Path as PathParam
 from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
@@ -36,11 +37,20 @@ from labelqueue.external import (
     is_external,
     issue_run_token,
     push_pairs,
+    revoke_run_token,
     run_of_token,
+    run_tokens,
 )
 from runvocab.answers import Answer
 from runvocab.clip_format import CLIP_FPS
-from server.deps import OperatorDep, SessionDep, SettingsDep, bearer_token, known_caller
+from server.deps import (
+    HEADERS,
+    OperatorDep,
+    SessionDep,
+    SettingsDep,
+    bearer_token,
+    known_caller,
+)
 from server.deps import checked_caller as labeller_caller
 from server.external_schemas import (
     AnswersOut,
@@ -48,9 +58,10 @@ from server.external_schemas import (
     ExternalRunCreate,
     PairsIn,
     PushOut,
+    RunTokenInfo,
     RunTokenOut,
 )
-from server.schemas import RunId, RunOut, errors
+from server.schemas import INT32_MAX, RunId, RunOut, errors
 from server.settings import Settings
 
 router = APIRouter(prefix="/api/runs", tags=["external runs"], responses=errors(401, 403))
@@ -59,6 +70,7 @@ UPLOADS = re.compile(r"^/api/runs/[0-9]+/clips$")
 """the paths that take a clip's bytes, up to the settings' `clip_upload_bytes`"""
 NPY = "application/x-npy"
 VIDEO_TYPES = {"video/mp4": "mp4", "video/webm": "webm"}
+TokenId = Annotated[int, PathParam(ge=1, le=INT32_MAX, description="the token's id (`run.<id>.`)")]
 POLL_S = 0.5
 """how often a waiting answers request looks again"""
 
@@ -92,6 +104,22 @@ def create_token(run_id: RunId, session: SessionDep, _: OperatorDep) -> RunToken
     return RunTokenOut(run_id=run_id, token=issue_run_token(session, run_id=run_id))
 
 
+@router.get("/{run_id}/tokens", response_model=list[RunTokenInfo], responses=errors(404, 422))
+def list_tokens(run_id: RunId, session: SessionDep, _: OperatorDep) -> list[RunTokenInfo]:
+    """The run's tokens, oldest first, revoked ones too, without their secrets."""
+    return [RunTokenInfo.model_validate(row) for row in run_tokens(session, run_id=run_id)]
+
+
+@router.post("/{run_id}/tokens/{token_id}/revoke", response_model=RunTokenInfo,
+             responses=errors(404, 422))
+def revoke_token(run_id: RunId, token_id: TokenId, session: SessionDep,
+                 _: OperatorDep) -> RunTokenInfo:
+    """Revoke one of the run's tokens: its next request, and a wait for answers it has open,
+    get a 401. Revoking it again changes nothing; 404 for a token that is not this run's."""
+    return RunTokenInfo.model_validate(revoke_run_token(session, run_id=run_id,
+                                                        token_id=token_id))
+
+
 async def run_client(run_id: RunId, request: Request, session: SessionDep,
                      settings: SettingsDep) -> Run:
     """The external run a request may reach: its own run token's, or any with an operator's
@@ -109,6 +137,8 @@ async def run_client(run_id: RunId, request: Request, session: SessionDep,
                                          "this run's client")
         elif scoped != run_id:
             raise HTTPException(403, f"this token is scoped to run {scoped}, not run {run_id}")
+        else:
+            request.state.run_token = token  # a wait for answers reads it again
     run = await run_in_threadpool(read_run, session, run_id=run_id)
     if not is_external(run):
         raise HTTPException(409, f"run {run_id} is trained by a worker, not an external client")
@@ -245,7 +275,7 @@ def push(run_id: RunId, body: PairsIn, run: ClientRun, response: Response, sessi
 
 @router.get("/{run_id}/answers", response_model=AnswersOut, responses=errors(404, 409, 422))
 async def answers(
-    run: ClientRun, session: SessionDep,
+    run: ClientRun, request: Request, session: SessionDep,
     after: Annotated[str, Query(max_length=40, description="the cursor the last read gave "
                                                           "('0.0': from the start)")] = "0.0",
     wait: Annotated[float, Query(ge=0, le=60, description="seconds to wait for an answer when "
@@ -264,6 +294,7 @@ async def answers(
         raise HTTPException(422, str(err)) from None
     deadline = time.monotonic() + wait
     settle = 0.0 if session.get_bind().dialect.name == "sqlite" else 1.0
+    token: str | None = getattr(request.state, "run_token", None)
     while True:
         feed = await run_in_threadpool(answers_after, session, run_id=run.id, cursor=cursor,
                                        settle_seconds=settle)
@@ -271,5 +302,8 @@ async def answers(
                 RunStatus.RUNNING.value, RunStatus.PAUSED.value):
             break
         await asyncio.sleep(min(POLL_S, max(0.0, deadline - time.monotonic())))
+        if token is not None and await run_in_threadpool(
+                run_of_token, session, token=token) != run.id:
+            raise HTTPException(401, "this run token was revoked", HEADERS)
     return AnswersOut(events=feed.events, cursor=str(feed.cursor),  # type: ignore[arg-type]
                       open_pairs=feed.open_pairs, status=feed.status)

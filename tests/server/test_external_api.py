@@ -4,6 +4,7 @@ answers people give on the label page; bad input is a 4xx that stores nothing.""
 from __future__ import annotations
 
 import io
+import threading
 import time
 from datetime import UTC, datetime
 from pathlib import Path
@@ -282,3 +283,59 @@ def test_an_operator_stops_an_external_run_at_once_and_can_run_it_again(
                        json={"pairs": [pair("k", a, a)]}).status_code == 201
     activity = client.get(f"/api/runs/{run_id}/activity", headers=OPERATOR).json()
     assert activity["text"] == "waiting for 1 answer from 0 active labellers"
+
+
+def test_an_operator_lists_a_runs_tokens_without_secrets_and_a_revoked_one_stops_at_once(
+    client: TestClient,
+) -> None:
+    run_id, auth = external_run(client)
+    spare = client.post(f"/api/runs/{run_id}/tokens", headers=OPERATOR).json()["token"]
+    secret = auth["Authorization"].removeprefix("Bearer ")
+    token_id = int(secret.split(".")[1])
+    listed = client.get(f"/api/runs/{run_id}/tokens", headers=OPERATOR)
+    assert listed.status_code == 200, listed.text
+    assert [(t["id"], t["revoked_at"]) for t in listed.json()] == [
+        (token_id, None), (int(spare.split(".")[1]), None)]
+    assert secret.rsplit(".", 1)[1] not in listed.text and spare.rsplit(".", 1)[1] not in \
+        listed.text
+    url = f"/api/runs/{run_id}/answers"
+    assert client.get(url, headers=auth).status_code == 200
+    # Only an operator revokes, and a token only through its own run.
+    revoke = f"/api/runs/{run_id}/tokens/{token_id}/revoke"
+    assert client.post(revoke, headers=auth).status_code == 401
+    assert client.get(f"/api/runs/{run_id}/tokens", headers=auth).status_code == 401
+    labeller = bearer(new_labeller(client, "gus"))
+    assert client.post(revoke, headers=labeller).status_code == 403
+    other, _ = external_run(client)
+    wrong = client.post(f"/api/runs/{other}/tokens/{token_id}/revoke", headers=OPERATOR)
+    assert wrong.status_code == 404 and f"no token {token_id}" in wrong.json()["detail"]
+    assert client.post(f"/api/runs/{run_id}/tokens/0/revoke", headers=OPERATOR).status_code \
+        == 422
+    revoked = client.post(revoke, headers=OPERATOR)
+    assert revoked.status_code == 200 and revoked.json()["revoked_at"] is not None
+    for call in (lambda: client.get(url, headers=auth),
+                 lambda: client.post(f"/api/runs/{run_id}/clips", content=frames(1),
+                                     headers=auth | NPY)):
+        refused = call()
+        assert refused.status_code == 401 and "revoked" in refused.json()["detail"]
+    assert client.get(url, headers=bearer(spare)).status_code == 200  # the other still works
+    again = client.post(revoke, headers=OPERATOR)
+    assert again.json()["revoked_at"] == revoked.json()["revoked_at"]
+
+
+def test_a_wait_for_answers_ends_with_a_401_when_its_token_is_revoked(
+    client: TestClient,
+) -> None:
+    run_id, auth = external_run(client)
+    token_id = int(auth["Authorization"].split(".")[1])
+    results: list[Any] = []
+    waiting = threading.Thread(target=lambda: results.append(
+        client.get(f"/api/runs/{run_id}/answers?wait=20", headers=auth)))
+    started = time.monotonic()
+    waiting.start()
+    time.sleep(0.3)
+    assert client.post(f"/api/runs/{run_id}/tokens/{token_id}/revoke",
+                       headers=OPERATOR).status_code == 200
+    waiting.join(10)
+    assert results and results[0].status_code == 401
+    assert time.monotonic() - started < 5  # at its next look, not when the wait ends
