@@ -43,6 +43,7 @@ COPY figures ./figures
 COPY trainer ./trainer
 COPY labelqueue ./labelqueue
 COPY labelstats ./labelstats
+COPY rundata ./rundata
 COPY server ./server
 COPY runvocab ./runvocab
 COPY web ./web

@@ -2,7 +2,7 @@
 
 A scripted run is trained through the queue by an in-process worker (its labels are given
 through the same queue operations a person's take), exported as a Minari dataset
-(`labelqueue.dataset.write_dataset`), and fitted offline (`trainer.reward_fit.fit`) with several
+(`rundata.dataset.write_dataset`), and fitted offline (`trainer.reward_fit.fit`) with several
 held-out splits, round by round as the run trained (`--schedule rounds`) or once on all pairs.
 For each split it prints the fit's held-out accuracy on labelled pairs, the run's own final
 reward model's accuracy on the same pairs (which it trained on, as on every label of the run),
@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from labelqueue import create_run, make_engine, migrate, session_factory
-from labelqueue.dataset import read_dataset, write_dataset
+from rundata.dataset import read_dataset, write_dataset
 from trainer.clips import ClipConfig
 from trainer.reward_fit import compare, fit, run_reward_model
 from trainer.worker import WorkerConfig, run_worker

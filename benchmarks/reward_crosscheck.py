@@ -49,7 +49,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 from run_copy import resume_copy  # noqa: E402
 from skill_choice import spearman  # noqa: E402
 
-from labelqueue.dataset import DatasetEpisode, LabelledDataset  # noqa: E402
+from rundata.dataset import DatasetEpisode, LabelledDataset  # noqa: E402
 from runvocab.config import RewardConfig  # noqa: E402
 from trainer.envs import make_env  # noqa: E402
 from trainer.feedback import PreferenceFeedback  # noqa: E402

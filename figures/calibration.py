@@ -16,7 +16,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from labelqueue.export_read import ExportFileError, read_export
 from labelstats.agreement import agreement_report
 from labelstats.calibration import (
     DEFAULT_EDGES,
@@ -29,6 +28,7 @@ from labelstats.calibration import (
 )
 from labelstats.calibration_stats import EpsFit
 from labelstats.labeller_quality import LabellerQuality, labeller_quality
+from rundata.export_read import ExportFileError, read_export
 
 MAX_LABELLERS_DRAWN = 8
 """labellers drawn in the figure (those with the most answers); the tables list all"""

@@ -33,9 +33,8 @@ from labelqueue.errors import (
     StaleToken,
 )
 from labelqueue.export import COLUMNS as EXPORT_COLUMNS
-from labelqueue.export import FORMATS as EXPORT_FORMATS
 from labelqueue.export import SCHEMA_VERSION as EXPORT_SCHEMA_VERSION
-from labelqueue.export import ExportFormat, export_rows, write_export
+from labelqueue.export import export_rows
 from labelqueue.gold import (
     GOLD_NEEDS_LABELS,
     GoldSettings,
@@ -135,12 +134,10 @@ __all__ = [
     "DEAD_WORKER_AFTER_S",
     "DEFAULT_URL",
     "EXPORT_COLUMNS",
-    "EXPORT_FORMATS",
     "EXPORT_SCHEMA_VERSION",
     "LEASE_SECONDS",
     "OPERATOR_MOVES",
     "Conflict",
-    "ExportFormat",
     "InvalidTransition",
     "Label",
     "LabelSource",
@@ -195,7 +192,6 @@ __all__ = [
     "submit_answer",
     "submit_label",
     "update_labeller",
-    "write_export",
     "write_metrics",
     "RunInstruction",
     "ServerKey",

@@ -182,7 +182,7 @@ class Run(Base):
     enqueued again adds nothing; its worker trains it in `<results>/<grid key>`"""
     dataset: Mapped[str | None] = mapped_column(String(1000))
     """a labelling-only run: the dataset export its pairs are drawn from (its folder, as the
-    workers reach it; `labelqueue.labelling`); none: a training run"""
+    workers reach it; `rundata.labelling`); none: a training run"""
 
 
 class RunInstruction(Base):

@@ -96,7 +96,7 @@ def create_run(
     labellers (None: the task's own); `clip_size`: a `runvocab.clip_format.CLIP_SIZES` name
     (None: the default); `grid_key`: an experiment's key for the run (`labelqueue.grid`);
     `dataset`: the dataset export a labelling-only run draws its pairs from (checked by
-    `labelqueue.labelling.create_labelling_run`, which should be used to make one).
+    `rundata.labelling.create_labelling_run`, which should be used to make one).
     The run's configuration is resolved against the presets here and stored with it
     (`labelqueue.run_config`). ValueError for a bad instruction or clip size; a ConfigError
     (a ValueError) naming the field for a run no worker could train. Nothing is stored then."""

@@ -5,5 +5,5 @@ The teacher-calibration report (`calibration`, its Wilson interval, binomial tes
 teacher's eps fit in `calibration_stats`), agreement between labellers (`agreement`: pairwise
 and Fleiss' kappa) and each labeller's reliability (`labeller_quality`). It reads no table and
 opens no transaction: the queue package gives it rows (`labelqueue.export_rows`, or a file
-through `labelqueue.export_read`). It imports only runvocab, and neither torch nor SQLAlchemy.
+through `rundata.export_read`). It imports only runvocab, and neither torch nor SQLAlchemy.
 """

@@ -2,7 +2,7 @@
 true return gap shrinks, per labeller and for everyone (docs/QUALITY.md).
 
 It reads label rows as the export writes them (`export_rows`, or a file through
-`labelqueue.export_read`), so a report made over REST and one made from an exported file are
+`rundata.export_read`), so a report made over REST and one made from an exported file are
 the same. Definitions:
 
 - gap: |first_trajectory_return - second_trajectory_return| / |R_avg|, the whole trajectories'

@@ -39,7 +39,7 @@ LABELLER_ACTIONS = {
 NAME_MAX = 100
 LABEL_FORMATS = ("jsonl", "csv", "parquet")
 DATASET_FORMATS = ("arrow", "hdf5")
-"""`labelqueue.dataset.DATA_FORMATS` (not imported here: it would load the dataset module)"""
+"""`rundata.dataset.DATA_FORMATS` (not imported here: it would load the dataset module)"""
 
 
 def database_url(args: argparse.Namespace) -> str:
@@ -72,7 +72,7 @@ def _export(args: argparse.Namespace) -> int:
     from sqlalchemy.exc import DBAPIError
 
     from labelqueue import NotFound, check_database, make_engine, session_factory
-    from labelqueue.export import write_export
+    from rundata.label_files import write_export
 
     if args.dataset is None and (args.dataset_id is not None or args.clips_dir is not None):
         return fail("--dataset-id and --clips-dir go with --dataset DIR")
@@ -127,8 +127,8 @@ def _export_dataset(args: argparse.Namespace, url: str) -> int:
     from sqlalchemy.exc import DBAPIError
 
     from labelqueue import NotFound, make_engine, session_factory
-    from labelqueue.dataset import DatasetError, NoEpisodes, write_dataset
-    from labelqueue.episodes import episodes_dir
+    from rundata.dataset import DatasetError, NoEpisodes, write_dataset
+    from rundata.episodes import episodes_dir
 
     if args.run is None:
         return fail("--dataset needs --run N: a dataset holds one run's episodes")
@@ -174,7 +174,7 @@ def _export_dataset(args: argparse.Namespace, url: str) -> int:
 
 
 def _label_dataset_arguments(p: argparse.ArgumentParser) -> None:
-    from labelqueue.labelling import LABELLING_SELECTIONS
+    from rundata.labelling import LABELLING_SELECTIONS
 
     database_args(p)
     p.add_argument("dataset", metavar="DATASET",
@@ -246,7 +246,7 @@ def _label_dataset(args: argparse.Namespace) -> int:
     from sqlalchemy.exc import DBAPIError
 
     from labelqueue import create_run, session_factory
-    from labelqueue.labelling import labelling_dataset, labelling_run
+    from rundata.labelling import labelling_dataset, labelling_run
     from runvocab.names import ConfigError
 
     overrides = _overrides(args.set)

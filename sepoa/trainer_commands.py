@@ -291,7 +291,7 @@ def _reward_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _run_reward_fit(args: argparse.Namespace) -> int:
-    from labelqueue.dataset import DatasetError, read_dataset
+    from rundata.dataset import DatasetError, read_dataset
 
     if args.device not in ("cpu", "cuda"):
         return fail(f"--device {args.device!r}: give cpu or cuda")

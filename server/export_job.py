@@ -18,15 +18,16 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from labelqueue import ExportFormat, make_engine, session_factory, write_export
+from labelqueue import make_engine, session_factory
+from rundata.label_files import ExportFormat, write_export
 from server.side_process import side_process_pool
 
 
 def write_export_file(
     *, database_url: str, fmt: ExportFormat | str, path: str, run_id: int | None
 ) -> int:
-    """`labelqueue.write_export` of the database at `database_url` into the file `path`; rows
-    written. Runs in the export process: it opens its own engine."""
+    """`rundata.label_files.write_export` of the database at `database_url` into the file
+    `path`; rows written. Runs in the export process: it opens its own engine."""
     engine = make_engine(database_url)
     try:
         with session_factory(engine)() as session, open(path, "wb") as out:
@@ -37,11 +38,11 @@ def write_export_file(
 
 def write_dataset_zip(*, database_url: str, clips_root: str, run_id: int,
                       dataset_id: str | None, path: str, data_format: str = "arrow") -> str:
-    """Run `run_id`'s Minari dataset (`labelqueue.dataset.write_dataset`, in Minari's
+    """Run `run_id`'s Minari dataset (`rundata.dataset.write_dataset`, in Minari's
     `data_format`) as the zip file
     `path`, its members under `<dataset id>/`, so that it unpacks into a Minari datasets
     folder; the dataset id. Runs in the export process."""
-    from labelqueue.dataset import write_dataset
+    from rundata.dataset import write_dataset
 
     engine = make_engine(database_url)
     try:

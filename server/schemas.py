@@ -184,7 +184,7 @@ and `-` joined by `/`, none starting with a dot"""
 class LabellingRunCreate(Body):
     """A labelling-only run over a dataset export in the server's datasets folder
     (`<data dir>/datasets`, where `sepoa export --dataset data/datasets` writes): rounds of pairs
-    of its episodes for people to label, no training (`labelqueue.labelling`)."""
+    of its episodes for people to label, no training (`rundata.labelling`)."""
 
     dataset: str = Field(min_length=1, max_length=300, pattern=DATASET_ID_PATTERN,
                          examples=["sepoa/dmc-cheetah_run/run-3-v0"])

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from labelqueue import create_run, make_engine, migrate, session_factory
-from labelqueue.dataset import INFO_FILE, write_dataset
-from labelqueue.episodes import StoredEpisode, episodes_dir, write_episode
+from rundata.dataset import INFO_FILE, write_dataset
+from rundata.episodes import StoredEpisode, episodes_dir, write_episode
 
 TASK = "dmc:cheetah_run"
 
@@ -97,7 +97,7 @@ def malformed_copies(source: Path, folder: Path) -> dict[str, tuple[Path, str]]:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from labelqueue.dataset import QUERIES_FILE, QUERY_TABLE_COLUMNS
+    from rundata.dataset import QUERIES_FILE, QUERY_TABLE_COLUMNS
 
     def copy(name: str) -> Path:
         path = folder / name

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from labelling_helpers import exported_dataset
 
-from labelqueue.dataset import read_dataset
+from rundata.dataset import read_dataset
 
 DATASET_ID = "sepoa/dmc-walker_walk/run-1-v0"
 EPISODES, LENGTH = 3, 50

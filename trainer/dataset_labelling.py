@@ -1,6 +1,6 @@
 """A labelling-only run: rounds of pairs drawn from an existing dataset's episodes, no training.
 
-The worker serves a run made by `labelqueue.labelling.create_labelling_run` with this instead
+The worker serves a run made by `rundata.labelling.create_labelling_run` with this instead
 of `trainer.loop.TrainingRun`, through the same hooks (`trainer.worker.QueueHooks`): each round
 is opened by `PreferenceFeedback` on a pool that holds every episode of the dataset (uniformly
 for the first round, then by the run's `feedback.selection`: the disagreement of the reward
@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from labelqueue.dataset import EPISODES_FILE, LabelledDataset, read_dataset
-from labelqueue.episodes import end_path, write_end_state
+from rundata.dataset import EPISODES_FILE, LabelledDataset, read_dataset
+from rundata.episodes import end_path, write_end_state
 from runvocab.config import RunConfig, save_json
 from trainer.checkpoint import load_checkpoint, save_checkpoint
 from trainer.envs import make_env
@@ -45,7 +45,7 @@ STATE_FORMAT = "sepoa.dataset_labelling"
 class DatasetLabelling:
     """Serves a labelling run's rounds over `dataset` (a dataset export's folder) until its
     budget is spent or the hooks ask it to stop. `episode_store`: the run's episode store
-    (`labelqueue.episodes`); each episode's final state is kept there, so the episodes the
+    (`rundata.episodes`); each episode's final state is kept there, so the episodes the
     run's queries point into are stored as exactly as a training run stores its own."""
 
     def __init__(self, cfg: RunConfig, dataset: str, *, resume: bool = False,

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from labelqueue.dataset import DatasetError, LabelledDataset
+from rundata.dataset import DatasetError, LabelledDataset
 from runvocab.answers import Answer
 from runvocab.config import RewardConfig
 from trainer.reward_file import save_ensemble

@@ -101,7 +101,9 @@ from labelqueue import (
     submit_label,
     write_metrics,
 )
-from labelqueue.episodes import (
+from labelqueue.models import SCRIPTED_TEACHER
+from labelqueue.run_config import run_config as stored_run_config
+from rundata.episodes import (
     StoredEpisode,
     episode_path,
     episodes_dir,
@@ -109,8 +111,6 @@ from labelqueue.episodes import (
     write_end_state,
     write_episode,
 )
-from labelqueue.models import SCRIPTED_TEACHER
-from labelqueue.run_config import run_config as stored_run_config
 from runvocab.answers import aggregate, click_of_answer
 from runvocab.config import RunConfig, apply_overrides
 from runvocab.query_fields import QUERY_FIELDS
@@ -283,7 +283,7 @@ class QueueHooks(RunHooks):
         self.episode_end: Callable[[], np.ndarray] | None = None
         """the training env's physics state, read as an episode ends (set once it is built)"""
         self.episodes = episodes_dir(worker.clips_root, run.id)
-        """the run's episode store (`labelqueue.episodes`)"""
+        """the run's episode store (`rundata.episodes`)"""
         self.store_episodes = cfg.algo != "sac"
         """whether episodes are kept (a SAC run asks no queries, so none would be read)"""
 

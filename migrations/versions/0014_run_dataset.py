@@ -1,5 +1,5 @@
 """A run may label an existing dataset instead of training: `runs.dataset` holds the dataset
-export's folder its pairs are drawn from (`labelqueue.labelling`); null for a training run.
+export's folder its pairs are drawn from (`rundata.labelling`); null for a training run.
 
 Revision ID: 0014
 Revises: 0013

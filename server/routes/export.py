@@ -17,7 +17,8 @@ from typing import IO, Annotated, Literal
 from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import StreamingResponse
 
-from labelqueue import EXPORT_SCHEMA_VERSION, ExportFormat, check_database
+from labelqueue import EXPORT_SCHEMA_VERSION, check_database
+from rundata.label_files import ExportFormat
 from server.deps import OperatorDep, SettingsDep
 from server.export_job import ExportProcess
 from server.schemas import RunFilter, RunId, errors
@@ -103,7 +104,7 @@ def export_dataset(
 ) -> StreamingResponse:
     """The run's episodes and labels as a Minari dataset (docs/EXPORT.md), zipped under its
     dataset id: unzip it into a Minari datasets folder. 409 when the run kept no episodes."""
-    from labelqueue.dataset import DatasetError, NoEpisodes
+    from rundata.dataset import DatasetError, NoEpisodes
 
     export: ExportProcess = request.app.state.export_process
     handle, path = tempfile.mkstemp(prefix="sepoa-dataset-", suffix=".zip")

@@ -86,7 +86,7 @@ def create_labelling_run(spec: LabellingRunCreate, session: SessionDep, _: Opera
     `budget` answers. A dataset that is missing, of a task this server does not know, without
     physics states or whose spaces disagree with its `sepoa.json`, and rounds that do not fit
     its episodes, are a 422 naming the problem; nothing is stored."""
-    from labelqueue.labelling import create_labelling_run as create
+    from rundata.labelling import create_labelling_run as create
 
     root = settings.data_dir / "datasets"
     try:

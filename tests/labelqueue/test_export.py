@@ -21,7 +21,6 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from labelqueue import (
     EXPORT_COLUMNS,
-    EXPORT_FORMATS,
     EXPORT_SCHEMA_VERSION,
     NotFound,
     claim_run,
@@ -33,10 +32,11 @@ from labelqueue import (
     lease_next_query,
     push_queries,
     submit_label,
-    write_export,
 )
-from labelqueue.export import PARQUET_VERSION_KEY, parquet_schema
 from labelqueue.models import Query, utcnow
+from rundata import label_files
+from rundata.label_files import FORMATS as EXPORT_FORMATS
+from rundata.label_files import PARQUET_VERSION_KEY, parquet_schema, write_export
 from runvocab.query_fields import QUERY_FIELDS
 
 # How a declared query field's type is exported (docs/EXPORT.md's types).
@@ -366,7 +366,8 @@ def test_small_chunks_write_the_same_files(
 ) -> None:
     seed(session)
     whole = {fmt: written(session, fmt) for fmt in EXPORT_FORMATS}
-    monkeypatch.setattr(export, "CHUNK_ROWS", 3)
+    monkeypatch.setattr(export, "CHUNK_ROWS", 3)  # the rows read per transaction
+    monkeypatch.setattr(label_files, "CHUNK_ROWS", 3)  # the rows written per Parquet row group
     for fmt in ("jsonl", "csv"):
         assert written(session, fmt) == whole[fmt]
     data, count = written(session, "parquet")

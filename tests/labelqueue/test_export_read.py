@@ -10,9 +10,10 @@ import pytest
 from queue_helpers import running_run
 from sqlalchemy.orm import Session
 
-from labelqueue import create_labeller, lease_next_query, push_queries, submit_label, write_export
-from labelqueue.export_read import ExportFileError, read_export
+from labelqueue import create_labeller, lease_next_query, push_queries, submit_label
 from labelstats.calibration import REQUIRED_COLUMNS, calibration_report
+from rundata.export_read import ExportFileError, read_export
+from rundata.label_files import write_export
 
 
 def test_every_export_format_gives_the_same_report(session: Session, tmp_path: Path) -> None:

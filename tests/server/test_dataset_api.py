@@ -15,7 +15,7 @@ from server_helpers import OPERATOR, bearer, new_labeller, running_run_with_quer
 from sqlalchemy.orm import Session
 from test_export_api import answer
 
-from labelqueue.episodes import StoredEpisode, episodes_dir, write_episode
+from rundata.episodes import StoredEpisode, episodes_dir, write_episode
 from server.settings import Settings
 
 

@@ -32,9 +32,8 @@ from labelqueue import (
     export_rows,
     push_queries,
     set_clips,
-    write_export,
 )
-from labelqueue.export import PARQUET_VERSION_KEY
+from rundata.label_files import PARQUET_VERSION_KEY, write_export
 from server.settings import Settings
 
 NAMES = [column.name for column in EXPORT_COLUMNS]

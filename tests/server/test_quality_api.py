@@ -17,8 +17,8 @@ from server_helpers import OPERATOR, bearer, new_labeller, new_run
 from sqlalchemy.orm import Session
 
 from labelqueue import claim_run, export_rows, push_queries, set_clips
-from labelqueue.export_read import read_export
 from labelstats.calibration import calibration_report
+from rundata.export_read import read_export
 from server import curves
 from server.settings import Settings
 from server.side_process import NICENESS

@@ -26,11 +26,11 @@ from labelqueue import (
     migrate,
     push_queries,
     session_factory,
-    write_export,
 )
 from labelstats.agreement import agreement_report
 from labelstats.calibration import calibration_report
 from labelstats.labeller_quality import labeller_quality
+from rundata.label_files import write_export
 from sepoa.cli import main
 
 R_AVG = 100.0

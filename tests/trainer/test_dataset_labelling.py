@@ -35,8 +35,8 @@ from labelqueue import (
     set_run_status,
     submit_label,
 )
-from labelqueue.dataset import read_dataset, write_dataset
-from labelqueue.labelling import create_labelling_run
+from rundata.dataset import read_dataset, write_dataset
+from rundata.labelling import create_labelling_run
 from trainer.clips import ClipConfig, encode_mp4, iter_segment_frames, sized
 from trainer.envs import make_env
 from trainer.reward_fit import fit

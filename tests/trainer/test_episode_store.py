@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from labelqueue.episodes import read_episode, stored_trajectories, write_episode
+from rundata.episodes import read_episode, stored_trajectories, write_episode
 from trainer.envs import make_env
 from trainer.trajectories import EpisodeRecorder
 from trainer.worker import stored_episode

@@ -14,7 +14,7 @@ from web_helpers import LiveServer
 from worker_helpers import settle_labels, worker_config
 
 from labelqueue import RunStatus, claim_run
-from labelqueue.dataset import read_dataset
+from rundata.dataset import read_dataset
 from trainer.worker import scripted_labeller_id, train_claimed_run
 
 DATASET = "sepoa/dmc-cheetah_run/imported-v0"

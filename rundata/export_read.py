@@ -14,7 +14,8 @@ import os
 from collections.abc import Callable
 from typing import Any
 
-from labelqueue.export import COLUMNS, FORMATS
+from labelqueue.export import COLUMNS
+from rundata.label_files import FORMATS
 
 _SUFFIXES = {".jsonl": "jsonl", ".ndjson": "jsonl", ".csv": "csv", ".parquet": "parquet"}
 _PARQUET_MAGIC = b"PAR1"

@@ -2,7 +2,7 @@
 
 The worker keeps them beside the run's clips, `<clips folder>/run-<id>/episodes/`, because that
 folder is the store both the trainer and the server reach (one machine's data folder, or a
-shared volume): the dataset export (`labelqueue.dataset`) reads them there. Files:
+shared volume): the dataset export (`rundata.dataset`) reads them there. Files:
 
 - `episode-<n>.npz`: trajectory n of the run (its running episode number), written when a
   round first puts one of its segments to labellers (a query or a gold pair), before the

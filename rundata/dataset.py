@@ -4,10 +4,10 @@
 
 writes `datasets/sepoa/dmc-cheetah_run/run-3-v0/`, a local Minari dataset (arrow storage, or
 HDF5 with `data_format="hdf5"`; its `env_spec` names the task's environment,
-`labelqueue.dataset_env`):
+`rundata.dataset_env`):
 
 - `data/`: Minari's own files. One Minari episode per episode of the run that a query points
-  into (the run's episode store, `labelqueue.episodes`), in the run's order: observations
+  into (the run's episode store, `rundata.episodes`), in the run's order: observations
   (T + 1), actions, true rewards, terminations (never: the project's episodes end by time),
   truncations (the last step), and per step `infos["state"]` (the physics state at each
   observation, so any segment renders again) and `infos["context"]` (Metaworld's goal variant),
@@ -39,12 +39,12 @@ from typing import Any
 import numpy as np
 from sqlalchemy.orm import Session
 
-from labelqueue.dataset_env import env_spec, requirements
-from labelqueue.episodes import StoredEpisode, episodes_dir, read_episode, stored_trajectories
 from labelqueue.errors import NotFound
 from labelqueue.export import QUERY_COLUMNS, SCHEMA_VERSION, export_rows
 from labelqueue.models import Run
 from labelqueue.transaction import reading
+from rundata.dataset_env import env_spec, requirements
+from rundata.episodes import StoredEpisode, episodes_dir, read_episode, stored_trajectories
 from runvocab.config import to_dict
 from runvocab.names import ConfigError
 from runvocab.queued_run import queued_run_config
@@ -273,7 +273,7 @@ def _write_tables(tmp: Path, labels: list[dict[str, Any]], queries: list[dict[st
     import pyarrow as pa  # type: ignore[import-untyped]
     import pyarrow.parquet as pq  # type: ignore[import-untyped]
 
-    from labelqueue.export import parquet_schema
+    from rundata.label_files import parquet_schema
 
     meta = {"sepoa.dataset.version": str(DATASET_VERSION)}
     base = parquet_schema()

@@ -10,7 +10,7 @@ renders their clips from the episodes' stored physics states, and serves rounds 
 budget is spent. The label page, the label export and the dataset export are those of any run;
 a query's `first_trajectory`/`second_trajectory` is the dataset's episode id.
 
-The dataset is checked here, before anything is stored (`labelqueue.dataset.read_dataset`: a
+The dataset is checked here, before anything is stored (`rundata.dataset.read_dataset`: a
 task this project knows, physics states, spaces that agree with its `sepoa.json`), and so is
 the run's configuration (resolved and stored by `create_run`), so a run no worker could serve
 is refused with one line naming the problem. The run stores the dataset's absolute folder
@@ -26,11 +26,11 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
-from labelqueue.dataset import DatasetError, LabelledDataset, read_dataset
 from labelqueue.instructions import checked_instruction
 from labelqueue.models import Run
 from labelqueue.run_config import resolve
 from labelqueue.runs import create_run
+from rundata.dataset import DatasetError, LabelledDataset, read_dataset
 from runvocab.clip_format import parse_clip_size
 from runvocab.config import build_config
 from runvocab.names import ConfigError
