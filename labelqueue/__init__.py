@@ -2,26 +2,20 @@
 
 Tables are in `models`; the operations on them, each one atomic transaction (see
 `transaction`), are in `labellers`, `runs`, `queries`, `labels` and `metrics`; engines,
-sessions and migrations in `db`. Import what you need from here.
+sessions in `engine` (SQLite's writer in `sqlite_writer`), the database's URL in `db_url`,
+migrations and health checks in `schema`. Import what you need from here.
 """
 
-from labelqueue.db import (
+from labelqueue.db_url import (
     DEFAULT_URL,
-    WriterBusy,
-    check_database,
     check_url,
     database_url,
-    integrity_problem,
-    make_engine,
     mask_url,
-    migrate,
     read_url_file,
-    schema_revisions,
-    session_factory,
     sqlite_url,
     url_has_secret,
-    without_waiting,
 )
+from labelqueue.engine import make_engine, session_factory
 from labelqueue.errors import (
     Conflict,
     InvalidTransition,
@@ -120,6 +114,8 @@ from labelqueue.runs import (
     set_teacher,
     silent_holders,
 )
+from labelqueue.schema import check_database, integrity_problem, migrate, schema_revisions
+from labelqueue.sqlite_writer import WriterBusy, without_waiting
 from labelqueue.transaction import reading
 from labelqueue.undo import (
     SETTLE_SECONDS,

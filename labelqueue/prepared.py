@@ -3,9 +3,9 @@
 A `Prepared` statement is compiled once per dialect. Each execution then converts the caller's
 values with the column types' own bind processors, hands the SQL to the driver, and converts the
 rows with the types' result processors: what SQLAlchemy's execution does, without its
-per-execution machinery (cache key, execution context, parameter and result objects). On the
-label API's hot path that machinery cost about 65 µs a statement, against 3.5 µs for the driver's
-own work (benchmarks/README.md), on SQLite and PostgreSQL alike.
+per-execution machinery (cache key, execution context, parameter and result objects), which on
+the label API's hot path costs many times the driver's own work, on SQLite and PostgreSQL alike
+(benchmarks/README.md has the figures).
 
 Only plain statements are taken, checked when first compiled: every parameter is either a
 literal of the statement or one the caller must give (no expanding IN lists, no values rendered

@@ -7,8 +7,8 @@ touches the database again (so never reopens a transaction), and changing them c
 
 Races are decided by the database: each state change is a conditional UPDATE whose WHERE clause
 restates the condition it relies on, and the number of rows it changed says who won. On SQLite
-the writing transactions also run one at a time (see `labelqueue.db`); on PostgreSQL a losing
-UPDATE waits for the winner, re-checks its WHERE on the new row and changes nothing.
+the writing transactions also run one at a time (see `labelqueue.sqlite_writer`); on PostgreSQL
+a losing UPDATE waits for the winner, re-checks its WHERE on the new row and changes nothing.
 
 Operations that only read run in `reading(session)`: on SQLite a deferred, query-only
 transaction that takes no lock, so it runs beside a writer (WAL) and never makes one wait.
@@ -28,10 +28,10 @@ from typing import Any, TypeVar, cast
 from sqlalchemy import CursorResult, Engine, Update
 from sqlalchemy.orm import ClassManager, Session, class_mapper
 
-from labelqueue.db import READ_ONLY, begin_sqlite
 from labelqueue.errors import NotFound
 from labelqueue.models import Base
 from labelqueue.prepared import DriverConnection, traced
+from labelqueue.sqlite_writer import READ_ONLY, begin_sqlite
 
 M = TypeVar("M", bound=Base)
 
@@ -69,7 +69,7 @@ def driver_transaction(session: Session) -> Iterator[DriverConnection]:
     `Prepared` statements: committed when the block ends, rolled back when it raises.
 
     SQLAlchemy's transaction is skipped (on SQLite the same begin as theirs,
-    `labelqueue.db.begin_sqlite`; psycopg begins at the first statement), and so is its
+    `labelqueue.sqlite_writer.begin_sqlite`; psycopg begins at the first statement), and so is its
     Connection unless something traces the engine (`prepared.traced`): on the label API's hot
     path they cost more than the statements. A session with a transaction open, or bound to a
     connection rather than an engine, runs the block in its own transaction instead.

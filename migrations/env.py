@@ -9,7 +9,8 @@ from logging.config import fileConfig
 
 from alembic import context
 
-from labelqueue.db import DEFAULT_URL, make_engine
+from labelqueue.db_url import DEFAULT_URL
+from labelqueue.engine import make_engine
 from labelqueue.models import Base, UTCDateTime
 
 config = context.config

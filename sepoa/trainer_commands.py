@@ -229,7 +229,8 @@ def _doctor_arguments(p: argparse.ArgumentParser) -> None:
 def _check_queue_database(url: str) -> int:
     """The doctor's first line: whether SQLite's integrity check finds the queue database
     damaged (then it says so, in one line, and the doctor stops: exit 2)."""
-    from labelqueue.db import check_database, mask_url, sqlite_file
+    from labelqueue.db_url import mask_url
+    from labelqueue.schema import check_database, sqlite_file
 
     path = sqlite_file(url)
     if path is None:
@@ -247,7 +248,7 @@ def _check_queue_database(url: str) -> int:
 
 
 def _run_doctor(args: argparse.Namespace) -> int:
-    from labelqueue.db import check_url, sqlite_url
+    from labelqueue.db_url import check_url, sqlite_url
     from trainer.doctor import BACKENDS, TASKS, run_doctor
 
     if not 16 <= args.size <= 2048 or args.frames < 0:

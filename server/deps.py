@@ -265,14 +265,12 @@ class LabellerCall:
 
     async def serve(self, service: Callable[..., T], /, **kwargs: Any) -> T:
         """`service(session, settings=..., labeller_id=..., token_hash=..., **kwargs)` in a
-        session of its own
-        on the app's executor for queue work, awaited.
+        session of its own on the app's executor for queue work, awaited.
 
-        A plain executor hand-off costs about half of FastAPI's for a `def` route (AnyIO's
-        worker threads, capacity limiter and cancel scopes), on each of next and submit. On
-        SQLite the executor has one thread (`Settings.label_threads`), and with `inline` the
-        work runs on the event loop itself when it can (`LabelThreads.serve`): it takes a few
-        hundred microseconds, less than the hand-off."""
+        A plain executor hand-off, not FastAPI's for a `def` route (AnyIO's worker threads,
+        capacity limiter and cancel scopes cost more). On SQLite the executor has one thread
+        (`Settings.label_threads`), and with `inline` the work runs on the event loop itself
+        when it can (`LabelThreads.serve`): it is shorter than the hand-off."""
         work = partial(self._in_session, service, kwargs)
         return await label_work(self.threads, work, inline=self.inline)
 

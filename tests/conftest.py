@@ -20,7 +20,7 @@ def migrated_sqlite_template(tmp_path_factory: pytest.TempPathFactory) -> Iterat
     targets (the migration tests' up- and downgrades) go the usual way, as do subprocesses."""
     from alembic import command
 
-    from labelqueue.db import alembic_config, sqlite_file
+    from labelqueue.schema import alembic_config, sqlite_file
 
     built = tmp_path_factory.mktemp("migrated") / "built.db"
     command.upgrade(alembic_config(f"sqlite:///{built}"), "head")

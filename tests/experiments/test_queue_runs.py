@@ -348,7 +348,7 @@ def test_status_of_a_sqlite_database_on_an_older_schema_reads_a_migrated_copy(
     reads a migrated copy and says so, leaving the database at its own revision."""
     from alembic import command
 
-    from labelqueue.db import alembic_config
+    from labelqueue.schema import alembic_config
 
     spec_path = write(tmp_path, TINY.format(steps=400, seeds="[0]")
                       + '[variants.PEBBLE]\nalgo = "pebble"\n')

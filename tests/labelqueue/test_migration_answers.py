@@ -10,7 +10,7 @@ from alembic.script import ScriptDirectory
 from sqlalchemy import create_engine, inspect, text
 
 from labelqueue import migrate
-from labelqueue.db import alembic_config
+from labelqueue.schema import alembic_config
 
 NOW = "2026-11-20 10:00:00.000000"
 # (choice, left_is_first, preferred as it was stored, source) -> the answer after the upgrade

@@ -33,8 +33,8 @@ from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session
 
 from labelqueue import Labeller, create_labeller, make_engine, migrate, reading
-from labelqueue.db import alembic_config
 from labelqueue.models import QUERIES, Base
+from labelqueue.schema import alembic_config
 from runvocab.answers import Answer
 from runvocab.query_fields import QUERY_FIELD_NAMES, QUERY_FIELDS, FieldType
 
