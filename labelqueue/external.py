@@ -208,6 +208,34 @@ def clip_key(run_id: int, clip_id: str, container: str) -> str:
     return f"external/{run_id}/{clip_id}.{container}"
 
 
+@dataclass(frozen=True)
+class ClipUse:
+    """An external run's status, and the uploaded clips its pairs name (their ids)."""
+
+    status: RunStatus
+    clip_ids: frozenset[str]
+
+    @property
+    def over(self) -> bool:
+        """The run takes no pairs now (stopped, finished or failed; a requeue runs it again)."""
+        return self.status not in (RunStatus.QUEUED, RunStatus.RUNNING, RunStatus.PAUSED)
+
+
+def clip_use(session: Session) -> dict[int, ClipUse]:
+    """Per external run: its status and the ids of the uploaded clips its pairs name."""
+    with reading(session):
+        statuses = dict(session.execute(select(Run.id, Run.status).where(Run.algo == EXTERNAL))
+                        .tuples().all())
+        named = session.execute(
+            select(QUERIES.c.run_id, QUERIES.c.first_clip, QUERIES.c.second_clip)
+            .where(QUERIES.c.run_id.in_(list(statuses)), QUERIES.c.rule == EXTERNAL)).all()
+    ids: dict[int, set[str]] = {run_id: set() for run_id in statuses}
+    for run_id, *keys in named:
+        ids[run_id].update(key.rpartition("/")[2].partition(".")[0] for key in keys if key)
+    return {run_id: ClipUse(RunStatus(status), frozenset(ids[run_id]))
+            for run_id, status in statuses.items()}
+
+
 def _check_pair(index: int, pair: PairSpec, clips: Mapping[str, ClipInfo]) -> None:
     where = f"pairs[{index}] ({pair.key!r})"
     if not 1 <= len(pair.key) <= KEY_MAX:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 from collections.abc import AsyncIterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
@@ -35,6 +37,7 @@ from server.routes import (
 )
 from server.routes import export as export_routes
 from server.settings import Settings, get_settings
+from server.upload_sweep import sweep_forever
 
 if TYPE_CHECKING:
     from fastapi.telemetry import TelemetryConfig
@@ -58,9 +61,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.label_threads = LabelThreads(
             ThreadPoolExecutor(settings.label_thread_count, "label-api")
         )
+        sweeper = asyncio.create_task(sweep_forever(app.state.sessions, settings))
         try:
             yield
         finally:
+            sweeper.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await sweeper
             app.state.label_threads.executor.shutdown()
             app.state.export_process.close()
             curves.close()

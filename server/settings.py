@@ -47,6 +47,11 @@ class Settings(BaseSettings):
     """the longest clip an external run's client may upload"""
     clip_max_frames: int = Field(default=1000, ge=1)
     """the most frames a clip an external run's client uploads may hold"""
+    unused_upload_hours: float = Field(default=24.0, gt=0)
+    """an external run's uploaded clip that no pair names is deleted this long after its last
+    upload, or at the next sweeps once its run is stopped (`server.upload_sweep`)"""
+    upload_sweep_seconds: float = Field(default=600.0, gt=0)
+    """how often the server looks for unused uploads (deleting one takes two looks)"""
     join_per_s: float = Field(default=1.0, gt=0)
     """joins by one invite link a second, after a burst of `join_burst` (429 beyond)"""
     join_burst: int = Field(default=30, ge=1)

@@ -63,6 +63,7 @@ from server.external_schemas import (
 )
 from server.schemas import INT32_MAX, RunId, RunOut, errors
 from server.settings import Settings
+from server.upload_sweep import upload_lock
 
 router = APIRouter(prefix="/api/runs", tags=["external runs"], responses=errors(401, 403))
 
@@ -188,10 +189,18 @@ def store_clip(settings: Settings, run_id: int, body: bytes, kind: str, fps: flo
     if not body:
         raise ValueError("the body is empty: send the clip's bytes")
     clip_id = hashlib.sha256(body).hexdigest()[:32]
+    folder = _folder(settings, run_id)
+    note = folder / f"{clip_id}.json"
     info = stored_clip(settings, run_id, clip_id)
+    if info is not None:
+        with upload_lock(folder):
+            try:
+                os.utime(note)  # uploaded again: its age as an unused upload starts again
+            except FileNotFoundError:
+                info = None  # the sweep has just taken it: store it again
     if info is None:
-        folder = _folder(settings, run_id)
         tmp = folder / f".{clip_id}.{uuid.uuid4().hex[:8]}.tmp.{'mp4' if kind == NPY else kind}"
+        note_tmp = note.with_name(f".{note.name}.{uuid.uuid4().hex[:8]}.tmp")
         try:
             if kind == NPY:
                 frames = _frames(body, settings)
@@ -207,13 +216,13 @@ def store_clip(settings: Settings, run_id: int, body: bytes, kind: str, fps: flo
             if info.seconds > settings.clip_max_seconds:
                 raise ValueError(f"the clip lasts {info.seconds:.1f} s; at most "
                                  f"{settings.clip_max_seconds:.0f} s")
-            os.replace(tmp, settings.clips_root / clip_key(run_id, clip_id, info.container))
-            note = folder / f"{clip_id}.json"
-            note_tmp = note.with_name(f".{note.name}.{uuid.uuid4().hex[:8]}")
             note_tmp.write_text(json.dumps(info.as_json()))
-            os.replace(note_tmp, note)  # last: a clip is uploaded once its note exists
+            with upload_lock(folder):  # not while the sweep deletes an older copy
+                os.replace(tmp, settings.clips_root / clip_key(run_id, clip_id, info.container))
+                os.replace(note_tmp, note)  # last: a clip is uploaded once its note exists
         finally:
             tmp.unlink(missing_ok=True)
+            note_tmp.unlink(missing_ok=True)
     return ClipOut(clip_id=clip_id, **info.as_json())
 
 
@@ -235,7 +244,8 @@ async def upload_clip(
     3), as `numpy.save` writes it), encoded with the app's own clip encoder (h264, yuv420p).
     Its id names it in `POST /api/runs/{id}/pairs`; the same bytes again give the same id
     (200). An unreadable file, a codec browsers do not play, a clip over a limit: 422, nothing
-    kept."""
+    kept. A clip no pair names is deleted `unused_upload_hours` after its last upload, or once
+    its run is stopped (`server.upload_sweep`)."""
     content_type = request.headers.get("content-type", "").partition(";")[0].strip().lower()
     kind = NPY if content_type == NPY else VIDEO_TYPES.get(content_type)
     if kind is None:
