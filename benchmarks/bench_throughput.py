@@ -10,7 +10,7 @@ the CPU time of the process (SQLite's work included):
 - "Python": every label of the run read and bucketed in Python (how the endpoint worked before),
   withdrawn labels left out, the median of the latest 1000 human answer times;
 - "SQL": the counts per bucket and source and the median answer time worked out in SQL
-  (`server.routes.stats._throughput`), what a poll costs after a new label;
+  (`labelqueue.label_throughput`), what a poll costs after a new label;
 - "SQL, unchanged": the endpoint's function when no label came or went since the last poll
   (the run, and the labels' fingerprint, read; the answer kept from the last poll).
 
@@ -41,7 +41,17 @@ from bench_label_api import fresh_database, query_spec
 from sqlalchemy import insert, select
 from sqlalchemy.orm import Session
 
-from labelqueue import Label, LabelSource, Query, Run, create_labeller, make_engine, session_factory
+from labelqueue import (
+    Label,
+    LabelSource,
+    Query,
+    Run,
+    create_labeller,
+    label_throughput,
+    make_engine,
+    session_factory,
+)
+from labelqueue.label_stats import MEDIAN_OF
 from server import services
 from server.routes import stats
 from server.schemas import Throughput, ThroughputBucket
@@ -62,7 +72,7 @@ def python_throughput(session: Session, *, run_id: int, bucket_s: int) -> Throug
     per_bucket = Counter(bucket(answered) for _, _, answered in rows)
     by_source = Counter(LabelSource(source).value for source, _, _ in rows)
     answer_s = [(answered - shown).total_seconds() for source, shown, answered in rows
-                if source == LabelSource.HUMAN and shown is not None][-stats.MEDIAN_OF:]
+                if source == LabelSource.HUMAN and shown is not None][-MEDIAN_OF:]
     return Throughput(
         run_id=run_id, bucket_s=bucket_s, total=len(rows),
         by_source={source.value: by_source[source.value] for source in LabelSource},
@@ -73,9 +83,10 @@ def python_throughput(session: Session, *, run_id: int, bucket_s: int) -> Throug
 
 def sql_throughput(session: Session, *, run_id: int, bucket_s: int) -> Throughput:
     """The SQL computation on every call (a poll after a new label)."""
-    services.get_run(session, run_id=run_id)
-    with services.reading(session):
-        return stats._throughput(session, run_id=run_id, bucket_s=bucket_s)
+    counted = label_throughput(session, run_id=run_id, bucket_s=bucket_s)
+    return Throughput(run_id=run_id, bucket_s=bucket_s, total=counted.total,
+                      by_source=counted.by_source, median_answer_s=counted.median_answer_s,
+                      buckets=[ThroughputBucket(t=t, labels=n) for t, n in counted.buckets])
 
 
 def seed(url: str, n: int, hours: float, rng: random.Random) -> int:
@@ -138,7 +149,7 @@ def main() -> None:
         sides: dict[str, Callable[..., Throughput]] = {
             "Python (every label read)": python_throughput,
             "SQL": sql_throughput,
-            "SQL, unchanged since last poll": stats.label_throughput,
+            "SQL, unchanged since last poll": stats.run_throughput,
         }
         with sessions() as session:
             answers = {name: side(session, run_id=run_id, bucket_s=args.bucket_s)

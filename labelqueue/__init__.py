@@ -62,6 +62,7 @@ from labelqueue.invites import (
     verify_code,
 )
 from labelqueue.keys import server_key
+from labelqueue.label_stats import LabelThroughput, label_throughput, labels_given
 from labelqueue.labellers import (
     authenticate,
     create_labeller,
@@ -127,6 +128,9 @@ from labelqueue.undo import (
 )
 
 __all__ = [
+    "LabelThroughput",
+    "label_throughput",
+    "labels_given",
     "DEAD_WORKER_AFTER_S",
     "DEFAULT_URL",
     "EXPORT_COLUMNS",
