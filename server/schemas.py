@@ -331,9 +331,10 @@ class NextQuery(BaseModel):
     left_is_first: bool
     """the sides this server chose for the labeller: whether the first segment is on the left"""
     segment_length: int
-    left_start_step: int
-    """the step of its episode the left clip starts at (the player shows it)"""
-    right_start_step: int
+    left_start_step: int | None
+    """the step of its episode the left clip starts at (the player shows it); null when the
+    clip is no known part of an episode (an external run's upload)"""
+    right_start_step: int | None
     practice: PracticeOut | None = None
     """a pair of the labeller's practice round on the run (`feedback.practice_pairs`): its
     answer is explained once given; null for any other pair"""

@@ -26,7 +26,7 @@ from labelqueue import (
     withdraw_label,
 )
 from labelqueue import reading as reading  # the routes' own reads (stats, curves) use it too
-from labelqueue.external import known_answer
+from labelqueue.external import EXTERNAL, known_answer
 from labelqueue.practice import explain, practice_step
 from runvocab.answers import Answer
 from server import clips
@@ -133,6 +133,11 @@ def shown_query(*, settings: Settings, query: Query, labeller_id: int,
         side: clips.signed_clip_url(settings=settings, query_id=query.id, side=side, now=now)
         for side in clips.SIDES
     }
+    starts: tuple[int | None, int | None] = (
+        (query.first_start, query.second_start) if first_left
+        else (query.second_start, query.first_start))
+    if query.rule == EXTERNAL:  # its client's uploads: of no step of an episode we know
+        starts = (None, None)
     return NextQuery(
         query_id=query.id,
         run_id=query.run_id,
@@ -141,8 +146,8 @@ def shown_query(*, settings: Settings, query: Query, labeller_id: int,
         right_clip_url=urls["second" if first_left else "first"],
         left_is_first=first_left,
         segment_length=query.segment_length,
-        left_start_step=query.first_start if first_left else query.second_start,
-        right_start_step=query.second_start if first_left else query.first_start,
+        left_start_step=starts[0],
+        right_start_step=starts[1],
         practice=practice_of(session, query=query) if query.practice else None,
     )
 

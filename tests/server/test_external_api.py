@@ -90,6 +90,9 @@ def test_pushed_frames_are_labelled_on_the_label_page_and_the_answers_come_back(
         assert shown.json()["query_id"] == query["query_id"]
         # The hidden metadata never reaches a labeller's browser.
         assert SECRET_ID not in shown.text and "987.125" not in shown.text
+        # An uploaded clip is of no episode step the server knows: it states none.
+        assert (shown.json()["left_start_step"], shown.json()["right_start_step"]) == (
+            None, None)
         clip = client.get(shown.json()["left_clip_url"])
         assert clip.status_code == 200 and clip.headers["content-type"] == "video/mp4"
         path = settings.data_dir / f"{name}.mp4"

@@ -1,6 +1,6 @@
 """An external run's pushed clips in a real headless Chromium: frame arrays a client pushed with
 `sepoa.client` decode and play on the label page, and the answer given there comes back to the
-client with the pair's key."""
+client with the pair's key; the page names no episode step for them."""
 
 from __future__ import annotations
 
@@ -47,6 +47,8 @@ def test_pushed_frames_play_on_the_label_page_and_the_answer_reaches_the_client(
                            "[v.videoWidth, v.videoHeight])")
     assert widths == [[96, 96], [96, 96]]
     assert "episodes" not in page.content()  # the hidden metadata stays on the server
+    # Its clips are the client's uploads: the page states no step of an episode it never knew.
+    assert page.inner_text("#clip-info").strip() == "Each clip: 30 steps"
     page.wait_for_selector('[data-choice="left"]:not([disabled])')  # played through once
     folder = os.environ.get("SEPOA_SCREENSHOT_DIR")
     if folder:

@@ -233,10 +233,15 @@ function seekFrame(frame) {
 
 const stepFrames = (n) => state.current && seekFrame(frameAt(state.current) + n);
 
-/** The clip's length and where each clip starts in its episode (top and bottom on a phone). */
+/** The clip's length and, when the server knows it, where each clip starts in its episode
+ * (top and bottom on a phone); an external run's clips are its client's, of no known step. */
 function showClipInfo(pair) {
   const { count } = frames(pair);
   const q = pair.query;
+  if (q.left_start_step == null || q.right_start_step == null) {
+    $("clip-info").replaceChildren(`Each clip: ${count} steps`);
+    return;
+  }
   const side = (wide, narrow) => [
     Object.assign(document.createElement("span"), { className: "wide", textContent: wide }),
     Object.assign(document.createElement("span"), { className: "narrow", textContent: narrow }),
