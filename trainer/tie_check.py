@@ -20,7 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from runvocab.instructions import OFTEN_SHARE, RARE_SHARE, tie_kind, tie_sentence
+from runvocab.instructions import tie_kind, tie_sentence
+from runvocab.tie_sentences import OFTEN_SHARE, RARE_SHARE
 
 POLICIES = ("random", "idle")
 

@@ -9,7 +9,8 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import pytest
 
-from runvocab.instructions import OFTEN_SHARE, tie_kind
+from runvocab.instructions import tie_kind
+from runvocab.tie_sentences import OFTEN_SHARE
 from trainer.tie_check import main, tie_shares
 
 
