@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import threading
 import time
+from dataclasses import asdict
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,9 @@ from sqlalchemy.orm import Session
 
 from labelqueue import Query, claim_run
 from labelqueue.clip_codec import probe_clip
+from labelstats.calibration import calibration_report
+from rundata.export_read import read_export
+from sepoa.client import Pair, Study
 from server.settings import Settings
 
 NPY = {"content-type": "application/x-npy"}
@@ -342,3 +346,53 @@ def test_a_wait_for_answers_ends_with_a_401_when_its_token_is_revoked(
     waiting.join(10)
     assert results and results[0].status_code == 401
     assert time.monotonic() - started < 5  # at its next look, not when the wait ends
+
+
+def test_the_calibration_report_reads_an_external_runs_answers_by_the_returns_its_client_pushed(
+    client: TestClient, tmp_path: Path
+) -> None:
+    run_id, auth = external_run(client, budget=40, labels_per_query=2, gold_rate=0.3)
+    study = Study("http://testserver", auth["Authorization"].removeprefix("Bearer "), run_id,
+                  client=client, progress=False)
+    rng = np.random.default_rng(5)
+    returns = {f"p{i}": (float(rng.uniform(50, 150)), float(rng.uniform(50, 150)))
+               for i in range(12)}
+    clips = [rng.integers(0, 255, (6, 32, 48, 3), dtype=np.uint8) for _ in range(4)]
+    # A gold pair known by its answer only: no returns, so the report counts its answers
+    # without truth.
+    pushed = study.ask([Pair(clips[i % 4], clips[(i + 1) % 4], key=key, returns=pair_returns)
+                        for i, (key, pair_returns) in enumerate(returns.items())]
+                       + [Pair(clips[0], clips[2], key="gold", gold="first")])
+    by_query = {query.query_id: returns.get(query.key) for query in pushed}
+
+    def truthful(shown: dict[str, Any]) -> str:
+        first, second = by_query[shown["query_id"]] or (1.0, 0.0)
+        return "left" if (first > second) == shown["left_is_first"] else "right"
+
+    for name, pick in (("truthful", truthful), ("lefty", lambda _shown: "left")):
+        token = bearer(new_labeller(client, name))
+        while (shown := client.get(f"/api/label/next?run_id={run_id}", headers=token)
+               ).status_code == 200:
+            assert answer(client, token, shown.json(), pick(shown.json())).status_code == 201
+    response = client.get(f"/api/quality/calibration?run_id={run_id}", headers=OPERATOR)
+    assert response.status_code == 200, response.text
+    report = response.json()
+    assert (report["runs"], report["rows"], report["without_truth"]) == ([run_id], 26, 2)
+    truth, lefty = report["labellers"]
+    assert (truth["name"], truth["rates"]["answers"], truth["rates"]["correct"]) == (
+        "truthful", 12, 12)
+    assert truth["rates"]["match_ratio"] == 1.0 and truth["fit"]["eps"] is not None
+    assert lefty["position"]["left_share"] == 1.0 and lefty["rates"]["answers"] == 12
+    assert lefty["rates"]["correct"] + lefty["rates"]["wrong"] == 12
+    [algo] = report["algos"]
+    assert (algo["algo"], algo["queries"], algo["rates"]["answers"]) == ("external", 12, 24)
+    # The same numbers as the report of the run's export, as for any run.
+    exported = client.get(f"/api/export?format=csv&run_id={run_id}", headers=OPERATOR)
+    assert exported.status_code == 200, exported.text
+    path = tmp_path / "labels.csv"
+    path.write_bytes(exported.content)
+    from_file = calibration_report(read_export(str(path)))
+    assert report["everyone"]["fit"]["eps"] == from_file.everyone.fit.eps
+    assert report["labellers"][0]["rates"] == asdict(from_file.labellers[0].rates)
+    png = client.get(f"/api/quality/calibration.png?run_id={run_id}", headers=OPERATOR)
+    assert png.status_code == 200 and png.content.startswith(b"\x89PNG")
