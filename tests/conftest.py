@@ -42,3 +42,11 @@ def migrated_sqlite_template(tmp_path_factory: pytest.TempPathFactory) -> Iterat
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(command, "upgrade", upgrade_from_template)
         yield template
+
+
+@pytest.fixture
+def secret_returns() -> dict[str, float]:
+    """The hidden ground truth pushed with the tests' pairs (`hidden_truth.SECRET_RETURNS`)."""
+    from hidden_truth import SECRET_RETURNS
+
+    return dict(SECRET_RETURNS)

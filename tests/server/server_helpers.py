@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from fastapi.testclient import TestClient
+from hidden_truth import SECRET_RETURNS
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -21,15 +22,6 @@ from labelqueue import (
 from server.settings import Settings
 
 OPERATOR_TOKEN = "test-operator-token-0123456789"
-# Ground truth with values no other field has, so a test can look for them in a response.
-SECRET_RETURNS = {
-    "first_segment_return": 987.125,
-    "second_segment_return": -654.375,
-    "first_trajectory_return": 4321.5,
-    "second_trajectory_return": -8765.25,
-    "model_p": 0.123456,
-    "score": 7.654321,
-}
 
 
 def bearer(token: str) -> dict[str, str]:

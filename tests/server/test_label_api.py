@@ -10,7 +10,6 @@ from typing import Any
 from fastapi.testclient import TestClient
 from server_helpers import (
     OPERATOR,
-    SECRET_RETURNS,
     bearer,
     new_labeller,
     new_run,
@@ -49,7 +48,7 @@ def label_count(session: Session) -> int:
 
 
 def test_a_labeller_answers_each_query_once_and_then_has_nothing_to_do(
-    client: TestClient, session: Session, settings: Settings
+    client: TestClient, session: Session, settings: Settings, secret_returns: dict[str, float]
 ) -> None:
     alice = bearer(new_labeller(client, "alice"))
     run_id, query_ids = running_run_with_queries(client, session, settings)
@@ -60,7 +59,7 @@ def test_a_labeller_answers_each_query_once_and_then_has_nothing_to_do(
     assert set(shown) == NEXT_KEYS
     assert shown["query_id"] == query_ids[0] and shown["run_id"] == run_id
     # No ground truth anywhere in what the browser gets, under any name.
-    for value in SECRET_RETURNS.values():
+    for value in secret_returns.values():
         assert str(value) not in response.text
     assert not {"return", "model_p", "score", "rule"} & set(json.dumps(shown).split('"'))
 

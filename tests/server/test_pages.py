@@ -7,7 +7,7 @@ import re
 
 import pytest
 from fastapi.testclient import TestClient
-from server_helpers import SECRET_RETURNS, running_run_with_queries
+from server_helpers import running_run_with_queries
 from sqlalchemy.orm import Session
 
 from server.settings import Settings
@@ -53,14 +53,14 @@ def test_each_page_is_html_whose_static_files_are_served(client: TestClient, pat
 
 
 def test_pages_and_their_scripts_hold_no_ground_truth(
-    client: TestClient, session: Session, settings: Settings
+    client: TestClient, session: Session, settings: Settings, secret_returns: dict[str, float]
 ) -> None:
     running_run_with_queries(client, session, settings)  # ground truth now in the database
     for path in PAGES:
         page = client.get(path).text
         texts = [page] + [client.get(link).text for link in static_links(client, page)]
         for text in texts:
-            assert not [v for v in SECRET_RETURNS.values() if str(v) in text], path
+            assert not [v for v in secret_returns.values() if str(v) in text], path
 
     label_page = client.get("/label").text
     for link in static_links(client, label_page) - {"/static/style.css"}:

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+from hidden_truth import SECRET_RETURNS
 from sqlalchemy.orm import Session, sessionmaker
 
 from labelqueue import claim_run, push_queries, set_clips
@@ -19,15 +20,6 @@ OPERATOR_TOKEN = "web-test-operator-token-0123456789"
 SECRET_KEY = "web-test-secret-key-0123456789"
 TASK = "dmc:cheetah_run"
 SEGMENT = 40  # steps per clip: 1.2 s at 100/3 fps, so a clip plays through quickly
-# Ground truth with values nothing else has, to look for in the page.
-SECRET_RETURNS = {
-    "first_segment_return": 987.125,
-    "second_segment_return": -654.375,
-    "first_trajectory_return": 4321.5,
-    "second_trajectory_return": -8765.25,
-    "model_p": 0.123456,
-    "score": 7.654321,
-}
 
 
 @dataclass(frozen=True)
