@@ -1,7 +1,7 @@
 """A query's fields as they cross the seam, declared once for the trainer, the queue and the export.
 
 A query (a pair of segments) goes from the trainer (`trainer.feedback.Query`) through the
-worker (`trainer.worker.queue_fields`) into the queue (`labelqueue.push_queries`, the `queries`
+worker (`trainer.queue_hooks.queue_fields`) into the queue (`labelqueue.push_queries`, the `queries`
 table) and out again in the export (`labelqueue.export`). Each field that crosses is declared
 here once, in `QUERY_FIELDS`: its name in the queue, its type, whether a push may leave it out,
 what it means, whether it is provenance, whether the export has it, and the trainer attribute it

@@ -1,7 +1,7 @@
 """A labelling-only run: rounds of pairs drawn from an existing dataset's episodes, no training.
 
 The worker serves a run made by `rundata.labelling.create_labelling_run` with this instead
-of `trainer.loop.TrainingRun`, through the same hooks (`trainer.worker.QueueHooks`): each round
+of `trainer.loop.TrainingRun`, through the same hooks (`trainer.queue_hooks.QueueHooks`): each round
 is opened by `PreferenceFeedback` on a pool that holds every episode of the dataset (uniformly
 for the first round, then by the run's `feedback.selection`: the disagreement of the reward
 ensemble refitted on every label so far), pushed to the queue with its clips rendered from the
@@ -86,6 +86,7 @@ class DatasetLabelling:
     def train(self) -> dict[str, float]:
         """Open, wait for and close rounds until the budget is spent (or a stop); the summary."""
         fb, hooks = self.feedback, self.hooks
+        hooks.started(self.step, None)
         if fb.pending:  # resumed inside a round
             hooks.round_opened(fb.pending, self.pool)
         while fb.pending or fb.budget_left > 0:

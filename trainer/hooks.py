@@ -2,19 +2,27 @@
 
 `TrainingRun` calls these at fixed points; the defaults run it standalone (never stop, keep
 metrics in files only, answer each round at once with the run's scripted teacher). The queue
-worker (`trainer.worker`) overrides them to obey operators, mirror metrics into the database
-and take answers from labellers.
+hooks (`trainer.queue_hooks`) override them to obey operators, mirror metrics into the database,
+keep episodes and take answers from labellers.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
+
+import numpy as np
 
 from trainer.feedback import GivenAnswer, PreferenceFeedback, Query
 from trainer.trajectories import TrajectoryPool
 
 
 class RunHooks:
+    def started(self, step: int, next_round_at: Callable[[], int] | None) -> None:
+        """The run starts training at `step` (a resumed run's, or 0). `next_round_at` reads the
+        step at which its next round opens (the loop's schedule; None where rounds follow one
+        another without steps in between)."""
+
     def stop_requested(self, step: int) -> bool:
         """Called between steps (keep it cheap). True: end the run at the end of this episode,
         after a checkpoint. May block, e.g. while an operator has the run paused."""
@@ -30,6 +38,10 @@ class RunHooks:
         training saved (`round_progress.RoundLeft`), rather than at the end of an episode the
         round would first have to finish."""
         return False
+
+    def episode_ended(self, episode: int, end_state: np.ndarray) -> None:
+        """The episode (the trajectory of that id) ended in `end_state`, the env's physics state
+        after its last step; called before its metric row is logged (keep it cheap)."""
 
     def metrics(self, stream: str, row: dict[str, Any]) -> None:
         """A metric row the run just logged (stream: episodes | eval | rounds)."""

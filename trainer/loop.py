@@ -48,7 +48,7 @@ import time
 
 import numpy as np
 import torch
-from tqdm import tqdm
+from tqdm import tqdm  # type: ignore[import-untyped]
 
 from runvocab.config import RunConfig, save_json
 from runvocab.validate import validate
@@ -65,11 +65,13 @@ from trainer.hooks import RunHooks
 from trainer.metrics import Metrics
 from trainer.phase_clock import PhaseClock
 from trainer.policies import EpisodeMeta, make_policy
+from trainer.replay_buffer import Batch
 from trainer.return_estimator import ReplayEpisodes
 from trainer.reward_model import RewardModel
 from trainer.round_progress import ROUND_PROGRESS, RoundLeft, RoundProgress
 from trainer.sac import UpdateMetrics
 from trainer.schedule import After, Every, Period, Until
+from trainer.skills import SkillReplayBuffer
 from trainer.teachers import make_teacher
 from trainer.trajectories import EpisodeRecorder, TrajectoryPool
 from trainer.true_reward_rounds import TrueRewardRounds
@@ -167,6 +169,7 @@ class TrainingRun:
         """R_theta's data when it is fitted on the replay buffer (`skill.estimator_data`)."""
         if self.policy.estimator is None or self.cfg.skill.estimator_data != "replay":
             return None
+        assert isinstance(self.buffer, SkillReplayBuffer)  # a policy with R_theta has skills
         return ReplayEpisodes(self.buffer, self.env.episode_length)
 
     # ----------------------------------------------------------------------------------------
@@ -180,7 +183,7 @@ class TrainingRun:
     def _update(self) -> UpdateMetrics:
         return self.policy.update(self._training_batch, self.reward.learned)
 
-    def _training_batch(self):
+    def _training_batch(self) -> Batch:
         return self.reward.batch(self.buffer.sample(self.cfg.sac.batch_size), self.step)
 
     def _log(self, stream: str, row: dict) -> None:
@@ -199,8 +202,15 @@ class TrainingRun:
             self.metrics.close()
             return self.summary() | {"round_epochs_saved": left.epochs}
 
+    def next_round_at(self) -> int:
+        """The step the next round opens at: the first episode end at or past
+        `next_round_step` (episodes have a fixed length)."""
+        length = self.env.episode_length
+        return -(-self.next_round_step // length) * length
+
     def _train(self) -> dict[str, float]:
         cfg, feedback = self.cfg, self.feedback
+        self.hooks.started(self.step, self.next_round_at)
         if feedback.pending:  # resumed inside a round
             self.hooks.round_opened(feedback.pending, self.pool)
             self._try_finish_round()
@@ -247,6 +257,7 @@ class TrainingRun:
                                             self.meta.skill)
                 self.pool.add(traj)
                 self.episode += 1
+                self.hooks.episode_ended(traj.id, self.env.physics_state())
                 fps = (self.step - start_step) / max(time.time() - start_time, 1e-9)
                 self._log("episodes", {
                     "step": self.step, "episode": self.episode, "return": episode_return,

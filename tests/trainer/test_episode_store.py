@@ -7,8 +7,8 @@ import numpy as np
 
 from rundata.episodes import read_episode, stored_trajectories, write_episode
 from trainer.envs import make_env
+from trainer.queue_hooks import stored_episode
 from trainer.trajectories import EpisodeRecorder
-from trainer.worker import stored_episode
 
 
 def _episode(length: int = 30):

@@ -24,7 +24,7 @@ from worker_helpers import (
     worker_config,
 )
 
-import trainer.worker
+import trainer.queue_hooks
 from labelqueue import Query, RunStatus, create_run, set_clips
 from server.app import create_app
 from server.settings import Settings
@@ -47,7 +47,7 @@ def test_a_labellers_view_tells_gold_pairs_from_the_others_in_no_way(tmp_path: P
         return set_clips(session, query_id=query_id, first_clip=first_clip,
                          second_clip=second_clip)
 
-    monkeypatch.setattr(trainer.worker, "set_clips", attach)
+    monkeypatch.setattr(trainer.queue_hooks, "set_clips", attach)
     settings = Settings(database_url=url, data_dir=data, operator_token=OPERATOR_TOKEN,
                         secret_key="gold-test-secret-key-0123",
                         lease_per_s=1000.0, lease_burst=1000)  # scripted, full speed

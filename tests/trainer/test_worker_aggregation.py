@@ -10,7 +10,7 @@ import pytest
 from sqlalchemy import select
 from worker_helpers import cheetah_trajectory, round_query
 
-import trainer.worker as worker_module
+import trainer.queue_hooks as hooks_module
 from labelqueue import (
     GOLD_NEEDS_LABELS,
     Label,
@@ -26,8 +26,9 @@ from labelqueue import (
 from runvocab.answers import Answer
 from runvocab.config import build_config
 from trainer.clips import ClipConfig
+from trainer.queue_hooks import QueueHooks, _answer, complete_queries
 from trainer.trajectories import TrajectoryPool
-from trainer.worker import QueueHooks, WorkerConfig, _answer, complete_queries
+from trainer.worker import WorkerConfig, scripted_labeller_id
 
 T0 = datetime(2026, 11, 23, 12, 0, tzinfo=UTC)
 NAMES = {1: "ann", 2: "bob", 3: "cy", 9: "scripted-teacher"}
@@ -139,7 +140,7 @@ def test_two_workers_answering_as_the_scripted_teacher_at_once_lose_no_query(
     trajectories = TrajectoryPool(10)
     for t in (cheetah_trajectory(0, 1.0), cheetah_trajectory(1, 1.1)):
         trajectories.add(t)
-    scripted = worker_module.scripted_labeller_id(sessions)
+    scripted = scripted_labeller_id(sessions)
     hooks = []
     for name in ("w0", "w1"):
         with sessions() as session:
@@ -153,7 +154,7 @@ def test_two_workers_answering_as_the_scripted_teacher_at_once_lose_no_query(
         hooks[-1].round_opened([round_query(i) for i in range(4)], trajectories)
     first, second = hooks
 
-    real_submit = worker_module.submit_label
+    real_submit = hooks_module.submit_answer
     stolen: list[int] = []
 
     def submit_after_the_other_worker_leased(session, **kw):  # type: ignore[no-untyped-def]
@@ -165,9 +166,9 @@ def test_two_workers_answering_as_the_scripted_teacher_at_once_lose_no_query(
             stolen.append(kw["query_id"])
         return real_submit(session, **kw)
 
-    monkeypatch.setattr(worker_module, "submit_label", submit_after_the_other_worker_leased)
+    monkeypatch.setattr(hooks_module, "submit_answer", submit_after_the_other_worker_leased)
     first._answer_as_scripted([round_query(i) for i in range(4)])
-    monkeypatch.setattr(worker_module, "submit_label", real_submit)
+    monkeypatch.setattr(hooks_module, "submit_answer", real_submit)
     second._answer_as_scripted([round_query(i) for i in range(4)])
 
     assert len(stolen) == 3 and len(set(stolen)) == 1  # the same query lost three times

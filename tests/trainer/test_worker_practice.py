@@ -11,8 +11,9 @@ from worker_helpers import cheetah_trajectory, round_query
 from labelqueue import Query, claim_run, create_run, make_engine, migrate, session_factory
 from runvocab.config import build_config
 from trainer.clips import ClipConfig
+from trainer.queue_hooks import QueueHooks
 from trainer.trajectories import TrajectoryPool
-from trainer.worker import QueueHooks, WorkerConfig
+from trainer.worker import WorkerConfig
 
 
 def test_a_round_pushes_the_practice_pairs_at_a_gold_rate_of_0(tmp_path: Path) -> None:

@@ -33,8 +33,9 @@ from labelqueue.models import utcnow
 from runvocab.config import build_config
 from trainer.checkpoint import load_checkpoint
 from trainer.loop import TrainingRun
+from trainer.queue_hooks import QueueHooks
 from trainer.round_progress import ROUND_PROGRESS
-from trainer.worker import QueueHooks, run_worker
+from trainer.worker import run_worker
 
 ROOT = Path(__file__).resolve().parents[2]
 

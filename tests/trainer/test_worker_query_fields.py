@@ -19,7 +19,7 @@ from labelqueue import (
 )
 from runvocab.query_fields import QUERY_FIELDS
 from trainer.feedback import Query as PairQuery
-from trainer.worker import queue_fields
+from trainer.queue_hooks import queue_fields
 
 # The trainer's own name for a query; the queue gives it an id of its own.
 TRAINER_ONLY = {"query_id"}
