@@ -61,7 +61,8 @@ from runvocab.clip_format import CLIP_FPS, CLIP_SIZES, DEFAULT_CLIP_SIZE, dmc_do
 from trainer.trajectories import Trajectory
 
 if TYPE_CHECKING:  # not at run time: the worker builds a ClipConfig before MuJoCo's import
-    from trainer.envs import Env, MotionCues
+    from trainer.envs import Env
+    from trainer.scene import MotionCues
 
 MIN_SIZE, MAX_SIZE = 64, 512
 DEFAULT_WIDTH, DEFAULT_HEIGHT = CLIP_SIZES[DEFAULT_CLIP_SIZE]
@@ -175,14 +176,14 @@ def clip_camera(task: str) -> str | None:
 
 
 def motion_cues(task: str) -> MotionCues | None:
-    """What a task's clips draw to show motion (`trainer.envs.MotionCues`): on DMC, the floor
+    """What a task's clips draw to show motion (`trainer.scene.MotionCues`): on DMC, the floor
     that follows the camera under a plain sky, the camera at its task's distance
     (`CAMERA_DISTANCES`) and, for planar runners (`MARKER_ROWS`), distance posts and the floor
     drawn to the horizon; None on Metaworld, whose cameras are fixed."""
     family, _, name = task.partition(":")
     if family != "dmc":
         return None
-    from trainer.envs import MotionCues  # here: the worker imports this module before MuJoCo
+    from trainer.scene import MotionCues  # here: the worker imports this module before MuJoCo
 
     domain = dmc_domain(name)
     runner = domain in MARKER_ROWS

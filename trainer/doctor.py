@@ -313,7 +313,7 @@ def run_doctor(backends: Sequence[str] = BACKENDS, tasks: Sequence[str] = TASKS,
     if renders:
         flipped = sorted({f"{p.task} under {p.backend}" for p in probes if p.flipped})
         echo(f"error: frames come out upside down ({'; '.join(flipped)}): clips would show them "
-             "so; this is a rendering bug in trainer/envs.py, not a missing package")
+             "so; this is a rendering bug in trainer/scene.py, not a missing package")
         return 1
     which = (f"neither {' nor '.join(backends)} renders" if len(backends) > 1 else
              f"{backends[0]} does not render")

@@ -1,6 +1,6 @@
 """Clips show motion wherever the agent is: the ground in every frame (the floor drawn under the
 body by whole periods of its grid) and, beside planar runners, distance posts fixed in the world
-(trainer.clips, `MotionCues` in trainer.envs). `benchmarks/bench_ground.py` runs the same check
+(trainer.clips, `MotionCues` in trainer.scene). `benchmarks/bench_ground.py` runs the same check
 over many clips."""
 
 import os
