@@ -15,9 +15,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from experiments.report import curve_panels, mean_std, write_report
+from experiments.report import curve_panels, write_report
 from experiments.results import load_results
 from experiments.spec import SpecError
+from experiments.tables import mean_std
 from figures.curves import PNG_SIGNATURE, Band, align, curves_png, grid_figure
 
 ROOT = Path(__file__).resolve().parents[2]
