@@ -20,7 +20,7 @@ For each run folder given (its checkpoint is read from a copy; the run itself is
 A rank correlation near 0 says R_theta's choice is as good as a random skill's; a wide spread of
 returns across skills says the choice matters.
 
-    .venv/bin/python benchmarks/skill_choice.py RUN_DIR [RUN_DIR ...] [--skills 50] \\
+    .venv/bin/python -m experiments.diagnostics.skill_choice RUN_DIR [RUN_DIR ...] [--skills 50] \\
         [--episodes 1] [--threads 1] [--csv skills.csv]
 """
 
@@ -29,19 +29,16 @@ from __future__ import annotations
 import argparse
 import csv
 import os
-import sys
 import tempfile
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("MUJOCO_GL", "egl")  # before MuJoCo's import
 
-from run_copy import resume_copy  # noqa: E402
-
-from trainer.envs import make_env  # noqa: E402
+from experiments.diagnostics.run_copy import resume_copy  # noqa: E402
+from trainer.envs import Env, make_env  # noqa: E402
 from trainer.feedback import PreferenceFeedback  # noqa: E402
 from trainer.loop import TrainingRun  # noqa: E402
 from trainer.policies import EpisodeMeta, SkillPolicy  # noqa: E402
@@ -118,7 +115,7 @@ def resume_skill_run(run_dir: str, into: str, threads: int, snapshot: str = "") 
     return run
 
 
-def skill_returns(run: TrainingRun, env, skill: np.ndarray, episodes: int,
+def skill_returns(run: TrainingRun, env: Env, skill: np.ndarray, episodes: int,
                   rng: np.random.Generator) -> tuple[float, float]:
     """Mean true return, and mean summed r_hat, of deterministic episodes of pi(a|s, skill)."""
     assert isinstance(run.feedback, PreferenceFeedback)

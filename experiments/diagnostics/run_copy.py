@@ -1,5 +1,5 @@
 """A run as its checkpoint left it, resumed from a copy of its files: what the measuring scripts
-(skill_choice.py, reward_crosscheck.py) act with, so that the run's own folder is only read."""
+(`skill_choice`, `reward_crosscheck`) act with, so that the run's own folder is only read."""
 
 from __future__ import annotations
 

@@ -25,8 +25,8 @@ rank, that is the model's own error, which its policy found (it trained on this 
 or which the model makes off the states its labels came from; the cross-check does not tell
 these two apart.
 
-    .venv/bin/python benchmarks/reward_crosscheck.py RUN_DIR [RUN_DIR ...] [--episodes 5] \\
-        [--pairs 2000] [--segment 50] [--csv scores.csv]
+    .venv/bin/python -m experiments.diagnostics.reward_crosscheck RUN_DIR [RUN_DIR ...] \\
+        [--episodes 5] [--pairs 2000] [--segment 50] [--csv scores.csv]
 """
 
 from __future__ import annotations
@@ -35,7 +35,6 @@ import argparse
 import csv
 import dataclasses
 import os
-import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,12 +42,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("MUJOCO_GL", "egl")  # before MuJoCo's import
 
-from run_copy import resume_copy  # noqa: E402
-from skill_choice import spearman  # noqa: E402
-
+from experiments.diagnostics.run_copy import resume_copy  # noqa: E402
+from experiments.diagnostics.skill_choice import spearman  # noqa: E402
 from rundata.dataset import DatasetEpisode, LabelledDataset  # noqa: E402
 from runvocab.config import RewardConfig  # noqa: E402
 from trainer.envs import make_env  # noqa: E402

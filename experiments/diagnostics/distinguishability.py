@@ -8,8 +8,8 @@ the same agent, pool and reward model (a random stream and a teacher copy of its
 run is not disturbed), and rounds.csv records both ratios. The first round is uniform for both
 rules, so it is left out. Averages are over rounds, then over seeds.
 
-    .venv/bin/python benchmarks/distinguishability.py --task dmc:cheetah_run --eps 0.3 \\
-        --preset small --seeds 0 1 --steps 50000 --snapshot snapshots/<...>.pt
+    .venv/bin/python -m experiments.diagnostics.distinguishability --task dmc:cheetah_run \\
+        --eps 0.3 --preset small --seeds 0 1 --steps 50000 --snapshot snapshots/<...>.pt
 
 The paper reports 0.327 (disagreement) against 0.484 (skill-based) at eps = 0.3 on cheetah_run.
 """
@@ -20,15 +20,13 @@ import argparse
 import csv
 import os
 import statistics
-import sys
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("MUJOCO_GL", "egl")  # before MuJoCo's import
 
 from runvocab.config import build_config  # noqa: E402
 from trainer.loop import TrainingRun  # noqa: E402
@@ -84,11 +82,11 @@ def main() -> None:
             print(f"{seed:4d}  {rnd:5d}  {dis:12.3f}  {skill:11.3f}")
         if rows:
             per_seed.append((np.mean([r[1] for r in rows]), np.mean([r[2] for r in rows])))
-    dis = [d for d, _ in per_seed]
-    skill = [s for _, s in per_seed]
-    print(f"mean over rounds and seeds: disagreement {np.mean(dis):.3f}{_spread(dis)}, "
-          f"skill-based {np.mean(skill):.3f}{_spread(skill)} (paper, cheetah_run eps 0.3: "
-          f"0.327 vs 0.484)")
+    dis_means = [float(d) for d, _ in per_seed]
+    skill_means = [float(s) for _, s in per_seed]
+    print(f"mean over rounds and seeds: disagreement {np.mean(dis_means):.3f}"
+          f"{_spread(dis_means)}, skill-based {np.mean(skill_means):.3f}{_spread(skill_means)} "
+          f"(paper, cheetah_run eps 0.3: 0.327 vs 0.484)")
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
-"""benchmarks/skill_choice.py: z_task against random skills on an S-EPOA run's checkpoint."""
+"""experiments.diagnostics.skill_choice: z_task against random skills on an S-EPOA run's
+checkpoint."""
 
 from __future__ import annotations
 
@@ -10,14 +11,11 @@ import sys
 import numpy as np
 import pytest
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
-
-import skill_choice  # noqa: E402
-
-from runvocab.config import build_config  # noqa: E402
-from trainer.envs import make_env  # noqa: E402
-from trainer.loop import TrainingRun  # noqa: E402
-from trainer.policies import EpisodeMeta  # noqa: E402
+from experiments.diagnostics import skill_choice
+from runvocab.config import build_config
+from trainer.envs import make_env
+from trainer.loop import TrainingRun
+from trainer.policies import EpisodeMeta
 
 
 def _digests(folder) -> dict[str, str]:

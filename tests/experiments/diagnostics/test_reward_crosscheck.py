@@ -1,4 +1,5 @@
-"""benchmarks/reward_crosscheck.py: every run's reward model judges every run's policy."""
+"""experiments.diagnostics.reward_crosscheck: every run's reward model judges every run's
+policy."""
 
 from __future__ import annotations
 
@@ -11,14 +12,11 @@ import numpy as np
 import pytest
 import torch
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
-
-import reward_crosscheck  # noqa: E402
-
-from runvocab.config import build_config  # noqa: E402
-from trainer.envs import make_env  # noqa: E402
-from trainer.loop import TrainingRun  # noqa: E402
-from trainer.reward_model import RewardModel  # noqa: E402
+from experiments.diagnostics import reward_crosscheck
+from runvocab.config import build_config
+from trainer.envs import make_env
+from trainer.loop import TrainingRun
+from trainer.reward_model import RewardModel
 
 
 def _digests(folder) -> dict[str, str]:
