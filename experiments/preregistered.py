@@ -347,7 +347,10 @@ def iqm_bands(results: Results, runs: pd.DataFrame) -> dict[str, Band]:
         table = table.dropna()
         if table.empty:
             continue
-        steps, mid, low, high = [], [], [], []
+        steps: list[float] = []
+        mid: list[float] = []
+        low: list[float] = []
+        high: list[float] = []
         for step, row in table.iterrows():
             estimate = _bootstrap({variant: row.to_numpy(float)[:, None]}, _iqm, CURVE_REPS)
             steps.append(step)

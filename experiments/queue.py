@@ -243,7 +243,8 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> 
     now = utcnow()
     header = ("task", "variant", "eps", "budget", "seed", "status", "step", "worker",
               "heartbeat", "folder", "left")
-    lines, counts, silent, progress = [], {}, [], []
+    counts: dict[str, int] = {}
+    lines, silent, progress = [], [], []
     for run in spec.runs():
         key = grid_key(spec, run)
         row = rows.get(key)

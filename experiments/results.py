@@ -87,7 +87,9 @@ def load_results(folder: str | Path) -> Results:
     """Read `<results>/<spec name>` (the folder holding spec.toml)."""
     folder = Path(folder)
     spec = load_spec(folder / "spec.toml", check=False)
-    runs, evals, rounds = [], [], []
+    runs: list[dict[str, Any]] = []
+    evals: list[pd.DataFrame] = []
+    rounds: list[pd.DataFrame] = []
     for run in spec.runs():
         path = folder / run.dir
         stored = _json(path / "config.json")

@@ -23,6 +23,7 @@ from trainer.entropy import RunningMeanStd, knn_distance
 from trainer.feedback import Feedback, PreferenceFeedback
 from trainer.nets import NumpyMLP
 from trainer.replay_buffer import ReplayBuffer
+from trainer.reward_model import RewardModel
 from trainer.rune import rune_beta
 from trainer.true_reward_rounds import TrueRewardRounds
 
@@ -98,6 +99,12 @@ class AgentReward:
         assert self._host_reward is not None
         return float(self._host_reward(np.concatenate([obs, action])[None]).mean())
 
+    @property
+    def _model(self) -> RewardModel:
+        """r_hat, which only a preference run's feedback has (RUNE's bonus, RIME's warm start)."""
+        assert isinstance(self.feedback, PreferenceFeedback)
+        return self.feedback.model
+
     def batch(self, batch: B, step: int) -> B:
         """`batch` carrying the reward the agent trains on at `step`."""
         if not self.learned:
@@ -107,7 +114,7 @@ class AgentReward:
             if self.cfg.reward.rime:
                 self._warm_start_reward_model()
         elif self.cfg.reward.rune:
-            bonus = self.feedback.model.reward_std(batch.obs, batch.action)
+            bonus = self._model.reward_std(batch.obs, batch.action)
             batch = batch._replace(reward=batch.reward + self.rune_beta(step) * bonus.unsqueeze(1))
         return batch
 
@@ -137,7 +144,7 @@ class AgentReward:
             z = (self.entropy_distance(batch.next_obs) - self.entropy_stats.mean) / (
                 self.entropy_stats.std)
             target = z / z.abs().max().clamp(min=1e-8)
-            self.feedback.model.regress(torch.cat([batch.obs, batch.action], dim=1), target)
+            self._model.regress(torch.cat([batch.obs, batch.action], dim=1), target)
 
     def state_dict(self) -> dict[str, Any]:
         return {"reward_start_step": self.start_step,

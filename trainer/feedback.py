@@ -42,8 +42,15 @@ from trainer.replay_buffer import ReplayBuffer
 from trainer.return_estimator import ReplayEpisodes, ReturnEstimator
 from trainer.reward_model import LabelledPairs, RewardModel, TrainingProgress
 from trainer.round_progress import RoundLeft, RoundProgress, round_key
-from trainer.teachers import QueryTruth, choice_target, is_correct, recent_mean
-from trainer.trajectories import Trajectory, TrajectoryPool
+from trainer.teachers import (
+    BPrefTeacher,
+    NoisyTeacher,
+    QueryTruth,
+    choice_target,
+    is_correct,
+    recent_mean,
+)
+from trainer.trajectories import Trajectory, TrajectoryPool, stacked_skills
 from trainer.true_reward_rounds import TrueRewardRounds
 
 
@@ -146,7 +153,8 @@ def _segment(traj: Trajectory, start: int, length: int) -> np.ndarray:
 class PreferenceFeedback:
     """Owns the labelled pairs, the budget (in answers) and the round counter of one run."""
 
-    def __init__(self, cfg: FeedbackConfig, reward_model: RewardModel, teacher, labeller: str,
+    def __init__(self, cfg: FeedbackConfig, reward_model: RewardModel,
+                 teacher: NoisyTeacher | BPrefTeacher, labeller: str,
                  label_log: LabelLog, rng: np.random.Generator,
                  estimator: ReturnEstimator | None = None, spread: str = "var",
                  replay: ReplayEpisodes | None = None):
@@ -192,6 +200,7 @@ class PreferenceFeedback:
         h = self.cfg.segment_length
         self.compare_ratio = float("nan")
         if compare:
+            assert rewards is not None  # scored above for the comparison
             self.compare_ratio = self._compare(pool, n, rewards)
         pairs = _pairs(trajectories, selection.queries)
         # The teacher answers now, once per query, whoever ends up answering: its random stream
@@ -240,7 +249,7 @@ class PreferenceFeedback:
         if rewards is None:
             rewards = pool_rewards(self.model, trajectories)
         returns = rewards.trajectory_returns()
-        return self.estimator.fit(np.stack([t.skill for t in trajectories]), returns)
+        return self.estimator.fit(stacked_skills(trajectories), returns)
 
     def scripted_answers(self) -> dict[str, GivenAnswer]:
         """The shadow answers of the open round, as the answers of a standalone run."""

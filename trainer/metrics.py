@@ -23,13 +23,14 @@ class CSVStream:
 
     def write(self, row: dict[str, Any]) -> None:
         new = self.fields is None
-        if new:
-            self.fields = list(row)
-        elif any(k not in self.fields for k in row):
-            self.fields += [k for k in row if k not in self.fields]
+        fields = self.fields
+        if fields is None:
+            fields = self.fields = list(row)
+        elif any(k not in fields for k in row):
+            fields += [k for k in row if k not in fields]
             self.keep_rows(lambda r: True)
         with open(self.path, "a", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=self.fields, restval="")
+            writer = csv.DictWriter(f, fieldnames=fields, restval="")
             if new:
                 writer.writeheader()
             writer.writerow(row)

@@ -144,7 +144,7 @@ class SkillPolicy(Policy):
         self.estimator = ReturnEstimator(self.skills.skill_dim, cfg.skill, device)
         self.task_skill: np.ndarray | None = None
         """z_task, once R_theta is fitted"""
-        self._task_skill_copy: tuple[np.ndarray, torch.Tensor] | None = None
+        self._task_skill_copy: tuple[np.ndarray | None, torch.Tensor] | None = None
         """z_task and its copy on the device: one copy per draw, not one per z_task update"""
         self._stored_skill_metrics: UpdateMetrics = {}
         """the last stored-skill update's metrics, logged beside a z_task update's"""

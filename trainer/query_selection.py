@@ -17,7 +17,7 @@ import torch
 from runvocab.names import SELECTION_MODES, SELECTION_RULES
 from trainer.return_estimator import ReturnEstimator, skill_scores
 from trainer.reward_model import RewardModel
-from trainer.trajectories import Trajectory
+from trainer.trajectories import Trajectory, stacked_skills
 
 RULES, MODES = SELECTION_RULES, SELECTION_MODES
 SCORING_CHUNK = 4096
@@ -177,7 +177,7 @@ def select_queries(rule: str, model: RewardModel, pool: list[Trajectory], n_quer
         if estimator is None or not estimator.fitted or any(t.skill is None for t in pool):
             raise ValueError("the skill rule needs S-EPOA's fitted return estimator and "
                              "trajectories with skills (algo sepoa)")
-        values = estimator.predict(np.stack([t.skill for t in pool]))
+        values = estimator.predict(stacked_skills(pool))
         idx0 = torch.as_tensor(cands.traj0, device=values.device)
         idx1 = torch.as_tensor(cands.traj1, device=values.device)
         # Scores normalised within each group of competing candidates.

@@ -155,7 +155,7 @@ class QueueHooks(RunHooks):
         self.next_round_at: Callable[[], int] | None = None
         """the step the training loop opens its next round at (its schedule, once it starts)"""
         self.episodes = episodes_dir(worker.clips_root, run.id)
-        """the run's episode store (`labelqueue.episodes`)"""
+        """the run's episode store (`rundata.episodes`)"""
         self.store_episodes = cfg.algo != "sac"
         """whether episodes are kept (a SAC run asks no queries, so none would be read)"""
 

@@ -29,6 +29,7 @@ from runvocab.answers import Answer
 from runvocab.config import RewardConfig
 from trainer.reward_file import save_ensemble
 from trainer.reward_model import LabelledPairs, RewardModel
+from trainer.surf import PairSampler
 from trainer.teachers import choice_target
 
 
@@ -248,7 +249,7 @@ def compare(run_model: RewardModel, result: FitResult, dataset: LabelledDataset,
             "run_reward_corr": reward_correlation(run_model, dataset)}
 
 
-def _unlabelled_pairs(dataset: LabelledDataset, length: int, seed: int):
+def _unlabelled_pairs(dataset: LabelledDataset, length: int, seed: int) -> PairSampler:
     """SURF's unlabelled pairs: random segments of two different episodes (of one, when the
     dataset has only one)."""
     rng = np.random.default_rng([seed, 0x5E6])

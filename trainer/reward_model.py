@@ -22,7 +22,8 @@ from trainer.rime import RimeFilter
 from trainer.surf import PairSampler, pseudo_labels, random_crops
 
 
-def bradley_terry_loss(returns0: torch.Tensor, returns1: torch.Tensor, target: torch.Tensor):
+def bradley_terry_loss(returns0: torch.Tensor, returns1: torch.Tensor,
+                       target: torch.Tensor) -> torch.Tensor:
     """Cross-entropy of P[seg1 > seg0] = sigmoid(R1 - R0) against `target` (a probability).
 
     Shapes broadcast: (..., batch). Returns the mean over the last axis, keeping the rest.
@@ -50,7 +51,7 @@ class LabelledPairs:
         self.seg1.append(seg1)
         self.targets.append(target)
 
-    def tensors(self, device: torch.device):
+    def tensors(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         return (
             torch.as_tensor(np.stack(self.seg0), device=device),
             torch.as_tensor(np.stack(self.seg1), device=device),
@@ -192,9 +193,10 @@ class RewardModel:
                     r0, r1 = self._segment_returns(s0), self._segment_returns(s1)
                     loss = bradley_terry_loss(r0, r1, y).sum()
                     if length is not None and unlabelled is not None:
-                        extra, kept = self._pseudo_label_loss(unlabelled, idx.shape[1], length)
+                        extra, confident = self._pseudo_label_loss(unlabelled, idx.shape[1],
+                                                                   length)
                         loss = loss + self.cfg.surf_weight * extra
-                        p.confident += kept
+                        p.confident += confident
                         p.pseudo += e * idx.shape[1] * self.cfg.surf_unlabelled_ratio
                 self.opt.zero_grad(set_to_none=True)
                 loss.backward()

@@ -8,7 +8,7 @@ algorithm as the reference implementations, with less overhead per step.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import NamedTuple
 
 import numpy as np
@@ -92,11 +92,12 @@ class Critic(nn.Module):
             2, obs_dim + action_dim, 1, cfg.hidden_dim, cfg.hidden_layers, init="orthogonal"
         )
 
-    def forward(self, obs: torch.Tensor, action: torch.Tensor, detach_params: bool = False):
+    def forward(self, obs: torch.Tensor, action: torch.Tensor,
+                detach_params: bool = False) -> torch.Tensor:
         return self.q(torch.cat([obs, action], dim=-1), detach_params)
 
 
-def _adam(params, cfg: SACConfig, device: torch.device,
+def _adam(params: Iterable[torch.Tensor], cfg: SACConfig, device: torch.device,
           capturable: bool = False) -> torch.optim.Adam:
     # The fused kernel is one launch per step instead of one per parameter; a capturable one
     # keeps its step count on the device, so a CUDA graph can replay it.
@@ -141,8 +142,8 @@ class SAC:
         self.alpha_opt = _adam([self.log_alpha], cfg, device, graph_ready)
         self.updates = 0
         # In-place loads and resets keep these the same tensors, so the lists stay valid.
-        self._critic_params = list(self.critic.parameters())
-        self._target_params = list(self.critic_target.parameters())
+        self._critic_params: list[torch.Tensor] = list(self.critic.parameters())
+        self._target_params: list[torch.Tensor] = list(self.critic_target.parameters())
         self._numpy_actor = NumpyMLP(list(self.actor.trunk)) if device.type == "cpu" else None
         self._obs_pinned = (torch.empty(1, obs_dim, pin_memory=True)
                             if device.type == "cuda" else None)
@@ -161,7 +162,8 @@ class SAC:
     def alpha(self) -> torch.Tensor:
         return self.log_alpha.exp()
 
-    def act(self, obs: np.ndarray, rng: np.random.Generator, deterministic: bool = False):
+    def act(self, obs: np.ndarray, rng: np.random.Generator,
+            deterministic: bool = False) -> np.ndarray:
         """One action for one observation (the environment loop's hot path)."""
         d = self.action_dim
         if self._numpy_actor is None:

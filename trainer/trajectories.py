@@ -9,7 +9,9 @@ skill attached to the wrong one.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -104,3 +106,8 @@ class TrajectoryPool:
             maxlen=self.capacity,
         )
         self.returns = list(state["returns"])
+
+
+def stacked_skills(trajectories: Iterable[Trajectory]) -> np.ndarray:
+    """(N, skill_dim): the skills the trajectories were played with (S-EPOA's: each has one)."""
+    return np.stack(cast(list[np.ndarray], [t.skill for t in trajectories]))

@@ -17,7 +17,7 @@ import numpy as np
 from runvocab.config import FeedbackConfig
 from trainer.replay_buffer import ReplayBuffer
 from trainer.return_estimator import ReplayEpisodes, ReturnEstimator
-from trainer.trajectories import TrajectoryPool
+from trainer.trajectories import TrajectoryPool, stacked_skills
 
 
 class TrueRewardRounds:
@@ -60,7 +60,7 @@ class TrueRewardRounds:
         if self.replay is not None:
             return self.replay.skills_and_returns(None)
         trajectories = list(pool.trajectories)
-        return (np.stack([t.skill for t in trajectories]),
+        return (stacked_skills(trajectories),
                 np.array([t.true_return for t in trajectories], dtype=np.float64))
 
     @staticmethod

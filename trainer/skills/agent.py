@@ -30,7 +30,8 @@ class SFCritic(nn.Module):
             init="orthogonal",
         )
 
-    def forward(self, obs: torch.Tensor, action: torch.Tensor, detach_params: bool = False):
+    def forward(self, obs: torch.Tensor, action: torch.Tensor,
+                detach_params: bool = False) -> torch.Tensor:
         psi = self.psi(torch.cat([obs, action], dim=-1), detach_params)  # (2, batch, skill_dim)
         return (psi * obs[:, -self.skill_dim:]).sum(-1, keepdim=True)
 

@@ -12,6 +12,8 @@ neighbours taken within the batch, and m the running mean of those distances.
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -24,10 +26,10 @@ from trainer.skills.common import SkillBatch, adam, particle_entropy
 
 
 class APS:
-    name = "aps"
-    default_skill_dim = 10
-    default_update_skill_every = 5
-    successor_features = True
+    name: ClassVar[str] = "aps"
+    default_skill_dim: ClassVar[int] = 10
+    default_update_skill_every: ClassVar[int] = 5
+    successor_features: ClassVar[bool] = True
 
     def __init__(self, obs_dim: int, cfg: SkillConfig, device: torch.device):
         self.cfg, self.skill_dim = cfg, cfg.skill_dim

@@ -11,6 +11,8 @@ SAC's own on [s, z].
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -23,10 +25,10 @@ from trainer.skills.common import SkillBatch, adam, particle_entropy
 
 
 class CIC:
-    name = "cic"
-    default_skill_dim = 64
-    default_update_skill_every = 50
-    successor_features = False
+    name: ClassVar[str] = "cic"
+    default_skill_dim: ClassVar[int] = 64
+    default_update_skill_every: ClassVar[int] = 50
+    successor_features: ClassVar[bool] = False
 
     def __init__(self, obs_dim: int, cfg: SkillConfig, device: torch.device):
         self.cfg, self.skill_dim = cfg, cfg.skill_dim

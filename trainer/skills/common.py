@@ -3,6 +3,7 @@ the kNN particle entropy that APS and CIC put into their intrinsic rewards."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import ClassVar, NamedTuple, Protocol
 
 import numpy as np
@@ -67,7 +68,8 @@ def particle_entropy(h: torch.Tensor, k: int, stats: RunningMeanStd | None = Non
     return torch.log1p(knn.mean(dim=1, keepdim=True))
 
 
-def adam(params, lr: float, device: torch.device) -> torch.optim.Adam:
+def adam(params: Iterable[torch.Tensor], lr: float,
+         device: torch.device) -> torch.optim.Adam:
     """Adam as SAC makes it: the fused kernel, one launch per step."""
     return torch.optim.Adam(params, lr=lr, fused=device.type in ("cuda", "cpu"))
 

@@ -9,6 +9,7 @@ is log q(z|s') - log p(z) with p uniform, i.e. log q(z|s') + log d. The critic i
 from __future__ import annotations
 
 import math
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -21,10 +22,10 @@ from trainer.skills.common import SkillBatch, adam
 
 
 class DIAYN:
-    name = "diayn"
-    default_skill_dim = 16
-    default_update_skill_every = 50
-    successor_features = False
+    name: ClassVar[str] = "diayn"
+    default_skill_dim: ClassVar[int] = 16
+    default_update_skill_every: ClassVar[int] = 50
+    successor_features: ClassVar[bool] = False
 
     def __init__(self, obs_dim: int, cfg: SkillConfig, device: torch.device):
         self.cfg, self.skill_dim = cfg, cfg.skill_dim

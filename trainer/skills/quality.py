@@ -13,11 +13,12 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-from trainer.envs import make_env
+from trainer.envs import Env, make_env
 from trainer.skills.agent import SkillAgent
 from trainer.skills.common import SkillBackend
 
@@ -66,7 +67,7 @@ def measure(agent: SkillAgent, backend: SkillBackend, task: str, seed: int,
     }
 
 
-def _episode(env, act) -> float:
+def _episode(env: Env, act: Callable[..., Any]) -> float:
     obs, total, done = env.reset(), 0.0, False
     while not done:
         result = env.step(np.asarray(act(obs), dtype=np.float32))
