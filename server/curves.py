@@ -19,7 +19,6 @@ from __future__ import annotations
 import threading
 from collections import Counter, OrderedDict
 from collections.abc import Callable, Hashable
-from concurrent.futures import ProcessPoolExecutor
 from typing import TYPE_CHECKING
 
 from sqlalchemy import select
@@ -27,7 +26,7 @@ from sqlalchemy.orm import Session
 
 from labelqueue import Run, read_metrics
 from server.services import reading
-from server.side_process import side_process_pool
+from server.side_process import SideProcess
 
 if TYPE_CHECKING:
     from labelstats.calibration import CalibrationReport
@@ -37,8 +36,8 @@ Figure = tuple[tuple[str, tuple[tuple[tuple[int, ...], tuple[float, ...]], ...]]
 KEPT = 64
 """drawn figures kept, the least recently asked for dropped first"""
 _drawing = threading.Lock()
-_pool: ProcessPoolExecutor | None = None
-"""the drawing process, once a figure has been asked for (`close` ends it)"""
+_drawer = SideProcess()
+"""the drawing process, started at the first figure asked for (`close` ends it)"""
 _kept: OrderedDict[Hashable, bytes] = OrderedDict()
 
 
@@ -94,20 +93,12 @@ def drawn_once(key: Hashable, function: Callable[..., bytes], *args: object) -> 
     with _drawing:
         png = _kept.get(key)
         if png is None:
-            png = _kept[key] = _in_drawing_process(function, *args)
+            png = _kept[key] = _drawer.run(function, *args)
             if len(_kept) > KEPT:
                 _kept.popitem(last=False)
         else:
             _kept.move_to_end(key)
         return png
-
-
-def _in_drawing_process(function: Callable[..., bytes], *args: object) -> bytes:
-    """`function(*args)` in the drawing process, started at the first call (blocking)."""
-    global _pool
-    if _pool is None:
-        _pool = side_process_pool()
-    return _pool.submit(function, *args).result()
 
 
 def draw(figure: Figure, title: str, ylabel: str) -> bytes:
@@ -129,9 +120,6 @@ def draw_calibration(report: CalibrationReport, title: str) -> bytes:
 def close() -> None:
     """End the drawing process, if one was started, and forget the figures (the server's
     shutdown)."""
-    global _pool
     with _drawing:
         _kept.clear()
-        if _pool is not None:
-            _pool.shutdown(cancel_futures=True)
-            _pool = None
+        _drawer.close()

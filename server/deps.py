@@ -320,7 +320,6 @@ async def token_cache_dep(request: Request) -> TokenCache | None:
 
 
 TokenCacheDep = Annotated[TokenCache | None, Depends(token_cache_dep)]
-CallerDep = Annotated[Caller, Depends(get_caller)]
 OperatorDep = Annotated[Caller, Depends(get_operator)]
 LabellerDep = Annotated[Caller, Depends(get_labeller)]
 LabellerCallDep = Annotated[LabellerCall, Depends(get_labeller_call)]

@@ -11,16 +11,12 @@ which the export only reads (short read transactions that take no lock, see
 from __future__ import annotations
 
 import tempfile
-import threading
 import zipfile
-from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Any
 
 from labelqueue import make_engine, session_factory
 from rundata.label_files import ExportFormat, write_export
-from server.side_process import side_process_pool
+from server.side_process import SideProcess
 
 
 def write_export_file(
@@ -60,40 +56,20 @@ def write_dataset_zip(*, database_url: str, clips_root: str, run_id: int,
         engine.dispose()
 
 
-class ExportProcess:
-    """One export process, started at the first export and kept for the next (starting one
-    takes about a second); exports queue for it one at a time."""
-
-    def __init__(self) -> None:
-        self._pool: ProcessPoolExecutor | None = None
-        self._lock = threading.Lock()
+class ExportProcess(SideProcess):
+    """The export process: exports queue for it one at a time."""
 
     def write(
         self, *, database_url: str, fmt: ExportFormat | str, path: str, run_id: int | None
     ) -> int:
         """Write the export into `path` in the export process (blocking); rows written.
         NotFound and ValueError come back as they were raised there."""
-        rows: int = self._run(write_export_file, database_url=database_url, fmt=fmt, path=path,
-                              run_id=run_id)
-        return rows
+        return self.run(write_export_file, database_url=database_url, fmt=fmt, path=path,
+                        run_id=run_id)
 
     def write_dataset(self, *, database_url: str, clips_root: str, run_id: int,
                       dataset_id: str | None, path: str, data_format: str = "arrow") -> str:
         """`write_dataset_zip` in the export process (blocking); the dataset id."""
-        written: str = self._run(write_dataset_zip, database_url=database_url,
-                                 clips_root=clips_root, run_id=run_id, dataset_id=dataset_id,
-                                 path=path, data_format=data_format)
-        return written
-
-    def _run(self, job: Callable[..., Any], **kwargs: Any) -> Any:
-        with self._lock:
-            if self._pool is None:
-                self._pool = side_process_pool()
-            pool = self._pool
-        return pool.submit(job, **kwargs).result()
-
-    def close(self) -> None:
-        with self._lock:
-            if self._pool is not None:
-                self._pool.shutdown(cancel_futures=True)
-                self._pool = None
+        return self.run(write_dataset_zip, database_url=database_url, clips_root=clips_root,
+                        run_id=run_id, dataset_id=dataset_id, path=path,
+                        data_format=data_format)

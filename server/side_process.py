@@ -17,7 +17,11 @@ import os
 import select
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
+from typing import Any, TypeVar
+
+T = TypeVar("T")
 
 NICENESS = 10
 """how much lower a side process's scheduling priority is than the server's"""
@@ -25,7 +29,32 @@ POLL_SECONDS = 1.0
 """how often a side process checks its parent where no pidfd can watch it"""
 
 
-def side_process_pool() -> ProcessPoolExecutor:
+class SideProcess:
+    """One side process of the calling (server) process, started at its first job and kept for
+    the next (starting one takes about a second); jobs queue for it one at a time."""
+
+    def __init__(self) -> None:
+        self._pool: ProcessPoolExecutor | None = None
+        self._lock = threading.Lock()
+
+    def run(self, job: Callable[..., T], /, *args: Any, **kwargs: Any) -> T:
+        """`job(*args, **kwargs)` in the side process (blocking); its errors come back as they
+        were raised there."""
+        with self._lock:
+            if self._pool is None:
+                self._pool = _side_process_pool()
+            pool = self._pool
+        return pool.submit(job, *args, **kwargs).result()
+
+    def close(self) -> None:
+        """End the side process, if one was started (the server's shutdown)."""
+        with self._lock:
+            if self._pool is not None:
+                self._pool.shutdown(cancel_futures=True)
+                self._pool = None
+
+
+def _side_process_pool() -> ProcessPoolExecutor:
     """A pool of one side process of the calling (server) process, started at its first job."""
     return ProcessPoolExecutor(
         max_workers=1,

@@ -17,8 +17,8 @@ from server import curves
 from server.export_job import ExportProcess
 
 exports = ExportProcess()
-exporter = exports._run(os.getpid)
-drawer = curves._in_drawing_process(os.getpid)
+exporter = exports.run(os.getpid)
+drawer = curves._drawer.run(os.getpid)
 print(exporter, drawer, flush=True)
 sys.stdin.read()  # until killed
 """
