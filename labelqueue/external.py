@@ -31,7 +31,7 @@ import secrets
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from datetime import datetime, timedelta
+from datetime import datetime
 from typing import Any
 
 from sqlalchemy import func, insert, select
@@ -406,16 +406,18 @@ class Feed:
     status: str
 
 
-def answers_after(session: Session, *, run_id: int, cursor: Cursor, limit: int = FEED_LIMIT,
-                  settle_seconds: float = 0.0) -> Feed:
+def answers_after(session: Session, *, run_id: int, cursor: Cursor,
+                  limit: int = FEED_LIMIT) -> Feed:
     """The external run's answers and withdrawals after `cursor`, oldest first, each with its
     pair's key and hidden metadata, the pair's standing answers by labeller, their aggregate
     and whether it ties. A label taken back before it was read is never given; one read and
     then taken back comes again as a withdrawal. Practice answers are not given.
 
-    ValueError for a cursor ahead of the run's answers; NotFound for an unknown run.
-    `settle_seconds`: leave out what is younger (PostgreSQL commits ids out of order)."""
-    newest = utcnow() - timedelta(seconds=settle_seconds)
+    The cursor is exact, with nothing held back: a run's labels (and its withdrawals) commit
+    in the order of their ids, since each draws its id holding the run's row lock
+    (`labelqueue.labels`, `labelqueue.undo`; SQLite's one writer anyway), so a read that sees
+    one sees every one before it. ValueError for a cursor ahead of the run's answers; NotFound
+    for an unknown run."""
     with reading(session):
         status = get_row(session, Run, run_id).status.value
         open_pairs = session.scalar(select(func.count()).select_from(QUERIES).where(
@@ -431,7 +433,7 @@ def answers_after(session: Session, *, run_id: int, cursor: Cursor, limit: int =
         labels = session.execute(
             select(Label, Labeller.name).join(Labeller, Labeller.id == Label.labeller_id)
             .where(Label.run_id == run_id, Label.id > cursor.label,
-                   Label.practice.is_(False), Label.answered_at <= newest)
+                   Label.practice.is_(False))
             .order_by(Label.id).limit(limit)).all()
         label_to = labels[-1][0].id if len(labels) == limit else max(
             [cursor.label, *(label.id for label, _ in labels)])
@@ -440,24 +442,26 @@ def answers_after(session: Session, *, run_id: int, cursor: Cursor, limit: int =
             .join(Label, Label.id == Withdrawal.label_id)
             .join(Labeller, Labeller.id == Label.labeller_id)
             .where(Withdrawal.run_id == run_id, Withdrawal.id > cursor.withdrawal,
-                   Withdrawal.withdrawn_at <= newest, Label.practice.is_(False))
+                   Label.practice.is_(False))
             .order_by(Withdrawal.id).limit(limit)).all()
         withdrawal_to = max([cursor.withdrawal, *(w.id for w, _, _ in withdrawals)])
         touched = {label.query_id for label, _ in labels} | {
             label.query_id for _, label, _ in withdrawals}
         state = _pair_states(session, touched)
     events: list[dict[str, Any]] = []
+    given = set()
     for label, name in labels:
         if label.withdrawn_at is not None:
             continue  # taken back before anyone read it
+        given.add(label.id)
         events.append({"kind": "answer", "label_id": label.id, "labeller_id": label.labeller_id,
                        "labeller": name, "answer": label.answer.value,
                        "at": label.answered_at.isoformat(),
                        "flag": None if label.flag is None else label.flag.value,
                        **state[label.query_id]})
     for withdrawal, label, name in withdrawals:
-        if label.id > cursor.label:
-            continue  # its answer was never given: nor is its withdrawal
+        if label.id > cursor.label and label.id not in given:
+            continue  # its answer was never given (read as taken back): nor is its withdrawal
         events.append({"kind": "withdrawal", "label_id": label.id,
                        "labeller_id": label.labeller_id, "labeller": name,
                        "answer": label.answer.value, "at": withdrawal.withdrawn_at.isoformat(),

@@ -142,6 +142,11 @@ _COUNT_LABEL = Prepared(
 )
 
 
+_LOCK_RUN = Prepared(
+    select(RUNS.c.id).where(RUNS.c.id == bindparam("run", type_=Integer())).with_for_update()
+)
+
+
 def _stored_label(connection: DriverConnection, params: dict[str, Any]) -> Label | None:
     row = _STORED_LABEL.first(connection, params)
     return None if row is None else snapshot(Label, row._asdict())
@@ -346,12 +351,16 @@ def _store(
             "flag_note": flag_note,
             "practice": practice,
         }
-        [inserted] = _INSERT_LABEL.rows(connection, values)
         # Only real answers spend the budget: a gold answer measures the labeller instead, and
-        # a practice answer (to a gold pair kept apart) does neither.
+        # a practice answer (to a gold pair kept apart) does neither. The run's row is locked
+        # (PostgreSQL) before the label draws its id, so a run's labels commit in the order of
+        # their ids and the answers feed's cursor misses none (`labelqueue.external`).
         if not asked.gold:
             _COUNT_LABEL.count(connection, {"run": asked.run_id})
-        elif not practice:
+        elif not practice and connection.dialect.name == "postgresql":
+            _LOCK_RUN.first(connection, {"run": asked.run_id})
+        [inserted] = _INSERT_LABEL.rows(connection, values)
+        if asked.gold and not practice:
             pause_if_below(connection, labeller_id=labeller_id, run_id=asked.run_id)
     return snapshot(Label, {"id": inserted.id, **values}), True
 

@@ -103,7 +103,6 @@ def withdraw_label(
         if run.status not in LABELLABLE:
             raise RunClosed(f"run {run.id} is {run.status}: it takes no more answers, so the "
                             "answer stands")
-        session.add(Withdrawal(label_id=label.id, run_id=run.id, withdrawn_at=now))
         query = get_row(session, Query, query_id)
         if query.practice:  # shown to everyone at once, leased to nobody: it stays practice
             if query.status is QueryStatus.CANCELLED:
@@ -115,6 +114,13 @@ def withdraw_label(
             if not query.gold:
                 changed(session, update(Run).where(Run.id == run.id)
                         .values(labels_used=Run.labels_used - 1))
+            elif session.get_bind().dialect.name == "postgresql":  # the run's lock all the same
+                session.execute(select(Run.id).where(Run.id == run.id).with_for_update())
+        # Drawn while this transaction holds the run's row lock (taken after the query's, as a
+        # submit takes them), a run's withdrawals commit in the order of their ids, as its
+        # labels do: the answers feed's cursor misses none (`labelqueue.external`).
+        session.add(Withdrawal(label_id=label.id, run_id=run.id, withdrawn_at=now))
+        session.flush()
         changed(
             session,
             update(Query)

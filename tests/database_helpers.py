@@ -1,10 +1,17 @@
-"""A queue database with labels, and copies of it damaged as disks and copies damage files."""
+"""A queue database with labels, and copies of it damaged as disks and copies damage files; a
+PostgreSQL schema of its own for a test, when SEPOA_TEST_POSTGRES_URL names a database."""
 
 from __future__ import annotations
 
+import os
 import sqlite3
 import sys
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+
+from sqlalchemy import create_engine, make_url
 
 from labelqueue import (
     TeacherKind,
@@ -58,3 +65,25 @@ def damaged_copies(tmp_path: Path) -> dict[str, Path]:
         (folder / "queue.db").write_bytes(bytes(blob))
         copies[kind] = folder
     return copies
+
+
+POSTGRES_URL = os.environ.get("SEPOA_TEST_POSTGRES_URL")
+"""a PostgreSQL database the tests may use (scripts/with_postgres.sh sets it); unset: none"""
+BACKENDS = ["sqlite", "postgresql"] if POSTGRES_URL else ["sqlite"]
+
+
+@contextmanager
+def postgres_schema() -> Iterator[str]:
+    """A URL of `POSTGRES_URL`'s database whose search path is a new schema, dropped after."""
+    assert POSTGRES_URL is not None
+    schema = f"test_{uuid.uuid4().hex[:12]}"
+    admin = create_engine(POSTGRES_URL)
+    with admin.begin() as connection:
+        connection.exec_driver_sql(f'CREATE SCHEMA "{schema}"')
+    try:
+        scoped = make_url(POSTGRES_URL).update_query_dict({"options": f"-csearch_path={schema}"})
+        yield scoped.render_as_string(hide_password=False)
+    finally:
+        with admin.begin() as connection:
+            connection.exec_driver_sql(f'DROP SCHEMA "{schema}" CASCADE')
+        admin.dispose()

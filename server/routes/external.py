@@ -303,11 +303,9 @@ async def answers(
     except ValueError as err:
         raise HTTPException(422, str(err)) from None
     deadline = time.monotonic() + wait
-    settle = 0.0 if session.get_bind().dialect.name == "sqlite" else 1.0
     token: str | None = getattr(request.state, "run_token", None)
     while True:
-        feed = await run_in_threadpool(answers_after, session, run_id=run.id, cursor=cursor,
-                                       settle_seconds=settle)
+        feed = await run_in_threadpool(answers_after, session, run_id=run.id, cursor=cursor)
         if feed.events or time.monotonic() >= deadline or feed.status not in (
                 RunStatus.RUNNING.value, RunStatus.PAUSED.value):
             break

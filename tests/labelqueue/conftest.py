@@ -8,19 +8,15 @@ one test (test_schema.py::test_postgresql_variants_are_enabled) says so by being
 
 from __future__ import annotations
 
-import os
-import uuid
 from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from sqlalchemy import Engine, create_engine, make_url
+from database_helpers import BACKENDS, postgres_schema
+from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
 from labelqueue import make_engine, migrate, session_factory
-
-POSTGRES_URL = os.environ.get("SEPOA_TEST_POSTGRES_URL")
-BACKENDS = ["sqlite", "postgresql"] if POSTGRES_URL else ["sqlite"]
 
 
 @pytest.fixture(params=BACKENDS)
@@ -28,19 +24,8 @@ def url(request: pytest.FixtureRequest, tmp_path: Any) -> Iterator[str]:
     if request.param == "sqlite":
         yield f"sqlite:///{tmp_path / 'data' / 'queue.db'}"
         return
-    assert POSTGRES_URL is not None
-    base = POSTGRES_URL
-    schema = f"test_{uuid.uuid4().hex[:12]}"
-    admin = create_engine(base)
-    with admin.begin() as connection:
-        connection.exec_driver_sql(f'CREATE SCHEMA "{schema}"')
-    try:
-        scoped = make_url(base).update_query_dict({"options": f"-csearch_path={schema}"})
-        yield scoped.render_as_string(hide_password=False)
-    finally:
-        with admin.begin() as connection:
-            connection.exec_driver_sql(f'DROP SCHEMA "{schema}" CASCADE')
-        admin.dispose()
+    with postgres_schema() as url:
+        yield url
 
 
 @pytest.fixture
