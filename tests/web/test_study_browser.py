@@ -271,7 +271,53 @@ def test_the_run_page_says_what_it_waits_for_and_the_workers_panel_shows_a_dead_
     page.wait_for_function("document.querySelector('#timing-note').dataset.pretrain === 'yes'")
     assert "S-EPOA first pretrains skills for this task: 200,000 steps" in \
         page.inner_text("#timing-note")
+    # The quality controls are inputs of their own, checked by the server as config fields.
+    page.fill("#new-run [name=practice_pairs]", "2")
+    page.fill("#new-run [name=gold_rate]", "0.2")
+    page.fill("#new-run [name=gold_min_accuracy]", "0.7")
+    page.fill("#new-run [name=labels_per_query]", "3")
     screenshot(page, "new-run-form.png", "#new-run")
+    page.fill("#new-run [name=labels_per_query]", "11")
+    page.click("#new-run button[type=submit]")
+    page.wait_for_selector("#new-run-errors:not([hidden])")
+    assert "feedback.labels_per_query must be between 1 and 10" in \
+        page.inner_text("#new-run-errors")
+    page.fill("#new-run [name=labels_per_query]", "3")
+    page.fill("#new-run [name=segment_length]", "")  # S-EPOA's SURF crops want the preset's
+    page.click("#new-run button[type=submit]")
+    page.wait_for_function("document.querySelector('#new-run-result').textContent.length > 0")
+    made = max((run for run in live.api("GET", "/api/runs") if run["algo"] == "sepoa"),
+               key=lambda run: run["id"])
+    runs.append(made["id"])
+    values = live.api("GET", f"/api/runs/{made['id']}/config")["values"]
+    assert (values["feedback.practice_pairs"], values["feedback.gold_rate"],
+            values["feedback.gold_min_accuracy"], values["feedback.labels_per_query"]) == \
+        (2, 0.2, 0.7, 3)
+
+    # The invite form on a phone: every field and its button in reach, the run's quality
+    # controls shown, the wait limit set there and checked by the server.
+    page.context.close()
+    page = phone(browser)
+    page.goto(f"{live.url}/runs#token={OPERATOR_TOKEN}")
+    form = "#new-invite"
+    page.wait_for_selector(f"{form} [name=run_id] option[value='{made['id']}']", state="attached")
+    for name in ("redirect_url", "consent_text", "pause_message", "wait_limit_s"):
+        assert page.locator(f"{form} [name={name}]").is_visible(), name
+    assert page.locator(f"{form} button[type=submit]").is_visible()
+    assert page.evaluate("document.documentElement.scrollWidth <= innerWidth")
+    page.select_option(f"{form} [name=run_id]", str(made["id"]))
+    page.wait_for_function("document.querySelector('#invite-run-quality').dataset.practice "
+                           "=== '2'")
+    assert "3 answer(s) per pair" in page.inner_text("#invite-run-quality")
+    page.fill(f"{form} [name=wait_limit_s]", "0")
+    page.click(f"{form} button[type=submit]")
+    page.wait_for_selector("#new-invite-errors:not([hidden])")
+    assert "wait_limit_s" in page.inner_text("#new-invite-errors")
+    page.fill(f"{form} [name=wait_limit_s]", "120")
+    page.click(f"{form} button[type=submit]")
+    page.wait_for_selector("#new-invite-result code")
+    invite = max(live.api("GET", "/api/invites"), key=lambda invite: invite["id"])
+    assert (invite["run_id"], invite["wait_limit_s"]) == (made["id"], 120)
     page.context.close()
 
 

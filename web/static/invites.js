@@ -6,6 +6,7 @@ import { ago, el, listErrors, notify } from "./dom.js";
 
 export function startInvites() {
   document.getElementById("new-invite").addEventListener("submit", createInvite);
+  document.querySelector("#new-invite [name=run_id]").addEventListener("change", showRunQuality);
   document.getElementById("verify-code").addEventListener("submit", verifyCode);
   loadInvites();
 }
@@ -53,6 +54,29 @@ function fillRuns(runs) {
   select.replaceChildren(el("option", { value: "" }, "all runs taught by people"),
     ...open.map((run) => el("option", { value: run.id }, `${run.id} · ${run.name}`)));
   select.value = open.some((run) => String(run.id) === chosen) ? chosen : "";
+  showRunQuality();
+}
+
+/** The chosen run's own quality controls, set when it was made (its configuration). */
+async function showRunQuality() {
+  const shown = document.getElementById("invite-run-quality");
+  const runId = document.querySelector("#new-invite [name=run_id]").value;
+  if (!runId) {
+    shown.textContent = "Practice pairs, check pairs and answers per pair are each run's own "
+      + "(the new-run form); choose a run to see them.";
+    return;
+  }
+  try {
+    const { values } = await get(`/api/runs/${runId}/config`);
+    const practice = values["feedback.practice_pairs"];
+    shown.textContent = `Run ${runId}: ${practice} practice pair${practice === 1 ? "" : "s"}, `
+      + `check pairs ${values["feedback.gold_rate"]} of each round (accuracy to go on `
+      + `${values["feedback.gold_min_accuracy"]}), ${values["feedback.labels_per_query"]} `
+      + "answer(s) per pair.";
+    shown.dataset.practice = String(practice);
+  } catch (error) {
+    if (!(error instanceof SignedOut)) shown.textContent = error.message;
+  }
 }
 
 function render(invites, runs) {
@@ -117,7 +141,7 @@ function inviteBody(form) {
   const data = new FormData(form);
   const text = (name) => String(data.get(name) || "").trim();
   const body = {};
-  for (const name of ["run_id", "expires_in_days", "max_uses", "target_answers"]) {
+  for (const name of ["run_id", "expires_in_days", "max_uses", "target_answers", "wait_limit_s"]) {
     if (text(name)) body[name] = Number(text(name));
   }
   for (const name of ["completion_code", "note", "redirect_url", "consent_text", "pause_message"]) {

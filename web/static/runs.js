@@ -89,6 +89,8 @@ async function control(run, label, action, ask) {
   refresh();
 }
 
+const QUALITY_FIELDS = ["practice_pairs", "gold_rate", "gold_min_accuracy", "labels_per_query"];
+
 /** The form as the API's RunCreate body; throws a readable Error for bad JSON. */
 function runBody(form) {
   const data = new FormData(form);
@@ -103,6 +105,10 @@ function runBody(form) {
     }
   }
   if (text("segment_length")) config["feedback.segment_length"] = number("segment_length");
+  // The quality controls are config fields: the server checks them as any config value.
+  for (const name of QUALITY_FIELDS) {
+    if (text(name)) config[`feedback.${name}`] = number(name);
+  }
   const body = {
     task: text("task"),
     algo: text("algo"),
