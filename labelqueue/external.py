@@ -37,7 +37,6 @@ from typing import Any
 from sqlalchemy import func, insert, select
 from sqlalchemy.orm import Session
 
-from labelqueue.clip_codec import ClipInfo
 from labelqueue.errors import Conflict, NotFound
 from labelqueue.instructions import checked_instruction, record_instruction
 from labelqueue.models import (
@@ -60,6 +59,7 @@ from labelqueue.queries import _query_fields
 from labelqueue.runs import EXTERNAL as EXTERNAL
 from labelqueue.transaction import detach, get_row, reading, transaction
 from runvocab.answers import DECISIVE, Answer, aggregate
+from runvocab.clip_format import ClipInfo
 from runvocab.config import FeedbackConfig
 
 KEY_MAX = 200
@@ -272,7 +272,7 @@ def _check_pair(index: int, pair: PairSpec, clips: Mapping[str, ClipInfo]) -> No
 def push_pairs(session: Session, *, run_id: int, pairs: Sequence[PairSpec],
                clips: Mapping[str, ClipInfo]) -> list[Pushed]:
     """Store the pairs as queries of the external run, all or none; one `Pushed` per pair, in
-    order. `clips`: what the uploaded clips the pairs name hold (`clip_codec.ClipInfo`).
+    order. `clips`: what the uploaded clips the pairs name hold (`runvocab.clip_format.ClipInfo`).
 
     ValueError naming the pair for a missing clip, two clips of different shapes, a gold
     answer that is neither first nor second or contradicts the returns, or a key used twice in

@@ -6,6 +6,9 @@ time relates to the task's own time. Data only: no torch, no MuJoCo.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any
+
 CLIP_SIZES: dict[str, tuple[int, int]] = {
     "256x256": (256, 256),
     "320x240": (320, 240),
@@ -76,3 +79,20 @@ def real_time_ratio(task: str, fps: float = CLIP_FPS) -> float | None:
     shows a third of a simulated second (slow motion); None when the step length is unknown."""
     seconds = step_seconds(task)
     return None if seconds is None else seconds * fps
+
+
+@dataclass(frozen=True)
+class ClipInfo:
+    """What a decoded clip holds."""
+
+    container: str
+    """mp4 or webm"""
+    codec: str
+    width: int
+    height: int
+    frames: int
+    seconds: float
+
+    def as_json(self) -> dict[str, Any]:
+        return {"container": self.container, "codec": self.codec, "width": self.width,
+                "height": self.height, "frames": self.frames, "seconds": self.seconds}

@@ -4,7 +4,8 @@ Metaworld v3's `compute_reward`), so that people prefer what the reward prefers.
 
 A run shows its own instruction when an operator gave one (`runs.instruction`), else
 `default_instruction(task)`: its own text for a known task (`instructions_dmc`,
-`instructions_metaworld`), or a generic one built from the task's name. Data only: no torch, no MuJoCo (the server imports it).
+`instructions_metaworld`), or a generic one built from the task's name. Data only: no torch, no
+MuJoCo (the server imports it).
 """
 
 from __future__ import annotations

@@ -56,7 +56,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from labelqueue import clip_codec
+from rundata import clip_codec
 from runvocab.clip_format import CLIP_FPS, CLIP_SIZES, DEFAULT_CLIP_SIZE, dmc_domain
 from trainer.trajectories import Trajectory
 
@@ -306,7 +306,7 @@ def moved_states(env: Env, traj_states: np.ndarray, dx: float, dy: float = 0.0) 
 def encode_mp4(frames: Iterable[np.ndarray], path: str | os.PathLike, cfg: ClipConfig) -> Path:
     """Writes the frames (uint8 (height, width, 3) each, an array or any iterable: frames are
     encoded as they come) to an h264 mp4 at `path`, atomically, with `cfg`'s encoder settings
-    (`labelqueue.clip_codec.encode_mp4`, which external clients' frames go through too)."""
+    (`rundata.clip_codec.encode_mp4`, which external clients' frames go through too)."""
     return clip_codec.encode_mp4(frames, path, fps=cfg.fps, width=cfg.width, height=cfg.height,
                                  crf=cfg.crf, preset=cfg.preset, pixel_format=cfg.pixel_format,
                                  macro_block_size=cfg.macro_block_size)

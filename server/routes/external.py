@@ -26,7 +26,6 @@ from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
 from labelqueue import Run, RunStatus, read_run, reading
-from labelqueue.clip_codec import ClipInfo, encode_mp4, probe_clip
 from labelqueue.external import (
     EXTERNAL,
     Cursor,
@@ -41,8 +40,9 @@ from labelqueue.external import (
     run_of_token,
     run_tokens,
 )
+from rundata.clip_codec import encode_mp4, probe_clip
 from runvocab.answers import Answer
-from runvocab.clip_format import CLIP_FPS
+from runvocab.clip_format import CLIP_FPS, ClipInfo
 from server.deps import (
     HEADERS,
     OperatorDep,

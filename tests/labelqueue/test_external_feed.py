@@ -12,7 +12,6 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from labelqueue import Label, create_labeller, lease_next_query, submit_label, withdraw_label
-from labelqueue.clip_codec import ClipInfo
 from labelqueue.errors import Conflict
 from labelqueue.external import (
     Cursor,
@@ -21,6 +20,7 @@ from labelqueue.external import (
     create_external_run,
     push_pairs,
 )
+from runvocab.clip_format import ClipInfo
 
 CLIPS = {name: ClipInfo("mp4", "h264", 32, 32, 6, 0.2) for name in ("a", "b")}
 

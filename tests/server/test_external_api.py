@@ -22,8 +22,8 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from labelqueue import Query, claim_run
-from labelqueue.clip_codec import probe_clip
 from labelstats.calibration import calibration_report
+from rundata.clip_codec import probe_clip
 from rundata.export_read import read_export
 from sepoa.client import Pair, Study
 from server.settings import Settings

@@ -2,7 +2,7 @@
 
 Both run imageio-ffmpeg's bundled ffmpeg (imported when first needed, so the server starts
 fast). `encode_mp4` is what the worker's clips (`trainer.clips`) and an external client's frame
-arrays (`labelqueue.external`) are written with: libx264, yuv420p, the moov atom first so that a
+arrays (`server.routes.external`) are written with: libx264, yuv420p, the moov atom first so that a
 browser plays the file before it has all of it. `probe_clip` decodes an uploaded file whole
 with the same ffmpeg and says what it holds, or why it will not play on the label page.
 """
@@ -12,11 +12,11 @@ from __future__ import annotations
 import os
 import uuid
 from collections.abc import Iterable
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
+
+from runvocab.clip_format import ClipInfo
 
 PLAYABLE = {"mp4": ("h264",), "webm": ("vp8", "vp9", "av1")}
 """the codecs the label page's browsers decode in each container"""
@@ -62,23 +62,6 @@ def encode_mp4(frames: Iterable[np.ndarray], path: str | os.PathLike[str], *, fp
     finally:
         tmp.unlink(missing_ok=True)
     return path
-
-
-@dataclass(frozen=True)
-class ClipInfo:
-    """What a decoded clip holds."""
-
-    container: str
-    """mp4 or webm"""
-    codec: str
-    width: int
-    height: int
-    frames: int
-    seconds: float
-
-    def as_json(self) -> dict[str, Any]:
-        return {"container": self.container, "codec": self.codec, "width": self.width,
-                "height": self.height, "frames": self.frames, "seconds": self.seconds}
 
 
 def container_of(head: bytes) -> str | None:
