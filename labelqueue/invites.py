@@ -30,7 +30,7 @@ from sqlalchemy import ColumnElement, exists, func, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from labelqueue.errors import Conflict, NotFound, QueueError, Revoked
+from labelqueue.errors import Conflict, Invalid, NotFound, QueueError, Revoked
 from labelqueue.keys import server_key
 from labelqueue.labellers import hash_token
 from labelqueue.models import (
@@ -126,17 +126,21 @@ def invite_runs_open(session: Session, invites: list[Invite]) -> dict[int, bool]
 
 
 def check_redirect_url(url: str | None) -> str | None:
-    """The URL as stored; ValueError unless it is an absolute http(s) URL of at most 2000
+    """The URL as stored; Invalid unless it is an absolute http(s) URL of at most 2000
     characters."""
     if url is None:
         return None
     url = url.strip()
-    parts = urlsplit(url)
+    try:
+        parts = urlsplit(url)
+    except ValueError as err:  # an unclosed [ in the host, characters NFKC turns into / or @
+        raise Invalid(f"redirect_url cannot be read as a URL: {err} (got {url[:80]!r})") \
+            from None
     if parts.scheme not in ("http", "https") or not parts.netloc or len(url) > REDIRECT_MAX:
-        raise ValueError("redirect_url must be an absolute http:// or https:// URL of at most "
+        raise Invalid("redirect_url must be an absolute http:// or https:// URL of at most "
                          f"{REDIRECT_MAX} characters (got {url[:80]!r})")
     if "{" in parts.netloc or "}" in parts.netloc:
-        raise ValueError("redirect_url: {participant} and {code} may be filled in the path or "
+        raise Invalid("redirect_url: {participant} and {code} may be filled in the path or "
                          f"the query, never the host (got {parts.netloc[:80]!r})")
     return url
 
@@ -155,17 +159,17 @@ def create_invite(
     pause_message: str | None = None,
     wait_limit_s: int | None = None,
 ) -> Invite:
-    """A new invite with a random code. NotFound for an unknown run; ValueError for an expiry
+    """A new invite with a random code. NotFound for an unknown run; Invalid for an expiry
     in the past, a limit below 1 or a redirect URL that is not http(s). `completion_code`: the
     study's code, the prefix of each participant's own (`participant_code`). `wait_limit_s`:
     a participant who asked this long with nothing to label finishes with their code
     (`labelqueue.waiting`; None: `WAIT_LIMIT_S`)."""
     if expires_at <= utcnow():
-        raise ValueError("expires_at is in the past: an invite must expire in the future")
+        raise Invalid("expires_at is in the past: an invite must expire in the future")
     for name, value in (("max_uses", max_uses), ("target_answers", target_answers),
                         ("wait_limit_s", wait_limit_s)):
         if value is not None and value < 1:
-            raise ValueError(f"{name} must be at least 1 (or left out), got {value}")
+            raise Invalid(f"{name} must be at least 1 (or left out), got {value}")
     redirect_url = check_redirect_url(redirect_url)
     with transaction(session):
         if run_id is not None:
@@ -224,7 +228,7 @@ def join_invite(session: Session, *, code: str, participant: str | None = None,
                 consent: bool = False) -> Joined:
     """A new labeller, named after `participant` (else "guest-<hex>"; "-2", "-3", ... when the
     name is taken). NotFound for an unknown code; InviteClosed when the invite is revoked,
-    expired, used up or its runs are over; ValueError for a `participant` that is not 1-64 of
+    expired, used up or its runs are over; Invalid for a `participant` that is not 1-64 of
     A-Z a-z 0-9 _ . @ + -, or without `consent` to an invite that has a consent text.
 
     One person, one labeller: a `participant` who joined the invite before (from another
@@ -233,7 +237,7 @@ def join_invite(session: Session, *, code: str, participant: str | None = None,
     still. Revoked for a participant whose labeller was deactivated.
     """
     if participant is not None and not PARTICIPANT.fullmatch(participant):
-        raise ValueError("participant must be 1 to 64 letters, digits or _ . @ + - "
+        raise Invalid("participant must be 1 to 64 letters, digits or _ . @ + - "
                          f"(got {participant[:80]!r})")
     now = utcnow()
     with transaction(session):
@@ -246,7 +250,7 @@ def join_invite(session: Session, *, code: str, participant: str | None = None,
         if invite is None:
             raise NotFound("no such invite link: check that it was copied whole")
         if invite.consent_text and not consent:
-            raise ValueError("this study asks for consent first: read its consent text on the "
+            raise Invalid("this study asks for consent first: read its consent text on the "
                              "invite's page and agree to it (consent: true)")
         if participant is not None:
             again = _rejoin(session, invite, participant, now)

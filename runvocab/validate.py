@@ -95,25 +95,32 @@ def _check_sizes(cfg: RunConfig) -> None:
             raise ConfigError(path, f"{path} must be a finite number, got {value}")
 
 
+def choice_fields() -> dict[str, tuple[str, ...]]:
+    """The text fields that take one of a few values, by dotted path, and those values (the
+    server's OpenAPI states them as enums)."""
+    return {
+        "task": all_tasks(), "algo": ALGOS, "preset": SIZE_PRESETS,
+        "feedback.selection": SELECTION_RULES,
+        "feedback.first_round_selection": SELECTION_RULES,
+        "feedback.selection_mode": SELECTION_MODES,
+        "feedback.compare_rule": ("", *SELECTION_RULES),
+        "teacher.kind": TEACHER_KINDS, "teacher.tie": TIES, "skill.backend": SKILL_BACKENDS,
+        "skill.task_skill_draw": TASK_SKILL_DRAWS, "skill.score_spread": SCORE_SPREADS,
+        "skill.estimator_data": ESTIMATOR_DATA, "skill.actor": SKILL_ACTORS,
+    }
+
+
+def _value(cfg: RunConfig, path: str) -> Any:
+    for name in path.split("."):
+        cfg = getattr(cfg, name)
+    return cfg
+
+
 def _check_names(cfg: RunConfig) -> None:
     if cfg.task not in all_tasks():
         raise ConfigError("task", unknown_task(cfg.task))
-    choices: dict[str, tuple[str, tuple[str, ...]]] = {
-        "algo": (cfg.algo, ALGOS),
-        "preset": (cfg.preset, SIZE_PRESETS),
-        "feedback.selection": (cfg.feedback.selection, SELECTION_RULES),
-        "feedback.first_round_selection": (cfg.feedback.first_round_selection, SELECTION_RULES),
-        "feedback.selection_mode": (cfg.feedback.selection_mode, SELECTION_MODES),
-        "feedback.compare_rule": (cfg.feedback.compare_rule, ("", *SELECTION_RULES)),
-        "teacher.kind": (cfg.teacher.kind, TEACHER_KINDS),
-        "teacher.tie": (cfg.teacher.tie, TIES),
-        "skill.backend": (cfg.skill.backend, SKILL_BACKENDS),
-        "skill.task_skill_draw": (cfg.skill.task_skill_draw, TASK_SKILL_DRAWS),
-        "skill.score_spread": (cfg.skill.score_spread, SCORE_SPREADS),
-        "skill.estimator_data": (cfg.skill.estimator_data, ESTIMATOR_DATA),
-        "skill.actor": (cfg.skill.actor, SKILL_ACTORS),
-    }
-    for name, (value, valid) in choices.items():
+    for name, valid in choice_fields().items():
+        value = _value(cfg, name)
         if value not in valid:
             raise ConfigError(name, unknown(name, value, valid))
     problem = device_name_error(cfg.device)

@@ -6,21 +6,27 @@ returns, no model probability, no selection score.
 
 from __future__ import annotations
 
+import functools
 import json
+import re
+import typing
 from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
 from typing import Annotated, Any, Literal
 
 from fastapi import Path
 from fastapi import Query as QueryParam
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, computed_field
+from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, computed_field
 
 from labelqueue.models import SCRIPTED_TEACHER
 from runvocab.answers import FLAG_NOTE_MAX, Click, Flag
 from runvocab.clip_format import CLIP_SIZES
+from runvocab.config.schema import BOOL_WORDS, leaf_fields
 from runvocab.instructions import MAX_CHARS as MAX_INSTRUCTION_CHARS
 from runvocab.instructions import clean_instruction, run_instruction
 from runvocab.names import ALGOS, SIZE_PRESETS, all_tasks, unknown, unknown_task
+from runvocab.queued_run import WORKER_FIELDS
+from runvocab.validate import MAX_INT, choice_fields
 
 Teacher = Literal["human", "scripted"]
 RoleName = Literal["labeller", "operator"]
@@ -29,8 +35,23 @@ StreamName = Literal["episodes", "eval", "rounds"]
 INT32_MAX = 2**31 - 1
 """the largest value an INTEGER column holds on PostgreSQL: ids, budgets, seeds and steps"""
 INT64_MAX = 2**63 - 1
-StoredInt = Annotated[int, Field(ge=0, le=INT32_MAX, strict=True)]
-"""a whole number as JSON writes one: `false`, `1.0` or `"1"` are no seed or budget"""
+
+
+def _whole(value: Any) -> Any:
+    """A whole number as JSON Schema's `integer` takes one: 12 or 12.0, never `true` or
+    `"12"`."""
+    if isinstance(value, bool | str):
+        raise ValueError("must be a whole number written as a JSON number (not text or a "
+                         "boolean)")
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    return value
+
+
+# The bounds come before the validator, so that the OpenAPI states them as minimum and maximum.
+StoredInt = Annotated[int, Field(ge=0, le=INT32_MAX), BeforeValidator(_whole)]
+"""a seed or a budget, what an INTEGER column holds: `12` or `12.0`, never `true` or `"12"`"""
+Positive = Annotated[int, Field(ge=1, le=INT32_MAX), BeforeValidator(_whole)]
 CONFIG_MAX_BYTES = 16 * 1024
 """the most a run's `config` (or `teacher_params`) may take as JSON"""
 
@@ -41,6 +62,42 @@ def _small_json(value: dict[str, Any]) -> dict[str, Any]:
         raise ValueError(f"is {size} bytes as JSON; at most {CONFIG_MAX_BYTES} are stored")
     return value
 
+
+
+_INT_TEXT = r"^-?[0-9]{1,9}$"
+_FLOAT_TEXT = r"^-?[0-9]{1,9}(\.[0-9]{1,9})?$"
+
+
+def _config_value(kind: Any, path: str) -> dict[str, Any]:
+    """What JSON value a config field of this kind takes (`runvocab.config.parse_value`)."""
+    if kind is bool:
+        return {"anyOf": [{"type": "boolean"}, {"enum": [0, 1]},
+                          {"enum": sorted(BOOL_WORDS)}]}
+    if kind is int:
+        return {"anyOf": [{"type": "integer", "minimum": -MAX_INT, "maximum": MAX_INT},
+                          {"type": "string", "pattern": _INT_TEXT}]}
+    if kind is float:
+        return {"anyOf": [{"type": "number"}, {"type": "string", "pattern": _FLOAT_TEXT}]}
+    if kind is str:
+        choices = choice_fields().get(path)
+        return {"type": "string"} if choices is None else {"enum": list(choices)}
+    items = [_config_value(k, path) for k in typing.get_args(kind)]
+    return {"type": "array", "prefixItems": items, "minItems": len(items),
+            "maxItems": len(items)}
+
+
+@functools.cache
+def config_schema(prefix: str = "") -> dict[str, Any]:
+    """The JSON Schema of a run's `config` (prefix ""), or of its teacher parameters (prefix
+    "teacher.": the teacher's fields without it): the fields by name and the JSON each takes."""
+    fields = {leaf.path.removeprefix(prefix): _config_value(leaf.kind, leaf.path)
+              for leaf in leaf_fields()
+              if leaf.path.startswith(prefix) and leaf.path not in WORKER_FIELDS}
+    return {"propertyNames": {"enum": list(fields)}, "properties": fields}
+
+
+CONFIG_RULES = ("Each field's own range and the rules between fields are checked as a worker "
+                "would build the run: a 422 names the field.")
 
 def _utc(value: datetime) -> datetime:
     try:
@@ -65,7 +122,24 @@ AfterStep = Annotated[
 Expires = Annotated[int | None, QueryParam(ge=0, le=INT64_MAX, description="unix seconds")]
 
 SmallJson = Annotated[dict[str, Any], AfterValidator(_small_json)]
-UTCTime = Annotated[datetime, AfterValidator(_utc)]
+RunConfigJson = Annotated[SmallJson, Field(json_schema_extra=config_schema(),
+                                           description=CONFIG_RULES)]
+TeacherJson = Annotated[SmallJson, Field(json_schema_extra=config_schema("teacher."),
+                                         description=CONFIG_RULES)]
+DATE_TIME_PATTERN = (r"^[0-9]{4}-[0-9]{2}-[0-9]{2}[Tt ][0-9]{2}:[0-9]{2}:[0-9]{2}(\.[0-9]+)?"
+                     r"([Zz]|[+-][0-9]{2}:[0-9]{2})$")
+"""RFC 3339's date-time, with its offset (`2026-01-01T12:00:00Z`)"""
+
+
+def _date_time(value: Any) -> Any:
+    if not isinstance(value, str) or not re.match(DATE_TIME_PATTERN, value):
+        raise ValueError("must be an RFC 3339 date-time with its offset, such as "
+                         "2026-01-01T12:00:00Z (not a number or a time without its zone)")
+    return value
+
+
+UTCTime = Annotated[datetime, BeforeValidator(_date_time), AfterValidator(_utc)]
+"""a date-time as text with its offset, read as UTC"""
 
 
 class ErrorOut(BaseModel):
@@ -166,8 +240,8 @@ class RunCreate(Body):
     preset: PresetName = "small"
     seed: StoredInt = 0
     teacher: Teacher = "human"
-    teacher_params: SmallJson = Field(default_factory=dict, examples=[{"eps": 0.1}])
-    config: SmallJson = Field(default_factory=dict, examples=[{"sac.lr": 1e-4}])
+    teacher_params: TeacherJson = Field(default_factory=dict, examples=[{"eps": 0.1}])
+    config: RunConfigJson = Field(default_factory=dict, examples=[{"sac.lr": 1e-4}])
     name: str | None = Field(default=None, min_length=1, max_length=200)
     """defaults to `<task>-<algo>-s<seed>`"""
     instruction: InstructionText | None = None
@@ -189,20 +263,21 @@ class LabellingRunCreate(Body):
     dataset: str = Field(min_length=1, max_length=300, pattern=DATASET_ID_PATTERN,
                          examples=["sepoa/dmc-cheetah_run/run-3-v0"])
     """the dataset's id: its folder under the datasets folder"""
-    budget: int = Field(ge=1, le=INT32_MAX)
+    budget: Positive
     """answers the run asks for in all"""
-    per_round: int | None = Field(default=None, ge=1, le=INT32_MAX)
+    per_round: Positive | None = None
     """pairs per round; defaults to the preset's"""
     selection: Literal["uniform", "disagreement"] = "disagreement"
     """how rounds after the first (always uniform) draw their pairs: uniformly, or by the
     disagreement of the reward ensemble refitted on the labels so far"""
-    segment_length: int | None = Field(default=None, ge=1, le=INT32_MAX)
+    segment_length: Positive | None = None
     """steps per clip; defaults to the preset's, at most the dataset's shortest episode"""
     preset: PresetName = "small"
     seed: StoredInt = 0
     teacher: Teacher = "human"
-    teacher_params: SmallJson = Field(default_factory=dict, examples=[{"eps": 0.1}])
-    config: SmallJson = Field(default_factory=dict, examples=[{"reward.hidden_dim": 64}])
+    teacher_params: TeacherJson = Field(default_factory=dict, examples=[{"eps": 0.1}])
+    config: RunConfigJson = Field(default_factory=dict,
+                                 examples=[{"reward.hidden_dim": 64}])
     name: str | None = Field(default=None, min_length=1, max_length=200)
     """defaults to `label <dataset id>`"""
     instruction: InstructionText | None = None
@@ -259,7 +334,7 @@ class RunConfigOut(Out):
 
 class TeacherUpdate(Body):
     teacher: Teacher
-    params: SmallJson = Field(default_factory=dict)
+    params: TeacherJson = Field(default_factory=dict)
 
 
 class MetricOut(Out):
@@ -341,12 +416,22 @@ class NextQuery(BaseModel):
 
 
 class LabelSubmit(Body):
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"allOf": [
+        # A flag goes with a skip only; a note (something besides white space) with a flag.
+        {"if": {"properties": {"flag": {"type": "string"}}, "required": ["flag"]},
+         "then": {"properties": {"choice": {"const": "skip"}}}},
+        {"if": {"properties": {"flag_note": {"type": "string", "pattern": r"\S"}},
+                "required": ["flag_note"]},
+         "then": {"properties": {"flag": {"type": "string"}}, "required": ["flag"]}},
+    ]})
+
     choice: Click
     """what was clicked; the server turns it into an answer with the sides it chose"""
     left_is_first: bool | None = None
     """optional: the value next-query gave, as a check; a different one is refused (422)"""
     shown_at: UTCTime
-    """when the page showed the pair; stored clamped to [the lease's start, the answer's time]"""
+    """when the page showed the pair, as an RFC 3339 date-time with its offset (a number is a
+    422); stored clamped to [the lease's start, the answer's time]"""
     flag: Flag | None = None
     """the pair is one nobody can judge: clip_broken, not_visible or other; only with choice
     skip (422 otherwise), so it is never trained on"""
@@ -423,22 +508,29 @@ class RunBrief(BaseModel):
     """how fast a clip plays at 1x against the task's own time (0.33: a third of real speed)"""
 
 
-InviteDays = Annotated[float, Field(gt=0, le=366)]
+InviteDays = Annotated[float, Field(ge=1 / 1440, le=366)]
+"""days, from a minute to a year"""
 StudyEnd = Literal["target", "runs_over", "paused", "nothing_left"]
 """why a participant's study is complete (`labelqueue.invites.Progress.why`)"""
+
+
+REDIRECT_PATTERN = (r"^https?://([A-Za-z0-9._~%!$&'()*+,;=:-]*@)?[A-Za-z0-9._~%!$&'()*+,;=-]+"
+                    r"(:[0-9]{0,5})?([/?#][^\s]*)?$")
+"""an absolute http(s) URL whose host is a name or an IPv4 address in plain ASCII (no
+`{participant}` or `{code}` there)"""
 
 
 class InviteCreate(Body):
     """A new invite link. Opening it makes a new labeller, until it expires, is used up or is
     revoked."""
 
-    run_id: Annotated[int, Field(ge=1, le=INT32_MAX)] | None = None
+    run_id: Positive | None = None
     """the one run its labellers are sent to; null: all runs taught by people"""
     expires_in_days: InviteDays = 7.0
     """how long the link works, from now"""
-    max_uses: Annotated[int, Field(ge=1, le=INT32_MAX)] | None = None
+    max_uses: Positive | None = None
     """labellers it may make; null: no limit"""
-    target_answers: Annotated[int, Field(ge=1, le=INT32_MAX)] | None = None
+    target_answers: Positive | None = None
     """decisive answers (not skips or can't-tells) on the invite's run after which a
     participant's study is complete; null: it completes when the run is over"""
     completion_code: str | None = Field(default=None, min_length=1, max_length=40,
@@ -448,7 +540,7 @@ class InviteCreate(Body):
     note: str | None = Field(default=None, min_length=1, max_length=200)
     """the operator's own name for the link"""
     redirect_url: str | None = Field(default=None, min_length=1, max_length=2000,
-                                     pattern=r"^https?://",
+                                     pattern=REDIRECT_PATTERN,
                                      examples=["https://app.prolific.com/submissions/complete"
                                                "?cc=C1234"])
     """where a participant is sent when their study is complete (a platform's completion URL):
@@ -458,7 +550,7 @@ class InviteCreate(Body):
     """shown on the invite's page: nobody joins without agreeing to it"""
     pause_message: str | None = Field(default=None, min_length=1, max_length=2000)
     """what a participant paused by check pairs is told instead of being given their code"""
-    wait_limit_s: Annotated[int, Field(ge=1, le=INT32_MAX)] | None = None
+    wait_limit_s: Positive | None = None
     """a participant who asks this long for pairs and gets none finishes with their code
     ("nothing left to label"); null: 300 s"""
 
@@ -628,7 +720,7 @@ class VerifiedOut(BaseModel):
 
 
 class TakeBack(Body):
-    keep: Annotated[int, Field(ge=1, le=INT32_MAX)] | None = None
+    keep: Positive | None = None
     """the query the page shows now: its lease is kept; the caller's other leases are released"""
 
 

@@ -85,6 +85,10 @@ def export_labels(
     return StreamingResponse(_blocks(file), media_type=MEDIA_TYPES[fmt], headers=headers)
 
 
+MINARI_ID_PATTERN = r"^([-_\w][-_\w/]*[-_\w]+/)?[-_\w]+?-v[0-9]+$"
+"""Minari's dataset id (its DATASET_ID_RE) with the version it requires"""
+
+
 @router.get(
     "/runs/{run_id}/dataset",
     response_class=StreamingResponse,
@@ -96,7 +100,9 @@ def export_dataset(
     _: OperatorDep,
     run_id: RunId,
     dataset_id: Annotated[str | None, Query(
-        max_length=200, description="the Minari dataset id (default sepoa/<task>/run-<id>-v0)",
+        max_length=200, pattern=MINARI_ID_PATTERN,
+        description="the Minari dataset id, `[namespace/]name-v<version>` with no `..` "
+                    "(default sepoa/<task>/run-<id>-v0)",
     )] = None,
     data_format: Annotated[Literal["arrow", "hdf5"], Query(
         alias="format", description="Minari's storage: arrow, or hdf5 (which TorchRL reads)",

@@ -6,12 +6,13 @@ from __future__ import annotations
 import json
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, HTTPException, Query, Response
+from fastapi import APIRouter, HTTPException, Query, Request, Response
 from fastapi.exceptions import RequestValidationError
 from sqlalchemy import select
 
 from labelqueue import Run, RunStatus, read_metrics, reading, set_run_status, set_teacher
 from labelqueue.activity import list_workers, runs_activity
+from labelqueue.external import is_external
 from labelqueue.run_config import as_json, fields, overridden, run_config
 from runvocab.config import typed_overrides
 from runvocab.names import ConfigError
@@ -19,6 +20,7 @@ from server import curves, services
 from server.deps import OperatorDep, SessionDep, SettingsDep
 from server.run_check import refusal, run_defaults
 from server.schemas import (
+    CONFIG_MAX_BYTES,
     ActivityOut,
     AfterStep,
     AlgoName,
@@ -34,6 +36,7 @@ from server.schemas import (
     TaskName,
     TeacherUpdate,
     WorkerOut,
+    config_schema,
     errors,
 )
 
@@ -116,27 +119,37 @@ def create_labelling_run(spec: LabellingRunCreate, session: SessionDep, _: Opera
     return RunOut.model_validate(run)
 
 
-@router.get("/defaults", response_model=RunDefaults, responses=errors(422))
+CONFIG_QUERY = {"parameters": [{
+    "name": "config", "in": "query", "required": False,
+    "description": "the run's config overrides, as a JSON object (at most 16 KiB)",
+    "content": {"application/json": {"schema": {"type": "object"} | config_schema()}},
+}]}
+"""`config` as the OpenAPI states it: a JSON object of config fields, as `POST /api/runs`'s"""
+
+
+@router.get("/defaults", response_model=RunDefaults, responses=errors(422),
+            openapi_extra=CONFIG_QUERY)
 def get_defaults(
+    request: Request,
     session: SessionDep,
     _: OperatorDep,
     task: Annotated[TaskName, Query()],
     algo: Annotated[AlgoName, Query()] = "pebble",
     preset: Annotated[PresetName, Query()] = "small",
-    config: Annotated[str, Query(max_length=16 * 1024,
-                                 description="the run's config overrides, as JSON")] = "{}",
 ) -> RunDefaults:
     """What a new run of this task, algorithm and preset gets unless told otherwise (budget,
     round size, clip length), when its first pairs come, and for S-EPOA how long its skill
     pretraining takes: at the pace this server's workers last reported, else the small
     preset's on 2 CPU cores."""
+    config = request.query_params.get("config", "{}")
     try:
-        overrides = json.loads(config)
+        overrides = json.loads(config) if len(config) <= CONFIG_MAX_BYTES else None
     except ValueError:
         overrides = None
     if not isinstance(overrides, dict):
         raise RequestValidationError([{"type": "value_error", "loc": ("query", "config"),
-                                       "msg": "config must be a JSON object"}])
+                                       "msg": "config must be a JSON object of at most "
+                                              f"{CONFIG_MAX_BYTES} characters"}])
     return RunDefaults(**run_defaults(task=task, algo=algo, preset=preset, config=overrides,
                                       measured_pace=_pretraining_pace(session)))
 
@@ -238,10 +251,14 @@ def requeue_run(run_id: RunId, session: SessionDep, _: OperatorDep) -> RunOut:
 
 
 @router.put(
-    "/{run_id}/teacher", response_model=RunOut, responses=errors(400, 404, 413, 422)
+    "/{run_id}/teacher", response_model=RunOut, responses=errors(400, 404, 409, 413, 422)
 )
 def put_teacher(run_id: RunId, body: TeacherUpdate, session: SessionDep, _: OperatorDep) -> RunOut:
-    """The run's teacher from now on, with its parameters checked as a worker will use them."""
+    """The run's teacher from now on, with its parameters checked as a worker will use them
+    (409 for an external run: its client's people answer it, no teacher a worker runs)."""
+    if is_external(services.get_run(session, run_id=run_id)):
+        raise HTTPException(409, f"run {run_id} is an external run: no worker trains it, so it "
+                                 "has no teacher to set; the people of its invites answer it")
     try:
         run = set_teacher(session, run_id=run_id, teacher=body.teacher, params=body.params)
     except ConfigError as err:

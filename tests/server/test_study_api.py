@@ -136,11 +136,16 @@ def test_a_new_run_defaults_to_its_presets_budget_and_the_form_learns_the_clip_l
                                          "preset": "tiny", "config": {"feedback.budget": "lots"}},
                       headers=OPERATOR)
     assert bad.status_code == 422 and bad.json()["detail"][0]["loc"][-1] == "feedback.budget"
-    for field, value in (("seed", False), ("seed", 1.0), ("budget", True), ("budget", "12")):
+    for field, value in (("seed", False), ("seed", 1.5), ("budget", True), ("budget", "12")):
         wrong = client.post("/api/runs", json={"task": "dmc:cheetah_run", "algo": "pebble",
                                                "preset": "tiny", field: value},
                             headers=OPERATOR)
         assert wrong.status_code == 422 and wrong.json()["detail"][0]["loc"] == ["body", field]
+    # JSON Schema's integer: 12.0 is one.
+    whole = client.post("/api/runs", json={"task": "dmc:cheetah_run", "algo": "pebble",
+                                           "preset": "tiny", "seed": 7.0, "budget": 12.0},
+                        headers=OPERATOR).json()
+    assert (whole["seed"], whole["budget"]) == (7, 12)
 
 
 def test_invite_and_clip_links_use_the_public_url(tmp_path: Path) -> None:
