@@ -18,6 +18,7 @@ from labelqueue.db_url import (
 from labelqueue.engine import make_engine, session_factory
 from labelqueue.errors import (
     Conflict,
+    Invalid,
     InvalidTransition,
     LeaseError,
     NotFound,
@@ -138,6 +139,7 @@ __all__ = [
     "LEASE_SECONDS",
     "OPERATOR_MOVES",
     "Conflict",
+    "Invalid",
     "InvalidTransition",
     "Label",
     "LabelSource",

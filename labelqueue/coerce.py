@@ -8,6 +8,8 @@ from collections.abc import Mapping
 from pathlib import PurePosixPath
 from typing import Any
 
+from labelqueue.errors import Invalid
+
 
 def finite(value: Any) -> float | None:
     """A float, or None for None, NaN and infinities (neither JSON nor SQLite keeps NaN)."""
@@ -34,7 +36,7 @@ def json_object(values: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def clip_key(key: str | None) -> str | None:
-    """`key` if it is a relative name inside the clips folder; ValueError otherwise.
+    """`key` if it is a relative name inside the clips folder; Invalid otherwise.
 
     Clips are stored by key, never by a path a client chose, so a key must not escape the folder.
     """
@@ -42,5 +44,5 @@ def clip_key(key: str | None) -> str | None:
         return None
     parts = PurePosixPath(key).parts
     if not parts or key.startswith("/") or "\\" in key or ":" in key or ".." in parts:
-        raise ValueError(f"clip key {key!r} is not a relative name inside the clips folder")
+        raise Invalid(f"clip key {key!r} is not a relative name inside the clips folder")
     return key

@@ -34,5 +34,10 @@ class StaleToken(Revoked):
     it (`rotate_token`), from whichever process."""
 
 
+class Invalid(QueueError, ValueError):
+    """A value given to the operation is not valid; the message names it and what is valid. (A
+    ValueError too, so that callers outside the server may catch it as one.)"""
+
+
 class RunClosed(Conflict):
     """The run takes no answers in its status (only running and paused runs do)."""

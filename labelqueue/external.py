@@ -37,7 +37,7 @@ from typing import Any
 from sqlalchemy import func, insert, select
 from sqlalchemy.orm import Session
 
-from labelqueue.errors import Conflict, NotFound
+from labelqueue.errors import Conflict, Invalid, NotFound
 from labelqueue.instructions import checked_instruction, record_instruction
 from labelqueue.models import (
     EXTERNAL_PAIRS,
@@ -81,7 +81,7 @@ def create_external_run(
     practice_pairs: int = 0, instruction: str | None = None,
 ) -> Run:
     """A running external run: `task` in free text (its instruction is the task's own unless
-    given), `labels_per_query` answers per pair, gold and practice as for any run. ValueError
+    given), `labels_per_query` answers per pair, gold and practice as for any run. Invalid
     naming the field for a value out of range; nothing is stored then."""
     checks = {"budget": budget >= 1, "labels_per_query": 1 <= labels_per_query <= 50,
               "gold_rate": 0.0 <= gold_rate <= 0.5,
@@ -91,7 +91,7 @@ def create_external_run(
               "task": 1 <= len(task.strip()) <= 100}
     for field, fine in checks.items():
         if not fine:
-            raise ValueError(f"{field}: out of range")
+            raise Invalid(f"{field}: out of range")
     feedback = dataclasses.replace(
         FeedbackConfig(), budget=budget, labels_per_query=labels_per_query, gold_rate=gold_rate,
         gold_min_accuracy=gold_min_accuracy, gold_min_answers=gold_min_answers,
@@ -239,34 +239,34 @@ def clip_use(session: Session) -> dict[int, ClipUse]:
 def _check_pair(index: int, pair: PairSpec, clips: Mapping[str, ClipInfo]) -> None:
     where = f"pairs[{index}] ({pair.key!r})"
     if not 1 <= len(pair.key) <= KEY_MAX:
-        raise ValueError(f"{where}: key must be 1-{KEY_MAX} characters")
+        raise Invalid(f"{where}: key must be 1-{KEY_MAX} characters")
     for side, clip in (("first_clip", pair.first_clip), ("second_clip", pair.second_clip)):
         if clip not in clips:
-            raise ValueError(f"{where}: {side} {clip!r} is no clip uploaded to this run")
+            raise Invalid(f"{where}: {side} {clip!r} is no clip uploaded to this run")
     first, second = clips[pair.first_clip], clips[pair.second_clip]
     if (first.width, first.height, first.frames) != (second.width, second.height, second.frames):
-        raise ValueError(
+        raise Invalid(
             f"{where}: the two clips differ in shape: {first.width}x{first.height}, "
             f"{first.frames} frames against {second.width}x{second.height}, {second.frames} "
             "frames (the label page plays them side by side on one clock)")
     for name in ("returns", "trajectory_returns"):
         values = getattr(pair, name)
         if values is not None and not all(math.isfinite(v) for v in values):
-            raise ValueError(f"{where}: {name} must be finite numbers")
+            raise Invalid(f"{where}: {name} must be finite numbers")
     if pair.trajectory_returns is not None and pair.returns is None:
-        raise ValueError(f"{where}: trajectory_returns needs returns")
+        raise Invalid(f"{where}: trajectory_returns needs returns")
     if pair.gold is not None:
         if pair.gold not in (Answer.FIRST, Answer.SECOND):
-            raise ValueError(f"{where}: a gold pair's answer is first or second, not "
+            raise Invalid(f"{where}: a gold pair's answer is first or second, not "
                              f"{pair.gold!r}")
         if pair.returns is not None:
             by_returns = (Answer.FIRST if pair.returns[0] > pair.returns[1] else
                           Answer.SECOND if pair.returns[1] > pair.returns[0] else None)
             if by_returns != pair.gold:
-                raise ValueError(f"{where}: the gold answer {pair.gold.value} contradicts the "
+                raise Invalid(f"{where}: the gold answer {pair.gold.value} contradicts the "
                                  f"returns {list(pair.returns)}")
     if pair.meta is not None and len(json.dumps(pair.meta)) > META_MAX_BYTES:
-        raise ValueError(f"{where}: meta is larger than {META_MAX_BYTES} bytes as JSON")
+        raise Invalid(f"{where}: meta is larger than {META_MAX_BYTES} bytes as JSON")
 
 
 def push_pairs(session: Session, *, run_id: int, pairs: Sequence[PairSpec],
@@ -274,7 +274,7 @@ def push_pairs(session: Session, *, run_id: int, pairs: Sequence[PairSpec],
     """Store the pairs as queries of the external run, all or none; one `Pushed` per pair, in
     order. `clips`: what the uploaded clips the pairs name hold (`runvocab.clip_format.ClipInfo`).
 
-    ValueError naming the pair for a missing clip, two clips of different shapes, a gold
+    Invalid naming the pair for a missing clip, two clips of different shapes, a gold
     answer that is neither first nor second or contradicts the returns, or a key used twice in
     the push; Conflict for a key stored with other content, a run that is no external run or
     takes no answers, or pairs beyond the budget. Nothing is stored on any refusal.
@@ -283,7 +283,7 @@ def push_pairs(session: Session, *, run_id: int, pairs: Sequence[PairSpec],
     for index, pair in enumerate(pairs):
         _check_pair(index, pair, clips)
         if keys[pair.key] > 1:
-            raise ValueError(f"pairs[{index}]: key {pair.key!r} is used twice in this push")
+            raise Invalid(f"pairs[{index}]: key {pair.key!r} is used twice in this push")
     digests = [pair.digest() for pair in pairs]
     with transaction(session):
         run = get_row(session, Run, run_id)
@@ -381,10 +381,10 @@ class Cursor:
 
     @classmethod
     def parse(cls, text: str) -> Cursor:
-        """ValueError for text that is no cursor the feed gave."""
+        """Invalid for text that is no cursor the feed gave."""
         label, dot, withdrawal = text.partition(".")
         if not (label.isdigit() and withdrawal.isdigit() and dot) or len(text) > 40:
-            raise ValueError(f"cursor {text!r} is not one the answers feed gave (like '0.0')")
+            raise Invalid(f"cursor {text!r} is not one the answers feed gave (like '0.0')")
         return cls(int(label), int(withdrawal))
 
 
@@ -416,7 +416,7 @@ def answers_after(session: Session, *, run_id: int, cursor: Cursor,
     The cursor is exact, with nothing held back: a run's labels (and its withdrawals) commit
     in the order of their ids, since each draws its id holding the run's row lock
     (`labelqueue.labels`, `labelqueue.undo`; SQLite's one writer anyway), so a read that sees
-    one sees every one before it. ValueError for a cursor ahead of the run's answers; NotFound
+    one sees every one before it. Invalid for a cursor ahead of the run's answers; NotFound
     for an unknown run."""
     with reading(session):
         status = get_row(session, Run, run_id).status.value
@@ -428,7 +428,7 @@ def answers_after(session: Session, *, run_id: int, cursor: Cursor,
         last_withdrawal = session.scalar(select(func.coalesce(func.max(Withdrawal.id), 0))
                                          .where(Withdrawal.run_id == run_id)) or 0
         if cursor.label > last_label or cursor.withdrawal > last_withdrawal:
-            raise ValueError(f"cursor {cursor} is ahead of run {run_id}'s answers (its newest "
+            raise Invalid(f"cursor {cursor} is ahead of run {run_id}'s answers (its newest "
                              f"is {last_label}.{last_withdrawal})")
         labels = session.execute(
             select(Label, Labeller.name).join(Labeller, Labeller.id == Label.labeller_id)

@@ -16,14 +16,30 @@ from datetime import datetime
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from labelqueue.errors import Invalid
 from labelqueue.models import Run, RunInstruction, utcnow
 from labelqueue.transaction import detach, get_row, transaction
+from runvocab.clip_format import parse_clip_size
 from runvocab.instructions import clean_instruction, instruction_sha256, run_instruction
 
 
 def checked_instruction(instruction: str | None) -> str | None:
-    """The operator's text as stored (None: the task's own); ValueError naming the problem."""
-    return None if instruction is None else clean_instruction(instruction)
+    """The operator's text as stored (None: the task's own); Invalid naming the problem."""
+    if instruction is None:
+        return None
+    try:
+        return clean_instruction(instruction)
+    except ValueError as err:
+        raise Invalid(f"instruction {err}") from None
+
+
+def checked_clip_size(clip_size: str | None) -> None:
+    """Invalid for a clip size a run may not choose (`runvocab.clip_format.CLIP_SIZES`)."""
+    if clip_size is not None:
+        try:
+            parse_clip_size(clip_size)
+        except ValueError as err:
+            raise Invalid(str(err)) from None
 
 
 def record_instruction(session: Session, run: Run) -> None:
@@ -36,7 +52,7 @@ def record_instruction(session: Session, run: Run) -> None:
 
 def set_instruction(session: Session, *, run_id: int, instruction: str | None) -> Run:
     """The run's instruction from now on: the operator's text, or None for the task's own.
-    NotFound for an unknown run; ValueError for an empty, too long or garbled text."""
+    NotFound for an unknown run; Invalid for an empty, too long or garbled text."""
     stored = checked_instruction(instruction)
     with transaction(session):
         run = get_row(session, Run, run_id)

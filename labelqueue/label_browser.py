@@ -17,7 +17,7 @@ from typing import Any
 from sqlalchemy import ColumnElement, Select, and_, case, func, or_, select
 from sqlalchemy.orm import Session
 
-from labelqueue.errors import NotFound
+from labelqueue.errors import Invalid, NotFound
 from labelqueue.export import correct_answer
 from labelqueue.models import Label, Labeller, Query, Run
 from labelqueue.transaction import reading
@@ -130,7 +130,7 @@ def browse_labels(
 ) -> LabelPage:
     """A page of stored labels, newest first, that match every filter given (None: any)."""
     if not 1 <= limit <= MAX_PAGE:
-        raise ValueError(f"limit must be between 1 and {MAX_PAGE}, got {limit}")
+        raise Invalid(f"limit must be between 1 and {MAX_PAGE}, got {limit}")
     where: list[ColumnElement[bool]] = []
     if run_id is not None:
         where.append(Label.run_id == run_id)

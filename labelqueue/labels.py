@@ -17,7 +17,7 @@ from typing import Any
 from sqlalchemy import ColumnElement, Integer, String, bindparam, case, insert, select, update
 from sqlalchemy.orm import Session
 
-from labelqueue.errors import LeaseError, NotFound, Revoked, RunClosed, StaleToken
+from labelqueue.errors import Invalid, LeaseError, NotFound, Revoked, RunClosed, StaleToken
 from labelqueue.gold import pause_if_below
 from labelqueue.models import (
     LABELLERS,
@@ -205,7 +205,7 @@ def clamp_shown_at(
         shown = shown_at.replace(tzinfo=UTC) if shown_at.tzinfo is None else shown_at
         shown = shown.astimezone(UTC)
     except OverflowError:
-        raise ValueError(f"shown_at {shown_at.isoformat()} is out of range") from None
+        raise Invalid(f"shown_at {shown_at.isoformat()} is out of range") from None
     if leased_at is not None and shown < leased_at:
         shown = leased_at
     return min(shown, now)
@@ -213,24 +213,24 @@ def clamp_shown_at(
 
 def check_flag(choice: Click, flag: Flag | str | None,
                note: str | None) -> tuple[Flag | None, str | None]:
-    """A flag and its note as stored (the note stripped, empty as none); ValueError naming the
+    """A flag and its note as stored (the note stripped, empty as none); Invalid naming the
     problem for a flag on an answer other than a skip, a note without a flag, an unknown flag
     or a note too long."""
     note = (note or "").strip() or None
     if flag is None:
         if note is not None:
-            raise ValueError("flag_note needs a flag")
+            raise Invalid("flag_note needs a flag")
         return None, None
     try:
         flag = Flag(flag)
     except ValueError:
-        raise ValueError(f"unknown flag {flag!r}; valid: "
+        raise Invalid(f"unknown flag {flag!r}; valid: "
                          + ", ".join(f.value for f in Flag)) from None
     if choice is not Click.SKIP:
-        raise ValueError(f"a flagged pair is skipped, not answered: send choice 'skip' with the "
+        raise Invalid(f"a flagged pair is skipped, not answered: send choice 'skip' with the "
                          f"flag, not {choice.value!r}")
     if note is not None and len(note) > FLAG_NOTE_MAX:
-        raise ValueError(f"flag_note is {len(note)} characters long; at most {FLAG_NOTE_MAX}")
+        raise Invalid(f"flag_note is {len(note)} characters long; at most {FLAG_NOTE_MAX}")
     return flag, note
 
 
@@ -267,7 +267,7 @@ def submit_label(
     budget and checks no gold threshold.
 
     `flag` marks the pair as one nobody can judge (`runvocab.answers.Flag`), with an optional
-    `flag_note`; only a skip may carry one (ValueError otherwise), so a flagged pair is never
+    `flag_note`; only a skip may carry one (Invalid otherwise), so a flagged pair is never
     trained on.
     """
     choice = Click(choice)

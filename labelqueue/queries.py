@@ -29,7 +29,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from labelqueue.coerce import clip_key, finite
-from labelqueue.errors import Conflict, NotFound, Revoked, StaleToken
+from labelqueue.errors import Conflict, Invalid, NotFound, Revoked, StaleToken
 from labelqueue.gold import (
     GOLD_NEEDS_LABELS,
     SCHEDULE_KEY,
@@ -90,7 +90,7 @@ _REQUIRED = frozenset(field.name for field in QUERY_FIELDS if not field.optional
 def _stored(field: QueryField, value: Any) -> Any:
     if value is None:
         if not field.nullable:
-            raise ValueError(f"query field {field.name} may not be null")
+            raise Invalid(f"query field {field.name} may not be null")
         return None
     if field.type == "float" and field.nullable:
         return finite(value)  # "no value" (a uniform pick's NaN score) is stored as null
@@ -101,13 +101,13 @@ def _query_fields(spec: Mapping[str, Any]) -> dict[str, Any]:
     unknown = set(spec) - set(QUERY_FIELD_NAMES)
     missing = _REQUIRED - set(spec)
     if unknown or missing:
-        raise ValueError(f"query fields: unknown {sorted(unknown)}, missing {sorted(missing)}")
+        raise Invalid(f"query fields: unknown {sorted(unknown)}, missing {sorted(missing)}")
     fields = {field.name: _stored(field, spec.get(field.name, field.default))
               for field in QUERY_FIELDS}
     if fields["gold"]:
         fields["needs_labels"] = GOLD_NEEDS_LABELS
     if fields["needs_labels"] < 1:
-        raise ValueError("needs_labels must be at least 1")
+        raise Invalid("needs_labels must be at least 1")
     return fields
 
 
@@ -120,7 +120,7 @@ def push_queries(
     required ones (round, position, segment_length, the trajectory and start of both sides) and
     any optional ones (the trainer always gives the four ground-truth returns); a gold pair
     (`labelqueue.gold`) takes every labeller's answer whatever its needs_labels says.
-    ValueError for an unknown or missing field, a null where the field takes none, or a clip
+    Invalid for an unknown or missing field, a null where the field takes none, or a clip
     key outside the clips folder.
     Idempotent per (run, round, position): a run resumed from an older checkpoint that pushes
     the same round again gets the stored ids back; a different pair at a stored position

@@ -25,11 +25,10 @@ from sqlalchemy.orm import Session
 
 from labelqueue.coerce import json_object
 from labelqueue.errors import Conflict, InvalidTransition
-from labelqueue.instructions import checked_instruction, record_instruction
+from labelqueue.instructions import checked_clip_size, checked_instruction, record_instruction
 from labelqueue.models import Run, RunStatus, TeacherKind, UTCDateTime, Worker, utcnow
 from labelqueue.run_config import resolve, with_teacher
 from labelqueue.transaction import changed, detach, get_row, reading, transaction
-from runvocab.clip_format import parse_clip_size
 
 EXTERNAL = "external"
 """the `algo` of a run no worker trains (`labelqueue.external`): never claimed"""
@@ -98,11 +97,10 @@ def create_run(
     `dataset`: the dataset export a labelling-only run draws its pairs from (checked by
     `rundata.labelling.create_labelling_run`, which should be used to make one).
     The run's configuration is resolved against the presets here and stored with it
-    (`labelqueue.run_config`). ValueError for a bad instruction or clip size; a ConfigError
-    (a ValueError) naming the field for a run no worker could train. Nothing is stored then."""
+    (`labelqueue.run_config`). Invalid for a bad instruction or clip size; a ConfigError naming
+    the field for a run no worker could train. Nothing is stored then."""
     stored_instruction = checked_instruction(instruction)
-    if clip_size is not None:
-        parse_clip_size(clip_size)
+    checked_clip_size(clip_size)
     resolved = resolve(task=task, algo=algo, preset=preset, seed=seed, budget=budget,
                        teacher_params=teacher_params or {}, config=config or {})
     with transaction(session):

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from labelqueue.errors import Invalid
 from runvocab.clip_format import ClipInfo
 
 PLAYABLE = {"mp4": ("h264",), "webm": ("vp8", "vp9", "av1")}
@@ -74,7 +75,7 @@ def container_of(head: bytes) -> str | None:
 
 
 def probe_clip(path: Path) -> ClipInfo:
-    """Decode the clip at `path` whole and say what it holds; ValueError naming the problem for
+    """Decode the clip at `path` whole and say what it holds; Invalid naming the problem for
     a file that is no MP4 or WebM, does not decode, or holds a codec or pixel format browsers
     do not play."""
     import imageio_ffmpeg  # type: ignore[import-untyped]
@@ -82,24 +83,24 @@ def probe_clip(path: Path) -> ClipInfo:
     with open(path, "rb") as f:
         container = container_of(f.read(16))
     if container is None:
-        raise ValueError("the clip is neither an MP4 nor a WebM file")
+        raise Invalid("the clip is neither an MP4 nor a WebM file")
     try:
         reader = imageio_ffmpeg.read_frames(str(path))
         meta = next(reader)
         reader.close()
         frames, seconds = imageio_ffmpeg.count_frames_and_secs(str(path))
     except (OSError, RuntimeError, StopIteration):
-        raise ValueError(f"the clip does not decode as {container.upper()} video") from None
+        raise Invalid(f"the clip does not decode as {container.upper()} video") from None
     codec = str(meta.get("codec", "")).split(",")[0].split()[0] if meta.get("codec") else ""
     pixels = str(meta.get("pix_fmt", "")).split("(")[0].strip()
     if codec not in PLAYABLE[container]:
-        raise ValueError(f"the clip's codec is {codec or 'unknown'}; a {container.upper()} clip "
+        raise Invalid(f"the clip's codec is {codec or 'unknown'}; a {container.upper()} clip "
                          f"must be {' or '.join(PLAYABLE[container])} to play in a browser")
     if codec == "h264" and pixels not in PLAYABLE_PIXELS:
-        raise ValueError(f"the clip's pixel format is {pixels}; an h264 clip must be yuv420p to "
+        raise Invalid(f"the clip's pixel format is {pixels}; an h264 clip must be yuv420p to "
                          "play in a browser")
     width, height = (int(v) for v in meta["size"])
     if frames < 1:
-        raise ValueError("the clip holds no frames")
+        raise Invalid("the clip holds no frames")
     return ClipInfo(container=container, codec=codec, width=width, height=height,
                     frames=int(frames), seconds=float(seconds))

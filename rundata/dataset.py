@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 from sqlalchemy.orm import Session
 
-from labelqueue.errors import NotFound
+from labelqueue.errors import Invalid, NotFound
 from labelqueue.export import QUERY_COLUMNS, SCHEMA_VERSION, export_rows
 from labelqueue.models import Run
 from labelqueue.transaction import reading
@@ -66,7 +66,7 @@ DATA_FORMATS = ("arrow", "hdf5")
 `MinariExperienceReplay` reads (it reads no other)"""
 
 
-class DatasetError(ValueError):
+class DatasetError(Invalid):
     """The dataset cannot be written or read as asked; the message says why, in one line."""
 
 

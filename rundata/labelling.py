@@ -26,12 +26,11 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
-from labelqueue.instructions import checked_instruction
+from labelqueue.instructions import checked_clip_size, checked_instruction
 from labelqueue.models import Run
 from labelqueue.run_config import resolve
 from labelqueue.runs import create_run
 from rundata.dataset import DatasetError, LabelledDataset, read_dataset
-from runvocab.clip_format import parse_clip_size
 from runvocab.config import build_config
 from runvocab.names import ConfigError
 
@@ -115,7 +114,7 @@ def labelling_run(found: LabelledDataset, *, budget: int, per_round: int | None 
                   clip_size: str | None = None) -> dict[str, Any]:
     """`create_run`'s arguments for a labelling-only run over the checked dataset `found`,
     checked as `create_run` checks them, without a database: LabellingError naming a bad
-    input, ValueError for a bad instruction or clip size."""
+    input, Invalid for a bad instruction or clip size."""
     if budget < 1:
         raise LabellingError("feedback.budget", f"budget {budget}: give at least 1 answer")
     if per_round is not None and per_round < 1:
@@ -132,8 +131,7 @@ def labelling_run(found: LabelledDataset, *, budget: int, per_round: int | None 
         "config": overrides, "instruction": instruction, "clip_size": clip_size,
         "dataset": str(path)}
     checked_instruction(instruction)
-    if clip_size is not None:
-        parse_clip_size(clip_size)
+    checked_clip_size(clip_size)
     resolve(task=found.task, algo=LABELLING_ALGO, preset=preset, seed=seed, budget=budget,
             teacher_params=teacher_params or {}, config=overrides)
     return fields

@@ -1,5 +1,7 @@
 """One place that turns refusals into JSON client errors `{"detail": "..."}`: the queue's errors,
-numbers the database cannot hold, and 405s that name every method the path allows."""
+a configuration no worker could run, numbers the database cannot hold, and 405s that name every
+method the path allows. Any other exception is a fault of the server's (a 500), never a refusal
+of the request's: a route that refuses input raises `labelqueue.Invalid`."""
 
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ from starlette.routing import BaseRoute
 
 from labelqueue import (
     Conflict,
+    Invalid,
     InviteClosed,
     LeaseError,
     NotFound,
@@ -21,6 +24,7 @@ from labelqueue import (
     Revoked,
     StaleToken,
 )
+from runvocab.names import ConfigError
 
 STATUS_OF: dict[type[Exception], int] = {
     NotFound: 404,
@@ -29,7 +33,8 @@ STATUS_OF: dict[type[Exception], int] = {
     LeaseError: 409,
     Conflict: 409,  # InvalidTransition and RunClosed too: they are Conflicts
     InviteClosed: 410,
-    ValueError: 422,
+    Invalid: 422,  # DatasetError too
+    ConfigError: 422,
 }
 OUT_OF_RANGE = "a number in the request is out of the range the database holds"
 

@@ -12,6 +12,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from labelqueue import (
+    Invalid,
     Label,
     Labeller,
     LabelSource,
@@ -195,11 +196,11 @@ def submit_answer(
 ) -> tuple[Label, bool]:
     """Store a person's answer; (label, created). The side order is the server's own; a page
     that sends the `left_is_first` next-query gave as a check, and sends another, is refused
-    (ValueError, 422), since it showed the pair otherwise than the server records."""
+    (Invalid, 422), since it showed the pair otherwise than the server records."""
     first_left = clips.left_is_first(settings=settings, query_id=query_id, labeller_id=labeller_id)
     if body.left_is_first is not None and body.left_is_first != first_left:
         get_query(session, query_id=query_id)  # an unknown query is a 404 first
-        raise ValueError(
+        raise Invalid(
             f"left_is_first={str(body.left_is_first).lower()} is not the side order this server "
             f"showed for query {query_id} ({str(first_left).lower()}); reload the page"
         )

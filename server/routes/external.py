@@ -25,7 +25,7 @@ from fastapi import Path as PathParam
 from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
-from labelqueue import Run, RunStatus, read_run, reading
+from labelqueue import Invalid, Run, RunStatus, read_run, reading
 from labelqueue.external import (
     EXTERNAL,
     Cursor,
@@ -169,25 +169,25 @@ def _frames(body: bytes, settings: Settings) -> np.ndarray:
     try:
         frames: np.ndarray = np.load(io.BytesIO(body), allow_pickle=False)
     except (ValueError, OSError, EOFError):
-        raise ValueError("the body is not a NumPy .npy array (numpy.save writes one)") from None
+        raise Invalid("the body is not a NumPy .npy array (numpy.save writes one)") from None
     if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[3] != 3:
-        raise ValueError(f"frames must be uint8 of shape (frames, height, width, 3); got "
+        raise Invalid(f"frames must be uint8 of shape (frames, height, width, 3); got "
                          f"{frames.dtype} {tuple(frames.shape)}")
     count, height, width = frames.shape[:3]
     if not 1 <= count <= settings.clip_max_frames:
-        raise ValueError(f"{count} frames; a clip holds 1 to {settings.clip_max_frames}")
+        raise Invalid(f"{count} frames; a clip holds 1 to {settings.clip_max_frames}")
     if height % 2 or width % 2 or not (16 <= height <= 1024 and 16 <= width <= 1024):
-        raise ValueError(f"frames are {width}x{height}; width and height must be even, in "
+        raise Invalid(f"frames are {width}x{height}; width and height must be even, in "
                          "[16, 1024] (yuv420p halves the colour planes)")
     return frames
 
 
 def store_clip(settings: Settings, run_id: int, body: bytes, kind: str, fps: float) -> ClipOut:
     """Check an uploaded clip with the decoder (or encode a frame array) and keep it under the
-    clips folder; the same bytes uploaded again are the same clip. ValueError naming what is
+    clips folder; the same bytes uploaded again are the same clip. Invalid naming what is
     wrong; nothing is kept then."""
     if not body:
-        raise ValueError("the body is empty: send the clip's bytes")
+        raise Invalid("the body is empty: send the clip's bytes")
     clip_id = hashlib.sha256(body).hexdigest()[:32]
     folder = _folder(settings, run_id)
     note = folder / f"{clip_id}.json"
@@ -209,12 +209,12 @@ def store_clip(settings: Settings, run_id: int, body: bytes, kind: str, fps: flo
                 tmp.write_bytes(body)
             info = probe_clip(tmp)
             if kind != NPY and info.container != kind:
-                raise ValueError(f"the body is {info.container.upper()}, sent as video/{kind}")
+                raise Invalid(f"the body is {info.container.upper()}, sent as video/{kind}")
             if info.frames > settings.clip_max_frames:
-                raise ValueError(f"the clip has {info.frames} frames; at most "
+                raise Invalid(f"the clip has {info.frames} frames; at most "
                                  f"{settings.clip_max_frames}")
             if info.seconds > settings.clip_max_seconds:
-                raise ValueError(f"the clip lasts {info.seconds:.1f} s; at most "
+                raise Invalid(f"the clip lasts {info.seconds:.1f} s; at most "
                                  f"{settings.clip_max_seconds:.0f} s")
             note_tmp.write_text(json.dumps(info.as_json()))
             with upload_lock(folder):  # not while the sweep deletes an older copy

@@ -17,7 +17,7 @@ from fastapi import APIRouter, Query
 from fastapi.responses import Response
 from sqlalchemy.orm import Session
 
-from labelqueue import NotFound, export_rows, lift_pause, paused_labellers
+from labelqueue import Invalid, NotFound, export_rows, lift_pause, paused_labellers
 from labelstats.agreement import AgreementReport, agreement_report
 from labelstats.calibration import (
     DEFAULT_EDGES,
@@ -51,9 +51,12 @@ Bins = Annotated[
 
 
 def report_of(session: Session, *, run_id: int | None, bins: str | None) -> CalibrationReport:
-    """The report of a run's labels (or all): NotFound for an unknown run, ValueError for bad
+    """The report of a run's labels (or all): NotFound for an unknown run, Invalid for bad
     bins (checked first, before any row is read)."""
-    edges = DEFAULT_EDGES if bins is None else parse_edges(bins)
+    try:
+        edges = DEFAULT_EDGES if bins is None else parse_edges(bins)
+    except ValueError as err:
+        raise Invalid(str(err)) from None
     return calibration_report(export_rows(session, run_id=run_id), edges=edges)
 
 

@@ -179,7 +179,8 @@ def test_nobody_waits_unpaid(client: TestClient, session: Session, settings: Set
 def test_a_redirect_url_fills_in_no_host(client: TestClient) -> None:
     for url in ("https://{participant}.example.org/done", "https://example.org:{code}/x"):
         refused = client.post("/api/invites", headers=OPERATOR, json={"redirect_url": url})
-        assert refused.status_code == 422 and "host" in refused.text
+        assert refused.status_code == 422, url
+        assert refused.json()["detail"][0]["loc"] == ["body", "redirect_url"], url
     assert client.post("/api/invites", headers=OPERATOR, json={
         "redirect_url": "https://example.org/done?pid={participant}&cc={code}"}).status_code == 201
 

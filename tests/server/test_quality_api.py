@@ -244,9 +244,8 @@ def test_the_figure_is_drawn_by_the_run_pages_drawing_process(
     # The figure of the run's report, drawn by a process of lower priority than the server's.
     report = calibration_report(export_rows(session, run_id=run_id))
     assert png.content == curves.draw_calibration(report, f"Teacher calibration · Run {run_id}")
-    assert curves._pool is not None
-    assert curves._pool.submit(os.getpid).result() != os.getpid()
-    assert curves._pool.submit(os.nice, 0).result() == min(19, os.nice(0) + NICENESS)
+    assert curves._drawer.run(os.getpid) != os.getpid()
+    assert curves._drawer.run(os.nice, 0) == min(19, os.nice(0) + NICENESS)
 
 
 def test_pages_share_one_drawing_until_the_labels_change(
@@ -255,7 +254,11 @@ def test_pages_share_one_drawing_until_the_labels_change(
     from figures import calibration as plots
 
     # Drawn in the test's process, where `plots.calibration_png` can be watched.
-    monkeypatch.setattr(curves, "_in_drawing_process", lambda function, *args: function(*args))
+    class Here:
+        def run(self, function: Any, *args: Any) -> Any:
+            return function(*args)
+
+    monkeypatch.setattr(curves, "_drawer", Here())
     drawings: list[int] = []
     draw = plots.calibration_png
 
