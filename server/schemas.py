@@ -1,7 +1,8 @@
-"""The API's request and response bodies, separate from the ORM tables in `labelqueue.models`.
-
-Labeller-facing bodies (`NextQuery`, `LabelOut`) carry no ground truth: no segment or trajectory
-returns, no model probability, no selection score.
+"""The API's request and response bodies, separate from the ORM tables in `labelqueue.models`:
+the types every body shares (whole numbers as the database holds them, ids, times, refusals)
+and the operator's runs, labellers and statistics. The label API's bodies are in
+`label_schemas`, a crowd study's in `study_schemas`, an external run's in `external_schemas`;
+enumerations are the queue's own (`TeacherKind`, `Role`, `MetricStream`, ...).
 """
 
 from __future__ import annotations
@@ -18,8 +19,8 @@ from fastapi import Path
 from fastapi import Query as QueryParam
 from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, computed_field
 
-from labelqueue.models import SCRIPTED_TEACHER
-from runvocab.answers import FLAG_NOTE_MAX, Click, Flag
+from labelqueue.activity import WorkerStateName
+from labelqueue.models import SCRIPTED_TEACHER, Role, TeacherKind
 from runvocab.clip_format import CLIP_SIZES
 from runvocab.config.schema import BOOL_WORDS, leaf_fields
 from runvocab.instructions import MAX_CHARS as MAX_INSTRUCTION_CHARS
@@ -27,10 +28,6 @@ from runvocab.instructions import clean_instruction, run_instruction
 from runvocab.names import ALGOS, SIZE_PRESETS, all_tasks, unknown, unknown_task
 from runvocab.queued_run import WORKER_FIELDS
 from runvocab.validate import MAX_INT, choice_fields
-
-Teacher = Literal["human", "scripted"]
-RoleName = Literal["labeller", "operator"]
-StreamName = Literal["episodes", "eval", "rounds"]
 
 INT32_MAX = 2**31 - 1
 """the largest value an INTEGER column holds on PostgreSQL: ids, budgets, seeds and steps"""
@@ -61,7 +58,6 @@ def _small_json(value: dict[str, Any]) -> dict[str, Any]:
     if size > CONFIG_MAX_BYTES:
         raise ValueError(f"is {size} bytes as JSON; at most {CONFIG_MAX_BYTES} are stored")
     return value
-
 
 
 _INT_TEXT = r"^-?[0-9]{1,9}$"
@@ -239,7 +235,7 @@ class RunCreate(Body):
     """answers the run may ask for in all; defaults to its preset's (`GET /api/runs/defaults`)"""
     preset: PresetName = "small"
     seed: StoredInt = 0
-    teacher: Teacher = "human"
+    teacher: TeacherKind = TeacherKind.HUMAN
     teacher_params: TeacherJson = Field(default_factory=dict, examples=[{"eps": 0.1}])
     config: RunConfigJson = Field(default_factory=dict, examples=[{"sac.lr": 1e-4}])
     name: str | None = Field(default=None, min_length=1, max_length=200)
@@ -274,7 +270,7 @@ class LabellingRunCreate(Body):
     """steps per clip; defaults to the preset's, at most the dataset's shortest episode"""
     preset: PresetName = "small"
     seed: StoredInt = 0
-    teacher: Teacher = "human"
+    teacher: TeacherKind = TeacherKind.HUMAN
     teacher_params: TeacherJson = Field(default_factory=dict, examples=[{"eps": 0.1}])
     config: RunConfigJson = Field(default_factory=dict,
                                  examples=[{"reward.hidden_dim": 64}])
@@ -333,7 +329,7 @@ class RunConfigOut(Out):
 
 
 class TeacherUpdate(Body):
-    teacher: Teacher
+    teacher: TeacherKind
     params: TeacherJson = Field(default_factory=dict)
 
 
@@ -344,7 +340,7 @@ class MetricOut(Out):
 
 class LabellerCreate(Body):
     name: str = Field(min_length=1, max_length=100)
-    role: RoleName = "labeller"
+    role: Role = Role.LABELLER
 
 
 class LabellerUpdate(Body):
@@ -352,7 +348,7 @@ class LabellerUpdate(Body):
 
     active: bool | None = None
     """false revokes the labeller's access (its labels stay); true restores it"""
-    role: RoleName | None = None
+    role: Role | None = None
     name: str | None = Field(default=None, min_length=1, max_length=100)
 
 
@@ -379,84 +375,6 @@ class LabellerCreated(BaseModel):
     token: str
 
 
-class PracticeOut(BaseModel):
-    index: int
-    """1-based: which practice pair this is"""
-    of: int
-    """the run's practice pairs"""
-
-
-class PracticeFeedback(PracticeOut):
-    """After a practice answer: what the true reward says, as a ratio, never the returns."""
-
-    correct: bool | None
-    """the answer agrees with the true reward; null for can't-tell and skip"""
-    better: Literal["left", "right", "equal"]
-    explanation: str
-
-
-class NextQuery(BaseModel):
-    """A leased query as a labeller sees it: two clip URLs, and nothing that hints the answer."""
-
-    query_id: int
-    run_id: int
-    lease_expires_at: datetime
-    left_clip_url: str
-    right_clip_url: str
-    left_is_first: bool
-    """the sides this server chose for the labeller: whether the first segment is on the left"""
-    segment_length: int
-    left_start_step: int | None
-    """the step of its episode the left clip starts at (the player shows it); null when the
-    clip is no known part of an episode (an external run's upload)"""
-    right_start_step: int | None
-    practice: PracticeOut | None = None
-    """a pair of the labeller's practice round on the run (`feedback.practice_pairs`): its
-    answer is explained once given; null for any other pair"""
-
-
-class LabelSubmit(Body):
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"allOf": [
-        # A flag goes with a skip only; a note (something besides white space) with a flag.
-        {"if": {"properties": {"flag": {"type": "string"}}, "required": ["flag"]},
-         "then": {"properties": {"choice": {"const": "skip"}}}},
-        {"if": {"properties": {"flag_note": {"type": "string", "pattern": r"\S"}},
-                "required": ["flag_note"]},
-         "then": {"properties": {"flag": {"type": "string"}}, "required": ["flag"]}},
-    ]})
-
-    choice: Click
-    """what was clicked; the server turns it into an answer with the sides it chose"""
-    left_is_first: bool | None = None
-    """optional: the value next-query gave, as a check; a different one is refused (422)"""
-    shown_at: UTCTime
-    """when the page showed the pair, as an RFC 3339 date-time with its offset (a number is a
-    422); stored clamped to [the lease's start, the answer's time]"""
-    flag: Flag | None = None
-    """the pair is one nobody can judge: clip_broken, not_visible or other; only with choice
-    skip (422 otherwise), so it is never trained on"""
-    flag_note: str | None = Field(default=None, max_length=FLAG_NOTE_MAX)
-    """optional words on the flag"""
-
-
-class LabelOut(Out):
-    id: int
-    query_id: int
-    run_id: int
-    labeller_id: int
-    choice: str
-    left_is_first: bool
-    answer: str
-    """the answer in segment terms: first, second, equal, cant_tell or skip"""
-    shown_at: datetime | None
-    answered_at: datetime
-    flag: str | None = None
-    """clip_broken, not_visible or other when the labeller flagged the pair"""
-    flag_note: str | None = None
-    practice_feedback: PracticeFeedback | None = None
-    """a practice answer, explained (`feedback.practice_pairs`); null for any other"""
-
-
 class ThroughputBucket(BaseModel):
     t: datetime
     """the bucket's start (UTC, a multiple of the bucket length since the epoch)"""
@@ -479,171 +397,9 @@ class Throughput(BaseModel):
     taken back (withdrawn) count nowhere"""
 
 
-class LabelCount(BaseModel):
-    """How many labels the caller has given, over all runs."""
-
-    labels: int
-
-
 class InstructionUpdate(Body):
     instruction: InstructionText | None
     """the run's instruction from now on; null: the task's own"""
-
-
-class RunBrief(BaseModel):
-    """What the label page shows about the run of the pair on screen."""
-
-    run_id: int
-    task: str
-    instruction: str
-    """what "better" means for this run: the operator's text, or the task's own"""
-    instruction_sha256: str
-    clip_width: int
-    clip_height: int
-    fps: float
-    """frames per second the clips are encoded at: one frame per environment step"""
-    step_seconds: float | None
-    """simulated seconds per environment step of the task; null when not known"""
-    real_time_ratio: float | None
-    """how fast a clip plays at 1x against the task's own time (0.33: a third of real speed)"""
-
-
-InviteDays = Annotated[float, Field(ge=1 / 1440, le=366)]
-"""days, from a minute to a year"""
-StudyEnd = Literal["target", "runs_over", "paused", "nothing_left"]
-"""why a participant's study is complete (`labelqueue.invites.Progress.why`)"""
-
-
-REDIRECT_PATTERN = (r"^https?://([A-Za-z0-9._~%!$&'()*+,;=:-]*@)?[A-Za-z0-9._~%!$&'()*+,;=-]+"
-                    r"(:[0-9]{0,5})?([/?#][^\s]*)?$")
-"""an absolute http(s) URL whose host is a name or an IPv4 address in plain ASCII (no
-`{participant}` or `{code}` there)"""
-
-
-class InviteCreate(Body):
-    """A new invite link. Opening it makes a new labeller, until it expires, is used up or is
-    revoked."""
-
-    run_id: Positive | None = None
-    """the one run its labellers are sent to; null: all runs taught by people"""
-    expires_in_days: InviteDays = 7.0
-    """how long the link works, from now"""
-    max_uses: Positive | None = None
-    """labellers it may make; null: no limit"""
-    target_answers: Positive | None = None
-    """decisive answers (not skips or can't-tells) on the invite's run after which a
-    participant's study is complete; null: it completes when the run is over"""
-    completion_code: str | None = Field(default=None, min_length=1, max_length=40,
-                                        pattern=r"^[A-Za-z0-9_-]+$")
-    """the study's code (a platform's): the prefix of every participant's own completion code
-    (`<this>-XXXX-XXXX-XXXX`); null: their own part alone"""
-    note: str | None = Field(default=None, min_length=1, max_length=200)
-    """the operator's own name for the link"""
-    redirect_url: str | None = Field(default=None, min_length=1, max_length=2000,
-                                     pattern=REDIRECT_PATTERN,
-                                     examples=["https://app.prolific.com/submissions/complete"
-                                               "?cc=C1234"])
-    """where a participant is sent when their study is complete (a platform's completion URL):
-    `{code}` and `{participant}` in it are filled in; without either, `participant=<id>` is
-    added when the link was opened with one"""
-    consent_text: str | None = Field(default=None, min_length=1, max_length=8000)
-    """shown on the invite's page: nobody joins without agreeing to it"""
-    pause_message: str | None = Field(default=None, min_length=1, max_length=2000)
-    """what a participant paused by check pairs is told instead of being given their code"""
-    wait_limit_s: Positive | None = None
-    """a participant who asks this long for pairs and gets none finishes with their code
-    ("nothing left to label"); null: 300 s"""
-
-
-class InviteOut(Out):
-    id: int
-    code: str
-    url: str
-    """the link to hand out (append `?participant=<id>` to name the labeller)"""
-    run_id: int | None
-    note: str | None
-    expires_at: datetime
-    max_uses: int | None
-    uses: int
-    target_answers: int | None
-    completion_code: str | None
-    """the study's code, the prefix of each participant's own"""
-    created_at: datetime
-    revoked_at: datetime | None
-    redirect_url: str | None
-    consent_text: str | None
-    pause_message: str | None
-    wait_limit_s: int | None
-    state: Literal["open", "revoked", "expired", "used_up", "closed"]
-    """closed: its run is over (stopping, stopped, finished or failed; for an all-runs link, no
-    run taught by people is queued, running or paused)"""
-
-
-class JoinRequest(Body):
-    participant: str | None = Field(default=None, min_length=1, max_length=64,
-                                    pattern=r"^[A-Za-z0-9_.@+-]+$")
-    """a name or a crowdsourcing platform's worker id; the labeller is named after it"""
-    consent: bool = False
-    """the person agreed to the invite's consent text (required when it has one)"""
-
-
-class JoinedOut(BaseModel):
-    """A labeller made by an invite link, with its bearer token: shown this once."""
-
-    labeller_id: int
-    name: str
-    token: str
-    run_id: int | None
-    target_answers: int | None
-    rejoined: bool = False
-    """the participant had joined before: the same labeller (its answers and code), with this
-    new token; the browser it joined from before is signed out"""
-
-
-class ProgressOut(BaseModel):
-    """The caller's answers so far and, for one who joined by an invite, where their study
-    stands: complete once the target is reached, the run is over (or its budget spent), or
-    check pairs paused them, or they waited the invite's limit with nothing to label; then
-    their own completion code."""
-
-    labels: int
-    """answers given on any run, skips included"""
-    target_answers: int | None
-    completion_code: str | None
-    """the caller's own code, once their study is complete (null before, and for a paused
-    participant whose invite gives a message instead)"""
-    run_id: int | None
-    """the run the caller's invite was for; null: all runs"""
-    counted: int = 0
-    """what the target counts: decisive answers on the invite's run (`labels` for others)"""
-    invited: bool = False
-    complete: bool = False
-    why: StudyEnd | None = None
-    participant: str | None = None
-    redirect_url: str | None = None
-    """where to go now that the study is complete, filled in for the caller"""
-    pause_message: str | None = None
-
-
-class WaitingOut(BaseModel):
-    """Why there is nothing to label now."""
-
-    reason: str
-    """the run's phase (`queued`, `starting`, `pretraining`, `exploring`, `training`,
-    `labelling`: the rest of the round is with others, `paused`, `silent`, `stopping`) or
-    `no_run`"""
-    text: str
-    run_id: int | None
-    eta_s: float | None
-    """seconds until pairs may come, when known"""
-
-
-class StatusOut(BaseModel):
-    """The label page's look when it has nothing to show: the caller's progress, and why it
-    waits (null once the study is complete)."""
-
-    progress: ProgressOut
-    waiting: WaitingOut | None
 
 
 class ActivityOut(BaseModel):
@@ -673,7 +429,7 @@ class WorkerOut(BaseModel):
     last_seen_at: datetime
     silent_s: float
     """seconds since it last reported"""
-    state: Literal["training", "idle", "silent", "dead"]
+    state: WorkerStateName
     """silent: no word for over a minute; dead: for over five (its run may be taken over)"""
 
 
@@ -698,36 +454,3 @@ class RunDefaults(BaseModel):
     pretrain_steps_per_s: float | None
     pretrain_pace_measured: bool
     """whether the pace is this server's workers' own (else the small preset's on 2 CPU cores)"""
-
-
-class VerifyRequest(Body):
-    code: str = Field(min_length=1, max_length=120)
-
-
-class VerifiedOut(BaseModel):
-    """Whose completion code it is and how far they got."""
-
-    invite_id: int
-    labeller_id: int
-    labeller: str
-    participant: str | None
-    run_id: int | None
-    counted: int
-    """decisive answers on the invite's run"""
-    target_answers: int | None
-    complete: bool
-    why: StudyEnd | None
-
-
-class TakeBack(Body):
-    keep: Positive | None = None
-    """the query the page shows now: its lease is kept; the caller's other leases are released"""
-
-
-class TakenBack(BaseModel):
-    """An answer taken back: the label as withdrawn, and its query to show again."""
-
-    label_id: int
-    withdrawn_at: datetime
-    query: NextQuery
-    """the pair again, leased to the caller, as next-query describes it"""

@@ -31,14 +31,8 @@ from labelqueue.external import EXTERNAL, known_answer
 from labelqueue.practice import explain, practice_step
 from runvocab.answers import Answer
 from server import clips
-from server.schemas import (
-    LabelOut,
-    LabelSubmit,
-    NextQuery,
-    PracticeFeedback,
-    PracticeOut,
-    RunCreate,
-)
+from server.label_schemas import LabelOut, LabelSubmit, NextQuery, PracticeFeedback, PracticeOut
+from server.schemas import RunCreate
 from server.settings import Settings
 
 

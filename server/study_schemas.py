@@ -1,14 +1,176 @@
-"""The bodies of a study's list to pay from: its participants, and many codes checked at once
-(`labelqueue.participants`)."""
+"""A crowd study's bodies: invite links and joining by one, a participant's progress and why
+they wait, the list to pay from and many codes checked at once (`labelqueue.invites`,
+`labelqueue.participants`)."""
 
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import Field
+from pydantic import BaseModel, Field
 
-from server.schemas import Body, Out, StudyEnd
+from labelqueue.invites import InviteState
+from server.schemas import (
+    Body,
+    Out,
+    Positive,
+)
+
+InviteDays = Annotated[float, Field(ge=1 / 1440, le=366)]
+"""days, from a minute to a year"""
+StudyEnd = Literal["target", "runs_over", "paused", "nothing_left"]
+"""why a participant's study is complete (`labelqueue.invites.Progress.why`)"""
+
+
+REDIRECT_PATTERN = (r"^https?://([A-Za-z0-9._~%!$&'()*+,;=:-]*@)?[A-Za-z0-9._~%!$&'()*+,;=-]+"
+                    r"(:[0-9]{0,5})?([/?#][^\s]*)?$")
+"""an absolute http(s) URL whose host is a name or an IPv4 address in plain ASCII (no
+`{participant}` or `{code}` there)"""
+
+
+class InviteCreate(Body):
+    """A new invite link. Opening it makes a new labeller, until it expires, is used up or is
+    revoked."""
+
+    run_id: Positive | None = None
+    """the one run its labellers are sent to; null: all runs taught by people"""
+    expires_in_days: InviteDays = 7.0
+    """how long the link works, from now"""
+    max_uses: Positive | None = None
+    """labellers it may make; null: no limit"""
+    target_answers: Positive | None = None
+    """decisive answers (not skips or can't-tells) on the invite's run after which a
+    participant's study is complete; null: it completes when the run is over"""
+    completion_code: str | None = Field(default=None, min_length=1, max_length=40,
+                                        pattern=r"^[A-Za-z0-9_-]+$")
+    """the study's code (a platform's): the prefix of every participant's own completion code
+    (`<this>-XXXX-XXXX-XXXX`); null: their own part alone"""
+    note: str | None = Field(default=None, min_length=1, max_length=200)
+    """the operator's own name for the link"""
+    redirect_url: str | None = Field(default=None, min_length=1, max_length=2000,
+                                     pattern=REDIRECT_PATTERN,
+                                     examples=["https://app.prolific.com/submissions/complete"
+                                               "?cc=C1234"])
+    """where a participant is sent when their study is complete (a platform's completion URL):
+    `{code}` and `{participant}` in it are filled in; without either, `participant=<id>` is
+    added when the link was opened with one"""
+    consent_text: str | None = Field(default=None, min_length=1, max_length=8000)
+    """shown on the invite's page: nobody joins without agreeing to it"""
+    pause_message: str | None = Field(default=None, min_length=1, max_length=2000)
+    """what a participant paused by check pairs is told instead of being given their code"""
+    wait_limit_s: Positive | None = None
+    """a participant who asks this long for pairs and gets none finishes with their code
+    ("nothing left to label"); null: 300 s"""
+
+
+class InviteOut(Out):
+    id: int
+    code: str
+    url: str
+    """the link to hand out (append `?participant=<id>` to name the labeller)"""
+    run_id: int | None
+    note: str | None
+    expires_at: datetime
+    max_uses: int | None
+    uses: int
+    target_answers: int | None
+    completion_code: str | None
+    """the study's code, the prefix of each participant's own"""
+    created_at: datetime
+    revoked_at: datetime | None
+    redirect_url: str | None
+    consent_text: str | None
+    pause_message: str | None
+    wait_limit_s: int | None
+    state: InviteState
+    """closed: its run is over (stopping, stopped, finished or failed; for an all-runs link, no
+    run taught by people is queued, running or paused)"""
+
+
+class JoinRequest(Body):
+    participant: str | None = Field(default=None, min_length=1, max_length=64,
+                                    pattern=r"^[A-Za-z0-9_.@+-]+$")
+    """a name or a crowdsourcing platform's worker id; the labeller is named after it"""
+    consent: bool = False
+    """the person agreed to the invite's consent text (required when it has one)"""
+
+
+class JoinedOut(BaseModel):
+    """A labeller made by an invite link, with its bearer token: shown this once."""
+
+    labeller_id: int
+    name: str
+    token: str
+    run_id: int | None
+    target_answers: int | None
+    rejoined: bool = False
+    """the participant had joined before: the same labeller (its answers and code), with this
+    new token; the browser it joined from before is signed out"""
+
+
+class ProgressOut(BaseModel):
+    """The caller's answers so far and, for one who joined by an invite, where their study
+    stands: complete once the target is reached, the run is over (or its budget spent), or
+    check pairs paused them, or they waited the invite's limit with nothing to label; then
+    their own completion code."""
+
+    labels: int
+    """answers given on any run, skips included"""
+    target_answers: int | None
+    completion_code: str | None
+    """the caller's own code, once their study is complete (null before, and for a paused
+    participant whose invite gives a message instead)"""
+    run_id: int | None
+    """the run the caller's invite was for; null: all runs"""
+    counted: int = 0
+    """what the target counts: decisive answers on the invite's run (`labels` for others)"""
+    invited: bool = False
+    complete: bool = False
+    why: StudyEnd | None = None
+    participant: str | None = None
+    redirect_url: str | None = None
+    """where to go now that the study is complete, filled in for the caller"""
+    pause_message: str | None = None
+
+
+class WaitingOut(BaseModel):
+    """Why there is nothing to label now."""
+
+    reason: str
+    """the run's phase (`queued`, `starting`, `pretraining`, `exploring`, `training`,
+    `labelling`: the rest of the round is with others, `paused`, `silent`, `stopping`) or
+    `no_run`"""
+    text: str
+    run_id: int | None
+    eta_s: float | None
+    """seconds until pairs may come, when known"""
+
+
+class StatusOut(BaseModel):
+    """The label page's look when it has nothing to show: the caller's progress, and why it
+    waits (null once the study is complete)."""
+
+    progress: ProgressOut
+    waiting: WaitingOut | None
+
+
+class VerifyRequest(Body):
+    code: str = Field(min_length=1, max_length=120)
+
+
+class VerifiedOut(BaseModel):
+    """Whose completion code it is and how far they got."""
+
+    invite_id: int
+    labeller_id: int
+    labeller: str
+    participant: str | None
+    run_id: int | None
+    counted: int
+    """decisive answers on the invite's run"""
+    target_answers: int | None
+    complete: bool
+    why: StudyEnd | None
 
 
 class ParticipantOut(Out):

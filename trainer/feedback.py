@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from labelqueue.models import LabelSource
 from runvocab.answers import Answer
 from runvocab.config import FeedbackConfig
 from trainer.query_selection import (
@@ -94,8 +95,8 @@ class GivenAnswer:
 
     choice: Answer
     labeller: str
-    source: str
-    """scripted | human | gold"""
+    source: LabelSource
+    """who answered: a person, or a scripted teacher"""
     answered_at: float
     answers: int = 1
     """the answers this one stands for, each paid from the budget: the labels its query got
@@ -109,7 +110,7 @@ class Label:
     distinguishable: bool
     correct: bool | None
     labeller: str
-    source: str
+    source: LabelSource
     """scripted | human | gold"""
     answered_at: float
 
@@ -254,7 +255,8 @@ class PreferenceFeedback:
     def scripted_answers(self) -> dict[str, GivenAnswer]:
         """The shadow answers of the open round, as the answers of a standalone run."""
         now = time.time()
-        return {q.query_id: GivenAnswer(Answer(q.shadow_choice), self.labeller, "scripted", now)
+        return {q.query_id: GivenAnswer(Answer(q.shadow_choice), self.labeller,
+                                        LabelSource.SCRIPTED, now)
                 for q in self.pending}
 
     def finish_round(self, pool: TrajectoryPool, answers: Mapping[str, GivenAnswer],

@@ -123,7 +123,7 @@ def _answer(given: Sequence[Label], labeller_names: dict[int, str]) -> GivenAnsw
     used = scripted[:1] or list(given)
     names = "+".join(labeller_names.get(label.labeller_id, f"labeller-{label.labeller_id}")
                      for label in used)
-    return GivenAnswer(aggregate(label.answer for label in used), names, used[0].source.value,
+    return GivenAnswer(aggregate(label.answer for label in used), names, used[0].source,
                        max(label.answered_at for label in used).timestamp(), answers=len(given))
 
 

@@ -16,7 +16,8 @@ from runvocab.clip_format import (
 from runvocab.instructions import instruction_sha256, run_instruction
 from server import services
 from server.deps import LabellerDep, OperatorDep, SessionDep
-from server.schemas import InstructionUpdate, RunBrief, RunId, RunOut, errors
+from server.label_schemas import RunBrief
+from server.schemas import InstructionUpdate, RunId, RunOut, errors
 
 router = APIRouter(prefix="/api", responses=errors(401, 403))
 

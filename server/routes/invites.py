@@ -38,20 +38,17 @@ from runvocab.instructions import run_instruction
 from server import services
 from server.deps import LabellerDep, OperatorDep, SessionDep
 from server.routes.pages import page
-from server.schemas import (
-    INT32_MAX,
-    ErrorOut,
+from server.schemas import INT32_MAX, ErrorOut, RunFilter, errors
+from server.study_schemas import (
     InviteCreate,
     InviteOut,
     JoinedOut,
     JoinRequest,
     ProgressOut,
-    RunFilter,
     StatusOut,
     VerifiedOut,
     VerifyRequest,
     WaitingOut,
-    errors,
 )
 
 router = APIRouter()

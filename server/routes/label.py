@@ -29,16 +29,8 @@ from server.deps import (
     caller_from_token,
     get_labeller_call,
 )
-from server.schemas import (
-    AheadOf,
-    Expires,
-    LabelOut,
-    LabelSubmit,
-    NextQuery,
-    QueryId,
-    RunFilter,
-    errors,
-)
+from server.label_schemas import LabelOut, LabelSubmit, NextQuery
+from server.schemas import AheadOf, Expires, QueryId, RunFilter, errors
 from server.validation import check, check_body, check_query, json_body, refuse_if
 
 router = APIRouter(prefix="/api", tags=["label"])

@@ -10,7 +10,15 @@ from fastapi import APIRouter, HTTPException, Query, Request, Response
 from fastapi.exceptions import RequestValidationError
 from sqlalchemy import select
 
-from labelqueue import Run, RunStatus, read_metrics, reading, set_run_status, set_teacher
+from labelqueue import (
+    MetricStream,
+    Run,
+    RunStatus,
+    read_metrics,
+    reading,
+    set_run_status,
+    set_teacher,
+)
 from labelqueue.activity import list_workers, runs_activity
 from labelqueue.external import is_external
 from labelqueue.run_config import as_json, fields, overridden, run_config
@@ -32,7 +40,6 @@ from server.schemas import (
     RunDefaults,
     RunId,
     RunOut,
-    StreamName,
     TaskName,
     TeacherUpdate,
     WorkerOut,
@@ -205,7 +212,7 @@ def get_metrics(
     run_id: RunId,
     session: SessionDep,
     _: OperatorDep,
-    stream: StreamName = "episodes",
+    stream: MetricStream = MetricStream.EPISODES,
     after_step: AfterStep = None,
 ) -> list[MetricOut]:
     services.get_run(session, run_id=run_id)

@@ -15,7 +15,8 @@ from sqlalchemy.orm import Session
 
 from labelqueue import LabelThroughput, label_throughput, labels_given
 from server.deps import LabellerDep, OperatorDep, SessionDep
-from server.schemas import LabelCount, RunId, Throughput, ThroughputBucket, errors
+from server.label_schemas import LabelCount
+from server.schemas import RunId, Throughput, ThroughputBucket, errors
 
 router = APIRouter(prefix="/api", tags=["stats"])
 

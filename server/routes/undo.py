@@ -7,8 +7,9 @@ from fastapi import APIRouter, Response
 
 from server import services
 from server.deps import BEARER_SECURITY, LabellerCallDep
+from server.label_schemas import TakeBack, TakenBack
 from server.routes.label import json_response
-from server.schemas import QueryId, TakeBack, TakenBack, errors
+from server.schemas import QueryId, errors
 
 router = APIRouter(prefix="/api", tags=["label"])
 

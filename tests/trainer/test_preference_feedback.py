@@ -12,6 +12,7 @@ import pytest
 import torch
 from trajectory_helpers import random_pool
 
+from labelqueue.models import LabelSource
 from runvocab.answers import Answer
 from runvocab.config import build_config
 from trainer.checkpoint import load_checkpoint
@@ -43,7 +44,8 @@ def _pool(n: int = 6) -> TrajectoryPool:
 
 def _answers(queries, answers_each: int) -> dict[str, GivenAnswer]:
     """Every query answered by its shadow choice, standing for `answers_each` people."""
-    return {q.query_id: GivenAnswer(Answer(q.shadow_choice), "crowd", "human", 0.0, answers_each)
+    return {q.query_id: GivenAnswer(Answer(q.shadow_choice), "crowd", LabelSource.HUMAN, 0.0,
+                                    answers_each)
             for q in queries}
 
 

@@ -12,6 +12,7 @@ import pytest
 import torch
 from trajectory_helpers import random_pool
 
+from labelqueue.models import LabelSource
 from runvocab.answers import Answer
 from runvocab.config import build_config
 from trainer.feedback import GivenAnswer, LabelLog, PreferenceFeedback
@@ -125,7 +126,7 @@ def test_progress_saved_for_other_labels_is_not_used(tmp_path):
     # After the restart someone else answered the first query, the other way.
     first = next(iter(answers))
     flipped = {"first": "second", "second": "first"}.get(str(answers[first].choice), "first")
-    other = answers | {first: GivenAnswer(Answer(flipped), "crowd", "human", 0.0)}
+    other = answers | {first: GivenAnswer(Answer(flipped), "crowd", LabelSource.HUMAN, 0.0)}
     resumed = _feedback(tmp_path, {})
     resumed.load_state_dict(at_open)
     heard: list[int] = []
