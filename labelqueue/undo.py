@@ -24,7 +24,7 @@ from sqlalchemy import and_, or_, select, update
 from sqlalchemy.orm import Session
 
 from labelqueue.errors import Conflict, NotFound, Revoked, RunClosed, StaleToken
-from labelqueue.models import Label, Labeller, Query, QueryStatus, Run, Withdrawal, utcnow
+from labelqueue.models import Invitee, Label, Labeller, Query, QueryStatus, Run, Withdrawal, utcnow
 from labelqueue.queries import LABELLABLE, LEASE_SECONDS
 from labelqueue.transaction import changed, detach, get_row, transaction
 
@@ -60,7 +60,8 @@ def withdraw_label(
     the labeller's other leases are released, but `keep`'s (the pair it is looking at now).
 
     NotFound when it has no standing answer to the query; UndoRefused when the answer is older
-    than `window_seconds` or the trainer has taken it; RunClosed when the run takes no answers;
+    than `window_seconds`, the trainer has taken it, or it is a practice answer that decided
+    the labeller's entry test (`labelqueue.entry_test`); RunClosed when the run takes no answers;
     Conflict when the pair has been cancelled or another labeller holds it now. On refusal
     nothing changes. A deactivated labeller takes nothing back (Revoked), and given `token_hash`
     (the hash of the bearer token a person asks with), nor one whose token was replaced
@@ -104,23 +105,19 @@ def withdraw_label(
             raise RunClosed(f"run {run.id} is {run.status}: it takes no more answers, so the "
                             "answer stands")
         query = get_row(session, Query, query_id)
+        if query.practice and session.scalar(select(Invitee.entry_passed).where(
+                Invitee.labeller_id == labeller_id)) is not None:
+            raise UndoRefused("your entry test is decided with that answer: it can no longer "
+                              "be taken back")
         if query.practice:  # shown to everyone at once, leased to nobody: it stays practice
             if query.status is QueryStatus.CANCELLED:
                 raise Conflict(f"query {query_id} was cancelled: the answer stands")
         else:
             _lease_again(session, query_id=query_id, labeller_id=labeller_id, now=now,
                          lease_seconds=lease_seconds)
-            # A gold pair's answer never counted against the budget (labelqueue.gold).
-            if not query.gold:
-                changed(session, update(Run).where(Run.id == run.id)
-                        .values(labels_used=Run.labels_used - 1))
-            elif session.get_bind().dialect.name == "postgresql":  # the run's lock all the same
-                session.execute(select(Run.id).where(Run.id == run.id).with_for_update())
-        # Drawn while this transaction holds the run's row lock (taken after the query's, as a
-        # submit takes them), a run's withdrawals commit in the order of their ids, as its
-        # labels do: the answers feed's cursor misses none (`labelqueue.external`).
-        session.add(Withdrawal(label_id=label.id, run_id=run.id, withdrawn_at=now))
-        session.flush()
+        # The labeller's other leases go back before the run's row is locked: queries first,
+        # then the run, as a submit takes them, so that an undo and a submit of the same
+        # labeller cannot wait for each other (a deadlock on PostgreSQL).
         changed(
             session,
             update(Query)
@@ -129,6 +126,18 @@ def withdraw_label(
             .values(status=QueryStatus.PENDING, lease_holder=None, lease_expires_at=None,
                     leased_at=None),
         )
+        if not query.practice:
+            # A gold pair's answer never counted against the budget (labelqueue.gold).
+            if not query.gold:
+                changed(session, update(Run).where(Run.id == run.id)
+                        .values(labels_used=Run.labels_used - 1))
+            elif session.get_bind().dialect.name == "postgresql":  # the run's lock all the same
+                session.execute(select(Run.id).where(Run.id == run.id).with_for_update())
+        # Drawn while this transaction holds the run's row lock (taken after the queries', as a
+        # submit takes them), a run's withdrawals commit in the order of their ids, as its
+        # labels do: the answers feed's cursor misses none (`labelqueue.external`).
+        session.add(Withdrawal(label_id=label.id, run_id=run.id, withdrawn_at=now))
+        session.flush()
         label = get_row(session, Label, label.id)
         query = get_row(session, Query, query_id)
         detach(session, label, query)

@@ -4,9 +4,13 @@ trainer consuming it first wins."""
 
 from __future__ import annotations
 
+import threading
+import time
+
 import pytest
 from queue_helpers import query_spec, running_run
-from sqlalchemy.orm import Session
+from sqlalchemy import Engine, select, text
+from sqlalchemy.orm import Session, sessionmaker
 
 from labelqueue import (
     NotFound,
@@ -22,7 +26,7 @@ from labelqueue import (
     submit_label,
     withdraw_label,
 )
-from labelqueue.models import Query
+from labelqueue.models import Query, Run
 
 
 def test_a_withdrawn_label_stays_and_a_new_answer_stands_beside_it(session: Session) -> None:
@@ -70,3 +74,41 @@ def test_a_query_whose_answer_was_taken_back_is_leased_to_that_labeller_again(
     withdraw_label(session, query_id=query_id, labeller_id=alice.id, lease_seconds=-1)
     again = lease_next_query(session, labeller_id=alice.id, run_id=run.id)
     assert again is not None and again.id == query_id
+
+
+def test_an_undo_locks_the_queries_before_the_run_as_a_submit_does(
+    url: str, engine: Engine, sessions: sessionmaker[Session]
+) -> None:
+    """A submit locks its query's row, then the run's. An undo of the same labeller releases
+    the labeller's other leases (their rows) before it locks the run, so the two never hold
+    what the other waits for (PostgreSQL would abort one as a deadlock)."""
+    if not url.startswith("postgresql"):
+        pytest.skip("SQLite's writers take turns: no row locks to order")
+    with sessions() as session:
+        run = running_run(session, teacher=TeacherKind.HUMAN)
+        first, second = push_queries(session, run_id=run.id,
+                                     queries=[query_spec(0), query_spec(1)])
+        alice, _ = create_labeller(session, name="alice")
+        assert lease_next_query(session, labeller_id=alice.id, run_id=run.id) is not None
+        submit_label(session, query_id=first, labeller_id=alice.id, choice="left",
+                     left_is_first=True)
+        leased = lease_next_query(session, labeller_id=alice.id, run_id=run.id)
+        assert leased is not None and leased.id == second
+    taken: dict[str, object] = {}
+
+    def undo() -> None:
+        with sessions() as session:
+            taken["back"] = withdraw_label(session, query_id=first, labeller_id=alice.id)
+
+    # A submit of `second` half done: its query's row locked, the run's not yet.
+    with engine.connect() as submit, submit.begin():
+        submit.execute(select(Query.id).where(Query.id == second).with_for_update())
+        thread = threading.Thread(target=undo)
+        thread.start()
+        time.sleep(0.5)  # the undo now waits for `second`'s row
+        submit.execute(text("SET LOCAL lock_timeout = '3s'"))
+        # Free at once: the undo has not locked the run while it waits.
+        submit.execute(select(Run.id).where(Run.id == run.id).with_for_update())
+    thread.join(timeout=30)
+    assert "back" in taken
+    assert read_run(sessions(), run_id=run.id).labels_used == 0
