@@ -16,6 +16,7 @@ from labelqueue.db_url import (
     url_has_secret,
 )
 from labelqueue.engine import make_engine, session_factory
+from labelqueue.entry_test import EntryFailed
 from labelqueue.errors import (
     Conflict,
     Invalid,
@@ -221,6 +222,7 @@ __all__ = [
     "Withdrawn",
     "settled",
     "withdraw_label",
+    "EntryFailed",
     "GOLD_NEEDS_LABELS",
     "GoldSettings",
     "LabellerPause",

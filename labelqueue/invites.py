@@ -30,6 +30,7 @@ from sqlalchemy import ColumnElement, exists, func, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
+from labelqueue.entry_test import check_entry_pass
 from labelqueue.errors import Conflict, Invalid, NotFound, QueueError, Revoked
 from labelqueue.keys import server_key
 from labelqueue.labellers import hash_token
@@ -158,12 +159,15 @@ def create_invite(
     consent_text: str | None = None,
     pause_message: str | None = None,
     wait_limit_s: int | None = None,
+    entry_pass: int | None = None,
 ) -> Invite:
     """A new invite with a random code. NotFound for an unknown run; Invalid for an expiry
     in the past, a limit below 1 or a redirect URL that is not http(s). `completion_code`: the
     study's code, the prefix of each participant's own (`participant_code`). `wait_limit_s`:
     a participant who asked this long with nothing to label finishes with their code
-    (`labelqueue.waiting`; None: `WAIT_LIMIT_S`)."""
+    (`labelqueue.waiting`; None: `WAIT_LIMIT_S`). `entry_pass`: an entry test, the practice
+    answers of the run's `feedback.practice_pairs` a participant must get right to go on
+    (`labelqueue.entry_test`; Invalid unless from 1 to the run's practice pairs)."""
     if expires_at <= utcnow():
         raise Invalid("expires_at is in the past: an invite must expire in the future")
     for name, value in (("max_uses", max_uses), ("target_answers", target_answers),
@@ -174,12 +178,14 @@ def create_invite(
     with transaction(session):
         if run_id is not None:
             get_row(session, Run, run_id)
+        check_entry_pass(session, run_id=run_id, entry_pass=entry_pass)
         invite = Invite(
             code=secrets.token_urlsafe(CODE_BYTES), run_id=run_id, note=note,
             expires_at=expires_at, max_uses=max_uses, uses=0, target_answers=target_answers,
             completion_code=completion_code, redirect_url=redirect_url,
             consent_text=(consent_text or "").strip() or None,
             pause_message=(pause_message or "").strip() or None, wait_limit_s=wait_limit_s,
+            entry_pass=entry_pass,
         )
         session.add(invite)
         detach(session, invite)
@@ -359,7 +365,12 @@ class Verified:
     target_answers: int | None
     complete: bool
     why: str | None
-    """"target", "runs_over", "paused" or "nothing_left" (see `Progress.why`)"""
+    """"target", "runs_over", "paused", "nothing_left" or "entry_failed" (see `Progress.why`)"""
+
+    @property
+    def earned(self) -> bool:
+        """the code is earned: the study is complete, and not by failing the entry test"""
+        return self.complete and self.why != "entry_failed"
 
 
 def verify_code(session: Session, code: str) -> Verified | None:
@@ -428,31 +439,45 @@ class Progress:
     why: str | None = None
     """why the study is complete: "target" (reached), "runs_over" (its runs ended, or the run's
     budget is spent), "paused" (check pairs paused the participant) or "nothing_left" (they
-    asked for pairs and got none for the invite's `wait_limit_s`: `labelqueue.waiting`)"""
+    asked for pairs and got none for the invite's `wait_limit_s`: `labelqueue.waiting`) or
+    "entry_failed" (they answered every practice pair with fewer right than the invite's
+    `entry_pass`: `labelqueue.entry_test`; let go without a code)"""
     participant: str | None = None
     redirect_url: str | None = None
     """where to send the participant now, filled in for them; none until complete"""
     pause_message: str | None = None
-    """the operator's words for a paused participant (given instead of the code)"""
+    """the operator's words for a paused participant, or one who failed the entry test (given
+    instead of the code)"""
+    entry_correct: int | None = None
+    """practice answers they got right, once the invite's entry test is decided"""
+    entry_pass: int | None = None
+    """the invite's entry test: practice answers to get right; none: no test"""
+
+    @property
+    def earned(self) -> bool:
+        """the code is earned: the study is complete, and not by failing the entry test"""
+        return self.complete and self.why != "entry_failed"
 
 
 def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
     """How far the labeller is. For one who joined by an invite: decisive answers on the
     invite's runs against its target (practice answers never count), and whether the study is
     complete for them (target reached, runs over or budget spent, paused by check pairs, or
-    nothing left to label after waiting), with their own code."""
+    nothing left to label after waiting), with their own code; or let go without one, having
+    failed the invite's entry test (which comes before every other end)."""
     with reading(session):
         standing = (Label.labeller_id == labeller_id, Label.source == LabelSource.HUMAN,
                     Label.withdrawn_at.is_(None))
         labels = session.scalar(select(func.count(Label.id)).where(*standing)) or 0
         row = session.execute(
-            select(Invite, Invitee.participant, Invitee.nothing_left_at)
+            select(Invite, Invitee.participant, Invitee.nothing_left_at, Invitee.entry_passed,
+                   Invitee.entry_correct)
             .join(Invitee, Invitee.invite_id == Invite.id)
             .where(Invitee.labeller_id == labeller_id)
         ).one_or_none()
         if row is None:
             return Progress(labels, None, None, None, counted=labels)
-        invite, participant, nothing_left = row
+        invite, participant, nothing_left, entry_passed, entry_correct = row
         on_runs = [Label.run_id == invite.run_id] if invite.run_id is not None else []
         # Practice answers never count toward a target (labelqueue.practice).
         counted = session.scalar(select(func.count(Label.id)).where(
@@ -473,13 +498,17 @@ def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
             paused = not over and not session.scalar(select(unpaused))
         session.expunge_all()
     reached = invite.target_answers is not None and counted >= invite.target_answers
-    why = ("target" if reached else "runs_over" if over else "paused" if paused
-           else "nothing_left" if nothing_left is not None else None)
+    failed = entry_passed is not None and not entry_passed
+    why = ("entry_failed" if failed else "target" if reached else "runs_over" if over
+           else "paused" if paused else "nothing_left" if nothing_left is not None else None)
     progress = Progress(labels, invite.target_answers, None, invite.run_id, counted=counted,
                         invited=True, complete=why is not None, why=why,
-                        participant=participant)
+                        participant=participant, entry_correct=entry_correct,
+                        entry_pass=invite.entry_pass)
     if why is None:
         return progress
+    if why == "entry_failed":  # let go: no code, no redirect; the study's own words if any
+        return replace(progress, pause_message=invite.pause_message)
     if why == "paused" and invite.pause_message:
         return replace(progress, pause_message=invite.pause_message)
     code = participant_code(server_key(session), invite, labeller_id)

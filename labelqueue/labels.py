@@ -17,6 +17,7 @@ from typing import Any
 from sqlalchemy import ColumnElement, Integer, String, bindparam, case, insert, select, update
 from sqlalchemy.orm import Session
 
+from labelqueue.entry_test import decide
 from labelqueue.errors import Invalid, LeaseError, NotFound, Revoked, RunClosed, StaleToken
 from labelqueue.gold import pause_if_below
 from labelqueue.models import (
@@ -264,7 +265,8 @@ def submit_label(
 
     An answer to one of the run's practice pairs (`labelqueue.practice`) needs no lease (the
     pair is shown to every newcomer at once): it is stored with `practice` set, costs no
-    budget and checks no gold threshold.
+    budget and checks no gold threshold; the last one may decide the labeller's entry test
+    (`labelqueue.entry_test`).
 
     `flag` marks the pair as one nobody can judge (`runvocab.answers.Flag`), with an optional
     `flag_note`; only a skip may carry one (Invalid otherwise), so a flagged pair is never
@@ -362,6 +364,8 @@ def _store(
         [inserted] = _INSERT_LABEL.rows(connection, values)
         if asked.gold and not practice:
             pause_if_below(connection, labeller_id=labeller_id, run_id=asked.run_id)
+        elif practice:  # the last practice answer decides an invite's entry test
+            decide(connection, labeller_id=labeller_id, run_id=asked.run_id)
     return snapshot(Label, {"id": inserted.id, **values}), True
 
 

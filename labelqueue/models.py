@@ -234,6 +234,9 @@ class Invite(Base):
     wait_limit_s: Mapped[int | None] = mapped_column(Integer)
     """after asking this long for a pair and getting none, a participant may finish with their
     code ("nothing left to label"); none: `labelqueue.invites.WAIT_LIMIT_S`"""
+    entry_pass: Mapped[int | None] = mapped_column(Integer)
+    """an entry test: the practice answers a participant must get right, of the run's
+    `feedback.practice_pairs`, to go on (`labelqueue.entry_test`); none: no test"""
 
 
 class Invitee(Base):
@@ -255,6 +258,11 @@ class Invitee(Base):
     nothing_left_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     """when they had waited the invite's `wait_limit_s` with nothing to label: their study is
     complete from then on ("nothing left to label")"""
+    entry_passed: Mapped[bool | None] = mapped_column(Boolean)
+    """the invite's entry test, once decided (all practice pairs answered): passed, or failed
+    and let go without a code; none: undecided, or no test (`labelqueue.entry_test`)"""
+    entry_correct: Mapped[int | None] = mapped_column(Integer)
+    """practice answers they got right when the entry test was decided"""
 
 
 Index("ix_invitees_invite_id_participant", Invitee.invite_id, Invitee.participant)

@@ -5,7 +5,8 @@ Each participant's row counts their standing answers by hand on the invite's run
 for an all-runs invite): decisive (left or right), equal, can't tell, skips and, of the skips,
 flags; practice answers apart (they earn nothing); their gold score (correct of gold answers,
 practice left out); whether check pairs paused them; their study's state and their code, valid
-once the study is complete for them (`labelqueue.invites.labeller_progress`).
+once the study is complete for them (`labelqueue.invites.labeller_progress`), never for one who
+failed the invite's entry test (`labelqueue.entry_test`: why "entry_failed", not to be paid).
 """
 
 from __future__ import annotations
@@ -66,7 +67,13 @@ class Participant:
     completion_code: str
     """their code, whether earned or not"""
     code_valid: bool
-    """the code is earned: their study is complete (a paused participant's too)"""
+    """the code is earned: their study is complete (a paused participant's too), and not by
+    failing the entry test"""
+    entry_test: str | None = None
+    """the invite's entry test: "passed", "failed" (let go: not to be paid) or "undecided";
+    none: the invite has no entry test (`labelqueue.entry_test`)"""
+    entry_correct: int | None = None
+    """practice answers right when the entry test was decided"""
 
 
 def participants(session: Session, *, invite_id: int) -> list[Participant]:
@@ -121,7 +128,10 @@ def participants(session: Session, *, invite_id: int) -> list[Participant]:
             paused=invitee.labeller_id in paused, counted=progress.counted,
             complete=progress.complete, why=progress.why,
             completion_code=participant_code(key, invite, invitee.labeller_id),
-            code_valid=progress.complete,
+            code_valid=progress.earned,
+            entry_test=None if invite.entry_pass is None else "undecided"
+            if invitee.entry_passed is None else "passed" if invitee.entry_passed else "failed",
+            entry_correct=invitee.entry_correct,
         ))
     return out
 
@@ -129,7 +139,7 @@ def participants(session: Session, *, invite_id: int) -> list[Participant]:
 CSV_COLUMNS = ("participant", "labeller_id", "labeller", "joined_at", "time_on_task_s",
                "decisive", "equal", "cant_tell", "skips", "flags", "practice", "gold_answers",
                "gold_correct", "paused", "counted", "complete", "why", "completion_code",
-               "code_valid")
+               "code_valid", "entry_test", "entry_correct")
 
 
 @dataclass(frozen=True)
@@ -138,7 +148,8 @@ class CodeCheck:
 
     code: str
     valid: bool
-    """the code is a participant's and their study is complete: pay them"""
+    """the code is a participant's and their study is complete (not by failing the entry
+    test): pay them"""
     participant: str | None
     labeller_id: int | None
     invite_id: int | None
@@ -157,6 +168,6 @@ def verify_codes(session: Session, codes: Iterable[str]) -> list[CodeCheck]:
         if found is None:
             out.append(CodeCheck(code, False, None, None, None, "unknown"))
             continue
-        out.append(CodeCheck(code, found.complete, found.participant, found.labeller_id,
+        out.append(CodeCheck(code, found.earned, found.participant, found.labeller_id,
                              found.invite_id, found.why if found.complete else "not_complete"))
     return out

@@ -29,6 +29,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from labelqueue.coerce import clip_key, finite
+from labelqueue.entry_test import EntryFailed, refusal
 from labelqueue.errors import Conflict, Invalid, NotFound, Revoked, StaleToken
 from labelqueue.gold import (
     GOLD_NEEDS_LABELS,
@@ -42,6 +43,8 @@ from labelqueue.gold import (
 )
 from labelqueue.keys import server_key
 from labelqueue.models import (
+    INVITEES,
+    INVITES,
     LABELLERS,
     LABELS,
     PAUSES,
@@ -240,8 +243,11 @@ _ASKED_TEACHER = (
 )
 _HOLDER = Prepared(
     select(LABELLERS.c.active, QUERIES.c.id, QUERIES.c.run_id, RUNS.c.status, _ASKED_TEACHER,
-           LABELLERS.c.token_hash)
+           LABELLERS.c.token_hash, INVITEES.c.entry_passed, INVITEES.c.entry_correct,
+           INVITES.c.entry_pass)
     .select_from(LABELLERS)
+    .outerjoin(INVITEES, INVITEES.c.labeller_id == LABELLERS.c.id)
+    .outerjoin(INVITES, INVITES.c.id == INVITEES.c.invite_id)
     .outerjoin(
         QUERIES,
         and_(
@@ -411,7 +417,8 @@ def lease_next_query(
 def _check_asker(holder: Sequence[Any], params: dict[str, Any], *, for_people: bool,
                  token_hash: str | None) -> None:
     """Refuse a lease to a labeller that is missing or deactivated, that asks with a replaced
-    token, or (a person) for a run that is missing or taught by a script."""
+    token, that failed its invite's entry test (`labelqueue.entry_test`), or (a person) for a
+    run that is missing or taught by a script."""
     labeller_id, run_id = params["labeller"], params["run"]
     if not holder:
         raise NotFound(f"labeller {labeller_id} does not exist")
@@ -419,6 +426,8 @@ def _check_asker(holder: Sequence[Any], params: dict[str, Any], *, for_people: b
         raise Revoked(f"labeller {labeller_id} is deactivated")
     if token_hash is not None and not hmac.compare_digest(holder[0].token_hash, token_hash):
         raise StaleToken(f"labeller {labeller_id}'s token was replaced by a new one")
+    if holder[0].entry_passed is not None and not holder[0].entry_passed:
+        raise EntryFailed(refusal(holder[0].entry_correct, holder[0].entry_pass))
     if for_people and run_id is not None:
         if holder[0].teacher is None:
             raise NotFound(f"run {run_id} does not exist")

@@ -382,7 +382,8 @@ def _invite(args: argparse.Namespace) -> int:
 
 WHY = {"target": "complete: reached the target", "runs_over": "complete: the run ended",
        "paused": "complete: paused by check pairs",
-       "nothing_left": "complete: nothing left to label", None: "not complete yet"}
+       "nothing_left": "complete: nothing left to label",
+       "entry_failed": "let go: failed the entry test, not to be paid", None: "not complete yet"}
 
 
 def _verify(session: Session, given: list[str]) -> int:

@@ -16,6 +16,7 @@ from starlette.routing import BaseRoute
 
 from labelqueue import (
     Conflict,
+    EntryFailed,
     Invalid,
     InviteClosed,
     LeaseError,
@@ -30,6 +31,7 @@ STATUS_OF: dict[type[Exception], int] = {
     NotFound: 404,
     Revoked: 403,
     Paused: 403,
+    EntryFailed: 403,
     LeaseError: 409,
     Conflict: 409,  # InvalidTransition and RunClosed too: they are Conflicts
     InviteClosed: 410,

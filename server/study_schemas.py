@@ -18,7 +18,7 @@ from server.schemas import (
 
 InviteDays = Annotated[float, Field(ge=1 / 1440, le=366)]
 """days, from a minute to a year"""
-StudyEnd = Literal["target", "runs_over", "paused", "nothing_left"]
+StudyEnd = Literal["target", "runs_over", "paused", "nothing_left", "entry_failed"]
 """why a participant's study is complete (`labelqueue.invites.Progress.why`)"""
 
 
@@ -61,6 +61,11 @@ class InviteCreate(Body):
     wait_limit_s: Positive | None = None
     """a participant who asks this long for pairs and gets none finishes with their code
     ("nothing left to label"); null: 300 s"""
+    entry_pass: Positive | None = None
+    """an entry test: the practice answers a participant must get right, of the run's
+    `feedback.practice_pairs`, to go on; one who answers them all with fewer right is let go,
+    without a code (and not to be paid). From 1 to the run's practice pairs (a run without
+    practice pairs takes none); null: no entry test"""
 
 
 class InviteOut(Out):
@@ -82,6 +87,8 @@ class InviteOut(Out):
     consent_text: str | None
     pause_message: str | None
     wait_limit_s: int | None
+    entry_pass: int | None
+    """practice answers to get right to go on; null: no entry test"""
     state: InviteState
     """closed: its run is over (stopping, stopped, finished or failed; for an all-runs link, no
     run taught by people is queued, running or paused)"""
@@ -131,6 +138,12 @@ class ProgressOut(BaseModel):
     redirect_url: str | None = None
     """where to go now that the study is complete, filled in for the caller"""
     pause_message: str | None = None
+    """the study's words for a participant let go without a code (paused by check pairs, or
+    failed the entry test), when it has some"""
+    entry_correct: int | None = None
+    """practice answers the caller got right, once the invite's entry test is decided"""
+    entry_pass: int | None = None
+    """the invite's entry test: practice answers to get right; null: none"""
 
 
 class WaitingOut(BaseModel):
@@ -202,7 +215,13 @@ class ParticipantOut(Out):
     why: StudyEnd | None
     completion_code: str
     code_valid: bool
-    """the code is earned (their study is complete): pay them"""
+    """the code is earned (their study is complete, not by failing the entry test): pay
+    them"""
+    entry_test: Literal["passed", "failed", "undecided"] | None = None
+    """the invite's entry test; failed: let go without a code, not to be paid; null: the
+    invite has none"""
+    entry_correct: int | None = None
+    """practice answers right when the entry test was decided"""
 
 
 class CodesRequest(Body):

@@ -108,6 +108,7 @@ def post_invite(
         consent_text=body.consent_text,
         pause_message=body.pause_message,
         wait_limit_s=body.wait_limit_s,
+        entry_pass=body.entry_pass,
     )
     return invite_out(request, session, invite)
 

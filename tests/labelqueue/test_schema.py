@@ -170,3 +170,19 @@ def test_postgresql_variants_are_enabled() -> None:
     """Skipped, as a visible note, when the PostgreSQL variants of these tests do not run."""
     if not os.environ.get("SEPOA_TEST_POSTGRES_URL"):
         pytest.skip("queue tests ran on SQLite only: set SEPOA_TEST_POSTGRES_URL for PostgreSQL")
+
+
+def test_the_entry_test_migration_goes_down_and_up(url: str, engine: Engine) -> None:
+    def columns(table: str) -> set[str]:
+        return {c["name"] for c in inspect(engine).get_columns(table)}
+
+    entry = {("invites", "entry_pass"), ("invitees", "entry_passed"),
+             ("invitees", "entry_correct")}
+    assert all(name in columns(table) for table, name in entry)
+    command.downgrade(alembic_config(url), "0017")
+    engine.dispose()  # the inspector's cached schema (PostgreSQL) with it
+    assert not any(name in columns(table) for table, name in entry)
+    assert "wait_limit_s" in columns("invites")  # 0016's columns stay
+    migrate(url)
+    engine.dispose()
+    assert all(name in columns(table) for table, name in entry)

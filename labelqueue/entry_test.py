@@ -1,0 +1,137 @@
+"""An invite's entry test: a participant must get `entry_pass` of the run's practice pairs
+right (`labelqueue.practice`) to go on; one who answers them all with fewer right is let go.
+
+- The test is decided with the answer to the last practice pair (every one of the run's
+  `feedback.practice_pairs` answered, standing answers only): passed or failed, stored on the
+  participant (`invitees.entry_passed`, `entry_correct`), and it stays decided.
+- A practice answer is right when it is the better clip by the true reward ("equal" when the
+  segments' returns are equal; an external pair's known answer otherwise), as the practice
+  explanation says; a can't-tell or a skip is never right.
+- Before the test is decided, a practice answer may be taken back as any practice answer can
+  (`labelqueue.undo`); once decided, none can.
+- A participant who failed gets no more pairs (`EntryFailed`, a 403, from every lease), holds
+  no lease (theirs are let go when the test is decided), has no completion code (their study
+  ends as "entry_failed": `labelqueue.invites.labeller_progress`) and never spends the budget
+  (practice answers never do).
+
+For an invite on one run, 1 <= entry_pass <= the run's practice pairs is checked when the invite
+is made; an all-runs invite's test is decided on the first run whose practice pairs the
+participant has all answered (a run with fewer practice pairs than `entry_pass` fails all).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sqlalchemy import Integer, bindparam, or_, select, update
+from sqlalchemy.orm import Session
+
+from labelqueue.errors import Invalid, QueueError
+from labelqueue.models import (
+    EXTERNAL_PAIRS,
+    INVITEES,
+    INVITES,
+    LABELS,
+    QUERIES,
+    RUNS,
+    QueryStatus,
+)
+from labelqueue.practice import practice_pairs
+from labelqueue.prepared import DriverConnection, Prepared
+from labelqueue.run_config import FEEDBACK, run_feedback
+from runvocab.answers import Answer
+
+
+class EntryFailed(QueueError):
+    """The participant failed their invite's entry test: no more pairs, and no code."""
+
+
+def refusal(correct: int | None, needed: int | None) -> str:
+    """Why a participant who failed the entry test is served nothing (a 403's detail)."""
+    return (f"entry test not passed: {correct or 0} of your practice answers were right, and "
+            f"this study asks for {needed}; your part in it is over (no completion code)")
+
+
+def check_entry_pass(session: Session, *, run_id: int | None, entry_pass: int | None) -> None:
+    """Invalid unless `entry_pass` is none, or at least 1 and (for an invite on one run) at most
+    the run's `feedback.practice_pairs`. Called inside the invite's transaction."""
+    if entry_pass is None:
+        return
+    if entry_pass < 1:
+        raise Invalid(f"entry_pass must be at least 1 (or left out: no entry test), got "
+                      f"{entry_pass}")
+    if run_id is None:
+        return
+    row = session.execute(select(RUNS.c.config, FEEDBACK).where(RUNS.c.id == run_id)).one()
+    pairs = practice_pairs(run_feedback(row))
+    if pairs < 1:
+        raise Invalid(f"entry_pass needs practice pairs, and run {run_id} has none "
+                      "(feedback.practice_pairs = 0): leave entry_pass out, or set practice "
+                      "pairs on a new run")
+    if entry_pass > pairs:
+        raise Invalid(f"entry_pass must be from 1 to run {run_id}'s {pairs} practice pairs "
+                      f"(feedback.practice_pairs), got {entry_pass}")
+
+
+def right_answer(first_return: float | None, second_return: float | None,
+                 known: Answer | str | None) -> Answer:
+    """A practice pair's right answer, in segment terms (`labelqueue.practice.explain`'s)."""
+    if known is not None:
+        return Answer(known)
+    assert first_return is not None and second_return is not None, "a gold pair without truth"
+    if first_return == second_return:
+        return Answer.EQUAL
+    return Answer.FIRST if first_return > second_return else Answer.SECOND
+
+
+_LABELLER = bindparam("labeller", type_=Integer())
+_RUN = bindparam("run", type_=Integer())
+_UNDECIDED = Prepared(
+    select(INVITES.c.entry_pass, RUNS.c.config, FEEDBACK)
+    .select_from(INVITEES)
+    .join(INVITES, INVITES.c.id == INVITEES.c.invite_id)
+    .join(RUNS, RUNS.c.id == _RUN)
+    .where(INVITEES.c.labeller_id == _LABELLER, INVITES.c.entry_pass.is_not(None),
+           INVITEES.c.entry_passed.is_(None),
+           or_(INVITES.c.run_id.is_(None), INVITES.c.run_id == _RUN))
+)
+_PRACTISED = Prepared(
+    select(LABELS.c.answer, QUERIES.c.first_segment_return, QUERIES.c.second_segment_return,
+           EXTERNAL_PAIRS.c.gold_answer)
+    .select_from(LABELS)
+    .join(QUERIES, QUERIES.c.id == LABELS.c.query_id)
+    .outerjoin(EXTERNAL_PAIRS, EXTERNAL_PAIRS.c.query_id == QUERIES.c.id)
+    .where(LABELS.c.labeller_id == _LABELLER, LABELS.c.run_id == _RUN,
+           LABELS.c.practice.is_(True), LABELS.c.withdrawn_at.is_(None))
+)
+_DECIDE = Prepared(
+    update(INVITEES)
+    .where(INVITEES.c.labeller_id == _LABELLER, INVITEES.c.entry_passed.is_(None))
+    .values(entry_passed=bindparam("passed", type_=INVITEES.c.entry_passed.type),
+            entry_correct=bindparam("correct", type_=Integer()))
+)
+_LET_GO = Prepared(
+    update(QUERIES)
+    .where(QUERIES.c.lease_holder == _LABELLER, QUERIES.c.status == QueryStatus.LEASED)
+    .values(status=QueryStatus.PENDING, lease_holder=None, lease_expires_at=None, leased_at=None)
+)
+
+
+def decide(connection: DriverConnection, *, labeller_id: int, run_id: int) -> bool | None:
+    """After a practice answer, in its transaction: decide the labeller's entry test once they
+    have answered all of the run's practice pairs; whether they passed (None: no test, not yet,
+    or decided before). One who failed is let go of every lease they hold."""
+    params: dict[str, Any] = {"labeller": labeller_id, "run": run_id}
+    test = _UNDECIDED.first(connection, params)
+    if test is None:
+        return None
+    answers = _PRACTISED.rows(connection, params)
+    if len(answers) < practice_pairs(run_feedback(test)):
+        return None
+    correct = sum(Answer(row.answer) == right_answer(
+        row.first_segment_return, row.second_segment_return, row.gold_answer) for row in answers)
+    passed = bool(correct >= test.entry_pass)
+    _DECIDE.count(connection, params | {"passed": passed, "correct": correct})
+    if not passed:
+        _LET_GO.count(connection, params)
+    return passed
