@@ -46,6 +46,10 @@ class EntryFailed(QueueError):
     """The participant failed their invite's entry test: no more pairs, and no code."""
 
 
+class EntryPassInvalid(Invalid):
+    """An invite's `entry_pass` does not fit its run's practice pairs (or is below 1)."""
+
+
 def refusal(correct: int | None, needed: int | None) -> str:
     """Why a participant who failed the entry test is served nothing (a 403's detail)."""
     return (f"entry test not passed: {correct or 0} of your practice answers were right, and "
@@ -53,24 +57,24 @@ def refusal(correct: int | None, needed: int | None) -> str:
 
 
 def check_entry_pass(session: Session, *, run_id: int | None, entry_pass: int | None) -> None:
-    """Invalid unless `entry_pass` is none, or at least 1 and (for an invite on one run) at most
-    the run's `feedback.practice_pairs`. Called inside the invite's transaction."""
+    """EntryPassInvalid unless `entry_pass` is none, or at least 1 and (for an invite on one
+    run) at most the run's `feedback.practice_pairs`. Called inside the invite's transaction."""
     if entry_pass is None:
         return
     if entry_pass < 1:
-        raise Invalid(f"entry_pass must be at least 1 (or left out: no entry test), got "
-                      f"{entry_pass}")
+        raise EntryPassInvalid(f"entry_pass must be at least 1 (or left out: no entry test), "
+                               f"got {entry_pass}")
     if run_id is None:
         return
     row = session.execute(select(RUNS.c.config, FEEDBACK).where(RUNS.c.id == run_id)).one()
     pairs = practice_pairs(run_feedback(row))
     if pairs < 1:
-        raise Invalid(f"entry_pass needs practice pairs, and run {run_id} has none "
-                      "(feedback.practice_pairs = 0): leave entry_pass out, or set practice "
-                      "pairs on a new run")
+        raise EntryPassInvalid(f"entry_pass needs practice pairs, and run {run_id} has none "
+                               "(feedback.practice_pairs = 0): leave entry_pass out, or set "
+                               "practice pairs on a new run")
     if entry_pass > pairs:
-        raise Invalid(f"entry_pass must be from 1 to run {run_id}'s {pairs} practice pairs "
-                      f"(feedback.practice_pairs), got {entry_pass}")
+        raise EntryPassInvalid(f"entry_pass must be from 1 to run {run_id}'s {pairs} practice "
+                               f"pairs (feedback.practice_pairs), got {entry_pass}")
 
 
 def right_answer(first_return: float | None, second_return: float | None,

@@ -33,6 +33,9 @@ class PracticeFeedback(PracticeOut):
     """the answer agrees with the true reward; null for can't-tell and skip"""
     better: Literal["left", "right", "equal"]
     explanation: str
+    entry_test: Literal["passed", "failed"] | None = None
+    """the caller's entry test (an invite's `entry_pass`), once decided (the last practice answer
+    decides it); null: undecided, or no test"""
 
 
 class NextQuery(BaseModel):

@@ -13,6 +13,7 @@ from sqlalchemy.orm import Session
 
 from labelqueue import (
     Invalid,
+    Invitee,
     Label,
     Labeller,
     LabelSource,
@@ -177,10 +178,14 @@ def answer_out(
             better, text = explain(left_return=left, right_return=right)
         step = practice_step(session, run_id=query.run_id, query_id=query.id)
         choice = str(getattr(label.choice, "value", label.choice))
+        with reading(session):
+            passed = session.scalar(select(Invitee.entry_passed).where(
+                Invitee.labeller_id == labeller_id))
         out.practice_feedback = PracticeFeedback(
             index=step.index, of=step.of, better=better,  # type: ignore[arg-type]
             correct=choice == better if choice in ("left", "right", "equal") else None,
-            explanation=text)
+            explanation=text,
+            entry_test=None if passed is None else "passed" if passed else "failed")
     return out, created
 
 

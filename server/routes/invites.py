@@ -15,6 +15,7 @@ from datetime import timedelta
 from typing import Annotated
 
 from fastapi import APIRouter, Path, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse
 
 from labelqueue import (
@@ -31,6 +32,7 @@ from labelqueue import (
     verify_code,
 )
 from labelqueue.activity import labeller_waiting
+from labelqueue.entry_test import EntryPassInvalid
 from labelqueue.invites import CLOSED_TEXT, Progress
 from labelqueue.models import utcnow
 from labelqueue.waiting import finish_if_waited
@@ -95,8 +97,18 @@ def post_invite(
     or its run is over. Each participant's study ends with their own completion code (prefixed
     with `completion_code`, checked with `POST /api/invites/verify`) once they give
     `target_answers` decisive answers on the run, the run is over, or check pairs pause them;
-    then they are sent to `redirect_url` if it is set."""
-    invite = create_invite(
+    then they are sent to `redirect_url` if it is set. An `entry_pass` that does not fit the
+    run's practice pairs is a 422 located at it."""
+    try:
+        invite = _create(body, session)
+    except EntryPassInvalid as err:
+        raise RequestValidationError([{"type": "value_error", "loc": ("body", "entry_pass"),
+                                       "msg": str(err)}]) from None
+    return invite_out(request, session, invite)
+
+
+def _create(body: InviteCreate, session: SessionDep) -> Invite:
+    return create_invite(
         session,
         run_id=body.run_id,
         expires_at=utcnow() + timedelta(days=body.expires_in_days),
@@ -110,7 +122,6 @@ def post_invite(
         wait_limit_s=body.wait_limit_s,
         entry_pass=body.entry_pass,
     )
-    return invite_out(request, session, invite)
 
 
 @router.get(

@@ -117,6 +117,7 @@ def test_who_passes_goes_on_and_who_fails_is_let_go_without_a_code(
     last = next_pair(client, bob)
     out = give(client, bob, last, "skip")
     assert out["practice_feedback"]["correct"] is None
+    assert out["practice_feedback"]["entry_test"] == "failed"  # said on the explanation
     refused = client.get("/api/label/next", headers=bearer(bob))
     assert refused.status_code == 403
     assert refused.json()["detail"].startswith("entry test not passed: 1 of your practice")

@@ -19,7 +19,8 @@ export class ApiError extends Error {
 /** Thrown once the token was refused: the page should stop its loops (sign-in reloads it). */
 export class SignedOut extends Error {}
 
-/** A labeller the run's check pairs paused (403 "paused: …"): still signed in, just not served. */
+/** A labeller the run's check pairs paused (403 "paused: …"), or one an invite's entry test let
+ * go (403 "entry test not passed: …"): still signed in, just not served. */
 export class Paused extends Error {}
 
 /** Keeps a token for `role` in this browser (an invite link's new labeller). */
@@ -86,7 +87,8 @@ async function send(method, path, body) {
   if (response.status === 401 || response.status === 403) {
     const data = await response.json().catch(() => null);
     const detail = describe(data && data.detail);
-    if (response.status === 403 && detail.startsWith("paused")) throw new Paused(detail);
+    if (response.status === 403 && (detail.startsWith("paused") || detail.startsWith("entry test")))
+      throw new Paused(detail);
     signOut(detail || `HTTP ${response.status}`);
     throw new SignedOut();
   }

@@ -15,6 +15,8 @@ const WHY = {
   target: "reached the target",
   runs_over: "the run ended before the target",
   paused: "paused by check pairs",
+  nothing_left: "nothing left to label",
+  entry_failed: "failed the entry test: not to be paid",
 };
 
 async function verifyCode(event) {
@@ -26,7 +28,8 @@ async function verifyCode(event) {
     const target = who.target_answers == null ? "" : ` of ${who.target_answers}`;
     shown.textContent = `Valid: ${who.participant || who.labeller} (labeller ${who.labeller_id}, `
       + `link ${who.invite_id}): ${who.counted}${target} decisive answers; `
-      + (who.complete ? `complete, ${WHY[who.why]}.` : "not complete yet.");
+      + (who.why === "entry_failed" ? `let go: ${WHY[who.why]}.`
+        : who.complete ? `complete, ${WHY[who.why]}.` : "not complete yet.");
     shown.className = "small";
   } catch (error) {
     if (error instanceof SignedOut) return;
@@ -61,6 +64,9 @@ function fillRuns(runs) {
 async function showRunQuality() {
   const shown = document.getElementById("invite-run-quality");
   const runId = document.querySelector("#new-invite [name=run_id]").value;
+  const entry = document.querySelector("#new-invite [name=entry_pass]");
+  entry.removeAttribute("max");
+  entry.disabled = false;
   if (!runId) {
     shown.textContent = "Practice pairs, check pairs and answers per pair are each run's own "
       + "(the new-run form); choose a run to see them.";
@@ -69,10 +75,15 @@ async function showRunQuality() {
   try {
     const { values } = await get(`/api/runs/${runId}/config`);
     const practice = values["feedback.practice_pairs"];
+    const entry = document.querySelector("#new-invite [name=entry_pass]");
+    entry.max = String(practice);
+    entry.disabled = practice < 1; // an entry test needs practice pairs
     shown.textContent = `Run ${runId}: ${practice} practice pair${practice === 1 ? "" : "s"}, `
       + `check pairs ${values["feedback.gold_rate"]} of each round (accuracy to go on `
       + `${values["feedback.gold_min_accuracy"]}), ${values["feedback.labels_per_query"]} `
-      + "answer(s) per pair.";
+      + "answer(s) per pair."
+      + (practice < 1 ? " No practice pairs: no entry test."
+        : ` An entry test passes 1 to ${practice} of them.`);
     shown.dataset.practice = String(practice);
   } catch (error) {
     if (!(error instanceof SignedOut)) shown.textContent = error.message;
@@ -97,7 +108,9 @@ function render(invites, runs) {
     el("td", { class: "num" }, `${invite.uses}${invite.max_uses == null ? "" : ` / ${invite.max_uses}`}`),
     el("td", {}, `${invite.target_answers ?? "–"} · ${invite.completion_code ?? "–"}`,
       invite.redirect_url ? el("div", { class: "muted small" }, "redirects when done") : null,
-      invite.consent_text ? el("div", { class: "muted small" }, "asks consent") : null),
+      invite.consent_text ? el("div", { class: "muted small" }, "asks consent") : null,
+      invite.entry_pass != null ? el("div", { class: "muted small entry-test" },
+        `entry test: pass ${invite.entry_pass} practice`) : null),
     el("td", {}, until(invite.expires_at)),
     el("td", {}, el("span", { class: `badge ${invite.state === "open" ? "running" : "stopped"}`,
       title: invite.state === "closed" ? "its run is over: nobody can join" : null },
@@ -141,7 +154,8 @@ function inviteBody(form) {
   const data = new FormData(form);
   const text = (name) => String(data.get(name) || "").trim();
   const body = {};
-  for (const name of ["run_id", "expires_in_days", "max_uses", "target_answers", "wait_limit_s"]) {
+  for (const name of ["run_id", "expires_in_days", "max_uses", "target_answers", "wait_limit_s",
+    "entry_pass"]) {
     if (text(name)) body[name] = Number(text(name));
   }
   for (const name of ["completion_code", "note", "redirect_url", "consent_text", "pause_message"]) {

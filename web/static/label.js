@@ -14,7 +14,7 @@
 // progress), label_answer.js, label_undo.js, label_flag.js and label_practice.js.
 
 import { start } from "./api.js";
-import { startStudy } from "./study.js";
+import { startStudy, study } from "./study.js";
 import { clock, state } from "./label_state.js";
 import { notice, showCounts } from "./label_screen.js";
 import {
@@ -112,7 +112,8 @@ start(() => {
   $("flag-form").addEventListener("submit", sendFlag);
   $("flag-cancel").addEventListener("click", () => $("flag-dialog").close());
   $("practice-dialog").addEventListener("close", () => {
-    $("stage").hidden = false; // the next pair, once the explanation is read
+    $("stage").hidden = study.complete; // the next pair, once the explanation is read (none
+    // for one let go by the entry test: their study's end is shown instead)
     setPaused(false);
   });
   $("play").addEventListener("click", (event) => {

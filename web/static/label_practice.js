@@ -16,8 +16,12 @@ export function explainPractice(practice, choice) {
     : practice.correct === false ? `Not this time: ${said}.` : `No preference given: ${said}.`;
   $("practice-title").textContent = `Practice pair ${practice.index} of ${practice.of}`;
   $("practice-explanation").textContent = practice.explanation;
-  $("practice-next").textContent = practice.index >= practice.of
-    ? "That was the last practice pair: the next pairs count." : "Next: another practice pair.";
+  $("practice-next").textContent = practice.entry_test === "failed"
+    ? "That was the last practice pair, and you did not pass this study's entry test: your part "
+      + "in it is over."
+    : practice.entry_test === "passed" ? "You passed this study's entry test: the next pairs count."
+      : practice.index >= practice.of
+        ? "That was the last practice pair: the next pairs count." : "Next: another practice pair.";
   if (!$("practice-dialog").open) $("practice-dialog").showModal();
   setPaused(true);
 }

@@ -8,7 +8,7 @@ import { el, notify } from "./dom.js";
 const $ = (id) => document.getElementById(id);
 const invite = document.body.dataset.invite;
 const WHY = { target: "reached the target", runs_over: "run over", paused: "paused by checks",
-  nothing_left: "nothing left to label" };
+  nothing_left: "nothing left to label", entry_failed: "failed the entry test" };
 
 function minutes(seconds) {
   return seconds < 90 ? `${Math.round(seconds)} s` : `${Math.round(seconds / 60)} min`;
@@ -18,7 +18,10 @@ function row(p) {
   const answers = `${p.decisive + p.equal} decisive · ${p.cant_tell} can't tell · ${p.skips} skips`
     + (p.flags ? ` (${p.flags} flagged)` : "") + (p.practice ? ` · ${p.practice} practice` : "");
   const gold = p.gold_answers ? `${p.gold_correct}/${p.gold_answers}` : "–";
-  const state = p.complete ? `complete: ${WHY[p.why] ?? p.why}` : p.paused ? "paused" : "labelling";
+  const state = p.why === "entry_failed"
+    ? `let go: failed the entry test (${p.entry_correct} right): not to be paid`
+    : (p.complete ? `complete: ${WHY[p.why] ?? p.why}` : p.paused ? "paused" : "labelling")
+      + (p.entry_test === "passed" ? " · passed the entry test" : "");
   return el("tr", { "data-valid": p.code_valid },
     el("th", { scope: "row" }, p.participant ?? p.labeller),
     el("td", {}, new Date(p.joined_at).toLocaleString()),
@@ -27,7 +30,8 @@ function row(p) {
     el("td", { class: "num" }, gold),
     el("td", {}, state),
     el("td", {}, el("code", {}, p.completion_code), " ",
-      el("span", { class: p.code_valid ? "badge ok" : "badge" }, p.code_valid ? "earned" : "not yet")));
+      el("span", { class: p.code_valid ? "badge ok" : "badge" },
+        p.code_valid ? "earned" : p.why === "entry_failed" ? "not to be paid" : "not yet")));
 }
 
 async function load() {
@@ -45,7 +49,9 @@ async function checkCodes(event) {
   $("codes-result").replaceChildren(...checked.map((c) => el("li", { "data-valid": c.valid },
     el("code", {}, c.code), " — ",
     c.valid ? `pay ${c.participant ?? `labeller ${c.labeller_id}`} (${WHY[c.why] ?? c.why})`
-      : c.why === "unknown" ? "nobody's code" : `${c.participant ?? "?"}: not complete yet`)));
+      : c.why === "unknown" ? "nobody's code"
+        : c.why === "entry_failed" ? `${c.participant ?? "?"}: failed the entry test, not to be paid`
+          : `${c.participant ?? "?"}: not complete yet`)));
 }
 
 function guard(task) {

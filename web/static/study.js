@@ -1,6 +1,7 @@
 // The label page's study screens: why it waits (GET /api/label/status), and the end of a
 // participant's study: "study complete" with their own completion code, a copy button and the
-// invite's redirect, or, for one paused by check pairs, the code or the operator's message.
+// invite's redirect, or, for one paused by check pairs, the code or the operator's message; for one
+// an invite's entry test let go, that they did not pass and have no code.
 
 import { request } from "./api.js";
 
@@ -14,6 +15,8 @@ const WHY = {
     + "often enough, so this study gives you no more pairs. Your answers so far are kept.",
   nothing_left: "You waited a while and there was nothing left for you to label: thank you "
     + "for your time. Your answers so far are kept.",
+  entry_failed: "Your practice is over and you did not pass, so your part in this study ends "
+    + "here, with no completion code. Thank you for your time.",
 };
 
 /** The page's state for the study: what the last status said. */
@@ -50,11 +53,15 @@ export function showProgress(progress, always = false) {
   study.complete = true;
   const box = $("completion");
   box.dataset.why = progress.why;
-  $("completion-title").textContent = progress.why === "paused"
-    ? "Your part in this study has ended"
+  $("completion-title").textContent = progress.why === "entry_failed"
+    ? "Practice over: you did not pass the entry test"
+    : progress.why === "paused" ? "Your part in this study has ended"
     : progress.why === "nothing_left" ? "Finished: nothing left to label"
       : "Study complete: thank you";
-  $("completion-why").textContent = WHY[progress.why] || "";
+  $("completion-why").textContent = progress.why === "entry_failed"
+    ? `You got ${progress.entry_correct ?? 0} practice pair${progress.entry_correct === 1 ? "" : "s"} `
+      + `right; this study asks for ${progress.entry_pass}. ${WHY.entry_failed}`
+    : WHY[progress.why] || "";
   const code = progress.completion_code;
   $("completion-code-row").hidden = !code;
   $("completion-hint").hidden = !code;
