@@ -1,0 +1,91 @@
+"""An invite's entry test in the queue (SQLite and PostgreSQL): decided by the last practice
+answer; who fails gets no lease (EntryFailed), holds none, has no code and cannot take a
+practice answer back; who passes goes on; entry_pass must fit the run's practice pairs."""
+
+from __future__ import annotations
+
+from datetime import timedelta
+
+import pytest
+from queue_helpers import query_spec
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from labelqueue import (
+    EntryFailed,
+    Invalid,
+    Query,
+    QueryStatus,
+    Run,
+    UndoRefused,
+    claim_run,
+    create_invite,
+    create_run,
+    join_invite,
+    labeller_progress,
+    lease_next_query,
+    push_queries,
+    submit_label,
+    withdraw_label,
+)
+from labelqueue.models import utcnow
+
+
+def run_with(session: Session, **config: object) -> int:
+    run = create_run(session, name="p", task="dmc:cheetah_run", algo="pebble", budget=100,
+                     teacher="human", config={f"feedback.{k}": v for k, v in config.items()})
+    claimed = claim_run(session, worker_id="w")
+    assert claimed is not None and claimed.id == run.id
+    return run.id
+
+
+def gold(i: int) -> dict[str, object]:
+    return query_spec(100 + i, gold=True, first_segment_return=10.0, second_segment_return=2.0)
+
+
+def labels_used(session: Session, run_id: int) -> int:
+    used = session.scalar(select(Run.labels_used).where(Run.id == run_id))
+    session.commit()
+    return int(used or 0)
+
+
+def test_the_last_practice_answer_decides_and_who_fails_is_let_go(session: Session) -> None:
+    run_id = run_with(session, practice_pairs=2)
+    push_queries(session, run_id=run_id, queries=[query_spec(i) for i in range(3)])
+    push_queries(session, run_id=run_id, queries=[gold(i) for i in range(2)])
+    expires = utcnow() + timedelta(days=1)
+    with pytest.raises(Invalid, match="entry_pass must be from 1 to run"):
+        create_invite(session, expires_at=expires, run_id=run_id, entry_pass=3)
+    invite = create_invite(session, expires_at=expires, run_id=run_id, entry_pass=2)
+    ann = join_invite(session, code=invite.code, participant="ann").labeller
+    bob = join_invite(session, code=invite.code, participant="bob").labeller
+
+    def practise(labeller_id: int, click: str) -> int:
+        query = lease_next_query(session, labeller_id=labeller_id, run_id=run_id)
+        assert query is not None and query.practice
+        submit_label(session, query_id=query.id, labeller_id=labeller_id, choice=click,
+                     left_is_first=True)
+        return query.id
+
+    practise(ann.id, "left")  # the first segment is better: right
+    practise(ann.id, "left")
+    real = lease_next_query(session, labeller_id=ann.id, run_id=run_id)
+    assert real is not None and not real.practice  # she passed and goes on
+
+    practise(bob.id, "left")
+    held = lease_next_query(session, labeller_id=bob.id, run_id=run_id, ahead_of=None)
+    assert held is not None and held.practice
+    last = practise(bob.id, "cant_tell")  # not right: 1 of 2
+    with pytest.raises(EntryFailed, match="1 of your practice answers were right"):
+        lease_next_query(session, labeller_id=bob.id, run_id=run_id)
+    with pytest.raises(UndoRefused, match="entry test"):
+        withdraw_label(session, query_id=last, labeller_id=bob.id)
+    leased = session.scalars(select(Query.id).where(Query.lease_holder == bob.id,
+                                                    Query.status == QueryStatus.LEASED)).all()
+    session.commit()
+    assert leased == []
+    progress = labeller_progress(session, labeller_id=bob.id)
+    assert (progress.complete, progress.why, progress.completion_code) == (
+        True, "entry_failed", None)
+    assert not progress.earned and progress.entry_correct == 1
+    assert labels_used(session, run_id) == 0  # practice never spends the budget
