@@ -263,6 +263,10 @@ def start_server(
         "SEPOA_DATA_DIR": str(tmp),
         "SEPOA_OPERATOR_TOKEN": OPERATOR_TOKEN,
         "SEPOA_SECRET_KEY": SECRET_KEY,  # one side order across worker processes
+        # A closed loop asks faster than the per-labeller lease limit allows (2/s): measured is
+        # the label API's own cost, so the limit is lifted unless the caller sets one.
+        "SEPOA_LEASE_PER_S": os.environ.get("SEPOA_LEASE_PER_S", "100000"),
+        "SEPOA_LEASE_BURST": os.environ.get("SEPOA_LEASE_BURST", "1000000"),
     }
     if args.probe or args.profile:
         command = [sys.executable, __file__, "--serve-probe", "--port", str(port),
