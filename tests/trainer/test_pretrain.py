@@ -14,11 +14,13 @@ import pytest
 import torch
 
 from runvocab.config import apply_overrides, build_config
+from trainer.skills import pretrain as pretrain_module
 from trainer.skills.pretrain import (
     SkillPretraining,
     build_skill_agent,
     default_snapshot_path,
     load_snapshot,
+    pretrain_once,
     snapshot_path,
 )
 
@@ -318,3 +320,32 @@ def test_a_run_stopped_while_pretraining_its_snapshot_goes_on_from_the_last_chec
     assert second.steps == list(range(201, cfg.skill.pretrain_steps + 1))  # on from 200
     assert os.path.exists(tmp_path / "skills.pt")
     assert not os.path.exists(tmp_path / "skills.pt.partial")
+
+
+def test_a_snapshot_a_longer_pretraining_wrote_on_its_way_is_taken_for_a_shorter_one(
+        tmp_path, monkeypatch, capsys):
+    folder = str(tmp_path / "snapshots")
+    longer = _tiny("aps", **{"skill.pretrain_steps": 600, "skill.snapshot_dir": folder})
+    SkillPretraining(longer, progress=False, quality_skills=0, snapshots_at=(400,)).run()
+    straight = str(tmp_path / "straight.pt")  # what a 400-step pretraining writes
+    shorter = _tiny("aps", **{"skill.pretrain_steps": 400, "skill.snapshot_dir": folder})
+    SkillPretraining(shorter, out=straight, progress=False, quality_skills=0).run()
+
+    path = default_snapshot_path(shorter)
+    assert not os.path.exists(path)
+    assert pretrain_once(shorter, path) is False  # taken, not pretrained
+    assert "wrote at 400 steps" in capsys.readouterr().err
+    ours, theirs = _snapshot_tensors(path), _snapshot_tensors(straight)
+    assert ours.keys() == theirs.keys() and len(ours) > 10
+    for name, tensor in ours.items():
+        assert torch.equal(tensor, theirs[name]), name  # bit for bit
+
+    # Another setting pretraining reads, or another seed: pretrained afresh.
+    pretrained = []
+    monkeypatch.setattr(pretrain_module, "pretrain",
+                        lambda cfg, out, **_: pretrained.append(out) or out)
+    for other in (_tiny("aps", **{"skill.pretrain_steps": 400, "skill.snapshot_dir": folder,
+                                  "skill.lr": 3e-4}),
+                  dataclasses.replace(shorter, seed=1)):
+        other_path = default_snapshot_path(other)
+        assert pretrain_once(other, other_path) is True and pretrained[-1] == other_path

@@ -24,9 +24,11 @@ from __future__ import annotations
 
 import dataclasses
 import fcntl
+import glob
 import hashlib
 import json
 import os
+import shutil
 import sys
 import time
 from collections.abc import Callable
@@ -36,7 +38,7 @@ import numpy as np
 import torch
 from tqdm import tqdm  # type: ignore[import-untyped]
 
-from runvocab.config import RunConfig, to_dict
+from runvocab.config import RunConfig, from_dict, to_dict
 from runvocab.validate import validate
 from trainer.checkpoint import (
     load_checkpoint,
@@ -438,7 +440,46 @@ def pretrain_once(cfg: RunConfig, path: str, tick: Callable[[int], None] | None 
         try:
             if os.path.exists(path):  # made by the process that held the lock before
                 return False
+            if copy_from_longer(cfg, path):
+                return False
             pretrain(cfg, out=path, progress=False, tick=tick)
             return True
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def copy_from_longer(cfg: RunConfig, path: str) -> str | None:
+    """Make the snapshot at `path` a copy of one a longer pretraining wrote on its way at this
+    length (`intermediate_path`), when every other setting pretraining reads is the same; the
+    copy's path, or None when there is none. Pretraining does not read its own length before it
+    ends (the replay buffer holds the same transitions up to it), so that snapshot is the one
+    this pretraining would write (tests/trainer/test_pretrain.py checks it tensor by tensor)."""
+    steps = cfg.skill.pretrain_steps
+    # As a snapshot stores its configuration: with the skill fields resolved.
+    ours = json.dumps(snapshot_settings(check_pretrain_config(cfg), cfg.seed), sort_keys=True,
+                      default=str)
+    pattern = (f"{cfg.task.replace(':', '-')}-{cfg.skill.backend}-*-s{cfg.seed}-*-at{steps}.pt")
+    for candidate in sorted(glob.glob(os.path.join(os.path.dirname(path) or ".", pattern))):
+        try:
+            state = load_checkpoint(candidate)
+            longer = from_dict(state["config"])
+        except Exception:  # noqa: BLE001  # not a snapshot this code reads: not a candidate
+            continue
+        same_length = dataclasses.replace(
+            longer, skill=dataclasses.replace(longer.skill, pretrain_steps=steps))
+        theirs = json.dumps(snapshot_settings(same_length, state.get("seed", -1)),
+                            sort_keys=True, default=str)
+        if state.get("steps") != steps or theirs != ours:
+            continue
+        tmp = f"{path}.{os.getpid()}.tmp"
+        shutil.copyfile(candidate, tmp)
+        os.replace(tmp, path)
+        measured = quality.read(candidate)
+        if measured is not None:
+            quality.write(path, {k: v for k, v in measured.items()
+                                 if k not in ("snapshot", "pretrain_steps")}, steps)
+        print(f"{os.path.basename(path)}: the snapshot a longer pretraining with the same "
+              f"settings wrote at {steps} steps ({os.path.basename(candidate)})",
+              file=sys.stderr, flush=True)
+        return path
+    return None
