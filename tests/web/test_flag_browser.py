@@ -77,8 +77,11 @@ def test_a_labeller_flags_a_pair_and_the_operator_sees_it(live: LiveServer, page
         assert (label.choice, label.answer, label.flag) == ("skip", "skip", "not_visible")
         assert label.flag_note == "the cheetah is off the left edge"
 
-        # The second pair: flagged "clip broken" without a note.
+        # The second pair: flagged "clip broken" without a note (F does nothing until the
+        # page enables the pair's buttons, as for the answer keys).
+        page.wait_for_selector("#flag:not([disabled])")
         page.keyboard.press("f")
+        page.wait_for_selector("#flag-dialog[open]")
         page.check("#flag-dialog input[value=clip_broken]")
         page.keyboard.press("Enter")  # submits the form
         label = stored(live, second)
