@@ -176,9 +176,11 @@ def per_run(results: Results) -> pd.DataFrame:
         rounds = rounds_by_run.get(key)
         if rounds is not None and len(rounds):
             later = rounds.iloc[1:]
-            row["labels_used"] = rounds["labels_used"].iloc[-1]
+            # Rounds that ask nothing (`reward.true_reward`) log neither labels nor queries.
+            if "labels_used" in rounds:
+                row["labels_used"] = rounds["labels_used"].iloc[-1]
             row["rounds"] = len(rounds)
-            if len(later):
+            if len(later) and "distinguishable_ratio" in later:
                 row["distinguishable"] = later["distinguishable_ratio"].mean()
                 if "model_agreement" in later:
                     row["heldout_accuracy"] = later["model_agreement"].mean()
@@ -321,7 +323,8 @@ def mechanism_table(results: Results, runs: pd.DataFrame) -> pd.DataFrame:
 def rounds_table(results: Results) -> pd.DataFrame:
     """Per variant and round: the mean distinguishable ratio of the selected queries (and of
     the compared rule's, where logged) across runs, and the runs counted."""
-    if results.rounds.empty or "round" not in results.rounds:
+    if results.rounds.empty or "round" not in results.rounds \
+            or "distinguishable_ratio" not in results.rounds:  # rounds that asked nothing
         return pd.DataFrame(columns=["variant", "round", "distinguishable", "n"])
     agg = {"distinguishable": ("distinguishable_ratio", "mean"),
            "n": ("distinguishable_ratio", "count")}

@@ -599,3 +599,33 @@ def test_the_snapshots_skill_quality_is_reported_beside_the_grid(results: Path,
     assert "| dmc:cheetah_run | 100,000 | 10 | 24.5 | 47.0 [" in text
     assert "| 49.0 | 1.0 | 1.4 [" in text
     assert (grid / "report" / "skill-quality.csv").exists()
+
+
+def test_a_grid_whose_rounds_asked_nothing_is_reported(tmp_path: Path, capsys) -> None:
+    """Runs on the true reward (`reward.true_reward`) keep their rounds but ask no queries: their
+    rounds.csv has no distinguishable ratio, and the report has no such figures, not a crash."""
+    from sepoa.cli import main
+
+    folder = tmp_path / "truth"
+    folder.mkdir()
+    (folder / "spec.toml").write_text(NEW_SPEC + """
+[analysis]
+metric = "final_quarter"
+reference = "A"
+compare_to = ["S"]
+""")
+    for variant in ("A", "S"):
+        run = folder / "dmc-cheetah_run" / variant / "eps0.3" / "budget100" / "s0"
+        run.mkdir(parents=True)
+        (run / "config.json").write_text(json.dumps(
+            {"algo": {"A": "pebble", "S": "sac"}[variant], "unsup_steps": 100,
+             "feedback": {"budget": 100} | NEW_FEEDBACK[variant]}))
+        _write_csv(run / "eval.csv", "step,return", ["200,1.0", "600,2.0"])
+        _write_csv(run / "episodes.csv", "step,episode,return", ["600,0,2.0"])
+        _write_csv(run / "rounds.csv", "step,round,queries,answered,answers,reward_corr",
+                   ["200,0,0,0,0,1.0", "400,1,0,0,0,0.9"])
+        (run / "done.json").write_text(json.dumps({"step": 600}))
+    assert main(["report", str(folder)]) == 0, capsys.readouterr().err
+    index = (folder / "report" / "report.md").read_text()
+    assert "6 planned: 2 done, 0 stopped, 0 partial, 0 failed, 4 not started." in index
+    assert "## Pre-registered comparison" in index
