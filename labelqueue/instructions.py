@@ -19,7 +19,6 @@ from sqlalchemy.orm import Session
 from labelqueue.errors import Invalid
 from labelqueue.models import Run, RunInstruction, utcnow
 from labelqueue.transaction import detach, get_row, transaction
-from runvocab.clip_format import parse_clip_size
 from runvocab.instructions import clean_instruction, instruction_sha256, run_instruction
 
 
@@ -32,14 +31,6 @@ def checked_instruction(instruction: str | None) -> str | None:
     except ValueError as err:
         raise Invalid(f"instruction {err}") from None
 
-
-def checked_clip_size(clip_size: str | None) -> None:
-    """Invalid for a clip size a run may not choose (`runvocab.clip_format.CLIP_SIZES`)."""
-    if clip_size is not None:
-        try:
-            parse_clip_size(clip_size)
-        except ValueError as err:
-            raise Invalid(str(err)) from None
 
 
 def record_instruction(session: Session, run: Run) -> None:

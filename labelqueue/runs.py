@@ -24,11 +24,12 @@ from sqlalchemy import and_, case, literal, or_, select, update
 from sqlalchemy.orm import Session
 
 from labelqueue.coerce import json_object
-from labelqueue.errors import Conflict, InvalidTransition
-from labelqueue.instructions import checked_clip_size, checked_instruction, record_instruction
+from labelqueue.errors import Conflict, Invalid, InvalidTransition
+from labelqueue.instructions import checked_instruction, record_instruction
 from labelqueue.models import Run, RunStatus, TeacherKind, UTCDateTime, Worker, utcnow
 from labelqueue.run_config import resolve, with_teacher
 from labelqueue.transaction import changed, detach, get_row, reading, transaction
+from runvocab.clip_format import parse_clip_size
 
 EXTERNAL = "external"
 """the `algo` of a run no worker trains (`labelqueue.external`): never claimed"""
@@ -72,6 +73,14 @@ def budget_spent(run: Run) -> bool:
     """The budget pays for no more queries: fewer answers are left than one query takes (the
     trainer stops asking there, possibly short of `budget`)."""
     return run.budget - run.labels_used < labels_per_query(run)
+
+def checked_clip_size(clip_size: str | None) -> None:
+    """Invalid for a clip size a run may not choose (`runvocab.clip_format.CLIP_SIZES`)."""
+    if clip_size is not None:
+        try:
+            parse_clip_size(clip_size)
+        except ValueError as err:
+            raise Invalid(str(err)) from None
 
 
 def create_run(

@@ -26,10 +26,10 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
-from labelqueue.instructions import checked_clip_size, checked_instruction
+from labelqueue.instructions import checked_instruction
 from labelqueue.models import Run
 from labelqueue.run_config import resolve
-from labelqueue.runs import create_run
+from labelqueue.runs import checked_clip_size, create_run
 from rundata.dataset import DatasetError, LabelledDataset, read_dataset
 from runvocab.config import build_config
 from runvocab.names import ConfigError
