@@ -44,6 +44,9 @@ COPY trainer ./trainer
 COPY labelqueue ./labelqueue
 COPY labelstats ./labelstats
 COPY rundata ./rundata
+COPY crowdstudy ./crowdstudy
+COPY externalruns ./externalruns
+COPY runviews ./runviews
 COPY server ./server
 COPY runvocab ./runvocab
 COPY web ./web

@@ -47,22 +47,6 @@ from labelqueue.grid import (
     release_grid_key,
 )
 from labelqueue.instructions import set_instruction
-from labelqueue.invites import (
-    InviteClosed,
-    Joined,
-    Progress,
-    Verified,
-    create_invite,
-    invite_runs_open,
-    invite_state,
-    join_invite,
-    labeller_progress,
-    list_invites,
-    participant_code,
-    read_invite,
-    revoke_invite,
-    verify_code,
-)
 from labelqueue.keys import server_key
 from labelqueue.label_stats import LabelThroughput, label_throughput, labels_given
 from labelqueue.labellers import (
@@ -200,22 +184,8 @@ __all__ = [
     "ServerKey",
     "set_instruction",
     "Invite",
-    "InviteClosed",
     "Invitee",
-    "Joined",
-    "Progress",
-    "create_invite",
-    "invite_state",
-    "join_invite",
-    "labeller_progress",
-    "Verified",
-    "invite_runs_open",
-    "participant_code",
-    "verify_code",
     "server_key",
-    "list_invites",
-    "read_invite",
-    "revoke_invite",
     "SETTLE_SECONDS",
     "UNDO_SECONDS",
     "UndoRefused",

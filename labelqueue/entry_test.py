@@ -11,7 +11,7 @@ right (`labelqueue.practice`) to go on; one who answers them all with fewer righ
   (`labelqueue.undo`); once decided, none can.
 - A participant who failed gets no more pairs (`EntryFailed`, a 403, from every lease), holds
   no lease (theirs are let go when the test is decided), has no completion code (their study
-  ends as "entry_failed": `labelqueue.invites.labeller_progress`) and never spends the budget
+  ends as "entry_failed": `crowdstudy.completion.labeller_progress`) and never spends the budget
   (practice answers never do).
 
 For an invite on one run, 1 <= entry_pass <= the run's practice pairs is checked when the invite

@@ -18,7 +18,7 @@ from labelqueue.models import ServerKey, utcnow
 from labelqueue.transaction import transaction
 
 COMPLETION = "completion-codes"
-"""the key that completion codes are derived with (`labelqueue.invites.participant_code`)"""
+"""the key that completion codes are derived with (`crowdstudy.completion.participant_code`)"""
 
 _cache: dict[tuple[str, str], bytes] = {}
 

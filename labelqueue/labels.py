@@ -356,7 +356,7 @@ def _store(
         # Only real answers spend the budget: a gold answer measures the labeller instead, and
         # a practice answer (to a gold pair kept apart) does neither. The run's row is locked
         # (PostgreSQL) before the label draws its id, so a run's labels commit in the order of
-        # their ids and the answers feed's cursor misses none (`labelqueue.external`).
+        # their ids and the answers feed's cursor misses none (`externalruns.feed`).
         if not asked.gold:
             _COUNT_LABEL.count(connection, {"run": asked.run_id})
         elif not practice and connection.dialect.name == "postgresql":

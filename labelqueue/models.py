@@ -220,7 +220,7 @@ class Invite(Base):
     """answers after which a labeller is shown `completion_code`; none: no target"""
     completion_code: Mapped[str | None] = mapped_column(String(64))
     """the study's code (a platform's): the prefix of each participant's own completion code
-    (`labelqueue.invites.participant_code`); none: their own part alone"""
+    (`crowdstudy.completion.participant_code`); none: their own part alone"""
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     revoked_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     redirect_url: Mapped[str | None] = mapped_column(String(2000))
@@ -233,7 +233,7 @@ class Invite(Base):
     none: they get their code"""
     wait_limit_s: Mapped[int | None] = mapped_column(Integer)
     """after asking this long for a pair and getting none, a participant may finish with their
-    code ("nothing left to label"); none: `labelqueue.invites.WAIT_LIMIT_S`"""
+    code ("nothing left to label"); none: `crowdstudy.invites.WAIT_LIMIT_S`"""
     entry_pass: Mapped[int | None] = mapped_column(Integer)
     """an entry test: the practice answers a participant must get right, of the run's
     `feedback.practice_pairs`, to go on (`labelqueue.entry_test`); none: no test"""
@@ -410,7 +410,7 @@ Index("uq_labels_query_id_labeller_id_standing", Label.query_id, Label.labeller_
 
 
 class RunToken(Base):
-    """A bearer token scoped to one run (`labelqueue.external`): it pushes the run's pairs and
+    """A bearer token scoped to one run (`externalruns`): it pushes the run's pairs and
     reads its answers, and nothing else. The token reads `"run.<id>.<secret>"`; only its sha256
     is stored."""
 
@@ -424,7 +424,7 @@ class RunToken(Base):
 
 
 class ExternalPair(Base):
-    """What an external client pushed with one of its run's queries (`labelqueue.external`):
+    """What an external client pushed with one of its run's queries (`externalruns`):
     never shown to a labeller."""
 
     __tablename__ = "external_pairs"

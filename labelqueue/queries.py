@@ -100,7 +100,9 @@ def _stored(field: QueryField, value: Any) -> Any:
     return _STORE[field.type](value)
 
 
-def _query_fields(spec: Mapping[str, Any]) -> dict[str, Any]:
+def checked_query_fields(spec: Mapping[str, Any]) -> dict[str, Any]:
+    """One query's fields by name, as stored (see `push_queries`); Invalid for an unknown or
+    missing field, or too few answers asked."""
     unknown = set(spec) - set(QUERY_FIELD_NAMES)
     missing = _REQUIRED - set(spec)
     if unknown or missing:
@@ -129,7 +131,7 @@ def push_queries(
     the same round again gets the stored ids back; a different pair at a stored position
     raises Conflict.
     """
-    specs = [_query_fields(spec) for spec in queries]
+    specs = [checked_query_fields(spec) for spec in queries]
     rounds = sorted({spec["round"] for spec in specs})
     provenance = [QUERIES.c[name] for name in PROVENANCE]
     now = utcnow()

@@ -32,7 +32,7 @@ from labelqueue.transaction import changed, detach, get_row, reading, transactio
 from runvocab.clip_format import parse_clip_size
 
 EXTERNAL = "external"
-"""the `algo` of a run no worker trains (`labelqueue.external`): never claimed"""
+"""the `algo` of a run no worker trains (`externalruns`): never claimed"""
 HOST = socket.gethostname()[:200]
 """this process's host, recorded on its worker row (`workers.host`)"""
 DEAD_WORKER_AFTER_S = 300.0

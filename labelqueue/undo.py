@@ -135,7 +135,7 @@ def withdraw_label(
                 session.execute(select(Run.id).where(Run.id == run.id).with_for_update())
         # Drawn while this transaction holds the run's row lock (taken after the queries', as a
         # submit takes them), a run's withdrawals commit in the order of their ids, as its
-        # labels do: the answers feed's cursor misses none (`labelqueue.external`).
+        # labels do: the answers feed's cursor misses none (`externalruns.feed`).
         session.add(Withdrawal(label_id=label.id, run_id=run.id, withdrawn_at=now))
         session.flush()
         label = get_row(session, Label, label.id)

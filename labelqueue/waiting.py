@@ -1,6 +1,6 @@
 """Nobody waits unpaid: a participant who asked for pairs and got none for their invite's
 `wait_limit_s` (default `WAIT_LIMIT_S`) finishes with their completion code, "nothing left to
-label" (`labelqueue.invites.Progress.why` "nothing_left").
+label" (`crowdstudy.completion.Progress.why` "nothing_left").
 
 The lease records it (`asked`): each time a participant asks for a pair and gets none,
 `invitees.asked_at` moves on, and `waiting_since` is set unless they were already waiting and

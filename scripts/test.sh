@@ -10,7 +10,7 @@ bash scripts/setup.sh
 bash scripts/readers_env.sh
 export SEPOA_READERS_PYTHON="$PWD/.venv-readers/bin/python"
 export MUJOCO_GL=${MUJOCO_GL:-egl}
-.venv/bin/python -m ruff check sepoa server trainer labelqueue rundata labelstats runvocab experiments figures migrations tests benchmarks examples
+.venv/bin/python -m ruff check sepoa server trainer labelqueue rundata crowdstudy externalruns runviews labelstats runvocab experiments figures migrations tests benchmarks examples
 .venv/bin/python -m mypy
 set +e
 # One pytest process per core (pytest-xdist): every test keeps its own files, ports, schema

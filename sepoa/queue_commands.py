@@ -389,7 +389,7 @@ WHY = {"target": "complete: reached the target", "runs_over": "complete: the run
 def _verify(session: Session, given: list[str]) -> int:
     """One code (its words joined: a code typed with spaces is one code), or with `-`, one a
     line from stdin; exit 1 when any is nobody's or not earned."""
-    from labelqueue.participants import verify_codes
+    from crowdstudy.participants import verify_codes
 
     codes = sys.stdin.read().splitlines() if given == ["-"] else [" ".join(given)]
     checked = verify_codes(session, codes)
@@ -398,7 +398,7 @@ def _verify(session: Session, given: list[str]) -> int:
             print(f"{check.code!r} is no participant's completion code (check it was copied "
                   "whole)", file=sys.stderr)
             continue
-        from labelqueue import verify_code
+        from crowdstudy.completion import verify_code
 
         verified = verify_code(session, check.code)
         assert verified is not None
@@ -415,7 +415,7 @@ def _participants(session: Session, invite_id: int, *, as_csv: bool) -> int:
     import csv
     from dataclasses import asdict
 
-    from labelqueue.participants import CSV_COLUMNS, participants
+    from crowdstudy.participants import CSV_COLUMNS, participants
 
     people = participants(session, invite_id=invite_id)
     if as_csv:

@@ -14,11 +14,11 @@ from sqlalchemy.exc import DataError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import BaseRoute
 
+from crowdstudy.invites import InviteClosed
 from labelqueue import (
     Conflict,
     EntryFailed,
     Invalid,
-    InviteClosed,
     LeaseError,
     NotFound,
     Paused,

@@ -1,4 +1,4 @@
-"""The bodies of external runs (`labelqueue.external`): a run no worker trains, the clips and
+"""The bodies of external runs (`externalruns`): a run no worker trains, the clips and
 pairs its client pushes, and the answers it reads back."""
 
 from __future__ import annotations

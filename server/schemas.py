@@ -19,8 +19,8 @@ from fastapi import Path
 from fastapi import Query as QueryParam
 from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, computed_field
 
-from labelqueue.activity import WorkerStateName
 from labelqueue.models import SCRIPTED_TEACHER, Role, TeacherKind
+from runviews.activity import WorkerStateName
 from runvocab.clip_format import CLIP_SIZES
 from runvocab.config.schema import BOOL_WORDS, leaf_fields
 from runvocab.instructions import MAX_CHARS as MAX_INSTRUCTION_CHARS
@@ -403,7 +403,7 @@ class InstructionUpdate(Body):
 
 
 class ActivityOut(BaseModel):
-    """What a run is doing or waiting for now (`labelqueue.activity`)."""
+    """What a run is doing or waiting for now (`runviews.activity`)."""
 
     run_id: int
     phase: str

@@ -11,6 +11,7 @@ from pathlib import Path
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from externalruns.pairs import known_answer
 from labelqueue import (
     Invalid,
     Invitee,
@@ -28,8 +29,8 @@ from labelqueue import (
     withdraw_label,
 )
 from labelqueue import reading as reading  # the routes' own reads (stats, curves) use it too
-from labelqueue.external import EXTERNAL, known_answer
 from labelqueue.practice import explain, practice_step
+from labelqueue.runs import EXTERNAL
 from runvocab.answers import Answer
 from server import clips
 from server.label_schemas import LabelOut, LabelSubmit, NextQuery, PracticeFeedback, PracticeOut

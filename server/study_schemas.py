@@ -1,6 +1,6 @@
 """A crowd study's bodies: invite links and joining by one, a participant's progress and why
-they wait, the list to pay from and many codes checked at once (`labelqueue.invites`,
-`labelqueue.participants`)."""
+they wait, the list to pay from and many codes checked at once (`crowdstudy.invites`,
+`crowdstudy.participants`)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, Field
 
-from labelqueue.invites import InviteState
+from crowdstudy.invites import InviteState
 from server.schemas import (
     Body,
     Out,
@@ -19,7 +19,7 @@ from server.schemas import (
 InviteDays = Annotated[float, Field(ge=1 / 1440, le=366)]
 """days, from a minute to a year"""
 StudyEnd = Literal["target", "runs_over", "paused", "nothing_left", "entry_failed"]
-"""why a participant's study is complete (`labelqueue.invites.Progress.why`)"""
+"""why a participant's study is complete (`crowdstudy.completion.Progress.why`)"""
 
 
 REDIRECT_PATTERN = (r"^https?://([A-Za-z0-9._~%!$&'()*+,;=:-]*@)?[A-Za-z0-9._~%!$&'()*+,;=-]+"

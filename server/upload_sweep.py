@@ -35,7 +35,7 @@ from pathlib import Path
 from sqlalchemy.orm import Session, sessionmaker
 from starlette.concurrency import run_in_threadpool
 
-from labelqueue.external import ClipUse, clip_use
+from externalruns.pairs import ClipUse, clip_use
 from server.settings import Settings
 
 log = logging.getLogger(__name__)

@@ -17,12 +17,11 @@ from pathlib import Path
 
 import pytest
 
+from crowdstudy.completion import labeller_progress
+from crowdstudy.invites import create_invite, join_invite
 from labelqueue import (
     claim_run,
-    create_invite,
     create_run,
-    join_invite,
-    labeller_progress,
     lease_next_query,
     make_engine,
     migrate,

@@ -223,7 +223,7 @@ class QueueHooks(RunHooks):
     def pretraining(self, step: int) -> None:
         # Heartbeats keep the run ours while its skill snapshot is made (minutes to hours);
         # pause and stop wait for the online phase, which can checkpoint. Its pace, for the
-        # estimate the run page and the label page show (`labelqueue.activity`).
+        # estimate the run page and the label page show (`runviews.activity`).
         if self.departure.due:
             raise Interrupted(f"{self.departure.name} while pretraining the skill snapshot")
         now = time.monotonic()

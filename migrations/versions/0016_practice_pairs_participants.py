@@ -5,7 +5,7 @@
   alone, never served as a check pair, never charged to the budget. A run that practised on
   shared gold pairs before this revision reserves its practice pairs from the next round.
 - `invitees (invite_id, participant)`: a participant id that joins an invite again gets its
-  labeller back (`labelqueue.invites.join_invite`), found by this index.
+  labeller back (`crowdstudy.invites.join_invite`), found by this index.
 - `invitees.asked_at`, `invitees.waiting_since`: when the participant last asked for a pair,
   and since when they have asked without getting one; `invites.wait_limit_s`: after waiting so
   long with nothing to label, a participant may finish with their code.

@@ -2,7 +2,7 @@
 
 - `queries.*_return` nullable: an external client's pair may come without true returns (they
   are hidden metadata it may give for the calibration report); the trainer always gives them.
-- `run_tokens`: bearer tokens scoped to one run (`labelqueue.external`), which push its pairs
+- `run_tokens`: bearer tokens scoped to one run (`externalruns`), which push its pairs
   and read its answers and nothing else; only their sha256 is stored.
 - `external_pairs`: a pushed pair's idempotency key (unique per run), the digest of what was
   pushed under it, the client's hidden metadata and, for a gold pair, its known answer.

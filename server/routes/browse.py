@@ -1,5 +1,5 @@
 """Operator endpoints over stored labels: a run's flagged pairs (counted on its run page) and
-the label browser's list and single label (`labelqueue.label_browser`). True returns are in
+the label browser's list and single label (`runviews.label_browser`). True returns are in
 these answers, so every one is for operators only."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from fastapi import APIRouter, Path, Query
 
 from labelqueue import read_run
 from labelqueue.flags import FlagSummary, flag_summary
-from labelqueue.label_browser import (
+from runviews.label_browser import (
     MAX_PAGE,
     LabelDetail,
     LabelPage,

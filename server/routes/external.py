@@ -1,4 +1,4 @@
-"""External runs over REST (`labelqueue.external`): an operator creates a run no worker trains
+"""External runs over REST (`externalruns`): an operator creates a run no worker trains
 and issues its token; the client holding the token uploads clips (MP4 or WebM as they are, or
 frame arrays the server encodes), pushes pairs of them and long-polls the answers.
 
@@ -25,21 +25,18 @@ from fastapi import Path as PathParam
 from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
-from labelqueue import Invalid, Run, RunStatus, read_run, reading
-from labelqueue.external import (
-    EXTERNAL,
-    Cursor,
-    PairSpec,
-    answers_after,
-    clip_key,
+from externalruns.feed import Cursor, answers_after
+from externalruns.pairs import PairSpec, clip_key, push_pairs
+from externalruns.runs import (
     create_external_run,
     is_external,
     issue_run_token,
-    push_pairs,
     revoke_run_token,
     run_of_token,
     run_tokens,
 )
+from labelqueue import Invalid, Run, RunStatus, read_run, reading
+from labelqueue.runs import EXTERNAL
 from rundata.clip_codec import encode_mp4, probe_clip
 from runvocab.answers import Answer
 from runvocab.clip_format import CLIP_FPS, ClipInfo

@@ -18,24 +18,22 @@ from fastapi import APIRouter, Path, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse
 
-from labelqueue import (
-    Invite,
-    NotFound,
+from crowdstudy.completion import Progress, labeller_progress, verify_code
+from crowdstudy.invites import (
+    CLOSED_TEXT,
     create_invite,
     invite_runs_open,
     invite_state,
     join_invite,
-    labeller_progress,
     list_invites,
     read_invite,
     revoke_invite,
-    verify_code,
 )
-from labelqueue.activity import labeller_waiting
+from labelqueue import Invite, NotFound
 from labelqueue.entry_test import EntryPassInvalid
-from labelqueue.invites import CLOSED_TEXT, Progress
 from labelqueue.models import utcnow
 from labelqueue.waiting import finish_if_waited
+from runviews.activity import labeller_waiting
 from runvocab.instructions import run_instruction
 from server import services
 from server.deps import LabellerDep, OperatorDep, SessionDep

@@ -1,5 +1,5 @@
 """A study's list to pay from (operators): `GET /api/invites/{id}/participants` as JSON or CSV
-(`labelqueue.participants`), its page `/invites/{id}/participants`, and many completion codes
+(`crowdstudy.participants`), its page `/invites/{id}/participants`, and many completion codes
 checked at once (`POST /api/invites/verify-codes`)."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import HTMLResponse, Response
 
-from labelqueue.participants import CSV_COLUMNS, participants, verify_codes
+from crowdstudy.participants import CSV_COLUMNS, participants, verify_codes
 from server.deps import OperatorDep, SessionDep
 from server.routes.invites import InviteId
 from server.routes.pages import page

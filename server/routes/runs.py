@@ -10,6 +10,7 @@ from fastapi import APIRouter, HTTPException, Query, Request, Response
 from fastapi.exceptions import RequestValidationError
 from sqlalchemy import select
 
+from externalruns.runs import is_external
 from labelqueue import (
     MetricStream,
     Run,
@@ -19,9 +20,8 @@ from labelqueue import (
     set_run_status,
     set_teacher,
 )
-from labelqueue.activity import list_workers, runs_activity
-from labelqueue.external import is_external
 from labelqueue.run_config import as_json, fields, overridden, run_config
+from runviews.activity import list_workers, runs_activity
 from runvocab.config import typed_overrides
 from runvocab.names import ConfigError
 from server import curves, services

@@ -11,6 +11,8 @@ from queue_helpers import query_spec
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from crowdstudy.completion import labeller_progress
+from crowdstudy.invites import create_invite, join_invite
 from labelqueue import (
     EntryFailed,
     Invalid,
@@ -19,10 +21,7 @@ from labelqueue import (
     Run,
     UndoRefused,
     claim_run,
-    create_invite,
     create_run,
-    join_invite,
-    labeller_progress,
     lease_next_query,
     push_queries,
     submit_label,

@@ -1,4 +1,4 @@
-"""The answers feed of an external run (`labelqueue.external.answers_after`), on SQLite and on
+"""The answers feed of an external run (`externalruns.feed.answers_after`), on SQLite and on
 PostgreSQL: a cursor resumes exactly, an answer taken back comes as a withdrawal, and answers
 committed by many labellers at once are each given once, none lost, with no time held back."""
 
@@ -11,15 +11,11 @@ from concurrent.futures import ThreadPoolExecutor
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from externalruns.feed import Cursor, answers_after
+from externalruns.pairs import PairSpec, push_pairs
+from externalruns.runs import create_external_run
 from labelqueue import Label, create_labeller, lease_next_query, submit_label, withdraw_label
 from labelqueue.errors import Conflict
-from labelqueue.external import (
-    Cursor,
-    PairSpec,
-    answers_after,
-    create_external_run,
-    push_pairs,
-)
 from runvocab.clip_format import ClipInfo
 
 CLIPS = {name: ClipInfo("mp4", "h264", 32, 32, 6, 0.2) for name in ("a", "b")}

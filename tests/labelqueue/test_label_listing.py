@@ -18,8 +18,8 @@ from labelqueue import (
     submit_label,
     withdraw_label,
 )
-from labelqueue.label_browser import browse_labels, label_detail
 from labelqueue.models import Query
+from runviews.label_browser import browse_labels, label_detail
 
 
 def test_filters_paging_and_detail(session: Session) -> None:

@@ -12,8 +12,16 @@ from queue_helpers import query_spec, running_run
 from sqlalchemy import update
 from sqlalchemy.orm import Session
 
-from labelqueue import (
+from crowdstudy.completion import completion_redirect, labeller_progress, verify_code
+from crowdstudy.invites import (
     InviteClosed,
+    create_invite,
+    invite_runs_open,
+    invite_state,
+    join_invite,
+    list_invites,
+)
+from labelqueue import (
     LabellerPause,
     Query,
     Run,
@@ -21,25 +29,17 @@ from labelqueue import (
     TeacherKind,
     Worker,
     claim_run,
-    create_invite,
     create_labeller,
     create_run,
     heartbeat,
-    invite_runs_open,
-    invite_state,
-    join_invite,
-    labeller_progress,
     lease_next_query,
-    list_invites,
     push_queries,
     read_run,
     set_run_status,
     submit_label,
-    verify_code,
 )
-from labelqueue.activity import labeller_waiting, list_workers, runs_activity
-from labelqueue.invites import completion_redirect
 from labelqueue.models import utcnow
+from runviews.activity import labeller_waiting, list_workers, runs_activity
 
 
 def week() -> object:

@@ -12,7 +12,7 @@ from server_helpers import OPERATOR, bearer, new_labeller
 from sqlalchemy.orm import Session
 from test_external_api import external_run, frames, pair, upload
 
-from labelqueue.external import PairSpec, push_pairs
+from externalruns.pairs import PairSpec, push_pairs
 from server.app import create_app
 from server.routes.external import stored_clip
 from server.settings import Settings

@@ -9,7 +9,7 @@ import socket
 from worker_helpers import RUN, database, run_row, worker_config
 
 from labelqueue import Worker, create_run
-from labelqueue.activity import runs_activity
+from runviews.activity import runs_activity
 from trainer.worker import run_worker
 
 

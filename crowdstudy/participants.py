@@ -5,7 +5,7 @@ Each participant's row counts their standing answers by hand on the invite's run
 for an all-runs invite): decisive (left or right), equal, can't tell, skips and, of the skips,
 flags; practice answers apart (they earn nothing); their gold score (correct of gold answers,
 practice left out); whether check pairs paused them; their study's state and their code, valid
-once the study is complete for them (`labelqueue.invites.labeller_progress`), never for one who
+once the study is complete for them (`crowdstudy.completion.labeller_progress`), never for one who
 failed the invite's entry test (`labelqueue.entry_test`: why "entry_failed", not to be paid).
 """
 
@@ -20,9 +20,9 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from crowdstudy.completion import labeller_progress, participant_code, verify_code
 from labelqueue.errors import NotFound
 from labelqueue.gold import gold_answer
-from labelqueue.invites import labeller_progress, participant_code, verify_code
 from labelqueue.keys import server_key
 from labelqueue.models import (
     ExternalPair,

@@ -7,49 +7,37 @@ people opening the last use at once: one joins, the other is told the link is us
 
 An invite is a study: its state follows its runs (`closed` once none of them can give pairs
 any more), it may carry a consent text (nobody joins without agreeing), a target number of
-answers, a completion redirect URL and what a participant paused by check pairs is told. Each
-participant's study ends with their own completion code (`participant_code`: derived from the
-invite and the labeller with a key the server keeps, so it cannot be guessed or shared), shown
-once the target is reached, once the invite's runs are over, or on a pause; an operator checks
-a code with `verify_code`. Only decisive answers (`runvocab.answers.DECISIVE`) on the invite's
-own runs count towards the target: skips, can't-tells and answers on other runs do not.
+answers, a completion redirect URL and what a participant paused by check pairs is told. How
+far each participant is, and their completion code, are `crowdstudy.completion`'s.
 """
 
 from __future__ import annotations
 
-import hashlib
-import hmac
 import re
 import secrets
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from datetime import datetime
 from typing import Literal
-from urllib.parse import parse_qsl, quote, urlencode, urlsplit, urlunsplit
+from urllib.parse import urlsplit
 
-from sqlalchemy import ColumnElement, exists, func, or_, select, update
+from sqlalchemy import ColumnElement, exists, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from labelqueue.entry_test import check_entry_pass
 from labelqueue.errors import Conflict, Invalid, NotFound, QueueError, Revoked
-from labelqueue.keys import server_key
 from labelqueue.labellers import hash_token
 from labelqueue.models import (
     Invite,
     Invitee,
-    Label,
     Labeller,
-    LabellerPause,
-    LabelSource,
     Role,
     Run,
     RunStatus,
     TeacherKind,
     utcnow,
 )
-from labelqueue.runs import budget_spent
 from labelqueue.transaction import changed, detach, get_row, reading, transaction
-from runvocab.answers import DECISIVE
 
 PARTICIPANT = re.compile(r"[A-Za-z0-9_.@+-]{1,64}")
 """what a `participant` may be: a crowdsourcing platform's worker id, or a plain name"""
@@ -60,10 +48,6 @@ RUN_OPEN = (RunStatus.QUEUED, RunStatus.RUNNING, RunStatus.PAUSED)
 runs never will (a requeued run opens its invites again). An all-runs invite closes once every
 run taught by people is over."""
 REDIRECT_MAX = 2000
-CODE_ALPHABET = "0123456789ABCDEFGHJKMNPQRSTVWXYZ"
-"""Crockford's base 32: no I, L, O or U, so a code read aloud or retyped survives"""
-CODE_GROUPS = 3
-"""a participant's own part: three groups of four characters (60 bits of an HMAC)"""
 
 
 class InviteClosed(QueueError):
@@ -103,7 +87,7 @@ CLOSED_TEXT = {
 }
 
 
-def _open_runs_of(run_id: int | None) -> ColumnElement[bool]:
+def open_runs_of(run_id: int | None) -> ColumnElement[bool]:
     """A condition: the run `run_id` is open; for an all-runs invite, some run taught by people
     is, or none was ever made (an operator may make the link before the runs)."""
     if run_id is not None:
@@ -121,7 +105,7 @@ def invite_runs_open(session: Session, invites: list[Invite]) -> dict[int, bool]
             select(Run.id).where(Run.id.in_(run_ids), Run.status.in_(RUN_OPEN))
         )) if run_ids else set()
         any_open = (any(invite.run_id is None for invite in invites)
-                    and bool(session.scalar(select(_open_runs_of(None)))))
+                    and bool(session.scalar(select(open_runs_of(None)))))
     return {invite.id: (any_open if invite.run_id is None else invite.run_id in open_ids)
             for invite in invites}
 
@@ -270,13 +254,13 @@ def join_invite(session: Session, *, code: str, participant: str | None = None,
                 Invite.revoked_at.is_(None),
                 Invite.expires_at > now,
                 or_(Invite.max_uses.is_(None), Invite.uses < Invite.max_uses),
-                _open_runs_of(invite.run_id),
+                open_runs_of(invite.run_id),
             )
             .values(uses=Invite.uses + 1),
         )
         session.refresh(invite)
         if not took:
-            runs_open = bool(session.scalar(select(_open_runs_of(invite.run_id))))
+            runs_open = bool(session.scalar(select(open_runs_of(invite.run_id))))
             state = invite_state(invite, now, runs_open)
             reason = "used_up" if state == "open" else state  # the last use went meanwhile
             raise InviteClosed(CLOSED_TEXT[reason], reason)
@@ -306,7 +290,7 @@ def _rejoin(session: Session, invite: Invite, participant: str, now: datetime) -
     ).one_or_none()
     if labeller is None:
         return None
-    runs_open = bool(session.scalar(select(_open_runs_of(invite.run_id))))
+    runs_open = bool(session.scalar(select(open_runs_of(invite.run_id))))
     state = invite_state(invite, now, runs_open)
     if state not in ("open", "used_up"):
         raise InviteClosed(CLOSED_TEXT[state], state)
@@ -325,193 +309,3 @@ def _free_name(session: Session, base: str) -> str:
     if base not in taken:
         return base
     return next(f"{base}-{n}" for n in range(2, len(taken) + 3) if f"{base}-{n}" not in taken)
-
-
-# ---- completion codes ------------------------------------------------------------------------
-
-def _own_part(key: bytes, invite_id: int, labeller_id: int) -> str:
-    digest = hmac.new(key, f"completion:{invite_id}:{labeller_id}".encode(),
-                      hashlib.sha256).digest()
-    bits = int.from_bytes(digest[:8], "big") >> 4  # 60 bits
-    chars = "".join(CODE_ALPHABET[(bits >> (5 * i)) & 31] for i in range(4 * CODE_GROUPS))
-    return "-".join(chars[i:i + 4] for i in range(0, len(chars), 4))
-
-
-def participant_code(key: bytes, invite: Invite, labeller_id: int) -> str:
-    """The participant's own completion code: the invite's study code (if it has one), then
-    twelve characters of an HMAC of the invite and the labeller under the server's key
-    (`labelqueue.keys`). Nobody without the key can make another participant's code, and two
-    participants never share one."""
-    own = _own_part(key, invite.id, labeller_id)
-    return f"{invite.completion_code}-{own}" if invite.completion_code else own
-
-
-def _normalised(code: str) -> str:
-    code = re.sub(r"\s+", "", code).upper()
-    return code.translate(str.maketrans("OIL", "011"))
-
-
-@dataclass(frozen=True)
-class Verified:
-    """A completion code an operator checked: whose it is and how far they got."""
-
-    invite_id: int
-    labeller_id: int
-    labeller: str
-    participant: str | None
-    run_id: int | None
-    counted: int
-    """decisive answers on the invite's runs (what the target counts)"""
-    target_answers: int | None
-    complete: bool
-    why: str | None
-    """"target", "runs_over", "paused", "nothing_left" or "entry_failed" (see `Progress.why`)"""
-
-    @property
-    def earned(self) -> bool:
-        """the code is earned: the study is complete, and not by failing the entry test"""
-        return self.complete and self.why != "entry_failed"
-
-
-def verify_code(session: Session, code: str) -> Verified | None:
-    """Whose completion code this is, or None when it is no participant's. The study-code prefix
-    may be left out; case, spaces, and O/0, I/L/1 confusions do not matter."""
-    given = _normalised(code)
-    groups = given.split("-")
-    if len(groups) < CODE_GROUPS:
-        return None
-    own = "-".join(groups[-CODE_GROUPS:])
-    prefix = "-".join(groups[:-CODE_GROUPS])
-    key = server_key(session)
-    with reading(session):
-        rows = session.execute(
-            select(Invitee.labeller_id, Invite)
-            .join(Invite, Invite.id == Invitee.invite_id)
-            .order_by(Invitee.labeller_id)
-        ).all()
-        session.expunge_all()
-    for labeller_id, invite in rows:
-        if not hmac.compare_digest(_own_part(key, invite.id, labeller_id), own):
-            continue
-        if prefix and _normalised(invite.completion_code or "") != prefix:
-            return None
-        progress = labeller_progress(session, labeller_id=labeller_id)
-        with reading(session):
-            name = session.scalar(select(Labeller.name).where(Labeller.id == labeller_id))
-        return Verified(invite.id, labeller_id, name or "", progress.participant, invite.run_id,
-                        progress.counted, invite.target_answers, progress.complete, progress.why)
-    return None
-
-
-def completion_redirect(url: str, *, code: str, participant: str | None) -> str:
-    """The invite's redirect URL for one participant: `{code}` and `{participant}` in it filled
-    in (URL-encoded); a URL without either gets `participant` (when known) added to its query,
-    so a platform learns whose session ended."""
-    if "{code}" in url or "{participant}" in url:
-        return url.replace("{code}", quote(code, safe="")).replace(
-            "{participant}", quote(participant or "", safe=""))
-    if participant is None:
-        return url
-    parts = urlsplit(url)
-    query = parse_qsl(parts.query, keep_blank_values=True) + [("participant", participant)]
-    return urlunsplit(parts._replace(query=urlencode(query)))
-
-
-# ---- a participant's progress ------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class Progress:
-    """A labeller's answers so far and, for one who joined by an invite, where their study
-    stands."""
-
-    labels: int
-    """answers given by hand on any run (skips included, answers taken back not)"""
-    target_answers: int | None
-    completion_code: str | None
-    """the participant's own code, once their study is complete (none before, and none for a
-    paused participant whose invite has a `pause_message`)"""
-    run_id: int | None
-    """the run its invite was for; none: all runs, or no invite"""
-    counted: int = 0
-    """what the target counts: decisive answers on the invite's runs (`labels` without one)"""
-    invited: bool = False
-    complete: bool = False
-    why: str | None = None
-    """why the study is complete: "target" (reached), "runs_over" (its runs ended, or the run's
-    budget is spent), "paused" (check pairs paused the participant) or "nothing_left" (they
-    asked for pairs and got none for the invite's `wait_limit_s`: `labelqueue.waiting`) or
-    "entry_failed" (they answered every practice pair with fewer right than the invite's
-    `entry_pass`: `labelqueue.entry_test`; let go without a code)"""
-    participant: str | None = None
-    redirect_url: str | None = None
-    """where to send the participant now, filled in for them; none until complete"""
-    pause_message: str | None = None
-    """the operator's words for a paused participant, or one who failed the entry test (given
-    instead of the code)"""
-    entry_correct: int | None = None
-    """practice answers they got right, once the invite's entry test is decided"""
-    entry_pass: int | None = None
-    """the invite's entry test: practice answers to get right; none: no test"""
-
-    @property
-    def earned(self) -> bool:
-        """the code is earned: the study is complete, and not by failing the entry test"""
-        return self.complete and self.why != "entry_failed"
-
-
-def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
-    """How far the labeller is. For one who joined by an invite: decisive answers on the
-    invite's runs against its target (practice answers never count), and whether the study is
-    complete for them (target reached, runs over or budget spent, paused by check pairs, or
-    nothing left to label after waiting), with their own code; or let go without one, having
-    failed the invite's entry test (which comes before every other end)."""
-    with reading(session):
-        standing = (Label.labeller_id == labeller_id, Label.source == LabelSource.HUMAN,
-                    Label.withdrawn_at.is_(None))
-        labels = session.scalar(select(func.count(Label.id)).where(*standing)) or 0
-        row = session.execute(
-            select(Invite, Invitee.participant, Invitee.nothing_left_at, Invitee.entry_passed,
-                   Invitee.entry_correct)
-            .join(Invitee, Invitee.invite_id == Invite.id)
-            .where(Invitee.labeller_id == labeller_id)
-        ).one_or_none()
-        if row is None:
-            return Progress(labels, None, None, None, counted=labels)
-        invite, participant, nothing_left, entry_passed, entry_correct = row
-        on_runs = [Label.run_id == invite.run_id] if invite.run_id is not None else []
-        # Practice answers never count toward a target (labelqueue.practice).
-        counted = session.scalar(select(func.count(Label.id)).where(
-            *standing, Label.answer.in_(DECISIVE), Label.practice.is_(False), *on_runs)) or 0
-        if invite.run_id is not None:
-            run = session.get(Run, invite.run_id)
-            assert run is not None
-            over = run.status not in RUN_OPEN or budget_spent(run)
-            paused = session.scalar(select(exists().where(
-                LabellerPause.run_id == run.id, LabellerPause.labeller_id == labeller_id)))
-        else:
-            over = not session.scalar(select(_open_runs_of(None)))
-            # Paused on every open run: nothing more for them anywhere.
-            unpaused = exists().where(
-                Run.teacher == TeacherKind.HUMAN, Run.status.in_(RUN_OPEN),
-                ~exists().where(LabellerPause.run_id == Run.id,
-                                LabellerPause.labeller_id == labeller_id))
-            paused = not over and not session.scalar(select(unpaused))
-        session.expunge_all()
-    reached = invite.target_answers is not None and counted >= invite.target_answers
-    failed = entry_passed is not None and not entry_passed
-    why = ("entry_failed" if failed else "target" if reached else "runs_over" if over
-           else "paused" if paused else "nothing_left" if nothing_left is not None else None)
-    progress = Progress(labels, invite.target_answers, None, invite.run_id, counted=counted,
-                        invited=True, complete=why is not None, why=why,
-                        participant=participant, entry_correct=entry_correct,
-                        entry_pass=invite.entry_pass)
-    if why is None:
-        return progress
-    if why == "entry_failed":  # let go: no code, no redirect; the study's own words if any
-        return replace(progress, pause_message=invite.pause_message)
-    if why == "paused" and invite.pause_message:
-        return replace(progress, pause_message=invite.pause_message)
-    code = participant_code(server_key(session), invite, labeller_id)
-    redirect = (completion_redirect(invite.redirect_url, code=code, participant=participant)
-                if invite.redirect_url else None)
-    return replace(progress, completion_code=code, redirect_url=redirect)

@@ -1,0 +1,161 @@
+"""The answers feed: an external run's answers and withdrawals after a cursor, each with its
+pair's standing answers and their tally (`answers_after`)."""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from labelqueue.errors import Invalid
+from labelqueue.models import (
+    QUERIES,
+    ExternalPair,
+    Label,
+    Labeller,
+    Query,
+    QueryStatus,
+    Run,
+    Withdrawal,
+)
+from labelqueue.transaction import get_row, reading
+from runvocab.answers import DECISIVE, Answer, aggregate
+
+FEED_LIMIT = 500
+"""the most events one read of the answers feed returns"""
+
+@dataclass(frozen=True)
+class Cursor:
+    """Where a reader of the answers feed is: after this label id and this withdrawal id."""
+
+    label: int = 0
+    withdrawal: int = 0
+
+    def __str__(self) -> str:
+        return f"{self.label}.{self.withdrawal}"
+
+    @classmethod
+    def parse(cls, text: str) -> Cursor:
+        """Invalid for text that is no cursor the feed gave."""
+        label, dot, withdrawal = text.partition(".")
+        if not (label.isdigit() and withdrawal.isdigit() and dot) or len(text) > 40:
+            raise Invalid(f"cursor {text!r} is not one the answers feed gave (like '0.0')")
+        return cls(int(label), int(withdrawal))
+
+
+def tally(answers: Sequence[Answer]) -> tuple[Answer, bool]:
+    """The aggregate of a pair's answers (`runvocab.answers.aggregate`: the majority, can't-tell
+    when most cannot tell), and whether two decisive answers tie for the most (then can't-tell
+    too)."""
+    counts = Counter(a for a in answers if a in DECISIVE).most_common()
+    tie = len(counts) > 1 and counts[0][1] == counts[1][1]
+    return aggregate(answers), tie
+
+
+@dataclass(frozen=True)
+class Feed:
+    events: list[dict[str, Any]]
+    cursor: Cursor
+    open_pairs: int
+    """ordinary pairs still short of their k answers"""
+    status: str
+
+
+def answers_after(session: Session, *, run_id: int, cursor: Cursor,
+                  limit: int = FEED_LIMIT) -> Feed:
+    """The external run's answers and withdrawals after `cursor`, oldest first, each with its
+    pair's key and hidden metadata, the pair's standing answers by labeller, their aggregate
+    and whether it ties. A label taken back before it was read is never given; one read and
+    then taken back comes again as a withdrawal. Practice answers are not given.
+
+    The cursor is exact, with nothing held back: a run's labels (and its withdrawals) commit
+    in the order of their ids, since each draws its id holding the run's row lock
+    (`labelqueue.labels`, `labelqueue.undo`; SQLite's one writer anyway), so a read that sees
+    one sees every one before it. Invalid for a cursor ahead of the run's answers; NotFound
+    for an unknown run."""
+    with reading(session):
+        status = get_row(session, Run, run_id).status.value
+        open_pairs = session.scalar(select(func.count()).select_from(QUERIES).where(
+            QUERIES.c.run_id == run_id, QUERIES.c.gold.is_(False),
+            QUERIES.c.status.in_((QueryStatus.PENDING, QueryStatus.LEASED)))) or 0
+        last_label = session.scalar(select(func.coalesce(func.max(Label.id), 0))
+                                    .where(Label.run_id == run_id)) or 0
+        last_withdrawal = session.scalar(select(func.coalesce(func.max(Withdrawal.id), 0))
+                                         .where(Withdrawal.run_id == run_id)) or 0
+        if cursor.label > last_label or cursor.withdrawal > last_withdrawal:
+            raise Invalid(f"cursor {cursor} is ahead of run {run_id}'s answers (its newest "
+                             f"is {last_label}.{last_withdrawal})")
+        labels = session.execute(
+            select(Label, Labeller.name).join(Labeller, Labeller.id == Label.labeller_id)
+            .where(Label.run_id == run_id, Label.id > cursor.label,
+                   Label.practice.is_(False))
+            .order_by(Label.id).limit(limit)).all()
+        label_to = labels[-1][0].id if len(labels) == limit else max(
+            [cursor.label, *(label.id for label, _ in labels)])
+        withdrawals = session.execute(
+            select(Withdrawal, Label, Labeller.name)
+            .join(Label, Label.id == Withdrawal.label_id)
+            .join(Labeller, Labeller.id == Label.labeller_id)
+            .where(Withdrawal.run_id == run_id, Withdrawal.id > cursor.withdrawal,
+                   Label.practice.is_(False))
+            .order_by(Withdrawal.id).limit(limit)).all()
+        withdrawal_to = max([cursor.withdrawal, *(w.id for w, _, _ in withdrawals)])
+        touched = {label.query_id for label, _ in labels} | {
+            label.query_id for _, label, _ in withdrawals}
+        state = _pair_states(session, touched)
+    events: list[dict[str, Any]] = []
+    given = set()
+    for label, name in labels:
+        if label.withdrawn_at is not None:
+            continue  # taken back before anyone read it
+        given.add(label.id)
+        events.append({"kind": "answer", "label_id": label.id, "labeller_id": label.labeller_id,
+                       "labeller": name, "answer": label.answer.value,
+                       "at": label.answered_at.isoformat(),
+                       "flag": None if label.flag is None else label.flag.value,
+                       **state[label.query_id]})
+    for withdrawal, label, name in withdrawals:
+        if label.id > cursor.label and label.id not in given:
+            continue  # its answer was never given (read as taken back): nor is its withdrawal
+        events.append({"kind": "withdrawal", "label_id": label.id,
+                       "labeller_id": label.labeller_id, "labeller": name,
+                       "answer": label.answer.value, "at": withdrawal.withdrawn_at.isoformat(),
+                       "flag": None, **state[label.query_id]})
+    events.sort(key=lambda event: event["at"])
+    return Feed(events=events, cursor=Cursor(label_to, withdrawal_to), open_pairs=open_pairs,
+                status=status)
+
+
+def _pair_states(session: Session, query_ids: set[int]) -> dict[int, dict[str, Any]]:
+    """Per query: its key, meta, gold, k, and its standing answers with their tally."""
+    if not query_ids:
+        return {}
+    pairs = session.execute(
+        select(Query.id, Query.needs_labels, Query.gold, ExternalPair.key, ExternalPair.meta)
+        .outerjoin(ExternalPair, ExternalPair.query_id == Query.id)
+        .where(Query.id.in_(query_ids))).all()
+    standing = session.execute(
+        select(Label.query_id, Label.labeller_id, Labeller.name, Label.answer)
+        .join(Labeller, Labeller.id == Label.labeller_id)
+        .where(Label.query_id.in_(query_ids), Label.withdrawn_at.is_(None),
+               Label.practice.is_(False))
+        .order_by(Label.id)).all()
+    answers: dict[int, list[Any]] = {}
+    for row in standing:
+        answers.setdefault(row.query_id, []).append(row)
+    out = {}
+    for pair in pairs:
+        given = answers.get(pair.id, [])
+        agreed, tie = tally([Answer(row.answer) for row in given])
+        out[pair.id] = {
+            "query_id": pair.id, "key": pair.key, "meta": pair.meta, "gold": pair.gold,
+            "k": None if pair.gold else pair.needs_labels,
+            "answers": [{"labeller_id": row.labeller_id, "labeller": row.name,
+                         "answer": Answer(row.answer).value} for row in given],
+            "aggregate": agreed.value if given else None, "tie": tie,
+            "complete": not pair.gold and len(given) >= pair.needs_labels}
+    return out
