@@ -65,10 +65,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", help="a new folder for the fingerprints")
     parser.add_argument("--steps", type=int, default=1400, help="steps per run (tiny preset)")
+    parser.add_argument("--algos", nargs="+", choices=ALGOS, default=list(ALGOS),
+                        help="the algorithms to run (default: all six)")
     args = parser.parse_args()
     if os.path.exists(args.out):
         parser.error(f"{args.out} exists; give a new folder")
-    for algo in ALGOS:
+    for algo in args.algos:
         fingerprint(args.out, algo, args.steps)
         print(f"{algo}: done", flush=True)
 
