@@ -92,19 +92,27 @@ def final_quarter(evals: pd.DataFrame, steps: int) -> float:
     return float(last["return"].mean()) if len(last) else math.nan
 
 
-def _reward_updates(folder: Any) -> pd.Series:
-    """A run's cumulative SAC updates on r_hat by step (episodes.csv; a resumed run's rewritten
-    rows count once, the last)."""
+def learned_reward_column(algo: str) -> str:
+    """episodes.csv's count of a run's SAC updates on the reward its agent learns from: r_hat
+    (`reward_updates`; a run on the true reward, `reward.true_reward`, counts its updates there
+    too), or for the SAC oracle, which learns from the true reward alone, all its `updates`."""
+    return "updates" if algo == "sac" else "reward_updates"
+
+
+def _learned_reward_updates(folder: Any, algo: str) -> pd.Series:
+    """A run's cumulative SAC updates on its learned reward by step (episodes.csv; a resumed
+    run's rewritten rows count once, the last)."""
     frame = read_metrics(folder / "episodes.csv")
-    if frame is None or "reward_updates" not in frame:
+    column = learned_reward_column(algo)
+    if frame is None or column not in frame:
         return pd.Series(dtype=float)
-    return frame.set_index("step")["reward_updates"].astype(float)
+    return frame.set_index("step")[column].astype(float)
 
 
 def score_at_updates(evals: pd.DataFrame, updates: pd.Series, budget: float) -> float:
-    """A run's mean evaluation return over the evaluations taken while its updates on r_hat
-    (the last episode row at or before the evaluation's step) lay in the last quarter of
-    `budget`; NaN if it took none there."""
+    """A run's mean evaluation return over the evaluations taken while its updates on its
+    learned reward (the last episode row at or before the evaluation's step) lay in the last
+    quarter of `budget`; NaN if it took none there."""
     if updates.empty:
         return math.nan
     at = updates.reindex(evals["step"].to_numpy(), method="ffill").to_numpy()
@@ -170,6 +178,7 @@ def per_run(results: Results) -> pd.DataFrame:
                       if run.state == "done" and evals is not None else math.nan),
             "updates": episode.get("updates", math.nan),
             "reward_updates": episode.get("reward_updates", math.nan),
+            "learned_reward_updates": episode.get(learned_reward_column(run.algo), math.nan),
             "pretraining_steps": pretraining_steps(config) if config else math.nan,
             "trained_on": _trained_on(folder),
         }
@@ -199,13 +208,13 @@ def per_run(results: Results) -> pd.DataFrame:
 
 
 def equal_updates_budget(results: Results, runs: pd.DataFrame) -> float | None:
-    """The fewest updates on r_hat a finished run of the analysis variants made, where their
-    finished runs' counts differ; None where they are all equal (the primary metric already
-    compares them at equal updates) or unknown."""
+    """The fewest updates on its learned reward (`learned_reward_column`) a finished run of the
+    analysis variants made, where their finished runs' counts differ; None where they are all
+    equal (the primary metric already compares them at equal updates) or unknown."""
     analysis = results.spec.analysis
     assert analysis is not None
     compared = runs[runs["variant"].isin([analysis.reference, *analysis.compare_to])
-                    & (runs["state"] == "done")]["reward_updates"].dropna()
+                    & (runs["state"] == "done")]["learned_reward_updates"].dropna()
     if compared.empty or compared.min() == compared.max() or compared.min() <= 0:
         return None
     return float(compared.min())
@@ -214,7 +223,7 @@ def equal_updates_budget(results: Results, runs: pd.DataFrame) -> float | None:
 def with_equal_updates_scores(results: Results, runs: pd.DataFrame, budget: float
                               ) -> pd.DataFrame:
     """`runs` with `score_equal_updates`: each finished run's `score_at_updates` at
-    `budget` (NaN for runs that never made that many updates on r_hat)."""
+    `budget` (NaN for runs that never made that many updates on their learned reward)."""
     evals_by_run = dict(iter(results.evals.groupby(KEYS, sort=False)))
     folders = {tuple(getattr(run, k) for k in KEYS): results.folder / run.dir
                for run in results.runs.itertuples()}
@@ -222,9 +231,10 @@ def with_equal_updates_scores(results: Results, runs: pd.DataFrame, budget: floa
     for run in runs.itertuples():
         key = tuple(getattr(run, k) for k in KEYS)
         evals = evals_by_run.get(key)
-        done = run.state == "done" and evals is not None and run.reward_updates >= budget
-        scores.append(score_at_updates(evals, _reward_updates(folders[key]), budget)
-                      if done else math.nan)
+        done = (run.state == "done" and evals is not None
+                and run.learned_reward_updates >= budget)
+        scores.append(score_at_updates(evals, _learned_reward_updates(folders[key], run.algo),
+                                       budget) if done else math.nan)
     return runs.assign(score_equal_updates=scores)
 
 

@@ -506,9 +506,11 @@ def test_arms_with_unequal_updates_on_r_hat_are_also_scored_at_equal_updates(
             _write_csv(run / "episodes.csv", "step,episode,return,updates,reward_updates",
                        ["200,1,0,200,200", "400,2,0,400,400", "600,3,0,600,999",
                         "600,3,0,600,600", "800,4,0,800,800"])
-    # The SAC oracle learns on the true reward: no updates on r_hat.
+    # The SAC oracle learns on the true reward: none of its updates is on r_hat, every one is
+    # on the reward it learns from.
     _write_csv(copy / "dmc-cheetah_run" / "O" / "eps0.3" / "s0" / "episodes.csv",
-               "step,episode,return,updates,reward_updates", ["800,4,0,800,0"])
+               "step,episode,return,updates,reward_updates",
+               [f"{s},{s // 200},0,{s},0" for s in (200, 400, 600, 800)])
     results = load_results(copy)
     runs = preregistered.per_run(results)
     assert preregistered.equal_updates_budget(results, runs) == 600
@@ -518,23 +520,26 @@ def test_arms_with_unequal_updates_on_r_hat_are_also_scored_at_equal_updates(
         a, b = LAST_TWO[("R", seed)]
         assert runs.loc[("R", seed), "score_equal_updates"] == b  # step 800 only
         assert runs.loc[("X", seed), "score_equal_updates"] == LAST_TWO[("X", seed)][0]  # 600
-    # Unfinished runs and runs that never learned on r_hat get no score.
+    # The oracle is scored by its updates on the true reward: 600 at step 600.
+    assert runs.loc[("O", 0), "learned_reward_updates"] == 800
+    assert runs.loc[("O", 0), "score_equal_updates"] == LAST_TWO[("O", 0)][0]
+    # An unfinished run gets no score.
     assert math.isnan(runs.loc[("X", 3), "score_equal_updates"])
-    assert math.isnan(runs.loc[("O", 0), "score_equal_updates"])
 
     monkeypatch.setattr(preregistered, "REPS", 300)  # as the fixture's: coarser intervals
     monkeypatch.setattr(preregistered, "CURVE_REPS", 50)
     write_report(copy)
     out = copy / "report"
     table = pd.read_csv(out / "equal-updates.csv").set_index("variant")
-    assert list(table.index) == ["R", "X"]  # O, the SAC oracle, has no updates on r_hat
+    assert list(table.index) == ["R", "X", "O"]  # O by its updates on the true reward
+    assert table.loc["O", "iqm"] == pytest.approx(50.0)
     # IQM of 12, 22, 32, 102: the middle half, 22 and 32.
     assert table.loc["R", "iqm"] == pytest.approx(27.0)
     improvement = pd.read_csv(out / "equal-updates-improvement.csv").iloc[0]
     # R: 12, 22, 32, 102 against X: 5, 15, 25: R is higher in 1 + 2 + 3 + 3 of the 12 pairs.
     assert improvement.probability == pytest.approx(9 / 12)
     index = (out / "report.md").read_text()
-    assert "## At equal updates on r̂ (not pre-registered)" in index
+    assert "## At equal updates on the learned reward (not pre-registered)" in index
     assert "the fewest 600" in index and "[450, 600]" in index
 
 
