@@ -27,9 +27,10 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from run_profile import profile  # noqa: E402
 
 from runvocab.config import build_config, parse_value  # noqa: E402
+from runvocab.snapshot_names import default_snapshot_path  # noqa: E402
 from trainer.loop import TrainingRun  # noqa: E402
 from trainer.phase_clock import PHASES  # noqa: E402
-from trainer.skills.pretrain import default_snapshot_path, pretrain_once  # noqa: E402
+from trainer.skills.pretrain import pretrain_once  # noqa: E402
 
 
 def overrides_of(pairs: list[str]) -> dict[str, object]:

@@ -34,10 +34,11 @@ from bench_run import overrides_of  # noqa: E402
 from torch.profiler import ProfilerActivity, profile  # noqa: E402
 
 from runvocab.config import build_config  # noqa: E402
+from runvocab.snapshot_names import default_snapshot_path  # noqa: E402
 from trainer.gpu_waits import GpuWaits  # noqa: E402
 from trainer.hooks import RunHooks  # noqa: E402
 from trainer.loop import TrainingRun  # noqa: E402
-from trainer.skills.pretrain import default_snapshot_path, pretrain_once  # noqa: E402
+from trainer.skills.pretrain import pretrain_once  # noqa: E402
 
 
 class ProfileWindow(RunHooks):

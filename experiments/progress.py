@@ -9,6 +9,9 @@ far), so the time a run has left is, in this order of preference:
 - its steps to go at the median rate of the finished runs of its task and variant;
 - its steps to go at its own rate so far, else at the median rate of its task and variant's
   started runs.
+An S-EPOA run whose skill snapshot is not pretrained yet waits for its pretraining first
+(`pretraining_left`), which its episode rows do not count; that time is added to the first run
+of the grid that needs the snapshot.
 An estimate: runs on another machine, or beside other work, train at other rates.
 """
 
@@ -20,6 +23,9 @@ import pickle
 import statistics
 from collections.abc import Iterable, Mapping
 from pathlib import Path
+
+from runvocab.config import RunConfig
+from runvocab.snapshot_names import snapshot_path, snapshot_seed
 
 
 def episode_rows(folder: Path) -> list[dict[str, str]] | None:
@@ -115,6 +121,54 @@ def seconds_after(clock: Clock, step: int) -> float:
             return clock[-1][1] - (before_s + share * (elapsed - before_s))
         before_step, before_s = at, elapsed
     return 0.0
+
+
+def _last_rate(csv_path: Path) -> tuple[int, float] | None:
+    """(step, steps per second) of a pretraining's metrics file at its last whole row (its `fps`:
+    the rate since its process started or resumed); None without one."""
+    step_rate = None
+    try:
+        with csv_path.open(newline="") as f:
+            for row in csv.DictReader(f):
+                try:
+                    step_rate = int(float(row["step"])), float(row["fps"])
+                except (KeyError, TypeError, ValueError):
+                    continue  # the row being appended
+    except OSError:
+        return None
+    return step_rate if step_rate is not None and step_rate[1] > 0 else None
+
+
+def pretraining_left(runs: Iterable[tuple[str, RunConfig]]) -> dict[str, float | None]:
+    """Per run key (`runs`: key and configuration, its `skill.snapshot_dir` where its worker
+    keeps snapshots), the seconds of skill pretraining it waits for before its first step: 0
+    for a run that needs none (not S-EPOA, no pretraining, its snapshot there, or a longer
+    pretraining's snapshot on the way at its length, which `copy_from_longer` takes when its
+    settings agree). A snapshot to pretrain is counted once, for the first run that needs it:
+    its steps to go (from its metrics file, `<snapshot>.csv`, where it has begun) at its own
+    rate, else at the median final rate of the folder's other pretrainings of the task and
+    backend; None when there is none to go by."""
+    left: dict[str, float | None] = {}
+    counted: set[str] = set()
+    for key, cfg in runs:
+        left[key] = 0.0
+        if cfg.algo != "sepoa" or cfg.skill.pretrain_steps <= 0:
+            continue
+        path = Path(snapshot_path(cfg))
+        prefix = f"{cfg.task.replace(':', '-')}-{cfg.skill.backend}-"
+        # copy_from_longer's pattern: a longer pretraining of the seed, on its way at this length
+        longer = f"{prefix}*-s{snapshot_seed(cfg)}-*-at{cfg.skill.pretrain_steps}.pt"
+        if path.exists() or str(path) in counted or (
+                not cfg.skill.snapshot and any(path.parent.glob(longer))):
+            continue
+        counted.add(str(path))
+        own = _last_rate(path.with_suffix(".csv"))
+        others = [last[1] for other in sorted(path.parent.glob(f"{prefix}*.csv"))
+                  if other != path.with_suffix(".csv") and (last := _last_rate(other))]
+        rate = own[1] if own else statistics.median(others) if others else None
+        done = own[0] if own else 0
+        left[key] = None if rate is None else max(cfg.skill.pretrain_steps - done, 0) / rate
+    return left
 
 
 class TimeLeft(dict[str, float | None]):

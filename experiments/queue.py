@@ -28,6 +28,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from experiments.progress import (
     duration_text,
     episode_rows,
+    pretraining_left,
     reward_epochs,
     seconds_left,
     summary,
@@ -50,7 +51,7 @@ from labelqueue import (
     set_run_status,
 )
 from labelqueue.models import utcnow
-from runvocab.config import to_dict
+from runvocab.config import apply_overrides, to_dict
 from runvocab.queued_run import TOP_LEVEL_FIELDS
 
 RETRIED = (RunStatus.FAILED, RunStatus.STOPPED)
@@ -237,7 +238,8 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> 
     reached of the planned steps, the worker and how long ago it heartbeat (flagged `silent`
     past `SILENT_WORKER_AFTER_S`, `DEAD` past `DEAD_WORKER_AFTER_S`), whether the folder
     holds a checkpoint (and, inside a round, the reward epoch its training has saved), and
-    about how long the run has left to train (`experiments.progress`);
+    about how long the run has left to train, its skill pretraining included
+    (`experiments.progress`);
     then the time the grid has left."""
     rows = spec_rows(spec, sessions)
     now = utcnow()
@@ -269,6 +271,14 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> 
                       f"{reached}/{run.steps}",
                       (row.worker_id or "-") if row is not None else "-", beat, held])
     left = seconds_left(progress)
+    waits = pretraining_left(
+        (grid_key(spec, run), apply_overrides(run.config(), {"skill.snapshot_dir": str(
+            results / "snapshots")}) if "skill.snapshot_dir" not in run.overrides
+         else run.config())
+        for run in spec.runs() if not (results / grid_key(spec, run) / "done.json").exists())
+    for key, wait in waits.items():
+        training = left[key]
+        left[key] = None if wait is None or training is None else training + wait
     for line, (key, _, _, done, _, _) in zip(lines, progress, strict=True):
         seconds = left[key]
         line.append("-" if done else "?" if seconds is None else duration_text(seconds))

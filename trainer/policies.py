@@ -18,18 +18,13 @@ import numpy as np
 import torch
 
 from runvocab.config import RunConfig
+from runvocab.snapshot_names import snapshot_path, snapshot_seed
 from trainer.hooks import RunHooks
 from trainer.replay_buffer import ReplayBuffer
 from trainer.return_estimator import ReturnEstimator
 from trainer.sac import SAC, UpdateMetrics
 from trainer.skills import SkillAgent, SkillBackend, SkillReplayBuffer
-from trainer.skills.pretrain import (
-    build_skill_agent,
-    load_snapshot,
-    pretrain_once,
-    snapshot_path,
-    snapshot_seed,
-)
+from trainer.skills.pretrain import build_skill_agent, load_snapshot, pretrain_once
 from trainer.utils import set_seed
 
 

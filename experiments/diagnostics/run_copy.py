@@ -9,8 +9,8 @@ import os
 import shutil
 
 from runvocab.config import RunConfig, load_json
+from runvocab.snapshot_names import snapshot_path
 from trainer.loop import CHECKPOINT, TrainingRun
-from trainer.skills.pretrain import snapshot_path
 
 RUN_FILES = (CHECKPOINT, "config.json", "labels.jsonl", "episodes.csv", "eval.csv", "rounds.csv")
 """what a resumed run reads; copied, so that the run's own folder is only read"""

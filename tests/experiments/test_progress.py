@@ -186,3 +186,98 @@ def test_status_shows_the_reward_epoch_a_rounds_training_has_saved(
     (folder / progress.ROUND_PROGRESS).write_bytes(b"cut short")  # caught being replaced
     assert reward_epochs(folder) is None
     assert progress.ROUND_PROGRESS == round_progress.ROUND_PROGRESS
+
+
+def write_pretraining(path: Path, rows: list[tuple[int, float]]) -> None:
+    """A pretraining's metrics file beside its snapshot: (step, fps) rows."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.with_suffix(".csv").open("w", newline="") as f:
+        f.write("step,episode,return,fps\n")
+        f.writelines(f"{step},{i + 1},0.0,{fps}\n" for i, (step, fps) in enumerate(rows))
+
+
+def test_a_snapshot_still_to_pretrain_is_waited_for_once_at_its_rate(tmp_path: Path) -> None:
+    from runvocab.config import build_config
+    from runvocab.snapshot_names import intermediate_path, snapshot_path
+
+    def sepoa(seed: int, **more: object) -> object:
+        return build_config("dmc:cheetah_run", "tiny", {
+            "algo": "sepoa", "seed": seed, "skill.pretrain_steps": 1000,
+            "skill.snapshot_dir": str(tmp_path)} | more)
+
+    cfgs = {seed: sepoa(seed) for seed in range(5)}
+    path = {seed: Path(snapshot_path(cfg)) for seed, cfg in cfgs.items()}  # type: ignore[arg-type]
+    path[0].write_bytes(b"snapshot")  # seed 0: pretrained
+    write_pretraining(path[1], [(100, 50.0), (400, 20.0)])  # seed 1: at 400, 20 steps/s
+    write_pretraining(path[4], [(1000, 10.0)])  # seed 4: its csv is a finished run's, at 10/s
+    path[4].write_bytes(b"snapshot")
+    # Seed 3: a longer pretraining of the seed wrote a snapshot at this length on its way.
+    longer = Path(str(path[3]).replace("-1000-", "-5000-"))
+    Path(intermediate_path(str(longer), 1000)).write_bytes(b"snapshot")
+    runs = [("sac", build_config("dmc:cheetah_run", "tiny", {"algo": "sac"})),
+            ("none", sepoa(7, **{"skill.pretrain_steps": 0}))]
+    runs += [(f"s{seed}", cfg) for seed, cfg in cfgs.items()]
+    runs += [("s1 again", sepoa(1, **{"skill.task_skill_draw": "refit"}))]  # same snapshot
+    left = progress.pretraining_left(runs)  # type: ignore[arg-type]
+    assert left == {"sac": 0.0, "none": 0.0, "s0": 0.0, "s1": 600 / 20.0, "s1 again": 0.0,
+                    "s2": 1000 / median_of([20.0, 10.0]), "s3": 0.0, "s4": 0.0}
+    # No pretraining of the task and backend to go by: unknown.
+    empty = tmp_path / "elsewhere"
+    alone = sepoa(9, **{"skill.snapshot_dir": str(empty)})
+    assert progress.pretraining_left([("s9", alone)]) == {"s9": None}  # type: ignore[list-item]
+
+
+def median_of(rates: list[float]) -> float:
+    """The median of the other pretrainings' final rates (seed 2 has none of its own)."""
+    import statistics
+    return statistics.median(rates)
+
+
+def test_status_adds_a_missing_snapshots_pretraining_to_the_first_run_needing_it(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from runvocab.snapshot_names import snapshot_path
+
+    spec_path = tmp_path / "spec.toml"
+    spec_path.write_text(SEPOA_SPEC)
+    spec, results = load_spec(spec_path), tmp_path / "results"
+    assert run_experiment(spec, results=results, workers=0, echo=lambda line: None) == 0
+    runs = {(run.variant, run.seed): run for run in spec.runs()}
+    folder = results / "pre" / "dmc-cheetah_run"
+    done = folder / "A" / "eps0.3" / "s0"  # finished in 100 s of training
+    write_episodes(done, [{"step": 1000, "fps": 1.0, "seconds_total": 100.0}])
+    (done / "done.json").write_text("{}")
+    # The grid's workers keep snapshots in <results>/snapshots: seed 1's is half pretrained,
+    # at 10 steps/s.
+    seed1 = Path(snapshot_path(apply_snapshot_dir(runs[("A", 1)].config(), results)))
+    write_pretraining(seed1, [(1000, 10.0)])
+    assert main(["experiment", "status", str(spec_path), "--results", str(results)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    left = {tuple(line.split()[1:5:3]): line.split()[-1] for line in lines[2:6]}
+    # A s1: 100 s of training after 1000 pretraining steps to go at 10/s; B s1 shares the
+    # snapshot (only the online draw of z_task differs): its training alone.
+    assert left == {("A", "0"): "-", ("A", "1"): "3m20s", ("B", "0"): "?", ("B", "1"): "?"}
+
+
+def apply_snapshot_dir(cfg: object, results: Path) -> object:
+    from runvocab.config import apply_overrides
+    return apply_overrides(cfg, {"skill.snapshot_dir": str(results / "snapshots")})  # type: ignore[arg-type]
+
+
+SEPOA_SPEC = """
+name = "pre"
+preset = "tiny"
+steps = 1000
+tasks = ["dmc:cheetah_run"]
+eps = [0.3]
+seeds = [0, 1]
+
+[overrides]
+"skill.pretrain_steps" = 2000
+
+[variants.A]
+algo = "sepoa"
+
+[variants.B]
+algo = "sepoa"
+"skill.task_skill_draw" = "refit"
+"""

@@ -14,14 +14,13 @@ import pytest
 import torch
 
 from runvocab.config import apply_overrides, build_config
+from runvocab.snapshot_names import default_snapshot_path, snapshot_path
 from trainer.skills import pretrain as pretrain_module
 from trainer.skills.pretrain import (
     SkillPretraining,
     build_skill_agent,
-    default_snapshot_path,
     load_snapshot,
     pretrain_once,
-    snapshot_path,
 )
 
 CPU = torch.device("cpu")
@@ -199,7 +198,7 @@ def test_runs_needing_one_snapshot_pretrain_it_once(tmp_path, monkeypatch) -> No
     monkeypatch.setattr(module, "pretrain", slow_pretrain)
     cfg = build_config("dmc:cheetah_run", "tiny", {"algo": "sepoa",
                                                    "skill.snapshot_dir": str(tmp_path)})
-    path = module.snapshot_path(cfg)
+    path = snapshot_path(cfg)
     waits: list[int] = []
     results: list[bool] = []
     start = threading.Barrier(3)

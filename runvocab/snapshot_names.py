@@ -1,0 +1,68 @@
+"""The file names of S-EPOA's skill snapshots: which snapshot an online run starts from, where
+an unfinished pretraining keeps its state and where a pretraining writes on its way. Torch-free,
+so that `sepoa experiment status` can tell which of a grid's snapshots are still to pretrain."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+from typing import Any
+
+from runvocab.config import RunConfig
+
+ONLINE_SKILL_FIELDS = (
+    "estimator_ensemble", "estimator_hidden_dim", "estimator_hidden_layers", "estimator_lr",
+    "estimator_steps", "task_skill_samples", "task_skill_draw", "task_skill_update",
+    "initial_rollouts", "reset_critic", "score_spread", "snapshot", "snapshot_dir",
+    "snapshot_seed", "free_initial_rollouts", "estimator_data", "actor", "actor_std",
+    "actor_clip",
+)
+"""skill fields only the online phase reads: they leave a pretrained snapshot unchanged"""
+
+
+def snapshot_settings(cfg: RunConfig, seed: int) -> dict[str, Any]:
+    """Every setting a pretraining with `seed` reads: two runs whose settings agree can share
+    its snapshot."""
+    skill = {k: v for k, v in dataclasses.asdict(cfg.skill).items()
+             if k not in ONLINE_SKILL_FIELDS}
+    return {"task": cfg.task, "seed": seed, "episode_length": cfg.episode_length,
+            "replay_capacity": cfg.replay_capacity, "sac": dataclasses.asdict(cfg.sac),
+            "skill": skill}
+
+
+def default_snapshot_path(cfg: RunConfig, seed: int | None = None) -> str:
+    """snapshot_dir/<task>-<backend>-<steps>-s<seed>-<hash>.pt (seed: cfg.seed): the one name
+    `sepoa pretrain`, online runs and experiments use. The hash covers every setting
+    pretraining reads (`snapshot_settings`), so a snapshot is never taken for another's."""
+    seed = cfg.seed if seed is None else seed
+    settings = json.dumps(snapshot_settings(cfg, seed), sort_keys=True, default=str)
+    digest = hashlib.sha1(settings.encode()).hexdigest()[:10]
+    name = (f"{cfg.task.replace(':', '-')}-{cfg.skill.backend}-{cfg.skill.pretrain_steps}"
+            f"-s{seed}-{digest}.pt")
+    return os.path.join(cfg.skill.snapshot_dir, name)
+
+
+def snapshot_seed(cfg: RunConfig) -> int:
+    """The pretraining seed of an online run's default snapshot: `skill.snapshot_seed`, or the
+    run's own seed when that is -1."""
+    return cfg.seed if cfg.skill.snapshot_seed < 0 else cfg.skill.snapshot_seed
+
+
+def snapshot_path(cfg: RunConfig) -> str:
+    """The snapshot an online run starts from: `skill.snapshot`, else the default name for its
+    task, backend and pretraining length, pretrained with `snapshot_seed(cfg)`: runs of one
+    seed (any teacher, eps or online setting) share it."""
+    return cfg.skill.snapshot or default_snapshot_path(cfg, snapshot_seed(cfg))
+
+
+def progress_path(path: str) -> str:
+    """Where an unfinished pretraining of the snapshot `path` keeps its state."""
+    return path + ".partial"
+
+
+def intermediate_path(path: str, step: int) -> str:
+    """The snapshot a pretraining bound for `path` writes on the way, at `step`."""
+    root, ext = os.path.splitext(path)
+    return f"{root}-at{step}{ext}"
