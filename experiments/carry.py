@@ -10,6 +10,8 @@ paths relative to the results folder:
   `unfinished_only` when the finished runs travel another way;
 - the skill snapshots, finished and partial (`<results>/snapshots`): a partial one is a
   pretraining's checkpoint;
+- the grid's spec as the launcher wrote it and its training periods so far (`sessions.csv`,
+  `experiments.sessions`), beside its runs;
 - the queue database, when it is the launcher's SQLite file in the results folder, copied with
   SQLite's backup (a consistent copy of a database in use): runs keep their ids, label counts
   and statuses. A PostgreSQL queue stays where it is, reachable from the other machine.
@@ -32,6 +34,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from experiments.queue import HELD, grid_key
+from experiments.sessions import FILE as SESSIONS
 from experiments.spec import Spec
 from labelqueue import DEAD_WORKER_AFTER_S
 
@@ -111,8 +114,10 @@ def _write(tar_path: Path, spec: Spec, results: Path, database: Path,
     holds."""
     counts = {"unfinished": 0, "finished": 0, "snapshots": 0}
     with tarfile.open(tar_path, "w:gz") as tar:
-        if (results / spec.name / "spec.toml").exists():  # what `sepoa report` reads
-            tar.add(results / spec.name / "spec.toml", f"{spec.name}/spec.toml")
+        # What `sepoa report` reads, and the grid's training time so far (experiments.sessions).
+        for name in ("spec.toml", SESSIONS):
+            if (results / spec.name / name).exists():
+                tar.add(results / spec.name / name, f"{spec.name}/{name}")
         for run in spec.runs():
             key = grid_key(spec, run)
             folder = results / key

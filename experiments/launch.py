@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from experiments.queue import enqueue_spec, grid_key, spec_rows
+from experiments.sessions import recorded_session
 from experiments.spec import Spec, SpecError
 from labelqueue import (
     RunStatus,
@@ -135,7 +136,9 @@ def run_experiment(spec: Spec, *, results: Path, database_url: str | None = None
             return 0
         echo(f"{workers} local worker(s), {threads} torch thread(s) each -> {folder}")
         assert train is not None
-        stopped = train(url, results, workers, threads, echo)
+        with recorded_session(folder, workers=workers, threads=threads) as period:
+            stopped = train(url, results, workers, threads, echo)
+            period.end("finished" if stopped is None else f"signal {stopped}")
         return _summary(spec, sessions, echo, stopped)
     finally:
         engine.dispose()

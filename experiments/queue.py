@@ -35,6 +35,7 @@ from experiments.progress import (
     training_clock,
     training_rate,
 )
+from experiments.sessions import worked
 from experiments.spec import Run as GridRun
 from experiments.spec import Spec, SpecError, flatten
 from labelqueue import (
@@ -289,7 +290,9 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> 
     workers = len(training_workers(rows.values(), now))
     errors = [f"  {key}: {row.error}" for key, row in sorted(rows.items())
               if row.status is RunStatus.FAILED and row.error]
+    period = worked(results / spec.name)
     return "\n".join([f"{spec.name}: {len(lines)} runs: {summary_line}", *text,
                       summary(left, workers, len(left.by_rate))]
+                     + ([period.text(duration_text(period.seconds))] if period else [])
                      + (["failed:", *errors] if errors else [])
                      + (["workers gone silent:", *silent] if silent else []))

@@ -3,6 +3,7 @@ its finished runs counted as finished; packing under a live worker is refused.""
 
 from __future__ import annotations
 
+import csv
 import json
 import signal
 import sqlite3
@@ -76,7 +77,7 @@ def test_a_packed_grid_resumes_on_another_machine_from_its_checkpoints(
         names = set(tar.getnames())
         tar.extractall(there, filter="data")
     assert {f"{runs}/s0/checkpoint.pt", f"{runs}/s1/done.json", "queue.db",
-            "tiny/spec.toml"} <= names
+            "tiny/spec.toml", "tiny/sessions.csv"} <= names
     assert f"{runs}/s1/checkpoint.pt" not in names
     assert not any("/tb/" in name for name in names)
     with sqlite3.connect(there / "queue.db") as db:
@@ -90,6 +91,9 @@ def test_a_packed_grid_resumes_on_another_machine_from_its_checkpoints(
     assert "0 enqueued" in out and "tiny: 2 finished" in out
     assert json.loads((there / runs / "s0" / "done.json").read_text())["step"] == 600
     assert (there / runs / "s1" / "done.json").read_text() == finished_here
+    # The launcher here and the one there: two periods of the grid's training, both ended.
+    with (there / "tiny" / "sessions.csv").open() as f:
+        assert [row["ended_by"] for row in csv.DictReader(f)] == ["signal 15", "finished"]
     log = (there / "workers.log").read_text()
     assert "resuming dmc:cheetah_run pebble" in log and "starting" not in log
     steps = [int(line.split(",")[0]) for line in

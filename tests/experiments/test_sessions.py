@@ -1,0 +1,97 @@
+"""A grid's training periods (`experiments.sessions`): each launcher that trains records when it
+ran and how it ended, and status sums them, so a stop rule in wall time holds across sessions."""
+
+from __future__ import annotations
+
+import csv
+import signal
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+
+import pytest
+
+from experiments.launch import run_experiment
+from experiments.sessions import FILE, recorded_session, worked
+from experiments.spec import load_spec
+from sepoa.cli import main
+
+T0 = datetime(2026, 11, 28, 8, 0, tzinfo=UTC)
+
+SPEC = """
+name = "timed"
+preset = "tiny"
+steps = 1000
+tasks = ["dmc:cheetah_run"]
+eps = [0.3]
+seeds = [0]
+
+[variants.SAC]
+algo = "sac"
+"""
+
+
+def write_sessions(folder: Path, rows: list[tuple[datetime, datetime | None, str]]) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    with (folder / FILE).open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["started_at", "ended_at", "workers", "threads", "ended_by"])
+        for start, end, by in rows:
+            writer.writerow([start.isoformat(), end.isoformat() if end else "", 2, 1, by])
+
+
+def test_the_time_between_sessions_is_not_counted(tmp_path: Path) -> None:
+    write_sessions(tmp_path, [(T0, T0 + timedelta(hours=2), "signal 15"),
+                              (T0 + timedelta(hours=5), T0 + timedelta(hours=6), "finished")])
+    period = worked(tmp_path, now=T0 + timedelta(hours=9))
+    assert period is not None
+    assert (period.seconds, period.sessions, period.running_since, period.unended) == (
+        3 * 3600, 2, None, 0)
+    assert worked(tmp_path / "never") is None
+
+
+def test_an_unended_session_counts_to_now_only_while_it_is_the_newest(tmp_path: Path) -> None:
+    write_sessions(tmp_path, [(T0, None, ""), (T0 + timedelta(hours=3), None, "")])
+    period = worked(tmp_path, now=T0 + timedelta(hours=4))
+    assert period is not None
+    # The first was killed outright (a later one began): not counted; the newest runs.
+    assert (period.seconds, period.running_since, period.unended) == (
+        3600, T0 + timedelta(hours=3), 1)
+    text = period.text("1h00m")
+    assert "1h00m over 2 session(s)" in text and "running since 2026-11-28 11:00" in text
+    assert "1 earlier session(s) ended without a record" in text
+
+
+def test_a_session_records_its_end_however_it_ends(tmp_path: Path) -> None:
+    with recorded_session(tmp_path, workers=2, threads=1, now=T0) as period:
+        rows = list(csv.DictReader((tmp_path / FILE).open()))
+        assert [(r["started_at"], r["ended_at"]) for r in rows] == [(T0.isoformat(), "")]
+        period.end("signal 15")
+    with pytest.raises(RuntimeError), recorded_session(tmp_path, workers=1, threads=1):
+        raise RuntimeError("a worker could not start")
+    rows = list(csv.DictReader((tmp_path / FILE).open()))
+    assert [r["ended_by"] for r in rows] == ["signal 15", "error"]
+    assert all(r["ended_at"] for r in rows)
+    assert rows[0]["workers"] == "2"
+
+
+def test_the_launcher_records_its_period_and_status_sums_them(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    spec_path = tmp_path / "spec.toml"
+    spec_path.write_text(SPEC)
+    spec, results = load_spec(spec_path), tmp_path / "results"
+
+    def stopped_by_sigterm(url, results, workers, threads, echo):  # type: ignore[no-untyped-def]
+        return signal.SIGTERM.value
+
+    code = run_experiment(spec, results=results, workers=2, threads=1,
+                          echo=lambda line: None, train=stopped_by_sigterm)
+    assert code == 128 + signal.SIGTERM.value
+    rows = list(csv.DictReader((results / "timed" / FILE).open()))
+    assert [(r["workers"], r["threads"], r["ended_by"]) for r in rows] == [("2", "1", "signal 15")]
+    # Enqueueing alone (no workers) trains nothing and records nothing.
+    assert run_experiment(spec, results=results, workers=0, echo=lambda line: None) == 0
+    assert len(list(csv.DictReader((results / "timed" / FILE).open()))) == 1
+    assert main(["experiment", "status", str(spec_path), "--results", str(results)]) == 0
+    last = capsys.readouterr().out.splitlines()[-1]
+    assert last.startswith("worked (local workers' wall time, sessions.csv): ")
+    assert last.endswith(" over 1 session(s)")
