@@ -16,12 +16,14 @@ import numpy as np
 import pandas as pd
 
 from experiments import preregistered
+from experiments.progress import duration_text
 from experiments.proposition import (
     measured_disagreement,
     proposition_png,
     simulated_disagreement,
 )
 from experiments.results import KEYS, STATES, Results, load_results
+from experiments.sessions import worked
 from experiments.skill_quality import quality_markdown, quality_table
 from experiments.spec import METRICS
 from experiments.tables import (
@@ -249,7 +251,9 @@ def preregistered_sections(results: Results, out: Path
         {(rows[0], results.spec.tasks[0]): bands}, rows[:1], list(results.spec.tasks[:1]),
         title=results.spec.title + ": IQM, 95 % CI", ylabel="evaluation return"))
     metric = METRICS[analysis.metric]
+    period = worked(results.folder)  # what a stop rule in wall time reads
     lines = ["## Pre-registered comparison", "", preregistered.status_line(runs), "",
+             *([period.text(duration_text(period.seconds)) + ".", ""] if period else []),
              PREREGISTERED_DOC.format(metric=metric), "",
              preregistered.primary_markdown(primary, improvement), "",
              "![IQM curves](iqm-curves.png)", "",

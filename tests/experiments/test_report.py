@@ -634,3 +634,24 @@ compare_to = ["S"]
     index = (folder / "report" / "report.md").read_text()
     assert "6 planned: 2 done, 0 stopped, 0 partial, 0 failed, 4 not started." in index
     assert "## Pre-registered comparison" in index
+
+
+def test_the_report_says_how_long_the_grids_workers_ran(analysed: Path, tmp_path: Path,
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """A stop rule in wall time reads the grid's recorded training periods (sessions.csv)."""
+    import shutil
+
+    from experiments import preregistered
+
+    assert "worked (" not in (analysed / "report" / "report.md").read_text()  # none recorded
+    copy = tmp_path / "analysed"
+    shutil.copytree(analysed, copy, ignore=shutil.ignore_patterns("report"))
+    (copy / "sessions.csv").write_text(
+        "started_at,ended_at,workers,threads,ended_by\n"
+        "2026-11-28T08:00:00+00:00,2026-11-28T10:00:00+00:00,2,1,signal 15\n"
+        "2026-11-28T12:00:00+00:00,2026-11-28T12:30:00+00:00,2,1,finished\n")
+    monkeypatch.setattr(preregistered, "REPS", 300)
+    monkeypatch.setattr(preregistered, "CURVE_REPS", 50)
+    write_report(copy)
+    assert ("worked (local workers' wall time, sessions.csv): 2h30m over 2 session(s)."
+            in (copy / "report" / "report.md").read_text())
