@@ -30,6 +30,7 @@ from typing import IO, Any
 from experiments.queue import enqueue_spec, grid_key, spec_rows
 from experiments.sessions import recorded_session
 from experiments.spec import Spec, SpecError
+from experiments.stop_rule import apply_stop_rule, stop_rule_watch
 from labelqueue import (
     RunStatus,
     make_engine,
@@ -136,7 +137,10 @@ def run_experiment(spec: Spec, *, results: Path, database_url: str | None = None
             return 0
         echo(f"{workers} local worker(s), {threads} torch thread(s) each -> {folder}")
         assert train is not None
-        with recorded_session(folder, workers=workers, threads=threads) as period:
+        # Spent hours stop the runs of seeds not started before any worker can claim them.
+        apply_stop_rule(spec, sessions, results, echo)
+        with recorded_session(folder, workers=workers, threads=threads) as period, \
+                stop_rule_watch(spec, sessions, results, echo):
             stopped = train(url, results, workers, threads, echo)
             period.end("finished" if stopped is None else f"signal {stopped}")
         return _summary(spec, sessions, echo, stopped)

@@ -26,6 +26,7 @@ from experiments.results import KEYS, STATES, Results, load_results
 from experiments.sessions import worked
 from experiments.skill_quality import quality_markdown, quality_table
 from experiments.spec import METRICS
+from experiments.stop_rule import recorded_stop_rule
 from experiments.tables import (
     DIAGNOSTICS,
     diagnostics_markdown,
@@ -252,8 +253,10 @@ def preregistered_sections(results: Results, out: Path
         title=results.spec.title + ": IQM, 95 % CI", ylabel="evaluation return"))
     metric = METRICS[analysis.metric]
     period = worked(results.folder)  # what a stop rule in wall time reads
+    rule = recorded_stop_rule(results.spec, results.folder)
     lines = ["## Pre-registered comparison", "", preregistered.status_line(runs), "",
              *([period.text(duration_text(period.seconds)) + ".", ""] if period else []),
+             *([rule.text(duration_text) + ".", ""] if rule else []),
              PREREGISTERED_DOC.format(metric=metric), "",
              preregistered.primary_markdown(primary, improvement), "",
              "![IQM curves](iqm-curves.png)", "",

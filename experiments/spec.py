@@ -25,7 +25,7 @@ from runvocab.validate import validate
 
 KINDS = ("curves", "ablation")
 REQUIRED = ("name", "preset", "steps", "tasks", "eps", "seeds", "variants")
-OPTIONAL = ("title", "kind", "budgets", "threads", "overrides", "analysis")
+OPTIONAL = ("title", "kind", "budgets", "threads", "overrides", "analysis", "stop_after_hours")
 METRICS = {"final_quarter": "the mean evaluation return over the last 25 % of steps"}
 """pre-registered primary metrics, by the name `[analysis] metric` gives"""
 
@@ -124,6 +124,8 @@ class Spec:
     source: str = ""
     """the TOML text, stored beside the results"""
     analysis: Analysis | None = None
+    stop_after_hours: float | None = None
+    """no seed starts once the grid's workers have trained this long (experiments.stop_rule)"""
 
     def runs(self) -> list[Run]:
         """Every run of the grid, in folder order (task, variant, eps, budget, seed)."""
@@ -226,6 +228,10 @@ def parse_spec(data: dict[str, Any], where: str, source: str = "",
         raise fail("'title' must be a string")
     steps = _integer(data["steps"], "steps", 1, fail)
     threads = _integer(data.get("threads", 1), "threads", 1, fail)
+    hours = data.get("stop_after_hours")
+    if hours is not None and (isinstance(hours, bool) or not isinstance(hours, int | float)
+                              or not hours > 0):
+        raise fail(f"'stop_after_hours' takes a number of hours above 0; got {hours!r}")
 
     tasks = _axis(data, "tasks", fail, lambda v, k: _text(v, k, fail))
     eps = _axis(data, "eps", fail, lambda v, k: _rate(v, k, fail))
@@ -260,7 +266,8 @@ def parse_spec(data: dict[str, Any], where: str, source: str = "",
 
     analysis = _analysis(data.get("analysis"), [v.label for v in variants], fail)
     spec = Spec(name, title, kind, preset, steps, tasks, eps, seeds, budgets, threads, shared,
-                tuple(variants), source, analysis)
+                tuple(variants), source, analysis,
+                None if hours is None else float(hours))
     folders: dict[Path, Run] = {}
     for run in spec.runs():
         if run.dir in folders:

@@ -197,7 +197,9 @@ def _status(spec, results: pathlib.Path, url: str | None) -> int:  # type: ignor
     from sqlalchemy.engine import make_url
 
     from experiments.launch import default_database
+    from experiments.progress import duration_text
     from experiments.queue import status_table
+    from experiments.stop_rule import stop_rule
     from labelqueue import make_engine, mask_url, schema_revisions, session_factory
 
     url = url or default_database(results)
@@ -221,7 +223,11 @@ def _status(spec, results: pathlib.Path, url: str | None) -> int:  # type: ignor
             url = _migrated_copy(parsed.database or "", Path(tmp) / "queue.db")
         engine = make_engine(url)
         try:
-            say(status_table(spec, session_factory(engine), results))
+            sessions = session_factory(engine)
+            say(status_table(spec, sessions, results))
+            rule = stop_rule(spec, sessions, results)
+            if rule is not None:
+                say(rule.text(duration_text))
         finally:
             engine.dispose()
     if current != head:

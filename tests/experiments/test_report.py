@@ -653,5 +653,16 @@ def test_the_report_says_how_long_the_grids_workers_ran(analysed: Path, tmp_path
     monkeypatch.setattr(preregistered, "REPS", 300)
     monkeypatch.setattr(preregistered, "CURVE_REPS", 50)
     write_report(copy)
-    assert ("worked (local workers' wall time, sessions.csv): 2h30m over 2 session(s)."
-            in (copy / "report" / "report.md").read_text())
+    index = (copy / "report" / "report.md").read_text()
+    assert "worked (local workers' wall time, sessions.csv): 2h30m over 2 session(s)." in index
+    assert "stop rule" not in index  # the spec has none
+    # With a stop rule of 2 h, spent, that left seed 3 out (experiments.stop_rule's record):
+    spec = (copy / "spec.toml").read_text()
+    (copy / "spec.toml").write_text(spec.replace("seeds = [0, 1, 2, 3]\n",
+                                                 "seeds = [0, 1, 2, 3]\nstop_after_hours = 2\n"))
+    (copy / "stop_rule.json").write_text(json.dumps(
+        {"hours": 2, "reached_at": "2026-11-28T12:30:00+00:00", "worked_s": 9000,
+         "seeds_not_started": [3]}))
+    write_report(copy)
+    assert ("stop rule: no seed starts after 2 h of the workers' training; reached (2h30m "
+            "spent): seeds not started: 3." in (copy / "report" / "report.md").read_text())

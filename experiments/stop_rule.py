@@ -1,0 +1,160 @@
+"""A grid's stop rule in wall time (`stop_after_hours` in its spec): no seed starts once the
+grid's workers have trained that long, summed over its sessions (`experiments.sessions`).
+
+A seed has started once any run of it has (its status is no longer queued, or its folder
+exists); its other runs still train, so that every started seed can finish all its arms. Once
+the hours are spent, the launcher stops each queued run of a seed not started (an operator's
+stop: queued to stopped), at launch and while its workers train, and records the seeds it left
+out in `<results>/<spec name>/stop_rule.json`, which the report reads. Running the spec again
+queues stopped runs again, so the launcher stops them again before its workers start.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from experiments.queue import grid_key, spec_rows
+from experiments.sessions import worked
+from experiments.spec import Spec
+from labelqueue import InvalidTransition, RunStatus, set_run_status
+
+FILE = "stop_rule.json"
+TAKEN = (RunStatus.RUNNING, RunStatus.PAUSED, RunStatus.STOPPING, RunStatus.FINISHED)
+"""statuses only a worker's claim leads to (a queued run an operator stops or fails is not)"""
+
+
+@dataclass(frozen=True)
+class StopRule:
+    hours: float
+    worked_s: float
+    seeds_not_started: tuple[int, ...]
+    """seeds none of whose runs had started when the hours were spent (empty before)"""
+    recorded: bool = False
+    """the seeds come from the grid's stop_rule.json (fixed when the hours were first spent)"""
+
+    @property
+    def reached(self) -> bool:
+        return self.worked_s >= self.hours * 3600
+
+    def text(self, duration: Callable[[float], str]) -> str:
+        """One line for status and the report."""
+        rule = f"stop rule: no seed starts after {self.hours:g} h of the workers' training"
+        if not self.reached:
+            return f"{rule}; {duration(self.worked_s)} spent"
+        left_out = ", ".join(map(str, self.seeds_not_started)) or "none"
+        return f"{rule}; reached ({duration(self.worked_s)} spent): seeds not started: {left_out}"
+
+
+def started_seeds(spec: Spec, sessions: sessionmaker[Session], results: Path) -> set[int]:
+    """Seeds with a run that a worker has taken: its folder exists, or it is held or ended."""
+    rows = spec_rows(spec, sessions)
+    started = set()
+    for run in spec.runs():
+        key = grid_key(spec, run)
+        row = rows.get(key)
+        if (results / key).exists() or (row is not None and row.status in TAKEN):
+            started.add(run.seed)
+    return started
+
+
+def recorded_stop_rule(spec: Spec, folder: Path, now: datetime | None = None
+                       ) -> StopRule | None:
+    """The spec's stop rule as the grid's folder records it (its sessions and the seeds left
+    out once the hours were spent), without the database; None for a spec without one."""
+    if spec.stop_after_hours is None:
+        return None
+    period = worked(folder, now)
+    spent = period.seconds if period else 0.0
+    record = folder / FILE
+    kept = json.loads(record.read_text()) if record.exists() else None
+    if kept is not None and kept["hours"] == spec.stop_after_hours:  # a spec given other
+        # hours since starts afresh
+        return StopRule(spec.stop_after_hours, max(spent, spec.stop_after_hours * 3600),
+                        tuple(kept["seeds_not_started"]), recorded=True)
+    return StopRule(spec.stop_after_hours, spent, ())
+
+
+def stop_rule(spec: Spec, sessions: sessionmaker[Session], results: Path,
+              now: datetime | None = None) -> StopRule | None:
+    """Where the spec's stop rule stands: the seeds it leaves out are those not started when
+    the hours were first found spent; None for a spec without one."""
+    rule = recorded_stop_rule(spec, results / spec.name, now)
+    if rule is None or not rule.reached or rule.recorded:
+        return rule
+    started = started_seeds(spec, sessions, results)
+    return StopRule(rule.hours, rule.worked_s,
+                    tuple(sorted({run.seed for run in spec.runs()} - started)))
+
+
+def apply_stop_rule(spec: Spec, sessions: sessionmaker[Session], results: Path,
+                    echo: Callable[[str], None]) -> StopRule | None:
+    """Once the spec's hours are spent: stop every queued run of the seeds not started, and
+    record them (the first time, with when). The rule as it stands; None without one."""
+    rule = stop_rule(spec, sessions, results)
+    if rule is None or not rule.reached:
+        return rule
+    rows = spec_rows(spec, sessions)
+    stopped, raced = 0, set()
+    for seed in rule.seeds_not_started:
+        queued = [row for run in spec.runs() if run.seed == seed
+                  and (row := rows.get(grid_key(spec, run))) is not None
+                  and row.status is RunStatus.QUEUED]
+        done = []
+        with sessions() as session:
+            try:
+                for row in queued:
+                    set_run_status(session, run_id=row.id, status=RunStatus.STOPPED)
+                    done.append(row)
+            except InvalidTransition:  # a worker claimed one meanwhile: the seed started, and
+                raced.add(seed)  # its other runs are queued again to finish it
+                for row in done:
+                    set_run_status(session, run_id=row.id, status=RunStatus.QUEUED)
+                continue
+        stopped += len(done)
+    if raced and not rule.recorded:
+        rule = StopRule(rule.hours, rule.worked_s,
+                        tuple(s for s in rule.seeds_not_started if s not in raced))
+    if not rule.recorded:
+        (results / spec.name / FILE).write_text(json.dumps({
+            "hours": rule.hours, "reached_at": datetime.now(UTC).isoformat(timespec="seconds"),
+            "worked_s": round(rule.worked_s), "seeds_not_started": list(rule.seeds_not_started),
+        }, indent=1) + "\n")
+    if stopped:
+        echo(f"{spec.name}: the stop rule's {rule.hours:g} h are spent: {stopped} queued run(s) "
+             f"of seeds not started stopped ({', '.join(map(str, rule.seeds_not_started))})")
+    return rule
+
+
+WATCH_S = 60.0
+"""how often the launcher checks the hours while its workers train"""
+
+
+@contextmanager
+def stop_rule_watch(spec: Spec, sessions: sessionmaker[Session], results: Path,
+                    echo: Callable[[str], None], every_s: float = WATCH_S) -> Iterator[None]:
+    """While the block runs (the launcher's workers train), apply the spec's stop rule every
+    `every_s`; nothing for a spec without one."""
+    if spec.stop_after_hours is None:
+        yield
+        return
+    done = threading.Event()
+
+    def watch() -> None:
+        while not done.wait(every_s):
+            apply_stop_rule(spec, sessions, results, echo)
+
+    watcher = threading.Thread(target=watch, name="stop-rule", daemon=True)
+    watcher.start()
+    try:
+        yield
+    finally:
+        done.set()
+        watcher.join()

@@ -1,0 +1,115 @@
+"""A stop rule in wall time (`stop_after_hours`): once the grid's workers have trained that long
+over its sessions, no seed starts; the seeds already started finish every arm."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from experiments.launch import default_database, run_experiment
+from experiments.queue import grid_key, spec_rows
+from experiments.sessions import FILE as SESSIONS
+from experiments.spec import SpecError, load_spec
+from experiments.stop_rule import FILE, apply_stop_rule, stop_rule
+from labelqueue import make_engine, session_factory
+from sepoa.cli import main
+
+SPEC = """
+name = "ruled"
+preset = "tiny"
+steps = 1000
+tasks = ["dmc:cheetah_run"]
+eps = [0.3]
+seeds = [0, 1, 2]
+stop_after_hours = 2
+
+[variants.A]
+algo = "sac"
+
+[variants.B]
+algo = "pebble"
+"""
+
+
+def sessions_worked(folder: Path, hours: float) -> None:
+    """One ended session of `hours` (experiments.sessions' file)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    minutes = round(hours * 60)
+    (folder / SESSIONS).write_text(
+        "started_at,ended_at,workers,threads,ended_by\n"
+        f"2026-11-28T00:00:00+00:00,2026-11-28T{minutes // 60:02d}:{minutes % 60:02d}:00+00:00,"
+        "2,1,signal 15\n")
+
+
+@pytest.fixture
+def grid(tmp_path: Path):  # type: ignore[no-untyped-def]
+    spec_path = tmp_path / "spec.toml"
+    spec_path.write_text(SPEC)
+    spec, results = load_spec(spec_path), tmp_path / "results"
+    assert run_experiment(spec, results=results, workers=0, echo=lambda line: None) == 0
+    engine = make_engine(default_database(results))
+    yield spec_path, spec, results, session_factory(engine)
+    engine.dispose()
+
+
+def statuses(spec, sessions) -> dict[tuple[str, int], str]:  # type: ignore[no-untyped-def]
+    rows = spec_rows(spec, sessions)
+    return {(run.variant, run.seed): str(rows[grid_key(spec, run)].status)
+            for run in spec.runs()}
+
+
+def test_before_the_hours_are_spent_nothing_is_stopped(grid) -> None:  # type: ignore[no-untyped-def]
+    spec_path, spec, results, sessions = grid
+    sessions_worked(results / "ruled", 1.5)
+    rule = apply_stop_rule(spec, sessions, results, echo=lambda line: None)
+    assert rule is not None and not rule.reached
+    assert set(statuses(spec, sessions).values()) == {"queued"}
+    assert not (results / "ruled" / FILE).exists()
+    assert rule.text(lambda s: f"{s / 3600:g} h") == (
+        "stop rule: no seed starts after 2 h of the workers' training; 1.5 h spent")
+
+
+def test_spent_hours_stop_the_seeds_not_started_and_the_started_ones_finish(
+        grid, capsys: pytest.CaptureFixture[str]) -> None:  # type: ignore[no-untyped-def]
+    spec_path, spec, results, sessions = grid
+    sessions_worked(results / "ruled", 2.5)
+    started = next(run for run in spec.runs() if run.variant == "B" and run.seed == 0)
+    (results / grid_key(spec, started)).mkdir(parents=True)  # a worker took seed 0's B run
+    said: list[str] = []
+    rule = apply_stop_rule(spec, sessions, results, echo=said.append)
+    assert rule is not None and rule.seeds_not_started == (1, 2)
+    assert statuses(spec, sessions) == {
+        ("A", 0): "queued", ("B", 0): "queued",  # seed 0 started: both arms go on
+        ("A", 1): "stopped", ("B", 1): "stopped", ("A", 2): "stopped", ("B", 2): "stopped"}
+    assert said == ["ruled: the stop rule's 2 h are spent: 4 queued run(s) of seeds not "
+                    "started stopped (1, 2)"]
+    record = json.loads((results / "ruled" / FILE).read_text())
+    assert record["seeds_not_started"] == [1, 2] and record["worked_s"] == 9000
+
+    # Running the spec again queues the stopped runs again; its launcher stops them again
+    # before any worker starts, and the seeds left out stay those of the first time.
+    seen: list[dict[tuple[str, int], str]] = []
+
+    def train(url, results, workers, threads, echo):  # type: ignore[no-untyped-def]
+        seen.append(statuses(spec, sessions))
+        return None
+
+    run_experiment(spec, results=results, workers=1, echo=lambda line: None, train=train)
+    assert seen[0][("A", 1)] == "stopped" and seen[0][("A", 0)] == "queued"
+    rule = stop_rule(spec, sessions, results)
+    assert rule is not None and rule.recorded and rule.seeds_not_started == (1, 2)
+
+    assert main(["experiment", "status", str(spec_path), "--results", str(results)]) == 0
+    last = capsys.readouterr().out.splitlines()[-1]
+    assert last.startswith("stop rule: no seed starts after 2 h of the workers' training; "
+                           "reached (") and last.endswith("seeds not started: 1, 2")
+
+
+@pytest.mark.parametrize("hours", ["0", "-1", "true", '"ten"'])
+def test_stop_after_hours_takes_a_positive_number(tmp_path: Path, hours: str) -> None:
+    path = tmp_path / "spec.toml"
+    path.write_text(SPEC.replace("stop_after_hours = 2", f"stop_after_hours = {hours}"))
+    with pytest.raises(SpecError, match="'stop_after_hours' takes a number of hours above 0"):
+        load_spec(path)
