@@ -25,7 +25,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 from runvocab.config import RunConfig
-from runvocab.snapshot_names import snapshot_path, snapshot_seed
+from runvocab.snapshot_names import longer_pattern, name_prefix, snapshot_path, snapshot_seed
 
 
 def episode_rows(folder: Path) -> list[dict[str, str]] | None:
@@ -155,15 +155,13 @@ def pretraining_left(runs: Iterable[tuple[str, RunConfig]]) -> dict[str, float |
         if cfg.algo != "sepoa" or cfg.skill.pretrain_steps <= 0:
             continue
         path = Path(snapshot_path(cfg))
-        prefix = f"{cfg.task.replace(':', '-')}-{cfg.skill.backend}-"
-        # copy_from_longer's pattern: a longer pretraining of the seed, on its way at this length
-        longer = f"{prefix}*-s{snapshot_seed(cfg)}-*-at{cfg.skill.pretrain_steps}.pt"
-        if path.exists() or str(path) in counted or (
-                not cfg.skill.snapshot and any(path.parent.glob(longer))):
+        if path.exists() or str(path) in counted or (  # or what copy_from_longer would take
+                not cfg.skill.snapshot
+                and any(path.parent.glob(longer_pattern(cfg, snapshot_seed(cfg))))):
             continue
         counted.add(str(path))
         own = _last_rate(path.with_suffix(".csv"))
-        others = [last[1] for other in sorted(path.parent.glob(f"{prefix}*.csv"))
+        others = [last[1] for other in sorted(path.parent.glob(f"{name_prefix(cfg)}*.csv"))
                   if other != path.with_suffix(".csv") and (last := _last_rate(other))]
         rate = own[1] if own else statistics.median(others) if others else None
         done = own[0] if own else 0

@@ -54,6 +54,7 @@ from labelqueue import (
 from labelqueue.models import utcnow
 from runvocab.config import apply_overrides, to_dict
 from runvocab.queued_run import TOP_LEVEL_FIELDS
+from runvocab.snapshot_names import shared_snapshot_dir
 
 RETRIED = (RunStatus.FAILED, RunStatus.STOPPED)
 """statuses a run is queued again from when its spec is run again"""
@@ -272,10 +273,10 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> 
                       f"{reached}/{run.steps}",
                       (row.worker_id or "-") if row is not None else "-", beat, held])
     left = seconds_left(progress)
+    # Each run's snapshot where the grid's workers keep it (trainer.worker.run_config).
     waits = pretraining_left(
-        (grid_key(spec, run), apply_overrides(run.config(), {"skill.snapshot_dir": str(
-            results / "snapshots")}) if "skill.snapshot_dir" not in run.overrides
-         else run.config())
+        (grid_key(spec, run),
+         apply_overrides(run.config(), shared_snapshot_dir(run.overrides, results)))
         for run in spec.runs() if not (results / grid_key(spec, run) / "done.json").exists())
     for key, wait in waits.items():
         training = left[key]

@@ -8,6 +8,8 @@ import dataclasses
 import hashlib
 import json
 import os
+from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 from runvocab.config import RunConfig
@@ -39,9 +41,32 @@ def default_snapshot_path(cfg: RunConfig, seed: int | None = None) -> str:
     seed = cfg.seed if seed is None else seed
     settings = json.dumps(snapshot_settings(cfg, seed), sort_keys=True, default=str)
     digest = hashlib.sha1(settings.encode()).hexdigest()[:10]
-    name = (f"{cfg.task.replace(':', '-')}-{cfg.skill.backend}-{cfg.skill.pretrain_steps}"
-            f"-s{seed}-{digest}.pt")
+    name = f"{name_prefix(cfg)}{cfg.skill.pretrain_steps}-s{seed}-{digest}.pt"
     return os.path.join(cfg.skill.snapshot_dir, name)
+
+
+def name_prefix(cfg: RunConfig) -> str:
+    """`<task>-<backend>-`: how every snapshot name of the task and backend begins (their
+    metrics files' too)."""
+    return f"{cfg.task.replace(':', '-')}-{cfg.skill.backend}-"
+
+
+def longer_pattern(cfg: RunConfig, seed: int) -> str:
+    """A glob, in the snapshot folder, for the snapshots longer pretrainings of `seed` wrote on
+    their way at `cfg`'s length (`intermediate_path`), whatever their other settings."""
+    return f"{name_prefix(cfg)}*-s{seed}-*-at{cfg.skill.pretrain_steps}.pt"
+
+
+SHARED_FOLDER = "snapshots"
+"""the folder, in a worker's results or data folder, whose snapshots the runs there share"""
+
+
+def shared_snapshot_dir(overrides: Mapping[str, Any], root: Path) -> dict[str, str]:
+    """The override that puts a run's snapshots in `root`'s shared folder, unless the run's own
+    overrides name a `skill.snapshot_dir`."""
+    if "skill.snapshot_dir" in overrides:
+        return {}
+    return {"skill.snapshot_dir": str(root / SHARED_FOLDER)}
 
 
 def snapshot_seed(cfg: RunConfig) -> int:

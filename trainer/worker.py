@@ -62,6 +62,7 @@ from labelqueue import (
 )
 from labelqueue.run_config import run_config as stored_run_config
 from runvocab.config import RunConfig, apply_overrides
+from runvocab.snapshot_names import shared_snapshot_dir
 from trainer.dataset_labelling import DatasetLabelling
 from trainer.departure import Departure, leave_on_signals
 from trainer.loop import CHECKPOINT, TrainingRun
@@ -81,11 +82,9 @@ def run_config(run: Run, worker: WorkerConfig) -> RunConfig:
         root, folder = worker.results_root, worker.results_root / run.grid_key
     else:
         root, folder = worker.data_dir, worker.data_dir / "runs" / f"run-{run.id}"
-    snapshots = root / "snapshots"
     local: dict[str, object] = {"run_dir": str(folder)}
     # S-EPOA's skill snapshots are shared by the runs of a folder (made on first use, once).
-    if "skill.snapshot_dir" not in run.config:
-        local["skill.snapshot_dir"] = str(snapshots)
+    local |= shared_snapshot_dir(run.config, root)
     if worker.device is not None:
         local["device"] = worker.device
     if worker.threads is not None:

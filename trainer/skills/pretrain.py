@@ -41,6 +41,7 @@ from runvocab.config import RunConfig, from_dict, to_dict
 from runvocab.snapshot_names import (
     default_snapshot_path,
     intermediate_path,
+    longer_pattern,
     progress_path,
     snapshot_settings,
 )
@@ -407,7 +408,7 @@ def copy_from_longer(cfg: RunConfig, path: str) -> str | None:
     # As a snapshot stores its configuration: with the skill fields resolved.
     ours = json.dumps(snapshot_settings(check_pretrain_config(cfg), cfg.seed), sort_keys=True,
                       default=str)
-    pattern = (f"{cfg.task.replace(':', '-')}-{cfg.skill.backend}-*-s{cfg.seed}-*-at{steps}.pt")
+    pattern = longer_pattern(cfg, cfg.seed)
     for candidate in sorted(glob.glob(os.path.join(os.path.dirname(path) or ".", pattern))):
         try:
             state = load_checkpoint(candidate)
