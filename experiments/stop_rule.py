@@ -149,7 +149,12 @@ def stop_rule_watch(spec: Spec, sessions: sessionmaker[Session], results: Path,
 
     def watch() -> None:
         while not done.wait(every_s):
-            apply_stop_rule(spec, sessions, results, echo)
+            try:
+                apply_stop_rule(spec, sessions, results, echo)
+            except Exception as error:  # a locked database or a full disk must not end the
+                # watch, or the workers would train past the rule unnoticed
+                echo(f"{spec.name}: the stop rule could not be checked ({type(error).__name__}: "
+                     f"{error}); checking again in {every_s:g} s")
 
     watcher = threading.Thread(target=watch, name="stop-rule", daemon=True)
     watcher.start()

@@ -4,6 +4,7 @@ over its sessions, no seed starts; the seeds already started finish every arm.""
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import pytest
@@ -12,7 +13,7 @@ from experiments.launch import default_database, run_experiment
 from experiments.queue import grid_key, spec_rows
 from experiments.sessions import FILE as SESSIONS
 from experiments.spec import SpecError, load_spec
-from experiments.stop_rule import FILE, apply_stop_rule, stop_rule
+from experiments.stop_rule import FILE, apply_stop_rule, stop_rule, stop_rule_watch
 from labelqueue import make_engine, session_factory
 from sepoa.cli import main
 
@@ -113,3 +114,25 @@ def test_stop_after_hours_takes_a_positive_number(tmp_path: Path, hours: str) ->
     path.write_text(SPEC.replace("stop_after_hours = 2", f"stop_after_hours = {hours}"))
     with pytest.raises(SpecError, match="'stop_after_hours' takes a number of hours above 0"):
         load_spec(path)
+
+
+def test_the_launchers_watch_outlives_a_failed_check(grid) -> None:  # type: ignore[no-untyped-def]
+    _, spec, results, sessions = grid
+    sessions_worked(results / "ruled", 2.5)
+    blocked = results / "ruled" / FILE
+    blocked.mkdir()  # the record cannot be written: the check fails
+    said: list[str] = []
+
+    def wait_for(condition) -> None:  # type: ignore[no-untyped-def]
+        deadline = time.monotonic() + 10
+        while not condition():
+            assert time.monotonic() < deadline, said
+            time.sleep(0.02)
+
+    with stop_rule_watch(spec, sessions, results, echo=said.append, every_s=0.05):
+        wait_for(lambda: any("could not be checked" in line for line in said))
+        blocked.rmdir()
+        wait_for(lambda: (results / "ruled" / FILE).is_file())
+    assert said[0].startswith("ruled: the stop rule could not be checked (IsADirectoryError: ")
+    assert said[0].endswith("checking again in 0.05 s")
+    assert set(statuses(spec, sessions).values()) == {"stopped"}  # no seed had started
