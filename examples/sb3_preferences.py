@@ -34,6 +34,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 from stable_baselines3 import SAC
+from stable_baselines3.common.logger import Logger
 
 from runvocab.config import RewardConfig
 from sepoa.client import Pair, Study
@@ -294,6 +295,8 @@ def main(argv: list[str] | None = None) -> int:
                 batch_size=args.batch_size,
                 buffer_size=max(100_000, args.first_steps + args.rounds * args.steps_per_round),
                 policy_kwargs={"net_arch": [args.net_width, args.net_width]}, verbose=0)
+    # A logger with no outputs: SB3's own makes an empty /tmp/SB3-<time> folder at every learn().
+    agent.set_logger(Logger(folder=None, output_formats=[]))
     agent.learn(args.first_steps)  # random actions, no updates yet
     preferences.standardise_by(np.stack(steps.obs_action))
     asked = used = 0

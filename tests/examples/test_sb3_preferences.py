@@ -5,6 +5,7 @@ from those answers orders held-out segments by their true returns, and SAC train
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import threading
@@ -86,6 +87,8 @@ def test_sac_trains_on_a_reward_learned_from_answers_over_the_label_api(tmp_path
                         operator_token=OPERATOR["Authorization"].split()[1],
                         secret_key="examples-secret-key-0123456789")
     summary = tmp_path / "summary.json"
+    temp = tmp_path / "tmp"
+    temp.mkdir()
     with served(settings) as url:
         run = httpx.post(f"{url}/api/runs/external", headers=OPERATOR, json={
             "task": "gym:HalfCheetah-v5", "budget": 16,
@@ -100,7 +103,8 @@ def test_sac_trains_on_a_reward_learned_from_answers_over_the_label_api(tmp_path
             done = subprocess.run(
                 [sys.executable, str(EXAMPLE), "--preset", "tiny", "--url", url, "--token", token,
                  "--run", str(run["id"]), "--summary", str(summary)],
-                cwd=ROOT, capture_output=True, text=True, timeout=300)
+                cwd=ROOT, capture_output=True, text=True, timeout=300,
+                env={**os.environ, "TMPDIR": str(temp)})
         finally:
             teacher.stop.set()
             teacher.join(timeout=30)
@@ -108,6 +112,7 @@ def test_sac_trains_on_a_reward_learned_from_answers_over_the_label_api(tmp_path
         quality = httpx.get(f"{url}/api/quality/labellers", params={"run_id": run["id"]},
                             headers=OPERATOR).json()
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-4000:]
+    assert not list(temp.glob("SB3-*"))  # SB3's logger left no folder behind
     result = json.loads(summary.read_text())
     # Every pair it asked was answered, on the label API, and trained on.
     assert result["pairs_asked"] == result["answers_used"] == teacher.answered == 16
