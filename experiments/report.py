@@ -16,6 +16,8 @@ import numpy as np
 import pandas as pd
 
 from experiments import preregistered
+from experiments.agent_table import DOC as AGENT_DOC
+from experiments.agent_table import agent_markdown, agent_table
 from experiments.progress import duration_text
 from experiments.proposition import (
     measured_disagreement,
@@ -352,6 +354,9 @@ def write_report(folder: str | Path, out: str | Path | None = None) -> list[Path
         tables["round-diagnostics"] = diagnostics
         sections["round-diagnostics"] = ("Round diagnostics", DIAGNOSTICS_DOC,
                                          diagnostics_markdown(diagnostics, seeds))
+    agent = agent_table(results)
+    tables["agent"] = agent
+    sections["agent"] = ("How the agents trained", AGENT_DOC, agent_markdown(agent, seeds))
     quality = quality_table(results.folder.parent / "snapshots")
     if len(quality):
         tables["skill-quality"] = quality

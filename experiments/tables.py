@@ -75,7 +75,8 @@ def _join(runs: pd.DataFrame, per_run: pd.DataFrame, columns: list[str]) -> pd.D
     return out
 
 
-def _cells(runs: pd.DataFrame, results: Results) -> Iterator[tuple[dict[str, Any], pd.DataFrame]]:
+def grid_cells(runs: pd.DataFrame, results: Results
+               ) -> Iterator[tuple[dict[str, Any], pd.DataFrame]]:
     """A table's cells: per task, eps and budget, each variant's runs (variants in the spec's
     order, those without runs there left out), with the cell's key columns."""
     for (task, eps, budget), group in runs.groupby(GROUP, sort=False):
@@ -96,7 +97,7 @@ def final_table(results: Results) -> pd.DataFrame:
     """Per task, eps, budget and variant: final return (and success rate) over finished seeds,
     with how many seeds finished of those planned, and the unfinished ones' last evaluation."""
     rows = []
-    for cell_key, sub in _cells(final_returns(results), results):
+    for cell_key, sub in grid_cells(final_returns(results), results):
         done = sub[sub["state"] == "done"]
         r_mean, r_std, n = mean_std(done["final_return"])
         s_mean, s_std, _ = mean_std(done["final_success"])
@@ -134,7 +135,7 @@ def distinguishability_table(results: Results) -> pd.DataFrame:
     runs = results.runs[results.runs["algo"] != "sac"]
     runs = _join(runs, distinguishability_per_run(results), ["distinguishability"])
     rows = []
-    for cell_key, sub in _cells(runs, results):
+    for cell_key, sub in grid_cells(runs, results):
         mean, std, n = mean_std(sub["distinguishability"])
         rows.append(cell_key | {"algo": sub["algo"].iloc[0],
                                 "selection": "/".join(sorted(set(sub["selection"]))),
@@ -173,7 +174,7 @@ def same_agent_table(results: Results) -> pd.DataFrame:
     own and the compared rule's distinguishability on the same agent, pool and reward model."""
     runs = _join(results.runs, same_agent_per_run(results), ["own", "compared"])
     rows = []
-    for cell_key, sub in _cells(runs, results):
+    for cell_key, sub in grid_cells(runs, results):
         own, own_std, n = mean_std(sub["own"])
         if n == 0:
             continue
@@ -230,7 +231,7 @@ def diagnostics_table(results: Results) -> pd.DataFrame:
     have = [c for c in DIAGNOSTICS if c in per_run]
     runs = _join(results.runs[results.runs["algo"] != "sac"], per_run, have)
     rows = []
-    for cell_key, sub in _cells(runs, results):
+    for cell_key, sub in grid_cells(runs, results):
         row = cell_key | {"algo": sub["algo"].iloc[0]}
         for col in have:
             mean, std, _ = mean_std(sub[col])
