@@ -18,6 +18,7 @@ An estimate: runs on another machine, or beside other work, train at other rates
 from __future__ import annotations
 
 import csv
+import heapq
 import json
 import pickle
 import statistics
@@ -245,3 +246,57 @@ def summary(left: Mapping[str, float | None], workers: int, by_rate: int = 0) ->
                      "has the phase clock): likely short, as late steps hold the largest "
                      "feedback rounds")
     return "time left (estimated): " + "; ".join(parts)
+
+
+def seeds_before_stop(hours: float, worked_s: float, workers: int, held: Iterable[float],
+                      queued: Iterable[tuple[int, float]], started: Iterable[int]) -> str:
+    """One line: which queued seeds a wall-time stop rule (`stop_after_hours`,
+    `experiments.stop_rule`) lets start, at these estimates. The grid has trained `worked_s`;
+    `workers` workers hold runs with `held` seconds left and then claim the `queued` runs
+    (seed, seconds left) in the queue's order, each as soon as one comes free. A run of a
+    seed already `started`, or started earlier in this replay, goes ahead whenever it comes; a
+    seed's first run claimed once `hours` are spent leaves that seed out."""
+    free = sorted(held)
+    free = free + [0.0] * max(workers - len(free), 0)  # idle workers claim at once
+    heapq.heapify(free)
+    started = set(started)
+    starting: dict[int, float] = {}
+    left_out: dict[int, float] = {}
+    for seed, seconds in queued:
+        if seed in left_out:
+            continue
+        at = heapq.heappop(free)
+        if seed not in started:
+            if worked_s + at >= hours * 3600:
+                left_out[seed] = worked_s + at
+                heapq.heappush(free, at)
+                continue
+            started.add(seed)
+            starting[seed] = worked_s + at
+        heapq.heappush(free, at + seconds)
+    if not starting and not left_out:
+        return "forecast: every seed has started"
+    said = f"forecast, {workers} worker(s), these estimates: of the seeds not started, "
+    rule = f"the stop rule's {hours:g} h"
+    if starting:
+        last, at = list(starting.items())[-1]
+        said += (f"{_seed_list(list(starting))} start before {rule} (the last, {last}, at "
+                 f"about {duration_text(at)})")
+    else:
+        said += f"none starts before {rule}"
+    if not left_out:
+        return said + ("; none is left out" if starting else "")
+    first, at = next(iter(left_out.items()))
+    return said + (f"; {_seed_list(list(left_out))} left out (seed {first} would start at "
+                   f"about {duration_text(at)})")
+
+
+def _seed_list(seeds: list[int]) -> str:
+    """`10-14, 16`: seeds in runs of consecutive numbers."""
+    spans: list[list[int]] = []
+    for seed in seeds:
+        if spans and seed == spans[-1][-1] + 1:
+            spans[-1].append(seed)
+        else:
+            spans.append([seed])
+    return ", ".join(f"{s[0]}-{s[-1]}" if len(s) > 1 else str(s[0]) for s in spans)

@@ -31,6 +31,7 @@ from experiments.progress import (
     pretraining_left,
     reward_epochs,
     seconds_left,
+    seeds_before_stop,
     summary,
     training_clock,
     training_rate,
@@ -235,14 +236,20 @@ def training_workers(rows: Iterable[Run], now: datetime) -> set[str]:
             and (age := heartbeat_age(row, now)) is not None and age <= SILENT_WORKER_AFTER_S}
 
 
-def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> str:
+TAKEN = (RunStatus.RUNNING, RunStatus.PAUSED, RunStatus.STOPPING, RunStatus.FINISHED)
+"""statuses only a worker's claim leads to (a queued run an operator stops or fails is not)"""
+
+
+def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path,
+                 rule_line: str | None = None) -> str:
     """A table of the spec's runs: their status in the database (or "not queued"), the step
     reached of the planned steps, the worker and how long ago it heartbeat (flagged `silent`
     past `SILENT_WORKER_AFTER_S`, `DEAD` past `DEAD_WORKER_AFTER_S`), whether the folder
     holds a checkpoint (and, inside a round, the reward epoch its training has saved), and
     about how long the run has left to train, its skill pretraining included
     (`experiments.progress`);
-    then the time the grid has left."""
+    then the time the grid has left, and `rule_line` (its stop rule's state) with, while the
+    rule's hours are not spent, which seeds it lets start at these estimates."""
     rows = spec_rows(spec, sessions)
     now = utcnow()
     header = ("task", "variant", "eps", "budget", "seed", "status", "step", "worker",
@@ -292,8 +299,34 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path) -> 
     errors = [f"  {key}: {row.error}" for key, row in sorted(rows.items())
               if row.status is RunStatus.FAILED and row.error]
     period = worked(results / spec.name)
+    ruled = [rule_line] if rule_line else []
+    worked_s = period.seconds if period else 0.0
+    if rule_line and spec.stop_after_hours and worked_s < spec.stop_after_hours * 3600:
+        ruled.append(_stop_forecast(spec, rows, results, left, workers, worked_s))
     return "\n".join([f"{spec.name}: {len(lines)} runs: {summary_line}", *text,
                       summary(left, workers, len(left.by_rate))]
                      + ([period.text(duration_text(period.seconds))] if period else [])
+                     + ruled
                      + (["failed:", *errors] if errors else [])
                      + (["workers gone silent:", *silent] if silent else []))
+
+
+def _stop_forecast(spec: Spec, rows: dict[str, Run], results: Path,
+                   left: dict[str, float | None], workers: int, worked_s: float) -> str:
+    """Which seeds the stop rule lets start (`seeds_before_stop`), the workers training now
+    claiming the queued runs in the queue's order (its claim takes the oldest first)."""
+    assert spec.stop_after_hours is not None
+    if not workers:
+        return "forecast: none while no worker trains"
+    keys = {grid_key(spec, run): run for run in spec.runs()}
+    held = [key for key, row in rows.items() if key in keys and row.status is RunStatus.RUNNING]
+    queued = sorted((row.created_at, row.id, key) for key, row in rows.items()
+                    if key in keys and row.status is RunStatus.QUEUED)
+    if any(left.get(key) is None for key in [*held, *(key for *_, key in queued)]):
+        return "forecast: none yet (a run to come has no estimate)"
+    started = {run.seed for key, run in keys.items()
+               if (results / key).exists() or (key in rows and rows[key].status in TAKEN)}
+    return seeds_before_stop(spec.stop_after_hours, worked_s, workers,
+                             [left[key] or 0.0 for key in held],
+                             [(keys[key].seed, left[key] or 0.0) for *_, key in queued],
+                             started)

@@ -21,14 +21,12 @@ from pathlib import Path
 
 from sqlalchemy.orm import Session, sessionmaker
 
-from experiments.queue import grid_key, spec_rows
+from experiments.queue import TAKEN, grid_key, spec_rows
 from experiments.sessions import worked
 from experiments.spec import Spec
 from labelqueue import InvalidTransition, RunStatus, set_run_status
 
 FILE = "stop_rule.json"
-TAKEN = (RunStatus.RUNNING, RunStatus.PAUSED, RunStatus.STOPPING, RunStatus.FINISHED)
-"""statuses only a worker's claim leads to (a queued run an operator stops or fails is not)"""
 
 
 @dataclass(frozen=True)

@@ -224,10 +224,9 @@ def _status(spec, results: pathlib.Path, url: str | None) -> int:  # type: ignor
         engine = make_engine(url)
         try:
             sessions = session_factory(engine)
-            say(status_table(spec, sessions, results))
             rule = stop_rule(spec, sessions, results)
-            if rule is not None:
-                say(rule.text(duration_text))
+            say(status_table(spec, sessions, results,
+                             rule.text(duration_text) if rule is not None else None))
         finally:
             engine.dispose()
     if current != head:

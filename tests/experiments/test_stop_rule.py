@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from experiments.launch import default_database, run_experiment
+from experiments.progress import seeds_before_stop
 from experiments.queue import grid_key, spec_rows
 from experiments.sessions import FILE as SESSIONS
 from experiments.spec import SpecError, load_spec
@@ -61,7 +62,8 @@ def statuses(spec, sessions) -> dict[tuple[str, int], str]:  # type: ignore[no-u
             for run in spec.runs()}
 
 
-def test_before_the_hours_are_spent_nothing_is_stopped(grid) -> None:  # type: ignore[no-untyped-def]
+def test_before_the_hours_are_spent_nothing_is_stopped(  # type: ignore[no-untyped-def]
+        grid, capsys: pytest.CaptureFixture[str]) -> None:
     spec_path, spec, results, sessions = grid
     sessions_worked(results / "ruled", 1.5)
     rule = apply_stop_rule(spec, sessions, results, echo=lambda line: None)
@@ -70,6 +72,29 @@ def test_before_the_hours_are_spent_nothing_is_stopped(grid) -> None:  # type: i
     assert not (results / "ruled" / FILE).exists()
     assert rule.text(lambda s: f"{s / 3600:g} h") == (
         "stop rule: no seed starts after 2 h of the workers' training; 1.5 h spent")
+    assert main(["experiment", "status", str(spec_path), "--results", str(results)]) == 0
+    assert capsys.readouterr().out.splitlines()[-2:] == [
+        "stop rule: no seed starts after 2 h of the workers' training; 1h30m spent",
+        "forecast: none while no worker trains"]
+
+
+def test_the_forecast_replays_the_queue_on_the_workers_as_they_come_free() -> None:
+    hour = 3600.0
+    # 1 h worked of 3; two workers hold runs with 0.5 h and 1 h left; the queue: seed 1's
+    # second run (1 h; seed 1 started), then seeds 2, 3, 4 (two 1 h runs each).
+    queued = [(1, hour)] + [(seed, hour) for seed in (2, 3, 4) for _ in range(2)]
+    said = seeds_before_stop(3, 1 * hour, 2, [0.5 * hour, hour], queued, started={1})
+    # Seed 1's run at 1.5 h, seed 2 at 2 h and 2.5 h, seed 3's first claim at 3 h: left out,
+    # and seed 4 after it.
+    assert said == ("forecast, 2 worker(s), these estimates: of the seeds not started, 2 "
+                    "start before the stop rule's 3 h (the last, 2, at about 2h00m); 3-4 left "
+                    "out (seed 3 would start at about 3h00m)")
+    assert seeds_before_stop(10, 0, 2, [], queued, started={1}).endswith(
+        "2-4 start before the stop rule's 10 h (the last, 4, at about 2h00m); none is left out")
+    assert seeds_before_stop(3, 3.5 * hour, 1, [hour], [(5, hour)], started=()).endswith(
+        "none starts before the stop rule's 3 h; 5 left out (seed 5 would start at about 4h30m)")
+    assert seeds_before_stop(3, hour, 1, [hour], [(1, hour)], started={1}) == (
+        "forecast: every seed has started")
 
 
 def test_spent_hours_stop_the_seeds_not_started_and_the_started_ones_finish(
