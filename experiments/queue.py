@@ -240,6 +240,18 @@ TAKEN = (RunStatus.RUNNING, RunStatus.PAUSED, RunStatus.STOPPING, RunStatus.FINI
 """statuses only a worker's claim leads to (a queued run an operator stops or fails is not)"""
 
 
+def started_seeds(spec: Spec, rows: dict[str, Run], results: Path) -> set[int]:
+    """Seeds with a run that a worker has taken (`rows`: the spec's runs in the queue): its
+    folder exists, or it is held or ended."""
+    started = set()
+    for run in spec.runs():
+        key = grid_key(spec, run)
+        row = rows.get(key)
+        if (results / key).exists() or (row is not None and row.status in TAKEN):
+            started.add(run.seed)
+    return started
+
+
 def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path,
                  rule_line: str | None = None) -> str:
     """A table of the spec's runs: their status in the database (or "not queued"), the step
@@ -324,9 +336,7 @@ def _stop_forecast(spec: Spec, rows: dict[str, Run], results: Path,
                     if key in keys and row.status is RunStatus.QUEUED)
     if any(left.get(key) is None for key in [*held, *(key for *_, key in queued)]):
         return "forecast: none yet (a run to come has no estimate)"
-    started = {run.seed for key, run in keys.items()
-               if (results / key).exists() or (key in rows and rows[key].status in TAKEN)}
     return seeds_before_stop(spec.stop_after_hours, worked_s, workers,
                              [left[key] or 0.0 for key in held],
                              [(keys[key].seed, left[key] or 0.0) for *_, key in queued],
-                             started)
+                             started_seeds(spec, rows, results))

@@ -21,10 +21,10 @@ from pathlib import Path
 
 from sqlalchemy.orm import Session, sessionmaker
 
-from experiments.queue import TAKEN, grid_key, spec_rows
+from experiments.queue import grid_key, spec_rows, started_seeds
 from experiments.sessions import worked
 from experiments.spec import Spec
-from labelqueue import InvalidTransition, RunStatus, set_run_status
+from labelqueue import InvalidTransition, Run, RunStatus, set_run_status
 
 FILE = "stop_rule.json"
 
@@ -51,18 +51,6 @@ class StopRule:
         return f"{rule}; reached ({duration(self.worked_s)} spent): seeds not started: {left_out}"
 
 
-def started_seeds(spec: Spec, sessions: sessionmaker[Session], results: Path) -> set[int]:
-    """Seeds with a run that a worker has taken: its folder exists, or it is held or ended."""
-    rows = spec_rows(spec, sessions)
-    started = set()
-    for run in spec.runs():
-        key = grid_key(spec, run)
-        row = rows.get(key)
-        if (results / key).exists() or (row is not None and row.status in TAKEN):
-            started.add(run.seed)
-    return started
-
-
 def recorded_stop_rule(spec: Spec, folder: Path, now: datetime | None = None
                        ) -> StopRule | None:
     """The spec's stop rule as the grid's folder records it (its sessions and the seeds left
@@ -81,13 +69,15 @@ def recorded_stop_rule(spec: Spec, folder: Path, now: datetime | None = None
 
 
 def stop_rule(spec: Spec, sessions: sessionmaker[Session], results: Path,
-              now: datetime | None = None) -> StopRule | None:
+              now: datetime | None = None, rows: dict[str, Run] | None = None
+              ) -> StopRule | None:
     """Where the spec's stop rule stands: the seeds it leaves out are those not started when
-    the hours were first found spent; None for a spec without one."""
+    the hours were first found spent; None for a spec without one. `rows`: the spec's runs in
+    the queue where the caller has read them."""
     rule = recorded_stop_rule(spec, results / spec.name, now)
     if rule is None or not rule.reached or rule.recorded:
         return rule
-    started = started_seeds(spec, sessions, results)
+    started = started_seeds(spec, spec_rows(spec, sessions) if rows is None else rows, results)
     return StopRule(rule.hours, rule.worked_s,
                     tuple(sorted({run.seed for run in spec.runs()} - started)))
 
@@ -96,10 +86,12 @@ def apply_stop_rule(spec: Spec, sessions: sessionmaker[Session], results: Path,
                     echo: Callable[[str], None]) -> StopRule | None:
     """Once the spec's hours are spent: stop every queued run of the seeds not started, and
     record them (the first time, with when). The rule as it stands; None without one."""
-    rule = stop_rule(spec, sessions, results)
+    rule = recorded_stop_rule(spec, results / spec.name)
     if rule is None or not rule.reached:
         return rule
     rows = spec_rows(spec, sessions)
+    rule = stop_rule(spec, sessions, results, rows=rows)
+    assert rule is not None
     stopped, raced = 0, set()
     for seed in rule.seeds_not_started:
         queued = [row for run in spec.runs() if run.seed == seed
