@@ -3,14 +3,17 @@
 stop rule in wall time ("no seed starts after 10 h") can be read off `sepoa experiment status`
 across sessions and restarts, with the time between them, when nothing ran, left out.
 
-A launcher killed outright (SIGKILL, the machine lost) leaves its row without an end: it counts
-up to now while it is the newest row (the launcher may still run), and not at all once a later
-session has begun, which `worked` says.
+While it runs, a launcher writes the time into its row's `alive_at` every `BEAT_S`. One killed
+outright (SIGKILL, the machine lost) leaves its row without an end, and it counts up to its last
+`alive_at`; the newest row counts up to now while its `alive_at` is recent (the launcher runs).
+A row without an end or an `alive_at` (written before the column existed) counts up to now while
+it is the newest, and not at all once a later session has begun, which `worked` says.
 """
 
 from __future__ import annotations
 
 import csv
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -18,7 +21,11 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 FILE = "sessions.csv"
-FIELDS = ("started_at", "ended_at", "workers", "threads", "ended_by")
+FIELDS = ("started_at", "ended_at", "workers", "threads", "ended_by", "alive_at")
+BEAT_S = 60.0
+"""how often a running launcher writes `alive_at`"""
+RUNNING_WITHIN_S = 3 * BEAT_S
+"""an unended newest row whose `alive_at` is older than this was killed: it runs no more"""
 
 
 def _rows(path: Path) -> list[dict[str, str]]:
@@ -31,7 +38,7 @@ def _rows(path: Path) -> list[dict[str, str]]:
 def _write(path: Path, rows: list[dict[str, str]]) -> None:
     tmp = path.with_suffix(".tmp")
     with tmp.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=FIELDS)
+        writer = csv.DictWriter(f, fieldnames=FIELDS, restval="")
         writer.writeheader()
         writer.writerows(rows)
     tmp.replace(path)
@@ -47,25 +54,47 @@ class Session:
         self.ended_by = ended_by
 
 
+def _stamp() -> str:
+    return datetime.now(UTC).isoformat(timespec="seconds")
+
+
 @contextmanager
 def recorded_session(folder: Path, *, workers: int, threads: int,
-                     now: datetime | None = None) -> Iterator[Session]:
+                     now: datetime | None = None, beat_s: float = BEAT_S) -> Iterator[Session]:
     """Record a training period of the grid whose results are in `folder`: its row is written
-    as it starts and given its end as it ends, however it ends."""
+    as it starts, its `alive_at` every `beat_s` while it runs, and its end as it ends, however
+    it ends."""
     path = folder / FILE
     started = (now or datetime.now(UTC)).isoformat(timespec="seconds")
     _write(path, [*_rows(path), {"started_at": started, "ended_at": "", "workers": str(workers),
-                                 "threads": str(threads), "ended_by": ""}])
+                                 "threads": str(threads), "ended_by": "", "alive_at": started}])
+    lock, done = threading.Lock(), threading.Event()
+
+    def update(**fields: str) -> None:
+        with lock:
+            rows = _rows(path)
+            for row in rows:
+                if row["started_at"] == started and not row["ended_at"]:
+                    row.update(fields)
+            _write(path, rows)
+
+    def beat() -> None:
+        while not done.wait(beat_s):
+            try:
+                update(alive_at=_stamp())
+            except OSError:  # a full disk: the next beat tries again; the end is still written
+                pass
+
+    beating = threading.Thread(target=beat, name="session-beat", daemon=True)
+    beating.start()
     session = Session()
     try:
         yield session
     finally:
-        rows = _rows(path)
-        for row in rows:
-            if row["started_at"] == started and not row["ended_at"]:
-                row["ended_at"] = datetime.now(UTC).isoformat(timespec="seconds")
-                row["ended_by"] = session.ended_by
-        _write(path, rows)
+        done.set()
+        beating.join()
+        stamp = _stamp()
+        update(ended_at=stamp, alive_at=stamp, ended_by=session.ended_by)
 
 
 @dataclass(frozen=True)
@@ -76,7 +105,8 @@ class Worked:
     running_since: datetime | None
     """the newest session's start, while it has no end (it runs, or was killed outright)"""
     unended: int
-    """older sessions without an end (killed outright): not counted"""
+    """sessions without an end and not running (killed outright): counted up to their last
+    `alive_at`, or not at all without one"""
 
     def text(self, duration: str) -> str:
         """One line for `sepoa experiment status`, `duration` the seconds written out."""
@@ -85,8 +115,8 @@ class Worked:
         if self.running_since is not None:
             line += f", the last running since {self.running_since:%Y-%m-%d %H:%M} UTC"
         if self.unended:
-            line += (f"; {self.unended} earlier session(s) ended without a record (killed "
-                     "outright): not counted")
+            line += (f"; {self.unended} session(s) ended without a record (killed outright): "
+                     "counted up to their last sign of life, where they left one")
         return line
 
 
@@ -99,11 +129,16 @@ def worked(folder: Path, now: datetime | None = None) -> Worked | None:
     seconds, unended, running = 0.0, 0, None
     for i, row in enumerate(rows):
         start = datetime.fromisoformat(row["started_at"])
+        alive = datetime.fromisoformat(row["alive_at"]) if row.get("alive_at") else None
+        newest = i == len(rows) - 1
         if row["ended_at"]:
             seconds += (datetime.fromisoformat(row["ended_at"]) - start).total_seconds()
-        elif i == len(rows) - 1:
+        elif newest and (alive is None
+                         or (now - alive).total_seconds() <= RUNNING_WITHIN_S):
             seconds += max((now - start).total_seconds(), 0.0)
             running = start
         else:
             unended += 1
+            if alive is not None:
+                seconds += max((alive - start).total_seconds(), 0.0)
     return Worked(seconds, len(rows), running, unended)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import signal
+import time
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
@@ -30,13 +31,18 @@ algo = "sac"
 """
 
 
-def write_sessions(folder: Path, rows: list[tuple[datetime, datetime | None, str]]) -> None:
+def write_sessions(folder: Path, rows: list[tuple[datetime, datetime | None, str]],
+                   alive: list[datetime] | None = None) -> None:
+    """sessions.csv with `rows` (start, end, how it ended); without `alive` in the file's first
+    form, which had no `alive_at`."""
     folder.mkdir(parents=True, exist_ok=True)
     with (folder / FILE).open("w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["started_at", "ended_at", "workers", "threads", "ended_by"])
-        for start, end, by in rows:
-            writer.writerow([start.isoformat(), end.isoformat() if end else "", 2, 1, by])
+        writer.writerow(["started_at", "ended_at", "workers", "threads", "ended_by"]
+                        + (["alive_at"] if alive else []))
+        for i, (start, end, by) in enumerate(rows):
+            writer.writerow([start.isoformat(), end.isoformat() if end else "", 2, 1, by]
+                            + ([alive[i].isoformat()] if alive else []))
 
 
 def test_the_time_between_sessions_is_not_counted(tmp_path: Path) -> None:
@@ -58,7 +64,33 @@ def test_an_unended_session_counts_to_now_only_while_it_is_the_newest(tmp_path: 
         3600, T0 + timedelta(hours=3), 1)
     text = period.text("1h00m")
     assert "1h00m over 2 session(s)" in text and "running since 2026-11-28 11:00" in text
-    assert "1 earlier session(s) ended without a record" in text
+    assert "1 session(s) ended without a record" in text
+
+
+def test_a_killed_session_counts_up_to_its_last_sign_of_life(tmp_path: Path) -> None:
+    write_sessions(tmp_path, [(T0, None, ""), (T0 + timedelta(hours=3), None, "")],
+                   alive=[T0 + timedelta(minutes=90), T0 + timedelta(hours=4)])
+    # At 4 h 02 min the newest beat 2 min ago: it runs, and counts up to now.
+    period = worked(tmp_path, now=T0 + timedelta(hours=4, minutes=2))
+    assert period is not None
+    assert (period.seconds, period.running_since, period.unended) == (
+        90 * 60 + 62 * 60, T0 + timedelta(hours=3), 1)
+    # An hour later it has not beaten since: killed too, counted up to its last beat.
+    period = worked(tmp_path, now=T0 + timedelta(hours=5))
+    assert period is not None
+    assert (period.seconds, period.running_since, period.unended) == (90 * 60 + 3600, None, 2)
+
+
+def test_a_running_session_beats(tmp_path: Path) -> None:
+    with recorded_session(tmp_path, workers=2, threads=1, now=T0, beat_s=0.02):
+        deadline = time.monotonic() + 10
+        while (alive := list(csv.DictReader((tmp_path / FILE).open()))[0]["alive_at"]) \
+                == T0.isoformat():
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        assert datetime.fromisoformat(alive) > T0
+    [row] = list(csv.DictReader((tmp_path / FILE).open()))
+    assert row["ended_at"] == row["alive_at"] and row["ended_by"] == "error"
 
 
 def test_a_session_records_its_end_however_it_ends(tmp_path: Path) -> None:
