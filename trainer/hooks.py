@@ -28,9 +28,15 @@ class RunHooks:
         after a checkpoint. May block, e.g. while an operator has the run paused."""
         return False
 
-    def pretraining(self, step: int) -> None:
+    def pretraining(self, step: int) -> bool:
         """Called after each step of the skill pretraining an S-EPOA run does first when its
-        snapshot is missing (keep it cheap)."""
+        snapshot is missing (keep it cheap). True: leave the pretraining at the end of this
+        episode, its progress saved (`trainer.skills.pretrain.PretrainingLeft`)."""
+        return False
+
+    def waiting_for_snapshot(self) -> None:
+        """Called about every second while another process pretrains the snapshot this run
+        needs (keep it cheap); may raise to leave, as nothing of this run's is to save."""
 
     def reward_epoch(self, step: int) -> bool:
         """Called after each epoch of a round's reward-model training, which can take many

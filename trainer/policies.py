@@ -261,7 +261,7 @@ def _load_skill_agent(cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.
               f"{cfg.skill.pretrain_steps} steps first", file=sys.stderr, flush=True)
         # Once per snapshot: other runs needing it (other workers too) wait, heartbeating.
         pretrain_once(dataclasses.replace(cfg, seed=snapshot_seed(cfg)), path,
-                      tick=hooks.pretraining, waiting=lambda: hooks.pretraining(0))
+                      tick=hooks.pretraining, waiting=hooks.waiting_for_snapshot)
         set_seed(cfg.seed)  # the online run starts from the same state as with a snapshot at hand
     snapshot = load_snapshot(path, cfg.task, cfg.skill.backend)
     agent, backend = build_skill_agent(cfg, obs_dim, act_dim, device, snapshot)

@@ -89,7 +89,8 @@ class LostRun(Exception):
 
 
 class Interrupted(Exception):
-    """Told to go where no checkpoint can be written (while a skill snapshot is pretrained)."""
+    """Told to go where this run has nothing to checkpoint (waiting while another worker
+    pretrains the skill snapshot it needs)."""
 
 
 def queue_fields(q: Query, position: int,
@@ -220,12 +221,13 @@ class QueueHooks(RunHooks):
             print(f"[worker {self.worker.worker_id}] run {self.run_id}: {self.departure.name} "
                   f"{where}, then releasing the run", file=sys.stderr, flush=True)
 
-    def pretraining(self, step: int) -> None:
+    def pretraining(self, step: int) -> bool:
         # Heartbeats keep the run ours while its skill snapshot is made (minutes to hours);
-        # pause and stop wait for the online phase, which can checkpoint. Its pace, for the
-        # estimate the run page and the label page show (`runviews.activity`).
-        if self.departure.due:
-            raise Interrupted(f"{self.departure.name} while pretraining the skill snapshot")
+        # pause and stop wait for the online phase. Told to go, the pretraining leaves at the
+        # end of its episode with its progress saved. Its pace, for the estimate the run page
+        # and the label page show (`runviews.activity`).
+        self._announce_departure("while pretraining the skill snapshot: leaving at the end of "
+                                 "this episode with the pretraining's progress saved")
         now = time.monotonic()
         if step > 0 and self.pretrain_start is None:
             self.pretrain_start = (now, step)
@@ -234,6 +236,13 @@ class QueueHooks(RunHooks):
         if self.pretrain_start is not None and now > self.pretrain_start[0] + 1:
             self.progress["pretraining_fps"] = ((step - self.pretrain_start[1])
                                                 / (now - self.pretrain_start[0]))
+        self.beat(0)
+        return self.departure.due
+
+    def waiting_for_snapshot(self) -> None:
+        if self.departure.due:
+            raise Interrupted(f"{self.departure.name} while waiting for another worker's "
+                              "pretraining of the skill snapshot")
         self.beat(0)
 
     def started(self, step: int, next_round_at: Callable[[], int] | None) -> None:

@@ -17,7 +17,8 @@ operator, mirror metrics, and push each round's queries and take their answers f
 
 A worker told to go (SIGTERM: `kill`, `scancel`, a scheduler's preemption, its launcher's stop;
 SIGUSR1: the warning Slurm sends before the time limit with `--signal`) ends its run at the end
-of the current episode, after a checkpoint, and releases it (`labelqueue.release_run`): the run
+of the current episode, after a checkpoint (or, while the run pretrains its skill snapshot,
+after saving the pretraining's progress), and releases it (`labelqueue.release_run`): the run
 is queued again at once, and the next worker resumes it from that checkpoint without waiting
 for the heartbeat timeout. Told inside a round's reward training, which can outlast the
 warning, it leaves after the current reward epoch with that training saved
@@ -67,6 +68,7 @@ from trainer.dataset_labelling import DatasetLabelling
 from trainer.departure import Departure, leave_on_signals
 from trainer.loop import CHECKPOINT, TrainingRun
 from trainer.queue_hooks import SCRIPTED_LABELLER, Interrupted, LostRun, QueueHooks
+from trainer.skills.pretrain import PretrainingLeft
 from trainer.worker_config import WorkerConfig
 
 DONE, FAILED, STOPPED = "done.json", "failed.json", "stopped.json"
@@ -137,6 +139,9 @@ def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerC
     except Interrupted as err:
         return _release(sessions, run.id, worker, f"{log}: {err}; released without a new "
                         "checkpoint")
+    except PretrainingLeft as err:
+        return _release(sessions, run.id, worker, f"{log}: {departure.name}: {err}; released, "
+                        "and the next worker goes on from there")
     except Exception as err:  # noqa: BLE001 - any failure ends the run as failed, with why
         traceback.print_exc()
         error = f"{type(err).__name__}: {err}"

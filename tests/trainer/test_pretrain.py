@@ -290,12 +290,15 @@ def test_a_pretraining_checkpoint_of_other_settings_or_unreadable_is_refused_by_
         SkillPretraining(_tiny("aps"), out=out, progress=False)
 
 
-def test_a_run_stopped_while_pretraining_its_snapshot_goes_on_from_the_last_checkpoint(
+def test_a_run_told_to_go_while_pretraining_saves_its_progress_at_the_episodes_end(
         tmp_path):
-    """A worker told to go while an S-EPOA run pretrains its snapshot leaves the run; the next
-    worker's run pretrains on from where the first checkpointed, not from step 0."""
+    """A worker told to go while an S-EPOA run pretrains its snapshot leaves at the end of the
+    episode with the pretraining's progress saved; the next worker's run pretrains on from
+    there, not from its last periodic checkpoint or step 0, to the snapshot an uninterrupted
+    pretraining writes."""
     from trainer.hooks import RunHooks
     from trainer.loop import TrainingRun
+    from trainer.skills.pretrain import PretrainingLeft
 
     class Departing(RunHooks):
         def __init__(self, leave_at: int | None):
@@ -304,21 +307,29 @@ def test_a_run_stopped_while_pretraining_its_snapshot_goes_on_from_the_last_chec
 
         def pretraining(self, step):
             self.steps.append(step)
-            if step == self.leave_at:
-                raise Stopped
+            return self.leave_at is not None and step >= self.leave_at
 
-    cfg = build_config("dmc:cheetah_run", "tiny", {
-        "algo": "sepoa", "steps": 10, "run_dir": str(tmp_path / "run"), "threads": 1,
-        "checkpoint_every": 100, "skill.snapshot": str(tmp_path / "skills.pt")})
+    settings = {"algo": "sepoa", "steps": 10, "threads": 1, "skill.pretrain_steps": 700,
+                "checkpoint_every": 100_000}  # no periodic checkpoint within the pretraining
+    cfg = build_config("dmc:cheetah_run", "tiny", settings | {
+        "run_dir": str(tmp_path / "run"), "skill.snapshot": str(tmp_path / "skills.pt")})
     first = Departing(leave_at=250)
-    with pytest.raises(Stopped):
+    with pytest.raises(PretrainingLeft, match="left at step 400 of 700"):
         TrainingRun(cfg, progress=False, hooks=first)
+    assert first.steps[-1] == 400  # the end of the episode it was told in (200 steps each)
     assert os.path.exists(tmp_path / "skills.pt.partial")
     second = Departing(leave_at=None)
     TrainingRun(cfg, progress=False, hooks=second)
-    assert second.steps == list(range(201, cfg.skill.pretrain_steps + 1))  # on from 200
-    assert os.path.exists(tmp_path / "skills.pt")
+    assert second.steps == list(range(401, 701))  # on from 400
     assert not os.path.exists(tmp_path / "skills.pt.partial")
+    straight = build_config("dmc:cheetah_run", "tiny", settings | {
+        "run_dir": str(tmp_path / "straight"), "skill.snapshot": str(tmp_path / "straight.pt")})
+    TrainingRun(straight, progress=False)
+    ours, theirs = _snapshot_tensors(tmp_path / "skills.pt"), _snapshot_tensors(
+        tmp_path / "straight.pt")
+    assert ours.keys() == theirs.keys() and len(ours) > 10
+    for name, tensor in ours.items():
+        assert torch.equal(tensor, theirs[name]), name  # bit for bit
 
 
 def test_a_snapshot_a_longer_pretraining_wrote_on_its_way_is_taken_for_a_shorter_one(

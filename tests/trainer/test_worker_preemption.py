@@ -144,6 +144,45 @@ def test_a_worker_told_to_go_inside_a_round_saves_its_reward_training_and_releas
     assert round_accuracies(run_dir) == round_accuracies(reference)
 
 
+def test_a_worker_told_to_go_while_pretraining_saves_the_pretrainings_progress(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """An S-EPOA run's skill pretraining can take hours. Told to go in it, the worker leaves at
+    the end of the episode with the pretraining's progress saved and releases the run; the
+    next worker pretrains on from there."""
+    config = {"steps": 200, "threads": 1, "skill.pretrain_steps": 700,
+              "checkpoint_every": 100_000}  # no periodic checkpoint within the pretraining
+    url, sessions = database(tmp_path)
+    with sessions() as session:
+        run = create_run(session, name="preempted while pretraining", teacher="scripted",
+                         **RUN | {"algo": "sepoa", "config": config})
+    pretraining = QueueHooks.pretraining
+
+    def told_to_go_at_250(self: QueueHooks, step: int) -> bool:
+        if step == 250:
+            self.departure.signum = signal.SIGTERM
+        return pretraining(self, step)
+
+    monkeypatch.setattr(QueueHooks, "pretraining", told_to_go_at_250)
+    data = tmp_path / "data"
+    assert run_worker(worker_config(url, data, worker_id="w1")) == 1
+    err = capsys.readouterr().err
+    assert (f"run {run.id}: SIGTERM while pretraining the skill snapshot: leaving at the end of "
+            "this episode with the pretraining's progress saved, then releasing the run") in err
+    assert re.search(rf"run {run.id}: SIGTERM: pretraining left at step 400 of 700, its "
+                     r"progress saved in \S+\.pt\.partial; released, and the next worker goes "
+                     r"on from there \(now queued\)", err), err
+    released = run_row(sessions, run.id)
+    assert released.status is RunStatus.QUEUED and released.worker_id is None
+    [partial] = (data / "snapshots").glob("*.pt.partial")
+
+    monkeypatch.setattr(QueueHooks, "pretraining", pretraining)
+    assert run_worker(worker_config(url, data, worker_id="w2")) == 1
+    assert "pretraining goes on from step 400 of 700" in capsys.readouterr().err
+    assert run_row(sessions, run.id).status is RunStatus.FINISHED
+    assert not partial.exists() and partial.with_suffix("").exists()
+
+
 def test_slurms_warning_before_the_time_limit_ends_an_idle_worker_cleanly(
         tmp_path: Path) -> None:
     """SIGUSR1 (`--signal=B:USR1@...`) is a departure like SIGTERM, not a crash (its default

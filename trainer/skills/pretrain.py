@@ -172,17 +172,23 @@ def load_snapshot(path: str, expected_task: str, expected_backend: str | None = 
     return snap
 
 
+class PretrainingLeft(Exception):
+    """Told to leave (`tick` returned True): the pretraining stopped at an episode's end with
+    its progress saved, and the next pretraining of its settings goes on from there."""
+
+
 class SkillPretraining:
     """One pretraining run: the env, the agent, the backend and the replay buffer; `run()`
     trains and writes the snapshot."""
 
     def __init__(self, cfg: RunConfig, out: str | None = None, progress: bool = True,
-                 tick: Callable[[int], None] | None = None, quality_skills: int = 50,
+                 tick: Callable[[int], bool | None] | None = None, quality_skills: int = 50,
                  snapshots_at: tuple[int, ...] = ()):
         cfg = check_pretrain_config(cfg)
         self.cfg, self.progress = cfg, progress
         self.tick = tick
-        """called with the step after every step (a worker heartbeats from it)"""
+        """called with the step after every step (a worker heartbeats from it); True: leave at
+        the end of this episode, the progress saved (`PretrainingLeft`)"""
         self.quality_skills = quality_skills
         """random skills whose task return is measured beside each snapshot (0: none)"""
         if quality_skills and quality_skills < quality.TOP:
@@ -286,7 +292,7 @@ class SkillPretraining:
         start = time.time()
         bar = tqdm(total=s.pretrain_steps, initial=self.step, disable=not self.progress,
                    dynamic_ncols=True, unit="step")
-        obs, new_episode = env.reset(), True
+        obs, new_episode, leaving = env.reset(), True, False
         while self.step < s.pretrain_steps:
             if new_episode or self.step % s.update_skill_every == 0:
                 skill = self.backend.sample_skills(rng, 1)[0]
@@ -303,8 +309,8 @@ class SkillPretraining:
             if self.step > s.seed_steps and self.step % s.update_every == 0:
                 updates.append(self._update())
             bar.update(1)
-            if self.tick is not None:
-                self.tick(self.step)
+            if self.tick is not None and self.tick(self.step):
+                leaving = True
             if result.done:
                 self.episode += 1
                 row = {"step": self.step, "episode": self.episode, "return": episode_return,
@@ -315,8 +321,14 @@ class SkillPretraining:
                     bar.set_postfix(r_int=f"{row['intrinsic_reward']:.3f}", refresh=False)
                 updates, episode_return = [], 0.0
                 self._intermediate_snapshots()
-                if self.checkpoints.due(self.step) and self.step < s.pretrain_steps:
+                if (self.checkpoints.due(self.step) or leaving) and self.step < s.pretrain_steps:
                     self._save_progress()  # before the reset, whose RNG draws it keeps
+                if leaving and self.step < s.pretrain_steps:
+                    bar.close()
+                    env.close()
+                    raise PretrainingLeft(f"pretraining left at step {self.step} of "
+                                          f"{s.pretrain_steps}, its progress saved in "
+                                          f"{self.progress_file}")
                 obs, new_episode = env.reset(), True
         bar.close()
         env.close()
@@ -358,18 +370,19 @@ def _differences(saved: dict, ours: dict, prefix: str = "") -> list[str]:
 
 
 def pretrain(cfg: RunConfig, out: str | None = None, progress: bool = True,
-             tick: Callable[[int], None] | None = None, quality_skills: int = 50,
+             tick: Callable[[int], bool | None] | None = None, quality_skills: int = 50,
              snapshots_at: tuple[int, ...] = ()) -> str:
     """Pretrain skills for `cfg.task` with `cfg.skill`; returns the snapshot's path (`out`, by
     default `default_snapshot_path(cfg)`). Refuses to overwrite an existing snapshot; goes on
     from `<out>.partial` where an unfinished pretraining left one. `tick` is called with the
-    step after every step. Beside each snapshot (the final one and those at `snapshots_at`)
-    goes the task return of `quality_skills` random skills against random actions
-    (`trainer.skills.quality`)."""
+    step after every step; where it returns True, the pretraining leaves at the end of the
+    episode with its progress saved (`PretrainingLeft`). Beside each snapshot (the final one
+    and those at `snapshots_at`) goes the task return of `quality_skills` random skills
+    against random actions (`trainer.skills.quality`)."""
     return SkillPretraining(cfg, out, progress, tick, quality_skills, snapshots_at).run()
 
 
-def pretrain_once(cfg: RunConfig, path: str, tick: Callable[[int], None] | None = None,
+def pretrain_once(cfg: RunConfig, path: str, tick: Callable[[int], bool | None] | None = None,
                   waiting: Callable[[], None] | None = None, poll_seconds: float = 1.0) -> bool:
     """Make the snapshot at `path` unless it exists: under a lock on `<path>.lock`, so that of
     the processes (workers, hosts sharing the folder) needing one snapshot, one pretrains it and
