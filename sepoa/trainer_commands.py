@@ -79,18 +79,46 @@ def _steps_list(text: str) -> tuple[int, ...]:
 
 
 def _run_pretrain(args: argparse.Namespace) -> int:
+    import signal
     import time
 
     from runvocab.config import build_config, overrides_from_args
+    from trainer.departure import LEAVE_SIGNALS, Departure
     from trainer.envs import UnknownTaskError
-    from trainer.skills.pretrain import pretrain
+    from trainer.skills.pretrain import PretrainingLeft, pretrain
+
+    # Told to go (SIGTERM, Slurm's SIGUSR1, a first Ctrl-C), the pretraining leaves at the end
+    # of its episode with its progress saved, for the same command to go on from; a second
+    # signal stops it at once.
+    departure = Departure()
+
+    def leave(signum: int, _frame: object) -> None:
+        departure.signum = signum
+        for sig in LEAVE_SIGNALS:
+            signal.signal(sig, signal.SIG_DFL)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    for sig in (*LEAVE_SIGNALS, signal.SIGINT):
+        signal.signal(sig, leave)
+
+    def tick(step: int) -> bool:
+        if departure.due and not departure.announced:
+            departure.announced = True
+            print(f"sepoa pretrain: {departure.name} at step {step}: leaving at the end of this "
+                  "episode with the progress saved (again to stop at once)", file=sys.stderr,
+                  flush=True)
+        return departure.due
 
     start = time.time()
     try:
         cfg = build_config(args.task or "dmc:cheetah_run", args.preset or "paper",
                            overrides_from_args(args))
-        path = pretrain(cfg, out=args.out, progress=not args.no_progress,
+        path = pretrain(cfg, out=args.out, progress=not args.no_progress, tick=tick,
                         quality_skills=args.quality_skills, snapshots_at=args.snapshots_at)
+    except PretrainingLeft as err:
+        print(f"sepoa pretrain: {err}; the same command goes on from there", file=sys.stderr,
+              flush=True)
+        return 128 + (departure.signum or 0)
     except (ValueError, UnknownTaskError, FileExistsError) as err:
         return fail(str(err))
     seconds = time.time() - start

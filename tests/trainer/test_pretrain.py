@@ -6,8 +6,10 @@ import dataclasses
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -59,6 +61,47 @@ def test_cli_pretrain_writes_a_plain_snapshot_with_its_metrics(tmp_path):
     again = subprocess.run(out.args, capture_output=True, text=True, timeout=300, cwd=tmp_path,
                            env=env)
     assert again.returncode == 2 and "exists already" in again.stderr
+
+
+def test_cli_pretrain_told_to_go_saves_its_progress_and_the_same_command_goes_on(tmp_path):
+    env = os.environ | {"PYTHONPATH": REPO, "MUJOCO_GL": "egl"}
+    command = [sys.executable, "-m", "sepoa.cli", "pretrain", "--task", "dmc:cheetah_run",
+               "--preset", "tiny", "--steps", "100000", "--checkpoint_every", "1000000",
+               "--threads", "1", "--no-progress", "--quality-skills", "0", "--out", "s.pt"]
+    first = subprocess.Popen(command, cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while _last_step(tmp_path / "s.csv") == 0:  # an episode ended
+        assert first.poll() is None and time.monotonic() < deadline
+        time.sleep(0.1)
+    first.send_signal(signal.SIGTERM)
+    _, err = first.communicate(timeout=120)
+    assert first.returncode == 128 + signal.SIGTERM, err
+    lines = err.strip().splitlines()
+    assert re.fullmatch(r"sepoa pretrain: SIGTERM at step \d+: leaving at the end of this "
+                        r"episode with the progress saved \(again to stop at once\)", lines[-2])
+    left = re.fullmatch(r"sepoa pretrain: pretraining left at step (\d+) of 100000, its "
+                        r"progress saved in s\.pt\.partial; the same command goes on from "
+                        r"there", lines[-1])
+    assert left is not None, err
+    step = int(left.group(1))
+    assert step % 200 == 0 and (tmp_path / "s.pt.partial").exists()
+    # The same command goes on from that step.
+    again = subprocess.Popen(command, cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+    while _last_step(tmp_path / "s.csv") <= step:
+        assert again.poll() is None and time.monotonic() < deadline
+        time.sleep(0.1)
+    again.send_signal(signal.SIGTERM)
+    _, err = again.communicate(timeout=120)
+    assert again.returncode == 128 + signal.SIGTERM, err
+    assert f"pretraining goes on from step {step} of 100000" in err
+
+
+def _last_step(csv_path) -> int:
+    """The step of the last episode a pretraining's metrics file holds (0: none yet)."""
+    lines = csv_path.read_text().splitlines() if csv_path.exists() else []
+    return int(lines[-1].split(",", 1)[0]) if len(lines) > 1 else 0
 
 
 @pytest.mark.parametrize("backend", ["aps", "diayn", "cic"])
