@@ -6,8 +6,10 @@
 
 `run` starts one `sepoa pretrain` per seed (at most `--workers` at a time), with the spec's
 intermediate snapshots; each measures its snapshots' skill quality as it writes them
-(`trainer/skills/quality.py`). Running it again goes on where a killed pretraining stopped (its
-`.partial` file) and skips finished seeds. Logs: <results>/<name>/seed-<seed>.log.
+(`trainer/skills/quality.py`). SIGTERM or Ctrl-C passes the signal on to the pretrainings, which
+save their progress at the end of their episode and exit. Running it again goes on where a
+stopped pretraining left off (its `.partial` file) and skips finished seeds. Logs:
+<results>/<name>/seed-<seed>.log.
 
 `report` applies the spec's pre-registered rule to every snapshot measured so far: the top-5
 mean of the skills' returns against random actions', each with a bootstrap interval over its 50
@@ -21,6 +23,7 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tomllib
@@ -69,6 +72,16 @@ def run(spec: dict[str, Any], results: str, workers: int) -> int:
     waiting = [seed for seed in spec["seeds"] if not _finished(spec, seed, results)]
     running: list[tuple[int, subprocess.Popen]] = []
     failed = 0
+
+    def stop(signum: int, _frame: object) -> None:
+        # Each pretraining saves its progress at the end of its episode and exits; no seed
+        # starts after this. Running the command again goes on from there.
+        waiting.clear()
+        for _, proc in running:
+            proc.send_signal(signum)
+
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, stop)
     while waiting or running:
         while waiting and len(running) < workers:
             seed = waiting.pop(0)
