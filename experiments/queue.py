@@ -280,6 +280,12 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path,
                 "-" if not folder.exists() else "started")
         if not done and (epochs := reward_epochs(folder)) is not None:
             held += f", round: reward epoch {epochs[0]}/{epochs[1]}"
+        if row is not None and row.status is RunStatus.RUNNING and not row.step:
+            # An S-EPOA run pretraining its skill snapshot first (the worker's heartbeat).
+            pre = row.progress or {}
+            at, of = pre.get("pretraining_step"), pre.get("pretraining_steps")
+            if at is not None and of and at < of:
+                held += f", pretraining {at}/{of}"
         beat, note = _heartbeat(row, now)
         if note is not None:
             silent.append(note)

@@ -9,9 +9,10 @@ import json
 from pathlib import Path
 
 import pytest
+from sqlalchemy import update
 
 from experiments import progress
-from experiments.launch import run_experiment
+from experiments.launch import default_database, run_experiment
 from experiments.progress import (
     reward_epochs,
     seconds_after,
@@ -20,7 +21,9 @@ from experiments.progress import (
     training_clock,
     training_rate,
 )
+from experiments.queue import grid_key
 from experiments.spec import load_spec
+from labelqueue import Run, RunStatus, make_engine, session_factory
 from sepoa.cli import main
 from trainer import round_progress
 from trainer.reward_model import TrainingProgress
@@ -250,12 +253,21 @@ def test_status_adds_a_missing_snapshots_pretraining_to_the_first_run_needing_it
     # at 10 steps/s.
     seed1 = Path(snapshot_path(apply_snapshot_dir(runs[("A", 1)].config(), results)))
     write_pretraining(seed1, [(1000, 10.0)])
+    # A worker holds A s1, pretraining (its heartbeat's progress).
+    engine = make_engine(default_database(results))
+    with session_factory(engine)() as session, session.begin():
+        session.execute(update(Run).where(Run.grid_key == grid_key(spec, runs[("A", 1)]))
+                        .values(status=RunStatus.RUNNING, worker_id="w1", step=0,
+                                progress={"pretraining_step": 1000, "pretraining_steps": 2000}))
+    engine.dispose()
     assert main(["experiment", "status", str(spec_path), "--results", str(results)]) == 0
     lines = capsys.readouterr().out.splitlines()
     left = {tuple(line.split()[1:5:3]): line.split()[-1] for line in lines[2:6]}
     # A s1: 100 s of training after 1000 pretraining steps to go at 10/s; B s1 shares the
     # snapshot (only the online draw of z_task differs): its training alone.
     assert left == {("A", "0"): "-", ("A", "1"): "3m20s", ("B", "0"): "?", ("B", "1"): "?"}
+    assert "-, pretraining 1000/2000" in next(line for line in lines if " A " in line
+                                               and "running" in line)
 
 
 def apply_snapshot_dir(cfg: object, results: Path) -> object:
