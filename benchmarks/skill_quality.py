@@ -7,9 +7,9 @@
 `run` starts one `sepoa pretrain` per seed (at most `--workers` at a time), with the spec's
 intermediate snapshots; each measures its snapshots' skill quality as it writes them
 (`trainer/skills/quality.py`). SIGTERM or Ctrl-C passes the signal on to the pretrainings, which
-save their progress at the end of their episode and exit. Running it again goes on where a
-stopped pretraining left off (its `.partial` file) and skips finished seeds. Logs:
-<results>/<name>/seed-<seed>.log.
+save their progress at the end of their episode and exit (a second one stops them at once).
+Running it again goes on where a stopped pretraining left off (its `.partial` file) and skips
+finished seeds. Logs: <results>/<name>/seed-<seed>.log.
 
 `report` applies the spec's pre-registered rule to every snapshot measured so far: the top-5
 mean of the skills' returns against random actions', each with a bootstrap interval over its 50
@@ -73,12 +73,27 @@ def run(spec: dict[str, Any], results: str, workers: int) -> int:
     running: list[tuple[int, subprocess.Popen]] = []
     failed = 0
 
+    told: list[int] = []  # the signal, once one came
+    signalled: set[int] = set()
+
+    def tell(proc: subprocess.Popen) -> None:
+        """Pass the signal on, once: a second one would stop the pretraining at once, unsaved."""
+        if told and proc.pid not in signalled:
+            signalled.add(proc.pid)
+            proc.send_signal(told[0])
+
     def stop(signum: int, _frame: object) -> None:
         # Each pretraining saves its progress at the end of its episode and exits; no seed
-        # starts after this. Running the command again goes on from there.
+        # starts after this. Running the command again goes on from there. A second signal
+        # stops them at once, as it stops `sepoa pretrain`.
+        again = bool(told)
+        told.append(signum)
         waiting.clear()
         for _, proc in running:
-            proc.send_signal(signum)
+            if again:
+                proc.send_signal(signum)
+            else:
+                tell(proc)
 
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, stop)
@@ -87,8 +102,11 @@ def run(spec: dict[str, Any], results: str, workers: int) -> int:
             seed = waiting.pop(0)
             log = open(os.path.join(folder, f"seed-{seed}.log"), "a")  # noqa: SIM115
             print(f"pretraining seed {seed}", flush=True)
-            running.append((seed, subprocess.Popen(pretrain_command(spec, seed, results),
-                                                   stdout=log, stderr=subprocess.STDOUT)))
+            # Its own process group, so that a terminal's Ctrl-C reaches it once, from here.
+            proc = subprocess.Popen(pretrain_command(spec, seed, results), stdout=log,
+                                    stderr=subprocess.STDOUT, process_group=0)
+            running.append((seed, proc))
+            tell(proc)  # a signal that came as it started
         seed, proc = running[0]
         code = proc.wait()
         running.pop(0)

@@ -137,10 +137,12 @@ def run_experiment(spec: Spec, *, results: Path, database_url: str | None = None
             return 0
         echo(f"{workers} local worker(s), {threads} torch thread(s) each -> {folder}")
         assert train is not None
-        # Spent hours stop the runs of seeds not started before any worker can claim them.
-        apply_stop_rule(spec, sessions, results, echo)
-        with recorded_session(folder, workers=workers, threads=threads) as period, \
+        with recorded_session(folder, workers=workers, threads=threads, echo=echo) as period, \
                 stop_rule_watch(spec, sessions, results, echo):
+            # Spent hours stop the runs of seeds not started before any worker can claim them
+            # (checked once this session's row is written, so that a session killed moments
+            # ago counts up to its last sign of life, not to now).
+            apply_stop_rule(spec, sessions, results, echo)
             stopped = train(url, results, workers, threads, echo)
             period.end("finished" if stopped is None else f"signal {stopped}")
         return _summary(spec, sessions, echo, stopped)

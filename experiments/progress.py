@@ -275,26 +275,26 @@ def seeds_before_stop(hours: float, worked_s: float, workers: int, held: Iterabl
             starting[seed] = worked_s + at
         heapq.heappush(free, at + seconds)
     if not starting and not left_out:
-        return "forecast: every seed has started"
+        return "forecast: no queued run of a seed not started"
     said = f"forecast, {workers} worker(s), these estimates: of the seeds not started, "
     rule = f"the stop rule's {hours:g} h"
     if starting:
         last, at = list(starting.items())[-1]
-        said += (f"{_seed_list(list(starting))} start before {rule} (the last, {last}, at "
-                 f"about {duration_text(at)})")
+        said += (f"{_seed_list(starting)} {'starts' if len(starting) == 1 else 'start'} "
+                 f"before {rule} (the last, {last}, at about {duration_text(at)})")
     else:
         said += f"none starts before {rule}"
     if not left_out:
         return said + ("; none is left out" if starting else "")
     first, at = next(iter(left_out.items()))
-    return said + (f"; {_seed_list(list(left_out))} left out (seed {first} would start at "
+    return said + (f"; {_seed_list(left_out)} left out (seed {first} would start at "
                    f"about {duration_text(at)})")
 
 
-def _seed_list(seeds: list[int]) -> str:
-    """`10-14, 16`: seeds in runs of consecutive numbers."""
+def _seed_list(seeds: Iterable[int]) -> str:
+    """`10-14, 16`: seeds in order, in runs of consecutive numbers."""
     spans: list[list[int]] = []
-    for seed in seeds:
+    for seed in sorted(seeds):
         if spans and seed == spans[-1][-1] + 1:
             spans[-1].append(seed)
         else:

@@ -253,15 +253,16 @@ def started_seeds(spec: Spec, rows: dict[str, Run], results: Path) -> set[int]:
 
 
 def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path,
-                 rule_line: str | None = None) -> str:
+                 rule_line: str | None = None, rule_worked_s: float | None = None) -> str:
     """A table of the spec's runs: their status in the database (or "not queued"), the step
     reached of the planned steps, the worker and how long ago it heartbeat (flagged `silent`
     past `SILENT_WORKER_AFTER_S`, `DEAD` past `DEAD_WORKER_AFTER_S`), whether the folder
     holds a checkpoint (and, inside a round, the reward epoch its training has saved), and
     about how long the run has left to train, its skill pretraining included
     (`experiments.progress`);
-    then the time the grid has left, and `rule_line` (its stop rule's state) with, while the
-    rule's hours are not spent, which seeds it lets start at these estimates."""
+    then the time the grid has left, and `rule_line` (its stop rule's state) with, given
+    `rule_worked_s` (the hours it counts, not spent yet), which seeds it lets start at these
+    estimates."""
     rows = spec_rows(spec, sessions)
     now = utcnow()
     header = ("task", "variant", "eps", "budget", "seed", "status", "step", "worker",
@@ -313,14 +314,14 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path,
     text = ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip()
             for r in [header, *lines]]
     summary_line = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
-    workers = len(training_workers(rows.values(), now))
+    live_workers = training_workers(rows.values(), now)
+    workers = len(live_workers)
     errors = [f"  {key}: {row.error}" for key, row in sorted(rows.items())
               if row.status is RunStatus.FAILED and row.error]
     period = worked(results / spec.name)
     ruled = [rule_line] if rule_line else []
-    worked_s = period.seconds if period else 0.0
-    if rule_line and spec.stop_after_hours and worked_s < spec.stop_after_hours * 3600:
-        ruled.append(_stop_forecast(spec, rows, results, left, workers, worked_s))
+    if rule_line and rule_worked_s is not None:
+        ruled.append(stop_forecast(spec, rows, results, left, live_workers, rule_worked_s))
     return "\n".join([f"{spec.name}: {len(lines)} runs: {summary_line}", *text,
                       summary(left, workers, len(left.by_rate))]
                      + ([period.text(duration_text(period.seconds))] if period else [])
@@ -329,20 +330,23 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path,
                      + (["workers gone silent:", *silent] if silent else []))
 
 
-def _stop_forecast(spec: Spec, rows: dict[str, Run], results: Path,
-                   left: dict[str, float | None], workers: int, worked_s: float) -> str:
-    """Which seeds the stop rule lets start (`seeds_before_stop`), the workers training now
-    claiming the queued runs in the queue's order (its claim takes the oldest first)."""
+def stop_forecast(spec: Spec, rows: dict[str, Run], results: Path,
+                   left: dict[str, float | None], training: set[str], worked_s: float) -> str:
+    """Which seeds the stop rule lets start (`seeds_before_stop`): the workers training now
+    finish the runs they hold, then claim the queued runs in the queue's order (its claim
+    takes the oldest first), with those of silent or dead workers, which it takes over."""
     assert spec.stop_after_hours is not None
-    if not workers:
+    if not training:
         return "forecast: none while no worker trains"
     keys = {grid_key(spec, run): run for run in spec.runs()}
-    held = [key for key, row in rows.items() if key in keys and row.status is RunStatus.RUNNING]
+    held = [key for key, row in rows.items()
+            if key in keys and row.status is RunStatus.RUNNING and row.worker_id in training]
     queued = sorted((row.created_at, row.id, key) for key, row in rows.items()
-                    if key in keys and row.status is RunStatus.QUEUED)
+                    if key in keys and key not in held
+                    and row.status in (RunStatus.QUEUED, RunStatus.RUNNING))
     if any(left.get(key) is None for key in [*held, *(key for *_, key in queued)]):
         return "forecast: none yet (a run to come has no estimate)"
-    return seeds_before_stop(spec.stop_after_hours, worked_s, workers,
+    return seeds_before_stop(spec.stop_after_hours, worked_s, len(training),
                              [left[key] or 0.0 for key in held],
                              [(keys[key].seed, left[key] or 0.0) for *_, key in queued],
                              started_seeds(spec, rows, results))

@@ -13,8 +13,9 @@ it is the newest, and not at all once a later session has begun, which `worked` 
 from __future__ import annotations
 
 import csv
+import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -58,12 +59,17 @@ def _stamp() -> str:
     return datetime.now(UTC).isoformat(timespec="seconds")
 
 
+def _to_stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
 @contextmanager
 def recorded_session(folder: Path, *, workers: int, threads: int,
-                     now: datetime | None = None, beat_s: float = BEAT_S) -> Iterator[Session]:
+                     now: datetime | None = None, beat_s: float = BEAT_S,
+                     echo: Callable[[str], None] = _to_stderr) -> Iterator[Session]:
     """Record a training period of the grid whose results are in `folder`: its row is written
     as it starts, its `alive_at` every `beat_s` while it runs, and its end as it ends, however
-    it ends."""
+    it ends. `echo` says when a beat could not be written."""
     path = folder / FILE
     started = (now or datetime.now(UTC)).isoformat(timespec="seconds")
     _write(path, [*_rows(path), {"started_at": started, "ended_at": "", "workers": str(workers),
@@ -82,8 +88,10 @@ def recorded_session(folder: Path, *, workers: int, threads: int,
         while not done.wait(beat_s):
             try:
                 update(alive_at=_stamp())
-            except OSError:  # a full disk: the next beat tries again; the end is still written
-                pass
+            except Exception as error:  # a full disk, a hand-edited file: the beat goes on,
+                # or the session would soon read as killed while its workers train
+                echo(f"{path}: the launcher's sign of life could not be written "
+                     f"({type(error).__name__}: {error}); trying again in {beat_s:g} s")
 
     beating = threading.Thread(target=beat, name="session-beat", daemon=True)
     beating.start()

@@ -69,15 +69,19 @@ def recorded_stop_rule(spec: Spec, folder: Path, now: datetime | None = None
 
 
 def stop_rule(spec: Spec, sessions: sessionmaker[Session], results: Path,
-              now: datetime | None = None, rows: dict[str, Run] | None = None
-              ) -> StopRule | None:
+              now: datetime | None = None) -> StopRule | None:
     """Where the spec's stop rule stands: the seeds it leaves out are those not started when
-    the hours were first found spent; None for a spec without one. `rows`: the spec's runs in
-    the queue where the caller has read them."""
+    the hours were first found spent; None for a spec without one."""
     rule = recorded_stop_rule(spec, results / spec.name, now)
     if rule is None or not rule.reached or rule.recorded:
         return rule
-    started = started_seeds(spec, spec_rows(spec, sessions) if rows is None else rows, results)
+    return _leaving_out(rule, spec, spec_rows(spec, sessions), results)
+
+
+def _leaving_out(rule: StopRule, spec: Spec, rows: dict[str, Run], results: Path) -> StopRule:
+    """`rule`, just reached, with the seeds not started by now (`rows`: the spec's runs in the
+    queue)."""
+    started = started_seeds(spec, rows, results)
     return StopRule(rule.hours, rule.worked_s,
                     tuple(sorted({run.seed for run in spec.runs()} - started)))
 
@@ -86,12 +90,12 @@ def apply_stop_rule(spec: Spec, sessions: sessionmaker[Session], results: Path,
                     echo: Callable[[str], None]) -> StopRule | None:
     """Once the spec's hours are spent: stop every queued run of the seeds not started, and
     record them (the first time, with when). The rule as it stands; None without one."""
-    rule = recorded_stop_rule(spec, results / spec.name)
+    rule = recorded_stop_rule(spec, results / spec.name)  # the hours read once per check
     if rule is None or not rule.reached:
         return rule
     rows = spec_rows(spec, sessions)
-    rule = stop_rule(spec, sessions, results, rows=rows)
-    assert rule is not None
+    if not rule.recorded:
+        rule = _leaving_out(rule, spec, rows, results)
     stopped, raced = 0, set()
     for seed in rule.seeds_not_started:
         queued = [row for run in spec.runs() if run.seed == seed

@@ -226,7 +226,8 @@ def _status(spec, results: pathlib.Path, url: str | None) -> int:  # type: ignor
             sessions = session_factory(engine)
             rule = stop_rule(spec, sessions, results)
             say(status_table(spec, sessions, results,
-                             rule.text(duration_text) if rule is not None else None))
+                             rule.text(duration_text) if rule is not None else None,
+                             rule.worked_s if rule is not None and not rule.reached else None))
         finally:
             engine.dispose()
     if current != head:

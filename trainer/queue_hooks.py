@@ -130,8 +130,9 @@ def _answer(given: Sequence[Label], labeller_names: dict[int, str]) -> GivenAnsw
 
 class QueueHooks(RunHooks):
     """Connects one training run to the queue database (see the module's docstring). Raises
-    `LostRun` when the run was given to another worker, `Interrupted` when told to go while the
-    skill snapshot is pretrained."""
+    `LostRun` when the run was given to another worker, `Interrupted` when told to go while
+    waiting for another worker's pretraining of the skill snapshot (told to go while this run
+    pretrains it, the pretraining leaves with its progress saved: `PretrainingLeft`)."""
 
     def __init__(self, sessions: sessionmaker[Session], run: Run, worker: WorkerConfig,
                  cfg: RunConfig, scripted_labeller_id: int, departure: Departure | None = None):

@@ -5,17 +5,19 @@ from __future__ import annotations
 
 import json
 import time
+from datetime import datetime
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
 from experiments.launch import default_database, run_experiment
 from experiments.progress import seeds_before_stop
-from experiments.queue import grid_key, spec_rows
+from experiments.queue import grid_key, spec_rows, stop_forecast
 from experiments.sessions import FILE as SESSIONS
 from experiments.spec import SpecError, load_spec
 from experiments.stop_rule import FILE, apply_stop_rule, stop_rule, stop_rule_watch
-from labelqueue import make_engine, session_factory
+from labelqueue import RunStatus, make_engine, session_factory
 from sepoa.cli import main
 
 SPEC = """
@@ -87,14 +89,14 @@ def test_the_forecast_replays_the_queue_on_the_workers_as_they_come_free() -> No
     # Seed 1's run at 1.5 h, seed 2 at 2 h and 2.5 h, seed 3's first claim at 3 h: left out,
     # and seed 4 after it.
     assert said == ("forecast, 2 worker(s), these estimates: of the seeds not started, 2 "
-                    "start before the stop rule's 3 h (the last, 2, at about 2h00m); 3-4 left "
+                    "starts before the stop rule's 3 h (the last, 2, at about 2h00m); 3-4 left "
                     "out (seed 3 would start at about 3h00m)")
     assert seeds_before_stop(10, 0, 2, [], queued, started={1}).endswith(
         "2-4 start before the stop rule's 10 h (the last, 4, at about 2h00m); none is left out")
     assert seeds_before_stop(3, 3.5 * hour, 1, [hour], [(5, hour)], started=()).endswith(
         "none starts before the stop rule's 3 h; 5 left out (seed 5 would start at about 4h30m)")
     assert seeds_before_stop(3, hour, 1, [hour], [(1, hour)], started={1}) == (
-        "forecast: every seed has started")
+        "forecast: no queued run of a seed not started")
 
 
 def test_spent_hours_stop_the_seeds_not_started_and_the_started_ones_finish(
@@ -161,3 +163,27 @@ def test_the_launchers_watch_outlives_a_failed_check(grid) -> None:  # type: ign
     assert said[0].startswith("ruled: the stop rule could not be checked (IsADirectoryError: ")
     assert said[0].endswith("checking again in 0.05 s")
     assert set(statuses(spec, sessions).values()) == {"stopped"}  # no seed had started
+
+
+def test_the_forecast_counts_only_live_workers_and_gives_a_dead_ones_run_to_them(
+        tmp_path: Path) -> None:
+    spec_path = tmp_path / "spec.toml"
+    spec_path.write_text(SPEC)
+    spec = load_spec(spec_path)
+    hour = 3600.0
+    runs = sorted(spec.runs(), key=lambda run: (run.seed, run.variant))  # queued seed first
+    created = datetime(2026, 11, 28, 8, 0)
+    rows = {grid_key(spec, run): SimpleNamespace(
+        id=i, created_at=created, status=RunStatus.QUEUED, worker_id=None)
+        for i, run in enumerate(runs)}
+    live, dead = (rows[grid_key(spec, runs[i])] for i in (0, 1))  # seed 0's A and B
+    live.status, live.worker_id = RunStatus.RUNNING, "w1"
+    dead.status, dead.worker_id = RunStatus.RUNNING, "w2"  # silent: taken over when free
+    left = dict.fromkeys(rows, hour)
+    said = stop_forecast(spec, rows, tmp_path, left, {"w1"}, 0.0)  # type: ignore[arg-type]
+    # One live worker: its run till 1 h, then the dead worker's till 2 h; seed 1 would start at
+    # 2 h, the rule's hours. (Counting the dead worker's run as a second worker would start
+    # seed 1 at 1 h.)
+    assert said == ("forecast, 1 worker(s), these estimates: of the seeds not started, none "
+                    "starts before the stop rule's 2 h; 1-2 left out (seed 1 would start at "
+                    "about 2h00m)")
