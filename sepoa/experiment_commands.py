@@ -6,6 +6,7 @@ workers that `sepoa.supervisor` holds, or by workers elsewhere; and its report.
                               [--force] [--dry-run]
     sepoa experiment status SPEC [--results results] [--database-url URL]
     sepoa experiment pack SPEC --out FILE.tar.gz [--results results] [--unfinished-only]
+    sepoa experiment keep SPEC --out DIR [--results results]   # finished runs, to commit
     sepoa experiment slurm SPEC --workers N [--results DIR] ...   # an sbatch array script
     sepoa report <results>/<spec name>           # figures + tables -> <folder>/report
     sepoa report --calibration labels.jsonl      # match ratio and fitted eps per labeller
@@ -105,6 +106,14 @@ def _experiment_arguments(p: argparse.ArgumentParser) -> None:
     pack.add_argument("--out", required=True, metavar="FILE.tar.gz", help="the archive to write")
     pack.add_argument("--unfinished-only", action="store_true",
                       help="leave finished runs out (they travel another way)")
+    kept = actions.add_parser(
+        "keep", help="copy the grid's finished runs (no checkpoints or TensorBoard files) and "
+        "its spec, sessions and stop rule into a folder small enough to commit beside its "
+        "report; `sepoa report DIR` reads it, and copied back into <results>/<name> the "
+        "launcher counts those runs as finished")
+    kept.add_argument("spec", help="the spec file (TOML)")
+    kept.add_argument("--results", default="results")
+    kept.add_argument("--out", required=True, metavar="DIR", help="the folder to copy into")
     slurm = actions.add_parser("slurm", help="print an sbatch array script of N workers",
                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     slurm.add_argument("spec", help="the spec file (TOML)")
@@ -154,6 +163,8 @@ def _run_experiment(args: argparse.Namespace) -> int:
     try:
         if args.action == "pack":  # the queue it packs is the SQLite file in the results
             return _pack(args, results)
+        if args.action == "keep":
+            return _keep(args, results)
         url = database_url(args.database_url, args.database_url_file)
         url = check_url(url) if url else None
         if args.action == "slurm":
@@ -261,6 +272,22 @@ def _pack(args: argparse.Namespace, results: pathlib.Path) -> int:
         f"{'the queue database' if packed.database else 'no queue database (not SQLite)'}; "
         f"{packed.size / 2**20:.1f} MiB. There: tar -xzf {args.out} -C <results>, then "
         f"sepoa experiment run {args.spec} --results <results>")
+    return 0
+
+
+def _keep(args: argparse.Namespace, results: pathlib.Path) -> int:
+    from experiments.keep import keep
+    from experiments.spec import load_spec
+
+    spec = load_spec(args.spec, check=False)
+    kept = keep(spec, results, pathlib.Path(args.out))
+    say(f"{args.out}: {kept.runs} finished run(s) of {spec.name} and its grid files, "
+        f"{kept.size / 2**20:.1f} MiB; {kept.unfinished} run(s) not finished left out. "
+        f"`sepoa report {args.out}` reads it; on another machine, copy it into "
+        f"<results>/{spec.name} and run the spec there")
+    if kept.running:
+        say("its last session is still running, so sessions.csv has no end for it: keep again "
+            "once the launcher has stopped")
     return 0
 
 
