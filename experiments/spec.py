@@ -21,6 +21,7 @@ from typing import Any
 
 from runvocab.config import PRESETS, RunConfig, build_config, typed_overrides
 from runvocab.names import ALGOS, all_tasks, unknown, unknown_task
+from runvocab.snapshot_names import snapshot_path
 from runvocab.validate import validate
 
 KINDS = ("curves", "ablation")
@@ -97,6 +98,13 @@ class Run:
         """The run's resolved configuration (run_dir left empty)."""
         return build_config(self.task, self.preset, self.config_overrides())
 
+    def snapshot(self) -> str | None:
+        """The skill snapshot the run starts from (its name, as where its workers keep
+        snapshots), or None when it needs none."""
+        cfg = self.config()
+        return snapshot_path(cfg) if cfg.algo == "sepoa" and cfg.skill.pretrain_steps > 0 \
+            else None
+
     def identity(self) -> dict[str, Any]:
         """What defines the run's results, as JSON gives it back."""
         ident = {"task": self.task, "variant": self.variant, "algo": self.algo,
@@ -148,10 +156,20 @@ class Spec:
 
     def runs_seed_first(self) -> list[Run]:
         """Every run, the first seed of every variant before the second of any: the order runs
-        are queued in, so a grid stopped half-way has a balanced share of every variant."""
+        are queued in, so a grid stopped half-way has a balanced share of every variant.
+        Within a seed, folder order, except that a run starting from a skill snapshot an
+        earlier run also needs comes after the runs that need none: the first run's worker
+        pretrains the snapshot meanwhile, where a second worker would wait for it idle."""
         seeds = {v.label: v.seeds or self.seeds for v in self.variants}
-        # A stable sort: within a seed's rank, folder order.
-        return sorted(self.runs(), key=lambda r: seeds[r.variant].index(r.seed))
+        needed: set[str] = set()
+        waits: dict[Path, bool] = {}
+        for run in self.runs():
+            snapshot = run.snapshot()
+            waits[run.dir] = snapshot in needed
+            if snapshot is not None:
+                needed.add(snapshot)
+        # A stable sort: within a seed's rank, folder order among those that wait and not.
+        return sorted(self.runs(), key=lambda r: (seeds[r.variant].index(r.seed), waits[r.dir]))
 
     def only(self, variants: list[str] | None = None, seeds: list[int] | None = None) -> Spec:
         """The part of the grid with these variants (labels) and seeds (None: all of them):

@@ -103,6 +103,19 @@ def test_a_variant_can_have_its_own_seeds_and_runs_are_queued_seed_first(tmp_pat
     assert "seeds" not in spec.variants[2].overrides
 
 
+def test_within_a_seed_a_second_run_of_one_snapshot_is_queued_after_those_needing_none() -> None:
+    # The authors' grid: both S-EPOA arms of a seed start from one snapshot. Queued after
+    # PEBBLE and SURF, the second finds it pretrained by the first's worker instead of waiting.
+    spec = load_spec(ROOT / "specs" / "small" / "sepoa-authors.toml")
+    order = [(r.variant, r.seed) for r in spec.runs_seed_first()]
+    assert order[:5] == [("S-EPOA (paper)", 10), ("PEBBLE", 10), ("SURF", 10),
+                         ("S-EPOA (authors)", 10), ("S-EPOA (paper)", 11)]
+    paper, authors = (next(r for r in spec.runs() if r.variant == v and r.seed == 10)
+                      for v in ("S-EPOA (paper)", "S-EPOA (authors)"))
+    assert paper.snapshot() == authors.snapshot() is not None
+    assert next(r for r in spec.runs() if r.variant == "PEBBLE").snapshot() is None
+
+
 @pytest.mark.parametrize("analysis, message", [
     ('metric = "final_quarter"\nreference = "PEBBLE"\ncompare_to = ["SURF"]',
      "'SURF' is not a variant; variants: PEBBLE, S-EPOA w/o pretraining"),
