@@ -47,8 +47,8 @@ def keep(spec: Spec, results: Path, out: Path) -> Kept:
     kept before is copied again (a finished run's files do not change)."""
     folder = results / spec.name
     if not (folder / "spec.toml").exists():
-        raise ValueError(f"{folder} holds no grid (no spec.toml): nothing of "
-                                f"{spec.name} was run with --results {results}")
+        raise ValueError(f"{folder} holds no grid (no spec.toml): nothing of {spec.name} "
+                         f"was run with --results {results}")
     out.mkdir(parents=True, exist_ok=True)
     size = sum(_copy(folder / name, out / name) for name in GRID_FILES
                if (folder / name).exists())

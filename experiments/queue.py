@@ -331,22 +331,22 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path,
 
 
 def stop_forecast(spec: Spec, rows: dict[str, Run], results: Path,
-                   left: dict[str, float | None], training: set[str], worked_s: float) -> str:
+                  left: dict[str, float | None], live_workers: set[str], worked_s: float) -> str:
     """Which seeds the stop rule lets start (`seeds_before_stop`): the workers training now
     finish the runs they hold, then claim the queued runs in the queue's order (its claim
     takes the oldest first), with those of silent or dead workers, which it takes over."""
     assert spec.stop_after_hours is not None
-    if not training:
+    if not live_workers:
         return "forecast: none while no worker trains"
     keys = {grid_key(spec, run): run for run in spec.runs()}
     held = [key for key, row in rows.items()
-            if key in keys and row.status is RunStatus.RUNNING and row.worker_id in training]
+            if key in keys and row.status is RunStatus.RUNNING and row.worker_id in live_workers]
     queued = sorted((row.created_at, row.id, key) for key, row in rows.items()
                     if key in keys and key not in held
                     and row.status in (RunStatus.QUEUED, RunStatus.RUNNING))
     if any(left.get(key) is None for key in [*held, *(key for *_, key in queued)]):
         return "forecast: none yet (a run to come has no estimate)"
-    return seeds_before_stop(spec.stop_after_hours, worked_s, len(training),
+    return seeds_before_stop(spec.stop_after_hours, worked_s, len(live_workers),
                              [left[key] or 0.0 for key in held],
                              [(keys[key].seed, left[key] or 0.0) for *_, key in queued],
                              started_seeds(spec, rows, results))

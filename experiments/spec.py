@@ -161,15 +161,16 @@ class Spec:
         earlier run also needs comes after the runs that need none: the first run's worker
         pretrains the snapshot meanwhile, where a second worker would wait for it idle."""
         seeds = {v.label: v.seeds or self.seeds for v in self.variants}
+        runs = self.runs()
         needed: set[str] = set()
         waits: dict[Path, bool] = {}
-        for run in self.runs():
+        for run in runs:
             snapshot = run.snapshot()
             waits[run.dir] = snapshot in needed
             if snapshot is not None:
                 needed.add(snapshot)
         # A stable sort: within a seed's rank, folder order among those that wait and not.
-        return sorted(self.runs(), key=lambda r: (seeds[r.variant].index(r.seed), waits[r.dir]))
+        return sorted(runs, key=lambda r: (seeds[r.variant].index(r.seed), waits[r.dir]))
 
     def only(self, variants: list[str] | None = None, seeds: list[int] | None = None) -> Spec:
         """The part of the grid with these variants (labels) and seeds (None: all of them):

@@ -92,11 +92,9 @@ def _run_pretrain(args: argparse.Namespace) -> int:
     # signal stops it at once.
     departure = Departure()
 
-    def leave(signum: int, _frame: object) -> None:
-        departure.signum = signum
-        for sig in LEAVE_SIGNALS:
-            signal.signal(sig, signal.SIG_DFL)
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+    def leave(signum: int, frame: object) -> None:
+        departure.on_signal(signum, frame)  # a second SIGTERM or SIGUSR1 ends it at once,
+        signal.signal(signal.SIGINT, signal.default_int_handler)  # and a second Ctrl-C
 
     for sig in (*LEAVE_SIGNALS, signal.SIGINT):
         signal.signal(sig, leave)
