@@ -217,19 +217,20 @@ for step in "${steps[@]}"; do
         python3 benchmarks/grid_throughput.py project specs/paper/dmc-grid.toml \
             "$OUT/grid/throughput.csv" --workers 8 >> "$OUT/summary.txt" 2>&1 ;;
     skills)
+        # Logs and quality files go back as one archive: a call returns at most 8 files.
         say "APS skill quality at the paper's width, 2 seeds, snapshots at 100/200/500 k (graphed)"
-        mkdir -p "$OUT/skills"
+        work=/tmp/gpu-check-skills-out && mkdir -p "$work"
         for seed in 10 11; do
             timeout "${SKILLS_LIMIT:-540}" python3 -m sepoa pretrain --task dmc:cheetah_run \
                 --preset paper --steps 1000000 --seed $seed --device cuda --threads 4 \
                 --sac.cuda_graph true --snapshots-at 100000,200000,500000 \
                 --skill.snapshot_dir /tmp/gpu-check-skills --no-progress \
-                > "$OUT/skills/seed-$seed.txt" 2>&1 &
+                > "$work/seed-$seed.txt" 2>&1 &
         done
         wait
-        cp /tmp/gpu-check-skills/*.quality.json /tmp/gpu-check-skills/*.csv "$OUT/skills/" \
-            2>/dev/null
-        grep -h "skill quality" "$OUT"/skills/seed-*.txt >> "$OUT/summary.txt" ;;
+        cp /tmp/gpu-check-skills/*.quality.json /tmp/gpu-check-skills/*.csv "$work/" 2>/dev/null
+        tar -czf "$OUT/skills.tar.gz" -C "$work" .
+        grep -h "skill quality" "$work"/seed-*.txt >> "$OUT/summary.txt" ;;
     esac
 done
 cat "$OUT/summary.txt"
