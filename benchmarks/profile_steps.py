@@ -15,11 +15,18 @@ ops hold; then the ops that took the most time of their own, on the device and o
 a GPU, last, how often the host waited for it and at which lines (torch's sync debug mode, whose
 warning per wait adds a little to the window's time).
 `--trace FILE` also writes the window as a Chrome trace (chrome://tracing, Perfetto).
+`--pretraining` profiles a window of the skill pretraining (`skill.backend`, the preset's
+widths) instead of an online run: the window should start after `skill.seed_steps`, where the
+updates begin.
+
+    python3 benchmarks/profile_steps.py --device cuda --preset paper --pretraining \
+        --from-step 6000 --steps 1000 --set sac.cuda_graph=true
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import tempfile
@@ -38,7 +45,7 @@ from runvocab.snapshot_names import default_snapshot_path  # noqa: E402
 from trainer.gpu_waits import GpuWaits  # noqa: E402
 from trainer.hooks import RunHooks  # noqa: E402
 from trainer.loop import TrainingRun  # noqa: E402
-from trainer.skills.pretrain import pretrain_once  # noqa: E402
+from trainer.skills.pretrain import PretrainingLeft, pretrain, pretrain_once  # noqa: E402
 
 
 class ProfileWindow(RunHooks):
@@ -80,6 +87,8 @@ def main() -> int:
     p.add_argument("--steps", type=int, default=500, help="steps in the window")
     p.add_argument("--rows", type=int, default=15, help="ops listed per table")
     p.add_argument("--trace", help="also write the window as a Chrome trace to this file")
+    p.add_argument("--pretraining", action="store_true",
+                   help="profile the skill pretraining's steps, not an online run's")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="any other config field, e.g. sac.cuda_graph=true")
     args = p.parse_args()
@@ -88,22 +97,33 @@ def main() -> int:
     if args.device == "cuda" and not torch.cuda.is_available():
         raise SystemExit("error: --device cuda, but torch finds no CUDA device")
     folder = tempfile.mkdtemp(prefix="profile-steps-")
-    overrides = {"algo": args.algo, "steps": args.from_step + args.steps + 10_000,
+    length = args.from_step + args.steps + 10_000
+    overrides = {"algo": args.algo, "steps": length,
                  "device": args.device, "threads": args.threads, "run_dir": folder + "/run",
                  "skill.snapshot_dir": os.path.join(folder, "snapshots")}
     try:
         cfg = build_config(args.task, args.preset, overrides | overrides_of(args.set))
     except (ValueError, TypeError) as err:
         raise SystemExit(f"error: {err}") from None
-    if args.algo == "sepoa" and cfg.skill.pretrain_steps > 0:
-        pretrain_once(cfg, default_snapshot_path(cfg))
     window = ProfileWindow(args.from_step, args.steps, args.device == "cuda")
-    TrainingRun(cfg, progress=False, hooks=window).train()
+    if args.pretraining:
+        cfg = dataclasses.replace(cfg, skill=dataclasses.replace(cfg.skill, pretrain_steps=length))
+        try:
+            pretrain(cfg, out=default_snapshot_path(cfg), progress=False,
+                     tick=window.stop_requested, quality_skills=0)
+        except PretrainingLeft:
+            pass  # the window asked it to stop: what is measured is done
+        what = f"{cfg.skill.backend} pretraining"
+    else:
+        if args.algo == "sepoa" and cfg.skill.pretrain_steps > 0:
+            pretrain_once(cfg, default_snapshot_path(cfg))
+        TrainingRun(cfg, progress=False, hooks=window).train()
+        what = args.algo
     if not window.wall:
         raise SystemExit(f"error: the run ended before step {window.end}")
 
     events = window.profiler.key_averages()
-    print(f"{args.task} {args.algo} ({args.preset}) on {args.device}, {args.threads} thread(s); "
+    print(f"{args.task} {what} ({args.preset}) on {args.device}, {args.threads} thread(s); "
           f"steps {window.start}-{window.end}: {window.wall / args.steps * 1e3:.2f} ms a step; "
           f"folder {folder}")
     if window.cuda:
