@@ -16,11 +16,11 @@ not wait for the heartbeat to age.
 from __future__ import annotations
 
 import socket
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import and_, case, literal, or_, select, update
+from sqlalchemy import ColumnElement, and_, case, literal, or_, select, update
 from sqlalchemy.orm import Session
 
 from labelqueue.coerce import json_object
@@ -158,29 +158,37 @@ def _saw_worker(session: Session, *, worker_id: str, now: datetime, run_id: int 
         worker.host = HOST
 
 
-def claim_run(
-    session: Session, *, worker_id: str, stale_after: float = DEAD_WORKER_AFTER_S
-) -> Run | None:
-    """Take back a run this worker id already owns (the worker was restarted), else the oldest
-    queued run, or a running one whose worker stopped heartbeating.
-
-    The run is owned by `worker_id` and becomes `running` (a paused or stopping run taken back
-    keeps its status). None when there is nothing to do; an idle worker calls this in a loop,
-    which also records that it is alive.
-    """
-    now = utcnow()
+def _claimable(worker_id: str, now: datetime,
+               stale_after: float = DEAD_WORKER_AFTER_S) -> ColumnElement[bool]:
+    """The runs `worker_id` may claim now: queued ones, running ones whose worker has not
+    heartbeated for `stale_after` seconds or was released while paused, and its own."""
     dead = now - timedelta(seconds=stale_after)
-    claimable = and_(Run.algo != EXTERNAL, or_(
+    return and_(Run.algo != EXTERNAL, or_(
         Run.status == RunStatus.QUEUED,
         and_(Run.status == RunStatus.RUNNING, Run.heartbeat_at < dead),
         # Released while paused, then resumed by the operator: nobody holds it.
         and_(Run.status == RunStatus.RUNNING, Run.worker_id.is_(None)),
         and_(Run.status.in_(OWNED), Run.worker_id == worker_id),
     ))  # an external run is no worker's: its client pushes its pairs
+
+
+def claim_run(session: Session, *, worker_id: str, stale_after: float = DEAD_WORKER_AFTER_S,
+              skip: Collection[int] = ()) -> Run | None:
+    """Take back a run this worker id already owns (the worker was restarted), else the oldest
+    queued run, or a running one whose worker stopped heartbeating; none of the runs in `skip`
+    (those the worker set aside while their skill snapshot is pretrained elsewhere).
+
+    The run is owned by `worker_id` and becomes `running` (a paused or stopping run taken back
+    keeps its status). None when there is nothing to do; an idle worker calls this in a loop,
+    which also records that it is alive.
+    """
+    now = utcnow()
+    claimable = _claimable(worker_id, now, stale_after)
     mine_first = case((Run.worker_id == worker_id, 0), else_=1)
     with transaction(session):
         candidates = session.scalars(
-            select(Run.id).where(claimable).order_by(mine_first, Run.created_at, Run.id).limit(20)
+            select(Run.id).where(claimable, Run.id.not_in(list(skip)))
+            .order_by(mine_first, Run.created_at, Run.id).limit(20)
         ).all()
         for run_id in candidates:
             won = changed(
@@ -205,6 +213,14 @@ def claim_run(
                 return run
         _saw_worker(session, worker_id=worker_id, now=now, run_id=None)
     return None
+
+
+def other_claimable(session: Session, *, worker_id: str, besides: Collection[int]) -> bool:
+    """Whether `worker_id` could claim a run other than those in `besides` now."""
+    with reading(session):
+        return session.scalar(
+            select(Run.id).where(_claimable(worker_id, utcnow()), Run.id.not_in(list(besides)))
+            .limit(1)) is not None
 
 
 def _not_owner(session: Session, *, run_id: int, worker_id: str) -> Conflict:

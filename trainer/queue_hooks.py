@@ -30,7 +30,7 @@ from __future__ import annotations
 import sys
 import time
 from collections import Counter
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -51,6 +51,7 @@ from labelqueue import (
     labeller_names,
     labels_for_queries,
     lease_next_query,
+    other_claimable,
     push_queries,
     read_run,
     set_clips,
@@ -91,6 +92,15 @@ class LostRun(Exception):
 class Interrupted(Exception):
     """Told to go where this run has nothing to checkpoint (waiting while another worker
     pretrains the skill snapshot it needs)."""
+
+
+class SnapshotBusy(Exception):
+    """Another worker is pretraining the skill snapshot this run needs, and other runs are
+    waiting: the worker sets this one aside and trains one of them meanwhile."""
+
+
+SET_ASIDE_CHECK_S = 30.0
+"""how often a run waiting for another worker's snapshot looks for other runs to train"""
 
 
 def queue_fields(q: Query, position: int,
@@ -135,8 +145,13 @@ class QueueHooks(RunHooks):
     pretrains it, the pretraining leaves with its progress saved: `PretrainingLeft`)."""
 
     def __init__(self, sessions: sessionmaker[Session], run: Run, worker: WorkerConfig,
-                 cfg: RunConfig, scripted_labeller_id: int, departure: Departure | None = None):
+                 cfg: RunConfig, scripted_labeller_id: int, departure: Departure | None = None,
+                 set_aside: Collection[int] = ()):
         self.sessions, self.worker, self.cfg = sessions, worker, cfg
+        self.set_aside = frozenset(set_aside)
+        """runs this worker set aside already, waiting for snapshots: not a reason to set this
+        one aside too"""
+        self.next_set_aside_check = 0.0
         self.departure = departure or Departure()
         self.run_id, self.teacher = run.id, run.teacher
         self.scripted_id = scripted_labeller_id
@@ -244,6 +259,14 @@ class QueueHooks(RunHooks):
         if self.departure.due:
             raise Interrupted(f"{self.departure.name} while waiting for another worker's "
                               "pretraining of the skill snapshot")
+        now = time.monotonic()
+        if now >= self.next_set_aside_check:
+            self.next_set_aside_check = now + SET_ASIDE_CHECK_S
+            with self.sessions() as session:
+                others = other_claimable(session, worker_id=self.worker.worker_id,
+                                         besides=self.set_aside | {self.run_id})
+            if others:
+                raise SnapshotBusy("another worker is pretraining its skill snapshot")
         self.beat(0)
 
     def started(self, step: int, next_round_at: Callable[[], int] | None) -> None:

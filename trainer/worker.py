@@ -67,7 +67,13 @@ from runvocab.snapshot_names import shared_snapshot_dir
 from trainer.dataset_labelling import DatasetLabelling
 from trainer.departure import Departure, leave_on_signals
 from trainer.loop import CHECKPOINT, TrainingRun
-from trainer.queue_hooks import SCRIPTED_LABELLER, Interrupted, LostRun, QueueHooks
+from trainer.queue_hooks import (
+    SCRIPTED_LABELLER,
+    Interrupted,
+    LostRun,
+    QueueHooks,
+    SnapshotBusy,
+)
 from trainer.skills.pretrain import PretrainingLeft
 from trainer.worker_config import WorkerConfig
 
@@ -108,9 +114,13 @@ def scripted_labeller_id(sessions: sessionmaker[Session]) -> int:
 
 
 def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerConfig,
-                      scripted_id: int, departure: Departure | None = None) -> RunStatus | None:
+                      scripted_id: int, departure: Departure | None = None,
+                      set_aside: set[int] | None = None) -> RunStatus | None:
     """Train a run this worker has claimed, and end it; its final status (None if lost). Told
-    to go (`departure`), the worker releases the run after its checkpoint: queued again."""
+    to go (`departure`), the worker releases the run after its checkpoint: queued again. A run
+    whose skill snapshot another worker is pretraining, while other runs wait, is released
+    untouched and its id added to `set_aside` (the worker's next claims skip it)."""
+    set_aside = set() if set_aside is None else set_aside
     log = f"[worker {worker.worker_id}] run {run.id}"
     departure = departure or Departure()
     if departure.due:  # told to go as it claimed the run: hand it on untouched
@@ -123,7 +133,7 @@ def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerC
             shutil.rmtree(cfg.run_dir)  # an attempt that died before its first checkpoint
         for marker in (DONE, FAILED, STOPPED):
             Path(cfg.run_dir, marker).unlink(missing_ok=True)
-        hooks = QueueHooks(sessions, run, worker, cfg, scripted_id, departure)
+        hooks = QueueHooks(sessions, run, worker, cfg, scripted_id, departure, set_aside)
         print(f"{log}: {'resuming' if resume else 'starting'} {run.task} {run.algo} "
               f"in {cfg.run_dir}", file=sys.stderr, flush=True)
         if run.dataset is not None:  # a labelling-only run over a dataset: no training
@@ -139,6 +149,10 @@ def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerC
     except Interrupted as err:
         return _release(sessions, run.id, worker, f"{log}: {err}; released without a new "
                         "checkpoint")
+    except SnapshotBusy as err:
+        set_aside.add(run.id)
+        return _release(sessions, run.id, worker, f"{log}: {err}; set aside, to train "
+                        "another run meanwhile")
     except PretrainingLeft as err:
         return _release(sessions, run.id, worker, f"{log}: {departure.name}: {err}; released, "
                         "and the next worker goes on from there")
@@ -259,9 +273,15 @@ def run_worker(worker: WorkerConfig, departure: Departure | None = None) -> int:
         print(f"[worker {worker.worker_id}] waiting for runs in {mask_url(worker.database_url)}",
               file=sys.stderr, flush=True)
         trained = 0
+        set_aside: set[int] = set()
+        """runs released while another worker pretrains their snapshot; skipped by the next
+        claims while anything else is claimable, forgotten once a run is trained"""
         while not departure.due:
             with sessions() as session:
-                run = claim_run(session, worker_id=worker.worker_id)
+                run = claim_run(session, worker_id=worker.worker_id, skip=set_aside)
+                if run is None and set_aside:  # nothing else: wait for a snapshot after all
+                    set_aside.clear()
+                    run = claim_run(session, worker_id=worker.worker_id)
             if run is None:
                 if not _report_silent(sessions, worker, told) and worker.once:
                     print(f"[worker {worker.worker_id}] no run left to claim: exiting"
@@ -269,8 +289,11 @@ def run_worker(worker: WorkerConfig, departure: Departure | None = None) -> int:
                     return trained
                 time.sleep(worker.poll_seconds)
                 continue
-            train_claimed_run(sessions, run, worker, scripted_id, departure)
-            trained += 1
+            aside = len(set_aside)
+            train_claimed_run(sessions, run, worker, scripted_id, departure, set_aside)
+            if len(set_aside) == aside:  # trained (or ended) a run rather than set one aside
+                set_aside.clear()
+                trained += 1
         print(f"[worker {worker.worker_id}] {departure.name}: exiting", file=sys.stderr,
               flush=True)
         return trained

@@ -20,6 +20,7 @@ from labelqueue import (
     create_run,
     finish_run,
     heartbeat,
+    other_claimable,
     set_run_status,
     set_teacher,
 )
@@ -54,6 +55,20 @@ def test_workers_claim_queued_runs_oldest_first(session: Session) -> None:
 
     workers = {w.id: w.run_id for w in session.scalars(select(Worker))}
     assert workers == {"w1": first.id, "w2": second.id, "w3": None}
+
+
+def test_a_worker_skips_the_runs_it_set_aside_while_others_are_claimable(
+        session: Session) -> None:
+    first, second = new_run(session, "first"), new_run(session, "second")
+    assert other_claimable(session, worker_id="w1", besides={first.id})
+    assert not other_claimable(session, worker_id="w1", besides={first.id, second.id})
+
+    got = claim_run(session, worker_id="w1", skip={first.id})
+    assert got is not None and got.id == second.id
+    assert claim_run(session, worker_id="w2", skip={first.id}) is None
+    assert not other_claimable(session, worker_id="w2", besides={first.id})
+    got = claim_run(session, worker_id="w2")
+    assert got is not None and got.id == first.id
 
 
 def test_a_dead_workers_run_is_claimed_after_the_heartbeat_timeout(session: Session) -> None:
