@@ -1,7 +1,9 @@
 """Keeping a grid's finished runs where its report is committed: `sepoa experiment keep SPEC
 --out DIR` copies what `sepoa report` and the launcher read of each finished run (config.json,
 done.json, the metric CSVs and the rest of its folder; labels gzipped) and the grid's
-`spec.toml`, `sessions.csv` and `stop_rule.json`. Checkpoints and TensorBoard files stay behind
+`spec.toml`, `sessions.csv` and `stop_rule.json`, and the skill quality measured beside each
+snapshot the grid's runs start from (`snapshots/*.quality.json`, for the report's table; the
+snapshots themselves stay behind). Checkpoints and TensorBoard files stay behind
 (`experiments.carry.LEFT_BEHIND_WHEN_FINISHED`), so the folder is small enough to commit, and
 hours of training are not lost with a machine.
 
@@ -21,7 +23,8 @@ from pathlib import Path
 from experiments.carry import LEFT_BEHIND_WHEN_FINISHED
 from experiments.sessions import FILE as SESSIONS
 from experiments.sessions import worked
-from experiments.spec import Spec
+from experiments.skill_quality import snapshots_quality_files
+from experiments.spec import Spec, grid_snapshots
 from experiments.stop_rule import FILE as STOP_RULE
 
 GRID_FILES = ("spec.toml", SESSIONS, STOP_RULE)
@@ -63,6 +66,8 @@ def keep(spec: Spec, results: Path, out: Path) -> Kept:
             parts = path.relative_to(source).parts
             if path.is_file() and parts[0] not in LEFT_BEHIND_WHEN_FINISHED:
                 size += _copy(path, out / run.dir / Path(*parts))
+    for path in snapshots_quality_files(grid_snapshots(spec), [results / "snapshots"]):
+        size += _copy(path, out / "snapshots" / path.name)
     period = worked(folder)
     return Kept(runs, unfinished, size, period is not None and period.running_since is not None)
 

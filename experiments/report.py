@@ -26,8 +26,8 @@ from experiments.proposition import (
 )
 from experiments.results import KEYS, STATES, Results, load_results
 from experiments.sessions import worked
-from experiments.skill_quality import quality_markdown, quality_table
-from experiments.spec import METRICS
+from experiments.skill_quality import quality_markdown, quality_table, snapshots_quality_files
+from experiments.spec import METRICS, grid_snapshots
 from experiments.stop_rule import recorded_stop_rule
 from experiments.tables import (
     DIAGNOSTICS,
@@ -312,7 +312,7 @@ def _grid_markdown(results: Results) -> list[str]:
 
 
 SKILL_QUALITY_DOC = (
-    "Each skill snapshot in the results folder's `snapshots/` (S-EPOA's pretraining), as "
+    "Each skill snapshot the grid's runs start from (S-EPOA's pretraining), as "
     "`sepoa pretrain` measured it: the task return of random skills, one deterministic "
     "episode each, against as many episodes of uniform random actions (the median, the mean "
     "of the best 5 with a 95 % bootstrap interval over the episodes, the maximum). A snapshot "
@@ -357,7 +357,11 @@ def write_report(folder: str | Path, out: str | Path | None = None) -> list[Path
     agent = agent_table(results)
     tables["agent"] = agent
     sections["agent"] = ("How the agents trained", AGENT_DOC, agent_markdown(agent, seeds))
-    quality = quality_table(results.folder.parent / "snapshots")
+    # The grid's own snapshots: kept beside its runs (`experiment keep`), else in the results
+    # folder's shared snapshots/.
+    quality = quality_table(snapshots_quality_files(
+        grid_snapshots(results.spec), [results.folder / "snapshots",
+                                       results.folder.parent / "snapshots"]))
     if len(quality):
         tables["skill-quality"] = quality
         sections["skill-quality"] = ("Skill quality of the snapshots", SKILL_QUALITY_DOC,

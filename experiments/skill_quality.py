@@ -5,6 +5,7 @@ torch, with 95 % bootstrap intervals of the top-5 means over the measured episod
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,20 @@ COLUMNS = ["snapshot", "task", "seed", "steps", "skills", "skill_median", "skill
 def quality_files(folder: Path) -> list[Path]:
     """The quality files in `folder` (a snapshots folder), by name."""
     return sorted(folder.glob("*.quality.json")) if folder.is_dir() else []
+
+
+def quality_name(snapshot: str) -> str:
+    """The name of the quality file beside the snapshot named `snapshot`."""
+    return Path(snapshot).with_suffix(".quality.json").name
+
+
+def snapshots_quality_files(snapshots: Iterable[str], folders: Sequence[Path]) -> list[Path]:
+    """The quality files of the snapshots named, by name, each from the first of `folders`
+    that holds it (a snapshot measured nowhere is left out)."""
+    found = []
+    for name in sorted({quality_name(s) for s in snapshots}):
+        found += [folder / name for folder in folders if (folder / name).is_file()][:1]
+    return found
 
 
 def bootstrap_top(returns: list[float], resamples: int, rng: np.random.Generator,
@@ -42,11 +57,12 @@ def requested_steps(data: dict[str, Any]) -> int:
     return int(data["pretrain_steps"])
 
 
-def quality_table(folder: Path, resamples: int = 10_000) -> pd.DataFrame:
-    """One row per measured snapshot in `folder`, ordered by task, length and seed."""
+def quality_table(folder: Path | list[Path], resamples: int = 10_000) -> pd.DataFrame:
+    """One row per measured snapshot in `folder` (or per quality file of a list), ordered by
+    task, length and seed."""
     rng = np.random.default_rng(0)
     rows = []
-    for path in quality_files(folder):
+    for path in quality_files(folder) if isinstance(folder, Path) else folder:
         data = json.loads(path.read_text())
         if data.get("format") != FORMAT:
             continue

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import re
 import tomllib
 from collections.abc import Callable
@@ -399,3 +400,8 @@ def _text(value: Any, key: str, fail: Fail) -> str:
     if not isinstance(value, str) or not value:
         raise fail(f"{key!r} takes non-empty strings; got {value!r}")
     return value
+
+
+def grid_snapshots(spec: Spec) -> set[str]:
+    """The names of the skill snapshots the spec's runs start from."""
+    return {os.path.basename(path) for run in spec.runs() if (path := run.snapshot())}

@@ -582,28 +582,52 @@ def test_a_grid_whose_query_selecting_runs_have_not_finished_reports_as_partial(
     assert "6 planned: 1 done, 0 stopped, 1 partial, 0 failed, 4 not started." in index
 
 
-def test_the_snapshots_skill_quality_is_reported_beside_the_grid(results: Path,
+def _measured_quality(seed: int, skills: list[float], randoms: list[float]) -> dict:
+    from trainer.skills import quality
+
+    return {"format": quality.QUALITY_FORMAT, "task": "dmc:cheetah_run", "seed": seed,
+            "skills": len(skills), "skill": quality.summary(skills),
+            "random_actions": quality.summary(randoms), "skill_returns": skills,
+            "random_action_returns": randoms, "best_skill": [0.0]}
+
+
+def test_the_grids_snapshots_skill_quality_is_reported_and_kept(results: Path,
                                                                  tmp_path: Path) -> None:
+    """The table holds the snapshots the grid's runs start from, not another grid's in the same
+    snapshots folder; `experiment keep` keeps their quality files, so the kept folder's report
+    has the table too."""
+    from experiments.keep import keep
+    from experiments.spec import grid_snapshots, load_spec
     from trainer.skills import quality
 
     grid = tmp_path / "results" / "synthetic"
     shutil.copytree(results, grid, ignore=shutil.ignore_patterns("report"))
+    (grid / "dmc-cheetah_run" / "B" / "eps0.3" / "budget100" / "s0" / "done.json").write_text(
+        json.dumps({"step": 600}))
+    spec = load_spec(grid / "spec.toml")
+    ours = sorted(grid_snapshots(spec))
+    assert len(ours) == 2 and all(name.endswith(".pt") for name in ours)  # one a seed
     snapshots = tmp_path / "results" / "snapshots"
     snapshots.mkdir()
     skills, randoms = [float(r) for r in range(50)], [1.0] * 49 + [3.0]
-    measured = {"format": quality.QUALITY_FORMAT, "task": "dmc:cheetah_run", "seed": 10,
-                "skills": 50, "skill": quality.summary(skills),
-                "random_actions": quality.summary(randoms), "skill_returns": skills,
-                "random_action_returns": randoms, "best_skill": [0.0]}
-    quality.write(str(snapshots / "dmc-cheetah_run-aps-200000-s10-abc-at100000.pt"), measured,
-                  100_000)
+    seed = 0 if "-s0-" in ours[0] else 1
+    quality.write(str(snapshots / ours[0]), _measured_quality(seed, skills, randoms), 600)
+    quality.write(str(snapshots / "dmc-cheetah_run-aps-200000-s10-abc-at100000.pt"),
+                  _measured_quality(10, skills, randoms), 100_000)  # another grid's
     write_report(grid)
     text = (grid / "report" / "report.md").read_text()
     assert "## Skill quality of the snapshots" in text
     # median 24.5, top-5 mean of 45..49 = 47, max 49; random: median 1, top-5 mean 1.4, max 3.
-    assert "| dmc:cheetah_run | 100,000 | 10 | 24.5 | 47.0 [" in text
-    assert "| 49.0 | 1.0 | 1.4 [" in text
-    assert (grid / "report" / "skill-quality.csv").exists()
+    assert f"| {seed} | 24.5 | 47.0 [" in text and "| 49.0 | 1.0 | 1.4 [" in text
+    assert "| 100,000 | 10 |" not in text
+    assert len(pd.read_csv(grid / "report" / "skill-quality.csv")) == 1
+
+    kept = tmp_path / "kept"
+    keep(spec, tmp_path / "results", kept)
+    assert [p.name for p in (kept / "snapshots").iterdir()] == [
+        quality.quality_path(ours[0])]
+    write_report(kept)
+    assert f"| {seed} | 24.5 | 47.0 [" in (kept / "report" / "report.md").read_text()
 
 
 def test_a_grid_whose_rounds_asked_nothing_is_reported(tmp_path: Path, capsys) -> None:
