@@ -25,6 +25,8 @@
 #           to $OUT/grid/throughput.csv as it comes (benchmarks/grid_throughput.py); GRID_TASKS
 #           (default dmc:cheetah_run) and GRID_BUDGET (seconds, default 480) size one call,
 #           and a later call with the same $OUT/grid goes on with the rows still missing
+#   knn     APS's particle-entropy distances three ways (benchmarks/bench_knn.py): the direct
+#           cdist kernel pretraining uses, cdist's matrix-product form, the broadcast norm
 #   skills  skill quality against APS pretraining length at the paper's width: 2 seeds at
 #           once on cheetah_run, snapshots at 100 k, 200 k and 500 k on the way to 1 M, each
 #           measured as 50 random skills against random actions; the quality files reached
@@ -54,10 +56,10 @@ set -uo pipefail
 steps=("$@")
 [ ${#steps[@]} -eq 0 ] && steps=(test sac run doctor)
 for step in "${steps[@]}"; do
-    case "$step" in test|sac|run|doctor|shared|tf32|mps|sepoa|sepoa32|profile|reward|pretrain|baseline|tf32learn|grid|skills)
+    case "$step" in test|sac|run|doctor|shared|tf32|mps|sepoa|sepoa32|profile|reward|pretrain|baseline|tf32learn|grid|skills|knn)
         ;;
     *) echo "unknown step $step; valid: test sac run doctor shared tf32 mps sepoa sepoa32" \
-            "profile reward pretrain baseline tf32learn grid skills" >&2
+            "profile reward pretrain baseline tf32learn grid skills knn" >&2
        exit 2 ;; esac
 done
 source .gpu/device-env.sh || exit 1
@@ -216,6 +218,10 @@ for step in "${steps[@]}"; do
         tail -20 "$OUT/grid/measure.txt" >> "$OUT/summary.txt"
         python3 benchmarks/grid_throughput.py project specs/paper/dmc-grid.toml \
             "$OUT/grid/throughput.csv" --workers 8 >> "$OUT/summary.txt" 2>&1 ;;
+    knn)
+        say "particle-entropy distances: direct cdist, matrix products, broadcast norm"
+        timeout 120 python3 benchmarks/bench_knn.py --device cuda > "$OUT/bench_knn.txt" 2>&1
+        cat "$OUT/bench_knn.txt" >> "$OUT/summary.txt" ;;
     skills)
         # Logs and quality files go back as one archive: a call returns at most 8 files.
         say "APS skill quality at the paper's width, 2 seeds, snapshots at 100/200/500 k (graphed)"
