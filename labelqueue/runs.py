@@ -261,12 +261,15 @@ def heartbeat(
     return RunStatus(status)
 
 
-def release_run(session: Session, *, run_id: int, worker_id: str) -> Run:
+def release_run(session: Session, *, run_id: int, worker_id: str,
+                untouched: bool = False) -> Run:
     """The owning worker gives its run back at once, after a checkpoint (it was told to go:
-    SIGTERM, a scheduler's preemption or time limit). The run keeps its step and progress and
-    loses its worker: a running run is queued again, for the next worker to claim and resume
-    from the checkpoint; a paused one stays paused (the operator's resume queues it for any
-    worker); a stopping one, whose checkpoint is written, becomes stopped.
+    SIGTERM, a scheduler's preemption or time limit), or `untouched`, before it trained a step
+    (it set the run aside while another worker pretrains its skill snapshot): then the run is
+    as if never claimed, with no start time. The run keeps its step and progress and loses its
+    worker: a running run is queued again, for the next worker to claim and resume from the
+    checkpoint; a paused one stays paused (the operator's resume queues it for any worker); a
+    stopping one, whose checkpoint is written, becomes stopped.
 
     Conflict when the run belongs to another worker (it was requeued or taken over meanwhile).
     """
@@ -288,6 +291,7 @@ def release_run(session: Session, *, run_id: int, worker_id: str) -> Run:
                 ),
                 worker_id=None,
                 heartbeat_at=None,
+                **({"started_at": None} if untouched else {}),
             ),
         )
         if not released:

@@ -142,7 +142,9 @@ class QueueHooks(RunHooks):
     """Connects one training run to the queue database (see the module's docstring). Raises
     `LostRun` when the run was given to another worker, `Interrupted` when told to go while
     waiting for another worker's pretraining of the skill snapshot (told to go while this run
-    pretrains it, the pretraining leaves with its progress saved: `PretrainingLeft`)."""
+    pretrains it, the pretraining leaves with its progress saved: `PretrainingLeft`), and
+    `SnapshotBusy` when waiting so while a run other than this one and `set_aside` is
+    claimable."""
 
     def __init__(self, sessions: sessionmaker[Session], run: Run, worker: WorkerConfig,
                  cfg: RunConfig, scripted_labeller_id: int, departure: Departure | None = None,
@@ -260,7 +262,9 @@ class QueueHooks(RunHooks):
             raise Interrupted(f"{self.departure.name} while waiting for another worker's "
                               "pretraining of the skill snapshot")
         now = time.monotonic()
-        if now >= self.next_set_aside_check:
+        # Only a running run is set aside: a paused one waits for its operator, a stopping one
+        # ends where it is.
+        if self.status is RunStatus.RUNNING and now >= self.next_set_aside_check:
             self.next_set_aside_check = now + SET_ASIDE_CHECK_S
             with self.sessions() as session:
                 others = other_claimable(session, worker_id=self.worker.worker_id,

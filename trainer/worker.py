@@ -26,6 +26,11 @@ warning, it leaves after the current reward epoch with that training saved
 signal ends the worker at once. A worker with `once` that finds nothing to claim but a run held
 by a worker that has gone silent says so, and when the run may be taken over, and waits for it
 rather than exit.
+
+A run whose skill snapshot another worker is pretraining (under the snapshot's file lock) is
+set aside while any other run is claimable: released untouched, queued again, its folder
+removed, and skipped by this worker's claims until it has trained another run; with nothing
+else to claim, the worker takes it back and waits for the snapshot, heartbeating.
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ import signal
 import sys
 import time
 import traceback
+from collections.abc import Collection
 from datetime import timedelta
 from pathlib import Path
 from typing import Any
@@ -115,12 +121,12 @@ def scripted_labeller_id(sessions: sessionmaker[Session]) -> int:
 
 def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerConfig,
                       scripted_id: int, departure: Departure | None = None,
-                      set_aside: set[int] | None = None) -> RunStatus | None:
+                      set_aside: Collection[int] = ()) -> RunStatus | None:
     """Train a run this worker has claimed, and end it; its final status (None if lost). Told
     to go (`departure`), the worker releases the run after its checkpoint: queued again. A run
-    whose skill snapshot another worker is pretraining, while other runs wait, is released
-    untouched and its id added to `set_aside` (the worker's next claims skip it)."""
-    set_aside = set() if set_aside is None else set_aside
+    whose skill snapshot another worker is pretraining, while runs other than it and those in
+    `set_aside` are claimable, is released untouched (its folder removed, as never started)
+    and SnapshotBusy raised, for the worker to claim another."""
     log = f"[worker {worker.worker_id}] run {run.id}"
     departure = departure or Departure()
     if departure.due:  # told to go as it claimed the run: hand it on untouched
@@ -150,9 +156,11 @@ def train_claimed_run(sessions: sessionmaker[Session], run: Run, worker: WorkerC
         return _release(sessions, run.id, worker, f"{log}: {err}; released without a new "
                         "checkpoint")
     except SnapshotBusy as err:
-        set_aside.add(run.id)
-        return _release(sessions, run.id, worker, f"{log}: {err}; set aside, to train "
-                        "another run meanwhile")
+        if not resume:  # a fresh run: as if never claimed, for the stop rule's started seeds
+            shutil.rmtree(cfg.run_dir, ignore_errors=True)
+        _release(sessions, run.id, worker, f"{log}: {err}; set aside, to train another run "
+                 "meanwhile", untouched=not resume)
+        raise
     except PretrainingLeft as err:
         return _release(sessions, run.id, worker, f"{log}: {departure.name}: {err}; released, "
                         "and the next worker goes on from there")
@@ -201,10 +209,11 @@ def _end(sessions: sessionmaker[Session], run_id: int, worker: WorkerConfig, sta
 
 
 def _release(sessions: sessionmaker[Session], run_id: int, worker: WorkerConfig,
-             message: str) -> RunStatus | None:
+             message: str, untouched: bool = False) -> RunStatus | None:
     with sessions() as session:
         try:
-            status = release_run(session, run_id=run_id, worker_id=worker.worker_id).status
+            status = release_run(session, run_id=run_id, worker_id=worker.worker_id,
+                                 untouched=untouched).status
         except Conflict:  # requeued or taken over meanwhile: not ours to release
             return read_run(session, run_id=run_id).status
     print(f"{message} (now {status})", file=sys.stderr, flush=True)
@@ -280,7 +289,6 @@ def run_worker(worker: WorkerConfig, departure: Departure | None = None) -> int:
             with sessions() as session:
                 run = claim_run(session, worker_id=worker.worker_id, skip=set_aside)
                 if run is None and set_aside:  # nothing else: wait for a snapshot after all
-                    set_aside.clear()
                     run = claim_run(session, worker_id=worker.worker_id)
             if run is None:
                 if not _report_silent(sessions, worker, told) and worker.once:
@@ -289,11 +297,13 @@ def run_worker(worker: WorkerConfig, departure: Departure | None = None) -> int:
                     return trained
                 time.sleep(worker.poll_seconds)
                 continue
-            aside = len(set_aside)
-            train_claimed_run(sessions, run, worker, scripted_id, departure, set_aside)
-            if len(set_aside) == aside:  # trained (or ended) a run rather than set one aside
-                set_aside.clear()
-                trained += 1
+            try:
+                train_claimed_run(sessions, run, worker, scripted_id, departure, set_aside)
+            except SnapshotBusy:
+                set_aside.add(run.id)
+                continue
+            set_aside.clear()
+            trained += 1
         print(f"[worker {worker.worker_id}] {departure.name}: exiting", file=sys.stderr,
               flush=True)
         return trained

@@ -1,55 +1,110 @@
 """A worker whose run needs a skill snapshot another worker is pretraining does not wait idle
 for it while other runs are queued: it sets the run aside (queued again, untouched) and trains
-another, then comes back to it."""
+another, then comes back to it. With nothing else to claim it waits for the snapshot."""
 
 from __future__ import annotations
 
 import fcntl
 import threading
 from pathlib import Path
+from typing import Any
 
 import pytest
-from worker_helpers import RUN, database, run_row, wait_for, worker_config
+from worker_helpers import RUN, database, run_row, worker_config
 
-from labelqueue import RunStatus, create_run
+from labelqueue import Run, RunStatus, create_run
 from runvocab.snapshot_names import snapshot_path
+from trainer import worker as worker_module
+from trainer.queue_hooks import QueueHooks
 from trainer.worker import run_config, run_worker
 
+SEPOA = RUN | {"algo": "sepoa", "config": {"steps": 200, "threads": 1,
+                                           "skill.pretrain_steps": 700}}
 
-def test_a_run_waiting_for_another_workers_snapshot_is_set_aside_for_a_queued_one(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    url, sessions = database(tmp_path)
-    with sessions() as session:
-        needs_snapshot = create_run(session, name="needs the snapshot", teacher="scripted",
-                                    **RUN | {"algo": "sepoa", "config": {
-                                        "steps": 200, "threads": 1, "skill.pretrain_steps": 700}})
-        other = create_run(session, name="needs none", teacher="scripted",
-                           **RUN | {"algo": "sac", "config": {"steps": 200, "threads": 1}})
-    worker = worker_config(url, tmp_path / "data", worker_id="w1")
-    snapshot = snapshot_path(run_config(needs_snapshot, worker))
-    Path(snapshot).parent.mkdir(parents=True)
-    # Another worker's pretraining holds the snapshot's lock until the other run has finished.
+
+def hold_lock_until(snapshot: str, free: threading.Event) -> threading.Thread:
+    """Another worker's pretraining: the snapshot's lock, held until `free` is set."""
+    Path(snapshot).parent.mkdir(parents=True, exist_ok=True)
     lock = open(f"{snapshot}.lock", "a")  # noqa: SIM115
     fcntl.flock(lock, fcntl.LOCK_EX)
 
-    def pretrained_elsewhere() -> None:
-        try:
-            wait_for(lambda: run_row(sessions, other.id).status is RunStatus.FINISHED,
-                     timeout=300, what="the run that needs no snapshot to finish")
-        finally:
-            fcntl.flock(lock, fcntl.LOCK_UN)
-            lock.close()
+    def hold() -> None:
+        free.wait(timeout=300)
+        fcntl.flock(lock, fcntl.LOCK_UN)
+        lock.close()
 
-    holder = threading.Thread(target=pretrained_elsewhere, daemon=True)
+    holder = threading.Thread(target=hold, daemon=True)
     holder.start()
+    return holder
+
+
+def test_a_run_waiting_for_another_workers_snapshot_is_set_aside_for_a_queued_one(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    url, sessions = database(tmp_path)
+    with sessions() as session:
+        needs_snapshot = create_run(session, name="needs the snapshot", teacher="scripted",
+                                    **SEPOA)
+        other = create_run(session, name="needs none", teacher="scripted",
+                           **RUN | {"algo": "sac", "config": {"steps": 200, "threads": 1}})
+    worker = worker_config(url, tmp_path / "data", worker_id="w1")
+    cfg = run_config(needs_snapshot, worker)
+    free = threading.Event()
+    holder = hold_lock_until(snapshot_path(cfg), free)
+    # What the run looked like when the worker moved on to the other one.
+    seen: dict[str, Any] = {}
+    train = worker_module.train_claimed_run
+
+    def watching(sessions_: Any, run: Run, *args: Any) -> RunStatus | None:
+        if run.id == other.id:
+            seen["row"] = run_row(sessions, needs_snapshot.id)
+            seen["folder"] = Path(cfg.run_dir).exists()
+            free.set()  # the other worker's pretraining ends meanwhile
+        return train(sessions_, run, *args)
+
+    monkeypatch.setattr(worker_module, "train_claimed_run", watching)
     assert run_worker(worker) == 2
     holder.join(timeout=10)
 
     err = capsys.readouterr().err
     assert (f"run {needs_snapshot.id}: another worker is pretraining its skill snapshot; set "
             "aside, to train another run meanwhile (now queued)") in err
+    aside = seen["row"]
+    assert aside.status is RunStatus.QUEUED and aside.worker_id is None
+    assert aside.started_at is None and not seen["folder"]  # as if never claimed
     first, second = run_row(sessions, other.id), run_row(sessions, needs_snapshot.id)
     assert first.status is second.status is RunStatus.FINISHED
     assert first.finished_at is not None and second.finished_at is not None
     assert first.finished_at < second.finished_at
-    assert Path(snapshot).exists()  # the lock came free, and the worker pretrained it itself
+    assert Path(snapshot_path(cfg)).exists()  # the lock came free: the worker pretrained it
+
+
+def test_with_only_runs_of_the_busy_snapshot_left_a_worker_waits_for_it(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two runs of one snapshot: the first is set aside for the second, which then waits (the
+    run set aside is no reason to set the second aside), and both train once it is free."""
+    url, sessions = database(tmp_path)
+    with sessions() as session:
+        first = create_run(session, name="first", teacher="scripted", **SEPOA)
+        second = create_run(session, name="second", teacher="scripted", **SEPOA)
+    worker = worker_config(url, tmp_path / "data", worker_id="w1")
+    free = threading.Event()
+    snapshot = snapshot_path(run_config(first, worker))
+    assert snapshot == snapshot_path(run_config(second, worker))
+    holder = hold_lock_until(snapshot, free)
+    waiting = QueueHooks.waiting_for_snapshot
+
+    def free_once_the_second_waits(self: QueueHooks) -> None:
+        waiting(self)  # raises SnapshotBusy where the run is set aside
+        if self.run_id == second.id:
+            free.set()
+
+    monkeypatch.setattr(QueueHooks, "waiting_for_snapshot", free_once_the_second_waits)
+    assert run_worker(worker) == 2
+    holder.join(timeout=10)
+
+    err = capsys.readouterr().err
+    assert err.count("set aside") == 1 and f"run {first.id}: another worker" in err
+    assert run_row(sessions, first.id).status is RunStatus.FINISHED
+    assert run_row(sessions, second.id).status is RunStatus.FINISHED
