@@ -108,3 +108,47 @@ def test_with_only_runs_of_the_busy_snapshot_left_a_worker_waits_for_it(
     assert err.count("set aside") == 1 and f"run {first.id}: another worker" in err
     assert run_row(sessions, first.id).status is RunStatus.FINISHED
     assert run_row(sessions, second.id).status is RunStatus.FINISHED
+
+
+def test_a_worker_coming_back_to_a_run_it_set_aside_does_not_set_it_aside_again(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Runs A and C need the busy snapshot, B none. The worker sets A aside for C, C for B;
+    another worker takes B first, so the worker comes back to A with C still set aside: C is no
+    reason to set A aside again, and A waits for the snapshot."""
+    url, sessions = database(tmp_path)
+    with sessions() as session:
+        a = create_run(session, name="A", teacher="scripted", **SEPOA)
+        c = create_run(session, name="C", teacher="scripted", **SEPOA)
+        b = create_run(session, name="B", teacher="scripted",
+                       **RUN | {"algo": "sac", "config": {"steps": 200, "threads": 1}})
+    worker = worker_config(url, tmp_path / "data", worker_id="w1")
+    free = threading.Event()
+    holder = hold_lock_until(snapshot_path(run_config(a, worker)), free)
+    claim = worker_module.claim_run
+
+    def another_worker_takes_b_first(session: Any, *, worker_id: str,
+                                     skip: Any = ()) -> Run | None:
+        if set(skip) == {a.id, c.id}:
+            taken = claim(session, worker_id="w2", skip=skip)
+            assert taken is not None and taken.id == b.id
+        return claim(session, worker_id=worker_id, skip=skip)
+
+    waiting = QueueHooks.waiting_for_snapshot
+
+    def free_once_a_waits(self: QueueHooks) -> None:
+        waiting(self)
+        if self.run_id == a.id:
+            free.set()
+
+    monkeypatch.setattr(worker_module, "claim_run", another_worker_takes_b_first)
+    monkeypatch.setattr(QueueHooks, "waiting_for_snapshot", free_once_a_waits)
+    assert run_worker(worker) == 2
+    holder.join(timeout=10)
+
+    err = capsys.readouterr().err
+    assert err.count(f"run {a.id}: another worker is pretraining") == 1, err
+    assert err.count(f"run {c.id}: another worker is pretraining") == 1, err
+    assert run_row(sessions, a.id).status is run_row(sessions, c.id).status \
+        is RunStatus.FINISHED
+    assert run_row(sessions, b.id).worker_id == "w2"
