@@ -27,6 +27,11 @@
 #           and a later call with the same $OUT/grid goes on with the rows still missing
 #   knn     APS's particle-entropy distances three ways (benchmarks/bench_knn.py): the direct
 #           cdist kernel pretraining uses, cdist's matrix-product form, the broadcast norm
+#   skillsizes  which of the two widths' differences carries skill quality (exploratory, seed
+#           10, 100 k steps, two pretrainings at once): the paper preset with batch 256, and with
+#           256-wide nets (batch 1 024); each snapshot's quality against the small preset's
+#           (CPU) and the paper's at 100 k; what SKILLS_LIMIT seconds (default 540) reach
+#           comes back in $OUT/skillsizes.tar.gz
 #   skills  skill quality against APS pretraining length at the paper's width: 2 seeds at
 #           once on cheetah_run, snapshots at 100 k, 200 k and 500 k on the way to 1 M, each
 #           measured as 50 random skills against random actions; the quality files reached
@@ -56,10 +61,10 @@ set -uo pipefail
 steps=("$@")
 [ ${#steps[@]} -eq 0 ] && steps=(test sac run doctor)
 for step in "${steps[@]}"; do
-    case "$step" in test|sac|run|doctor|shared|tf32|mps|sepoa|sepoa32|profile|reward|pretrain|baseline|tf32learn|grid|skills|knn)
+    case "$step" in test|sac|run|doctor|shared|tf32|mps|sepoa|sepoa32|profile|reward|pretrain|baseline|tf32learn|grid|skills|knn|skillsizes)
         ;;
     *) echo "unknown step $step; valid: test sac run doctor shared tf32 mps sepoa sepoa32" \
-            "profile reward pretrain baseline tf32learn grid skills knn" >&2
+            "profile reward pretrain baseline tf32learn grid skills knn skillsizes" >&2
        exit 2 ;; esac
 done
 source .gpu/device-env.sh || exit 1
@@ -222,6 +227,22 @@ for step in "${steps[@]}"; do
         say "particle-entropy distances: direct cdist, matrix products, broadcast norm"
         timeout 120 python3 benchmarks/bench_knn.py --device cuda > "$OUT/bench_knn.txt" 2>&1
         cat "$OUT/bench_knn.txt" >> "$OUT/summary.txt" ;;
+    skillsizes)
+        say "APS skill quality at 100 k, seed 10: paper width with batch 256; 256 wide, batch 1024"
+        work=/tmp/gpu-check-skillsizes && mkdir -p "$work"
+        for size in "wide-batch256 --sac.batch_size 256" \
+                    "narrow-batch1024 --sac.hidden_dim 256 --skill.hidden_dim 256"; do
+            read -r name settings <<< "$size"
+            # shellcheck disable=SC2086  # the settings are separate arguments
+            timeout "${SKILLS_LIMIT:-540}" python3 -m sepoa pretrain --task dmc:cheetah_run \
+                --preset paper --steps 100000 --seed 10 --device cuda --threads 4 \
+                --sac.cuda_graph true $settings --skill.snapshot_dir "$work/$name" \
+                --no-progress > "$work/$name.txt" 2>&1 &
+        done
+        wait
+        tar -czf "$OUT/skillsizes.tar.gz" -C "$work" --exclude='*.pt' --exclude='*.partial' \
+            --exclude='*.lock' .
+        grep -h "skill quality" "$work"/*.txt >> "$OUT/summary.txt" ;;
     skills)
         # Logs and quality files go back as one archive: a call returns at most 8 files.
         say "APS skill quality at the paper's width, 2 seeds, snapshots at 100/200/500 k (graphed)"
