@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -89,8 +90,10 @@ class DatasetSummary:
 
 
 def default_dataset_id(task: str, run_id: int) -> str:
-    """`sepoa/<task, ':' as '-'>/run-<id>-v0`, e.g. `sepoa/dmc-cheetah_run/run-3-v0`."""
-    return f"sepoa/{task.replace(':', '-')}/run-{run_id}-v0"
+    """`sepoa/<task>/run-<id>-v0`, e.g. `sepoa/dmc-cheetah_run/run-3-v0`: in the task, each
+    character a Minari id does not take (':', '.', an external run's any other) as '-'."""
+    name = re.sub(r"[^-_\w]", "-", task)
+    return f"sepoa/{name}/run-{run_id}-v0"
 
 
 def check_dataset_id(dataset_id: str) -> str:

@@ -222,3 +222,13 @@ def test_format_hdf5_writes_minaris_hdf5_storage(trained, tmp_path, capsys, monk
         assert main([*base, *extra]) == 2
         err = capsys.readouterr().err
         assert message in err and len(err.strip().splitlines()) == 1, err
+
+
+@pytest.mark.parametrize("task", ["dmc:cheetah_run", "metaworld:door-open", "teacher.",
+                                  "my env/v2 (gym)", "x"])
+def test_any_runs_task_gives_a_default_dataset_id_minari_takes(task):
+    """An external run's task is any text; the default id must still be one Minari takes."""
+    from rundata.dataset import check_dataset_id, default_dataset_id
+
+    dataset_id = default_dataset_id(task, 7)
+    assert check_dataset_id(dataset_id) == dataset_id and dataset_id.endswith("/run-7-v0")
