@@ -116,13 +116,13 @@ def run(spec: dict[str, Any], results: str, workers: int) -> int:
 
 
 def _finished(spec: dict[str, Any], seed: int, results: str) -> bool:
-    table = quality_table(Path(snapshot_dir(spec, results)), resamples=1)
+    table = quality_table(quality_files(Path(snapshot_dir(spec, results))), resamples=1)
     return bool(((table["seed"] == seed) & (table["steps"] == spec["steps"])).any())
 
 
 def report(spec: dict[str, Any], results: str, out: str) -> int:
     folder = Path(snapshot_dir(spec, results))
-    table = quality_table(folder, spec.get("bootstrap", 10_000))
+    table = quality_table(quality_files(folder), spec.get("bootstrap", 10_000))
     table["passes"] = ((table["skill_top5_low"] > table["random_top5_high"])
                        & (table["skill_top5"] >= 2 * table["random_top5"]))
     os.makedirs(out, exist_ok=True)

@@ -5,6 +5,7 @@ torch, with 95 % bootstrap intervals of the top-5 means over the measured episod
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
@@ -12,8 +13,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from runvocab.snapshot_names import QUALITY_FORMAT, quality_path
+
 TOP = 5
-FORMAT = "sepoa-skill-quality/1"
 COLUMNS = ["snapshot", "task", "seed", "steps", "skills", "skill_median", "skill_top5",
            "skill_top5_low", "skill_top5_high", "skill_max", "random_median", "random_top5",
            "random_top5_low", "random_top5_high", "random_max"]
@@ -24,17 +26,14 @@ def quality_files(folder: Path) -> list[Path]:
     return sorted(folder.glob("*.quality.json")) if folder.is_dir() else []
 
 
-def quality_name(snapshot: str) -> str:
-    """The name of the quality file beside the snapshot named `snapshot`."""
-    return Path(snapshot).with_suffix(".quality.json").name
-
-
 def snapshots_quality_files(snapshots: Iterable[str], folders: Sequence[Path]) -> list[Path]:
     """The quality files of the snapshots named, by name, each from the first of `folders`
     that holds it (a snapshot measured nowhere is left out)."""
     found = []
-    for name in sorted({quality_name(s) for s in snapshots}):
-        found += [folder / name for folder in folders if (folder / name).is_file()][:1]
+    for name in sorted({os.path.basename(quality_path(s)) for s in snapshots}):
+        held = next((folder / name for folder in folders if (folder / name).is_file()), None)
+        if held is not None:
+            found.append(held)
     return found
 
 
@@ -57,14 +56,14 @@ def requested_steps(data: dict[str, Any]) -> int:
     return int(data["pretrain_steps"])
 
 
-def quality_table(folder: Path | list[Path], resamples: int = 10_000) -> pd.DataFrame:
-    """One row per measured snapshot in `folder` (or per quality file of a list), ordered by
-    task, length and seed."""
+def quality_table(files: Iterable[Path], resamples: int = 10_000) -> pd.DataFrame:
+    """One row per measured snapshot of the quality `files`, ordered by task, length and
+    seed."""
     rng = np.random.default_rng(0)
     rows = []
-    for path in quality_files(folder) if isinstance(folder, Path) else folder:
+    for path in files:
         data = json.loads(path.read_text())
-        if data.get("format") != FORMAT:
+        if data.get("format") != QUALITY_FORMAT:
             continue
         skill = bootstrap_top(data["skill_returns"], resamples, rng)
         rand = bootstrap_top(data["random_action_returns"], resamples, rng)

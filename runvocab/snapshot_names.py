@@ -1,6 +1,7 @@
 """The file names of S-EPOA's skill snapshots: which snapshot an online run starts from, where
-an unfinished pretraining keeps its state and where a pretraining writes on its way. Torch-free,
-so that `sepoa experiment status` can tell which of a grid's snapshots are still to pretrain."""
+an unfinished pretraining keeps its state, where a pretraining writes on its way, and where a
+snapshot's skill quality is written. Torch-free, so that `sepoa experiment status` can tell
+which of a grid's snapshots are still to pretrain and reports can read their quality."""
 
 from __future__ import annotations
 
@@ -13,6 +14,15 @@ from pathlib import Path
 from typing import Any
 
 from runvocab.config import RunConfig
+
+QUALITY_FORMAT = "sepoa-skill-quality/1"
+"""the format of a snapshot's skill-quality file (`trainer.skills.quality`)"""
+
+
+def quality_path(snapshot: str) -> str:
+    """Where the skill quality of the snapshot at `snapshot` is written."""
+    return os.path.splitext(snapshot)[0] + ".quality.json"
+
 
 ONLINE_SKILL_FIELDS = (
     "estimator_ensemble", "estimator_hidden_dim", "estimator_hidden_layers", "estimator_lr",

@@ -18,19 +18,14 @@ from typing import Any
 
 import numpy as np
 
+from runvocab.snapshot_names import QUALITY_FORMAT, quality_path
 from trainer.envs import Env, make_env
 from trainer.skills.agent import SkillAgent
 from trainer.skills.common import SkillBackend
 
-QUALITY_FORMAT = "sepoa-skill-quality/1"
 EVAL_SEED_OFFSET = 200_000
 """the quality env's seed is the pretraining seed plus this: episodes the pretraining never saw"""
 TOP = 5
-
-
-def quality_path(snapshot: str) -> str:
-    """Where the quality of the snapshot at `snapshot` is written."""
-    return os.path.splitext(snapshot)[0] + ".quality.json"
 
 
 def summary(returns: list[float]) -> dict[str, float]:
