@@ -87,6 +87,19 @@ shared_runs() {  # shared_runs TXT CSV [--set KEY=VALUE ...]: 1 and 4 paper-pres
         --set sac.cuda_graph=true "$@" > "$txt" 2>&1
     tail -6 "$txt" >> "$OUT/summary.txt"
 }
+paper_pretraining() {  # paper_pretraining LOG FOLDER [SETTING ...]: a paper-preset APS
+    # pretraining on cheetah_run in the background (graphed), within SKILLS_LIMIT seconds
+    # (default 540), its snapshots and their skill quality in FOLDER, its output in LOG
+    local log=$1 folder=$2; shift 2
+    timeout "${SKILLS_LIMIT:-540}" python3 -m sepoa pretrain --task dmc:cheetah_run \
+        --preset paper --device cuda --threads 4 --sac.cuda_graph true --no-progress \
+        --skill.snapshot_dir "$folder" "$@" > "$log" 2>&1 &
+}
+pack_pretrainings() {  # pack_pretrainings WORK NAME: WORK's logs, quality files and per-episode
+    # CSVs (not the snapshots) back as $OUT/NAME.tar.gz, one file: a call returns at most 8
+    tar -czf "$OUT/$2.tar.gz" -C "$1" --exclude='*.pt' --exclude='*.partial' --exclude='*.lock' .
+    grep -h "skill quality" "$1"/*.txt >> "$OUT/summary.txt"
+}
 # CUDA's Multi-Process Service for the runs that share the GPU: a user-space daemon with its own
 # pipe and log folders; the GPU's settings (compute mode, MIG) stay as they are, and `quit`
 # stops it afterwards.
@@ -230,34 +243,21 @@ for step in "${steps[@]}"; do
     skillsizes)
         say "APS skill quality at 100 k, seed 10: paper width with batch 256; 256 wide, batch 1024"
         work=/tmp/gpu-check-skillsizes && mkdir -p "$work"
-        for size in "wide-batch256 --sac.batch_size 256" \
-                    "narrow-batch1024 --sac.hidden_dim 256 --skill.hidden_dim 256"; do
-            read -r name settings <<< "$size"
-            # shellcheck disable=SC2086  # the settings are separate arguments
-            timeout "${SKILLS_LIMIT:-540}" python3 -m sepoa pretrain --task dmc:cheetah_run \
-                --preset paper --steps 100000 --seed 10 --device cuda --threads 4 \
-                --sac.cuda_graph true $settings --skill.snapshot_dir "$work/$name" \
-                --no-progress > "$work/$name.txt" 2>&1 &
-        done
+        paper_pretraining "$work/wide-batch256.txt" "$work/wide-batch256" --steps 100000 \
+            --seed 10 --sac.batch_size 256
+        paper_pretraining "$work/narrow-batch1024.txt" "$work/narrow-batch1024" --steps 100000 \
+            --seed 10 --sac.hidden_dim 256 --skill.hidden_dim 256
         wait
-        tar -czf "$OUT/skillsizes.tar.gz" -C "$work" --exclude='*.pt' --exclude='*.partial' \
-            --exclude='*.lock' .
-        grep -h "skill quality" "$work"/*.txt >> "$OUT/summary.txt" ;;
+        pack_pretrainings "$work" skillsizes ;;
     skills)
-        # Logs and quality files go back as one archive: a call returns at most 8 files.
         say "APS skill quality at the paper's width, 2 seeds, snapshots at 100/200/500 k (graphed)"
-        work=/tmp/gpu-check-skills-out && mkdir -p "$work"
+        work=/tmp/gpu-check-skills && mkdir -p "$work"
         for seed in 10 11; do
-            timeout "${SKILLS_LIMIT:-540}" python3 -m sepoa pretrain --task dmc:cheetah_run \
-                --preset paper --steps 1000000 --seed $seed --device cuda --threads 4 \
-                --sac.cuda_graph true --snapshots-at 100000,200000,500000 \
-                --skill.snapshot_dir /tmp/gpu-check-skills --no-progress \
-                > "$work/seed-$seed.txt" 2>&1 &
+            paper_pretraining "$work/seed-$seed.txt" "$work" --steps 1000000 --seed $seed \
+                --snapshots-at 100000,200000,500000
         done
         wait
-        cp /tmp/gpu-check-skills/*.quality.json /tmp/gpu-check-skills/*.csv "$work/" 2>/dev/null
-        tar -czf "$OUT/skills.tar.gz" -C "$work" .
-        grep -h "skill quality" "$work"/seed-*.txt >> "$OUT/summary.txt" ;;
+        pack_pretrainings "$work" skills ;;
     esac
 done
 cat "$OUT/summary.txt"
