@@ -29,6 +29,8 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import torch  # noqa: E402
 
+from trainer.skills.common import knn_reward  # noqa: E402
+
 K = 12
 CLIP = 1e-4
 WAYS: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
@@ -40,8 +42,7 @@ WAYS: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
 
 def reward(dist: torch.Tensor) -> torch.Tensor:
     """particle_entropy's reward from the distances, with m = 1 (no running statistics)."""
-    knn = dist.topk(K, dim=1, largest=False).values
-    return torch.log1p((knn - CLIP).clamp_min(0.0).mean(dim=1, keepdim=True))
+    return knn_reward(dist, K, clip=CLIP)
 
 
 def timed(way: Callable[[torch.Tensor], torch.Tensor], h: torch.Tensor, repeats: int) -> float:

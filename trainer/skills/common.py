@@ -59,7 +59,13 @@ def particle_entropy(h: torch.Tensor, k: int, stats: RunningMeanStd | None = Non
     log(1 + mean_j max(d_j / m - clip, 0)) over its k nearest rows j, itself included (at
     distance 0) as in URLB. m is the running mean of all kNN distances seen, this batch's
     included (`stats` is updated in place); without `stats`, m = 1. Returns (batch, 1)."""
-    dist = torch.cdist(h, h, compute_mode="donot_use_mm_for_euclid_dist")
+    return knn_reward(torch.cdist(h, h, compute_mode="donot_use_mm_for_euclid_dist"), k, stats,
+                      clip)
+
+
+def knn_reward(dist: torch.Tensor, k: int, stats: RunningMeanStd | None = None,
+               clip: float = 0.0) -> torch.Tensor:
+    """`particle_entropy` from the rows' distances (batch, batch), however they were computed."""
     knn = dist.topk(k, dim=1, largest=False).values
     if stats is not None:
         stats.update(knn)
