@@ -35,7 +35,7 @@
 #   skills  skill quality against APS pretraining length at the paper's width: 2 seeds at
 #           once on cheetah_run, snapshots at 100 k, 200 k and 500 k on the way to 1 M, each
 #           measured as 50 random skills against random actions; the quality files reached
-#           within SKILLS_LIMIT seconds (default 540) come back in $OUT/skills
+#           within SKILLS_LIMIT seconds (default 540) come back in $OUT/skills.tar.gz
 #   baseline  whole-run steps/s of paper-preset PEBBLE after round 0 (graphed, TF32), the code
 #           in $BASELINE (default .baseline) against this checkout's, one after the other: what
 #           a change to the step did on this GPU (now: against 3628eb1, r_hat of a new
@@ -97,7 +97,8 @@ paper_pretraining() {  # paper_pretraining LOG FOLDER [SETTING ...]: a paper-pre
 }
 pack_pretrainings() {  # pack_pretrainings WORK NAME: WORK's logs, quality files and per-episode
     # CSVs (not the snapshots) back as $OUT/NAME.tar.gz, one file: a call returns at most 8
-    tar -czf "$OUT/$2.tar.gz" -C "$1" --exclude='*.pt' --exclude='*.partial' --exclude='*.lock' .
+    tar -czf "$OUT/$2.tar.gz" -C "$1" --exclude='*.pt' --exclude='*.partial' --exclude='*.lock' \
+        --exclude='*.tmp' .
     grep -h "skill quality" "$1"/*.txt >> "$OUT/summary.txt"
 }
 # CUDA's Multi-Process Service for the runs that share the GPU: a user-space daemon with its own
