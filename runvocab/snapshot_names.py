@@ -29,7 +29,7 @@ ONLINE_SKILL_FIELDS = (
     "estimator_steps", "task_skill_samples", "task_skill_draw", "task_skill_update",
     "initial_rollouts", "reset_critic", "score_spread", "snapshot", "snapshot_dir",
     "snapshot_seed", "free_initial_rollouts", "estimator_data", "actor", "actor_std",
-    "actor_clip",
+    "actor_clip", "estimator_refit",
 )
 """skill fields only the online phase reads: they leave a pretrained snapshot unchanged"""
 

@@ -158,11 +158,13 @@ class PreferenceFeedback:
                  teacher: NoisyTeacher | BPrefTeacher, labeller: str,
                  label_log: LabelLog, rng: np.random.Generator,
                  estimator: ReturnEstimator | None = None, spread: str = "var",
-                 replay: ReplayEpisodes | None = None):
+                 replay: ReplayEpisodes | None = None, refit_estimator: bool = True):
         self.cfg, self.model, self.teacher = cfg, reward_model, teacher
         self.labeller, self.log, self.rng = labeller, label_log, rng
         self.estimator, self.spread = estimator, spread
         """S-EPOA's R_theta(z) (skill rule only), refitted as each round selects"""
+        self.refit_estimator = refit_estimator
+        """R_theta fitted again after each round's reward training (`skill.estimator_refit`)"""
         self.replay = replay
         """R_theta's data where it is every replay episode (`skill.estimator_data`); None: the
         pool's trajectories"""
@@ -314,7 +316,7 @@ class PreferenceFeedback:
             metrics["compare_distinguishable_ratio"] = self.compare_ratio
         if len(self.pairs):
             metrics |= self._train(pool, after_epoch, progress)
-        if self.estimator is not None:  # z_task follows the reward model from now on
+        if self.estimator is not None and self.refit_estimator:  # z_task follows it at once
             start = time.perf_counter()
             metrics |= self.fit_estimator(pool)
             metrics["estimator_seconds"] = time.perf_counter() - start

@@ -138,7 +138,7 @@ class TrainingRun:
                 cfg.feedback, model, teacher, f"scripted:{cfg.teacher.kind}",
                 LabelLog(os.path.join(self.run_dir, "labels.jsonl")),
                 np.random.default_rng(cfg.seed + 1), self.policy.estimator,
-                cfg.skill.score_spread, self._replay_episodes(),
+                cfg.skill.score_spread, self._replay_episodes(), cfg.skill.estimator_refit,
             )
 
         self.step = 0

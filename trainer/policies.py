@@ -138,7 +138,7 @@ class SkillPolicy(Policy):
                                         cfg.replay_capacity, device, cfg.seed)
         self.estimator = ReturnEstimator(self.skills.skill_dim, cfg.skill, device)
         self.task_skill: np.ndarray | None = None
-        """z_task, once R_theta is fitted"""
+        """z_task, from the first round's end on"""
         self._task_skill_copy: tuple[np.ndarray | None, torch.Tensor] | None = None
         """z_task and its copy on the device: one copy per draw, not one per z_task update"""
         self._stored_skill_metrics: UpdateMetrics = {}
@@ -193,7 +193,11 @@ class SkillPolicy(Policy):
         update per update step in all, as for every other algorithm (the authors' code runs
         both on every 2nd step: the same budget, less evenly spread)."""
         batch = batches()
-        if not (self.cfg.skill.task_skill_update and self.updates % 2 == 1):
+        # After uncounted initial rollouts the authors' code makes its first updates before it
+        # draws a z_task: on the stored skills alone.
+        first = self.updates_after_first_round if self.cfg.skill.free_initial_rollouts else 0
+        if not (self.cfg.skill.task_skill_update and self.updates % 2 == 1
+                and self.updates >= first):
             self._stored_skill_metrics = self.agent.update(batch)
             return self._stored_skill_metrics
         # The acting skill learns from every transition, not only its own episode's share.
@@ -224,7 +228,9 @@ class SkillPolicy(Policy):
                 "task_skill_predicted": new}
 
     def _draw_task_skill(self, rng: np.random.Generator) -> None:
-        assert self.estimator.fitted
+        # Not fitted before the second round only where it is fitted only as rounds select
+        # (the authors' code): their first z_task is the unfitted R_theta's argmax.
+        assert self.estimator.fitted or not self.cfg.skill.estimator_refit
         candidates = self.skills.sample_skills(rng, self.cfg.skill.task_skill_samples)
         self.task_skill = self.estimator.best_skill(candidates)
 
@@ -269,7 +275,7 @@ def _load_skill_agent(cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.
 
 
 DDPG_ALPHA = 1.0
-"""the temperature of the authors' fine-tuning (their initial value, not the snapshot's)"""
+"""the temperature the authors' fine-tuning starts from (not the snapshot's), then tunes"""
 
 
 def _online_actor(cfg: RunConfig, agent: SkillAgent) -> SkillAgent:

@@ -64,12 +64,23 @@ class Actor(nn.Module):
         return action, log_prob.sum(-1, keepdim=True) - const
 
 
+ACTION_BOUND = 1.0 - 1e-6
+"""URLB's truncated normal keeps actions inside (-1, 1) by this much"""
+
+
+def truncated(x: torch.Tensor) -> torch.Tensor:
+    """URLB's truncated normal's clamp: the value inside the bounds, the gradient passed
+    straight through, so the mean of an action at a bound still learns."""
+    return x - x.detach() + x.detach().clamp(-ACTION_BOUND, ACTION_BOUND)
+
+
 class FixedStdActor(Actor):
     """URLB's DDPG actor, as S-EPOA's authors fine-tune with it: the action is tanh of the
-    trunk's mean plus Gaussian noise of a fixed `std`, clipped at `clip`. Its log-probability
-    (of a plain Gaussian, as URLB's truncated normal computes it) does not depend on the
-    actor's weights, so an entropy term gives the actor no gradient and the temperature only
-    shifts the critic's target."""
+    trunk's mean plus Gaussian noise of a fixed `std`, clipped at `clip` (acting leaves it
+    unclipped), kept within the bounds by `truncated`. Its log-probability (of a plain Gaussian
+    at the bounded action, as URLB's truncated normal computes it) does not depend on the
+    actor's weights, so an entropy term gives the actor no gradient: the temperature, tuned as
+    SAC tunes it, only shifts the critic's target."""
 
     def __init__(self, obs_dim: int, action_dim: int, cfg: SACConfig, std: float, clip: float):
         super().__init__(obs_dim, action_dim, cfg)
@@ -78,8 +89,9 @@ class FixedStdActor(Actor):
     def sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         mean = torch.tanh(self.trunk(obs).chunk(2, dim=-1)[0])
         noise = (torch.randn_like(mean) * self.std).clamp(-self.clip, self.clip)
-        action = (mean + noise).clamp(-1.0, 1.0)
-        log_prob = -0.5 * (noise / self.std) ** 2 - math.log(self.std) - LOG_SQRT_2PI
+        action = truncated(mean + noise)
+        z = (action - mean).detach() / self.std  # no gradient reaches it, as in URLB
+        log_prob = -0.5 * z * z - math.log(self.std) - LOG_SQRT_2PI
         return action, log_prob.sum(-1, keepdim=True)
 
 
@@ -182,8 +194,7 @@ class SAC:
             if deterministic:
                 return np.tanh(mean)
             noise = rng.standard_normal(self.action_dim, np.float32) * self.actor.std
-            noise = np.clip(noise, -self.actor.clip, self.actor.clip)
-            return np.clip(np.tanh(mean) + noise, -1.0, 1.0)
+            return np.clip(np.tanh(mean) + noise, -ACTION_BOUND, ACTION_BOUND)
         if deterministic:
             return np.tanh(mean)
         return np.tanh(mean + rng.standard_normal(self.action_dim, np.float32) * np.exp(log_std))
@@ -246,12 +257,6 @@ class SAC:
         q = self.critic(obs, action, detach_params=True).min(dim=0).values
         actor_loss = (alpha.detach() * log_prob - q).mean()
         mean_log_prob = log_prob.detach().mean()
-        if isinstance(self.actor, FixedStdActor):  # a fixed temperature: nothing to tune
-            self.actor_opt.zero_grad(set_to_none=True)
-            actor_loss.backward()
-            self.actor_opt.step()
-            return {"actor_loss": actor_loss.detach(), "alpha": alpha.detach(),
-                    "entropy": -mean_log_prob}
         alpha_loss = alpha * (-mean_log_prob - self.target_entropy)
         # Each loss sees the other's parameters detached, so one backward pass through their
         # sum gives exactly the two separate gradients.
@@ -269,7 +274,7 @@ class SAC:
 
     def fix_actor_std(self, std: float, clip: float, alpha: float) -> None:
         """From now on act and learn with `FixedStdActor` (the same weights; the log-std half
-        of the trunk's output goes unused) and a fixed temperature `alpha`."""
+        of the trunk's output goes unused), the temperature tuned from `alpha`."""
         fixed = FixedStdActor(self.obs_dim, self.action_dim, self.cfg, std, clip).to(self.device)
         fixed.load_state_dict(self.actor.state_dict())
         self.actor = fixed

@@ -154,7 +154,7 @@ def build_config(task: str, preset: str, overrides: dict[str, Any] | None = None
 
 WRITTEN_WHEN_SET = ("reward.init_from", "reward.true_reward", "sac.cuda_graph", "sac.tf32",
                     "skill.free_initial_rollouts", "skill.estimator_data", "skill.actor",
-                    "skill.actor_std", "skill.actor_clip")
+                    "skill.actor_std", "skill.actor_clip", "skill.estimator_refit")
 """fields added after runs were stored: a config's dict holds them only when they differ from
 their default, so a stored config.json stays equal to the same run's config today (a results
 folder's finished runs are recognised by that equality, `experiments.queue`)"""

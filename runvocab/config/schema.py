@@ -232,7 +232,12 @@ class SkillConfig:
     estimator_lr: float = 3e-4
     """online: Adam learning rate of R_theta"""
     estimator_steps: int = 200
-    """online: full-batch steps refitting R_theta before each round"""
+    """online: full-batch steps of each fit of R_theta (the authors' code: 50)"""
+    estimator_refit: bool = True
+    """online: R_theta is fitted again after each round's reward training, so z_task follows
+    the new reward model at once. false (the authors' code): fitted only as a round selects
+    (on the reward model before its labels), none at the first round, so z_task until the
+    second round is the argmax of the unfitted R_theta"""
     task_skill_samples: int = 50
     """online: N_z, fresh random skills z_task is chosen from"""
     task_skill_draw: str = "episode"
@@ -258,8 +263,8 @@ class SkillConfig:
     actor: str = "sac"
     """online: sac (a learned sigma, alpha from the snapshot) | ddpg (URLB's actor as the
     authors fine-tune it: the pretrained mean with a fixed sigma `actor_std`, noise clipped at
-    `actor_clip`, and a fixed alpha of 1 (their initial value) that only shifts the critic's
-    target)"""
+    `actor_clip` in the updates, actions bounded with a straight-through gradient, and alpha
+    tuned as SAC's from 1, their initial value: it only shifts the critic's target)"""
     actor_std: float = 0.2
     """online, actor ddpg: the fixed standard deviation of the exploration noise"""
     actor_clip: float = 0.3

@@ -17,7 +17,7 @@ from runvocab.names import ConfigError
 from runvocab.validate import validate
 from trainer.loop import TrainingRun
 from trainer.return_estimator import ReplayEpisodes, ReturnEstimator
-from trainer.sac import SAC, FixedStdActor
+from trainer.sac import SAC, Batch, FixedStdActor, truncated
 from trainer.skills.agent import SkillReplayBuffer
 from trainer.true_reward_rounds import TrueRewardRounds
 
@@ -91,6 +91,16 @@ def test_free_initial_rollouts_come_before_step_0_and_learning_starts_at_once(tm
                                      "skill.initial_rollouts": 4, "skill.reset_critic": False,
                                      "reset_updates": 7})
     run = TrainingRun(cfg, progress=False)
+    task_updates: list[bool] = []  # per update: was it the z_task update?
+    update = run.policy.agent.update
+
+    def record(batch):
+        z = run.policy.task_skill
+        task_updates.append(z is not None and bool(
+            (batch.skill == torch.as_tensor(z)).all()))
+        return update(batch)
+
+    run.policy.agent.update = record
     run.train()
     rounds = _rows(cfg.run_dir, "rounds")
     assert rounds[0]["step"] == "0" == str(first_round_step(cfg))  # on the 4 rollouts
@@ -99,7 +109,10 @@ def test_free_initial_rollouts_come_before_step_0_and_learning_starts_at_once(tm
     assert [int(r["step"]) for r in episodes] == [200, 400, 600, 800, 1000, 1200]
     assert run.episode == 10
     # The first counted episode learns throughout: 7 updates after the round, then one every
-    # 4th step of its 200, on the learned reward.
+    # 4th step of its 200, on the learned reward. The 7 train the stored skills alone, as the
+    # authors' code makes them before its first z_task; then z_task takes every other update.
+    assert task_updates[:7] == [False] * 7
+    assert task_updates[7:13] == [True, False] * 3  # by parity: the 8th update is odd
     assert int(episodes[0]["updates"]) == 7 + 200 // 4
     assert int(episodes[0]["reward_updates"]) == 7 + 200 // 4
     assert len(run.buffer) == 10 * 200
@@ -132,6 +145,26 @@ def test_r_theta_fits_every_complete_replay_episode_when_asked(tmp_path, monkeyp
     assert sizes == [3, 5, 5]
 
 
+def test_r_theta_is_fitted_only_as_rounds_select_when_asked(tmp_path, monkeypatch):
+    fitted_at: list[int] = []
+    fit = ReturnEstimator.fit
+
+    def record(self, skills, returns):
+        fitted_at.append(run.step)
+        return fit(self, skills, returns)
+
+    monkeypatch.setattr(ReturnEstimator, "fit", record)
+    cfg = _tiny(tmp_path, "once", **{"skill.estimator_refit": False})
+    run = TrainingRun(cfg, progress=False)
+    run.train()
+    rounds = _rows(cfg.run_dir, "rounds")
+    assert [r["step"] for r in rounds] == ["600", "1000"]
+    # None at the first round, whose pairs are drawn uniformly; one as the second selects.
+    assert fitted_at == [1000]
+    # The first z_task came from the unfitted R_theta, as in the authors' code.
+    assert rounds[0]["task_skill_predicted"] not in ("", "nan")
+
+
 def test_replay_episodes_line_up_with_episodes_after_the_ring_wraps():
     buffer = SkillReplayBuffer(2, 1, 3, capacity=6, device=torch.device("cpu"), seed=0)
     for episode in range(5):  # episodes of 2 steps; the ring of 6 holds the last 3
@@ -154,20 +187,41 @@ def test_the_fixed_sigma_actor_gives_its_weights_no_entropy_gradient_and_bounded
     sac = SAC(5, 3, SACConfig(hidden_dim=16, batch_size=8), torch.device("cpu"))
     sac.fix_actor_std(0.2, 0.3, alpha=1.0)
     assert isinstance(sac.actor, FixedStdActor)
-    obs = torch.randn(64, 5)
+    obs = torch.randn(4096, 5)
     action, log_prob = sac.actor.sample(obs)
     assert action.requires_grad and not log_prob.requires_grad  # nothing to differentiate
+    mean = torch.tanh(sac.actor.trunk(obs).chunk(2, dim=-1)[0])
+    assert (action - mean).abs().max() <= 0.3 + 1e-6  # the updates' noise is clipped
+    # Acting, the noise is not clipped (URLB samples with clip=None); actions stay in bounds.
     rng = np.random.default_rng(0)
     o = np.random.default_rng(1).standard_normal(5).astype(np.float32)
-    mean = sac.act(o, rng, deterministic=True)
-    noisy = np.stack([sac.act(o, rng) for _ in range(200)])
-    assert np.all(np.abs(noisy - mean) <= 0.3 + 1e-6) and noisy.std(0).min() > 0.05
-    before = sac.alpha.item()
+    centre = sac.act(o, rng, deterministic=True)
+    noisy = np.stack([sac.act(o, rng) for _ in range(2000)])
+    assert np.abs(noisy).max() < 1.0 and np.abs(noisy - centre).max() > 0.3
+    assert 0.15 < np.median(noisy.std(0)) < 0.25
+
+
+def test_the_ddpg_actions_bound_passes_the_gradient_straight_through():
+    x = torch.tensor([2.0, -3.0, 0.5], requires_grad=True)
+    bounded = truncated(x)
+    assert bounded.tolist() == pytest.approx([1.0, -1.0, 0.5], abs=1e-5)
+    assert bounded.abs().max() < 1.0
+    bounded.sum().backward()
+    # A hard clamp would give the first two nothing: a saturated mean could never come back.
+    assert x.grad is not None and x.grad.tolist() == [1.0, 1.0, 1.0]
+
+
+def test_the_ddpg_actors_temperature_is_tuned_from_1_as_the_authors_code_tunes_it():
+    torch.manual_seed(0)
+    sac = SAC(5, 3, SACConfig(hidden_dim=16, batch_size=8), torch.device("cpu"))
+    sac.fix_actor_std(0.2, 0.3, alpha=1.0)
+    assert sac.alpha.item() == pytest.approx(1.0)
     batch_obs = torch.randn(8, 5)
-    from trainer.sac import Batch
-    for _ in range(3):
+    for _ in range(20):
         sac.update(Batch(batch_obs, torch.rand(8, 3) * 2 - 1, torch.randn(8, 1), batch_obs))
-    assert sac.alpha.item() == pytest.approx(before) == pytest.approx(1.0)
+    # A fixed sigma of 0.2 has far more log-probability than the target entropy -|A| allows:
+    # alpha falls, step by step, as it does in the authors' fine-tuning.
+    assert sac.alpha.item() < 0.999
 
 
 def test_a_sepoa_run_fine_tunes_with_the_ddpg_actor_when_asked(tmp_path):
@@ -175,6 +229,7 @@ def test_a_sepoa_run_fine_tunes_with_the_ddpg_actor_when_asked(tmp_path):
     run = TrainingRun(cfg, progress=False)
     run.train()
     assert isinstance(run.agent.sac.actor, FixedStdActor)
-    assert float(_rows(cfg.run_dir, "episodes")[-1]["alpha"]) == pytest.approx(1.0)
+    alphas = [float(r["alpha"]) for r in _rows(cfg.run_dir, "episodes") if r["alpha"]]
+    assert alphas and alphas[-1] < 1.0
     with pytest.raises(ConfigError, match="skill.actor"):
         validate(_tiny(tmp_path, "bad", **{"skill.actor": "td3"}))
