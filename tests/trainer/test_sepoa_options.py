@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import os
+import tomllib
 
 import numpy as np
 import pytest
@@ -233,3 +234,18 @@ def test_a_sepoa_run_fine_tunes_with_the_ddpg_actor_when_asked(tmp_path):
     assert alphas and alphas[-1] < 1.0
     with pytest.raises(ConfigError, match="skill.actor"):
         validate(_tiny(tmp_path, "bad", **{"skill.actor": "td3"}))
+
+
+def test_every_authors_option_at_once_runs_and_keeps_the_update_budget(tmp_path):
+    docs = open(os.path.join(os.path.dirname(__file__), "..", "..", "docs", "SEPOA.md")).read()
+    authors = tomllib.loads(
+        docs.split("## S-EPOA as the authors run it")[1].split("```toml")[1].split("```")[0])
+    cfg = _tiny(tmp_path, "authors", **authors | {"skill.initial_rollouts": 3,
+                                                  "reset_updates": 5})
+    run = TrainingRun(cfg, progress=False)
+    run.train()
+    rounds = _rows(cfg.run_dir, "rounds")
+    assert [r["step"] for r in rounds] == ["0", "400", "800"]
+    assert isinstance(run.agent.sac.actor, FixedStdActor)
+    # One update every 4th step from step 0, and the 5 after the first round.
+    assert int(_rows(cfg.run_dir, "episodes")[-1]["updates"]) == 5 + 1200 // 4
