@@ -259,6 +259,12 @@ def _check_skill(cfg: RunConfig, pretraining: bool) -> None:
         "skill.actor_std": s.actor_std, "skill.actor_clip": s.actor_clip,
     })
     _not_negative({"skill.estimator_steps": s.estimator_steps})
+    if cfg.algo == "sepoa" and not s.estimator_refit and cfg.feedback.selection != "skill":
+        raise ConfigError("skill.estimator_refit",
+                          f"skill.estimator_refit false fits R_theta only as a round selects "
+                          f"by the skill rule; with feedback.selection "
+                          f"{cfg.feedback.selection!r} it would never be fitted: keep it true, "
+                          f"or select by 'skill'")
     if (pretraining or s.pretrain_steps > 0) and s.knn_k > cfg.sac.batch_size:
         raise ConfigError("skill.knn_k",
                           f"skill.knn_k ({s.knn_k}) exceeds the batch (sac.batch_size "
@@ -276,3 +282,7 @@ def _check_true_reward(cfg: RunConfig) -> None:
         if getattr(cfg.reward, name):
             raise ConfigError("reward.true_reward", f"reward.true_reward cannot go with "
                               f"reward.{name}, whose reward needs the learned model")
+    if not cfg.skill.estimator_refit:
+        raise ConfigError("reward.true_reward", "reward.true_reward fits R_theta on true "
+                          "returns once a round, with no reward model to fit it before or "
+                          "after: it cannot go with skill.estimator_refit false")

@@ -124,7 +124,7 @@ class Policy:
 class SkillPolicy(Policy):
     """S-EPOA's pi(a|s,z) from its pretraining snapshot. Before the first round each episode
     acts with a random skill; then with z_task, the best of N_z random skills under R_theta,
-    drawn when R_theta is refitted (or at each episode, `skill.task_skill_draw`)."""
+    drawn as each round closes (or at each episode, `skill.task_skill_draw`)."""
 
     estimator: ReturnEstimator
 
@@ -209,7 +209,7 @@ class SkillPolicy(Policy):
         return self._stored_skill_metrics | {f"task_{k}": v for k, v in task_metrics.items()}
 
     def round_closed(self, rng: np.random.Generator) -> dict[str, float]:
-        """z_task drawn again from the refitted R_theta (the updates after a critic reset
+        """z_task drawn again from R_theta as it now stands (the updates after a critic reset
         train the new one), and how far it moved, for rounds.csv: `task_skill_cosine`, its
         cosine with the z_task before (1: unchanged; NaN at the first round), `task_skill_gain`,
         R_theta(new) - R_theta(before), and `task_skill_predicted`, R_theta(new)."""

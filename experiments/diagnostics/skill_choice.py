@@ -2,7 +2,8 @@
 an S-EPOA run's checkpoint.
 
 S-EPOA acts, and is evaluated, with z_task: the best of N_z random skills under R_theta, which is
-regressed on the pool's skills and their trajectories' summed r_hat (trainer/return_estimator.py).
+regressed on skills and their trajectories' summed r_hat, the pool's or the replay buffer's
+(`skill.estimator_data`, trainer/return_estimator.py).
 For each run folder given (its checkpoint is read from a copy; the run itself is not touched):
 
 - `--skills` random skills from the run's skill prior (a random stream of this script's own),

@@ -80,11 +80,20 @@ def test_on_the_true_reward_the_agent_makes_the_labelled_runs_updates_and_r_thet
 
 
 def test_the_true_reward_diagnostic_is_refused_where_it_means_nothing():
-    for algo, extra, field in (("sac", {}, "algo sac"), ("rune", {}, "reward.rune")):
+    for algo, extra, field in (("sac", {}, "algo sac"), ("rune", {}, "reward.rune"),
+                               ("sepoa", {"skill.estimator_refit": False},
+                                "cannot go with skill.estimator_refit false")):
         cfg = build_config("dmc:cheetah_run", "tiny", {"algo": algo, "reward.true_reward": True}
                            | extra)
         with pytest.raises(ConfigError, match=field):
             validate(cfg)
+
+
+def test_r_theta_fitted_only_as_skill_rounds_select_needs_the_skill_rule():
+    cfg = build_config("dmc:cheetah_run", "tiny", {
+        "algo": "sepoa", "skill.estimator_refit": False, "feedback.selection": "disagreement"})
+    with pytest.raises(ConfigError, match="would never be fitted: keep it true, or select by"):
+        validate(cfg)
 
 
 def test_free_initial_rollouts_come_before_step_0_and_learning_starts_at_once(tmp_path):
