@@ -34,6 +34,7 @@ from collections.abc import Callable, Collection, Mapping, Sequence
 from typing import Any
 
 import numpy as np
+from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session, sessionmaker
 
 from labelqueue import (
@@ -266,12 +267,24 @@ class QueueHooks(RunHooks):
         # ends where it is.
         if self.status is RunStatus.RUNNING and now >= self.next_set_aside_check:
             self.next_set_aside_check = now + SET_ASIDE_CHECK_S
-            with self.sessions() as session:
-                others = other_claimable(session, worker_id=self.worker.worker_id,
-                                         besides=self.set_aside | {self.run_id})
-            if others:
+            if self._others_claimable():
                 raise SnapshotBusy("another worker is pretraining its skill snapshot")
         self.beat(0)
+
+    def _others_claimable(self) -> bool:
+        """Whether a run other than this one and those set aside is claimable. The check only
+        saves idle time: a database that does not answer it now is asked again at the next
+        check, and the heartbeat, not this, says whether the run is still ours."""
+        try:
+            with self.sessions() as session:
+                return other_claimable(session, worker_id=self.worker.worker_id,
+                                       besides=self.set_aside | {self.run_id})
+        except DBAPIError as err:
+            reason = str(err.orig or err).strip().splitlines()[0]
+            print(f"[worker {self.worker.worker_id}] run {self.run_id}: could not look for "
+                  f"other queued runs ({reason}); waiting for the snapshot",
+                  file=sys.stderr, flush=True)
+            return False
 
     def started(self, step: int, next_round_at: Callable[[], int] | None) -> None:
         self.step = step  # a resumed run reports its step before taking one

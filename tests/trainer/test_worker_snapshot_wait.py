@@ -1,6 +1,7 @@
 """A worker whose run needs a skill snapshot another worker is pretraining does not wait idle
 for it while other runs are queued: it sets the run aside (queued again, untouched) and trains
-another, then comes back to it. With nothing else to claim it waits for the snapshot."""
+another, then comes back to it. With nothing else to claim, or a database that does not answer
+the check, it waits for the snapshot."""
 
 from __future__ import annotations
 
@@ -10,12 +11,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from sqlalchemy.exc import OperationalError
 from worker_helpers import RUN, database, run_row, worker_config
 
-from labelqueue import Run, RunStatus, create_run
+from labelqueue import Run, RunStatus, claim_run, create_run
 from runvocab.snapshot_names import snapshot_path
+from trainer import queue_hooks
 from trainer import worker as worker_module
-from trainer.queue_hooks import QueueHooks
+from trainer.queue_hooks import QueueHooks, SnapshotBusy
 from trainer.worker import run_config, run_worker
 
 SEPOA = RUN | {"algo": "sepoa", "config": {"steps": 200, "threads": 1,
@@ -152,3 +155,28 @@ def test_a_worker_coming_back_to_a_run_it_set_aside_does_not_set_it_aside_again(
     assert run_row(sessions, a.id).status is run_row(sessions, c.id).status \
         is RunStatus.FINISHED
     assert run_row(sessions, b.id).worker_id == "w2"
+
+
+def test_a_database_error_in_the_set_aside_check_leaves_the_run_waiting_not_failed(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    url, sessions = database(tmp_path)
+    with sessions() as session:
+        created = create_run(session, name="waits", teacher="scripted", **SEPOA)
+        run = claim_run(session, worker_id="w1")
+    assert run is not None and run.id == created.id
+    worker = worker_config(url, tmp_path / "data", worker_id="w1")
+    hooks = QueueHooks(sessions, run, worker, run_config(run, worker), scripted_labeller_id=0)
+
+    def unanswered(session: Any, **_: Any) -> bool:
+        raise OperationalError("SELECT ...", {}, Exception("database is locked"))
+
+    monkeypatch.setattr(queue_hooks, "other_claimable", unanswered)
+    hooks.waiting_for_snapshot()  # no SnapshotBusy, no error: the run waits on
+    assert "could not look for other queued runs (database is locked)" in capsys.readouterr().err
+    assert run_row(sessions, run.id).status is RunStatus.RUNNING
+    # The next check, 30 s on, asks again.
+    monkeypatch.setattr(queue_hooks, "other_claimable", lambda session, **_: True)
+    hooks.next_set_aside_check = 0.0
+    with pytest.raises(SnapshotBusy):
+        hooks.waiting_for_snapshot()
