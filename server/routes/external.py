@@ -283,8 +283,9 @@ def push(run_id: RunId, body: PairsIn, run: ClientRun, response: Response, sessi
 @router.get("/{run_id}/answers", response_model=AnswersOut, responses=errors(404, 409, 422))
 async def answers(
     run: ClientRun, request: Request, session: SessionDep,
-    after: Annotated[str, Query(max_length=40, description="the cursor the last read gave "
-                                                          "('0.0': from the start)")] = "0.0",
+    after: Annotated[str, Query(max_length=40, description=(
+        "the cursor the last read gave, two whole numbers joined by a dot ('0.0': from the "
+        "start); one this run never gave is refused (422)"))] = "0.0",
     wait: Annotated[float, Query(ge=0, le=60, description="seconds to wait for an answer when "
                                                          "there is none yet")] = 0.0,
 ) -> AnswersOut:
