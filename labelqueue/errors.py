@@ -4,6 +4,8 @@ Every error is a `QueueError`, so a caller can map the whole family to a client 
 place; the subclasses say why.
 """
 
+from sqlalchemy.exc import DBAPIError
+
 
 class QueueError(Exception):
     """A queue operation refused; nothing was changed."""
@@ -41,3 +43,9 @@ class Invalid(QueueError, ValueError):
 
 class RunClosed(Conflict):
     """The run takes no answers in its status (only running and paused runs do)."""
+
+
+def database_reason(err: DBAPIError) -> str:
+    """The first line of what the database said (the driver's own message, not SQLAlchemy's
+    wrapping of it): short enough for a one-line error."""
+    return str(err.orig or err).strip().splitlines()[0]

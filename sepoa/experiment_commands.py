@@ -158,6 +158,7 @@ def _run_experiment(args: argparse.Namespace) -> int:
     from experiments.mps import MpsError
     from experiments.spec import SpecError, load_spec
     from labelqueue import check_url, database_url
+    from labelqueue.errors import database_reason
 
     results = pathlib.Path(args.results)
     try:
@@ -198,8 +199,7 @@ def _run_experiment(args: argparse.Namespace) -> int:
     except (SpecError, ValueError, MpsError) as err:
         return fail(str(err))
     except DBAPIError as err:
-        first = str(err.orig or err).strip().splitlines()[0]
-        return fail(f"queue database: {first}")
+        return fail(f"queue database: {database_reason(err)}")
     except OSError as err:
         return fail(f"{err.filename or results}: {err.strerror or err}")
 

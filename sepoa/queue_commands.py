@@ -246,6 +246,7 @@ def _label_dataset(args: argparse.Namespace) -> int:
     from sqlalchemy.exc import DBAPIError
 
     from labelqueue import create_run, session_factory
+    from labelqueue.errors import database_reason
     from rundata.labelling import labelling_dataset, labelling_run
     from runvocab.names import ConfigError
 
@@ -278,8 +279,7 @@ def _label_dataset(args: argparse.Namespace) -> int:
     except ConfigError as err:
         return fail(str(err))
     except DBAPIError as err:
-        return fail(f"cannot use the queue database: "
-                    f"{str(err.orig or err).strip().splitlines()[0]}")
+        return fail(f"cannot use the queue database: {database_reason(err)}")
     finally:
         engine.dispose()
     h = run.config["feedback.segment_length"]
@@ -303,6 +303,7 @@ def _labeller(args: argparse.Namespace) -> int:
         session_factory,
         update_labeller,
     )
+    from labelqueue.errors import database_reason
 
     name: str | None = getattr(args, "name", None)  # every action but list has one
     if name is not None and not 1 <= len(name) <= NAME_MAX:  # as POST /api/labellers
@@ -334,8 +335,7 @@ def _labeller(args: argparse.Namespace) -> int:
                     update_labeller(session, labeller_id=found.id, active=active)
                     print(f"{name!r} {'activated' if active else 'revoked'}")
     except DBAPIError as err:  # damage the integrity check does not see, a database gone away
-        first = str(err.orig or err).strip().splitlines()[0]
-        return fail(f"cannot use the queue database: {first}")
+        return fail(f"cannot use the queue database: {database_reason(err)}")
     finally:
         engine.dispose()
     return 0
@@ -360,6 +360,7 @@ def _invite(args: argparse.Namespace) -> int:
     from sqlalchemy.exc import DBAPIError
 
     from labelqueue import NotFound, make_engine, session_factory
+    from labelqueue.errors import database_reason
 
     url = database_url(args)
     parsed = make_url(url)
@@ -374,8 +375,7 @@ def _invite(args: argparse.Namespace) -> int:
     except NotFound as err:
         return fail(str(err))
     except DBAPIError as err:
-        return fail(f"cannot read the queue database: "
-                    f"{str(err.orig or err).strip().splitlines()[0]}")
+        return fail(f"cannot read the queue database: {database_reason(err)}")
     finally:
         engine.dispose()
 

@@ -177,6 +177,7 @@ def _run_worker(args: argparse.Namespace) -> int:
     from sqlalchemy.exc import DBAPIError
 
     from labelqueue import check_url, database_url, mask_url, sqlite_url
+    from labelqueue.errors import database_reason
     from trainer.clips import ClipConfig  # no MuJoCo yet: the rendering check comes first
 
     try:
@@ -231,8 +232,7 @@ def _run_worker(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         return 130
     except DBAPIError as err:  # the database cannot be reached (or went away)
-        first = str(err.orig or err).strip().splitlines()[0]
-        return fail(f"queue database {mask_url(url)}: {first}")
+        return fail(f"queue database {mask_url(url)}: {database_reason(err)}")
     return 0
 
 

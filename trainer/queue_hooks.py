@@ -60,6 +60,7 @@ from labelqueue import (
     submit_answer,
     write_metrics,
 )
+from labelqueue.errors import database_reason
 from labelqueue.models import SCRIPTED_TEACHER
 from rundata.episodes import (
     StoredEpisode,
@@ -280,9 +281,8 @@ class QueueHooks(RunHooks):
                 return other_claimable(session, worker_id=self.worker.worker_id,
                                        besides=self.set_aside | {self.run_id})
         except DBAPIError as err:
-            reason = str(err.orig or err).strip().splitlines()[0]
             print(f"[worker {self.worker.worker_id}] run {self.run_id}: could not look for "
-                  f"other queued runs ({reason}); waiting for the snapshot",
+                  f"other queued runs ({database_reason(err)}); waiting for the snapshot",
                   file=sys.stderr, flush=True)
             return False
 
