@@ -72,6 +72,7 @@ def _export(args: argparse.Namespace) -> int:
     from sqlalchemy.exc import DBAPIError
 
     from labelqueue import NotFound, check_database, make_engine, session_factory
+    from labelqueue.errors import database_reason
     from rundata.label_files import write_export
 
     if args.dataset is None and (args.dataset_id is not None or args.clips_dir is not None):
@@ -109,7 +110,7 @@ def _export(args: argparse.Namespace) -> int:
         return fail(str(err))
     except DBAPIError as err:
         return fail(f"cannot read labels from {parsed.render_as_string(hide_password=True)}: "
-                    f"{str(err.orig).strip().splitlines()[0] if err.orig else err}")
+                    f"{database_reason(err)}")
     except OSError as err:
         return fail(f"cannot write --out {args.out}: {err.strerror or err}")
     finally:
@@ -127,6 +128,7 @@ def _export_dataset(args: argparse.Namespace, url: str) -> int:
     from sqlalchemy.exc import DBAPIError
 
     from labelqueue import NotFound, make_engine, session_factory
+    from labelqueue.errors import database_reason
     from rundata.dataset import DatasetError, NoEpisodes, write_dataset
     from rundata.episodes import episodes_dir
 
@@ -158,7 +160,7 @@ def _export_dataset(args: argparse.Namespace, url: str) -> int:
     except DBAPIError as err:
         return fail(f"cannot read labels from "
                     f"{make_url(url).render_as_string(hide_password=True)}: "
-                    f"{str(err.orig).strip().splitlines()[0] if err.orig else err}")
+                    f"{database_reason(err)}")
     except OSError as err:
         where = f" ({err.filename})" if err.filename else ""
         return fail(f"cannot write --dataset {args.dataset}{where}: {err.strerror or err}")
@@ -211,6 +213,7 @@ def _migrated_engine(args: argparse.Namespace) -> Engine:
     from sqlalchemy.exc import DBAPIError
 
     from labelqueue import check_database, make_engine, migrate
+    from labelqueue.errors import database_reason
 
     url = database_url(args)
     check_database(url)
@@ -218,7 +221,7 @@ def _migrated_engine(args: argparse.Namespace) -> Engine:
         migrate(url)
     except DBAPIError as err:
         raise ValueError(f"cannot open the queue database: "
-                         f"{str(err.orig).strip().splitlines()[0]}") from None
+                         f"{database_reason(err)}") from None
     return make_engine(url)
 
 
