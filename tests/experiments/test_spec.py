@@ -6,6 +6,7 @@ import tomllib
 from pathlib import Path
 
 import pytest
+from sepoa_docs import authors_overrides
 
 from experiments.spec import SpecError, load_spec
 
@@ -118,13 +119,11 @@ def test_within_a_seed_a_second_run_of_one_snapshot_is_queued_after_those_needin
 
 
 def test_the_docs_authors_overrides_are_the_authors_grids_variant() -> None:
-    docs = (ROOT / "docs" / "SEPOA.md").read_text()
-    block = docs.split("## S-EPOA as the authors run it")[1].split("```toml")[1].split("```")[0]
     with open(ROOT / "specs" / "small" / "sepoa-authors.toml", "rb") as f:
         variant = tomllib.load(f)["variants"]["S-EPOA (authors)"]
     # Beyond the algorithm and the grid's pretraining length, the same overrides.
-    assert tomllib.loads(block) == {k: v for k, v in variant.items()
-                                    if k not in ("algo", "skill.pretrain_steps")}
+    assert authors_overrides() == {k: v for k, v in variant.items()
+                                   if k not in ("algo", "skill.pretrain_steps")}
 
 
 @pytest.mark.parametrize("analysis, message", [

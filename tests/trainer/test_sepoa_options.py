@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import csv
 import os
-import tomllib
 
 import numpy as np
 import pytest
 import torch
+from sepoa_docs import authors_overrides
 
 from runvocab.config import SACConfig, build_config
 from runvocab.first_round import first_round_step
@@ -246,9 +246,7 @@ def test_a_sepoa_run_fine_tunes_with_the_ddpg_actor_when_asked(tmp_path):
 
 
 def test_every_authors_option_at_once_runs_and_keeps_the_update_budget(tmp_path):
-    docs = open(os.path.join(os.path.dirname(__file__), "..", "..", "docs", "SEPOA.md")).read()
-    authors = tomllib.loads(
-        docs.split("## S-EPOA as the authors run it")[1].split("```toml")[1].split("```")[0])
+    authors = authors_overrides()
     cfg = _tiny(tmp_path, "authors", **authors | {"skill.initial_rollouts": 3,
                                                   "reset_updates": 5})
     run = TrainingRun(cfg, progress=False)
