@@ -7,10 +7,11 @@ of any implementation at the runs' settings, or only of other settings.
 
 For each run, from its config.json, rounds.csv and episodes.csv:
 - the arithmetic its reward rounds could not avoid: every round's epochs (`reward_epochs`) over
-  its labelled pairs (`trained_pairs`), forward and backward through each member, and, with SURF,
-  the forward pass over its unlabelled pairs (counted as torch's FLOP counter counts a round:
-  tests/benchmarks/test_reward_floor.py). SURF's second pass over the confident pairs, the
-  activations, the optimiser and R_theta's fits are left out, so this is a lower bound;
+  its labelled pairs (`trained_pairs`), forward and backward through each member, and, with
+  SURF, the forward pass over its uncropped unlabelled pairs (counted as torch's FLOP counter
+  counts a round: tests/benchmarks/test_reward_floor.py). SURF's second pass over the
+  confident pairs, the activations, the optimiser and R_theta's fits are left out, so this is
+  a lower bound;
 - that arithmetic at this machine's plain matmul rate (the best of several timings of a matrix
   product of the members' hidden shape, on `--threads` threads): the floor of its seconds;
 - its SAC updates (episodes.csv's last `updates`) at the rate trainer.sac.SAC runs the run's
@@ -86,13 +87,13 @@ def reward_gflop(config: dict, rounds: list[dict]) -> float:
     # (the segments need none).
     backward = 2 * forward - e * d * w
     steps = config["feedback"]["segment_length"]
-    unlabelled = 0
-    if reward["surf"]:
+    unlabelled_steps = 0
+    if reward["surf"]:  # the pseudo-labels' pass is over whole segments, training on crops
+        unlabelled_steps = reward["surf_unlabelled_ratio"] * steps
         steps = (reward["surf_crop_min"] + reward["surf_crop_max"]) / 2
-        unlabelled = reward["surf_unlabelled_ratio"]
     # Per labelled pair and epoch: both segments forward and backward; SURF's unlabelled pairs
     # forward only.
-    per_pair = 2 * steps * ((forward + backward) + unlabelled * forward)
+    per_pair = 2 * (steps * (forward + backward) + unlabelled_steps * forward)
     pair_epochs = sum(int(r["reward_epochs"]) * int(r["trained_pairs"]) for r in rounds)
     return 2 * per_pair * pair_epochs / 1e9
 

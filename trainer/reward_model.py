@@ -219,30 +219,35 @@ class RewardModel:
 
     def _pseudo_label_loss(self, unlabelled: PairSampler, batch: int,
                            length: int) -> tuple[torch.Tensor, int]:
-        """SURF's loss on confidently self-labelled random pairs (summed over members, mean
-        over each member's confident pairs), and how many member-pairs were confident."""
+        """SURF's loss on self-labelled random pairs, and how many member-pairs were confident.
+
+        As in SURF's paper and code: each member labels a pair from its uncropped segments,
+        where its P[seg1 > seg0] is beyond the threshold, and learns that label on a random crop
+        of the pair (another view: a loss on the view that gave the label would be below
+        -ln(threshold), with next to no gradient). Each member's loss is the mean over every
+        drawn pair, the unconfident counting 0; the members' losses are summed."""
         n = batch * self.cfg.surf_unlabelled_ratio
         if n == 0:
             return torch.zeros((), device=self.device), 0
         u0, u1 = (torch.as_tensor(u, device=self.device) for u in unlabelled(n))
-        u0, u1 = random_crops(u0, u1, length, self.generator)
         e = self.cfg.ensemble_size
-        u0, u1 = u0.expand(e, -1, -1, -1), u1.expand(e, -1, -1, -1)
         with torch.no_grad():
-            p = torch.sigmoid(self._segment_returns(u1) - self._segment_returns(u0))
+            p = torch.sigmoid(self._segment_returns(u1.expand(e, -1, -1, -1))
+                              - self._segment_returns(u0.expand(e, -1, -1, -1)))
             y, keep = pseudo_labels(p, self.cfg.surf_threshold)
+        c0, c1 = random_crops(u0, u1, length, self.generator)
         # Only confident pairs carry a gradient: forward just the pairs some member is confident
-        # about again, with autograd (most are not: a pass over all of them cost most of SURF's
-        # training time).
+        # about, with autograd (most are not, and a pass over all of them would cost most of
+        # SURF's training time).
         some = keep.any(0)
         kept = int(keep.sum())
         if not kept:
             return torch.zeros((), device=self.device), 0
         y, keep = y[:, some], keep[:, some]
-        logits = self._segment_returns(u1[:, some]) - self._segment_returns(u0[:, some])
+        c0, c1 = c0[some].expand(e, -1, -1, -1), c1[some].expand(e, -1, -1, -1)
+        logits = self._segment_returns(c1) - self._segment_returns(c0)
         losses = F.binary_cross_entropy_with_logits(logits, y, reduction="none") * keep
-        per_member = losses.sum(-1) / keep.sum(-1).clamp(min=1)
-        return per_member.sum(), kept
+        return (losses.sum(-1) / n).sum(), kept
 
     def state_dict(self) -> dict:
         return {

@@ -4,9 +4,11 @@
   cuts each segment of each pair at its own random offset to L steps (segments of 60 cropped to
   45-55 in the paper's table), so a label teaches about shifted and shortened views of its pair.
 - Semi-supervised pseudo-labels: each batch also draws `unlabelled_ratio` times as many random
-  unlabelled pairs from the trajectory pool (cropped alike); a member whose P[seg1 > seg0] is
-  above `threshold` (or below 1 - threshold) labels the pair itself, and the confident pairs'
-  Bradley-Terry loss is added with weight `weight`. Each member labels with its own prediction.
+  unlabelled pairs from the trajectory pool; a member whose P[seg1 > seg0] on the uncropped
+  pair is above `threshold` (or below 1 - threshold) labels the pair itself, and learns that
+  label on the pair's crops (cropped as the labelled ones): the Bradley-Terry loss of the
+  confident pairs, averaged over every drawn pair, is added with weight `weight`. Each member
+  labels with its own prediction.
 
 Usable with any selection rule (`reward.surf true`); S-EPOA's runs in the paper use it too.
 """

@@ -60,9 +60,10 @@ def test_pseudo_labelled_pairs_join_the_loss_only_when_confident():
     assert 0 < metrics["surf_confident_ratio"] <= 1
 
 
-def test_the_pseudo_label_loss_has_the_gradient_of_every_pair_masked_to_the_confident():
-    """Only confident pairs are forwarded with autograd; the loss and its gradient must equal
-    the masked loss over all pairs."""
+def test_the_pseudo_label_loss_is_surfs_labels_from_whole_segments_learnt_on_crops():
+    """Labels from each member's P on the uncropped pair, the loss on a crop of it, averaged
+    over every drawn pair (SURF's code); only confident pairs are forwarded with autograd, and
+    the loss and its gradient must equal that masked loss over all pairs."""
     torch.manual_seed(0)
     cfg = RewardConfig(hidden_dim=16, hidden_layers=2, surf=True, surf_threshold=0.55,
                        surf_unlabelled_ratio=4)
@@ -77,19 +78,48 @@ def test_the_pseudo_label_loss_has_the_gradient_of_every_pair_masked_to_the_conf
 
     model.ensemble.zero_grad()
     model.generator.set_state(state)
-    c0, c1 = random_crops(torch.as_tensor(u0), torch.as_tensor(u1), 8, model.generator)
     e = cfg.ensemble_size
+    whole0, whole1 = (torch.as_tensor(u).expand(e, -1, -1, -1) for u in (u0, u1))
+    p = torch.sigmoid(model._segment_returns(whole1) - model._segment_returns(whole0)).detach()
+    y, keep = pseudo_labels(p, cfg.surf_threshold)
+    c0, c1 = random_crops(torch.as_tensor(u0), torch.as_tensor(u1), 8, model.generator)
     logits = (model._segment_returns(c1.expand(e, -1, -1, -1))
               - model._segment_returns(c0.expand(e, -1, -1, -1)))
-    y, keep = pseudo_labels(torch.sigmoid(logits.detach()), cfg.surf_threshold)
     losses = torch.nn.functional.binary_cross_entropy_with_logits(
         logits, y, reduction="none") * keep
-    reference = (losses.sum(-1) / keep.sum(-1).clamp(min=1)).sum()
+    reference = losses.mean(-1).sum()
     reference.backward()
     assert int(keep.sum()) == kept
     torch.testing.assert_close(loss, reference)
     for got, want in zip(grads, (p.grad for p in model.ensemble.parameters()), strict=True):
         torch.testing.assert_close(got, want)
+
+
+class FirstFeature(torch.nn.Module):
+    """A reward ensemble whose every member's reward is the step's first feature."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.scale = torch.nn.Parameter(torch.ones(()))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.scale * x[..., :1]
+
+
+def test_a_pair_sure_as_a_whole_teaches_on_crops_that_are_not():
+    """The second side earns 10 at its first and last step: sure as a whole (P ~ 1), while a
+    crop of 8 of its 10 steps that starts at step 1 holds neither. On such crops the pseudo-label
+    still teaches (loss ln 2), far above what a crop's own confident label could (-ln 0.999)."""
+    cfg = RewardConfig(surf=True, surf_threshold=0.999, surf_unlabelled_ratio=4)
+    model = RewardModel(3, 1, cfg, torch.device("cpu"), seed=0)
+    model.ensemble = FirstFeature()
+    first = np.zeros((40, 10, 4), np.float32)
+    second = first.copy()
+    second[:, [0, 9], 0] = 10.0
+    loss, kept = model._pseudo_label_loss(lambda n: (first[:n], second[:n]), 10, 8)
+    assert kept == 3 * 40  # every member sure of every pair
+    # About a third of the crops of the second side start at step 1 (loss ln 2 each).
+    assert 0.1 < loss.item() / 3 < 0.5
 
 
 def test_a_pebble_run_with_surf_trains_on_crops_and_pseudo_labels(tmp_path):
