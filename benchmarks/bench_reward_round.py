@@ -111,7 +111,8 @@ def main() -> int:
         e, per_row = cfg.ensemble_size, macs_per_row(cfg)
         crop = (cfg.surf_crop_min + cfg.surf_crop_max) / 2 if surf else 50
         labelled = args.labels * 2 * crop * e * per_row * 3  # forward and backward
-        pseudo = args.labels * cfg.surf_unlabelled_ratio * 2 * crop * e * per_row if surf else 0
+        # SURF's pseudo-labels: a forward pass over the uncropped unlabelled pairs (60 steps)
+        pseudo = args.labels * cfg.surf_unlabelled_ratio * 2 * 60 * e * per_row if surf else 0
         gflop = 2 * (labelled + pseudo) * args.epochs / 1e9
         print(f"{'SURF' if surf else 'plain':5s}: {seconds / args.epochs:6.2f} s per epoch, "
               f"{50 * seconds / args.epochs:6.0f} s per 50-epoch round; at least "

@@ -5,9 +5,10 @@
 The labelled pairs are the export's answered queries (`queries.parquet`) whose aggregate is
 first, second or equal, gold pairs aside (never trained on, as in a run). A seeded share of them
 (`holdout`) is held out; the ensemble (the run's own `reward` configuration from `sepoa.json`)
-trains on the rest as the run trained its own: after each feedback round's pairs join, on every
-pair so far, with the run's loss and early stopping (`RewardModel.train_round`), SURF's crops
-and pseudo-labels included when the run used them (or once on all of them: `schedule`).
+trains on the rest as a run of this version trains its own: after each feedback round's pairs
+join, on every pair so far, with the run's loss and early stopping (`RewardModel.train_round`),
+SURF's crops and pseudo-labels included when the run used them (or once on all of them:
+`schedule`).
 Reported: the held-out accuracy (the share of held-out first/second pairs whose summed r_hat
 orders the two segments as their aggregate does), the training accuracy, the accuracy on random
 segment pairs ordered by their true returns, and the Pearson correlation of r_hat with the true
