@@ -58,13 +58,14 @@ def requested_steps(data: dict[str, Any]) -> int:
 
 def quality_table(files: Iterable[Path], resamples: int = 10_000) -> pd.DataFrame:
     """One row per measured snapshot of the quality `files`, ordered by task, length and
-    seed."""
-    rng = np.random.default_rng(0)
+    seed. Each snapshot's bootstrap has a stream of its own (from its seed and length), so its
+    intervals do not move as other snapshots join the table."""
     rows = []
     for path in files:
         data = json.loads(path.read_text())
         if data.get("format") != QUALITY_FORMAT:
             continue
+        rng = np.random.default_rng([data["seed"], requested_steps(data)])
         skill = bootstrap_top(data["skill_returns"], resamples, rng)
         rand = bootstrap_top(data["random_action_returns"], resamples, rng)
         rows.append({

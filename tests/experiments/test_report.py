@@ -591,6 +591,22 @@ def _measured_quality(seed: int, skills: list[float], randoms: list[float]) -> d
             "random_action_returns": randoms, "best_skill": [0.0]}
 
 
+def test_a_snapshots_quality_interval_does_not_move_as_others_join(tmp_path: Path) -> None:
+    from experiments.skill_quality import quality_table
+    from trainer.skills import quality
+
+    skills, randoms = [float(r) for r in range(50)], [float(r % 7) for r in range(50)]
+    paths = []
+    for seed in (10, 11):
+        path = tmp_path / f"dmc-cheetah_run-aps-1000000-s{seed}-abc-at100000.pt"
+        quality.write(str(path), _measured_quality(seed, skills, randoms), 100_000)
+        paths.append(Path(quality.quality_path(str(path))))
+    alone = quality_table(paths[1:])
+    both = quality_table(paths)
+    pd.testing.assert_frame_equal(alone.iloc[[0]].reset_index(drop=True),
+                                  both[both.seed == 11].reset_index(drop=True))
+
+
 def test_the_grids_snapshots_skill_quality_is_reported_and_kept(results: Path,
                                                                  tmp_path: Path) -> None:
     """The table holds the snapshots the grid's runs start from, not another grid's in the same
