@@ -33,6 +33,8 @@ from runvocab.config import RewardConfig  # noqa: E402
 from trainer.reward_model import LabelledPairs, RewardModel  # noqa: E402
 
 OBS, ACT = 17, 6
+SEGMENT, SURF_SEGMENT = 50, 60
+"""the presets' segment lengths, without SURF and with it (cropped to 45-55)"""
 
 
 def random_pairs(n: int, length: int, rng: np.random.Generator) -> LabelledPairs:
@@ -80,13 +82,13 @@ def main() -> int:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise SystemExit("error: --device cuda, but torch finds no CUDA device")
     rng = np.random.default_rng(0)
-    pool = rng.normal(size=(4096, 60, OBS + ACT)).astype(np.float32)
+    pool = rng.normal(size=(4096, SURF_SEGMENT, OBS + ACT)).astype(np.float32)
 
     def unlabelled(n: int) -> tuple[np.ndarray, np.ndarray]:
         i, j = rng.integers(len(pool), size=(2, n))
         return pool[i], pool[j]
 
-    peak = matmul_gflops(128 * 50 * 2, RewardConfig().hidden_dim, device)
+    peak = matmul_gflops(128 * SEGMENT * 2, RewardConfig().hidden_dim, device)
     where = (torch.cuda.get_device_name(device) if device.type == "cuda"
              else f"{args.threads} thread(s)")
     print(f"torch {torch.__version__}, {where}; {args.labels} labels, "
@@ -94,7 +96,7 @@ def main() -> int:
     float32: dict[bool, float] = {}
     for surf, bf16 in [(surf, bf16) for surf in (False, True)
                        for bf16 in ((False, True) if args.bf16 else (False,))]:
-        pairs = random_pairs(args.labels, 60 if surf else 50, rng)
+        pairs = random_pairs(args.labels, SURF_SEGMENT if surf else SEGMENT, rng)
         cfg = dataclasses.replace(RewardConfig(), surf=surf, max_epochs=args.epochs,
                                   stop_accuracy=1.01, bf16=bf16)
         model = RewardModel(OBS, ACT, cfg, device, seed=0)
@@ -109,10 +111,11 @@ def main() -> int:
             continue
         float32[surf] = seconds
         e, per_row = cfg.ensemble_size, macs_per_row(cfg)
-        crop = (cfg.surf_crop_min + cfg.surf_crop_max) / 2 if surf else 50
+        crop = (cfg.surf_crop_min + cfg.surf_crop_max) / 2 if surf else SEGMENT
         labelled = args.labels * 2 * crop * e * per_row * 3  # forward and backward
-        # SURF's pseudo-labels: a forward pass over the uncropped unlabelled pairs (60 steps)
-        pseudo = args.labels * cfg.surf_unlabelled_ratio * 2 * 60 * e * per_row if surf else 0
+        # SURF's pseudo-labels: a forward pass over the uncropped unlabelled pairs
+        pseudo = (args.labels * cfg.surf_unlabelled_ratio * 2 * SURF_SEGMENT * e * per_row
+                  if surf else 0)
         gflop = 2 * (labelled + pseudo) * args.epochs / 1e9
         print(f"{'SURF' if surf else 'plain':5s}: {seconds / args.epochs:6.2f} s per epoch, "
               f"{50 * seconds / args.epochs:6.0f} s per 50-epoch round; at least "
