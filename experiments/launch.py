@@ -30,7 +30,7 @@ from typing import IO, Any
 from experiments.queue import enqueue_spec, grid_key, spec_rows
 from experiments.sessions import recorded_session
 from experiments.spec import Spec, SpecError
-from experiments.stop_rule import apply_stop_rule, stop_rule_watch
+from experiments.stop_rule import apply_stop_rule, recorded_stop_rule, stop_rule_watch
 from labelqueue import (
     RunStatus,
     make_engine,
@@ -110,14 +110,19 @@ def run_experiment(spec: Spec, *, results: Path, database_url: str | None = None
     engine = make_engine(url)
     sessions = session_factory(engine)
     try:
-        done = enqueue_spec(spec, sessions, results, force=force, dry_run=dry_run)
+        recorded = recorded_stop_rule(spec.whole, results / spec.name)
+        done = enqueue_spec(spec, sessions, results, force=force, dry_run=dry_run,
+                            left_out=recorded.seeds_not_started
+                            if recorded is not None and recorded.recorded else ())
         where = mask_url(url)
         finished = sum(s is RunStatus.FINISHED for s in done.present.values())
         echo(f"{spec.name}: {len(spec.runs())} runs; {len(done.created)} enqueued, "
              f"{len(done.requeued)} queued again, {len(done.replaced)} redefined, "
              f"{finished} finished, {len(done.present) - finished} queued or running"
              + (f", {len(done.adopted)} finished before (their folders' results kept)"
-                if done.adopted else "") + " "
+                if done.adopted else "")
+             + (f", {len(done.left_out)} left out by the stop rule (stopped)"
+                if done.left_out else "") + " "
              f"({where}{'; dry run, nothing written' if dry_run else ''})")
         if dry_run:
             return 0
@@ -125,6 +130,9 @@ def run_experiment(spec: Spec, *, results: Path, database_url: str | None = None
         folder.mkdir(parents=True, exist_ok=True)
         (folder / "spec.toml").write_text(spec.source)  # the report reads the grid from it
         if workers == 0:
+            # Workers elsewhere may claim a run at once: the runs of seeds the rule leaves out
+            # are stopped now, not by a launcher that may never run here.
+            apply_stop_rule(spec, sessions, results, echo)
             if url_has_secret(url):  # the hint must not print the password
                 echo(f"no local workers: start `sepoa worker --results {results}` on hosts that "
                      f"reach the database and the results folder, with the queue's URL "

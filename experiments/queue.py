@@ -9,7 +9,8 @@ then gives each run to one worker). A worker trains a keyed run in `<results>/<g
 The row is the run's definition: a spec that would give an existing run another one (a changed
 override, more steps) is refused, listing the runs, unless forced; forcing lets the old rows go
 (`labelqueue.release_grid_key`), deletes their folders and enqueues the new definition. Runs
-that failed or were stopped are queued again; a worker resumes them from their checkpoint.
+that failed or were stopped are queued again; a worker resumes them from their checkpoint. The
+stopped runs of seeds a recorded stop rule leaves out (`experiments.stop_rule`) stay stopped.
 """
 
 from __future__ import annotations
@@ -101,6 +102,8 @@ class Enqueued:
     adopted: list[str] = field(default_factory=list)
     """queued, but its folder holds the finished results of this very run (carried from another
     queue database): recorded as finished, not trained again"""
+    left_out: list[str] = field(default_factory=list)
+    """stopped runs of seeds the recorded stop rule leaves out: left stopped"""
 
 
 HOST_FIELDS = ("run_dir", "threads", "device", "skill.snapshot_dir")
@@ -145,9 +148,12 @@ def _describe(row: Run, fields: dict[str, Any]) -> str:
 
 
 def enqueue_spec(spec: Spec, sessions: sessionmaker[Session], results: Path,
-                 force: bool = False, dry_run: bool = False) -> Enqueued:
+                 force: bool = False, dry_run: bool = False,
+                 left_out: Iterable[int] = ()) -> Enqueued:
     """Put the spec's grid in the queue (see the module docstring); SpecError for a redefined
-    run without `force`, or one a worker still owns. Nothing is written on a dry run."""
+    run without `force`, or one a worker still owns. `left_out`: the seeds the grid's recorded
+    stop rule leaves out, whose stopped runs stay stopped. Nothing is written on a dry run."""
+    left_out = set(left_out)
     clash = conflicts(spec, sessions)
     runs = {grid_key(spec, run): run for run in spec.runs_seed_first()}
     fields = {key: queued_fields(spec, run) for key, run in runs.items()}
@@ -167,6 +173,8 @@ def enqueue_spec(spec: Spec, sessions: sessionmaker[Session], results: Path,
                 out.replaced.append(key)
             elif key not in rows:
                 out.created.append(key)
+            elif rows[key].status is RunStatus.STOPPED and runs[key].seed in left_out:
+                out.left_out.append(key)
             elif rows[key].status in RETRIED:
                 out.requeued.append(key)
             else:
@@ -191,6 +199,8 @@ def enqueue_spec(spec: Spec, sessions: sessionmaker[Session], results: Path,
             elif created:
                 if key not in clash:
                     out.created.append(key)
+            elif row.status is RunStatus.STOPPED and runs[key].seed in left_out:
+                out.left_out.append(key)
             elif row.status in RETRIED:
                 set_run_status(session, run_id=row.id, status=RunStatus.QUEUED)
                 out.requeued.append(key)

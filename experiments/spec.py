@@ -135,6 +135,13 @@ class Spec:
     analysis: Analysis | None = None
     stop_after_hours: float | None = None
     """no seed starts once the grid's workers have trained this long (experiments.stop_rule)"""
+    part_of: Spec | None = dataclasses.field(default=None, compare=False, repr=False)
+    """the whole grid when this spec is a part of it (`only`); None: this spec is the whole"""
+
+    @property
+    def whole(self) -> Spec:
+        """The whole grid this spec is a part of, or the spec itself."""
+        return self.part_of or self
 
     def runs(self) -> list[Run]:
         """Every run of the grid, in folder order (task, variant, eps, budget, seed)."""
@@ -193,7 +200,7 @@ class Spec:
             chosen = ", ".join(repr(x) for x in variants) if variants else "any variant"
             raise SpecError(f"spec {self.name!r} runs none of seeds "
                             f"{', '.join(map(str, seeds or []))} with {chosen}")
-        return dataclasses.replace(self, variants=tuple(kept))
+        return dataclasses.replace(self, variants=tuple(kept), part_of=self.whole)
 
 
 def safe_name(text: str) -> str:

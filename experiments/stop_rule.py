@@ -6,7 +6,10 @@ exists); its other runs still train, so that every started seed can finish all i
 the hours are spent, the launcher stops each queued run of a seed not started (an operator's
 stop: queued to stopped), at launch and while its workers train, and records the seeds it left
 out in `<results>/<spec name>/stop_rule.json`, which the report reads. Running the spec again
-queues stopped runs again, so the launcher stops them again before its workers start.
+leaves the stopped runs of the recorded seeds stopped (`experiments.queue.enqueue_spec`), and
+the launcher applies the rule before its workers start, or before it returns without workers.
+The rule is the whole grid's: a part launched alone (`Spec.only`: --seed, --variant) reads,
+decides and records it over all the grid's runs.
 """
 
 from __future__ import annotations
@@ -72,6 +75,7 @@ def stop_rule(spec: Spec, sessions: sessionmaker[Session], results: Path,
               now: datetime | None = None) -> StopRule | None:
     """Where the spec's stop rule stands: the seeds it leaves out are those not started when
     the hours were first found spent; None for a spec without one."""
+    spec = spec.whole
     rule = recorded_stop_rule(spec, results / spec.name, now)
     if rule is None or not rule.reached or rule.recorded:
         return rule
@@ -90,6 +94,7 @@ def apply_stop_rule(spec: Spec, sessions: sessionmaker[Session], results: Path,
                     echo: Callable[[str], None]) -> StopRule | None:
     """Once the spec's hours are spent: stop every queued run of the seeds not started, and
     record them (the first time, with when). The rule as it stands; None without one."""
+    spec = spec.whole  # a seed started in another part of the grid has started
     rule = recorded_stop_rule(spec, results / spec.name)  # the hours read once per check
     if rule is None or not rule.reached:
         return rule

@@ -187,3 +187,44 @@ def test_the_forecast_counts_only_live_workers_and_gives_a_dead_ones_run_to_them
     assert said == ("forecast, 1 worker(s), these estimates: of the seeds not started, none "
                     "starts before the stop rule's 2 h; 1-2 left out (seed 1 would start at "
                     "about 2h00m)")
+
+
+def test_enqueueing_without_local_workers_keeps_the_left_out_seeds_stopped(
+        grid) -> None:  # type: ignore[no-untyped-def]
+    _, spec, results, sessions = grid
+    sessions_worked(results / "ruled", 2.5)
+    started = next(run for run in spec.runs() if run.variant == "A" and run.seed == 0)
+    (results / grid_key(spec, started)).mkdir(parents=True)
+    apply_stop_rule(spec, sessions, results, echo=lambda line: None)
+    ruled = statuses(spec, sessions)
+    said: list[str] = []
+    # The Slurm enqueue step, or `run --no-workers`: workers elsewhere claim at once.
+    assert run_experiment(spec, results=results, workers=0, echo=said.append) == 0
+    assert statuses(spec, sessions) == ruled
+    assert "0 queued again" in said[0] and "4 left out by the stop rule (stopped)" in said[0]
+
+
+def test_spent_hours_found_without_local_workers_stop_the_seeds_not_started(
+        grid) -> None:  # type: ignore[no-untyped-def]
+    _, spec, results, sessions = grid
+    sessions_worked(results / "ruled", 2.5)
+    assert run_experiment(spec, results=results, workers=0, echo=lambda line: None) == 0
+    assert set(statuses(spec, sessions).values()) == {"stopped"}
+    assert json.loads((results / "ruled" / FILE).read_text())["seeds_not_started"] == [0, 1, 2]
+
+
+def test_a_part_launched_alone_keeps_the_whole_grids_rule(
+        grid) -> None:  # type: ignore[no-untyped-def]
+    _, spec, results, sessions = grid
+    sessions_worked(results / "ruled", 2.5)
+    started = next(run for run in spec.runs() if run.variant == "A" and run.seed == 1)
+    (results / grid_key(spec, started)).mkdir(parents=True)  # seed 1 started in part A
+    part = spec.only(["B"], [0, 1])  # `--variant B --seed 0 --seed 1`
+    rule = apply_stop_rule(part, sessions, results, echo=lambda line: None)
+    assert rule is not None and rule.seeds_not_started == (0, 2)
+    assert json.loads((results / "ruled" / FILE).read_text())["seeds_not_started"] == [0, 2]
+    assert statuses(spec, sessions) == {
+        ("A", 0): "stopped", ("B", 0): "stopped", ("A", 1): "queued", ("B", 1): "queued",
+        ("A", 2): "stopped", ("B", 2): "stopped"}
+    rule = stop_rule(spec, sessions, results)
+    assert rule is not None and rule.recorded and rule.seeds_not_started == (0, 2)
