@@ -11,6 +11,9 @@ override, more steps) is refused, listing the runs, unless forced; forcing lets 
 (`labelqueue.release_grid_key`), deletes their folders and enqueues the new definition. Runs
 that failed or were stopped are queued again; a worker resumes them from their checkpoint. The
 stopped runs of seeds a recorded stop rule leaves out (`experiments.stop_rule`) stay stopped.
+A run not finished in this database whose folder holds its finished results (copied in from
+another machine) is recorded as finished, whether queued, failed or stopped here: a worker
+would start it afresh in a folder without a checkpoint, deleting those results.
 """
 
 from __future__ import annotations
@@ -60,6 +63,8 @@ from runvocab.snapshot_names import shared_snapshot_dir
 
 RETRIED = (RunStatus.FAILED, RunStatus.STOPPED)
 """statuses a run is queued again from when its spec is run again"""
+ADOPTABLE = (RunStatus.QUEUED, *RETRIED)
+"""statuses of a run recorded as finished when its folder holds its finished results"""
 
 
 def grid_key(spec: Spec, run: GridRun) -> str:
@@ -100,8 +105,8 @@ class Enqueued:
     present: dict[str, RunStatus] = field(default_factory=dict)
     """already queued, running or finished: left as they are"""
     adopted: list[str] = field(default_factory=list)
-    """queued, but its folder holds the finished results of this very run (carried from another
-    queue database): recorded as finished, not trained again"""
+    """queued, failed or stopped, but its folder holds the finished results of this very run
+    (carried from another queue database): recorded as finished, not trained again"""
     left_out: list[str] = field(default_factory=list)
     """stopped runs of seeds the recorded stop rule leaves out: left stopped"""
 
@@ -191,7 +196,7 @@ def enqueue_spec(spec: Spec, sessions: sessionmaker[Session], results: Path,
         for key, values in fields.items():
             row, created = enqueue_grid_run(session, grid_key=key, **values)
             done = (finished_results(results, spec, runs[key])
-                    if row.status is RunStatus.QUEUED and key not in clash else None)
+                    if row.status in ADOPTABLE and key not in clash else None)
             if done is not None:
                 adopt_finished_grid_run(session, run_id=row.id, step=int(done.get("step", 0)),
                                         labels_used=int(done.get("labels_used", 0)))

@@ -73,19 +73,25 @@ def release_grid_key(session: Session, *, run_id: int) -> Run:
     return run
 
 
+ADOPTABLE = (RunStatus.QUEUED, RunStatus.FAILED, RunStatus.STOPPED)
+"""statuses of a grid run no worker holds and that has not finished here"""
+
+
 def adopt_finished_grid_run(session: Session, *, run_id: int, step: int,
                             labels_used: int) -> Run:
-    """A queued grid run whose results folder already holds its finished results (carried from
-    another queue database: another machine, a lost database) is recorded as finished at
-    `step`, so no worker trains it again. Conflict unless the run is queued."""
+    """A queued, failed or stopped grid run whose results folder already holds its finished
+    results (carried from another queue database: another machine, a lost database) is
+    recorded as finished at `step`, so no worker trains it again. Conflict for a run in any
+    other state."""
     with transaction(session):
         now = utcnow()
-        done = changed(session, update(Run).where(Run.id == run_id,
-                                                  Run.status == RunStatus.QUEUED)
+        done = changed(session, update(Run).where(Run.id == run_id, Run.status.in_(ADOPTABLE))
                        .values(status=RunStatus.FINISHED, step=step, labels_used=labels_used,
-                               started_at=now, finished_at=now))
+                               started_at=now, finished_at=now, worker_id=None,
+                               heartbeat_at=None, error=None))
         run = get_row(session, Run, run_id)
         if not done:
-            raise Conflict(f"run {run_id} ({run.grid_key}) is {run.status}, not queued")
+            raise Conflict(f"run {run_id} ({run.grid_key}) is {run.status}, not queued, "
+                           "failed or stopped")
         detach(session, run)
     return run

@@ -15,7 +15,7 @@ from experiments.launch import default_database, run_experiment
 from experiments.queue import grid_key, spec_rows
 from experiments.sessions import FILE as SESSIONS
 from experiments.spec import load_spec
-from labelqueue import make_engine, session_factory
+from labelqueue import claim_run, finish_run, make_engine, session_factory, set_run_status
 from runvocab.config import to_dict
 from sepoa.cli import main
 
@@ -88,3 +88,33 @@ def test_keep_of_a_grid_never_run_is_one_line(tmp_path: Path,
                  "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "holds no grid (no spec.toml)" in err[0]
+
+
+@pytest.mark.parametrize("status", ["stopped", "failed"])
+def test_finished_results_copied_over_a_stopped_or_failed_run_are_adopted(
+        tmp_path: Path, status: str) -> None:
+    """A worker would start such a run afresh, deleting a folder without a checkpoint."""
+    spec_path = tmp_path / "spec.toml"
+    spec_path.write_text(SPEC)
+    spec, results = load_spec(spec_path), tmp_path / "results"
+    assert run_experiment(spec, results=results, workers=0, echo=lambda line: None) == 0
+    engine = make_engine(default_database(results))
+    sessions = session_factory(engine)
+    run = spec.runs()[0]
+    with sessions() as session:
+        row = spec_rows(spec, sessions)[grid_key(spec, run)]
+        if status == "failed":
+            claim_run(session, worker_id="w")
+            finish_run(session, run_id=row.id, worker_id="w", status="failed", error="boom")
+        else:
+            set_run_status(session, run_id=row.id, status="stopped")
+    folder = results / grid_key(spec, run)  # trained to the end elsewhere, copied in
+    folder.mkdir(parents=True)
+    (folder / "config.json").write_text(json.dumps(to_dict(run.config()), default=str))
+    (folder / "done.json").write_text(json.dumps({"step": 1000, "labels_used": 30}))
+    said: list[str] = []
+    assert run_experiment(spec, results=results, workers=0, echo=said.append) == 0
+    row = spec_rows(spec, sessions)[grid_key(spec, run)]
+    engine.dispose()
+    assert (str(row.status), row.step, row.error) == ("finished", 1000, None)
+    assert "0 queued again" in said[0] and "1 finished before" in said[0]
