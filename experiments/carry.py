@@ -10,8 +10,11 @@ paths relative to the results folder:
   `unfinished_only` when the finished runs travel another way;
 - the skill snapshots, finished and partial (`<results>/snapshots`): a partial one is a
   pretraining's checkpoint;
-- the grid's spec as the launcher wrote it and its training periods so far (`sessions.csv`,
-  `experiments.sessions`), beside its runs;
+- each packed run's episode store (`<results>/clips/run-<id>/episodes/`, `rundata.episodes`,
+  where the launcher's and Slurm's workers keep it), which a resumed run's later queries and
+  the dataset export read; the ids are the SQLite queue's, so the stores travel with it;
+- the grid's spec as the launcher wrote it, its training periods so far (`sessions.csv`,
+  `experiments.sessions`) and its stop rule's record (`stop_rule.json`), beside its runs;
 - the queue database, when it is the launcher's SQLite file in the results folder, copied with
   SQLite's backup (a consistent copy of a database in use): runs keep their ids, label counts
   and statuses. A PostgreSQL queue stays where it is, reachable from the other machine.
@@ -25,6 +28,7 @@ heartbeat within `DEAD_WORKER_AFTER_S` is refused, with the worker named.
 
 from __future__ import annotations
 
+import os
 import sqlite3
 import tarfile
 import tempfile
@@ -32,11 +36,17 @@ from contextlib import closing
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 from experiments.queue import HELD, grid_key
 from experiments.sessions import FILE as SESSIONS
 from experiments.spec import Spec
+from experiments.stop_rule import FILE as STOP_RULE
 from labelqueue import DEAD_WORKER_AFTER_S
+from rundata.episodes import episodes_dir
+
+GRID_FILES = ("spec.toml", SESSIONS, STOP_RULE)
+"""the grid's own files, beside its runs"""
 
 LEFT_BEHIND_IN_RUNS = {"tb"}
 """folders of a run that a resumed run writes again"""
@@ -54,16 +64,24 @@ class Packed:
     snapshots: int
     database: bool
     size: int
+    episode_stores: int = 0
+    """runs whose episode store was packed"""
+
+
+def _grid_rows(database: Path, spec: Spec, columns: str) -> list[Any]:
+    """`columns` of the spec's runs in the SQLite queue `database`. Plain SQL on columns every
+    schema of the queue has, so a grid trained by an older sepoa can be packed by a newer one;
+    the key's prefix compared as text, not with LIKE, where `_` would match any character."""
+    prefix = f"{spec.name}/"
+    with closing(sqlite3.connect(f"file:{database}?mode=ro", uri=True)) as db:
+        return db.execute(f"SELECT {columns} FROM runs WHERE substr(grid_key, 1, ?) = ?",
+                          (len(prefix), prefix)).fetchall()
 
 
 def held_runs(database: Path, spec: Spec, now: datetime | None = None) -> list[str]:
-    """Lines naming the spec's runs that a live worker holds in the SQLite queue `database`.
-    Plain SQL on columns every schema of the queue has, so a grid trained by an older sepoa
-    can be packed by a newer one."""
+    """Lines naming the spec's runs that a live worker holds in the SQLite queue `database`."""
     now = now or datetime.now(UTC).replace(tzinfo=None)
-    with closing(sqlite3.connect(f"file:{database}?mode=ro", uri=True)) as db:
-        rows = db.execute("SELECT grid_key, status, worker_id, heartbeat_at FROM runs "
-                          "WHERE grid_key LIKE ?", (f"{spec.name}/%",)).fetchall()
+    rows = _grid_rows(database, spec, "grid_key, status, worker_id, heartbeat_at")
     lines = []
     for key, status, worker, beat in rows:
         if status not in HELD or worker is None or beat is None:
@@ -90,15 +108,18 @@ def _pack(spec: Spec, results: Path, database: Path, out: Path,
             "launcher or workers first (Ctrl-C or SIGTERM: each checkpoints its run and "
             "releases it), so the archive holds each run's latest checkpoint")
     out.parent.mkdir(parents=True, exist_ok=True)
-    partial = out.with_name(out.name + ".partial")
+    # A name of its own beside `out`: two packs to one path never write into one file.
+    handle, name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent)
+    os.close(handle)
+    partial = Path(name)
     try:
         counts = _write(partial, spec, results, database, unfinished_only)
+        partial.replace(out)
     except BaseException:
         partial.unlink(missing_ok=True)
         raise
-    partial.replace(out)
     return Packed(counts["unfinished"], counts["finished"], counts["snapshots"],
-                  database.exists(), out.stat().st_size)
+                  database.exists(), out.stat().st_size, counts["episode_stores"])
 
 
 def copy_sqlite(database: Path | str, copy: Path) -> None:
@@ -112,10 +133,12 @@ def _write(tar_path: Path, spec: Spec, results: Path, database: Path,
            unfinished_only: bool) -> dict[str, int]:
     """The archive at `tar_path`; how many unfinished and finished runs and snapshot files it
     holds."""
-    counts = {"unfinished": 0, "finished": 0, "snapshots": 0}
+    counts = {"unfinished": 0, "finished": 0, "snapshots": 0, "episode_stores": 0}
+    ids = (dict(_grid_rows(database, spec, "grid_key, id")) if database.exists() else {})
     with tarfile.open(tar_path, "w:gz") as tar:
-        # What `sepoa report` reads, and the grid's training time so far (experiments.sessions).
-        for name in ("spec.toml", SESSIONS):
+        # What `sepoa report` reads, the grid's training time so far (experiments.sessions)
+        # and the seeds its stop rule left out.
+        for name in GRID_FILES:
             if (results / spec.name / name).exists():
                 tar.add(results / spec.name / name, f"{spec.name}/{name}")
         for run in spec.runs():
@@ -129,6 +152,10 @@ def _write(tar_path: Path, spec: Spec, results: Path, database: Path,
             left_behind = LEFT_BEHIND_WHEN_FINISHED if finished else LEFT_BEHIND_IN_RUNS
             _add_folder(tar, folder, key, left_behind)
             counts["finished" if finished else "unfinished"] += 1
+            episodes = episodes_dir(results / "clips", ids[key]) if key in ids else None
+            if episodes is not None and episodes.is_dir():
+                _add_folder(tar, episodes, episodes.relative_to(results).as_posix(), set())
+                counts["episode_stores"] += 1
         snapshots = results / "snapshots"
         for path in sorted(snapshots.glob("*")) if snapshots.is_dir() else []:
             if path.is_file() and path.suffix != ".lock":
@@ -144,8 +171,8 @@ def _write(tar_path: Path, spec: Spec, results: Path, database: Path,
 
 def _add_folder(tar: tarfile.TarFile, folder: Path, name: str, left_behind: set[str]) -> None:
     for path in sorted(folder.iterdir()):
-        if path.name in left_behind:
-            continue
+        if path.name in left_behind or path.name.endswith(".tmp"):  # half written by a
+            continue  # writer that was killed: its file is the one without .tmp
         if path.is_dir():
             _add_folder(tar, path, f"{name}/{path.name}", set())
         else:

@@ -268,7 +268,8 @@ def _pack(args: argparse.Namespace, results: pathlib.Path) -> int:
     spec = load_spec(args.spec, check=False)
     packed = pack(spec, results, pathlib.Path(args.out), unfinished_only=args.unfinished_only)
     say(f"{args.out}: {packed.unfinished} unfinished run(s) with their checkpoints, "
-        f"{packed.finished} finished, {packed.snapshots} snapshot file(s), "
+        f"{packed.finished} finished, {packed.episode_stores} episode store(s), "
+        f"{packed.snapshots} snapshot file(s), "
         f"{'the queue database' if packed.database else 'no queue database (not SQLite)'}; "
         f"{packed.size / 2**20:.1f} MiB. There: tar -xzf {args.out} -C <results>, then "
         f"sepoa experiment run {args.spec} --results <results>")

@@ -114,4 +114,52 @@ def test_bad_input_to_pack_gets_one_line(tmp_path: Path,
     assert main(["experiment", "pack", str(spec), "--results", str(results), "--out", out]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "queue database" in err and "not a database" in err
-    assert not Path(out).exists() and not Path(out + ".partial").exists()
+    assert list(tmp_path.glob("*a.tar.gz*")) == []  # no archive, and no partial one
+
+
+def test_pack_carries_the_episode_stores_and_the_stop_rules_record(tmp_path: Path) -> None:
+    from experiments.carry import pack
+    from experiments.launch import run_experiment
+    from experiments.queue import grid_key, spec_rows
+    from experiments.spec import load_spec
+    from labelqueue import claim_run, make_engine, session_factory
+    from rundata.episodes import episodes_dir
+
+    results = tmp_path / "results"
+    specs = {}
+    for name in ("axb", "a_b"):  # `_` is one character, not any
+        path = tmp_path / f"{name}.toml"
+        path.write_text(SPEC.replace('name = "tiny"', f'name = "{name}"'))
+        specs[name] = load_spec(path)
+        assert run_experiment(specs[name], results=results, workers=0,
+                              echo=lambda line: None) == 0
+        if name == "axb":  # a live worker trains a run of the other grid
+            engine = make_engine(f"sqlite:///{results / 'queue.db'}")
+            with session_factory(engine)() as session:
+                assert claim_run(session, worker_id="w") is not None
+            engine.dispose()
+    spec = specs["a_b"]
+    engine = make_engine(f"sqlite:///{results / 'queue.db'}")
+    rows = spec_rows(spec, session_factory(engine))
+    engine.dispose()
+    run = spec.runs()[0]
+    key = grid_key(spec, run)
+    (results / key).mkdir(parents=True)
+    (results / key / "checkpoint.pt").write_bytes(b"weights")
+    episodes = episodes_dir(results / "clips", rows[key].id)
+    episodes.mkdir(parents=True)
+    for name in ("episode-0.npz", "end-0.npz", ".end-1.npz.7.tmp"):
+        (episodes / name).write_bytes(b"npz")
+    (results / "a_b" / "stop_rule.json").write_text('{"hours": 2, "seeds_not_started": [1]}')
+    out = tmp_path / "a_b.tar.gz"
+    (tmp_path / "a_b.tar.gz.partial").write_bytes(b"another pack's")
+
+    packed = pack(spec, results, out)
+    with tarfile.open(out) as tar:
+        names = set(tar.getnames())
+    store = f"clips/run-{rows[key].id}/episodes"
+    assert {f"{key}/checkpoint.pt", f"{store}/episode-0.npz", f"{store}/end-0.npz",
+            "a_b/stop_rule.json", "a_b/spec.toml", "queue.db"} <= names
+    assert f"{store}/.end-1.npz.7.tmp" not in names
+    assert packed.episode_stores == 1
+    assert (tmp_path / "a_b.tar.gz.partial").read_bytes() == b"another pack's"
