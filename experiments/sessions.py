@@ -8,13 +8,21 @@ outright (SIGKILL, the machine lost) leaves its row without an end, and it count
 `alive_at`; the newest row counts up to now while its `alive_at` is recent (the launcher runs).
 A row without an end or an `alive_at` (written before the column existed) counts up to now while
 it is the newest, and not at all once a later session has begun, which `worked` says.
+
+Two launchers on one spec share the file: each change is a read-modify-write under an exclusive
+lock on `sessions.csv.lock`, written to a temporary file of its own and renamed, and a launcher
+finds its row by its `id` (rows written before the column existed have none).
 """
 
 from __future__ import annotations
 
 import csv
+import fcntl
+import os
 import sys
+import tempfile
 import threading
+import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -22,7 +30,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 FILE = "sessions.csv"
-FIELDS = ("started_at", "ended_at", "workers", "threads", "ended_by", "alive_at")
+FIELDS = ("started_at", "ended_at", "workers", "threads", "ended_by", "alive_at", "id")
 BEAT_S = 60.0
 """how often a running launcher writes `alive_at`"""
 RUNNING_WITHIN_S = 3 * BEAT_S
@@ -37,12 +45,26 @@ def _rows(path: Path) -> list[dict[str, str]]:
 
 
 def _write(path: Path, rows: list[dict[str, str]]) -> None:
-    tmp = path.with_suffix(".tmp")
-    with tmp.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=FIELDS, restval="")
-        writer.writeheader()
-        writer.writerows(rows)
-    tmp.replace(path)
+    handle, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(handle, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=FIELDS, restval="", extrasaction="ignore")
+            writer.writeheader()
+            writer.writerows(rows)
+        os.replace(name, path)
+    except BaseException:
+        Path(name).unlink(missing_ok=True)
+        raise
+
+
+def _change(path: Path, edit: Callable[[list[dict[str, str]]], None]) -> None:
+    """Read the rows, `edit` them in place and write them back, under the file's lock: another
+    launcher's change between the read and the write would be lost."""
+    with open(path.with_name(path.name + ".lock"), "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released as the file closes
+        rows = _rows(path)
+        edit(rows)
+        _write(path, rows)
 
 
 class Session:
@@ -72,17 +94,18 @@ def recorded_session(folder: Path, *, workers: int, threads: int,
     it ends. `echo` says when a beat could not be written."""
     path = folder / FILE
     started = (now or datetime.now(UTC)).isoformat(timespec="seconds")
-    _write(path, [*_rows(path), {"started_at": started, "ended_at": "", "workers": str(workers),
-                                 "threads": str(threads), "ended_by": "", "alive_at": started}])
-    lock, done = threading.Lock(), threading.Event()
+    mine = uuid.uuid4().hex[:12]  # two launchers may start within one second
+    _change(path, lambda rows: rows.append({
+        "started_at": started, "ended_at": "", "workers": str(workers), "threads": str(threads),
+        "ended_by": "", "alive_at": started, "id": mine}))
+    done = threading.Event()
 
     def update(**fields: str) -> None:
-        with lock:
-            rows = _rows(path)
+        def edit(rows: list[dict[str, str]]) -> None:
             for row in rows:
-                if row["started_at"] == started and not row["ended_at"]:
+                if row.get("id") == mine and not row["ended_at"]:
                     row.update(fields)
-            _write(path, rows)
+        _change(path, edit)
 
     def beat() -> None:
         while not done.wait(beat_s):

@@ -4,6 +4,7 @@ ran and how it ended, and status sums them, so a stop rule in wall time holds ac
 from __future__ import annotations
 
 import csv
+import multiprocessing
 import signal
 import time
 from datetime import UTC, datetime, timedelta
@@ -104,6 +105,39 @@ def test_a_session_records_its_end_however_it_ends(tmp_path: Path) -> None:
     assert [r["ended_by"] for r in rows] == ["signal 15", "error"]
     assert all(r["ended_at"] for r in rows)
     assert rows[0]["workers"] == "2"
+
+
+def test_two_launchers_started_in_one_second_keep_their_own_rows(tmp_path: Path) -> None:
+    with recorded_session(tmp_path, workers=1, threads=1, now=T0) as first:
+        with recorded_session(tmp_path, workers=2, threads=1, now=T0) as second:
+            second.end("finished")
+        rows = list(csv.DictReader((tmp_path / FILE).open()))
+        assert [(r["workers"], r["ended_by"]) for r in rows] == [("1", ""), ("2", "finished")]
+        first.end("signal 15")
+    rows = list(csv.DictReader((tmp_path / FILE).open()))
+    assert [r["ended_by"] for r in rows] == ["signal 15", "finished"]
+
+
+def _beating_launcher(folder: Path, workers: int) -> None:
+    with recorded_session(folder, workers=workers, threads=1, beat_s=0.001,
+                          echo=lambda line: None) as period:
+        time.sleep(0.4)
+        period.end("finished")
+
+
+def test_two_launchers_beating_at_once_lose_no_row(tmp_path: Path) -> None:
+    (tmp_path / FILE).write_text("started_at,ended_at,workers,threads,ended_by\n"
+                                 f"{T0.isoformat()},{T0.isoformat()},3,1,finished\n")  # older
+    fork = multiprocessing.get_context("fork")
+    launchers = [fork.Process(target=_beating_launcher, args=(tmp_path, n)) for n in (1, 2)]
+    for launcher in launchers:
+        launcher.start()
+    for launcher in launchers:
+        launcher.join(30)
+    rows = list(csv.DictReader((tmp_path / FILE).open()))
+    assert sorted((r["workers"], r["ended_by"]) for r in rows) == [
+        ("1", "finished"), ("2", "finished"), ("3", "finished")]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [FILE, f"{FILE}.lock"]  # no temp
 
 
 def test_the_launcher_records_its_period_and_status_sums_them(
