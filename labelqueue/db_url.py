@@ -21,10 +21,11 @@ VALID_URLS = "sqlite:///PATH or postgresql+psycopg://USER:PASSWORD@HOST/DATABASE
 
 
 def check_url(url: str) -> str:
-    """`url` if SQLAlchemy can open databases of its kind; ValueError saying what is valid."""
+    """`url` if SQLAlchemy can open databases of its kind with a driver that is installed;
+    ValueError saying what is valid."""
     try:
         parsed = make_url(url)
-        parsed.get_dialect()
+        dialect = parsed.get_dialect()
     except (ArgumentError, NoSuchModuleError, ValueError):
         raise ValueError(
             f"{mask_url(url)!r} is not a database URL this app can open; use {VALID_URLS}"
@@ -33,6 +34,15 @@ def check_url(url: str) -> str:
         raise ValueError(
             f"{parsed.get_backend_name()} databases are not supported; use {VALID_URLS}"
         )
+    try:  # the dialect loads its driver only when connecting: a missing one is found here
+        dialect.import_dbapi()
+    except ImportError:
+        hint = (" (pip install -e '.[postgres]')" if parsed.get_driver_name() == "psycopg"
+                else "")
+        raise ValueError(
+            f"{mask_url(url)!r} needs the {parsed.get_driver_name()} driver, which is not "
+            f"installed; use {VALID_URLS}{hint}"
+        ) from None
     return url
 
 

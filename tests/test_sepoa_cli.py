@@ -108,6 +108,8 @@ def test_every_cli_mistake_is_one_line_with_exit_status_2(tmp_path, capsys):
             (["export", "--data-dir", str(data), "--out", "/nonexistent/dir/x.jsonl"],
              ["/nonexistent/dir", "does not exist"]),
             (["export", "--database-url", "nonsense://x"], ["nonsense://x", "sqlite:///"]),
+            (["export", "--database-url", "postgresql://u:pw@h/d"],  # psycopg2's form
+             ["'postgresql://u:***@h/d' needs the psycopg2 driver", "postgresql+psycopg://"]),
             (["worker", "--database-url", "nonsense://x", "--once"],
              ["nonsense://x", "postgresql+psycopg://"]),
             (["worker", "--device", "gpu", "--once", "--data-dir", str(tmp_path / "fresh")],

@@ -327,8 +327,18 @@ def test_the_device_given_to_experiment_run_is_the_one_its_workers_train_on(
     (["experiment", "run", "{spec}", "--database-url", "mysql://x/y"], "error: "),
     (["experiment", "status", "{spec}", "--results", "{tmp}/nothing"],
      "error: no queue database at"),
-    (["experiment", "slurm", "{spec}", "--workers", "0", "--database-url", "postgresql://h/d"],
+    (["experiment", "slurm", "{spec}", "--workers", "0", "--database-url",
+      "postgresql+psycopg://h/d"],
      "error: --workers and --threads must be at least 1"),
+    # psycopg2's URL form, where this project installs psycopg (3): refused at the door.
+    (["experiment", "run", "{spec}", "--no-workers", "--dry-run", "--database-url",
+      "postgresql://u:pw@h/d"], "error: 'postgresql://u:***@h/d' needs the psycopg2 driver, "
+                                "which is not installed; use sqlite:///PATH or "
+                                "postgresql+psycopg://"),
+    (["experiment", "status", "{spec}", "--database-url", "postgresql://h/d"],
+     "error: 'postgresql://h/d' needs the psycopg2 driver"),
+    (["experiment", "slurm", "{spec}", "--workers", "1", "--database-url", "postgresql://h/d"],
+     "error: 'postgresql://h/d' needs the psycopg2 driver"),
 ])
 def test_bad_input_gets_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                  argv: list[str], message: str) -> None:
