@@ -7,14 +7,15 @@
 (the queue's URL in SEPOA_DATABASE_URL, or --database-url / --database-url-file, for both.)
 
 The script runs as printed on a node that sees the same files: it calls this very `sepoa` by
-its absolute path (`--sepoa` to name another), asks for the CPUs of the spec's `threads` and
-the memory its preset needs (`PRESET_MEMORY`; `--threads`, `--mem` to change), appends to its
-log on a requeue (`--open-mode=append`), and is requeued by Slurm on preemption or node failure
-when asked (`--requeue`). Each array task is one worker named after the job and its index; it
-claims the queue's runs until none is waiting and exits. On SIGTERM (`scancel`, preemption) or
-SIGUSR1 (sent `signal_before` seconds ahead of the time limit, `--signal=B:USR1@...`), the
-worker checkpoints its run at the end of the episode and releases it: the next worker, or the
-task requeued under the same name, resumes it from that checkpoint as soon as it starts.
+its absolute path (`--sepoa` to name another: a path, or a command on the nodes' PATH), asks
+for the CPUs of the spec's `threads` and the memory its preset needs (`PRESET_MEMORY`;
+`--threads`, `--mem` to change), appends to its log on a requeue (`--open-mode=append`), and is
+requeued by Slurm on preemption or node failure when asked (`--requeue`). Each array task is
+one worker named after the job and its index; it claims the queue's runs until none is waiting
+and exits. On SIGTERM (`scancel`, preemption) or SIGUSR1 (sent `signal_before` seconds ahead of
+the time limit, `--signal=B:USR1@...`), the worker checkpoints its run at the end of the
+episode and releases it: the next worker, or the task requeued under the same name, resumes it
+from that checkpoint as soon as it starts.
 
 No secret is written into the script: a URL without a password is written as it is; a URL with
 one is read by the tasks from a file of mode 600 (the one given with --database-url-file, or
@@ -126,6 +127,17 @@ def write_url_file(results: Path, url: str) -> Path:
     return path
 
 
+def sbatch_path(path: Path) -> str:
+    """`path` for a double-quoted #SBATCH value (sbatch splits its lines at spaces): `%`, which
+    starts a filename pattern there, written `%%`. SlurmError for a path that cannot be
+    written so."""
+    text = str(path)
+    if '"' in text or "\n" in text:
+        raise SlurmError(f"--results {text!r}: a folder whose path holds a double quote or a "
+                         "line break cannot be written in the script; use another one")
+    return text.replace("%", "%%")
+
+
 def sbatch_script(spec: Spec, *, workers: int, queue: QueueAccess, results: Path,
                   threads: int | None = None, time_limit: str = "24:00:00",
                   partition: str | None = None, gpus: int = 0, memory: str | None = None,
@@ -142,7 +154,7 @@ def sbatch_script(spec: Spec, *, workers: int, queue: QueueAccess, results: Path
     options = [f"--job-name=sepoa-{spec.name}", f"--array=0-{workers - 1}",
                "--ntasks=1", f"--cpus-per-task={threads}", f"--mem={memory}",
                f"--time={time_limit}", f"--signal=B:USR1@{before}",
-               f"--output={results / 'slurm-%A_%a.log'}", "--open-mode=append"]
+               f'--output="{sbatch_path(results)}/slurm-%A_%a.log"', "--open-mode=append"]
     if requeue:
         options.append("--requeue")
     if partition:
@@ -185,9 +197,11 @@ def sbatch_script(spec: Spec, *, workers: int, queue: QueueAccess, results: Path
     lines = ["#!/bin/bash", header, *([pinned] if node else []),
              *(f"#SBATCH {option}" for option in options),
              "set -euo pipefail",
-             f"if ! [ -x {shlex.quote(sepoa[0])} ]; then",
-             f"    echo \"error: {sepoa[0]} is not on $(hostname): install the project at the "
-             "same path on every node, or give --sepoa\" >&2",
+             # A path or a name on the node's PATH (`--sepoa sepoa`) alike.
+             f"if ! command -v -- {shlex.quote(sepoa[0])} >/dev/null; then",
+             f"    echo {shlex.quote(f'error: {sepoa[0]} is not found on ')}\"$(hostname)\""
+             + shlex.quote(": install the project at the same path on every node, or give "
+                           "--sepoa") + " >&2",
              "    exit 127",
              "fi",
              f"export OMP_NUM_THREADS={threads} MKL_NUM_THREADS={threads}",

@@ -77,7 +77,7 @@ def test_the_script_runs_this_sepoa_and_sizes_each_task_by_the_preset(
     assert subprocess.run(["bash", "-n"], input=script, text=True).returncode == 0
     assert options(script) == [
         "--job-name=sepoa-tiny", "--array=0-7", "--ntasks=1", "--cpus-per-task=2", "--mem=2G",
-        "--time=24:00:00", "--signal=B:USR1@300", "--output=/shared/results/slurm-%A_%a.log",
+        "--time=24:00:00", "--signal=B:USR1@300", '--output="/shared/results/slurm-%A_%a.log"',
         "--open-mode=append", "--partition=gpu", "--gres=gpu:1"]
     # The sepoa this command runs, by absolute path: found without activating .venv.
     sepoa = running_sepoa()[0]
@@ -109,6 +109,44 @@ def test_the_script_runs_this_sepoa_and_sizes_each_task_by_the_preset(
         url, "--time", "0:08:00"])
     assert [seconds(t) for t in ("90", "5:30", "2:00:00", "1-12", "1-0:30", "1-00:00:05",
                                  "UNLIMITED")] == [5400, 330, 7200, 129600, 88200, 86405, None]
+
+
+def test_a_sepoa_named_on_the_nodes_path_runs_and_a_missing_one_is_named(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bin_dir = tmp_path / "my bin"
+    bin_dir.mkdir()
+    fake = bin_dir / "sepoa"
+    fake.write_text('#!/bin/sh\necho "ran: $*"\n')
+    fake.chmod(0o755)
+    env = {"PATH": f"{bin_dir}:/usr/bin:/bin", "SLURM_ARRAY_JOB_ID": "1",
+           "SLURM_ARRAY_TASK_ID": "0", "SLURM_JOB_ID": "1"}
+    for sepoa, runs in (("sepoa", True), (shlex.quote(str(fake)), True),
+                        ("no-such-sepoa", False)):
+        script = script_of(capsys, ["experiment", "slurm", str(spec_file(tmp_path)),
+                                    "--workers", "1", "--database-url",
+                                    "postgresql+psycopg://u@h/d", "--results",
+                                    str(tmp_path / "r"), "--sepoa", sepoa])
+        done = subprocess.run(["bash"], input=script, text=True, capture_output=True, env=env)
+        if runs:
+            assert done.returncode == 0, done.stderr
+            assert done.stdout.splitlines()[-1].startswith("ran: ")
+        else:
+            assert done.returncode == 127
+            assert done.stderr.startswith("error: no-such-sepoa is not found on ")
+
+
+def test_the_log_path_keeps_a_space_and_a_percent_sign(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    script = script_of(capsys, ["experiment", "slurm", str(spec_file(tmp_path)), "--workers",
+                                "1", "--database-url", "postgresql+psycopg://u@h/d",
+                                "--results", "/shared/my results/50%"])
+    assert '--output="/shared/my results/50%%/slurm-%A_%a.log"' in options(script)
+    assert main(["experiment", "slurm", str(spec_file(tmp_path)), "--workers", "1",
+                 "--database-url", "postgresql+psycopg://u@h/d", "--results", '/shared/a"b']) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: --results '/shared/a\"b': a folder whose path holds a "
+                          "double quote")
+    assert err.count("\n") == 1
 
 
 def test_the_password_stays_out_of_the_script_and_the_workers_command_line(
