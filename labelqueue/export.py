@@ -277,19 +277,24 @@ def export_rows(
                 return
             after = chunk[-1].label_id
             instructions = instructions_at(session, run_ids={row.run_id for row in chunk})
-            answers = standing_answers(session, query_ids={row.query_id for row in chunk})
+            answers = standing_answers(session, query_ids={row.query_id for row in chunk},
+                                       last=last)
             for stored in chunk:
                 yield _row(stored._asdict(), instructions, answers)
 
     return rows()
 
 
-def standing_answers(session: Session, *, query_ids: set[int]) -> dict[int, list[Answer]]:
-    """Each query's standing answers (not withdrawn), by query id."""
+def standing_answers(session: Session, *, query_ids: set[int],
+                     last: int | None = None) -> dict[int, list[Answer]]:
+    """Each query's standing answers (not withdrawn), by query id; with `last`, only labels up
+    to that id (those an export found when it started)."""
     answers: dict[int, list[Answer]] = {}
+    bound = [] if last is None else [Label.id <= last]
     with reading(session):
         rows = session.execute(select(Label.query_id, Label.answer).where(
-            Label.query_id.in_(query_ids), Label.withdrawn_at.is_(None)).order_by(Label.id))
+            Label.query_id.in_(query_ids), Label.withdrawn_at.is_(None), *bound)
+            .order_by(Label.id))
         for query_id, answer in rows:
             answers.setdefault(query_id, []).append(Answer(answer))
     return answers

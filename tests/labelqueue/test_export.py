@@ -394,6 +394,26 @@ def test_labels_answered_during_an_export_wait_for_the_next(
     assert [row["labeller_name"] for row in export_rows(session)][-1] == "carol"
 
 
+def test_a_querys_answers_count_only_labels_stored_when_the_export_started(
+    session: Session,
+) -> None:
+    run = create_run(session, name="r", task="dmc:cheetah_run", algo="pebble", budget=100)
+    claim_run(session, worker_id="w")
+    [query_id] = push_queries(session, run_id=run.id, queries=[query_spec(0, needs_labels=2)])
+
+    def answer(name: str, choice: str) -> None:
+        labeller = create_labeller(session, name=name)[0].id
+        assert lease_next_query(session, labeller_id=labeller, run_id=run.id) is not None
+        submit_label(session, query_id=query_id, labeller_id=labeller, choice=choice,
+                     left_is_first=True)
+
+    answer("alice", "left")
+    rows = export_rows(session, run_id=run.id)  # the export starts: alice's label only
+    answer("bob", "right")  # answered while it runs
+    assert [(row["labeller_name"], row["query_answers"], row["aggregate"]) for row in rows] \
+        == [("alice", 1, "first")]
+
+
 def test_docs_list_exactly_the_declared_columns() -> None:
     text = DOCS.read_text()
     assert f"## Columns (schema version {EXPORT_SCHEMA_VERSION})" in text
