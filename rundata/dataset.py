@@ -92,7 +92,7 @@ class DatasetSummary:
 def default_dataset_id(task: str, run_id: int) -> str:
     """`sepoa/<task>/run-<id>-v0`, e.g. `sepoa/dmc-cheetah_run/run-3-v0`: in the task, each
     character a Minari id does not take (':', '.', an external run's any other) as '-'."""
-    name = re.sub(r"[^-_\w]", "-", task)
+    name = re.sub(r"[^-_A-Za-z0-9]", "-", task)
     return f"sepoa/{name}/run-{run_id}-v0"
 
 
@@ -105,6 +105,9 @@ def check_dataset_id(dataset_id: str) -> str:
     if match is None or match.group("version") is None:
         raise DatasetError(f"dataset id {dataset_id!r} is not a Minari id: give "
                            "[namespace/]name-v<version>, e.g. sepoa/cheetah/run-3-v0")
+    if not dataset_id.isascii():  # Minari takes any letter; a file name in a header, latin-1
+        raise DatasetError(f"dataset id {dataset_id!r}: use ASCII letters, digits, '-', '_' "
+                           "and '/' only")
     if ".." in dataset_id.split("/"):
         raise DatasetError(f"dataset id {dataset_id!r} may not contain '..'")
     return dataset_id

@@ -178,6 +178,9 @@ def test_bad_input_gets_one_line_and_leaves_nothing(trained, capsys):
         "no run": (["--dataset", str(roots)], "--dataset needs --run"),
         "bad id": (["--dataset", str(roots), "--run", "1", "--dataset-id", "a b"],
                    "not a Minari id"),
+        "non-ASCII id": (["--dataset", str(roots), "--run", "1", "--dataset-id",
+                          "sepoa/\u30c7\u30fc\u30bf-v0"],
+                         "use ASCII letters, digits, '-', '_' and '/' only"),
     }
     for name, (extra, message) in cases.items():
         capsys.readouterr()
@@ -225,7 +228,7 @@ def test_format_hdf5_writes_minaris_hdf5_storage(trained, tmp_path, capsys, monk
 
 
 @pytest.mark.parametrize("task", ["dmc:cheetah_run", "metaworld:door-open", "teacher.",
-                                  "my env/v2 (gym)", "x"])
+                                  "my env/v2 (gym)", "x", "caf\u00e9 \u03b8"])
 def test_any_runs_task_gives_a_default_dataset_id_minari_takes(task):
     """An external run's task is any text; the default id must still be one Minari takes."""
     from rundata.dataset import check_dataset_id, default_dataset_id

@@ -85,8 +85,10 @@ def export_labels(
     return StreamingResponse(_blocks(file), media_type=MEDIA_TYPES[fmt], headers=headers)
 
 
-MINARI_ID_PATTERN = r"^([-_\w][-_\w/]*[-_\w]+/)?[-_\w]+?-v[0-9]+$"
-"""Minari's dataset id (its DATASET_ID_RE) with the version it requires"""
+MINARI_ID_PATTERN = r"^([-_A-Za-z0-9][-_A-Za-z0-9/]*[-_A-Za-z0-9]+/)?[-_A-Za-z0-9]+?-v[0-9]+$"
+"""Minari's dataset id (its DATASET_ID_RE) with the version it requires, in ASCII letters,
+digits, `-` and `_` (rundata.dataset.check_dataset_id): the id names the zip file in a header,
+which is sent in latin-1"""
 
 
 @router.get(
@@ -101,8 +103,8 @@ def export_dataset(
     run_id: RunId,
     dataset_id: Annotated[str | None, Query(
         max_length=200, pattern=MINARI_ID_PATTERN,
-        description="the Minari dataset id, `[namespace/]name-v<version>` with no `..` "
-                    "(default sepoa/<task>/run-<id>-v0)",
+        description="the Minari dataset id, `[namespace/]name-v<version>` in ASCII letters, "
+                    "digits, `-`, `_` and `/` (default sepoa/<task>/run-<id>-v0)",
     )] = None,
     data_format: Annotated[Literal["arrow", "hdf5"], Query(
         alias="format", description="Minari's storage: arrow, or hdf5 (which TorchRL reads)",

@@ -81,7 +81,9 @@ def test_refusals_name_the_problem(
     empty = client.get(url, headers=OPERATOR)
     assert empty.status_code == 409 and "no stored episodes" in empty.json()["detail"]
     write_episode(episodes_dir(settings.clips_root, run_id), _episode(0))
-    for bad_id in ("no spaces allowed", "no-version", "0000"):
+    # Non-ASCII letters would reach the zip's name in a header, which is sent in latin-1.
+    for bad_id in ("no spaces allowed", "no-version", "0000", "sepoa/café-v0",
+                   "sepoa/\u30c7\u30fc\u30bf-v0", "sepoa/x-v\u0663"):
         bad = client.get(url, params={"dataset_id": bad_id}, headers=OPERATOR)
         # Minari's id pattern is in the OpenAPI document: the 422 names the parameter.
         assert bad.status_code == 422, bad_id
