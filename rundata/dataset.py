@@ -32,6 +32,7 @@ import json
 import os
 import re
 import shutil
+import zipfile
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,7 +46,13 @@ from labelqueue.export import QUERY_COLUMNS, SCHEMA_VERSION, export_rows
 from labelqueue.models import Run
 from labelqueue.transaction import reading
 from rundata.dataset_env import env_spec, requirements
-from rundata.episodes import StoredEpisode, episodes_dir, read_episode, stored_trajectories
+from rundata.episodes import (
+    StoredEpisode,
+    episode_path,
+    episodes_dir,
+    read_episode,
+    stored_trajectories,
+)
 from runvocab.config import to_dict
 from runvocab.names import ConfigError
 from runvocab.queued_run import queued_run_config
@@ -159,6 +166,21 @@ def write_dataset(session: Session, *, run_id: int, clips_root: Path, root: Path
     return summary
 
 
+READ_ERRORS = (zipfile.BadZipFile, KeyError, ValueError, EOFError, OSError)
+"""what NumPy raises for a damaged .npz: truncated, not a zip, an array missing or cut short"""
+
+
+def _read_episode(folder: Path, trajectory: int) -> StoredEpisode:
+    try:
+        return read_episode(folder, trajectory)
+    except READ_ERRORS as err:
+        reason = " ".join(str(err).split()) or type(err).__name__
+        raise DatasetError(
+            f"{episode_path(folder, trajectory)} cannot be read ({reason}): the file is damaged; "
+            "restore it from a copy, or move it away to export without the labels that point "
+            "into it") from None
+
+
 def _run_info(run: Run) -> dict[str, Any]:
     try:
         config: dict[str, Any] | None = to_dict(queued_run_config(
@@ -178,7 +200,7 @@ def _write(tmp: Path, final: Path, dataset_id: str, info: dict[str, Any], folder
     from minari import __version__ as minari_version  # type: ignore[import-untyped]
     from minari.dataset.minari_storage import MinariStorage  # type: ignore[import-untyped]
 
-    episodes = [read_episode(folder, t) for t in trajectories]
+    episodes = [_read_episode(folder, t) for t in trajectories]
     _check_shapes(episodes, folder)
     first = episodes[0]
     obs_dim, action_dim = first.observations.shape[1], first.actions.shape[1]

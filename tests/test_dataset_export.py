@@ -235,3 +235,30 @@ def test_any_runs_task_gives_a_default_dataset_id_minari_takes(task):
 
     dataset_id = default_dataset_id(task, 7)
     assert check_dataset_id(dataset_id) == dataset_id and dataset_id.endswith("/run-7-v0")
+
+
+@pytest.mark.parametrize("damage", ["truncated", "not a zip", "an array missing"])
+def test_a_damaged_episode_file_is_named_in_one_line(tmp_path, capsys, damage):
+    from rundata.episodes import StoredEpisode, episode_path, episodes_dir, write_episode
+
+    url, sessions = database(tmp_path)
+    with sessions() as session:
+        create_run(session, name="tiny", teacher="scripted", **RUN)
+    folder = episodes_dir(tmp_path / "data" / "clips", 1)
+    write_episode(folder, StoredEpisode(
+        trajectory=0, observations=np.zeros((3, 2), np.float32),
+        actions=np.zeros((2, 1), np.float32), rewards=np.zeros(2, np.float32),
+        states=np.zeros((3, 2)), context=0, success=False))
+    path = episode_path(folder, 0)
+    if damage == "truncated":
+        path.write_bytes(path.read_bytes()[:300])
+    elif damage == "not a zip":
+        path.write_bytes(b"not an npz file")
+    else:
+        np.savez(path, observations=np.zeros((3, 2)))
+    assert main(["export", "--database-url", url, "--data-dir", str(tmp_path / "data"),
+                 "--dataset", str(tmp_path / "datasets"), "--run", "1"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    assert f"{path} cannot be read" in err and "the file is damaged" in err
+    assert not (tmp_path / "datasets").exists()

@@ -15,7 +15,7 @@ from server_helpers import OPERATOR, bearer, new_labeller, running_run_with_quer
 from sqlalchemy.orm import Session
 from test_export_api import answer
 
-from rundata.episodes import StoredEpisode, episodes_dir, write_episode
+from rundata.episodes import StoredEpisode, episode_path, episodes_dir, write_episode
 from server.settings import Settings
 
 
@@ -90,3 +90,7 @@ def test_refusals_name_the_problem(
         assert bad.json()["detail"][0]["loc"] == ["query", "dataset_id"], bad_id
     bad = client.get(url, params={"format": "parquet"}, headers=OPERATOR)
     assert bad.status_code == 422 and bad.json()["detail"][0]["loc"] == ["query", "format"]
+    damaged = episode_path(episodes_dir(settings.clips_root, run_id), 0)
+    damaged.write_bytes(damaged.read_bytes()[:300])
+    bad = client.get(url, headers=OPERATOR)
+    assert bad.status_code == 422 and f"{damaged} cannot be read" in bad.json()["detail"]
