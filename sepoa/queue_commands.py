@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import uuid
 from typing import TYPE_CHECKING
 
 from sepoa.parser import ID_MAX, RUN_ID, Command, fail, integer, refusing
@@ -97,13 +98,18 @@ def _export(args: argparse.Namespace) -> int:
             return fail(f"--out {args.out} is a folder; give a file name, or - for standard "
                         "output")
     engine = make_engine(url)
-    tmp = f"{args.out}.partial"
+    tmp = None
     try:
         with session_factory(engine)() as session:
             if args.out == "-":
                 rows = write_export(session, fmt=fmt, out=sys.stdout.buffer, run_id=args.run)
             else:
-                with open(tmp, "wb") as f:
+                # A name of its own beside --out, so two exports to one file never write into
+                # one temporary file; made with the umask's mode, as the file itself would be.
+                tmp = os.path.join(os.path.dirname(os.path.abspath(args.out)),
+                                   f".{os.path.basename(args.out)}.{uuid.uuid4().hex[:12]}"
+                                   ".partial")
+                with open(tmp, "xb") as f:
                     rows = write_export(session, fmt=fmt, out=f, run_id=args.run)
                 os.replace(tmp, args.out)
     except NotFound as err:
@@ -115,7 +121,7 @@ def _export(args: argparse.Namespace) -> int:
         return fail(f"cannot write --out {args.out}: {err.strerror or err}")
     finally:
         engine.dispose()
-        if os.path.exists(tmp):
+        if tmp is not None and os.path.exists(tmp):
             os.remove(tmp)
     print(f"{rows} labels exported", file=sys.stderr)
     return 0

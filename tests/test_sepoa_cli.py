@@ -29,14 +29,24 @@ def test_labellers_are_created_and_listed_with_the_data_folder_given_anywhere(tm
     assert lines == ["1\tzoe\tlabeller\tactive", "2\tamy\toperator\tactive"]
 
 
-def test_export_names_a_missing_database_and_writes_an_empty_one(tmp_path, capsys):
+def test_export_names_a_missing_database_and_writes_an_empty_one(tmp_path, capsys,
+                                                                  monkeypatch):
     data = tmp_path / "data"
     assert main(["export", "--data-dir", str(data)]) == 2
     assert "no queue database" in capsys.readouterr().err
     main(["labeller", "create", "zoe", "--data-dir", str(data)])  # migrates the database
     out = tmp_path / "labels.jsonl"
+    # Files of the same names as a fixed temporary name would have: not the export's to touch.
+    for name in ("-.partial", "labels.jsonl.partial"):
+        (tmp_path / name).write_text("someone else's")
+    monkeypatch.chdir(tmp_path)
     assert main(["export", "--data-dir", str(data), "--out", str(out)]) == 0
-    assert out.read_text() == "" and not (tmp_path / "labels.jsonl.partial").exists()
+    assert main(["export", "--data-dir", str(data)]) == 0  # to standard output
+    assert out.read_text() == ""
+    assert sorted(os.listdir(tmp_path)) == ["-.partial", "data", "labels.jsonl",
+                                            "labels.jsonl.partial"]
+    assert (tmp_path / "-.partial").read_text() == "someone else's"
+    assert (tmp_path / "labels.jsonl.partial").read_text() == "someone else's"
     assert main(["export", "--data-dir", str(data), "--run", "7"]) == 2
     assert "run 7 does not exist" in capsys.readouterr().err
 
