@@ -102,6 +102,22 @@ def default_signal_before(time_limit: str) -> int:
     return SIGNAL_BEFORE_S if limit is None else max(1, min(SIGNAL_BEFORE_S, limit // 4))
 
 
+def signal_before_for(time_limit: str, signal_before: int | None) -> int:
+    """How long before the time limit the workers are warned: `signal_before`, else the
+    default. SlurmError for a bad --time, or a warning due as the task starts."""
+    if signal_before is None:
+        return default_signal_before(time_limit)
+    limit = seconds(time_limit)
+    if limit is None and signal_before < 1:
+        raise SlurmError(f"--signal-before {signal_before}: give at least 1 second")
+    if limit is not None and not 1 <= signal_before < limit:
+        raise SlurmError(
+            f"--signal-before {signal_before}: give at least 1 second and less than --time "
+            f"{time_limit} ({limit} s), or every worker is told to go as it starts; the "
+            f"default is {default_signal_before(time_limit)}")
+    return signal_before
+
+
 def running_sepoa() -> list[str]:
     """The command that runs this `sepoa`, by absolute path: the script it was started as, else
     the `sepoa` beside this Python (a virtual environment's bin folder, not activated), else
@@ -148,7 +164,7 @@ def sbatch_script(spec: Spec, *, workers: int, queue: QueueAccess, results: Path
     preset), `gpus` GPUs per task, `node` to pin every task to one node."""
     threads = threads or spec.threads
     memory = memory or default_memory(spec)
-    before = signal_before if signal_before is not None else default_signal_before(time_limit)
+    before = signal_before_for(time_limit, signal_before)
     sepoa = list(sepoa) if sepoa else running_sepoa()
     results = results.absolute()
     options = [f"--job-name=sepoa-{spec.name}", f"--array=0-{workers - 1}",

@@ -306,8 +306,8 @@ def _slurm(args: argparse.Namespace, url: str | None) -> int:
     from experiments.launch import default_database
     from experiments.slurm import (
         QueueAccess,
-        default_signal_before,
         sbatch_script,
+        signal_before_for,
         write_url_file,
     )
     from experiments.spec import load_spec
@@ -315,9 +315,8 @@ def _slurm(args: argparse.Namespace, url: str | None) -> int:
 
     if args.workers < 1 or (args.threads is not None and args.threads < 1) or args.gpus < 0:
         return fail("--workers and --threads must be at least 1, --gpus at least 0")
-    if args.signal_before is not None and args.signal_before < 1:
-        return fail("--signal-before must be at least 1 second")
-    default_signal_before(args.time)  # SlurmError (a ValueError) for a bad --time
+    signal_before_for(args.time, args.signal_before)  # SlurmError (a ValueError) for a bad
+    # --time, or a warning the time limit leaves no room for
     results = pathlib.Path(args.results).absolute()
     if url is None:
         if args.node is None:

@@ -212,7 +212,13 @@ def test_sqlite_is_refused_with_the_reason_unless_every_task_runs_on_one_node(
 
 @pytest.mark.parametrize(("argv", "message"), [
     (["--time", "soon"], "error: --time 'soon': use minutes, MM:SS, HH:MM:SS or D-HH:MM:SS"),
-    (["--signal-before", "0"], "error: --signal-before must be at least 1 second"),
+    (["--signal-before", "0"], "error: --signal-before 0: give at least 1 second and less "
+                               "than --time 24:00:00 (86400 s)"),
+    (["--signal-before", "900", "--time", "10"], "error: --signal-before 900: give at least 1 "
+     "second and less than --time 10 (600 s), or every worker is told to go as it starts; the "
+     "default is 150"),
+    (["--signal-before", "0", "--time", "unlimited"],
+     "error: --signal-before 0: give at least 1 second"),
     (["--database-url", "x", "--database-url-file", "y"],
      "error: give --database-url or --database-url-file, not both"),
 ])
