@@ -169,6 +169,13 @@ def enqueue_spec(spec: Spec, sessions: sessionmaker[Session], results: Path,
         raise SpecError(f"the queue holds {len(clash)} run(s) of spec {spec.name!r} with "
                         f"another definition:\n  {shown}\nuse another spec name, or --force to "
                         "delete those runs and train them again")
+    # Every clash is checked before any is let go: a held one found half-way would leave the
+    # runs before it released and their folders deleted.
+    held = [f"{key}: run {row.id} is {row.status} on worker {row.worker_id!r}"
+            for key, row in clash.items() if row.status in HELD]
+    if held:
+        raise SpecError(f"cannot redefine {len(held)} run(s) a worker holds (nothing was "
+                        f"changed): {'; '.join(held)}; stop them first")
     out = Enqueued()
     if dry_run:
         with sessions() as session:

@@ -19,7 +19,7 @@ from sqlalchemy import func, select
 from worker_helpers import wait_for, worker_config
 
 from experiments.launch import run_experiment
-from experiments.queue import enqueue_spec, grid_key
+from experiments.queue import enqueue_spec, grid_key, spec_rows
 from experiments.spec import Spec, SpecError, load_spec
 from labelqueue import (
     Run,
@@ -29,6 +29,7 @@ from labelqueue import (
     grid_runs,
     make_engine,
     migrate,
+    release_run,
     schema_revisions,
     session_factory,
 )
@@ -152,11 +153,23 @@ def test_a_changed_grid_is_refused_unless_forced(tmp_path: Path) -> None:
     assert all(row.grid_key is None and row.status is RunStatus.FINISHED for row in kept)
     assert all(row.config["eval_every"] == 100 for row in rows.values())
 
-    # A redefined run a worker is training is not taken from it.
-    with sessions() as session:
-        claim_run(session, worker_id="busy")
-    with pytest.raises(SpecError, match="is running on worker 'busy'; stop it first"):
+    # A redefined run a worker is training is not taken from it, nor is any other redefined
+    # run let go, whichever comes first.
+    with sessions() as session:  # the second of the two redefined runs is held
+        first = claim_run(session, worker_id="other")
+        assert claim_run(session, worker_id="busy") is not None and first is not None
+        release_run(session, run_id=first.id, worker_id="other", untouched=True)
+    rows_before = {key: (row.id, row.status) for key, row in spec_rows(changed, sessions).items()}
+    for key in rows_before:
+        (results / key).mkdir(parents=True, exist_ok=True)
+    with pytest.raises(SpecError, match="is running on worker 'busy'") as err:
         run_experiment(spec, results=results, workers=0, force=True, echo=quiet)
+    assert {key: (row.id, row.status) for key, row in spec_rows(changed, sessions).items()} \
+        == rows_before
+    assert all((results / key).is_dir() for key in rows_before)
+    assert str(err.value).startswith("cannot redefine 1 run(s) a worker holds (nothing was "
+                                     "changed): tiny/dmc-cheetah_run/S-EPOA/eps0.3/s0: run ")
+    assert str(err.value).endswith("is running on worker 'busy'; stop them first")
 
 
 def test_two_launchers_on_one_spec_enqueue_and_train_each_run_once(tmp_path: Path) -> None:
