@@ -140,6 +140,9 @@ def write_dataset(session: Session, *, run_id: int, clips_root: Path, root: Path
     final = Path(root).absolute() / dataset_id
     if final.exists():
         raise DatasetError(f"{final} already exists; remove it or give another dataset id")
+    # The labels first: a round's episodes are stored before its queries reach the queue, so
+    # every label read now points into episodes the listing below finds.
+    rows = list(export_rows(session, run_id=run_id))
     folder = episodes_dir(clips_root, run_id)
     trajectories = stored_trajectories(folder)
     if not trajectories:
@@ -147,7 +150,6 @@ def write_dataset(session: Session, *, run_id: int, clips_root: Path, root: Path
             f"run {run_id} has no stored episodes in {folder}: a run keeps the episodes its "
             "queries point into from its first round on (runs trained before this version "
             "kept none)")
-    rows = list(export_rows(session, run_id=run_id))
     made = [p for p in reversed(final.parents) if not p.exists()]
     tmp = final.parent / f".{final.name}.partial-{os.getpid()}"
     try:

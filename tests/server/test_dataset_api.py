@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
+import pytest
 from fastapi.testclient import TestClient
 from server_helpers import OPERATOR, bearer, new_labeller, running_run_with_queries
 from sqlalchemy.orm import Session
@@ -94,3 +95,25 @@ def test_refusals_name_the_problem(
     damaged.write_bytes(damaged.read_bytes()[:300])
     bad = client.get(url, headers=OPERATOR)
     assert bad.status_code == 422 and f"{damaged} cannot be read" in bad.json()["detail"]
+
+
+def test_a_label_whose_episode_lands_while_the_export_starts_is_kept(
+    client: TestClient, session: Session, settings: Settings, tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import rundata.dataset as dataset
+
+    run_id, _ = running_run_with_queries(client, session, settings, n=1)
+    store = episodes_dir(settings.clips_root, run_id)
+    write_episode(store, _episode(0))
+    answer(client, new_labeller(client, "alice"), "left")  # its pair points into episodes 0, 1
+    read_labels = dataset.export_rows
+
+    def as_a_round_lands(*args, **kwargs):  # type: ignore[no-untyped-def]
+        write_episode(store, _episode(1))  # between the export's two reads
+        return read_labels(*args, **kwargs)
+
+    monkeypatch.setattr(dataset, "export_rows", as_a_round_lands)
+    summary = dataset.write_dataset(session, run_id=run_id, clips_root=settings.clips_root,
+                                    root=tmp_path)
+    assert (summary.labels, summary.labels_left_out, summary.episodes) == (1, 0, 2)
