@@ -28,10 +28,10 @@ heartbeat within `DEAD_WORKER_AFTER_S` is refused, with the worker named.
 
 from __future__ import annotations
 
-import os
 import sqlite3
 import tarfile
 import tempfile
+import uuid
 from contextlib import closing
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -108,10 +108,9 @@ def _pack(spec: Spec, results: Path, database: Path, out: Path,
             "launcher or workers first (Ctrl-C or SIGTERM: each checkpoints its run and "
             "releases it), so the archive holds each run's latest checkpoint")
     out.parent.mkdir(parents=True, exist_ok=True)
-    # A name of its own beside `out`: two packs to one path never write into one file.
-    handle, name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent)
-    os.close(handle)
-    partial = Path(name)
+    # A name of its own beside `out`: two packs to one path never write into one file. Made
+    # by tarfile with the umask's mode, as `out` itself would be (mkstemp's is 0600).
+    partial = out.with_name(f".{out.name}.{uuid.uuid4().hex[:12]}.partial")
     try:
         counts = _write(partial, spec, results, database, unfinished_only)
         partial.replace(out)

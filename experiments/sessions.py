@@ -20,7 +20,6 @@ import csv
 import fcntl
 import os
 import sys
-import tempfile
 import threading
 import uuid
 from collections.abc import Callable, Iterator
@@ -45,15 +44,16 @@ def _rows(path: Path) -> list[dict[str, str]]:
 
 
 def _write(path: Path, rows: list[dict[str, str]]) -> None:
-    handle, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    # A name of its own, made with the umask's mode as the file itself would be.
+    name = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.tmp")
     try:
-        with os.fdopen(handle, "w", newline="") as f:
+        with name.open("x", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=FIELDS, restval="", extrasaction="ignore")
             writer.writeheader()
             writer.writerows(rows)
         os.replace(name, path)
     except BaseException:
-        Path(name).unlink(missing_ok=True)
+        name.unlink(missing_ok=True)
         raise
 
 
