@@ -16,10 +16,10 @@ import re
 from dataclasses import dataclass, replace
 from urllib.parse import parse_qsl, quote, urlencode, urlsplit, urlunsplit
 
-from sqlalchemy import exists, func, select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from crowdstudy.invites import RUN_OPEN, open_runs_of
+from crowdstudy.invites import live_runs, runs_open
 from labelqueue.keys import server_key
 from labelqueue.models import (
     Invite,
@@ -28,10 +28,7 @@ from labelqueue.models import (
     Labeller,
     LabellerPause,
     LabelSource,
-    Run,
-    TeacherKind,
 )
-from labelqueue.runs import budget_spent
 from labelqueue.transaction import reading
 from runvocab.answers import DECISIVE
 
@@ -166,6 +163,9 @@ class Progress:
     """practice answers they got right, once the invite's entry test is decided"""
     entry_pass: int | None = None
     """the invite's entry test: practice answers to get right; none: no test"""
+    paused: bool = False
+    """check pairs left them nothing to label: paused on the invite's run; for an all-runs
+    invite, on every run still giving pairs (once none does, on every run they answered on)"""
 
     @property
     def earned(self) -> bool:
@@ -196,27 +196,16 @@ def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
         # Practice answers never count toward a target (labelqueue.practice).
         counted = session.scalar(select(func.count(Label.id)).where(
             *standing, Label.answer.in_(DECISIVE), Label.practice.is_(False), *on_runs)) or 0
-        if invite.run_id is not None:
-            run = session.get(Run, invite.run_id)
-            assert run is not None
-            over = run.status not in RUN_OPEN or budget_spent(run)
-            paused = session.scalar(select(exists().where(
-                LabellerPause.run_id == run.id, LabellerPause.labeller_id == labeller_id)))
-        else:
-            over = not session.scalar(select(open_runs_of(None)))
-            # Paused on every open run: nothing more for them anywhere.
-            unpaused = exists().where(
-                Run.teacher == TeacherKind.HUMAN, Run.status.in_(RUN_OPEN),
-                ~exists().where(LabellerPause.run_id == Run.id,
-                                LabellerPause.labeller_id == labeller_id))
-            paused = not over and not session.scalar(select(unpaused))
+        live = live_runs(session, invite.run_id)
+        over = not live and not runs_open(session, invite.run_id)
+        paused = _paused(session, invite, labeller_id, live)
         session.expunge_all()
     reached = invite.target_answers is not None and counted >= invite.target_answers
     failed = entry_passed is not None and not entry_passed
     why = ("entry_failed" if failed else "target" if reached else "runs_over" if over
            else "paused" if paused else "nothing_left" if nothing_left is not None else None)
     progress = Progress(labels, invite.target_answers, None, invite.run_id, counted=counted,
-                        invited=True, complete=why is not None, why=why,
+                        invited=True, complete=why is not None, why=why, paused=paused,
                         participant=participant, entry_correct=entry_correct,
                         entry_pass=invite.entry_pass)
     if why is None:
@@ -229,3 +218,19 @@ def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
     redirect = (completion_redirect(invite.redirect_url, code=code, participant=participant)
                 if invite.redirect_url else None)
     return replace(progress, completion_code=code, redirect_url=redirect)
+
+
+def _paused(session: Session, invite: Invite, labeller_id: int, live: list[int]) -> bool:
+    """Check pairs left the participant nothing: paused on the invite's run; for an all-runs
+    invite, on every run still giving pairs (`live`), or once none does, on every run they
+    answered on."""
+    on = set(session.scalars(select(LabellerPause.run_id).where(
+        LabellerPause.labeller_id == labeller_id)))
+    if invite.run_id is not None:
+        return invite.run_id in on
+    if live:
+        return set(live) <= on
+    answered = set(session.scalars(select(Label.run_id).distinct().where(
+        Label.labeller_id == labeller_id, Label.source == LabelSource.HUMAN,
+        Label.withdrawn_at.is_(None), Label.practice.is_(False))))
+    return bool(on) and answered <= on

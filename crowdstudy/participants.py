@@ -4,7 +4,8 @@ completion code, and the check of many codes at once.
 Each participant's row counts their standing answers by hand on the invite's run (on any run
 for an all-runs invite): decisive (left or right), equal, can't tell, skips and, of the skips,
 flags; practice answers apart (they earn nothing); their gold score (correct of gold answers,
-practice left out); whether check pairs paused them; their study's state and their code, valid
+practice left out); whether check pairs paused them (on the invite's run; for an all-runs
+invite, on every run still giving pairs); their study's state and their code, valid
 once the study is complete for them (`crowdstudy.completion.labeller_progress`), never for one who
 failed the invite's entry test (`labelqueue.entry_test`: why "entry_failed", not to be paid).
 """
@@ -30,7 +31,6 @@ from labelqueue.models import (
     Invitee,
     Label,
     Labeller,
-    LabellerPause,
     LabelSource,
     Query,
 )
@@ -60,6 +60,7 @@ class Participant:
     gold_answers: int
     gold_correct: int
     paused: bool
+    """check pairs left them nothing to label (`crowdstudy.completion.Progress.paused`)"""
     counted: int
     """what the target counts: decisive and equal answers on the invite's run"""
     complete: bool
@@ -98,9 +99,6 @@ def participants(session: Session, *, invite_id: int) -> list[Participant]:
             .where(Label.labeller_id.in_(ids), Label.withdrawn_at.is_(None),
                    Label.source == LabelSource.HUMAN, *on_run)
         ).all() if ids else []
-        paused = set(session.scalars(select(LabellerPause.labeller_id).where(
-            LabellerPause.labeller_id.in_(ids),
-            *([LabellerPause.run_id == invite.run_id] if invite.run_id is not None else []))))
         session.expunge_all()
     by_labeller: dict[int, list[Any]] = {}
     for row in labels:
@@ -125,7 +123,7 @@ def participants(session: Session, *, invite_id: int) -> list[Participant]:
             cant_tell=kinds[Answer.CANT_TELL], skips=kinds[Answer.SKIP],
             flags=sum(r.flag is not None for r in real),
             practice=len(rows) - len(real), gold_answers=len(gold), gold_correct=correct,
-            paused=invitee.labeller_id in paused, counted=progress.counted,
+            paused=progress.paused, counted=progress.counted,
             complete=progress.complete, why=progress.why,
             completion_code=participant_code(key, invite, invitee.labeller_id),
             code_valid=progress.earned,

@@ -90,8 +90,8 @@ class InviteOut(Out):
     entry_pass: int | None
     """practice answers to get right to go on; null: no entry test"""
     state: InviteState
-    """closed: its run is over (stopping, stopped, finished or failed; for an all-runs link, no
-    run taught by people is queued, running or paused)"""
+    """closed: its run is over (stopping, stopped, finished or failed, or its budget spent; for
+    an all-runs link, no run taught by people is queued, running or paused with budget left)"""
 
 
 class JoinRequest(Body):
@@ -208,7 +208,8 @@ class ParticipantOut(Out):
     gold_answers: int
     gold_correct: int
     paused: bool
-    """check pairs paused them"""
+    """check pairs left them nothing to label: paused on the invite's run (for an all-runs
+    invite, on every run still giving pairs; once none does, on every run they answered on)"""
     counted: int
     """what the target counts: decisive and equal answers on the invite's run"""
     complete: bool

@@ -1,7 +1,8 @@
 """A study around an invite: its state follows its runs, only decisive answers on its own run
 count towards the target, each participant has their own completion code (checkable, not
-guessable, not shared), and the study completes when the target is met, the run is over or
-check pairs pause the participant. Also: why a run waits, and the workers as last seen."""
+guessable, not shared), and the study completes when the target is met, the run is over (a
+spent budget included) or check pairs pause the participant. Also: why a run waits, and the
+workers as last seen."""
 
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from crowdstudy.invites import (
     join_invite,
     list_invites,
 )
+from crowdstudy.participants import participants
 from labelqueue import (
     LabellerPause,
     Query,
@@ -248,3 +250,67 @@ def test_a_labeller_is_active_only_while_leasing_or_answering(session: Session) 
     heartbeat(session, run_id=run.id, worker_id="worker-a", step=1)
     [activity] = runs_activity(session, [read_run(session, run_id=run.id)], now=later)
     assert activity.labellers_active == 0
+
+
+def spend(session: Session, run_id: int, used: int) -> None:
+    with session.begin():
+        session.execute(update(Run).where(Run.id == run_id).values(labels_used=used))
+
+
+def test_a_spent_budget_closes_the_study_to_newcomers_and_to_those_coming_back(
+    session: Session,
+) -> None:
+    run = create_run(session, name="k", task="dmc:cheetah_run", algo="pebble", budget=10,
+                     teacher=TeacherKind.HUMAN, config={"feedback.labels_per_query": 2})
+    assert claim_run(session, worker_id="worker-a") is not None
+    invite = create_invite(session, expires_at=week(), run_id=run.id, target_answers=5)
+    everyone = create_invite(session, expires_at=week())
+    ann = join_invite(session, code=invite.code, participant="ann").labeller
+    spend(session, run.id, 8)  # two answers left: one more query
+    assert invite_runs_open(session, [invite, everyone]) == {invite.id: True, everyone.id: True}
+
+    spend(session, run.id, 9)  # one answer left, and a query takes two: spent
+    assert invite_runs_open(session, [invite, everyone]) == {invite.id: False,
+                                                             everyone.id: False}
+    [stored, _] = list_invites(session)
+    assert invite_state(stored, runs_open=False) == "closed"
+    for code, who in ((invite.code, "late"), (invite.code, "ann"), (everyone.code, "zed")):
+        with pytest.raises(InviteClosed) as refused:
+            join_invite(session, code=code, participant=who)
+        assert refused.value.reason == "closed" and "ended" in str(refused.value)
+    assert labeller_progress(session, labeller_id=ann.id).why == "runs_over"
+
+    # Another run taught by people, with budget left, opens the all-runs invite again.
+    create_run(session, name="more", task="dmc:cheetah_run", algo="pebble", budget=10,
+               teacher=TeacherKind.HUMAN)
+    assert invite_runs_open(session, [invite, everyone]) == {invite.id: False,
+                                                             everyone.id: True}
+
+
+def test_an_all_runs_study_ends_when_every_budget_is_spent_and_pauses_on_every_open_run(
+    session: Session,
+) -> None:
+    first = running_run(session, teacher=TeacherKind.HUMAN)
+    second = create_run(session, name="b", task="dmc:cheetah_run", algo="pebble", budget=100,
+                        teacher=TeacherKind.HUMAN)
+    assert claim_run(session, worker_id="worker-b") is not None
+    invite = create_invite(session, expires_at=week())
+    pat = join_invite(session, code=invite.code, participant="pat").labeller
+
+    # Paused on one run of two: the other still has pairs for them.
+    session.add(LabellerPause(run_id=first.id, labeller_id=pat.id, gold_answers=4,
+                              gold_correct=1))
+    session.commit()
+    [row] = participants(session, invite_id=invite.id)
+    assert (row.paused, row.why) == (False, None)
+
+    # The other run's budget spent: the only run left to them has paused them.
+    spend(session, second.id, 100)
+    [row] = participants(session, invite_id=invite.id)
+    assert (row.paused, row.why, row.code_valid) == (True, "paused", True)
+
+    # Both budgets spent: the study is over, with their code.
+    spend(session, first.id, 100)
+    progress = labeller_progress(session, labeller_id=pat.id)
+    assert (progress.complete, progress.why) == (True, "runs_over")
+    assert progress.completion_code is not None
