@@ -30,7 +30,7 @@ from sqlalchemy.orm import Session
 
 from labelqueue.coerce import clip_key, finite
 from labelqueue.entry_test import EntryFailed, refusal
-from labelqueue.errors import Conflict, Invalid, NotFound, Revoked, StaleToken
+from labelqueue.errors import Conflict, Invalid, NotFound, OtherRun, Revoked, StaleToken
 from labelqueue.gold import (
     GOLD_NEEDS_LABELS,
     SCHEDULE_KEY,
@@ -238,15 +238,16 @@ _NOW = bindparam("at", type_=UTCDateTime())
 _EXPIRES = bindparam("until", type_=UTCDateTime())
 _LABELLER = bindparam("labeller", type_=Integer())
 _MINE = and_(QUERIES.c.lease_holder == _LABELLER, QUERIES.c.status == QueryStatus.LEASED)
-# The labeller, with each live lease it holds (one row with no lease when it holds none), and
-# the teacher of the run asked for (none when no run is asked for, or it does not exist).
+# The labeller, with each live lease it holds (one row with no lease when it holds none), the
+# teacher of the run asked for (none when no run is asked for, or it does not exist), and its
+# invite's entry test and run (none: it joined by no invite, or by one for all runs).
 _ASKED_TEACHER = (
     select(RUNS.c.teacher).where(RUNS.c.id == bindparam("run")).scalar_subquery().label("teacher")
 )
 _HOLDER = Prepared(
     select(LABELLERS.c.active, QUERIES.c.id, QUERIES.c.run_id, RUNS.c.status, _ASKED_TEACHER,
            LABELLERS.c.token_hash, INVITEES.c.entry_passed, INVITEES.c.entry_correct,
-           INVITES.c.entry_pass)
+           INVITES.c.entry_pass, INVITES.c.run_id.label("invite_run"))
     .select_from(LABELLERS)
     .outerjoin(INVITEES, INVITEES.c.labeller_id == LABELLERS.c.id)
     .outerjoin(INVITES, INVITES.c.id == INVITEES.c.invite_id)
@@ -386,6 +387,10 @@ def lease_next_query(
     run's own scripted teacher). A labeller paused on a run gets none of its queries; when that
     leaves nothing to lease, Paused says why.
 
+    A labeller who joined by an invite for one run is served that run only: asking without
+    `run_id` asks for it, and asking for another is refused (OtherRun), so they neither spend
+    another run's budget nor wait on a run that is not theirs.
+
     `for_people`: a person asks, so the run asked for must exist (else NotFound) and be taught
     by people (else Conflict). `token_hash`: the hash of the bearer token the person asked with
     (`labellers.hash_token`), which must still be theirs (else StaleToken), read in this
@@ -419,8 +424,10 @@ def lease_next_query(
 def _check_asker(holder: Sequence[Any], params: dict[str, Any], *, for_people: bool,
                  token_hash: str | None) -> None:
     """Refuse a lease to a labeller that is missing or deactivated, that asks with a replaced
-    token, that failed its invite's entry test (`labelqueue.entry_test`), or (a person) for a
-    run that is missing or taught by a script."""
+    token, that failed its invite's entry test (`labelqueue.entry_test`), that joined by an
+    invite for another run than the one asked for, or (a person) for a run that is missing or
+    taught by a script. A one-run invitee asking for no run is asked for their invite's run
+    (`params` changed)."""
     labeller_id, run_id = params["labeller"], params["run"]
     if not holder:
         raise NotFound(f"labeller {labeller_id} does not exist")
@@ -430,6 +437,12 @@ def _check_asker(holder: Sequence[Any], params: dict[str, Any], *, for_people: b
         raise StaleToken(f"labeller {labeller_id}'s token was replaced by a new one")
     if holder[0].entry_passed is not None and not holder[0].entry_passed:
         raise EntryFailed(refusal(holder[0].entry_correct, holder[0].entry_pass))
+    own = holder[0].invite_run
+    if own is not None and run_id not in (None, own):
+        raise OtherRun(f"you joined this study for run {own}: pairs of run {run_id} are not "
+                       f"yours to label (ask for run {own}, or for no run)")
+    if own is not None:
+        params["run"] = own
     if for_people and run_id is not None:
         if holder[0].teacher is None:
             raise NotFound(f"run {run_id} does not exist")

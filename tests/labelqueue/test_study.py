@@ -10,7 +10,7 @@ from datetime import timedelta
 
 import pytest
 from queue_helpers import query_spec, running_run
-from sqlalchemy import update
+from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from crowdstudy.completion import completion_redirect, labeller_progress, verify_code
@@ -24,7 +24,9 @@ from crowdstudy.invites import (
 )
 from crowdstudy.participants import participants
 from labelqueue import (
+    Invitee,
     LabellerPause,
+    OtherRun,
     Query,
     Run,
     RunStatus,
@@ -68,12 +70,13 @@ def test_only_decisive_answers_on_the_invites_run_count_and_codes_are_each_parti
     ann = join_invite(session, code=invite.code, participant="ann").labeller
     bob = join_invite(session, code=invite.code, participant="bob").labeller
 
-    # Skips, can't-tells and another run's answers count for nothing.
+    # Skips and can't-tells count for nothing; another run's pairs are not hers to answer.
     answer(session, ann.id, run.id, "skip")
     answer(session, ann.id, run.id, "cant_tell")
-    answer(session, ann.id, other.id, "left")
+    with pytest.raises(OtherRun, match=f"for run {run.id}"):
+        answer(session, ann.id, other.id, "left")
     progress = labeller_progress(session, labeller_id=ann.id)
-    assert (progress.labels, progress.counted, progress.complete) == (3, 0, False)
+    assert (progress.labels, progress.counted, progress.complete) == (2, 0, False)
     assert progress.completion_code is None
     answer(session, ann.id, run.id, "left")
     answer(session, ann.id, run.id, "equal")
@@ -314,3 +317,37 @@ def test_an_all_runs_study_ends_when_every_budget_is_spent_and_pauses_on_every_o
     progress = labeller_progress(session, labeller_id=pat.id)
     assert (progress.complete, progress.why) == (True, "runs_over")
     assert progress.completion_code is not None
+
+
+def test_a_one_run_participant_is_served_their_run_only_and_never_waits_on_another(
+    session: Session,
+) -> None:
+    mine = create_run(session, name="mine", task="dmc:cheetah_run", algo="pebble", budget=100,
+                      teacher=TeacherKind.HUMAN, config={"feedback.practice_pairs": 1})
+    assert claim_run(session, worker_id="worker-a") is not None
+    other = create_run(session, name="other", task="dmc:cheetah_run", algo="pebble",
+                       budget=100, teacher=TeacherKind.HUMAN,
+                       config={"feedback.practice_pairs": 1})
+    assert claim_run(session, worker_id="worker-b") is not None
+    practice = query_spec(50, gold=True, first_segment_return=9.0, second_segment_return=1.0)
+    push_queries(session, run_id=mine.id, queries=[practice, query_spec(0), query_spec(1)])
+    [other_practice, _] = push_queries(session, run_id=other.id,
+                                       queries=[practice, query_spec(0)])
+    invite = create_invite(session, expires_at=week(), run_id=mine.id, wait_limit_s=1)
+    ann = join_invite(session, code=invite.code, participant="ann").labeller
+
+    with pytest.raises(OtherRun, match=f"joined this study for run {mine.id}"):
+        lease_next_query(session, labeller_id=ann.id, run_id=other.id, for_people=True)
+    with pytest.raises(OtherRun):  # nor the other run's practice pair, leased to nobody
+        submit_label(session, query_id=other_practice, labeller_id=ann.id, choice="left",
+                     left_is_first=True)
+    # Asking for a stopped run is no wait for pairs; asking for no run is asking for hers.
+    set_run_status(session, run_id=other.id, status=RunStatus.STOPPING)
+    with pytest.raises(OtherRun):
+        lease_next_query(session, labeller_id=ann.id, run_id=other.id, for_people=True)
+    first = lease_next_query(session, labeller_id=ann.id, for_people=True)
+    assert first is not None and first.run_id == mine.id
+    [invitee] = session.scalars(select(Invitee)).all()
+    session.commit()
+    assert invitee.waiting_since is None
+    assert read_run(session, run_id=other.id).labels_used == 0

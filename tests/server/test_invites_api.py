@@ -229,3 +229,30 @@ def test_bad_invite_requests_are_a_4xx_naming_the_problem(client: TestClient) ->
     # The page's participant is checked by the API when the page joins; a bad one is a 200
     # page (whose join then says what is wrong), never a 500.
     assert client.get(f"/join/{invite['code']}?participant=%3Cscript%3E").status_code == 200
+
+
+def test_a_spent_budget_ends_the_study_and_a_participant_labels_their_own_run_only(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    run_id, _ = running_run_with_queries(client, session, settings, n=4, budget=2)
+    other = new_run(client)["id"]
+    invite = new_invite(client, run_id=run_id, target_answers=5)
+    ann = bearer(join(client, invite["code"], participant="ann").json()["token"])
+
+    refused = client.get(f"/api/label/next?run_id={other}", headers=ann)
+    assert refused.status_code == 403
+    assert f"joined this study for run {run_id}" in refused.json()["detail"]
+    for _ in range(2):  # the whole budget
+        pair = client.get("/api/label/next", headers=ann).json()
+        assert pair["run_id"] == run_id
+        answered = client.post(f"/api/label/{pair['query_id']}", headers=ann, json={
+            "choice": "left", "shown_at": utcnow().isoformat()})
+        assert answered.status_code == 201, answered.text
+
+    [listed] = client.get("/api/invites", headers=OPERATOR).json()
+    assert listed["state"] == "closed"
+    page = client.get(f"/join/{invite['code']}")
+    assert page.status_code == 410 and "study has ended" in page.text
+    late = join(client, invite["code"], participant="zed")
+    assert late.status_code == 410 and "ended" in late.json()["detail"]
+    assert find_labeller(session, name="zed") is None
