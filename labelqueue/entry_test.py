@@ -7,6 +7,10 @@ right (`labelqueue.practice`) to go on; one who answers them all with fewer righ
 - A practice answer is right when it is the better clip by the true reward ("equal" when the
   segments' returns are equal; an external pair's known answer otherwise), as the practice
   explanation says; a can't-tell or a skip is never right.
+- Until the test is decided the participant is served practice pairs only (`untested`): with
+  none to show (not rendered yet, or the last one on their screen) they get nothing and wait as
+  anyone with nothing to label, so nobody starts on real pairs untested. One who already has a
+  standing real answer on the run (an older database's) goes on.
 - Before the test is decided, a practice answer may be taken back as any practice answer can
   (`labelqueue.undo`); once decided, none can.
 - A participant who failed gets no more pairs (`EntryFailed`, a 403, from every lease), holds
@@ -114,11 +118,31 @@ _DECIDE = Prepared(
     .values(entry_passed=bindparam("passed", type_=INVITEES.c.entry_passed.type),
             entry_correct=bindparam("correct", type_=Integer()))
 )
+_REAL = select(LABELS.c.id).where(LABELS.c.labeller_id == _LABELLER,
+                                   LABELS.c.practice.is_(False), LABELS.c.withdrawn_at.is_(None))
+_REAL_ON_RUN = Prepared(_REAL.where(LABELS.c.run_id == _RUN).limit(1))
+_REAL_ANYWHERE = Prepared(_REAL.limit(1))
 _LET_GO = Prepared(
     update(QUERIES)
     .where(QUERIES.c.lease_holder == _LABELLER, QUERIES.c.status == QueryStatus.LEASED)
     .values(status=QueryStatus.PENDING, lease_holder=None, lease_expires_at=None, leased_at=None)
 )
+
+
+def untested(connection: DriverConnection, holder: Any, labeller_id: int) -> bool:
+    """Whether the labeller must be served no real pair yet: their invite has an entry test,
+    undecided, and they have no standing answer but practice ones on the invite's run (on any
+    run, for an all-runs invite). `holder`: the lease's row of the labeller, with its invite's
+    `entry_pass`, `entry_passed` and `invite_run`. One who answered real pairs before the test
+    was asked of them (an older database) goes on."""
+    if holder.entry_pass is None or holder.entry_passed is not None:
+        return False
+    if holder.invite_run is not None:
+        real = _REAL_ON_RUN.first(connection, {"labeller": labeller_id,
+                                               "run": holder.invite_run})
+    else:
+        real = _REAL_ANYWHERE.first(connection, {"labeller": labeller_id})
+    return real is None
 
 
 def decide(connection: DriverConnection, *, labeller_id: int, run_id: int) -> bool | None:

@@ -17,7 +17,9 @@ and are the run's practice pairs for good, never check pairs. So:
 
 A labeller is a newcomer on a run while they have no standing answer there but practice ones;
 the lease then serves the run's practice pairs they have not answered, in order, before
-anything else of the run (none rendered yet: nothing, until one is).
+anything else of the run. With none rendered yet it serves real pairs (and the labeller gets no
+practice later), unless their invite makes the round an entry test: then nothing, until one is
+(`labelqueue.entry_test.untested`).
 """
 
 from __future__ import annotations

@@ -29,7 +29,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from labelqueue.coerce import clip_key, finite
-from labelqueue.entry_test import EntryFailed, refusal
+from labelqueue.entry_test import EntryFailed, refusal, untested
 from labelqueue.errors import Conflict, Invalid, NotFound, OtherRun, Revoked, StaleToken
 from labelqueue.gold import (
     GOLD_NEEDS_LABELS,
@@ -383,6 +383,10 @@ def lease_next_query(
     second query is leased besides it, so a page can preload the next pair; asking again with
     the same `ahead_of` returns the same second query.
 
+    A newcomer on a run with practice pairs is shown them first (`labelqueue.practice`). One
+    whose invite has an entry test gets no other pair until it is decided
+    (`labelqueue.entry_test.untested`): with no practice pair to show yet, nothing.
+
     Gold pairs (`labelqueue.gold`) are mixed in at their run's rate unless `gold` is false (the
     run's own scripted teacher). A labeller paused on a run gets none of its queries; when that
     leaves nothing to lease, Paused says why.
@@ -407,12 +411,14 @@ def lease_next_query(
     with driver_transaction(session) as connection:
         holder = _HOLDER.rows(connection, params)
         _check_asker(holder, params, for_people=for_people, token_hash=token_hash)
-        # A newcomer's practice pairs come first, shown without a lease of their own.
+        # A newcomer's practice pairs come first, shown without a lease of their own; one whose
+        # entry test is still to decide gets nothing else until it is.
         practice = (next_practice(connection, params, shown=ahead_of, until=params["until"])
                     if gold else None)
-        row = None if practice is not None else _renew_or_release(
+        waits = practice is None and untested(connection, holder[0], labeller_id)
+        row = None if practice is not None or waits else _renew_or_release(
             connection, holder, params, ahead_of=ahead_of)
-        if practice is None and row is None:
+        if practice is None and row is None and not waits:
             row = _take_next(connection, params, key=key, ahead_of=ahead_of)
         if for_people:  # how long a participant waits with nothing to label
             asked(connection, params, got=practice is not None or row is not None)

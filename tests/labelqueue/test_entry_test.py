@@ -8,7 +8,7 @@ from datetime import timedelta
 
 import pytest
 from queue_helpers import query_spec
-from sqlalchemy import select
+from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from crowdstudy.completion import labeller_progress
@@ -16,6 +16,7 @@ from crowdstudy.invites import create_invite, join_invite
 from labelqueue import (
     EntryFailed,
     Invalid,
+    Invite,
     Query,
     QueryStatus,
     Run,
@@ -24,6 +25,7 @@ from labelqueue import (
     create_run,
     lease_next_query,
     push_queries,
+    set_clips,
     submit_label,
     withdraw_label,
 )
@@ -88,3 +90,49 @@ def test_the_last_practice_answer_decides_and_who_fails_is_let_go(session: Sessi
         True, "entry_failed", None)
     assert not progress.earned and progress.entry_correct == 1
     assert labels_used(session, run_id) == 0  # practice never spends the budget
+
+
+def test_no_real_pair_is_served_before_the_entry_test_is_decided(session: Session) -> None:
+    run_id = run_with(session, practice_pairs=2)
+    push_queries(session, run_id=run_id, queries=[query_spec(i) for i in range(3)])
+    [one, two] = push_queries(session, run_id=run_id, queries=[
+        gold(i) | {"first_clip": None, "second_clip": None} for i in range(2)])
+    invite = create_invite(session, expires_at=utcnow() + timedelta(days=1), run_id=run_id,
+                           entry_pass=2)
+    ann = join_invite(session, code=invite.code, participant="ann").labeller
+
+    # The practice pairs are not rendered yet: she waits, rather than start untested.
+    assert lease_next_query(session, labeller_id=ann.id, run_id=run_id) is None
+    for query_id in (one, two):
+        set_clips(session, query_id=query_id, first_clip=f"p{query_id}-a.mp4",
+                  second_clip=f"p{query_id}-b.mp4")
+    first = lease_next_query(session, labeller_id=ann.id, run_id=run_id)
+    assert first is not None and first.practice
+    submit_label(session, query_id=first.id, labeller_id=ann.id, choice="left",
+                 left_is_first=True)
+    last = lease_next_query(session, labeller_id=ann.id, run_id=run_id)
+    assert last is not None and last.practice
+    # The page preloads behind the last practice pair: nothing, until it is answered.
+    assert lease_next_query(session, labeller_id=ann.id, run_id=run_id, ahead_of=last.id) \
+        is None
+    submit_label(session, query_id=last.id, labeller_id=ann.id, choice="left",
+                 left_is_first=True)
+    real = lease_next_query(session, labeller_id=ann.id, run_id=run_id, ahead_of=last.id)
+    assert real is not None and not real.practice
+    assert labeller_progress(session, labeller_id=ann.id).entry_correct == 2
+
+
+def test_who_answered_real_pairs_before_the_test_was_asked_goes_on(session: Session) -> None:
+    run_id = run_with(session, practice_pairs=1)
+    push_queries(session, run_id=run_id, queries=[query_spec(i) for i in range(3)])
+    invite = create_invite(session, expires_at=utcnow() + timedelta(days=1), run_id=run_id)
+    bob = join_invite(session, code=invite.code, participant="bob").labeller
+    real = lease_next_query(session, labeller_id=bob.id, run_id=run_id)
+    assert real is not None and not real.practice
+    submit_label(session, query_id=real.id, labeller_id=bob.id, choice="left",
+                 left_is_first=True)
+    with session.begin():  # as an older database may hold it: a test he never took
+        session.execute(update(Invite).values(entry_pass=1))
+    push_queries(session, run_id=run_id, queries=[gold(0)])
+    more = lease_next_query(session, labeller_id=bob.id, run_id=run_id)
+    assert more is not None and not more.practice
