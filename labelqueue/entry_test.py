@@ -102,6 +102,9 @@ _UNDECIDED = Prepared(
     .where(INVITEES.c.labeller_id == _LABELLER, INVITES.c.entry_pass.is_not(None),
            INVITEES.c.entry_passed.is_(None),
            or_(INVITES.c.run_id.is_(None), INVITES.c.run_id == _RUN))
+    # One participant's practice answers take turns here (a row lock on PostgreSQL): the later
+    # one counts the earlier's, so two sent at once still decide the test.
+    .with_for_update(of=INVITEES)
 )
 _PRACTISED = Prepared(
     select(LABELS.c.answer, QUERIES.c.first_segment_return, QUERIES.c.second_segment_return,
@@ -148,7 +151,12 @@ def untested(connection: DriverConnection, holder: Any, labeller_id: int) -> boo
 def decide(connection: DriverConnection, *, labeller_id: int, run_id: int) -> bool | None:
     """After a practice answer, in its transaction: decide the labeller's entry test once they
     have answered all of the run's practice pairs; whether they passed (None: no test, not yet,
-    or decided before). One who failed is let go of every lease they hold."""
+    or decided before). One who failed is let go of every lease they hold.
+
+    The participant's row is locked before their answers are counted, so their answers sent at
+    once are counted in turn. Locks: the answer's query row, then the participant's, then the
+    leases let go; a lease takes the queries' rows and then the participant's, and an
+    undecided participant holds no lease of a real pair to let go (`untested`)."""
     params: dict[str, Any] = {"labeller": labeller_id, "run": run_id}
     test = _UNDECIDED.first(connection, params)
     if test is None:

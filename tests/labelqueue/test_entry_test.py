@@ -4,12 +4,14 @@ practice answer back; who passes goes on; entry_pass must fit the run's practice
 
 from __future__ import annotations
 
+import contextlib
+import threading
 from datetime import timedelta
 
 import pytest
 from queue_helpers import query_spec
 from sqlalchemy import select, update
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
 from crowdstudy.completion import labeller_progress
 from crowdstudy.invites import create_invite, join_invite
@@ -23,12 +25,14 @@ from labelqueue import (
     UndoRefused,
     claim_run,
     create_run,
+    labels,
     lease_next_query,
     push_queries,
     set_clips,
     submit_label,
     withdraw_label,
 )
+from labelqueue.entry_test import decide
 from labelqueue.models import utcnow
 
 
@@ -136,3 +140,48 @@ def test_who_answered_real_pairs_before_the_test_was_asked_goes_on(session: Sess
     push_queries(session, run_id=run_id, queries=[gold(0)])
     more = lease_next_query(session, labeller_id=bob.id, run_id=run_id)
     assert more is not None and not more.practice
+
+
+def test_two_last_practice_answers_sent_at_once_decide_the_test(
+    url: str, sessions: sessionmaker[Session], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each answer, stored and not yet committed, counts the practice answers: on PostgreSQL
+    each would see only its own unless the second waits for the first."""
+    if not url.startswith("postgresql"):
+        pytest.skip("SQLite's writers take turns: one answer commits before the other counts")
+    with sessions() as session:
+        run_id = run_with(session, practice_pairs=2)
+        push_queries(session, run_id=run_id, queries=[gold(i) for i in range(2)]
+                     + [query_spec(i) for i in range(2)])
+        invite = create_invite(session, expires_at=utcnow() + timedelta(days=1),
+                               run_id=run_id, entry_pass=2)
+        bob = join_invite(session, code=invite.code, participant="bob").labeller
+        first = lease_next_query(session, labeller_id=bob.id, run_id=run_id)
+        assert first is not None
+        second = lease_next_query(session, labeller_id=bob.id, run_id=run_id, ahead_of=first.id)
+        assert second is not None and {first.practice, second.practice} == {True}
+    stored, counted = threading.Barrier(2, timeout=10), threading.Barrier(2)
+
+    def decide_when_both_are_stored(*args: object, **kwargs: object) -> object:
+        stored.wait()  # both answers stored, neither committed
+        decided = decide(*args, **kwargs)
+        # Neither commits before both have counted, unless one waits for the other to commit
+        # (the lock): then the first gives up waiting here after 2 s.
+        with contextlib.suppress(threading.BrokenBarrierError):
+            counted.wait(timeout=2)
+        return decided
+
+    monkeypatch.setattr(labels, "decide", decide_when_both_are_stored)
+
+    def answer(query_id: int) -> None:
+        with sessions() as session:
+            submit_label(session, query_id=query_id, labeller_id=bob.id, choice="skip",
+                         left_is_first=True)
+
+    threads = [threading.Thread(target=answer, args=(q,)) for q in (first.id, second.id)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=30)
+    progress = labeller_progress(sessions(), labeller_id=bob.id)
+    assert (progress.why, progress.entry_correct) == ("entry_failed", 0)
