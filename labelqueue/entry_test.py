@@ -11,8 +11,8 @@ right (`labelqueue.practice`) to go on; one who answers them all with fewer righ
   none to show (not rendered yet, or the last one on their screen) they get nothing and wait as
   anyone with nothing to label, so nobody starts on real pairs untested. One who already has a
   standing real answer on the run (an older database's) goes on.
-- Before the test is decided, a practice answer may be taken back as any practice answer can
-  (`labelqueue.undo`); once decided, none can.
+- A practice answer of an invite with an entry test is never taken back (`labelqueue.undo`):
+  each is explained once given, and the test measures the first try.
 - A participant who failed gets no more pairs (`EntryFailed`, a 403, from every lease), holds
   no lease (theirs are let go when the test is decided), has no completion code (their study
   ends as "entry_failed": `crowdstudy.completion.labeller_progress`) and never spends the budget

@@ -185,3 +185,23 @@ def test_two_last_practice_answers_sent_at_once_decide_the_test(
         thread.join(timeout=30)
     progress = labeller_progress(sessions(), labeller_id=bob.id)
     assert (progress.why, progress.entry_correct) == ("entry_failed", 0)
+
+
+def test_a_practice_answer_of_an_entry_test_is_never_taken_back(session: Session) -> None:
+    run_id = run_with(session, practice_pairs=2)
+    push_queries(session, run_id=run_id, queries=[gold(i) for i in range(2)]
+                 + [query_spec(i) for i in range(2)])
+    tested = create_invite(session, expires_at=utcnow() + timedelta(days=1), run_id=run_id,
+                           entry_pass=2)
+    free = create_invite(session, expires_at=utcnow() + timedelta(days=1), run_id=run_id)
+    for invite, refused in ((tested, True), (free, False)):
+        who = join_invite(session, code=invite.code).labeller
+        first = lease_next_query(session, labeller_id=who.id, run_id=run_id)
+        assert first is not None and first.practice
+        submit_label(session, query_id=first.id, labeller_id=who.id, choice="right",
+                     left_is_first=True)  # wrong: the explanation now says so
+        if refused:  # the test is undecided yet, and still measures the first try
+            with pytest.raises(UndoRefused, match="entry test"):
+                withdraw_label(session, query_id=first.id, labeller_id=who.id)
+        else:  # plain practice may be tried again
+            assert withdraw_label(session, query_id=first.id, labeller_id=who.id).query.practice
