@@ -77,11 +77,8 @@ class Verified:
     complete: bool
     why: str | None
     """"target", "runs_over", "paused", "nothing_left" or "entry_failed" (see `Progress.why`)"""
-
-    @property
-    def earned(self) -> bool:
-        """the code is earned: the study is complete, and not by failing the entry test"""
-        return self.complete and self.why != "entry_failed"
+    earned: bool = False
+    """the code is earned (`Progress.earned`): pay them"""
 
 
 def verify_code(session: Session, code: str) -> Verified | None:
@@ -110,7 +107,8 @@ def verify_code(session: Session, code: str) -> Verified | None:
         with reading(session):
             name = session.scalar(select(Labeller.name).where(Labeller.id == labeller_id))
         return Verified(invite.id, labeller_id, name or "", progress.participant, invite.run_id,
-                        progress.counted, invite.target_answers, progress.complete, progress.why)
+                        progress.counted, invite.target_answers, progress.complete, progress.why,
+                        progress.earned)
     return None
 
 
@@ -169,8 +167,11 @@ class Progress:
 
     @property
     def earned(self) -> bool:
-        """the code is earned: the study is complete, and not by failing the entry test"""
-        return self.complete and self.why != "entry_failed"
+        """the code is earned: the study is complete, not by failing the entry test, and the
+        code was not withheld (a pause on an invite with a `pause_message`: the participant is
+        told to return the study, and shown no code)"""
+        withheld = self.why == "paused" and self.pause_message is not None
+        return self.complete and self.why != "entry_failed" and not withheld
 
 
 def labeller_progress(session: Session, *, labeller_id: int) -> Progress:

@@ -7,7 +7,8 @@ flags; practice answers apart (they earn nothing); their gold score (correct of 
 practice left out); whether check pairs paused them (on the invite's run; for an all-runs
 invite, on every run still giving pairs); their study's state and their code, valid
 once the study is complete for them (`crowdstudy.completion.labeller_progress`), never for one who
-failed the invite's entry test (`labelqueue.entry_test`: why "entry_failed", not to be paid).
+failed the invite's entry test (`labelqueue.entry_test`: why "entry_failed", not to be paid) nor
+for one paused where the invite's pause message replaces the code (told to return the study).
 """
 
 from __future__ import annotations
@@ -68,8 +69,9 @@ class Participant:
     completion_code: str
     """their code, whether earned or not"""
     code_valid: bool
-    """the code is earned: their study is complete (a paused participant's too), and not by
-    failing the entry test"""
+    """the code is earned (`crowdstudy.completion.Progress.earned`): their study is complete (a
+    paused participant's too, unless the invite's pause message was given instead of the code),
+    and not by failing the entry test"""
     entry_test: str | None = None
     """the invite's entry test: "passed", "failed" (let go: not to be paid) or "undecided";
     none: the invite has no entry test (`labelqueue.entry_test`)"""
@@ -146,8 +148,8 @@ class CodeCheck:
 
     code: str
     valid: bool
-    """the code is a participant's and their study is complete (not by failing the entry
-    test): pay them"""
+    """the code is a participant's and earned (`crowdstudy.completion.Progress.earned`): pay
+    them"""
     participant: str | None
     labeller_id: int | None
     invite_id: int | None

@@ -57,7 +57,8 @@ class InviteCreate(Body):
     consent_text: str | None = Field(default=None, min_length=1, max_length=8000)
     """shown on the invite's page: nobody joins without agreeing to it"""
     pause_message: str | None = Field(default=None, min_length=1, max_length=2000)
-    """what a participant paused by check pairs is told instead of being given their code"""
+    """what a participant paused by check pairs is told instead of being given their code (their
+    code is then not earned: the message should ask them to return the study)"""
     wait_limit_s: Positive | None = None
     """a participant who asks this long for pairs and gets none finishes with their code
     ("nothing left to label"); null: 300 s"""
@@ -216,8 +217,8 @@ class ParticipantOut(Out):
     why: StudyEnd | None
     completion_code: str
     code_valid: bool
-    """the code is earned (their study is complete, not by failing the entry test): pay
-    them"""
+    """the code is earned: pay them. Their study is complete, not by failing the entry test,
+    and not by a pause on an invite whose pause message replaces the code"""
     entry_test: Literal["passed", "failed", "undecided"] | None = None
     """the invite's entry test; failed: let go without a code, not to be paid; null: the
     invite has none"""
@@ -233,7 +234,7 @@ class CodesRequest(Body):
 class CodeCheckOut(Out):
     code: str
     valid: bool
-    """a participant's code, and their study is complete"""
+    """a participant's code, and earned (as the participants list's `code_valid`)"""
     participant: str | None
     labeller_id: int | None
     invite_id: int | None

@@ -22,7 +22,7 @@ from crowdstudy.invites import (
     join_invite,
     list_invites,
 )
-from crowdstudy.participants import participants
+from crowdstudy.participants import participants, verify_codes
 from labelqueue import (
     Invitee,
     LabellerPause,
@@ -351,3 +351,22 @@ def test_a_one_run_participant_is_served_their_run_only_and_never_waits_on_anoth
     session.commit()
     assert invitee.waiting_since is None
     assert read_run(session, run_id=other.id).labels_used == 0
+
+
+def test_a_code_withheld_by_the_pause_message_is_not_earned(session: Session) -> None:
+    run = running_run(session, teacher=TeacherKind.HUMAN)
+    told = create_invite(session, expires_at=week(), run_id=run.id,
+                         pause_message="Please return the study on Prolific.")
+    coded = create_invite(session, expires_at=week(), run_id=run.id)
+    returned = join_invite(session, code=told.code, participant="P1").labeller
+    kept = join_invite(session, code=coded.code, participant="P2").labeller
+    for who in (returned, kept):
+        session.add(LabellerPause(run_id=run.id, labeller_id=who.id, gold_answers=4,
+                                  gold_correct=1))
+    session.commit()
+    for invite, earned in ((told, False), (coded, True)):
+        [row] = participants(session, invite_id=invite.id)
+        assert (row.why, row.code_valid) == ("paused", earned)
+        [check] = verify_codes(session, [row.completion_code])
+        assert (check.valid, check.why) == (earned, "paused")
+    assert labeller_progress(session, labeller_id=returned.id).earned is False

@@ -31,7 +31,7 @@ function row(p) {
     el("td", {}, state),
     el("td", {}, el("code", {}, p.completion_code), " ",
       el("span", { class: p.code_valid ? "badge ok" : "badge" },
-        p.code_valid ? "earned" : p.why === "entry_failed" ? "not to be paid" : "not yet")));
+        p.code_valid ? "earned" : p.complete ? "not to be paid" : "not yet")));
 }
 
 async function load() {
@@ -50,8 +50,8 @@ async function checkCodes(event) {
     el("code", {}, c.code), " — ",
     c.valid ? `pay ${c.participant ?? `labeller ${c.labeller_id}`} (${WHY[c.why] ?? c.why})`
       : c.why === "unknown" ? "nobody's code"
-        : c.why === "entry_failed" ? `${c.participant ?? "?"}: failed the entry test, not to be paid`
-          : `${c.participant ?? "?"}: not complete yet`)));
+        : c.why === "not_complete" ? `${c.participant ?? "?"}: not complete yet`
+          : `${c.participant ?? "?"}: ${WHY[c.why] ?? c.why}, not to be paid`)));
 }
 
 function guard(task) {
