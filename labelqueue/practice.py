@@ -116,6 +116,18 @@ def next_practice(connection: DriverConnection, params: dict[str, Any], *,
                             "leased_at": params["at"], "lease_expires_at": until}
 
 
+_OPEN_PRACTICE = Prepared(
+    select(QUERIES.c.id).where(
+        QUERIES.c.id == _SHOWN, QUERIES.c.practice.is_(True),
+        or_(QUERIES.c.status == QueryStatus.PENDING, QUERIES.c.status == QueryStatus.LEASED))
+)
+
+
+def shows_practice(connection: DriverConnection, query_id: int) -> bool:
+    """Whether `query_id` is an open practice pair (a page showing it has something to label)."""
+    return _OPEN_PRACTICE.first(connection, {"practice_shown": query_id}) is not None
+
+
 @dataclass(frozen=True)
 class PracticeStep:
     index: int

@@ -58,7 +58,7 @@ from labelqueue.models import (
     UTCDateTime,
     utcnow,
 )
-from labelqueue.practice import next_practice, reserve
+from labelqueue.practice import next_practice, reserve, shows_practice
 from labelqueue.prepared import DriverConnection, Prepared
 from labelqueue.run_config import FEEDBACK, run_feedback
 from labelqueue.transaction import (
@@ -416,12 +416,15 @@ def lease_next_query(
         practice = (next_practice(connection, params, shown=ahead_of, until=params["until"])
                     if gold else None)
         waits = practice is None and untested(connection, holder[0], labeller_id)
-        row = None if practice is not None or waits else _renew_or_release(
+        row, kept = (None, False) if practice is not None or waits else _renew_or_release(
             connection, holder, params, ahead_of=ahead_of)
         if practice is None and row is None and not waits:
             row = _take_next(connection, params, key=key, ahead_of=ahead_of)
-        if for_people:  # how long a participant waits with nothing to label
-            asked(connection, params, got=practice is not None or row is not None)
+        if for_people:  # how long a participant waits with nothing to label: a pair on their
+            # screen (`ahead_of`, a lease of theirs or a practice pair) is something to label
+            got = practice is not None or row is not None or kept or (
+                ahead_of is not None and shows_practice(connection, ahead_of))
+            asked(connection, params, got=got)
     if practice is not None:
         return snapshot(Query, practice)
     return None if row is None else snapshot(Query, row._asdict())
@@ -457,25 +460,26 @@ def _check_asker(holder: Sequence[Any], params: dict[str, Any], *, for_people: b
 
 
 def _renew_or_release(connection: DriverConnection, holder: Sequence[Any],
-                      params: dict[str, Any], *, ahead_of: int | None) -> Any | None:
+                      params: dict[str, Any], *, ahead_of: int | None) -> tuple[Any | None, bool]:
     """The labeller's live leases (at most the one it is shown and the one ahead of it): the
     one shown (`ahead_of`) is renewed; one of the run asked for is a reload, renewed and
-    returned; the rest, held for another run or a run that closed, are freed for others."""
-    others = []
+    returned; the rest, held for another run or a run that closed, are freed for others.
+    (the reload's row or None, whether the one shown was renewed)"""
+    others, kept = [], False
     for _, held, held_run, status, *_ in holder:
         if held is None:
             continue
         if held == ahead_of:
-            _RENEW.count(connection, params | {"query": held})
+            kept = _RENEW.count(connection, params | {"query": held}) > 0
             continue
         if status in LABELLABLE and params["run"] in (None, held_run):
             row = _RENEW_RETURNING.first(connection, params | {"query": held})
             if row is not None:
-                return row
+                return row, kept
         others.append(held)
     for other in others:
         _RELEASE.count(connection, params | {"query": other})
-    return None
+    return None, kept
 
 
 def _take_next(connection: DriverConnection, params: dict[str, Any], *, key: bytes | None,

@@ -43,6 +43,7 @@ from labelqueue import (
     submit_label,
 )
 from labelqueue.models import utcnow
+from labelqueue.waiting import finish_if_waited
 from runviews.activity import labeller_waiting, list_workers, runs_activity
 
 
@@ -370,3 +371,34 @@ def test_a_code_withheld_by_the_pause_message_is_not_earned(session: Session) ->
         [check] = verify_codes(session, [row.completion_code])
         assert (check.valid, check.why) == (earned, "paused")
     assert labeller_progress(session, labeller_id=returned.id).earned is False
+
+
+def test_a_pair_on_screen_is_no_wait_with_nothing_to_label(session: Session) -> None:
+    run = create_run(session, name="p", task="dmc:cheetah_run", algo="pebble", budget=100,
+                     teacher=TeacherKind.HUMAN, config={"feedback.practice_pairs": 1})
+    assert claim_run(session, worker_id="worker-a") is not None
+    push_queries(session, run_id=run.id, queries=[query_spec(0), query_spec(
+        50, gold=True, first_segment_return=9.0, second_segment_return=1.0)])
+    invite = create_invite(session, expires_at=week(), run_id=run.id, wait_limit_s=1,
+                           entry_pass=1)
+    later = utcnow() + timedelta(seconds=30)
+
+    def finished_after_preloading(participant: str, answer_practice: bool) -> bool:
+        who = join_invite(session, code=invite.code, participant=participant).labeller
+        shown = lease_next_query(session, labeller_id=who.id, for_people=True)
+        assert shown is not None and shown.practice
+        if answer_practice:  # right: then the one real pair, leased and on screen
+            submit_label(session, query_id=shown.id, labeller_id=who.id, choice="left",
+                         left_is_first=True)
+            shown = lease_next_query(session, labeller_id=who.id, for_people=True)
+            assert shown is not None and not shown.practice
+        # The page preloads behind the pair it shows, and finds nothing more.
+        assert lease_next_query(session, labeller_id=who.id, ahead_of=shown.id,
+                                for_people=True) is None
+        with session.begin():
+            session.execute(update(Invitee).where(Invitee.labeller_id == who.id)
+                            .values(asked_at=later))
+        return finish_if_waited(session, labeller_id=who.id, now=later)
+
+    assert not finished_after_preloading("on-practice", answer_practice=False)
+    assert not finished_after_preloading("on-a-pair", answer_practice=True)
