@@ -164,14 +164,16 @@ class Progress:
     paused: bool = False
     """check pairs left them nothing to label: paused on the invite's run; for an all-runs
     invite, on every run still giving pairs (once none does, on every run they answered on)"""
+    active: bool = True
+    """the labeller is active: an operator deactivated them otherwise (rejected their work)"""
 
     @property
     def earned(self) -> bool:
-        """the code is earned: the study is complete, not by failing the entry test, and the
-        code was not withheld (a pause on an invite with a `pause_message`: the participant is
-        told to return the study, and shown no code)"""
+        """the code is earned: the study is complete, not by failing the entry test, the code
+        was not withheld (a pause on an invite with a `pause_message`: the participant is told
+        to return the study, and shown no code), and the labeller was not deactivated"""
         withheld = self.why == "paused" and self.pause_message is not None
-        return self.complete and self.why != "entry_failed" and not withheld
+        return self.complete and self.why != "entry_failed" and not withheld and self.active
 
 
 def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
@@ -186,13 +188,14 @@ def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
         labels = session.scalar(select(func.count(Label.id)).where(*standing)) or 0
         row = session.execute(
             select(Invite, Invitee.participant, Invitee.nothing_left_at, Invitee.entry_passed,
-                   Invitee.entry_correct)
+                   Invitee.entry_correct, Labeller.active)
             .join(Invitee, Invitee.invite_id == Invite.id)
+            .join(Labeller, Labeller.id == Invitee.labeller_id)
             .where(Invitee.labeller_id == labeller_id)
         ).one_or_none()
         if row is None:
             return Progress(labels, None, None, None, counted=labels)
-        invite, participant, nothing_left, entry_passed, entry_correct = row
+        invite, participant, nothing_left, entry_passed, entry_correct, active = row
         on_runs = [Label.run_id == invite.run_id] if invite.run_id is not None else []
         # Practice answers never count toward a target (labelqueue.practice).
         counted = session.scalar(select(func.count(Label.id)).where(
@@ -207,6 +210,7 @@ def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
            else "paused" if paused else "nothing_left" if nothing_left is not None else None)
     progress = Progress(labels, invite.target_answers, None, invite.run_id, counted=counted,
                         invited=True, complete=why is not None, why=why, paused=paused,
+                        active=active,
                         participant=participant, entry_correct=entry_correct,
                         entry_pass=invite.entry_pass)
     if why is None:

@@ -7,8 +7,9 @@ flags; practice answers apart (they earn nothing); their gold score (correct of 
 practice left out); whether check pairs paused them (on the invite's run; for an all-runs
 invite, on every run still giving pairs); their study's state and their code, valid
 once the study is complete for them (`crowdstudy.completion.labeller_progress`), never for one who
-failed the invite's entry test (`labelqueue.entry_test`: why "entry_failed", not to be paid) nor
-for one paused where the invite's pause message replaces the code (told to return the study).
+failed the invite's entry test (`labelqueue.entry_test`: why "entry_failed", not to be paid),
+for one paused where the invite's pause message replaces the code (told to return the study),
+nor for one an operator deactivated (`active` false).
 """
 
 from __future__ import annotations
@@ -71,12 +72,15 @@ class Participant:
     code_valid: bool
     """the code is earned (`crowdstudy.completion.Progress.earned`): their study is complete (a
     paused participant's too, unless the invite's pause message was given instead of the code),
-    and not by failing the entry test"""
+    not by failing the entry test, and their labeller is active"""
     entry_test: str | None = None
     """the invite's entry test: "passed", "failed" (let go: not to be paid) or "undecided";
     none: the invite has no entry test (`labelqueue.entry_test`)"""
     entry_correct: int | None = None
     """practice answers right when the entry test was decided"""
+    active: bool = True
+    """the labeller is active; a deactivated one (an operator rejected their work) has not
+    earned their code"""
 
 
 def participants(session: Session, *, invite_id: int) -> list[Participant]:
@@ -131,7 +135,7 @@ def participants(session: Session, *, invite_id: int) -> list[Participant]:
             code_valid=progress.earned,
             entry_test=None if invite.entry_pass is None else "undecided"
             if invitee.entry_passed is None else "passed" if invitee.entry_passed else "failed",
-            entry_correct=invitee.entry_correct,
+            entry_correct=invitee.entry_correct, active=progress.active,
         ))
     return out
 
@@ -139,7 +143,7 @@ def participants(session: Session, *, invite_id: int) -> list[Participant]:
 CSV_COLUMNS = ("participant", "labeller_id", "labeller", "joined_at", "time_on_task_s",
                "decisive", "equal", "cant_tell", "skips", "flags", "practice", "gold_answers",
                "gold_correct", "paused", "counted", "complete", "why", "completion_code",
-               "code_valid", "entry_test", "entry_correct")
+               "code_valid", "entry_test", "entry_correct", "active")
 
 
 @dataclass(frozen=True)

@@ -218,12 +218,16 @@ class ParticipantOut(Out):
     completion_code: str
     code_valid: bool
     """the code is earned: pay them. Their study is complete, not by failing the entry test,
-    and not by a pause on an invite whose pause message replaces the code"""
+    nor by a pause on an invite whose pause message replaces the code, and their labeller is
+    active"""
     entry_test: Literal["passed", "failed", "undecided"] | None = None
     """the invite's entry test; failed: let go without a code, not to be paid; null: the
     invite has none"""
     entry_correct: int | None = None
     """practice answers right when the entry test was decided"""
+    active: bool = True
+    """the labeller is active; a deactivated one (an operator rejected their work) has not
+    earned their code"""
 
 
 class CodesRequest(Body):

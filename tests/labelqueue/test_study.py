@@ -39,6 +39,7 @@ from labelqueue import (
     lease_next_query,
     push_queries,
     read_run,
+    set_labeller_active,
     set_run_status,
     submit_label,
 )
@@ -402,3 +403,19 @@ def test_a_pair_on_screen_is_no_wait_with_nothing_to_label(session: Session) -> 
 
     assert not finished_after_preloading("on-practice", answer_practice=False)
     assert not finished_after_preloading("on-a-pair", answer_practice=True)
+
+
+def test_a_deactivated_participants_code_is_not_earned(session: Session) -> None:
+    run = running_run(session, teacher=TeacherKind.HUMAN)
+    push_queries(session, run_id=run.id, queries=[query_spec(i) for i in range(2)])
+    invite = create_invite(session, expires_at=week(), run_id=run.id, target_answers=1)
+    cheat = join_invite(session, code=invite.code, participant="cheat").labeller
+    answer(session, cheat.id, run.id, "left")
+    done = labeller_progress(session, labeller_id=cheat.id)
+    assert done.earned and done.completion_code is not None
+    set_labeller_active(session, labeller_id=cheat.id, active=False)  # the operator rejects
+
+    [check] = verify_codes(session, [done.completion_code])
+    assert (check.valid, check.why) == (False, "target")
+    [row] = participants(session, invite_id=invite.id)
+    assert (row.why, row.active, row.code_valid) == ("target", False, False)
