@@ -57,8 +57,14 @@ def participant_code(key: bytes, invite: Invite, labeller_id: int) -> str:
     return f"{invite.completion_code}-{own}" if invite.completion_code else own
 
 
+OWN_CHARS = 4 * CODE_GROUPS
+"""characters of a participant's own part, its dashes left out"""
+
+
 def _normalised(code: str) -> str:
-    code = re.sub(r"\s+", "", code).upper()
+    """The code as compared: without white space or dashes (a code typed in groups, split
+    anywhere, is one code), in capitals, with O, I and L read as 0, 1 and 1."""
+    code = re.sub(r"[\s-]+", "", code).upper()
     return code.translate(str.maketrans("OIL", "011"))
 
 
@@ -83,13 +89,12 @@ class Verified:
 
 def verify_code(session: Session, code: str) -> Verified | None:
     """Whose completion code this is, or None when it is no participant's. The study-code prefix
-    may be left out; case, spaces, and O/0, I/L/1 confusions do not matter."""
+    may be left out; case, spaces, dashes, and O/0, I/L/1 confusions do not matter."""
     given = _normalised(code)
-    groups = given.split("-")
-    if len(groups) < CODE_GROUPS:
+    if len(given) < OWN_CHARS:
         return None
-    own = "-".join(groups[-CODE_GROUPS:])
-    prefix = "-".join(groups[:-CODE_GROUPS])
+    # The own part is the last twelve characters; the rest is the study code, if given.
+    own, prefix = given[-OWN_CHARS:], given[:-OWN_CHARS]
     key = server_key(session)
     with reading(session):
         rows = session.execute(
@@ -99,7 +104,9 @@ def verify_code(session: Session, code: str) -> Verified | None:
         ).all()
         session.expunge_all()
     for labeller_id, invite in rows:
-        if not hmac.compare_digest(_own_part(key, invite.id, labeller_id), own):
+        # As bytes: compare_digest refuses str with characters beyond ASCII.
+        if not hmac.compare_digest(_own_part(key, invite.id, labeller_id).replace("-", "")
+                                   .encode(), own.encode()):
             continue
         if prefix and _normalised(invite.completion_code or "") != prefix:
             return None

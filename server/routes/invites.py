@@ -139,7 +139,7 @@ def post_verify(body: VerifyRequest, session: SessionDep, _: OperatorDep) -> Ver
     """Whose completion code this is, and how far they got: decisive answers on the invite's
     run against its target, and whether (and why) their study is complete. 404 for a code that
     is no participant's (a typo, or made up). The study-code prefix may be left out; case and
-    spaces do not matter."""
+    spaces or dashes between its characters do not matter."""
     verified = verify_code(session, body.code)
     if verified is None:
         raise NotFound("no participant has this completion code: check it was copied whole")

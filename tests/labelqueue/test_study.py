@@ -100,6 +100,12 @@ def test_only_decisive_answers_on_the_invites_run_count_and_codes_are_each_parti
     # The prefix may be left out; a code off by one character, or the study code with another
     # participant's part, is nobody's.
     assert verify_code(session, done.completion_code.removeprefix("PILOT-")) is not None
+    # Typed in other groups, with spaces or none: one code all the same.
+    flat = done.completion_code.replace("-", "")
+    for typed in (done.completion_code.replace("-", " "), flat, f"{flat[:6]} {flat[6:]}"):
+        found = verify_code(session, typed)
+        assert found is not None and found.labeller_id == ann.id, typed
+    assert verify_code(session, "ÉÉÉÉ-ÉÉÉÉ-ÉÉÉÉ") is None
     forged = done.completion_code[:-1] + ("0" if done.completion_code[-1] != "0" else "1")
     assert verify_code(session, forged) is None
     assert verify_code(session, "PILOT") is None

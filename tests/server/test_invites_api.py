@@ -150,6 +150,9 @@ def test_a_target_of_decisive_answers_gives_each_participant_their_own_code(
     made_up = client.post("/api/invites/verify", json={"code": "C0DE-42-AAAA-BBBB-CCCC"},
                           headers=OPERATOR)
     assert made_up.status_code == 404 and "no participant" in made_up.json()["detail"]
+    for odd in ("ÉÉÉÉ-ÉÉÉÉ-ÉÉÉÉ", codes[1].replace("-", "")[:-1] + "É"):
+        unknown = client.post("/api/invites/verify", json={"code": odd}, headers=OPERATOR)
+        assert unknown.status_code == 404, unknown.text
     assert client.post("/api/invites/verify", json={"code": codes[0]},
                        headers=bearer(tokens[0])).status_code == 403
 
