@@ -45,6 +45,9 @@ PARTICIPANT = re.compile(r"[A-Za-z0-9_.@+-]{1,64}")
 """what a `participant` may be: a crowdsourcing platform's worker id, or a plain name"""
 CODE_BYTES = 18
 """random bytes in an invite's code (24 URL-safe characters)"""
+CODE = re.compile(r"[A-Za-z0-9_-]{1,64}")
+"""what an invite's code can be: anything else (a NUL character, say) is no invite's, and is
+not looked up"""
 RUN_OPEN = (RunStatus.QUEUED, RunStatus.RUNNING, RunStatus.PAUSED)
 """a run in one of these may still give pairs to label, while its budget pays for one more
 query; stopping, stopped, finished and failed runs never will (a requeued run opens its
@@ -198,6 +201,8 @@ def list_invites(session: Session) -> list[Invite]:
 
 def read_invite(session: Session, *, code: str) -> Invite | None:
     """The invite with this code, or None."""
+    if not CODE.fullmatch(code):
+        return None
     with transaction(session):
         invite = session.scalars(
             select(Invite).where(Invite.code == code).execution_options(populate_existing=True)
@@ -244,6 +249,8 @@ def join_invite(session: Session, *, code: str, participant: str | None = None,
     if participant is not None and not PARTICIPANT.fullmatch(participant):
         raise Invalid("participant must be 1 to 64 letters, digits or _ . @ + - "
                          f"(got {participant[:80]!r})")
+    if not CODE.fullmatch(code):
+        raise NotFound("no such invite link: check that it was copied whole")
     now = utcnow()
     with transaction(session):
         # Joins by one link take turns (a row lock on PostgreSQL; SQLite's writes do anyway),
