@@ -20,7 +20,9 @@ right (`labelqueue.practice`) to go on; one who answers them all with fewer righ
 
 For an invite on one run, 1 <= entry_pass <= the run's practice pairs is checked when the invite
 is made; an all-runs invite's test is decided on the first run whose practice pairs the
-participant has all answered (a run with fewer practice pairs than `entry_pass` fails all).
+participant has all answered (a run with fewer practice pairs than `entry_pass` fails all),
+and until then they are served no real pair of any run (a run without practice pairs gives them
+none).
 """
 
 from __future__ import annotations
