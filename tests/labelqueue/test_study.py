@@ -425,3 +425,10 @@ def test_a_deactivated_participants_code_is_not_earned(session: Session) -> None
     assert (check.valid, check.why) == (False, "target")
     [row] = participants(session, invite_id=invite.id)
     assert (row.why, row.active, row.code_valid) == ("target", False, False)
+
+
+def test_an_all_runs_study_made_before_its_runs_waits_for_them(session: Session) -> None:
+    invite = create_invite(session, expires_at=week())
+    early = join_invite(session, code=invite.code, participant="early").labeller
+    progress = labeller_progress(session, labeller_id=early.id)
+    assert (progress.complete, progress.why, progress.completion_code) == (False, None, None)
