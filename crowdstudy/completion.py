@@ -16,10 +16,10 @@ import re
 from dataclasses import dataclass, replace
 from urllib.parse import parse_qsl, quote, urlencode, urlsplit, urlunsplit
 
-from sqlalchemy import exists, func, select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from crowdstudy.invites import RUN_OPEN, open_runs_of
+from crowdstudy.invites import live_runs, runs_open
 from labelqueue.keys import server_key
 from labelqueue.models import (
     Invite,
@@ -28,10 +28,7 @@ from labelqueue.models import (
     Labeller,
     LabellerPause,
     LabelSource,
-    Run,
-    TeacherKind,
 )
-from labelqueue.runs import budget_spent
 from labelqueue.transaction import reading
 from runvocab.answers import DECISIVE
 
@@ -60,8 +57,14 @@ def participant_code(key: bytes, invite: Invite, labeller_id: int) -> str:
     return f"{invite.completion_code}-{own}" if invite.completion_code else own
 
 
+OWN_CHARS = 4 * CODE_GROUPS
+"""characters of a participant's own part, its dashes left out"""
+
+
 def _normalised(code: str) -> str:
-    code = re.sub(r"\s+", "", code).upper()
+    """The code as compared: without white space or dashes (a code typed in groups, split
+    anywhere, is one code), in capitals, with O, I and L read as 0, 1 and 1."""
+    code = re.sub(r"[\s-]+", "", code).upper()
     return code.translate(str.maketrans("OIL", "011"))
 
 
@@ -80,22 +83,18 @@ class Verified:
     complete: bool
     why: str | None
     """"target", "runs_over", "paused", "nothing_left" or "entry_failed" (see `Progress.why`)"""
-
-    @property
-    def earned(self) -> bool:
-        """the code is earned: the study is complete, and not by failing the entry test"""
-        return self.complete and self.why != "entry_failed"
+    earned: bool = False
+    """the code is earned (`Progress.earned`): pay them"""
 
 
 def verify_code(session: Session, code: str) -> Verified | None:
     """Whose completion code this is, or None when it is no participant's. The study-code prefix
-    may be left out; case, spaces, and O/0, I/L/1 confusions do not matter."""
+    may be left out; case, spaces, dashes, and O/0, I/L/1 confusions do not matter."""
     given = _normalised(code)
-    groups = given.split("-")
-    if len(groups) < CODE_GROUPS:
+    if len(given) < OWN_CHARS:
         return None
-    own = "-".join(groups[-CODE_GROUPS:])
-    prefix = "-".join(groups[:-CODE_GROUPS])
+    # The own part is the last twelve characters; the rest is the study code, if given.
+    own, prefix = given[-OWN_CHARS:], given[:-OWN_CHARS]
     key = server_key(session)
     with reading(session):
         rows = session.execute(
@@ -105,7 +104,9 @@ def verify_code(session: Session, code: str) -> Verified | None:
         ).all()
         session.expunge_all()
     for labeller_id, invite in rows:
-        if not hmac.compare_digest(_own_part(key, invite.id, labeller_id), own):
+        # As bytes: compare_digest refuses str with characters beyond ASCII.
+        if not hmac.compare_digest(_own_part(key, invite.id, labeller_id).replace("-", "")
+                                   .encode(), own.encode()):
             continue
         if prefix and _normalised(invite.completion_code or "") != prefix:
             return None
@@ -113,7 +114,8 @@ def verify_code(session: Session, code: str) -> Verified | None:
         with reading(session):
             name = session.scalar(select(Labeller.name).where(Labeller.id == labeller_id))
         return Verified(invite.id, labeller_id, name or "", progress.participant, invite.run_id,
-                        progress.counted, invite.target_answers, progress.complete, progress.why)
+                        progress.counted, invite.target_answers, progress.complete, progress.why,
+                        progress.earned)
     return None
 
 
@@ -166,11 +168,19 @@ class Progress:
     """practice answers they got right, once the invite's entry test is decided"""
     entry_pass: int | None = None
     """the invite's entry test: practice answers to get right; none: no test"""
+    paused: bool = False
+    """check pairs left them nothing to label: paused on the invite's run; for an all-runs
+    invite, on every run still giving pairs (once none does, on every run they answered on)"""
+    active: bool = True
+    """the labeller is active: an operator deactivated them otherwise (rejected their work)"""
 
     @property
     def earned(self) -> bool:
-        """the code is earned: the study is complete, and not by failing the entry test"""
-        return self.complete and self.why != "entry_failed"
+        """the code is earned: the study is complete, not by failing the entry test, the code
+        was not withheld (a pause on an invite with a `pause_message`: the participant is told
+        to return the study, and shown no code), and the labeller was not deactivated"""
+        withheld = self.why == "paused" and self.pause_message is not None
+        return self.complete and self.why != "entry_failed" and not withheld and self.active
 
 
 def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
@@ -185,38 +195,29 @@ def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
         labels = session.scalar(select(func.count(Label.id)).where(*standing)) or 0
         row = session.execute(
             select(Invite, Invitee.participant, Invitee.nothing_left_at, Invitee.entry_passed,
-                   Invitee.entry_correct)
+                   Invitee.entry_correct, Labeller.active)
             .join(Invitee, Invitee.invite_id == Invite.id)
+            .join(Labeller, Labeller.id == Invitee.labeller_id)
             .where(Invitee.labeller_id == labeller_id)
         ).one_or_none()
         if row is None:
             return Progress(labels, None, None, None, counted=labels)
-        invite, participant, nothing_left, entry_passed, entry_correct = row
+        invite, participant, nothing_left, entry_passed, entry_correct, active = row
         on_runs = [Label.run_id == invite.run_id] if invite.run_id is not None else []
         # Practice answers never count toward a target (labelqueue.practice).
         counted = session.scalar(select(func.count(Label.id)).where(
             *standing, Label.answer.in_(DECISIVE), Label.practice.is_(False), *on_runs)) or 0
-        if invite.run_id is not None:
-            run = session.get(Run, invite.run_id)
-            assert run is not None
-            over = run.status not in RUN_OPEN or budget_spent(run)
-            paused = session.scalar(select(exists().where(
-                LabellerPause.run_id == run.id, LabellerPause.labeller_id == labeller_id)))
-        else:
-            over = not session.scalar(select(open_runs_of(None)))
-            # Paused on every open run: nothing more for them anywhere.
-            unpaused = exists().where(
-                Run.teacher == TeacherKind.HUMAN, Run.status.in_(RUN_OPEN),
-                ~exists().where(LabellerPause.run_id == Run.id,
-                                LabellerPause.labeller_id == labeller_id))
-            paused = not over and not session.scalar(select(unpaused))
+        live = live_runs(session, invite.run_id)
+        over = not live and not runs_open(session, invite.run_id)
+        paused = _paused(session, invite, labeller_id, live)
         session.expunge_all()
     reached = invite.target_answers is not None and counted >= invite.target_answers
     failed = entry_passed is not None and not entry_passed
     why = ("entry_failed" if failed else "target" if reached else "runs_over" if over
            else "paused" if paused else "nothing_left" if nothing_left is not None else None)
     progress = Progress(labels, invite.target_answers, None, invite.run_id, counted=counted,
-                        invited=True, complete=why is not None, why=why,
+                        invited=True, complete=why is not None, why=why, paused=paused,
+                        active=active,
                         participant=participant, entry_correct=entry_correct,
                         entry_pass=invite.entry_pass)
     if why is None:
@@ -229,3 +230,19 @@ def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
     redirect = (completion_redirect(invite.redirect_url, code=code, participant=participant)
                 if invite.redirect_url else None)
     return replace(progress, completion_code=code, redirect_url=redirect)
+
+
+def _paused(session: Session, invite: Invite, labeller_id: int, live: list[int]) -> bool:
+    """Check pairs left the participant nothing: paused on the invite's run; for an all-runs
+    invite, on every run still giving pairs (`live`), or once none does, on every run they
+    answered on."""
+    on = set(session.scalars(select(LabellerPause.run_id).where(
+        LabellerPause.labeller_id == labeller_id)))
+    if invite.run_id is not None:
+        return invite.run_id in on
+    if live:
+        return set(live) <= on
+    answered = set(session.scalars(select(Label.run_id).distinct().where(
+        Label.labeller_id == labeller_id, Label.source == LabelSource.HUMAN,
+        Label.withdrawn_at.is_(None), Label.practice.is_(False))))
+    return bool(on) and answered <= on

@@ -6,9 +6,10 @@ not expired, not used up, its runs not over), then the labeller and its token ar
 people opening the last use at once: one joins, the other is told the link is used up.
 
 An invite is a study: its state follows its runs (`closed` once none of them can give pairs
-any more), it may carry a consent text (nobody joins without agreeing), a target number of
-answers, a completion redirect URL and what a participant paused by check pairs is told. How
-far each participant is, and their completion code, are `crowdstudy.completion`'s.
+any more: stopped, finished, failed or its budget spent, `live_runs`), it may carry a consent
+text (nobody joins without agreeing), a target number of answers, a completion redirect URL
+and what a participant paused by check pairs is told. How far each participant is, and their
+completion code, are `crowdstudy.completion`'s.
 """
 
 from __future__ import annotations
@@ -37,16 +38,20 @@ from labelqueue.models import (
     TeacherKind,
     utcnow,
 )
+from labelqueue.runs import budget_spent
 from labelqueue.transaction import changed, detach, get_row, reading, transaction
 
 PARTICIPANT = re.compile(r"[A-Za-z0-9_.@+-]{1,64}")
 """what a `participant` may be: a crowdsourcing platform's worker id, or a plain name"""
 CODE_BYTES = 18
 """random bytes in an invite's code (24 URL-safe characters)"""
+CODE = re.compile(r"[A-Za-z0-9_-]{1,64}")
+"""what an invite's code can be: anything else (a NUL character, say) is no invite's, and is
+not looked up"""
 RUN_OPEN = (RunStatus.QUEUED, RunStatus.RUNNING, RunStatus.PAUSED)
-"""a run in one of these may still give pairs to label; stopping, stopped, finished and failed
-runs never will (a requeued run opens its invites again). An all-runs invite closes once every
-run taught by people is over."""
+"""a run in one of these may still give pairs to label, while its budget pays for one more
+query; stopping, stopped, finished and failed runs never will (a requeued run opens its
+invites again). An all-runs invite closes once every run taught by people is over."""
 REDIRECT_MAX = 2000
 
 
@@ -87,26 +92,39 @@ CLOSED_TEXT = {
 }
 
 
-def open_runs_of(run_id: int | None) -> ColumnElement[bool]:
-    """A condition: the run `run_id` is open; for an all-runs invite, some run taught by people
-    is, or none was ever made (an operator may make the link before the runs)."""
-    if run_id is not None:
-        return exists().where(Run.id == run_id, Run.status.in_(RUN_OPEN))
-    return or_(exists().where(Run.teacher == TeacherKind.HUMAN, Run.status.in_(RUN_OPEN)),
-               ~exists().where(Run.teacher == TeacherKind.HUMAN))
+def live_runs(session: Session, run_id: int | None) -> list[int]:
+    """The ids of the runs that may still give an invite's participants pairs: its run (`run_id`;
+    None: every run taught by people) if it is queued, running or paused and its budget pays for
+    one more query (`labelqueue.runs.budget_spent`). Call it inside a transaction."""
+    which = Run.id == run_id if run_id is not None else Run.teacher == TeacherKind.HUMAN
+    return _live(session, which)
+
+
+def _live(session: Session, which: ColumnElement[bool]) -> list[int]:
+    # The budget's test needs the run's config (labels per query), so it is made here, not in SQL.
+    runs = session.scalars(select(Run).where(which, Run.status.in_(RUN_OPEN))
+                           .execution_options(populate_existing=True)).all()
+    return [run.id for run in runs if not budget_spent(run)]
+
+
+def runs_open(session: Session, run_id: int | None) -> bool:
+    """Whether an invite's runs may still give pairs (`live_runs`); an all-runs invite is open
+    too while no run taught by people was ever made (an operator may make the link before the
+    runs). Call it inside a transaction."""
+    if live_runs(session, run_id):
+        return True
+    return run_id is None and not session.scalar(
+        select(exists().where(Run.teacher == TeacherKind.HUMAN)))
 
 
 def invite_runs_open(session: Session, invites: list[Invite]) -> dict[int, bool]:
-    """Whether each invite's runs may still give pairs: its run is queued, running or paused
-    (for an all-runs invite: some run taught by people is), by invite id."""
+    """Whether each invite's runs may still give pairs (`runs_open`), by invite id."""
     with reading(session):
         run_ids = {invite.run_id for invite in invites if invite.run_id is not None}
-        open_ids = set(session.scalars(
-            select(Run.id).where(Run.id.in_(run_ids), Run.status.in_(RUN_OPEN))
-        )) if run_ids else set()
+        live = set(_live(session, Run.id.in_(run_ids))) if run_ids else set()
         any_open = (any(invite.run_id is None for invite in invites)
-                    and bool(session.scalar(select(open_runs_of(None)))))
-    return {invite.id: (any_open if invite.run_id is None else invite.run_id in open_ids)
+                    and runs_open(session, None))
+    return {invite.id: (any_open if invite.run_id is None else invite.run_id in live)
             for invite in invites}
 
 
@@ -183,6 +201,8 @@ def list_invites(session: Session) -> list[Invite]:
 
 def read_invite(session: Session, *, code: str) -> Invite | None:
     """The invite with this code, or None."""
+    if not CODE.fullmatch(code):
+        return None
     with transaction(session):
         invite = session.scalars(
             select(Invite).where(Invite.code == code).execution_options(populate_existing=True)
@@ -229,6 +249,8 @@ def join_invite(session: Session, *, code: str, participant: str | None = None,
     if participant is not None and not PARTICIPANT.fullmatch(participant):
         raise Invalid("participant must be 1 to 64 letters, digits or _ . @ + - "
                          f"(got {participant[:80]!r})")
+    if not CODE.fullmatch(code):
+        raise NotFound("no such invite link: check that it was copied whole")
     now = utcnow()
     with transaction(session):
         # Joins by one link take turns (a row lock on PostgreSQL; SQLite's writes do anyway),
@@ -246,7 +268,8 @@ def join_invite(session: Session, *, code: str, participant: str | None = None,
             again = _rejoin(session, invite, participant, now)
             if again is not None:
                 return again
-        took = changed(
+        open_now = runs_open(session, invite.run_id)
+        took = open_now and changed(
             session,
             update(Invite)
             .where(
@@ -254,14 +277,12 @@ def join_invite(session: Session, *, code: str, participant: str | None = None,
                 Invite.revoked_at.is_(None),
                 Invite.expires_at > now,
                 or_(Invite.max_uses.is_(None), Invite.uses < Invite.max_uses),
-                open_runs_of(invite.run_id),
             )
             .values(uses=Invite.uses + 1),
         )
         session.refresh(invite)
         if not took:
-            runs_open = bool(session.scalar(select(open_runs_of(invite.run_id))))
-            state = invite_state(invite, now, runs_open)
+            state = invite_state(invite, now, open_now)
             reason = "used_up" if state == "open" else state  # the last use went meanwhile
             raise InviteClosed(CLOSED_TEXT[reason], reason)
         name = _free_name(session, participant or f"guest-{secrets.token_hex(3)}")
@@ -290,8 +311,7 @@ def _rejoin(session: Session, invite: Invite, participant: str, now: datetime) -
     ).one_or_none()
     if labeller is None:
         return None
-    runs_open = bool(session.scalar(select(open_runs_of(invite.run_id))))
-    state = invite_state(invite, now, runs_open)
+    state = invite_state(invite, now, runs_open(session, invite.run_id))
     if state not in ("open", "used_up"):
         raise InviteClosed(CLOSED_TEXT[state], state)
     if not labeller.active:

@@ -4,9 +4,12 @@ completion code, and the check of many codes at once.
 Each participant's row counts their standing answers by hand on the invite's run (on any run
 for an all-runs invite): decisive (left or right), equal, can't tell, skips and, of the skips,
 flags; practice answers apart (they earn nothing); their gold score (correct of gold answers,
-practice left out); whether check pairs paused them; their study's state and their code, valid
+practice left out); whether check pairs paused them (on the invite's run; for an all-runs
+invite, on every run still giving pairs); their study's state and their code, valid
 once the study is complete for them (`crowdstudy.completion.labeller_progress`), never for one who
-failed the invite's entry test (`labelqueue.entry_test`: why "entry_failed", not to be paid).
+failed the invite's entry test (`labelqueue.entry_test`: why "entry_failed", not to be paid),
+for one paused where the invite's pause message replaces the code (told to return the study),
+nor for one an operator deactivated (`active` false).
 """
 
 from __future__ import annotations
@@ -30,7 +33,6 @@ from labelqueue.models import (
     Invitee,
     Label,
     Labeller,
-    LabellerPause,
     LabelSource,
     Query,
 )
@@ -60,6 +62,7 @@ class Participant:
     gold_answers: int
     gold_correct: int
     paused: bool
+    """check pairs left them nothing to label (`crowdstudy.completion.Progress.paused`)"""
     counted: int
     """what the target counts: decisive and equal answers on the invite's run"""
     complete: bool
@@ -67,13 +70,17 @@ class Participant:
     completion_code: str
     """their code, whether earned or not"""
     code_valid: bool
-    """the code is earned: their study is complete (a paused participant's too), and not by
-    failing the entry test"""
+    """the code is earned (`crowdstudy.completion.Progress.earned`): their study is complete (a
+    paused participant's too, unless the invite's pause message was given instead of the code),
+    not by failing the entry test, and their labeller is active"""
     entry_test: str | None = None
     """the invite's entry test: "passed", "failed" (let go: not to be paid) or "undecided";
     none: the invite has no entry test (`labelqueue.entry_test`)"""
     entry_correct: int | None = None
     """practice answers right when the entry test was decided"""
+    active: bool = True
+    """the labeller is active; a deactivated one (an operator rejected their work) has not
+    earned their code"""
 
 
 def participants(session: Session, *, invite_id: int) -> list[Participant]:
@@ -98,9 +105,6 @@ def participants(session: Session, *, invite_id: int) -> list[Participant]:
             .where(Label.labeller_id.in_(ids), Label.withdrawn_at.is_(None),
                    Label.source == LabelSource.HUMAN, *on_run)
         ).all() if ids else []
-        paused = set(session.scalars(select(LabellerPause.labeller_id).where(
-            LabellerPause.labeller_id.in_(ids),
-            *([LabellerPause.run_id == invite.run_id] if invite.run_id is not None else []))))
         session.expunge_all()
     by_labeller: dict[int, list[Any]] = {}
     for row in labels:
@@ -125,13 +129,13 @@ def participants(session: Session, *, invite_id: int) -> list[Participant]:
             cant_tell=kinds[Answer.CANT_TELL], skips=kinds[Answer.SKIP],
             flags=sum(r.flag is not None for r in real),
             practice=len(rows) - len(real), gold_answers=len(gold), gold_correct=correct,
-            paused=invitee.labeller_id in paused, counted=progress.counted,
+            paused=progress.paused, counted=progress.counted,
             complete=progress.complete, why=progress.why,
             completion_code=participant_code(key, invite, invitee.labeller_id),
             code_valid=progress.earned,
             entry_test=None if invite.entry_pass is None else "undecided"
             if invitee.entry_passed is None else "passed" if invitee.entry_passed else "failed",
-            entry_correct=invitee.entry_correct,
+            entry_correct=invitee.entry_correct, active=progress.active,
         ))
     return out
 
@@ -139,7 +143,7 @@ def participants(session: Session, *, invite_id: int) -> list[Participant]:
 CSV_COLUMNS = ("participant", "labeller_id", "labeller", "joined_at", "time_on_task_s",
                "decisive", "equal", "cant_tell", "skips", "flags", "practice", "gold_answers",
                "gold_correct", "paused", "counted", "complete", "why", "completion_code",
-               "code_valid", "entry_test", "entry_correct")
+               "code_valid", "entry_test", "entry_correct", "active")
 
 
 @dataclass(frozen=True)
@@ -148,8 +152,8 @@ class CodeCheck:
 
     code: str
     valid: bool
-    """the code is a participant's and their study is complete (not by failing the entry
-    test): pay them"""
+    """the code is a participant's and earned (`crowdstudy.completion.Progress.earned`): pay
+    them"""
     participant: str | None
     labeller_id: int | None
     invite_id: int | None

@@ -7,8 +7,12 @@ right (`labelqueue.practice`) to go on; one who answers them all with fewer righ
 - A practice answer is right when it is the better clip by the true reward ("equal" when the
   segments' returns are equal; an external pair's known answer otherwise), as the practice
   explanation says; a can't-tell or a skip is never right.
-- Before the test is decided, a practice answer may be taken back as any practice answer can
-  (`labelqueue.undo`); once decided, none can.
+- Until the test is decided the participant is served practice pairs only (`untested`): with
+  none to show (not rendered yet, or the last one on their screen) they get nothing and wait as
+  anyone with nothing to label, so nobody starts on real pairs untested. One who already has a
+  standing real answer on the run (an older database's) goes on.
+- A practice answer of an invite with an entry test is never taken back (`labelqueue.undo`):
+  each is explained once given, and the test measures the first try.
 - A participant who failed gets no more pairs (`EntryFailed`, a 403, from every lease), holds
   no lease (theirs are let go when the test is decided), has no completion code (their study
   ends as "entry_failed": `crowdstudy.completion.labeller_progress`) and never spends the budget
@@ -16,7 +20,9 @@ right (`labelqueue.practice`) to go on; one who answers them all with fewer righ
 
 For an invite on one run, 1 <= entry_pass <= the run's practice pairs is checked when the invite
 is made; an all-runs invite's test is decided on the first run whose practice pairs the
-participant has all answered (a run with fewer practice pairs than `entry_pass` fails all).
+participant has all answered (a run with fewer practice pairs than `entry_pass` fails all),
+and until then they are served no real pair of any run (a run without practice pairs gives them
+none).
 """
 
 from __future__ import annotations
@@ -98,6 +104,9 @@ _UNDECIDED = Prepared(
     .where(INVITEES.c.labeller_id == _LABELLER, INVITES.c.entry_pass.is_not(None),
            INVITEES.c.entry_passed.is_(None),
            or_(INVITES.c.run_id.is_(None), INVITES.c.run_id == _RUN))
+    # One participant's practice answers take turns here (a row lock on PostgreSQL): the later
+    # one counts the earlier's, so two sent at once still decide the test.
+    .with_for_update(of=INVITEES)
 )
 _PRACTISED = Prepared(
     select(LABELS.c.answer, QUERIES.c.first_segment_return, QUERIES.c.second_segment_return,
@@ -114,6 +123,10 @@ _DECIDE = Prepared(
     .values(entry_passed=bindparam("passed", type_=INVITEES.c.entry_passed.type),
             entry_correct=bindparam("correct", type_=Integer()))
 )
+_REAL = select(LABELS.c.id).where(LABELS.c.labeller_id == _LABELLER,
+                                   LABELS.c.practice.is_(False), LABELS.c.withdrawn_at.is_(None))
+_REAL_ON_RUN = Prepared(_REAL.where(LABELS.c.run_id == _RUN).limit(1))
+_REAL_ANYWHERE = Prepared(_REAL.limit(1))
 _LET_GO = Prepared(
     update(QUERIES)
     .where(QUERIES.c.lease_holder == _LABELLER, QUERIES.c.status == QueryStatus.LEASED)
@@ -121,10 +134,31 @@ _LET_GO = Prepared(
 )
 
 
+def untested(connection: DriverConnection, holder: Any, labeller_id: int) -> bool:
+    """Whether the labeller must be served no real pair yet: their invite has an entry test,
+    undecided, and they have no standing answer but practice ones on the invite's run (on any
+    run, for an all-runs invite). `holder`: the lease's row of the labeller, with its invite's
+    `entry_pass`, `entry_passed` and `invite_run`. One who answered real pairs before the test
+    was asked of them (an older database) goes on."""
+    if holder.entry_pass is None or holder.entry_passed is not None:
+        return False
+    if holder.invite_run is not None:
+        real = _REAL_ON_RUN.first(connection, {"labeller": labeller_id,
+                                               "run": holder.invite_run})
+    else:
+        real = _REAL_ANYWHERE.first(connection, {"labeller": labeller_id})
+    return real is None
+
+
 def decide(connection: DriverConnection, *, labeller_id: int, run_id: int) -> bool | None:
     """After a practice answer, in its transaction: decide the labeller's entry test once they
     have answered all of the run's practice pairs; whether they passed (None: no test, not yet,
-    or decided before). One who failed is let go of every lease they hold."""
+    or decided before). One who failed is let go of every lease they hold.
+
+    The participant's row is locked before their answers are counted, so their answers sent at
+    once are counted in turn. Locks: the answer's query row, then the participant's, then the
+    leases let go; a lease takes the queries' rows and then the participant's, and an
+    undecided participant holds no lease of a real pair to let go (`untested`)."""
     params: dict[str, Any] = {"labeller": labeller_id, "run": run_id}
     test = _UNDECIDED.first(connection, params)
     if test is None:

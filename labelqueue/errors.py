@@ -36,6 +36,11 @@ class StaleToken(Revoked):
     it (`rotate_token`), from whichever process."""
 
 
+class OtherRun(QueueError):
+    """The labeller joined by an invite for one run and asked for, or answered, another: they
+    label their invite's run only."""
+
+
 class Invalid(QueueError, ValueError):
     """A value given to the operation is not valid; the message names it and what is valid. (A
     ValueError too, so that callers outside the server may catch it as one.)"""

@@ -18,9 +18,19 @@ from sqlalchemy import ColumnElement, Integer, String, bindparam, case, insert, 
 from sqlalchemy.orm import Session
 
 from labelqueue.entry_test import decide
-from labelqueue.errors import Invalid, LeaseError, NotFound, Revoked, RunClosed, StaleToken
+from labelqueue.errors import (
+    Invalid,
+    LeaseError,
+    NotFound,
+    OtherRun,
+    Revoked,
+    RunClosed,
+    StaleToken,
+)
 from labelqueue.gold import pause_if_below
 from labelqueue.models import (
+    INVITEES,
+    INVITES,
     LABELLERS,
     LABELS,
     QUERIES,
@@ -108,8 +118,10 @@ def _take_answer(*, token: bool) -> Prepared:
 def _take_practice(*, token: bool) -> Prepared:
     """The conditional update that takes a practice answer: the labeller active (and with
     `token`, its token the one `token_hash` names), the practice pair open, its run running or
-    paused. A practice pair is shown to everyone at once, without a lease: the update changes
-    nothing but orders concurrent answers to the pair (a row lock on PostgreSQL)."""
+    paused, and not another run than the labeller's invite is for. A practice pair is shown to
+    everyone at once, without a lease (so the lease's check of the invite's run is made here):
+    the update changes nothing but orders concurrent answers to the pair (a row lock on
+    PostgreSQL)."""
     labeller = _asker(token=token)
     return Prepared(
         update(QUERIES)
@@ -118,12 +130,22 @@ def _take_practice(*, token: bool) -> Prepared:
             QUERIES.c.practice.is_(True),
             one_of(QUERIES.c.status, (QueryStatus.PENDING, QueryStatus.LEASED)),
             select(LABELLERS.c.id).where(*labeller).exists(),
+            ~_other_run(),
             select(RUNS.c.id)
             .where(RUNS.c.id == QUERIES.c.run_id, one_of(RUNS.c.status, LABELLABLE))
             .exists(),
         )
         .values(label_count=QUERIES.c.label_count)
     )
+
+
+def _other_run() -> ColumnElement[bool]:
+    """The answering labeller joined by an invite for another run than the query's."""
+    return (select(INVITEES.c.labeller_id)
+            .join(INVITES, INVITES.c.id == INVITEES.c.invite_id)
+            .where(INVITEES.c.labeller_id == _LABELLER, INVITES.c.run_id.is_not(None),
+                   INVITES.c.run_id != QUERIES.c.run_id)
+            .exists())
 
 
 _TAKE_ANSWER = _take_answer(token=False)
@@ -162,10 +184,13 @@ _REFUSAL = Prepared(
         QUERIES.c.status,
         QUERIES.c.lease_holder,
         QUERIES.c.lease_expires_at,
+        INVITES.c.run_id.label("invite_run"),
     )
     .select_from(QUERIES)
     .join(RUNS, RUNS.c.id == QUERIES.c.run_id)
     .join(LABELLERS, LABELLERS.c.id == _LABELLER)
+    .outerjoin(INVITEES, INVITEES.c.labeller_id == LABELLERS.c.id)
+    .outerjoin(INVITES, INVITES.c.id == INVITEES.c.invite_id)
     .where(QUERIES.c.id == _QUERY)
 )
 
@@ -181,6 +206,9 @@ def _why_refused(connection: DriverConnection, params: dict[str, Any]) -> Except
     token = params.get("token_hash")
     if token is not None and not hmac.compare_digest(row.token_hash, token):
         return StaleToken(f"labeller {labeller_id}'s token was replaced by a new one")
+    if row.invite_run is not None and row.invite_run != row.run_id:
+        return OtherRun(f"you joined this study for run {row.invite_run}: pairs of run "
+                        f"{row.run_id} are not yours to label")
     if row.run_status not in LABELLABLE:
         return RunClosed(f"run {row.run_id} is {row.run_status}: it takes no more answers")
     status, expires = QueryStatus(row.status), row.lease_expires_at
@@ -266,7 +294,8 @@ def submit_label(
     An answer to one of the run's practice pairs (`labelqueue.practice`) needs no lease (the
     pair is shown to every newcomer at once): it is stored with `practice` set, costs no
     budget and checks no gold threshold; the last one may decide the labeller's entry test
-    (`labelqueue.entry_test`).
+    (`labelqueue.entry_test`). A labeller who joined by an invite for another run may answer
+    neither (OtherRun): the lease serves them their invite's run only.
 
     `flag` marks the pair as one nobody can judge (`runvocab.answers.Flag`), with an optional
     `flag_note`; only a skip may carry one (Invalid otherwise), so a flagged pair is never

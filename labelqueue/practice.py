@@ -17,7 +17,9 @@ and are the run's practice pairs for good, never check pairs. So:
 
 A labeller is a newcomer on a run while they have no standing answer there but practice ones;
 the lease then serves the run's practice pairs they have not answered, in order, before
-anything else of the run (none rendered yet: nothing, until one is).
+anything else of the run. With none rendered yet it serves real pairs (and the labeller gets no
+practice later), unless their invite makes the round an entry test: then nothing, until one is
+(`labelqueue.entry_test.untested`).
 """
 
 from __future__ import annotations
@@ -112,6 +114,18 @@ def next_practice(connection: DriverConnection, params: dict[str, Any], *,
     leased: dict[str, Any] = row._asdict()
     return leased | {"status": QueryStatus.LEASED, "lease_holder": params["labeller"],
                             "leased_at": params["at"], "lease_expires_at": until}
+
+
+_OPEN_PRACTICE = Prepared(
+    select(QUERIES.c.id).where(
+        QUERIES.c.id == _SHOWN, QUERIES.c.practice.is_(True),
+        or_(QUERIES.c.status == QueryStatus.PENDING, QUERIES.c.status == QueryStatus.LEASED))
+)
+
+
+def shows_practice(connection: DriverConnection, query_id: int) -> bool:
+    """Whether `query_id` is an open practice pair (a page showing it has something to label)."""
+    return _OPEN_PRACTICE.first(connection, {"practice_shown": query_id}) is not None
 
 
 @dataclass(frozen=True)

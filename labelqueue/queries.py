@@ -29,8 +29,8 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from labelqueue.coerce import clip_key, finite
-from labelqueue.entry_test import EntryFailed, refusal
-from labelqueue.errors import Conflict, Invalid, NotFound, Revoked, StaleToken
+from labelqueue.entry_test import EntryFailed, refusal, untested
+from labelqueue.errors import Conflict, Invalid, NotFound, OtherRun, Revoked, StaleToken
 from labelqueue.gold import (
     GOLD_NEEDS_LABELS,
     SCHEDULE_KEY,
@@ -58,7 +58,7 @@ from labelqueue.models import (
     UTCDateTime,
     utcnow,
 )
-from labelqueue.practice import next_practice, reserve
+from labelqueue.practice import next_practice, reserve, shows_practice
 from labelqueue.prepared import DriverConnection, Prepared
 from labelqueue.run_config import FEEDBACK, run_feedback
 from labelqueue.transaction import (
@@ -238,15 +238,16 @@ _NOW = bindparam("at", type_=UTCDateTime())
 _EXPIRES = bindparam("until", type_=UTCDateTime())
 _LABELLER = bindparam("labeller", type_=Integer())
 _MINE = and_(QUERIES.c.lease_holder == _LABELLER, QUERIES.c.status == QueryStatus.LEASED)
-# The labeller, with each live lease it holds (one row with no lease when it holds none), and
-# the teacher of the run asked for (none when no run is asked for, or it does not exist).
+# The labeller, with each live lease it holds (one row with no lease when it holds none), the
+# teacher of the run asked for (none when no run is asked for, or it does not exist), and its
+# invite's entry test and run (none: it joined by no invite, or by one for all runs).
 _ASKED_TEACHER = (
     select(RUNS.c.teacher).where(RUNS.c.id == bindparam("run")).scalar_subquery().label("teacher")
 )
 _HOLDER = Prepared(
     select(LABELLERS.c.active, QUERIES.c.id, QUERIES.c.run_id, RUNS.c.status, _ASKED_TEACHER,
            LABELLERS.c.token_hash, INVITEES.c.entry_passed, INVITEES.c.entry_correct,
-           INVITES.c.entry_pass)
+           INVITES.c.entry_pass, INVITES.c.run_id.label("invite_run"))
     .select_from(LABELLERS)
     .outerjoin(INVITEES, INVITEES.c.labeller_id == LABELLERS.c.id)
     .outerjoin(INVITES, INVITES.c.id == INVITEES.c.invite_id)
@@ -382,9 +383,17 @@ def lease_next_query(
     second query is leased besides it, so a page can preload the next pair; asking again with
     the same `ahead_of` returns the same second query.
 
+    A newcomer on a run with practice pairs is shown them first (`labelqueue.practice`). One
+    whose invite has an entry test gets no other pair until it is decided
+    (`labelqueue.entry_test.untested`): with no practice pair to show yet, nothing.
+
     Gold pairs (`labelqueue.gold`) are mixed in at their run's rate unless `gold` is false (the
     run's own scripted teacher). A labeller paused on a run gets none of its queries; when that
     leaves nothing to lease, Paused says why.
+
+    A labeller who joined by an invite for one run is served that run only: asking without
+    `run_id` asks for it, and asking for another is refused (OtherRun), so they neither spend
+    another run's budget nor wait on a run that is not theirs.
 
     `for_people`: a person asks, so the run asked for must exist (else NotFound) and be taught
     by people (else Conflict). `token_hash`: the hash of the bearer token the person asked with
@@ -402,15 +411,20 @@ def lease_next_query(
     with driver_transaction(session) as connection:
         holder = _HOLDER.rows(connection, params)
         _check_asker(holder, params, for_people=for_people, token_hash=token_hash)
-        # A newcomer's practice pairs come first, shown without a lease of their own.
+        # A newcomer's practice pairs come first, shown without a lease of their own; one whose
+        # entry test is still to decide gets nothing else until it is.
         practice = (next_practice(connection, params, shown=ahead_of, until=params["until"])
                     if gold else None)
-        row = None if practice is not None else _renew_or_release(
+        waits = practice is None and untested(connection, holder[0], labeller_id)
+        row, kept = (None, False) if practice is not None or waits else _renew_or_release(
             connection, holder, params, ahead_of=ahead_of)
-        if practice is None and row is None:
+        if practice is None and row is None and not waits:
             row = _take_next(connection, params, key=key, ahead_of=ahead_of)
-        if for_people:  # how long a participant waits with nothing to label
-            asked(connection, params, got=practice is not None or row is not None)
+        if for_people:  # how long a participant waits with nothing to label: a pair on their
+            # screen (`ahead_of`, a lease of theirs or a practice pair) is something to label
+            got = practice is not None or row is not None or kept or (
+                ahead_of is not None and shows_practice(connection, ahead_of))
+            asked(connection, params, got=got)
     if practice is not None:
         return snapshot(Query, practice)
     return None if row is None else snapshot(Query, row._asdict())
@@ -419,8 +433,10 @@ def lease_next_query(
 def _check_asker(holder: Sequence[Any], params: dict[str, Any], *, for_people: bool,
                  token_hash: str | None) -> None:
     """Refuse a lease to a labeller that is missing or deactivated, that asks with a replaced
-    token, that failed its invite's entry test (`labelqueue.entry_test`), or (a person) for a
-    run that is missing or taught by a script."""
+    token, that failed its invite's entry test (`labelqueue.entry_test`), that joined by an
+    invite for another run than the one asked for, or (a person) for a run that is missing or
+    taught by a script. A one-run invitee asking for no run is asked for their invite's run
+    (`params` changed)."""
     labeller_id, run_id = params["labeller"], params["run"]
     if not holder:
         raise NotFound(f"labeller {labeller_id} does not exist")
@@ -430,6 +446,12 @@ def _check_asker(holder: Sequence[Any], params: dict[str, Any], *, for_people: b
         raise StaleToken(f"labeller {labeller_id}'s token was replaced by a new one")
     if holder[0].entry_passed is not None and not holder[0].entry_passed:
         raise EntryFailed(refusal(holder[0].entry_correct, holder[0].entry_pass))
+    own = holder[0].invite_run
+    if own is not None and run_id not in (None, own):
+        raise OtherRun(f"you joined this study for run {own}: pairs of run {run_id} are not "
+                       f"yours to label (ask for run {own}, or for no run)")
+    if own is not None:
+        params["run"] = own
     if for_people and run_id is not None:
         if holder[0].teacher is None:
             raise NotFound(f"run {run_id} does not exist")
@@ -438,25 +460,26 @@ def _check_asker(holder: Sequence[Any], params: dict[str, Any], *, for_people: b
 
 
 def _renew_or_release(connection: DriverConnection, holder: Sequence[Any],
-                      params: dict[str, Any], *, ahead_of: int | None) -> Any | None:
+                      params: dict[str, Any], *, ahead_of: int | None) -> tuple[Any | None, bool]:
     """The labeller's live leases (at most the one it is shown and the one ahead of it): the
     one shown (`ahead_of`) is renewed; one of the run asked for is a reload, renewed and
-    returned; the rest, held for another run or a run that closed, are freed for others."""
-    others = []
+    returned; the rest, held for another run or a run that closed, are freed for others.
+    (the reload's row or None, whether the one shown was renewed)"""
+    others, kept = [], False
     for _, held, held_run, status, *_ in holder:
         if held is None:
             continue
         if held == ahead_of:
-            _RENEW.count(connection, params | {"query": held})
+            kept = _RENEW.count(connection, params | {"query": held}) > 0
             continue
         if status in LABELLABLE and params["run"] in (None, held_run):
             row = _RENEW_RETURNING.first(connection, params | {"query": held})
             if row is not None:
-                return row
+                return row, kept
         others.append(held)
     for other in others:
         _RELEASE.count(connection, params | {"query": other})
-    return None
+    return None, kept
 
 
 def _take_next(connection: DriverConnection, params: dict[str, Any], *, key: bytes | None,

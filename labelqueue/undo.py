@@ -1,7 +1,8 @@
 """Taking an answer back: for `UNDO_SECONDS` after answering, and only while the trainer has not
 taken the answer, a labeller may withdraw it; the query is leased to that labeller again (a
 practice pair, leased to nobody, is simply shown again: answered again, it is still practice,
-never a check pair).
+never a check pair; none is taken back where the labeller's invite makes the practice round an
+entry test).
 
 The label is not deleted: it stays with its `withdrawn_at`, so the export shows what was
 answered and taken back. The trainer's reads (`consume_labels`, `labels_for_queries`) skip
@@ -24,7 +25,17 @@ from sqlalchemy import and_, or_, select, update
 from sqlalchemy.orm import Session
 
 from labelqueue.errors import Conflict, NotFound, Revoked, RunClosed, StaleToken
-from labelqueue.models import Invitee, Label, Labeller, Query, QueryStatus, Run, Withdrawal, utcnow
+from labelqueue.models import (
+    Invite,
+    Invitee,
+    Label,
+    Labeller,
+    Query,
+    QueryStatus,
+    Run,
+    Withdrawal,
+    utcnow,
+)
 from labelqueue.queries import LABELLABLE, LEASE_SECONDS
 from labelqueue.transaction import changed, detach, get_row, transaction
 
@@ -60,12 +71,13 @@ def withdraw_label(
     the labeller's other leases are released, but `keep`'s (the pair it is looking at now).
 
     NotFound when it has no standing answer to the query; UndoRefused when the answer is older
-    than `window_seconds`, the trainer has taken it, or it is a practice answer that decided
-    the labeller's entry test (`labelqueue.entry_test`); RunClosed when the run takes no answers;
-    Conflict when the pair has been cancelled or another labeller holds it now. On refusal
-    nothing changes. A deactivated labeller takes nothing back (Revoked), and given `token_hash`
-    (the hash of the bearer token a person asks with), nor one whose token was replaced
-    (StaleToken): both read in this transaction, so they hold at once from any process.
+    than `window_seconds`, the trainer has taken it, or it is a practice answer of a labeller
+    whose invite makes the practice round an entry test (`labelqueue.entry_test`: the test
+    measures the first try, not one made after the explanation); RunClosed when the run takes
+    no answers; Conflict when the pair has been cancelled or another labeller holds it now. On
+    refusal nothing changes. A deactivated labeller takes nothing back (Revoked), and given
+    `token_hash` (the hash of the bearer token a person asks with), nor one whose token was
+    replaced (StaleToken): both read in this transaction, so they hold at once from any process.
     """
     now = utcnow()
     with transaction(session):
@@ -83,6 +95,11 @@ def withdraw_label(
         if label is None:
             raise NotFound(f"labeller {labeller_id} has no answer to query {query_id} to take "
                            "back")
+        if label.practice and session.scalar(select(Invite.entry_pass).join(
+                Invitee, Invitee.invite_id == Invite.id).where(
+                Invitee.labeller_id == labeller_id)) is not None:
+            raise UndoRefused("this study's practice answers are its entry test: a practice "
+                              "answer cannot be taken back")
         age = (now - label.answered_at).total_seconds()
         if label.consumed_at is not None:
             raise UndoRefused("the trainer has already taken that answer: it can no longer be "
@@ -105,10 +122,6 @@ def withdraw_label(
             raise RunClosed(f"run {run.id} is {run.status}: it takes no more answers, so the "
                             "answer stands")
         query = get_row(session, Query, query_id)
-        if query.practice and session.scalar(select(Invitee.entry_passed).where(
-                Invitee.labeller_id == labeller_id)) is not None:
-            raise UndoRefused("your entry test is decided with that answer: it can no longer "
-                              "be taken back")
         if query.practice:  # shown to everyone at once, leased to nobody: it stays practice
             if query.status is QueryStatus.CANCELLED:
                 raise Conflict(f"query {query_id} was cancelled: the answer stands")

@@ -2,10 +2,12 @@
 `wait_limit_s` (default `WAIT_LIMIT_S`) finishes with their completion code, "nothing left to
 label" (`crowdstudy.completion.Progress.why` "nothing_left").
 
-The lease records it (`asked`): each time a participant asks for a pair and gets none,
-`invitees.asked_at` moves on, and `waiting_since` is set unless they were already waiting and
-asked within `GAP_S` before (a page left closed for a while starts over when it comes back);
-getting a pair clears `waiting_since`. `finish_if_waited` then marks the study complete once
+The lease records it (`asked`): each time a participant asks for a pair and gets none, while no
+pair is on their screen either (a page preloading behind one it shows, `ahead_of`, has a pair
+to label: a lease of theirs, kept, or a practice pair), `invitees.asked_at` moves on, and
+`waiting_since` is set unless they were already waiting and asked within `GAP_S` before (a
+page left closed for a while starts over when it comes back); getting a pair clears
+`waiting_since`. `finish_if_waited` then marks the study complete once
 they have asked without a pair for the limit (`nothing_left_at`): only the server's own record
 of their asking counts, never a time the browser reports.
 """

@@ -437,7 +437,8 @@ def _participants(session: Session, invite_id: int, *, as_csv: bool) -> int:
     for p in people:
         print(f"{p.participant or p.labeller}: {p.decisive + p.equal} decisive, {p.skips} skips"
               f", gold {p.gold_correct}/{p.gold_answers}, {p.completion_code} "
-              f"{'earned' if p.code_valid else 'not earned'} ({WHY[p.why]})")
+              f"{'earned' if p.code_valid else 'not earned'} ({WHY[p.why]}"
+              f"{'' if p.active else ', deactivated'})")
     print(f"{len(people)} joined, {sum(p.code_valid for p in people)} earned their code")
     return 0
 

@@ -21,6 +21,7 @@ from labelqueue import (
     Invalid,
     LeaseError,
     NotFound,
+    OtherRun,
     Paused,
     Revoked,
     StaleToken,
@@ -32,6 +33,7 @@ STATUS_OF: dict[type[Exception], int] = {
     Revoked: 403,
     Paused: 403,
     EntryFailed: 403,
+    OtherRun: 403,
     LeaseError: 409,
     Conflict: 409,  # InvalidTransition and RunClosed too: they are Conflicts
     InviteClosed: 410,

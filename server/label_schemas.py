@@ -14,6 +14,7 @@ from runvocab.answers import FLAG_NOTE_MAX, Click, Flag
 from server.schemas import (
     Body,
     Out,
+    PlainText,
     Positive,
     UTCTime,
 )
@@ -78,7 +79,7 @@ class LabelSubmit(Body):
     flag: Flag | None = None
     """the pair is one nobody can judge: clip_broken, not_visible or other; only with choice
     skip (422 otherwise), so it is never trained on"""
-    flag_note: str | None = Field(default=None, max_length=FLAG_NOTE_MAX)
+    flag_note: PlainText | None = Field(default=None, max_length=FLAG_NOTE_MAX)
     """optional words on the flag"""
 
 

@@ -211,6 +211,20 @@ PresetName = Annotated[str, AfterValidator(_one_of("preset", SIZE_PRESETS)),
                        Field(json_schema_extra={"enum": list(SIZE_PRESETS)})]
 ClipSizeName = Annotated[str, AfterValidator(_one_of("clip_size", list(CLIP_SIZES))),
                          Field(json_schema_extra={"enum": list(CLIP_SIZES)})]
+NO_NUL = r"^[^\x00]*$"
+"""text without a NUL character: PostgreSQL's text holds none"""
+
+
+def _no_nul(text: str) -> str:
+    if "\x00" in text:
+        raise ValueError("holds a NUL character (\\u0000), which no text can store")
+    return text
+
+
+PlainText = Annotated[str, AfterValidator(_no_nul), Field(json_schema_extra={"pattern": NO_NUL})]
+"""free text a request stores (a name, a note, a message): any characters but NUL, refused
+with a 422 naming the field (the database would refuse it, in words about numbers)"""
+
 # What `clean_instruction` takes, stated in the schema: at most MAX_INSTRUCTION_CHARS characters,
 # something besides white space, and no control character but tab and line ends (its own
 # refusals name each problem).
@@ -238,7 +252,7 @@ class RunCreate(Body):
     teacher: TeacherKind = TeacherKind.HUMAN
     teacher_params: TeacherJson = Field(default_factory=dict, examples=[{"eps": 0.1}])
     config: RunConfigJson = Field(default_factory=dict, examples=[{"sac.lr": 1e-4}])
-    name: str | None = Field(default=None, min_length=1, max_length=200)
+    name: PlainText | None = Field(default=None, min_length=1, max_length=200)
     """defaults to `<task>-<algo>-s<seed>`"""
     instruction: InstructionText | None = None
     """what labellers are told "better" means; defaults to the task's own instruction"""
@@ -274,7 +288,7 @@ class LabellingRunCreate(Body):
     teacher_params: TeacherJson = Field(default_factory=dict, examples=[{"eps": 0.1}])
     config: RunConfigJson = Field(default_factory=dict,
                                  examples=[{"reward.hidden_dim": 64}])
-    name: str | None = Field(default=None, min_length=1, max_length=200)
+    name: PlainText | None = Field(default=None, min_length=1, max_length=200)
     """defaults to `label <dataset id>`"""
     instruction: InstructionText | None = None
     clip_size: ClipSizeName | None = None
@@ -339,7 +353,7 @@ class MetricOut(Out):
 
 
 class LabellerCreate(Body):
-    name: str = Field(min_length=1, max_length=100)
+    name: PlainText = Field(min_length=1, max_length=100)
     role: Role = Role.LABELLER
 
 
@@ -349,7 +363,7 @@ class LabellerUpdate(Body):
     active: bool | None = None
     """false revokes the labeller's access (its labels stay); true restores it"""
     role: Role | None = None
-    name: str | None = Field(default=None, min_length=1, max_length=100)
+    name: PlainText | None = Field(default=None, min_length=1, max_length=100)
 
 
 class LabellerOut(Out):

@@ -13,6 +13,7 @@ from crowdstudy.invites import InviteState
 from server.schemas import (
     Body,
     Out,
+    PlainText,
     Positive,
 )
 
@@ -23,9 +24,9 @@ StudyEnd = Literal["target", "runs_over", "paused", "nothing_left", "entry_faile
 
 
 REDIRECT_PATTERN = (r"^https?://([A-Za-z0-9._~%!$&'()*+,;=:-]*@)?[A-Za-z0-9._~%!$&'()*+,;=-]+"
-                    r"(:[0-9]{0,5})?([/?#][^\s]*)?$")
+                    r"(:[0-9]{0,5})?([/?#][^\s\x00]*)?$")
 """an absolute http(s) URL whose host is a name or an IPv4 address in plain ASCII (no
-`{participant}` or `{code}` there)"""
+`{participant}` or `{code}` there), with no white space or NUL character"""
 
 
 class InviteCreate(Body):
@@ -45,7 +46,7 @@ class InviteCreate(Body):
                                         pattern=r"^[A-Za-z0-9_-]+$")
     """the study's code (a platform's): the prefix of every participant's own completion code
     (`<this>-XXXX-XXXX-XXXX`); null: their own part alone"""
-    note: str | None = Field(default=None, min_length=1, max_length=200)
+    note: PlainText | None = Field(default=None, min_length=1, max_length=200)
     """the operator's own name for the link"""
     redirect_url: str | None = Field(default=None, min_length=1, max_length=2000,
                                      pattern=REDIRECT_PATTERN,
@@ -54,10 +55,11 @@ class InviteCreate(Body):
     """where a participant is sent when their study is complete (a platform's completion URL):
     `{code}` and `{participant}` in it are filled in; without either, `participant=<id>` is
     added when the link was opened with one"""
-    consent_text: str | None = Field(default=None, min_length=1, max_length=8000)
+    consent_text: PlainText | None = Field(default=None, min_length=1, max_length=8000)
     """shown on the invite's page: nobody joins without agreeing to it"""
-    pause_message: str | None = Field(default=None, min_length=1, max_length=2000)
-    """what a participant paused by check pairs is told instead of being given their code"""
+    pause_message: PlainText | None = Field(default=None, min_length=1, max_length=2000)
+    """what a participant paused by check pairs is told instead of being given their code (their
+    code is then not earned: the message should ask them to return the study)"""
     wait_limit_s: Positive | None = None
     """a participant who asks this long for pairs and gets none finishes with their code
     ("nothing left to label"); null: 300 s"""
@@ -90,8 +92,8 @@ class InviteOut(Out):
     entry_pass: int | None
     """practice answers to get right to go on; null: no entry test"""
     state: InviteState
-    """closed: its run is over (stopping, stopped, finished or failed; for an all-runs link, no
-    run taught by people is queued, running or paused)"""
+    """closed: its run is over (stopping, stopped, finished or failed, or its budget spent; for
+    an all-runs link, no run taught by people is queued, running or paused with budget left)"""
 
 
 class JoinRequest(Body):
@@ -208,20 +210,25 @@ class ParticipantOut(Out):
     gold_answers: int
     gold_correct: int
     paused: bool
-    """check pairs paused them"""
+    """check pairs left them nothing to label: paused on the invite's run (for an all-runs
+    invite, on every run still giving pairs; once none does, on every run they answered on)"""
     counted: int
     """what the target counts: decisive and equal answers on the invite's run"""
     complete: bool
     why: StudyEnd | None
     completion_code: str
     code_valid: bool
-    """the code is earned (their study is complete, not by failing the entry test): pay
-    them"""
+    """the code is earned: pay them. Their study is complete, not by failing the entry test,
+    nor by a pause on an invite whose pause message replaces the code, and their labeller is
+    active"""
     entry_test: Literal["passed", "failed", "undecided"] | None = None
     """the invite's entry test; failed: let go without a code, not to be paid; null: the
     invite has none"""
     entry_correct: int | None = None
     """practice answers right when the entry test was decided"""
+    active: bool = True
+    """the labeller is active; a deactivated one (an operator rejected their work) has not
+    earned their code"""
 
 
 class CodesRequest(Body):
@@ -232,7 +239,7 @@ class CodesRequest(Body):
 class CodeCheckOut(Out):
     code: str
     valid: bool
-    """a participant's code, and their study is complete"""
+    """a participant's code, and earned (as the participants list's `code_valid`)"""
     participant: str | None
     labeller_id: int | None
     invite_id: int | None

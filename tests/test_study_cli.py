@@ -73,6 +73,8 @@ def test_invite_verify_says_whose_code_it_is(tmp_path: Path, capsys: pytest.Capt
     # A code typed with spaces inside, as several words, is one code.
     spaced = code.replace("-", " - ").split()
     assert main(["invite", "verify", *spaced, "--data-dir", str(data)]) == 0
+    # So is one whose groups are split by spaces alone, as a participant may read it out.
+    assert main(["invite", "verify", *code.split("-"), "--data-dir", str(data)]) == 0
     assert capsys.readouterr().out.startswith("valid: P-1")
     # Many codes, one a line from stdin: exit 1 when any is not to be paid.
     monkeypatch.setattr("sys.stdin", io.StringIO(f"{code}\n\nPILOT-AAAA-BBBB-CCCC\n"))

@@ -139,7 +139,7 @@ def post_verify(body: VerifyRequest, session: SessionDep, _: OperatorDep) -> Ver
     """Whose completion code this is, and how far they got: decisive answers on the invite's
     run against its target, and whether (and why) their study is complete. 404 for a code that
     is no participant's (a typo, or made up). The study-code prefix may be left out; case and
-    spaces do not matter."""
+    spaces or dashes between its characters do not matter."""
     verified = verify_code(session, body.code)
     if verified is None:
         raise NotFound("no participant has this completion code: check it was copied whole")
@@ -238,7 +238,7 @@ def get_status(session: SessionDep, caller: LabellerDep, run_id: RunFilter = Non
 @router.get("/join/{code}", response_class=HTMLResponse, include_in_schema=False)
 def join_page(code: str, request: Request, session: SessionDep) -> HTMLResponse:
     """The invite link itself: a how-to page that joins, or a page that says why it cannot."""
-    invite = read_invite(session, code=code) if len(code) <= 64 else None
+    invite = read_invite(session, code=code)  # None too for what no code can be (a NUL)
     if invite is None:
         return closed_page(request, "This invite link is not known: check that it was copied "
                                     "whole, or ask the study's organisers for a new one.", 404)

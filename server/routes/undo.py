@@ -26,8 +26,9 @@ async def withdraw(
     """Take back the caller's answer to the query, within 10 s of giving it and while the
     trainer has not taken it: the label stays, withdrawn (the export shows it), and the query is
     leased to the caller again. 404 when the caller has no standing answer to it; 409 when it is
-    too late, the trainer took the answer, the run was stopped, the round closed or another
-    labeller holds the pair now, each said plainly."""
+    too late, the trainer took the answer, the run was stopped, the round closed, another
+    labeller holds the pair now, or it is a practice answer of an entry test, each said
+    plainly."""
     label, query = await call.serve(services.take_back_answer, query_id=query_id,
                                     keep=body.keep if body else None)
     assert label.withdrawn_at is not None

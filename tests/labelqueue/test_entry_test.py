@@ -4,29 +4,35 @@ practice answer back; who passes goes on; entry_pass must fit the run's practice
 
 from __future__ import annotations
 
+import contextlib
+import threading
 from datetime import timedelta
 
 import pytest
 from queue_helpers import query_spec
-from sqlalchemy import select
-from sqlalchemy.orm import Session
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session, sessionmaker
 
 from crowdstudy.completion import labeller_progress
 from crowdstudy.invites import create_invite, join_invite
 from labelqueue import (
     EntryFailed,
     Invalid,
+    Invite,
     Query,
     QueryStatus,
     Run,
     UndoRefused,
     claim_run,
     create_run,
+    labels,
     lease_next_query,
     push_queries,
+    set_clips,
     submit_label,
     withdraw_label,
 )
+from labelqueue.entry_test import decide
 from labelqueue.models import utcnow
 
 
@@ -88,3 +94,114 @@ def test_the_last_practice_answer_decides_and_who_fails_is_let_go(session: Sessi
         True, "entry_failed", None)
     assert not progress.earned and progress.entry_correct == 1
     assert labels_used(session, run_id) == 0  # practice never spends the budget
+
+
+def test_no_real_pair_is_served_before_the_entry_test_is_decided(session: Session) -> None:
+    run_id = run_with(session, practice_pairs=2)
+    push_queries(session, run_id=run_id, queries=[query_spec(i) for i in range(3)])
+    [one, two] = push_queries(session, run_id=run_id, queries=[
+        gold(i) | {"first_clip": None, "second_clip": None} for i in range(2)])
+    invite = create_invite(session, expires_at=utcnow() + timedelta(days=1), run_id=run_id,
+                           entry_pass=2)
+    ann = join_invite(session, code=invite.code, participant="ann").labeller
+
+    # The practice pairs are not rendered yet: she waits, rather than start untested.
+    assert lease_next_query(session, labeller_id=ann.id, run_id=run_id) is None
+    for query_id in (one, two):
+        set_clips(session, query_id=query_id, first_clip=f"p{query_id}-a.mp4",
+                  second_clip=f"p{query_id}-b.mp4")
+    first = lease_next_query(session, labeller_id=ann.id, run_id=run_id)
+    assert first is not None and first.practice
+    submit_label(session, query_id=first.id, labeller_id=ann.id, choice="left",
+                 left_is_first=True)
+    last = lease_next_query(session, labeller_id=ann.id, run_id=run_id)
+    assert last is not None and last.practice
+    # The page preloads behind the last practice pair: nothing, until it is answered.
+    assert lease_next_query(session, labeller_id=ann.id, run_id=run_id, ahead_of=last.id) \
+        is None
+    submit_label(session, query_id=last.id, labeller_id=ann.id, choice="left",
+                 left_is_first=True)
+    real = lease_next_query(session, labeller_id=ann.id, run_id=run_id, ahead_of=last.id)
+    assert real is not None and not real.practice
+    assert labeller_progress(session, labeller_id=ann.id).entry_correct == 2
+
+
+def test_who_answered_real_pairs_before_the_test_was_asked_goes_on(session: Session) -> None:
+    run_id = run_with(session, practice_pairs=1)
+    push_queries(session, run_id=run_id, queries=[query_spec(i) for i in range(3)])
+    invite = create_invite(session, expires_at=utcnow() + timedelta(days=1), run_id=run_id)
+    bob = join_invite(session, code=invite.code, participant="bob").labeller
+    real = lease_next_query(session, labeller_id=bob.id, run_id=run_id)
+    assert real is not None and not real.practice
+    submit_label(session, query_id=real.id, labeller_id=bob.id, choice="left",
+                 left_is_first=True)
+    with session.begin():  # as an older database may hold it: a test he never took
+        session.execute(update(Invite).values(entry_pass=1))
+    push_queries(session, run_id=run_id, queries=[gold(0)])
+    more = lease_next_query(session, labeller_id=bob.id, run_id=run_id)
+    assert more is not None and not more.practice
+
+
+def test_two_last_practice_answers_sent_at_once_decide_the_test(
+    url: str, sessions: sessionmaker[Session], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each answer, stored and not yet committed, counts the practice answers: on PostgreSQL
+    each would see only its own unless the second waits for the first."""
+    if not url.startswith("postgresql"):
+        pytest.skip("SQLite's writers take turns: one answer commits before the other counts")
+    with sessions() as session:
+        run_id = run_with(session, practice_pairs=2)
+        push_queries(session, run_id=run_id, queries=[gold(i) for i in range(2)]
+                     + [query_spec(i) for i in range(2)])
+        invite = create_invite(session, expires_at=utcnow() + timedelta(days=1),
+                               run_id=run_id, entry_pass=2)
+        bob = join_invite(session, code=invite.code, participant="bob").labeller
+        first = lease_next_query(session, labeller_id=bob.id, run_id=run_id)
+        assert first is not None
+        second = lease_next_query(session, labeller_id=bob.id, run_id=run_id, ahead_of=first.id)
+        assert second is not None and {first.practice, second.practice} == {True}
+    stored, counted = threading.Barrier(2, timeout=10), threading.Barrier(2)
+
+    def decide_when_both_are_stored(*args: object, **kwargs: object) -> object:
+        stored.wait()  # both answers stored, neither committed
+        decided = decide(*args, **kwargs)
+        # Neither commits before both have counted, unless one waits for the other to commit
+        # (the lock): then the first gives up waiting here after 2 s.
+        with contextlib.suppress(threading.BrokenBarrierError):
+            counted.wait(timeout=2)
+        return decided
+
+    monkeypatch.setattr(labels, "decide", decide_when_both_are_stored)
+
+    def answer(query_id: int) -> None:
+        with sessions() as session:
+            submit_label(session, query_id=query_id, labeller_id=bob.id, choice="skip",
+                         left_is_first=True)
+
+    threads = [threading.Thread(target=answer, args=(q,)) for q in (first.id, second.id)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=30)
+    progress = labeller_progress(sessions(), labeller_id=bob.id)
+    assert (progress.why, progress.entry_correct) == ("entry_failed", 0)
+
+
+def test_a_practice_answer_of_an_entry_test_is_never_taken_back(session: Session) -> None:
+    run_id = run_with(session, practice_pairs=2)
+    push_queries(session, run_id=run_id, queries=[gold(i) for i in range(2)]
+                 + [query_spec(i) for i in range(2)])
+    tested = create_invite(session, expires_at=utcnow() + timedelta(days=1), run_id=run_id,
+                           entry_pass=2)
+    free = create_invite(session, expires_at=utcnow() + timedelta(days=1), run_id=run_id)
+    for invite, refused in ((tested, True), (free, False)):
+        who = join_invite(session, code=invite.code).labeller
+        first = lease_next_query(session, labeller_id=who.id, run_id=run_id)
+        assert first is not None and first.practice
+        submit_label(session, query_id=first.id, labeller_id=who.id, choice="right",
+                     left_is_first=True)  # wrong: the explanation now says so
+        if refused:  # the test is undecided yet, and still measures the first try
+            with pytest.raises(UndoRefused, match="entry test"):
+                withdraw_label(session, query_id=first.id, labeller_id=who.id)
+        else:  # plain practice may be tried again
+            assert withdraw_label(session, query_id=first.id, labeller_id=who.id).query.practice

@@ -130,12 +130,13 @@ def test_who_passes_goes_on_and_who_fails_is_let_go_without_a_code(
     assert (progress["entry_correct"], progress["entry_pass"]) == (1, 2)
     assert labels_used(session, run_id) == 1  # the budget: ann's one real answer
 
-    # Cat takes a wrong practice answer back before the test is decided, as practice allows.
+    # Cat cannot take a wrong practice answer back, even before the test is decided: the
+    # explanation told her the right one, and the test measures her first try.
     first = next_pair(client, cat)
     give(client, cat, first, "wrong")
     back = client.post(f"/api/label/{first['query_id']}/withdraw", headers=bearer(cat))
-    assert back.status_code == 200, back.text
-    practise(client, cat, "right", "right", "wrong")
+    assert back.status_code == 409 and "entry test" in back.json()["detail"]
+    practise(client, cat, "right", "right")
     assert next_pair(client, cat)["practice"] is None  # 2 of 3: she goes on
 
     rows = {row["participant"]: row for row in client.get(

@@ -6,6 +6,7 @@ closed links (their run is over) are refused with a page or a 410 that says why;
 
 from __future__ import annotations
 
+import json
 from datetime import timedelta
 from typing import Any
 
@@ -150,6 +151,9 @@ def test_a_target_of_decisive_answers_gives_each_participant_their_own_code(
     made_up = client.post("/api/invites/verify", json={"code": "C0DE-42-AAAA-BBBB-CCCC"},
                           headers=OPERATOR)
     assert made_up.status_code == 404 and "no participant" in made_up.json()["detail"]
+    for odd in ("ÉÉÉÉ-ÉÉÉÉ-ÉÉÉÉ", codes[1].replace("-", "")[:-1] + "É"):
+        unknown = client.post("/api/invites/verify", json={"code": odd}, headers=OPERATOR)
+        assert unknown.status_code == 404, unknown.text
     assert client.post("/api/invites/verify", json={"code": codes[0]},
                        headers=bearer(tokens[0])).status_code == 403
 
@@ -229,3 +233,67 @@ def test_bad_invite_requests_are_a_4xx_naming_the_problem(client: TestClient) ->
     # The page's participant is checked by the API when the page joins; a bad one is a 200
     # page (whose join then says what is wrong), never a 500.
     assert client.get(f"/join/{invite['code']}?participant=%3Cscript%3E").status_code == 200
+
+
+def test_a_spent_budget_ends_the_study_and_a_participant_labels_their_own_run_only(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    run_id, _ = running_run_with_queries(client, session, settings, n=4, budget=2)
+    other = new_run(client)["id"]
+    invite = new_invite(client, run_id=run_id, target_answers=5)
+    ann = bearer(join(client, invite["code"], participant="ann").json()["token"])
+
+    refused = client.get(f"/api/label/next?run_id={other}", headers=ann)
+    assert refused.status_code == 403
+    assert f"joined this study for run {run_id}" in refused.json()["detail"]
+    for _ in range(2):  # the whole budget
+        pair = client.get("/api/label/next", headers=ann).json()
+        assert pair["run_id"] == run_id
+        answered = client.post(f"/api/label/{pair['query_id']}", headers=ann, json={
+            "choice": "left", "shown_at": utcnow().isoformat()})
+        assert answered.status_code == 201, answered.text
+
+    [listed] = client.get("/api/invites", headers=OPERATOR).json()
+    assert listed["state"] == "closed"
+    page = client.get(f"/join/{invite['code']}")
+    assert page.status_code == 410 and "study has ended" in page.text
+    late = join(client, invite["code"], participant="zed")
+    assert late.status_code == 410 and "ended" in late.json()["detail"]
+    assert find_labeller(session, name="zed") is None
+
+
+def test_a_nul_character_in_stored_text_is_a_422_naming_the_field(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    """PostgreSQL's text holds no NUL: each free-text field refuses one at the door, rather
+    than the database refusing it in words about numbers."""
+    run_id, [query_id, _] = running_run_with_queries(client, session, settings)
+    fields = ("note", "consent_text", "pause_message")
+    for field in fields:
+        refused = client.post("/api/invites", headers=OPERATOR,
+                              json={"run_id": run_id, field: "a\u0000b"})
+        assert refused.status_code == 422, (field, refused.text)
+        [error] = refused.json()["detail"]
+        assert error["loc"][-1] == field and "NUL" in error["msg"]
+    for path, body, field in (
+        ("/api/runs", {"task": "dmc:cheetah_run", "algo": "sac", "budget": 1,
+                       "name": "a\u0000b"}, "name"),
+        ("/api/labellers", {"name": "a\u0000b"}, "name"),
+        ("/api/invites", {"redirect_url": "https://x.test/a\u0000b"}, "redirect_url"),
+    ):
+        refused = client.post(path, headers=OPERATOR, json=body)
+        assert refused.status_code == 422 and refused.json()["detail"][0]["loc"][-1] == field
+    ann = bearer(new_labeller(client, "ann"))
+    pair = client.get("/api/label/next", headers=ann).json()
+    flagged = client.post(f"/api/label/{pair['query_id']}", headers=ann, json={
+        "choice": "skip", "flag": "other", "flag_note": "a\u0000b",
+        "shown_at": utcnow().isoformat()})
+    assert flagged.status_code == 422 and flagged.json()["detail"][0]["loc"][-1] == "flag_note"
+    assert client.get("/api/invites", headers=OPERATOR).json() == []
+
+    # A code no link can have is no link's: the page says so, and so does the API.
+    page = client.get("/join/a%00b")
+    assert page.status_code == 404 and "not known" in page.text
+    assert client.post("/api/join/a%00b", json={}).status_code == 404
+    document = client.get("/openapi.json").json()["components"]["schemas"]["InviteCreate"]
+    assert all("x00" in json.dumps(document["properties"][field]) for field in fields)

@@ -1,8 +1,9 @@
 """An invite's entry test in a real headless Chromium on a phone-sized screen: the operator sets
 it in the invite form (and sees it in the list of links); a participant who gets too few of
-the run's practice pairs right is told so after the last one, then shown that their practice
-is over, that they did not pass, and that there is no code; no more pairs come, and the
-participants page says they are not to be paid.
+the run's practice pairs right is told so after the last one (no Undo after a practice answer:
+the test measures the first try), then shown that their practice is over, that they did not
+pass, and that there is no code; no more pairs come, and the participants page says they are
+not to be paid.
 
 With SEPOA_SCREENSHOT_DIR set, the message is saved there (docs/entry-test-failed-phone.png)."""
 
@@ -87,6 +88,9 @@ def test_a_participant_who_fails_the_entry_test_is_let_go_without_a_code(
         if index == 1:
             page.click("#practice-continue")
             page.wait_for_selector("#practice-dialog:not([open])", state="attached")
+            # The test measures the first try: no Undo once the explanation was read.
+            page.wait_for_selector("#stage:not([hidden])")
+            assert page.is_hidden("#undo")
     assert "did not pass this study's entry test" in page.inner_text("#practice-next")
     page.click("#practice-continue")
 

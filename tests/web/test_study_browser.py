@@ -121,6 +121,14 @@ def test_a_run_that_ends_mid_session_gives_study_complete_with_the_code_and_redi
     page.wait_for_selector("#waiting:not([hidden])")
     page.wait_for_function("document.querySelector('#waiting-why').textContent.length > 0")
     assert "1 of 20" in page.inner_text("#count-target")
+    # Another run's pairs are not theirs: refused, and they stay signed in.
+    refused = page.evaluate("""async (other) => {
+      const api = await import("/static/api.js");
+      try { await api.request("GET", `/api/label/next?run_id=${other}`); return "served"; }
+      catch (error) { return `${error.constructor.name} ${error.status}: ${error.message}`; }
+    }""", run_id + 1)
+    assert refused.startswith(f"ApiError 403: you joined this study for run {run_id}")
+    assert page.is_hidden("#signin") and page.is_visible("#app")
 
     # The run ends (a worker finishes it) before the target: the study is complete anyway.
     with live.sessions() as session:

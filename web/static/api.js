@@ -89,6 +89,9 @@ async function send(method, path, body) {
     const detail = describe(data && data.detail);
     if (response.status === 403 && (detail.startsWith("paused") || detail.startsWith("entry test")))
       throw new Paused(detail);
+    // A one-run participant asked for another run (a stale address): refused, still signed in.
+    if (response.status === 403 && detail.startsWith("you joined this study for run"))
+      throw new ApiError(response.status, detail);
     signOut(detail || `HTTP ${response.status}`);
     throw new SignedOut();
   }

@@ -7,7 +7,7 @@ import { notice, showCounts, updateButtons } from "./label_screen.js";
 import { show } from "./label_pair.js";
 import { attempt, loadCurrent, loadProgress, preload, serial } from "./label_calls.js";
 import { explainPractice } from "./label_practice.js";
-import { offerUndo } from "./label_undo.js";
+import { offerUndo, withholdUndo } from "./label_undo.js";
 
 const $ = (id) => document.getElementById(id);
 
@@ -33,7 +33,9 @@ export function answer(choice, flag = null) {
   }
   if (practising) $("stage").hidden = true;
   updateButtons();
-  offerUndo(done);
+  // An entry test measures the first try: its practice answers cannot be taken back.
+  if (practising && state.entryTest) withholdUndo();
+  else offerUndo(done);
   serial(() => attempt(async () => {
     try {
       await submit(done.query.query_id, body);

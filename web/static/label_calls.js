@@ -104,11 +104,12 @@ export async function preload() {
 
 /** The caller's labels over all runs, once; later answers are added as they are stored. An
  * invited labeller labels their invite's run, sees how far they are towards its target, and
- * the study's end once there (study.js). */
+ * the study's end once there (study.js); whether their practice round is an entry test. */
 export async function loadProgress() {
   const { data } = await request("GET", "/api/label/progress");
   state.total = data.labels;
   state.target = data.target_answers;
+  state.entryTest = data.entry_pass != null;
   $("count-target").textContent = state.target == null ? ""
     : ` · ${data.counted} of ${state.target} towards the study`;
   if (data.invited) {

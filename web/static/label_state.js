@@ -17,6 +17,7 @@ export const state = {
   briefedRuns: new Set(), // runs a pair of which was shown with the instruction open
   keptOpen: false, // the labeller opened the instruction: it stays open until they fold it
   target: null, // answers after which the caller's invite shows a completion code
+  entryTest: false, // the caller's invite makes the practice round a test: no Undo there
   last: null, // the last answer, while it may be taken back: {pair, counted}
 };
 

@@ -19,6 +19,13 @@ export function offerUndo(pair) {
   offerUndo.timer = setTimeout(() => ($("undo").hidden = true), UNDO_MS);
 }
 
+/** No Undo for the answer just given: an entry test's practice answer stands. */
+export function withholdUndo() {
+  state.last = null;
+  $("undo").hidden = true;
+  clearTimeout(offerUndo.timer);
+}
+
 /** Backspace, U or the button: the server withdraws the last answer (within its window and
  * while the trainer has not taken it) and leases the pair back, which is shown again; the pair
  * on screen waits, hidden, as the next one. Refusals are said as the server says them. */

@@ -18,10 +18,10 @@ function row(p) {
   const answers = `${p.decisive + p.equal} decisive · ${p.cant_tell} can't tell · ${p.skips} skips`
     + (p.flags ? ` (${p.flags} flagged)` : "") + (p.practice ? ` · ${p.practice} practice` : "");
   const gold = p.gold_answers ? `${p.gold_correct}/${p.gold_answers}` : "–";
-  const state = p.why === "entry_failed"
+  const state = (p.active ? "" : "deactivated · ") + (p.why === "entry_failed"
     ? `let go: failed the entry test (${p.entry_correct} right): not to be paid`
     : (p.complete ? `complete: ${WHY[p.why] ?? p.why}` : p.paused ? "paused" : "labelling")
-      + (p.entry_test === "passed" ? " · passed the entry test" : "");
+      + (p.entry_test === "passed" ? " · passed the entry test" : ""));
   return el("tr", { "data-valid": p.code_valid },
     el("th", { scope: "row" }, p.participant ?? p.labeller),
     el("td", {}, new Date(p.joined_at).toLocaleString()),
@@ -31,7 +31,7 @@ function row(p) {
     el("td", {}, state),
     el("td", {}, el("code", {}, p.completion_code), " ",
       el("span", { class: p.code_valid ? "badge ok" : "badge" },
-        p.code_valid ? "earned" : p.why === "entry_failed" ? "not to be paid" : "not yet")));
+        p.code_valid ? "earned" : p.complete || !p.active ? "not to be paid" : "not yet")));
 }
 
 async function load() {
@@ -50,8 +50,8 @@ async function checkCodes(event) {
     el("code", {}, c.code), " — ",
     c.valid ? `pay ${c.participant ?? `labeller ${c.labeller_id}`} (${WHY[c.why] ?? c.why})`
       : c.why === "unknown" ? "nobody's code"
-        : c.why === "entry_failed" ? `${c.participant ?? "?"}: failed the entry test, not to be paid`
-          : `${c.participant ?? "?"}: not complete yet`)));
+        : c.why === "not_complete" ? `${c.participant ?? "?"}: not complete yet`
+          : `${c.participant ?? "?"}: ${WHY[c.why] ?? c.why}, not to be paid`)));
 }
 
 function guard(task) {
