@@ -1,5 +1,6 @@
 """The answers feed: an external run's answers and withdrawals after a cursor, each with its
-pair's standing answers and their tally (`answers_after`)."""
+pair's standing answers and their tally (`answers_after`); and where pairs named by their keys
+stand now (`pair_states`), for a reader that needs no event to know a pair is answered."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from sqlalchemy.orm import Session
 
 from labelqueue.errors import Invalid
 from labelqueue.models import (
+    EXTERNAL_PAIRS,
     QUERIES,
     ExternalPair,
     Label,
@@ -27,6 +29,8 @@ from runvocab.answers import DECISIVE, Answer, aggregate
 
 FEED_LIMIT = 500
 """the most events one read of the answers feed returns"""
+STATES_LIMIT = 100
+"""the most keys one read of pair states names"""
 
 @dataclass(frozen=True)
 class Cursor:
@@ -128,6 +132,23 @@ def answers_after(session: Session, *, run_id: int, cursor: Cursor,
     events.sort(key=lambda event: event["at"])
     return Feed(events=events, cursor=Cursor(label_to, withdrawal_to), open_pairs=open_pairs,
                 status=status)
+
+
+def pair_states(session: Session, *, run_id: int,
+                keys: Sequence[str]) -> tuple[list[dict[str, Any]], list[str]]:
+    """The external run's pairs under these keys as they stand now, each as an answers event
+    carries it (standing answers, aggregate, tie, complete), in the order of `keys`; and the
+    keys no pair of the run has. A reader that read past a pair's answers (before a restart,
+    or for another wait) learns here that it has them. NotFound for an unknown run."""
+    keys = list(dict.fromkeys(keys))
+    with reading(session):
+        get_row(session, Run, run_id)
+        ids = dict(session.execute(
+            select(EXTERNAL_PAIRS.c.key, EXTERNAL_PAIRS.c.query_id)
+            .where(EXTERNAL_PAIRS.c.run_id == run_id, EXTERNAL_PAIRS.c.key.in_(keys)))
+            .tuples().all())
+        state = _pair_states(session, set(ids.values()))
+    return [state[ids[key]] for key in keys if key in ids], [k for k in keys if k not in ids]
 
 
 def _pair_states(session: Session, query_ids: set[int]) -> dict[int, dict[str, Any]]:

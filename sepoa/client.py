@@ -14,7 +14,9 @@ key is its own `key`, or one made from its content: pushing the same pairs again
 restarted after a crash) makes no second query. Requests that fail on the way (a connection error,
 a 5xx, a 429) are retried with exponential backoff; a 4xx is a `StudyError` naming the problem. The
 answers feed is read from a cursor, kept in `cursor_file` when given, so a client killed while it
-waits reads on from where it was: nothing is lost, nothing comes twice.
+waits reads on from where it was: nothing is lost, nothing comes twice. `wait_for` reads where
+its pairs stand before it follows the feed, so it also returns pairs whose answers the cursor
+has passed (read by `answers()`, by another wait, or before a restart).
 
 `AsyncStudy` is the same over asyncio.
 """
@@ -26,11 +28,14 @@ import hashlib
 import io
 import json
 import os
+import threading
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
+from urllib.parse import quote
 
 import httpx
 import numpy as np
@@ -41,6 +46,10 @@ Clip = np.ndarray | str | os.PathLike[str] | bytes
 MEDIA = {".mp4": "video/mp4", ".webm": "video/webm", ".npy": "application/x-npy"}
 LONGEST_WAIT_S = 60.0
 """the longest one answers request waits on the server"""
+STATES_KEYS = 100
+"""the most keys one read of pair states names (the server's limit)"""
+STATES_URL_CHARS = 6000
+"""the most characters of keys one read of pair states sends (a URL stays short)"""
 
 
 class StudyError(Exception):
@@ -106,6 +115,28 @@ class AnswerEvent:
                    aggregate=event["aggregate"], tie=event["tie"], complete=event["complete"],
                    gold=event["gold"], meta=event["meta"], raw=event,
                    answers={given["labeller"]: given["answer"] for given in event["answers"]})
+
+
+@dataclass(frozen=True)
+class PairState:
+    """One of the run's pairs as it stands now (`Study.states`): its standing answers and
+    their tally, as an `AnswerEvent` carries them."""
+
+    key: str
+    query_id: int
+    aggregate: str | None
+    tie: bool
+    complete: bool
+    gold: bool
+    answers: dict[str, str]
+    meta: Mapping[str, Any] | None
+
+    @classmethod
+    def of(cls, state: Mapping[str, Any]) -> PairState:
+        return cls(key=state["key"], query_id=state["query_id"], aggregate=state["aggregate"],
+                   tie=state["tie"], complete=state["complete"], gold=state["gold"],
+                   meta=state["meta"],
+                   answers={given["labeller"]: given["answer"] for given in state["answers"]})
 
 
 # What both forms share: requests as plain data, and what to make of the answers.
@@ -181,6 +212,8 @@ class _Core:
         self.headers = {"Authorization": f"Bearer {token}"}
         self.cursor_file = None if cursor_file is None else Path(cursor_file)
         self.progress = progress
+        self.waits: list[Waiting] = []
+        """the waits under way: every read of the feed reaches each"""
         self.cursor = "0.0"
         if self.cursor_file is not None and self.cursor_file.exists():
             self.cursor = self.cursor_file.read_text().strip() or "0.0"
@@ -224,9 +257,43 @@ class _Core:
                     timeout=wait + 30.0)
 
     def read(self, body: Mapping[str, Any]) -> list[AnswerEvent]:
+        """The events of a read of the feed, noted by every wait under way (a wait reads on
+        from the one cursor the client keeps, so another's read may carry its pairs)."""
         events = [AnswerEvent.of(event) for event in body["events"]]
         self.keep(body["cursor"])
+        for waiting in self.waits:
+            waiting.note(events)
         return events
+
+    @contextmanager
+    def watching(self, waiting: Waiting) -> Iterator[None]:
+        self.waits.append(waiting)
+        try:
+            yield
+        finally:
+            self.waits.remove(waiting)
+
+
+def states_calls(keys: Sequence[str]) -> list[Call]:
+    """Reads of pair states for these keys, each within the server's limit on keys and a
+    URL of a sensible length."""
+    calls: list[Call] = []
+    batch: list[str] = []
+    chars = 0
+    for key in dict.fromkeys(keys):
+        size = len(quote(key, safe="")) + 5
+        if batch and (len(batch) == STATES_KEYS or chars + size > STATES_URL_CHARS):
+            calls.append(Call("GET", "/pairs", params={"key": batch}))
+            batch, chars = [], 0
+        batch.append(key)
+        chars += size
+    if batch:
+        calls.append(Call("GET", "/pairs", params={"key": batch}))
+    return calls
+
+
+def states_of(bodies: Iterable[Mapping[str, Any]]) -> dict[str, PairState]:
+    return {state["key"]: PairState.of(state) for body in bodies for state in body["pairs"]}
 
 
 class Waiting:
@@ -253,7 +320,21 @@ class Waiting:
                                "pairs still want answers")
         return min(left, LONGEST_WAIT_S)
 
-    def note(self, events: Iterable[AnswerEvent]) -> None:
+    def start(self, states: Mapping[str, PairState]) -> None:
+        """Begin from where the pairs stand now (answers read before, by another wait or
+        before a restart, come no more in the feed). ValueError for a key no pair of the run
+        has, or a gold pair: it takes the answer of everyone it is shown to, so it is never
+        complete; its answers come in `answers()`."""
+        unknown = [key for key in self.pending if key not in states]
+        if unknown:
+            raise ValueError(f"no pair of this run has the key(s) {unknown[:5]}")
+        gold = [key for key in self.pending if states[key].gold]
+        if gold:
+            raise ValueError(f"gold pairs are never complete, so wait_for does not wait for "
+                             f"them (their answers come in answers()): {gold[:5]}")
+        self.note(states[key] for key in self.pending)
+
+    def note(self, events: Iterable[AnswerEvent | PairState]) -> None:
         for event in events:
             if event.key in self.pending:
                 self.pending[event.key] = event.aggregate if event.complete else None
@@ -273,6 +354,8 @@ class Study:
         self.core = _Core(url, token, run, retries=retries, backoff=backoff,
                           cursor_file=cursor_file, progress=progress)
         self.http = client or httpx.Client(timeout=60.0)
+        self.reading = threading.Lock()
+        """one read of the feed at a time: its events reach the waits in the feed's order"""
 
     def close(self) -> None:
         self.http.close()
@@ -317,15 +400,24 @@ class Study:
     def answers(self, wait: float = 0.0) -> list[AnswerEvent]:
         """The answers and withdrawals since the cursor (waiting up to `wait` s, 60 at most,
         for one), and the cursor moved past them."""
-        return self.core.read(self.call(self.core.answers_call(wait)))
+        with self.reading:
+            return self.core.read(self.call(self.core.answers_call(wait)))
+
+    def states(self, keys: Sequence[str]) -> dict[str, PairState]:
+        """Where the pairs under these keys stand now, by key (a key no pair of the run has
+        is left out); it moves no cursor."""
+        return states_of(self.call(call) for call in states_calls(keys))
 
     def wait_for(self, queries: Sequence[Query], timeout: float | None = None) -> dict[str, str]:
-        """Read answers until each query has its k answers (a tqdm bar counts them); the
-        aggregate answer of each, by key. TimeoutError past `timeout` seconds."""
+        """Wait until each query (an ordinary pair) has its k answers, from where the pairs
+        stand now and then as the answers come (a tqdm bar counts them); the aggregate answer
+        of each, by key. TimeoutError past `timeout` seconds; ValueError for a gold pair or a
+        key no pair of the run has."""
         waiting = Waiting(queries, timeout, self.core.progress)
-        with waiting.bar:
+        with self.core.watching(waiting), waiting.bar:
+            waiting.start(self.states(list(waiting.pending)))
             while (wait := waiting.next_wait()) is not None:
-                waiting.note(self.answers(wait=wait))
+                self.answers(wait=wait)
         return waiting.result()
 
 
@@ -338,6 +430,7 @@ class AsyncStudy:
         self.core = _Core(url, token, run, retries=retries, backoff=backoff,
                           cursor_file=cursor_file, progress=progress)
         self.http = client or httpx.AsyncClient(timeout=60.0)
+        self.reading = asyncio.Lock()
 
     async def aclose(self) -> None:
         await self.http.aclose()
@@ -378,13 +471,18 @@ class AsyncStudy:
         return [Query(item["key"], item["query_id"], item["created"]) for item in out["pairs"]]
 
     async def answers(self, wait: float = 0.0) -> list[AnswerEvent]:
-        return self.core.read(await self.call(self.core.answers_call(wait)))
+        async with self.reading:
+            return self.core.read(await self.call(self.core.answers_call(wait)))
+
+    async def states(self, keys: Sequence[str]) -> dict[str, PairState]:
+        return states_of([await self.call(call) for call in states_calls(keys)])
 
     async def wait_for(self, queries: Sequence[Query],
                        timeout: float | None = None) -> dict[str, str]:
-        """`Study.wait_for`, awaited."""
+        """`Study.wait_for`, awaited; several may wait at once."""
         waiting = Waiting(queries, timeout, self.core.progress)
-        with waiting.bar:
+        with self.core.watching(waiting), waiting.bar:
+            waiting.start(await self.states(list(waiting.pending)))
             while (wait := waiting.next_wait()) is not None:
-                waiting.note(await self.answers(wait=wait))
+                await self.answers(wait=wait)
         return waiting.result()

@@ -112,18 +112,9 @@ class GivenAnswer(Out):
     answer: str
 
 
-class AnswerEvent(Out):
-    """An answer to one of the run's pairs, or an answer taken back, with the pair as it
-    stands after it."""
+class PairState(Out):
+    """One of the run's pairs as it stands: its standing answers and their tally."""
 
-    kind: Literal["answer", "withdrawal"]
-    label_id: int
-    labeller_id: int
-    labeller: str
-    answer: str
-    """first, second, equal, cant_tell or skip (for a withdrawal: the answer taken back)"""
-    at: datetime
-    flag: str | None
     query_id: int
     key: str | None
     meta: dict[str, Any] | None
@@ -134,11 +125,33 @@ class AnswerEvent(Out):
     """the pair's standing answers, one per labeller"""
     aggregate: str | None
     """their majority (`runvocab.answers.aggregate`): cant_tell when most cannot tell or two
-    decisive answers tie; null with no answer standing"""
+    decisive answers tie; skip when every one is a skip; null with no answer standing"""
     tie: bool
     """two decisive answers tie for the most"""
     complete: bool
-    """the pair has its k answers"""
+    """the pair has its k answers (skips count: the queue asks no more); never for a gold
+    pair, which takes the answer of everyone it is shown to"""
+
+
+class AnswerEvent(PairState):
+    """An answer to one of the run's pairs, or an answer taken back, with the pair as it
+    stands now."""
+
+    kind: Literal["answer", "withdrawal"]
+    label_id: int
+    labeller_id: int
+    labeller: str
+    answer: str
+    """first, second, equal, cant_tell or skip (for a withdrawal: the answer taken back)"""
+    at: datetime
+    flag: str | None
+
+
+class PairStatesOut(Out):
+    pairs: list[PairState]
+    """the pairs found, in the order of the keys asked for"""
+    unknown: list[str]
+    """the keys asked for that no pair of the run has"""
 
 
 class AnswersOut(Out):

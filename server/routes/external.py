@@ -22,11 +22,12 @@ from typing import Annotated
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi import Path as PathParam
+from pydantic import Field
 from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
-from externalruns.feed import Cursor, answers_after
-from externalruns.pairs import PairSpec, clip_key, push_pairs
+from externalruns.feed import STATES_LIMIT, Cursor, answers_after, pair_states
+from externalruns.pairs import KEY_MAX, PairSpec, clip_key, push_pairs
 from externalruns.runs import (
     create_external_run,
     is_external,
@@ -54,6 +55,7 @@ from server.external_schemas import (
     ClipOut,
     ExternalRunCreate,
     PairsIn,
+    PairStatesOut,
     PushOut,
     RunTokenInfo,
     RunTokenOut,
@@ -278,6 +280,21 @@ def push(run_id: RunId, body: PairsIn, run: ClientRun, response: Response, sessi
     if not any(item.created for item in pushed):
         response.status_code = 200
     return PushOut.model_validate({"pairs": [vars(item) for item in pushed]})
+
+
+@router.get("/{run_id}/pairs", response_model=PairStatesOut, responses=errors(404, 409, 422))
+def states(
+    run: ClientRun, session: SessionDep,
+    key: Annotated[list[Annotated[str, Field(min_length=1, max_length=KEY_MAX)]], Query(
+        min_length=1, max_length=STATES_LIMIT, description=(
+            f"a pushed pair's idempotency key, given once per key (1 to {STATES_LIMIT})"))],
+) -> PairStatesOut:
+    """Where the run's pairs under these keys stand now: each with the fields an answers event
+    carries for its pair (standing answers, aggregate, tie, complete), and the keys no pair of
+    the run has. A client that read past a pair's answers in the feed (before a restart, or
+    while waiting for other pairs) learns here that the pair has them."""
+    found, unknown = pair_states(session, run_id=run.id, keys=key)
+    return PairStatesOut.model_validate({"pairs": found, "unknown": unknown})
 
 
 @router.get("/{run_id}/answers", response_model=AnswersOut, responses=errors(404, 409, 422))

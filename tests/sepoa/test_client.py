@@ -18,6 +18,7 @@ from sqlalchemy import func, select
 
 from labelqueue import Query, make_engine, session_factory
 from sepoa.client import AsyncStudy, Pair, Study, StudyError
+from sepoa.client import Query as Asked
 from server.app import create_app
 from server.settings import Settings
 
@@ -51,20 +52,31 @@ def pairs(n: int) -> list[Pair]:
             for i in range(n)]
 
 
-def label_all(client: TestClient, run_id: int, name: str, pick: str = "left",
-              most: int = 100) -> int:
-    """A person answers up to `most` pairs of the run on the label API."""
+def label_all(client: TestClient, run_id: int, name: str,
+              pick: str | Callable[[dict[str, Any]], str] = "left", most: int = 100) -> int:
+    """A person answers up to `most` pairs of the run on the label API, clicking `pick` (a
+    side, or a function of the pair shown that says which)."""
     token, answered = bearer(new_labeller(client, name)), 0
     while answered < most:
         shown = client.get(f"/api/label/next?run_id={run_id}", headers=token)
         if shown.status_code == 204:
             break
-        body = {"choice": pick, "left_is_first": shown.json()["left_is_first"],
+        click = pick if isinstance(pick, str) else pick(shown.json())
+        body = {"choice": click, "left_is_first": shown.json()["left_is_first"],
                 "shown_at": datetime.now(UTC).isoformat()}
         assert client.post(f"/api/label/{shown.json()['query_id']}", headers=token,
                            json=body).status_code == 201
         answered += 1
     return answered
+
+
+def picking(answers: dict[int, str]) -> Callable[[dict[str, Any]], str]:
+    """Clicks that give these answers (first or second) by query id, whichever side shows
+    the first segment."""
+    def click(shown: dict[str, Any]) -> str:
+        first = answers[shown["query_id"]] == "first"
+        return "left" if first == shown["left_is_first"] else "right"
+    return click
 
 
 def stored_queries(client: TestClient) -> int:
@@ -102,13 +114,18 @@ def test_asked_pairs_come_back_with_the_answers_people_gave(app_client: TestClie
     study = Study(URL, token, run_id, client=app_client, progress=False)
     queries = study.ask(pairs(3))
     assert [q.created for q in queries] == [True] * 3
-    assert label_all(app_client, run_id, "ann", "left") == 3
-    assert label_all(app_client, run_id, "bob", "left") == 3
+    ids = [q.query_id for q in queries]
+    ann = dict(zip(ids, ("first", "first", "second"), strict=True))
+    bob = dict(zip(ids, ("first", "second", "second"), strict=True))
+    assert label_all(app_client, run_id, "ann", picking(ann)) == 3
+    assert label_all(app_client, run_id, "bob", picking(bob)) == 3
     answers = study.wait_for(queries, timeout=10)
-    events = [e for e in study.answers()]  # nothing more
-    assert events == [] and set(answers) == {q.key for q in queries}
-    # Both clicked left: the same side, so the pair's two answers agree whichever it showed.
-    assert all(value in ("first", "second", "cant_tell") for value in answers.values())
+    # Agreeing answers are the aggregate; a first against a second ties: can't tell.
+    assert answers == dict(zip([q.key for q in queries], ("first", "cant_tell", "second"),
+                               strict=True))
+    events = study.answers()  # the feed gives each of the six answers too
+    assert sorted((e.query_id, e.labeller, e.answer) for e in events) == sorted(
+        [(i, "ann", a) for i, a in ann.items()] + [(i, "bob", a) for i, a in bob.items()])
     with pytest.raises(StudyError) as refused:
         study.ask([Pair(clip(1), np.zeros((4, 16, 32, 3), np.uint8))])
     assert refused.value.status == 422 and "differ in shape" in str(refused.value)
@@ -158,6 +175,54 @@ def test_a_client_killed_while_waiting_resumes_from_its_cursor(
     assert len(rest) == 2 and not set(rest) & set(seen)
     assert set(seen) | set(rest) == {q.key for q in queries}  # nothing lost
     assert stored_queries(app_client) == 4
+
+
+def test_wait_for_returns_answers_read_before_a_crash_from_its_cursor_file(
+    app_client: TestClient, tmp_path: Path
+) -> None:
+    run_id, token = run_and_token(app_client)
+    cursor = tmp_path / "run.cursor"
+    first = Study(URL, token, run_id, client=app_client, progress=False, cursor_file=cursor)
+    queries = first.ask(pairs(2))
+    label_all(app_client, run_id, "cat", most=1)
+    with pytest.raises(TimeoutError, match="1 of 2 pairs"):
+        first.wait_for(queries, timeout=0.5)
+    del first  # killed here, with the first pair's answer read past in its cursor file
+    label_all(app_client, run_id, "dan", most=1)
+    again = Study(URL, token, run_id, client=app_client, progress=False, cursor_file=cursor)
+    assert set(again.wait_for(again.ask(pairs(2)), timeout=5)) == {q.key for q in queries}
+
+
+def test_a_client_waits_for_pairs_whose_answers_it_read_before(
+    app_client: TestClient,
+) -> None:
+    run_id, token = run_and_token(app_client)
+    study = Study(URL, token, run_id, client=app_client, progress=False)
+    first, second = study.ask(pairs(1)), study.ask(pairs(2)[1:])
+    label_all(app_client, run_id, "eve")
+    assert len(study.answers()) == 2  # both answers read: the feed gives them no more
+    assert set(study.wait_for(first, timeout=5)) == {first[0].key}
+    assert set(study.wait_for(second, timeout=5)) == {second[0].key}
+    with pytest.raises(ValueError, match="no pair of this run"):
+        study.wait_for([Asked("nobody's", 1, False)], timeout=5)
+
+
+def test_asyncio_waits_at_once_each_get_their_pairs(app_client: TestClient) -> None:
+    run_id, token = run_and_token(app_client)
+
+    async def main() -> list[dict[str, str]]:
+        transport = httpx.ASGITransport(app=app_client.app)  # type: ignore[arg-type]
+        async with AsyncStudy(URL, token, run_id, progress=False, client=httpx.AsyncClient(
+                transport=transport, base_url=URL)) as study:
+            asked = [await study.ask([pair]) for pair in pairs(3)]
+            waits = [asyncio.create_task(study.wait_for(queries, timeout=20))
+                     for queries in asked]
+            await asyncio.sleep(0.2)  # each has read where its pair stands: unanswered
+            await asyncio.to_thread(label_all, app_client, run_id, "fay")
+            return await asyncio.gather(*waits)
+
+    answered = asyncio.run(main())
+    assert [len(answers) for answers in answered] == [1, 1, 1]
 
 
 def test_the_asyncio_client_asks_and_reads_the_same(app_client: TestClient) -> None:

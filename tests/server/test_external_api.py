@@ -247,6 +247,32 @@ def test_the_cursor_resumes_and_an_answer_taken_back_comes_as_a_withdrawal(
         assert future.status_code == 422, cursor
 
 
+def test_where_pairs_stand_is_read_by_their_keys_without_the_feed(client: TestClient) -> None:
+    run_id, auth = external_run(client, labels_per_query=2)
+    a, b = upload(client, run_id, auth, frames(1)), upload(client, run_id, auth, frames(2))
+    client.post(f"/api/runs/{run_id}/pairs", headers=auth, json={"pairs": [
+        pair("k1", a, b, meta={"ep": 3}), pair("k2", b, a)]})
+    for name in ("ann", "bob"):
+        token = bearer(new_labeller(client, name))
+        shown = client.get(f"/api/label/next?run_id={run_id}", headers=token).json()
+        assert answer(client, token, shown, "left").status_code == 201
+    url = f"/api/runs/{run_id}/pairs"
+    read = client.get(url, params={"key": ["k2", "nope", "k1", "k2"]}, headers=auth)
+    assert read.status_code == 200, read.text
+    k2, k1 = read.json()["pairs"]
+    assert read.json()["unknown"] == ["nope"]
+    # The fields an answers event carries for its pair, as the pair stands now.
+    [event] = client.get(f"/api/runs/{run_id}/answers", headers=auth).json()["events"][-1:]
+    assert k1 == {name: event[name] for name in k1} and k1["meta"] == {"ep": 3}
+    assert (k1["complete"], len(k1["answers"]), k1["k"]) == (True, 2, 2)
+    assert (k2["key"], k2["complete"], k2["answers"], k2["aggregate"]) == ("k2", False, [], None)
+    many = client.get(url, params={"key": [f"k{i}" for i in range(101)]}, headers=auth)
+    assert many.status_code == 422 and "at most 100" in many.text
+    assert client.get(url, headers=auth).status_code == 422  # no key
+    other, _ = external_run(client)
+    assert client.get(f"/api/runs/{other}/pairs?key=k1", headers=auth).status_code == 403
+
+
 def test_a_gold_pair_known_by_its_answer_measures_labellers_and_costs_no_budget(
     client: TestClient,
 ) -> None:
