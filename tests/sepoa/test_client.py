@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import sys
+import time
 from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from pathlib import Path
@@ -205,6 +206,20 @@ def test_a_client_waits_for_pairs_whose_answers_it_read_before(
     assert set(study.wait_for(second, timeout=5)) == {second[0].key}
     with pytest.raises(ValueError, match="no pair of this run"):
         study.wait_for([Asked("nobody's", 1, False)], timeout=5)
+
+
+def test_wait_for_refuses_a_gold_pair_at_once(app_client: TestClient) -> None:
+    """A gold pair takes the answer of everyone it is shown to: never complete, so wait_for
+    says so instead of waiting for ever; its answers come in answers()."""
+    run_id, token = run_and_token(app_client, gold_rate=0.5)
+    study = Study(URL, token, run_id, client=app_client, progress=False)
+    [gold] = study.ask([Pair(clip(1), clip(2), key="gold", gold="first")])
+    label_all(app_client, run_id, "gil", "left")
+    started = time.monotonic()
+    with pytest.raises(ValueError, match=r"gold pairs .* \['gold'\]"):
+        study.wait_for([gold], timeout=3)
+    assert time.monotonic() - started < 2
+    assert all(event.gold for event in study.answers())
 
 
 def test_asyncio_waits_at_once_each_get_their_pairs(app_client: TestClient) -> None:
