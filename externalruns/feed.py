@@ -12,6 +12,7 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from externalruns.runs import stored_id
 from labelqueue.errors import Invalid
 from labelqueue.models import (
     EXTERNAL_PAIRS,
@@ -46,9 +47,10 @@ class Cursor:
     def parse(cls, text: str) -> Cursor:
         """Invalid for text that is no cursor the feed gave."""
         label, dot, withdrawal = text.partition(".")
-        if not (label.isdigit() and withdrawal.isdigit() and dot) or len(text) > 40:
-            raise Invalid(f"cursor {text!r} is not one the answers feed gave (like '0.0')")
-        return cls(int(label), int(withdrawal))
+        ids = stored_id(label), stored_id(withdrawal)
+        if ids[0] is None or ids[1] is None or not dot:
+            raise Invalid(f"cursor {text[:40]!r} is not one the answers feed gave (like '0.0')")
+        return cls(ids[0], ids[1])
 
 
 def tally(answers: Sequence[Answer]) -> tuple[Answer, bool]:

@@ -21,6 +21,7 @@ from server_helpers import OPERATOR, bearer, new_labeller, new_run
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from externalruns.runs import run_of_token
 from labelqueue import Query, claim_run
 from labelstats.calibration import calibration_report
 from rundata.clip_codec import probe_clip
@@ -214,6 +215,23 @@ def test_a_run_token_reaches_its_own_run_and_nothing_else(client: TestClient) ->
     assert client.post(f"/api/runs/{trained}/tokens", headers=OPERATOR).status_code == 409
     forged = bearer(auth["Authorization"].removeprefix("Bearer ")[:-2] + "xx")
     assert client.get(f"/api/runs/{run_id}/answers", headers=forged).status_code == 401
+
+
+def test_a_token_id_or_cursor_of_other_digits_or_too_large_is_none(
+    client: TestClient, session: Session
+) -> None:
+    """Only ASCII digits make an id ('²' and '١' are digits to str.isdigit, not to int()), and
+    one an id column holds: a token with any other is no token (401), such a cursor no cursor
+    (422 saying what one is)."""
+    run_id, auth = external_run(client)
+    for token in ("run.\u00b2.abc", "run.\u0661.abc", "run.2147483648.abc", "run.1e3.abc"):
+        assert run_of_token(session, token=token) is None, token
+    refused = client.get(f"/api/runs/{run_id}/answers",
+                         headers=bearer("run.2147483648.abc"))  # too large for PostgreSQL
+    assert refused.status_code == 401, refused.text
+    for cursor in ("\u00b2.0", "0.\u0661", "2147483648.0"):
+        read = client.get(f"/api/runs/{run_id}/answers", params={"after": cursor}, headers=auth)
+        assert read.status_code == 422 and "is not one the answers feed gave" in read.text
 
 
 def test_the_cursor_resumes_and_an_answer_taken_back_comes_as_a_withdrawal(
