@@ -35,22 +35,31 @@ STATES_LIMIT = 100
 
 @dataclass(frozen=True)
 class Cursor:
-    """Where a reader of the answers feed is: after this label id and this withdrawal id."""
+    """Where a reader of a run's answers feed is: after this label id and this withdrawal id
+    of this run. Written '<run>.<label>.<withdrawal>'; '0.0' is the start of any run's."""
 
+    run: int = 0
+    """the run whose feed gave it; 0: the start, of any run"""
     label: int = 0
     withdrawal: int = 0
 
     def __str__(self) -> str:
-        return f"{self.label}.{self.withdrawal}"
+        return "0.0" if self == Cursor() else f"{self.run}.{self.label}.{self.withdrawal}"
 
     @classmethod
     def parse(cls, text: str) -> Cursor:
-        """Invalid for text that is no cursor the feed gave."""
-        label, dot, withdrawal = text.partition(".")
-        ids = stored_id(label), stored_id(withdrawal)
-        if ids[0] is None or ids[1] is None or not dot:
-            raise Invalid(f"cursor {text[:40]!r} is not one the answers feed gave (like '0.0')")
-        return cls(ids[0], ids[1])
+        """Invalid for text that is no cursor the feed gave, or one of two numbers (the
+        older form, naming no run) other than the start."""
+        parts = text.split(".")
+        ids = [stored_id(part) for part in parts]
+        if len(parts) == 2 and ids[0] is not None and ids[1] is not None and ids != [0, 0]:
+            raise Invalid(f"cursor {text!r} names no run (the feed gives '<run>.<label>."
+                          "<withdrawal>'): read from the start, after=0.0, and pass over the "
+                          "answers already handled by their label_id")
+        if not (len(parts) in (2, 3) and all(i is not None for i in ids)):
+            raise Invalid(f"cursor {text[:40]!r} is not one the answers feed gave (like "
+                          "'0.0', the start, or '7.57.2')")
+        return cls(*(id_ or 0 for id_ in ids)) if len(parts) == 3 else cls()
 
 
 def tally(answers: Sequence[Answer]) -> tuple[Answer, bool]:
@@ -81,8 +90,8 @@ def answers_after(session: Session, *, run_id: int, cursor: Cursor,
     The cursor is exact, with nothing held back: a run's labels (and its withdrawals) commit
     in the order of their ids, since each draws its id holding the run's row lock
     (`labelqueue.labels`, `labelqueue.undo`; SQLite's one writer anyway), so a read that sees
-    one sees every one before it. Invalid for a cursor ahead of the run's answers; NotFound
-    for an unknown run."""
+    one sees every one before it. Invalid for another run's cursor or one ahead of the run's
+    answers; NotFound for an unknown run."""
     with reading(session):
         status = get_row(session, Run, run_id).status.value
         open_pairs = session.scalar(select(func.count()).select_from(QUERIES).where(
@@ -92,6 +101,9 @@ def answers_after(session: Session, *, run_id: int, cursor: Cursor,
                                     .where(Label.run_id == run_id)) or 0
         last_withdrawal = session.scalar(select(func.coalesce(func.max(Withdrawal.id), 0))
                                          .where(Withdrawal.run_id == run_id)) or 0
+        if cursor.run not in (0, run_id):
+            raise Invalid(f"cursor {cursor} is run {cursor.run}'s, not run {run_id}'s: read "
+                          f"run {run_id}'s answers from the start, after=0.0")
         if cursor.label > last_label or cursor.withdrawal > last_withdrawal:
             raise Invalid(f"cursor {cursor} is ahead of run {run_id}'s answers (its newest "
                              f"is {last_label}.{last_withdrawal})")
@@ -132,8 +144,8 @@ def answers_after(session: Session, *, run_id: int, cursor: Cursor,
                        "answer": label.answer.value, "at": withdrawal.withdrawn_at.isoformat(),
                        "flag": None, **state[label.query_id]})
     events.sort(key=lambda event: event["at"])
-    return Feed(events=events, cursor=Cursor(label_to, withdrawal_to), open_pairs=open_pairs,
-                status=status)
+    return Feed(events=events, cursor=Cursor(run_id, label_to, withdrawal_to),
+                open_pairs=open_pairs, status=status)
 
 
 def pair_states(session: Session, *, run_id: int,

@@ -14,7 +14,8 @@ key is its own `key`, or one made from its content: pushing the same pairs again
 restarted after a crash) makes no second query. Requests that fail on the way (a connection error,
 a 5xx, a 429) are retried with exponential backoff; a 4xx is a `StudyError` naming the problem. The
 answers feed is read from a cursor, kept in `cursor_file` when given, so a client killed while it
-waits reads on from where it was: nothing is lost, nothing comes twice. `wait_for` reads where
+waits reads on from where it was: nothing is lost, nothing comes twice (the cursor names its run:
+another run's file is a ValueError). `wait_for` reads where
 its pairs stand before it follows the feed, so it also returns pairs whose answers the cursor
 has passed (read by `answers()`, by another wait, or before a restart).
 
@@ -216,7 +217,20 @@ class _Core:
         """the waits under way: every read of the feed reaches each"""
         self.cursor = "0.0"
         if self.cursor_file is not None and self.cursor_file.exists():
-            self.cursor = self.cursor_file.read_text().strip() or "0.0"
+            self.cursor = self.checked_cursor(self.cursor_file.read_text().strip() or "0.0")
+
+    def checked_cursor(self, cursor: str) -> str:
+        """A cursor file's cursor, if it is this run's (the feed's cursor names its run).
+        ValueError for another run's, or one of two numbers (the older form, naming no run)."""
+        parts = cursor.split(".")
+        if cursor == "0.0" or (len(parts) == 3 and parts[0] == str(self.run)):
+            return cursor
+        where = f"cursor file {self.cursor_file} holds {cursor!r}"
+        if len(parts) == 3:
+            raise ValueError(f"{where}, run {parts[0]}'s cursor, not run {self.run}'s: give "
+                             "each run a cursor file of its own")
+        raise ValueError(f"{where}, a cursor that names no run: delete the file to read run "
+                         f"{self.run}'s answers from the start")
 
     def keep(self, cursor: str) -> None:
         """Move the cursor on, on disk first (atomically) when a file keeps it."""

@@ -301,8 +301,9 @@ def states(
 async def answers(
     run: ClientRun, request: Request, session: SessionDep,
     after: Annotated[str, Query(max_length=40, description=(
-        "the cursor the last read gave, two whole numbers joined by a dot ('0.0': from the "
-        "start); one this run never gave is refused (422)"))] = "0.0",
+        "the cursor the last read gave, the run's id, a label's and a withdrawal's joined by "
+        "dots ('7.57.2'; '0.0': from the start); one this run never gave, another run's or "
+        "one of two numbers but the start, is refused (422)"))] = "0.0",
     wait: Annotated[float, Query(ge=0, le=60, description="seconds to wait for an answer when "
                                                          "there is none yet")] = 0.0,
 ) -> AnswersOut:
@@ -312,7 +313,7 @@ async def answers(
     answer taken back after it was read comes again as a withdrawal. With `wait`, the request
     is held until there is something new or the seconds pass. Keep the `cursor` it gives: read
     from it after a crash, nothing is lost and nothing comes twice. 422 for a cursor this run
-    never gave (one ahead of its answers)."""
+    never gave: another run's, or one ahead of its answers."""
     try:
         cursor = Cursor.parse(after)
     except ValueError as err:

@@ -240,6 +240,22 @@ def test_asyncio_waits_at_once_each_get_their_pairs(app_client: TestClient) -> N
     assert [len(answers) for answers in answered] == [1, 1, 1]
 
 
+def test_a_cursor_file_of_another_run_is_refused(app_client: TestClient,
+                                                 tmp_path: Path) -> None:
+    runs = [run_and_token(app_client) for _ in range(2)]
+    cursor = tmp_path / "run.cursor"
+    (first, first_token), (second, second_token) = runs
+    study = Study(URL, first_token, first, client=app_client, progress=False, cursor_file=cursor)
+    study.ask(pairs(1))
+    label_all(app_client, first, "ida")
+    assert len(study.answers()) == 1 and cursor.read_text() == f"{first}.1.0"
+    with pytest.raises(ValueError, match=f"run {first}'s cursor, not run {second}'s"):
+        Study(URL, second_token, second, client=app_client, cursor_file=cursor)
+    cursor.write_text("1.0")  # the older form, naming no run
+    with pytest.raises(ValueError, match="names no run: delete the file"):
+        Study(URL, first_token, first, client=app_client, cursor_file=cursor)
+
+
 def test_the_asyncio_client_asks_and_reads_the_same(app_client: TestClient) -> None:
     run_id, token = run_and_token(app_client)
 

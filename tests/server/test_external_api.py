@@ -291,6 +291,28 @@ def test_where_pairs_stand_is_read_by_their_keys_without_the_feed(client: TestCl
     assert client.get(f"/api/runs/{other}/pairs?key=k1", headers=auth).status_code == 403
 
 
+def test_a_cursor_names_its_run_and_another_runs_is_refused(client: TestClient) -> None:
+    """A cursor another run's feed gave would skip this run's answers below its ids: 422."""
+    runs = [external_run(client) for _ in range(2)]
+    for run_id, auth in runs:
+        a, b = upload(client, run_id, auth, frames(1)), upload(client, run_id, auth, frames(2))
+        client.post(f"/api/runs/{run_id}/pairs", headers=auth,
+                    json={"pairs": [pair("k1", a, b), pair("k2", b, a)]})
+    (run_a, auth_a), (run_b, auth_b) = runs
+    token = bearer(new_labeller(client, "hal"))
+    for run_id in (run_b, run_a, run_b):  # label ids 1 and 3 are run B's, 2 run A's
+        shown = client.get(f"/api/label/next?run_id={run_id}", headers=token).json()
+        assert answer(client, token, shown, "left").status_code == 201
+    cursor_a = client.get(f"/api/runs/{run_a}/answers", headers=auth_a).json()["cursor"]
+    assert cursor_a == f"{run_a}.2.0"
+    other = client.get(f"/api/runs/{run_b}/answers", params={"after": cursor_a}, headers=auth_b)
+    assert other.status_code == 422 and f"is run {run_a}'s" in other.json()["detail"]
+    older = client.get(f"/api/runs/{run_b}/answers", params={"after": "2.0"}, headers=auth_b)
+    assert older.status_code == 422 and "names no run" in older.json()["detail"]
+    start = client.get(f"/api/runs/{run_b}/answers", params={"after": "0.0"}, headers=auth_b)
+    assert [e["label_id"] for e in start.json()["events"]] == [1, 3]
+
+
 def test_a_gold_pair_known_by_its_answer_measures_labellers_and_costs_no_budget(
     client: TestClient,
 ) -> None:
