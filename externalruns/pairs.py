@@ -14,10 +14,11 @@ from datetime import datetime
 from typing import Any
 
 from sqlalchemy import func, insert, select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from externalruns.runs import is_external
-from labelqueue.errors import Conflict, Invalid
+from labelqueue.errors import Conflict, Invalid, NotFound
 from labelqueue.models import (
     EXTERNAL_PAIRS,
     QUERIES,
@@ -30,7 +31,7 @@ from labelqueue.models import (
 from labelqueue.practice import reserve
 from labelqueue.queries import checked_query_fields
 from labelqueue.runs import EXTERNAL
-from labelqueue.transaction import get_row, reading, transaction
+from labelqueue.transaction import reading, transaction
 from runvocab.answers import Answer
 from runvocab.clip_format import ClipInfo
 
@@ -149,7 +150,9 @@ def push_pairs(session: Session, *, run_id: int, pairs: Sequence[PairSpec],
     Invalid naming the pair for a missing clip, two clips of different shapes, a gold
     answer that is neither first nor second or contradicts the returns, or a key used twice in
     the push; Conflict for a key stored with other content, a run that is no external run or
-    takes no answers, or pairs beyond the budget. Nothing is stored on any refusal.
+    takes no answers, or pairs beyond the budget. Nothing is stored on any refusal. Pushes to
+    one run take turns on its row lock, so two at once (a retry racing its first try) store
+    each key once.
     """
     keys = Counter(pair.key for pair in pairs)
     for index, pair in enumerate(pairs):
@@ -157,8 +160,22 @@ def push_pairs(session: Session, *, run_id: int, pairs: Sequence[PairSpec],
         if keys[pair.key] > 1:
             raise Invalid(f"pairs[{index}]: key {pair.key!r} is used twice in this push")
     digests = [pair.digest() for pair in pairs]
+    try:
+        return _store(session, run_id=run_id, pairs=pairs, digests=digests, clips=clips)
+    except IntegrityError as error:  # the run's lock makes this rare: a safety net
+        raise Conflict(f"another push to run {run_id} stored some of these keys at the same "
+                       "time: push again (a stored key is not stored twice)") from error
+
+
+def _store(session: Session, *, run_id: int, pairs: Sequence[PairSpec], digests: list[str],
+           clips: Mapping[str, ClipInfo]) -> list[Pushed]:
     with transaction(session):
-        run = get_row(session, Run, run_id)
+        # Pushes to one run take turns on its row (PostgreSQL; SQLite writes one at a time):
+        # each reads the stored keys, the budget and the last position after the one before.
+        run = session.scalars(select(Run).where(Run.id == run_id).with_for_update()
+                              .execution_options(populate_existing=True)).first()
+        if run is None:
+            raise NotFound(f"run {run_id} does not exist")
         if not is_external(run):
             raise Conflict(f"run {run_id} is trained by a worker: pairs are pushed to an "
                            "external run only")
@@ -167,7 +184,7 @@ def push_pairs(session: Session, *, run_id: int, pairs: Sequence[PairSpec],
         stored = {row.key: row for row in session.execute(
             select(EXTERNAL_PAIRS.c.key, EXTERNAL_PAIRS.c.digest, EXTERNAL_PAIRS.c.query_id)
             .where(EXTERNAL_PAIRS.c.run_id == run_id,
-                   EXTERNAL_PAIRS.c.key.in_(list(keys))))}
+                   EXTERNAL_PAIRS.c.key.in_([pair.key for pair in pairs])))}
         for pair, digest in zip(pairs, digests, strict=True):
             row = stored.get(pair.key)
             if row is not None and row.digest != digest:
