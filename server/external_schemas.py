@@ -18,7 +18,48 @@ def _finite(values: tuple[float, float] | None) -> tuple[float, float] | None:
     return values
 
 
+NO_NUL = r"^[^\x00]*$"
+"""text without NUL characters: PostgreSQL stores none in text, JSON included"""
+
+
+def _no_nul(text: str) -> str:
+    if "\x00" in text:
+        raise ValueError("holds a NUL character (\\u0000), which no text can store")
+    return text
+
+
+def _storable(value: Any, where: str = "meta") -> None:
+    """ValueError naming the place of a number that is not finite (JSON has no NaN or
+    Infinity: it was stored as null on SQLite, refused as out of range on PostgreSQL) or a
+    NUL character in a key or a string."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ValueError(f"{where} is {value}: numbers in meta must be finite")
+    if isinstance(value, str) and "\x00" in value:
+        raise ValueError(f"{where} holds a NUL character (\\u0000), which no text can store")
+    if isinstance(value, dict):
+        for key, item in value.items():
+            if "\x00" in key:
+                raise ValueError(f"a key of {where} holds a NUL character (\\u0000), which "
+                                 "no text can store")
+            _storable(item, f"{where}.{key}")
+    elif isinstance(value, list):
+        for index, item in enumerate(value):
+            _storable(item, f"{where}[{index}]")
+
+
+def _storable_meta(meta: dict[str, Any]) -> dict[str, Any]:
+    _storable(meta)
+    return meta
+
+
 Returns = Annotated[tuple[float, float] | None, AfterValidator(_finite)]
+PairKey = Annotated[str, Field(min_length=1, max_length=200,
+                               json_schema_extra={"pattern": NO_NUL}),
+                    AfterValidator(_no_nul)]
+"""a pair's idempotency key: 1-200 characters, no NUL"""
+Meta = Annotated[SmallJson, AfterValidator(_storable_meta), Field(
+    description="the client's own ids, hidden from labellers: at most 4096 bytes as JSON, "
+                "finite numbers only, no NUL character (\\u0000) in a key or a string")]
 ClipId = Annotated[str, Field(pattern=r"^[0-9a-f]{32}$",
                               description="an id `POST /api/runs/{id}/clips` gave")]
 
@@ -76,7 +117,7 @@ class ClipOut(Out):
 class PairIn(Body):
     """One pair of uploaded clips to compare."""
 
-    key: str = Field(min_length=1, max_length=200)
+    key: PairKey
     """the idempotency key, unique in the run: a pair pushed again under it is not stored
     twice; other content under a used key is a 409"""
     first_clip: ClipId
@@ -87,7 +128,7 @@ class PairIn(Body):
     """hidden: the two segments' true returns, for accuracy and the calibration report"""
     trajectory_returns: Returns = None
     """hidden: their whole episodes' returns; null: `returns`"""
-    meta: SmallJson | None = None
+    meta: Meta | None = None
     """hidden: the client's own ids, given back with the pair's answers"""
 
 

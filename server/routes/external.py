@@ -22,12 +22,11 @@ from typing import Annotated
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi import Path as PathParam
-from pydantic import Field
 from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
 from externalruns.feed import STATES_LIMIT, Cursor, answers_after, pair_states
-from externalruns.pairs import KEY_MAX, PairSpec, clip_key, push_pairs
+from externalruns.pairs import PairSpec, clip_key, push_pairs
 from externalruns.runs import (
     create_external_run,
     is_external,
@@ -54,6 +53,7 @@ from server.external_schemas import (
     AnswersOut,
     ClipOut,
     ExternalRunCreate,
+    PairKey,
     PairsIn,
     PairStatesOut,
     PushOut,
@@ -285,7 +285,7 @@ def push(run_id: RunId, body: PairsIn, run: ClientRun, response: Response, sessi
 @router.get("/{run_id}/pairs", response_model=PairStatesOut, responses=errors(404, 409, 422))
 def states(
     run: ClientRun, session: SessionDep,
-    key: Annotated[list[Annotated[str, Field(min_length=1, max_length=KEY_MAX)]], Query(
+    key: Annotated[list[PairKey], Query(
         min_length=1, max_length=STATES_LIMIT, description=(
             f"a pushed pair's idempotency key, given once per key (1 to {STATES_LIMIT})"))],
 ) -> PairStatesOut:

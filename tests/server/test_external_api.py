@@ -200,6 +200,32 @@ def test_bad_clips_and_pairs_are_refused_by_name_and_nothing_is_kept(
     assert queries(session) == 0
 
 
+def test_a_nul_or_a_number_json_has_not_in_a_pair_is_refused_naming_it(
+    client: TestClient, session: Session
+) -> None:
+    """PostgreSQL stores no NUL in text and JSON has no NaN (SQLite kept it as null): such a
+    key or meta is a 422 naming the field, on both databases alike."""
+    run_id, auth = external_run(client)
+    a = upload(client, run_id, auth, frames(1))
+    url, json_type = f"/api/runs/{run_id}/pairs", {"content-type": "application/json"}
+    for field, extra, said in [
+        ("key", '"key": "k\\u0000x"', "NUL character"),
+        ("meta", '"key": "k", "meta": {"s": "a\\u0000b"}', "meta.s holds a NUL"),
+        ("meta", '"key": "k", "meta": {"ok\\u0000": 1}', "a key of meta holds a NUL"),
+        ("meta", '"key": "k", "meta": {"x": NaN}', "meta.x is nan"),
+        ("meta", '"key": "k", "meta": {"ids": [1, {"r": -Infinity}]}', "meta.ids[1].r is -inf"),
+        ("returns", '"key": "k", "returns": [NaN, 1.0]', "finite"),
+    ]:
+        body = f'{{"pairs": [{{"first_clip": "{a}", "second_clip": "{a}", {extra}}}]}}'
+        refused = client.post(url, content=body, headers=auth | json_type)
+        assert refused.status_code == 422, (extra, refused.text)
+        [problem] = refused.json()["detail"]
+        assert problem["loc"][-1] == field and said in problem["msg"], (extra, problem)
+    bad_key = client.get(url, params={"key": "k\x00"}, headers=auth)
+    assert bad_key.status_code == 422 and "NUL character" in bad_key.text
+    assert queries(session) == 0
+
+
 def test_a_run_token_reaches_its_own_run_and_nothing_else(client: TestClient) -> None:
     run_id, auth = external_run(client)
     other, _ = external_run(client)
