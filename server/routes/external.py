@@ -181,13 +181,20 @@ def _frames(body: bytes, settings: Settings) -> np.ndarray:
     return frames
 
 
+def clip_id_of(body: bytes, kind: str, fps: float) -> str:
+    """An uploaded clip's id: the hash of its bytes, and of a frame array's frame rate (the
+    same frames at another rate are another clip)."""
+    rate = f"fps={fps!r};".encode() if kind == NPY else b""
+    return hashlib.sha256(rate + body).hexdigest()[:32]
+
+
 def store_clip(settings: Settings, run_id: int, body: bytes, kind: str, fps: float) -> ClipOut:
     """Check an uploaded clip with the decoder (or encode a frame array) and keep it under the
-    clips folder; the same bytes uploaded again are the same clip. Invalid naming what is
-    wrong; nothing is kept then."""
+    clips folder; the same bytes (at the same frame rate) uploaded again are the same clip.
+    Invalid naming what is wrong; nothing is kept then."""
     if not body:
         raise Invalid("the body is empty: send the clip's bytes")
-    clip_id = hashlib.sha256(body).hexdigest()[:32]
+    clip_id = clip_id_of(body, kind, fps)
     folder = _folder(settings, run_id)
     note = folder / f"{clip_id}.json"
     info = stored_clip(settings, run_id, clip_id)
@@ -242,17 +249,17 @@ async def upload_clip(
     `clip_max_frames`), or a frame array (`application/x-npy`: uint8 (frames, height, width,
     3), as `numpy.save` writes it), encoded with the app's own clip encoder (h264, yuv420p).
     Its id names it in `POST /api/runs/{id}/pairs`; the same bytes again give the same id
-    (200). An unreadable file, a codec browsers do not play, a clip over a limit: 422, nothing
-    kept. A clip no pair names is deleted `unused_upload_hours` after its last upload, or once
-    its run is stopped (`server.upload_sweep`)."""
+    (200), a frame array's at the same `fps` only. An unreadable file, a codec browsers do not
+    play, a clip over a limit: 422, nothing kept. A clip no pair names is deleted
+    `unused_upload_hours` after its last upload, or once its run is stopped
+    (`server.upload_sweep`)."""
     content_type = request.headers.get("content-type", "").partition(";")[0].strip().lower()
     kind = NPY if content_type == NPY else VIDEO_TYPES.get(content_type)
     if kind is None:
         raise HTTPException(415, f"content type {content_type or 'none'!r}: send video/mp4, "
                                  f"video/webm or {NPY}")
     body = await request.body()
-    clip_id = hashlib.sha256(body).hexdigest()[:32]
-    known = stored_clip(settings, run.id, clip_id) is not None
+    known = stored_clip(settings, run.id, clip_id_of(body, kind, fps)) is not None
     out = await run_in_threadpool(store_clip, settings, run.id, body, kind, fps)
     if known:
         response.status_code = 200

@@ -156,6 +156,17 @@ def test_a_retried_push_makes_no_second_query_and_a_reused_key_is_refused(
     assert queries(session) == 2  # k3 was not stored either: all or none
 
 
+def test_the_same_frames_at_another_frame_rate_are_another_clip(client: TestClient) -> None:
+    run_id, auth = external_run(client)
+    url, body = f"/api/runs/{run_id}/clips", frames(1, count=30)
+    uploads = [client.post(url, params={"fps": fps}, content=body, headers=auth | NPY)
+               for fps in (30, 5, 30.0)]
+    assert [u.status_code for u in uploads] == [201, 201, 200]
+    fast, slow, again = (u.json() for u in uploads)
+    assert fast["clip_id"] != slow["clip_id"] and again["clip_id"] == fast["clip_id"]
+    assert (fast["seconds"], slow["seconds"]) == pytest.approx((1.0, 6.0), abs=0.05)
+
+
 def test_bad_clips_and_pairs_are_refused_by_name_and_nothing_is_kept(
     client: TestClient, session: Session, settings: Settings, tmp_path: Path
 ) -> None:
