@@ -39,6 +39,9 @@ KEY_MAX = 200
 """the longest idempotency key"""
 META_MAX_BYTES = 4096
 """the most a pair's hidden metadata may hold, as JSON"""
+SECONDS_APART = 0.05
+"""how much the two clips of a pair may differ in length (the label page plays them on one
+clock, in seconds)"""
 
 @dataclass(frozen=True)
 class PairSpec:
@@ -122,6 +125,11 @@ def _check_pair(index: int, pair: PairSpec, clips: Mapping[str, ClipInfo]) -> No
             f"{where}: the two clips differ in shape: {first.width}x{first.height}, "
             f"{first.frames} frames against {second.width}x{second.height}, {second.frames} "
             "frames (the label page plays them side by side on one clock)")
+    if abs(first.seconds - second.seconds) > SECONDS_APART:
+        raise Invalid(
+            f"{where}: the two clips last {first.seconds:.2f} s and {second.seconds:.2f} s "
+            f"(another frame rate); the label page plays them side by side on one clock, so "
+            f"they must last as long, within {SECONDS_APART} s")
     for name in ("returns", "trajectory_returns"):
         values = getattr(pair, name)
         if values is not None and not all(math.isfinite(v) for v in values):
@@ -147,7 +155,8 @@ def push_pairs(session: Session, *, run_id: int, pairs: Sequence[PairSpec],
     """Store the pairs as queries of the external run, all or none; one `Pushed` per pair, in
     order. `clips`: what the uploaded clips the pairs name hold (`runvocab.clip_format.ClipInfo`).
 
-    Invalid naming the pair for a missing clip, two clips of different shapes, a gold
+    Invalid naming the pair for a missing clip, two clips of different shapes or lengths
+    in seconds, a gold
     answer that is neither first nor second or contradicts the returns, or a key used twice in
     the push; Conflict for a key stored with other content, a run that is no external run or
     takes no answers, or pairs beyond the budget. Nothing is stored on any refusal. Pushes to

@@ -275,7 +275,7 @@ def push(run_id: RunId, body: PairsIn, run: ClientRun, response: Response, sessi
     back with `created` false, 200 when none is new); other content under a used key is a 409.
     `returns`, `trajectory_returns` and `meta` are hidden from labellers; a `gold` pair's
     known answer measures them. 422 for a clip not uploaded to the run or two clips of
-    different shapes; 409 past the budget or once the run is stopped."""
+    different shapes or lengths in seconds; 409 past the budget or once the run is stopped."""
     ids = {clip for pair in body.pairs for clip in (pair.first_clip, pair.second_clip)}
     clips = {clip: info for clip in ids
              if (info := stored_clip(settings, run.id, clip)) is not None}

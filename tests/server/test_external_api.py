@@ -156,7 +156,9 @@ def test_a_retried_push_makes_no_second_query_and_a_reused_key_is_refused(
     assert queries(session) == 2  # k3 was not stored either: all or none
 
 
-def test_the_same_frames_at_another_frame_rate_are_another_clip(client: TestClient) -> None:
+def test_the_same_frames_at_another_frame_rate_are_another_clip_and_pair_with_no_other(
+    client: TestClient,
+) -> None:
     run_id, auth = external_run(client)
     url, body = f"/api/runs/{run_id}/clips", frames(1, count=30)
     uploads = [client.post(url, params={"fps": fps}, content=body, headers=auth | NPY)
@@ -165,6 +167,13 @@ def test_the_same_frames_at_another_frame_rate_are_another_clip(client: TestClie
     fast, slow, again = (u.json() for u in uploads)
     assert fast["clip_id"] != slow["clip_id"] and again["clip_id"] == fast["clip_id"]
     assert (fast["seconds"], slow["seconds"]) == pytest.approx((1.0, 6.0), abs=0.05)
+    # Played side by side on one clock, two clips of one pair must last as long.
+    other = client.post(url, params={"fps": 5}, content=frames(2, count=30), headers=auth | NPY)
+    apart = client.post(f"/api/runs/{run_id}/pairs", headers=auth, json={"pairs": [
+        pair("k", fast["clip_id"], other.json()["clip_id"])]})
+    assert apart.status_code == 422 and "last 1.00 s and 6.00 s" in apart.json()["detail"]
+    assert client.post(f"/api/runs/{run_id}/pairs", headers=auth, json={"pairs": [
+        pair("k", slow["clip_id"], other.json()["clip_id"])]}).status_code == 201
 
 
 def test_bad_clips_and_pairs_are_refused_by_name_and_nothing_is_kept(
