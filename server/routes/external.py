@@ -73,6 +73,8 @@ VIDEO_TYPES = {"video/mp4": "mp4", "video/webm": "webm"}
 TokenId = Annotated[int, PathParam(ge=1, le=INT32_MAX, description="the token's id (`run.<id>.`)")]
 POLL_S = 0.5
 """how often a waiting answers request looks again"""
+SIDES = (16, 1024)
+"""the narrowest and the widest a clip's width and height may be, in pixels"""
 
 
 @router.post("/external", status_code=201, response_model=RunOut,
@@ -175,10 +177,14 @@ def _frames(body: bytes, settings: Settings) -> np.ndarray:
     count, height, width = frames.shape[:3]
     if not 1 <= count <= settings.clip_max_frames:
         raise Invalid(f"{count} frames; a clip holds 1 to {settings.clip_max_frames}")
-    if height % 2 or width % 2 or not (16 <= height <= 1024 and 16 <= width <= 1024):
+    if height % 2 or width % 2 or not (_fits(height) and _fits(width)):
         raise Invalid(f"frames are {width}x{height}; width and height must be even, in "
-                         "[16, 1024] (yuv420p halves the colour planes)")
+                      f"[{SIDES[0]}, {SIDES[1]}] (yuv420p halves the colour planes)")
     return frames
+
+
+def _fits(side: int) -> bool:
+    return SIDES[0] <= side <= SIDES[1]
 
 
 def clip_id_of(body: bytes, kind: str, fps: float) -> str:
@@ -216,6 +222,9 @@ def store_clip(settings: Settings, run_id: int, body: bytes, kind: str, fps: flo
             info = probe_clip(tmp)
             if kind != NPY and info.container != kind:
                 raise Invalid(f"the body is {info.container.upper()}, sent as video/{kind}")
+            if not (_fits(info.width) and _fits(info.height)):
+                raise Invalid(f"the clip is {info.width}x{info.height}; its width and height "
+                              f"must be in [{SIDES[0]}, {SIDES[1]}]")
             if info.frames > settings.clip_max_frames:
                 raise Invalid(f"the clip has {info.frames} frames; at most "
                                  f"{settings.clip_max_frames}")
@@ -246,8 +255,9 @@ async def upload_clip(
 ) -> ClipOut:
     """One clip, as the body: an MP4 (h264) or WebM (VP8, VP9, AV1) file, decoded whole to
     check it against the server's limits (`clip_upload_bytes`, `clip_max_seconds`,
-    `clip_max_frames`), or a frame array (`application/x-npy`: uint8 (frames, height, width,
-    3), as `numpy.save` writes it), encoded with the app's own clip encoder (h264, yuv420p).
+    `clip_max_frames`, sides of 16 to 1024 pixels), or a frame array (`application/x-npy`:
+    uint8 (frames, height, width, 3), as `numpy.save` writes it), encoded with the app's own
+    clip encoder (h264, yuv420p).
     Its id names it in `POST /api/runs/{id}/pairs`; the same bytes again give the same id
     (200), a frame array's at the same `fps` only. An unreadable file, a codec browsers do not
     play, a clip over a limit: 422, nothing kept. A clip no pair names is deleted

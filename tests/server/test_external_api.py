@@ -192,6 +192,15 @@ def test_bad_clips_and_pairs_are_refused_by_name_and_nothing_is_kept(
     codec = client.post(url, content=mpeg4.read_bytes(), headers=auth | {
         "content-type": "video/mp4"})
     assert codec.status_code == 422 and "codec is mpeg4" in codec.json()["detail"]
+    wide = tmp_path / "wide.mp4"  # a video's sides are bounded as a frame array's are
+    with imageio.get_writer(wide, format="FFMPEG", fps=10, codec="libx264",
+                            pixelformat="yuv420p", macro_block_size=2) as writer:
+        for frame in np.zeros((2, 32, 2048, 3), np.uint8):
+            writer.append_data(frame)
+    too_wide = client.post(url, content=wide.read_bytes(), headers=auth | {
+        "content-type": "video/mp4"})
+    assert too_wide.status_code == 422 and "2048x32" in too_wide.json()["detail"]
+    assert "[16, 1024]" in too_wide.json()["detail"]
     odd = client.post(url, content=frames(1, size=(31, 32)), headers=auth | NPY)
     assert odd.status_code == 422 and "must be even" in odd.json()["detail"]
     flat = client.post(url, content=frames(1)[:-10], headers=auth | NPY)
