@@ -47,6 +47,11 @@ Clip = np.ndarray | str | os.PathLike[str] | bytes
 MEDIA = {".mp4": "video/mp4", ".webm": "video/webm", ".npy": "application/x-npy"}
 LONGEST_WAIT_S = 60.0
 """the longest one answers request waits on the server"""
+PUSH_PAIRS = 500
+"""the most pairs one push takes (the server's limit)"""
+PUSH_BYTES = 60 * 1024
+"""the most one push's body holds: the server reads 64 KiB by default
+(`SEPOA_BODY_LIMIT_BYTES`); a push it still finds too large (413) is split in two"""
 STATES_KEYS = 100
 """the most keys one read of pair states names (the server's limit)"""
 STATES_URL_CHARS = 6000
@@ -176,6 +181,43 @@ def pair_body(pair: Pair, first: str, second: str) -> dict[str, Any]:
     content = json.dumps(body, sort_keys=True, separators=(",", ":"))
     key = pair.key or "auto-" + hashlib.sha256(content.encode()).hexdigest()[:40]
     return {"key": key, **{name: value for name, value in body.items() if value is not None}}
+
+
+def push_batches(bodies: Sequence[dict[str, Any]]) -> list[list[dict[str, Any]]]:
+    """The pairs' bodies in order, in pushes of at most `PUSH_PAIRS` pairs and `PUSH_BYTES`
+    bytes (one pair larger than that is a push of its own)."""
+    batches: list[list[dict[str, Any]]] = []
+    batch: list[dict[str, Any]] = []
+    size = 0
+    for body in bodies:
+        item = len(compact(body)) + 1
+        if batch and (len(batch) == PUSH_PAIRS or size + item > PUSH_BYTES):
+            batches.append(batch)
+            batch, size = [], 0
+        batch.append(body)
+        size += item
+    return [*batches, batch] if batch else batches
+
+
+def push_call(batch: Sequence[dict[str, Any]]) -> Call:
+    return Call("POST", "/pairs", content=compact({"pairs": list(batch)}),
+                content_type="application/json")
+
+
+def compact(value: Any) -> bytes:
+    return json.dumps(value, separators=(",", ":")).encode()
+
+
+def halves(batch: Sequence[dict[str, Any]], error: StudyError) -> list[Sequence[dict[str, Any]]]:
+    """A push the server found too large (413), in two; the error again for any other
+    refusal, or a single pair."""
+    if error.status != 413 or len(batch) < 2:
+        raise error
+    return [batch[:len(batch) // 2], batch[len(batch) // 2:]]
+
+
+def queries_of(pushed: Iterable[Mapping[str, Any]]) -> list[Query]:
+    return [Query(item["key"], item["query_id"], item["created"]) for item in pushed]
 
 
 def retry_after(response: httpx.Response | None, attempt: int, backoff: float) -> float | None:
@@ -404,12 +446,20 @@ class Study:
         return str(body["clip_id"])
 
     def ask(self, pairs: Sequence[Pair]) -> list[Query]:
-        """Push the pairs for people to compare (all stored or none); their queries, in
-        order. Pushing them again makes no second query."""
+        """Push the pairs for people to compare; their queries, in order. They go in pushes
+        that fit the server's limits (`push_batches`), each stored whole or not at all:
+        should one fail, asking again makes no second query of a pair stored before."""
         bodies = [pair_body(pair, self.upload(pair.first), self.upload(pair.second))
                   for pair in pairs]
-        out = self.call(Call("POST", "/pairs", json={"pairs": bodies}))
-        return [Query(item["key"], item["query_id"], item["created"]) for item in out["pairs"]]
+        return [query for batch in push_batches(bodies) for query in self.push(batch)]
+
+    def push(self, batch: Sequence[dict[str, Any]]) -> list[Query]:
+        """One push of pairs' bodies (`pair_body`), in two when the server finds it too
+        large."""
+        try:
+            return queries_of(self.call(push_call(batch))["pairs"])
+        except StudyError as error:
+            return [query for half in halves(batch, error) for query in self.push(half)]
 
     def answers(self, wait: float = 0.0) -> list[AnswerEvent]:
         """The answers and withdrawals since the cursor (waiting up to `wait` s, 60 at most,
@@ -481,8 +531,13 @@ class AsyncStudy:
         ids = await asyncio.gather(*(self.upload(clip) for pair in pairs
                                      for clip in (pair.first, pair.second)))
         bodies = [pair_body(pair, ids[2 * i], ids[2 * i + 1]) for i, pair in enumerate(pairs)]
-        out = await self.call(Call("POST", "/pairs", json={"pairs": bodies}))
-        return [Query(item["key"], item["query_id"], item["created"]) for item in out["pairs"]]
+        return [query for batch in push_batches(bodies) for query in await self.push(batch)]
+
+    async def push(self, batch: Sequence[dict[str, Any]]) -> list[Query]:
+        try:
+            return queries_of((await self.call(push_call(batch)))["pairs"])
+        except StudyError as error:
+            return [query for half in halves(batch, error) for query in await self.push(half)]
 
     async def answers(self, wait: float = 0.0) -> list[AnswerEvent]:
         async with self.reading:

@@ -280,7 +280,8 @@ async def upload_clip(
              responses=errors(400, 404, 409, 413, 422))
 def push(run_id: RunId, body: PairsIn, run: ClientRun, response: Response, session: SessionDep,
          settings: SettingsDep) -> PushOut:
-    """Pairs of uploaded clips for people to compare, all stored or none. Each carries an
+    """Pairs of uploaded clips for people to compare, all stored or none: 1 to 500 in a body
+    of at most the server's `body_limit_bytes` (64 KiB by default; 413 past it). Each carries an
     idempotency key: pushed again under its key, a pair is not stored twice (its query comes
     back with `created` false, 200 when none is new); other content under a used key is a 409.
     `returns`, `trajectory_returns` and `meta` are hidden from labellers; a `gold` pair's

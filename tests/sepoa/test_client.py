@@ -18,7 +18,15 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
 from labelqueue import Query, make_engine, session_factory
-from sepoa.client import AsyncStudy, Pair, Study, StudyError
+from sepoa.client import (
+    PUSH_BYTES,
+    AsyncStudy,
+    Pair,
+    Study,
+    StudyError,
+    push_batches,
+    push_call,
+)
 from sepoa.client import Query as Asked
 from server.app import create_app
 from server.settings import Settings
@@ -130,6 +138,27 @@ def test_asked_pairs_come_back_with_the_answers_people_gave(app_client: TestClie
     with pytest.raises(StudyError) as refused:
         study.ask([Pair(clip(1), np.zeros((4, 16, 32, 3), np.uint8))])
     assert refused.value.status == 422 and "differ in shape" in str(refused.value)
+
+
+def test_many_pairs_are_pushed_in_pushes_the_server_takes(tmp_path: Path) -> None:
+    """Pairs with their meta past what one push's body holds (64 KiB by default, 8 here) go
+    in pushes that fit, in order: the client splits a push the server finds too large."""
+    settings = Settings(database_url=f"sqlite:///{tmp_path / 'queue.db'}", data_dir=tmp_path,
+                        operator_token=OPERATOR_TOKEN, secret_key="test-secret-key-0123456789",
+                        body_limit_bytes=8 * 1024)
+    with TestClient(create_app(settings)) as client:
+        run_id, token = run_and_token(client, budget=1000)
+        study = Study(URL, token, run_id, client=client, progress=False)
+        queries = study.ask([Pair(clip(1), clip(2), returns=(float(i), 0.5),
+                                  meta={"round": 0, "starts": [i, i + 1]}) for i in range(200)])
+        assert len(queries) == 200 and all(q.created for q in queries)
+        assert [q.query_id for q in queries] == sorted(q.query_id for q in queries)
+        assert stored_queries(client) == 200
+    bodies = [{"key": f"k{i}", "meta": {"pad": "x" * 500}} for i in range(600)]
+    batches = push_batches(bodies)
+    assert [body for batch in batches for body in batch] == bodies and len(batches) == 6
+    assert all(len(push_call(batch).content or b"") <= PUSH_BYTES for batch in batches)
+    assert [len(b) for b in push_batches([{"key": f"k{i}"} for i in range(600)])] == [500, 100]
 
 
 def test_a_retried_push_makes_no_second_query(app_client: TestClient) -> None:
