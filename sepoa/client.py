@@ -4,7 +4,7 @@
 
     study = Study("http://127.0.0.1:8000", token, run=3, cursor_file="run3.cursor")
     queries = study.ask([Pair(frames_a, frames_b, returns=(12.5, 3.0), meta={"ids": [7, 9]})])
-    answers = study.wait_for(queries)          # {key: "first" | "second" | "equal" | "cant_tell"}
+    answers = study.wait_for(queries)  # {key: "first" | "second" | "equal" | "cant_tell" | "skip"}
 
 `token` is the run's token (`POST /api/runs/{id}/tokens`, an operator's call; an operator revokes
 it with `POST /api/runs/{id}/tokens/{token_id}/revoke`, after which every call is a `StudyError`
@@ -103,11 +103,12 @@ class AnswerEvent:
     labeller: str
     answer: str
     aggregate: str | None
-    """the majority of the pair's standing answers: first, second, equal, or cant_tell (when
-    most cannot tell or two answers tie); None with none standing"""
+    """the majority of the pair's standing answers: first, second, equal, cant_tell (when
+    most cannot tell or two answers tie), or skip (when every one is a skip); None with none
+    standing"""
     tie: bool
     complete: bool
-    """the pair has its k answers"""
+    """the pair has its k answers (skips count: nobody is asked again)"""
     gold: bool
     answers: dict[str, str]
     """each labeller's standing answer"""

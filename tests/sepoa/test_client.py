@@ -237,6 +237,18 @@ def test_a_client_waits_for_pairs_whose_answers_it_read_before(
         study.wait_for([Asked("nobody's", 1, False)], timeout=5)
 
 
+def test_a_pair_whose_answers_are_all_skips_is_answered_skip(app_client: TestClient) -> None:
+    """A skip counts toward k as the queue counts it (nobody is asked again): wait_for gives
+    the pair back with the aggregate skip rather than wait for ever."""
+    run_id, token = run_and_token(app_client)
+    study = Study(URL, token, run_id, client=app_client, progress=False)
+    queries = study.ask(pairs(2))
+    label_all(app_client, run_id, "kim", "skip", most=1)
+    label_all(app_client, run_id, "lee", "left", most=1)
+    answers = study.wait_for(queries, timeout=5)
+    assert sorted(answers.values()) == ["first", "skip"]
+
+
 def test_wait_for_refuses_a_gold_pair_at_once(app_client: TestClient) -> None:
     """A gold pair takes the answer of everyone it is shown to: never complete, so wait_for
     says so instead of waiting for ever; its answers come in answers()."""
