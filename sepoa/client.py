@@ -14,8 +14,9 @@ key is its own `key`, or one made from its content: pushing the same pairs again
 restarted after a crash) makes no second query. Requests that fail on the way (a connection error,
 a 5xx, a 429) are retried with exponential backoff; a 4xx is a `StudyError` naming the problem. The
 answers feed is read from a cursor, kept in `cursor_file` when given, so a client killed while it
-waits reads on from where it was: nothing is lost, nothing comes twice (the cursor names its run:
-another run's file is a ValueError). `wait_for` reads where
+waits reads on from where it was: nothing is lost. The file moves past a page of answers when the
+next read begins (or at `close()`), so a client killed while it handles a page reads that page
+again. The cursor names its run: another run's file is a ValueError. `wait_for` reads where
 its pairs stand before it follows the feed, so it also returns pairs whose answers the cursor
 has passed (read by `answers()`, by another wait, or before a restart).
 
@@ -100,6 +101,9 @@ class AnswerEvent:
     kind: Literal["answer", "withdrawal"]
     key: str
     query_id: int
+    label_id: int
+    """the answer's id (a withdrawal's is the answer it takes back): with `kind`, it tells an
+    event read twice (after a restart, see `Study.answers`) from a new one"""
     labeller: str
     answer: str
     aggregate: str | None
@@ -118,7 +122,7 @@ class AnswerEvent:
     @classmethod
     def of(cls, event: Mapping[str, Any]) -> AnswerEvent:
         return cls(kind=event["kind"], key=event["key"], query_id=event["query_id"],
-                   labeller=event["labeller"], answer=event["answer"],
+                   label_id=event["label_id"], labeller=event["labeller"], answer=event["answer"],
                    aggregate=event["aggregate"], tie=event["tie"], complete=event["complete"],
                    gold=event["gold"], meta=event["meta"], raw=event,
                    answers={given["labeller"]: given["answer"] for given in event["answers"]})
@@ -261,6 +265,7 @@ class _Core:
         self.cursor = "0.0"
         if self.cursor_file is not None and self.cursor_file.exists():
             self.cursor = self.checked_cursor(self.cursor_file.read_text().strip() or "0.0")
+        self.saved = self.cursor
 
     def checked_cursor(self, cursor: str) -> str:
         """A cursor file's cursor, if it is this run's (the feed's cursor names its run).
@@ -276,12 +281,18 @@ class _Core:
                          f"{self.run}'s answers from the start")
 
     def keep(self, cursor: str) -> None:
-        """Move the cursor on, on disk first (atomically) when a file keeps it."""
-        if self.cursor_file is not None:
-            tmp = self.cursor_file.with_name(self.cursor_file.name + ".tmp")
-            tmp.write_text(cursor)
-            os.replace(tmp, self.cursor_file)
+        """Move the cursor on past a page just read; its file follows at the next read
+        (`save`), once the caller has had the page."""
         self.cursor = cursor
+
+    def save(self) -> None:
+        """Write the cursor to its file (atomically), if a file keeps it: the pages read up to
+        it are handled, since the caller reads on or closes."""
+        if self.cursor_file is not None and self.saved != self.cursor:
+            tmp = self.cursor_file.with_name(self.cursor_file.name + ".tmp")
+            tmp.write_text(self.cursor)
+            os.replace(tmp, self.cursor_file)
+            self.saved = self.cursor
 
     def request(self, call: Call) -> dict[str, Any]:
         headers = dict(self.headers)
@@ -411,17 +422,26 @@ class Study:
         self.core = _Core(url, token, run, retries=retries, backoff=backoff,
                           cursor_file=cursor_file, progress=progress)
         self.http = client or httpx.Client(timeout=60.0)
+        self.owned = client is None
+        """a client given is its giver's to close"""
         self.reading = threading.Lock()
         """one read of the feed at a time: its events reach the waits in the feed's order"""
 
     def close(self) -> None:
-        self.http.close()
+        """Keep the cursor past the last page read (it is handled), and close the connection
+        (unless the httpx client was given)."""
+        self.core.save()
+        if self.owned:
+            self.http.close()
 
     def __enter__(self) -> Study:
         return self
 
-    def __exit__(self, *_: object) -> None:
-        self.close()
+    def __exit__(self, failed: type[BaseException] | None, *_: object) -> None:
+        if failed is None:
+            self.close()
+        elif self.owned:  # the last page may not be handled: it is read again next time
+            self.http.close()
 
     @property
     def cursor(self) -> str:
@@ -464,8 +484,11 @@ class Study:
 
     def answers(self, wait: float = 0.0) -> list[AnswerEvent]:
         """The answers and withdrawals since the cursor (waiting up to `wait` s, 60 at most,
-        for one), and the cursor moved past them."""
+        for one), and the cursor moved past them. The cursor file moves past a page when the
+        next read begins, or at `close()`: a client killed while it handles a page reads that
+        page again (each event at least once; its `label_id` and kind tell one apart)."""
         with self.reading:
+            self.core.save()  # the page read before is handled: the caller reads on
             return self.core.read(self.call(self.core.answers_call(wait)))
 
     def states(self, keys: Sequence[str]) -> dict[str, PairState]:
@@ -495,16 +518,22 @@ class AsyncStudy:
         self.core = _Core(url, token, run, retries=retries, backoff=backoff,
                           cursor_file=cursor_file, progress=progress)
         self.http = client or httpx.AsyncClient(timeout=60.0)
+        self.owned = client is None
         self.reading = asyncio.Lock()
 
     async def aclose(self) -> None:
-        await self.http.aclose()
+        self.core.save()
+        if self.owned:
+            await self.http.aclose()
 
     async def __aenter__(self) -> AsyncStudy:
         return self
 
-    async def __aexit__(self, *_: object) -> None:
-        await self.aclose()
+    async def __aexit__(self, failed: type[BaseException] | None, *_: object) -> None:
+        if failed is None:
+            await self.aclose()
+        elif self.owned:
+            await self.http.aclose()
 
     @property
     def cursor(self) -> str:
@@ -542,6 +571,7 @@ class AsyncStudy:
 
     async def answers(self, wait: float = 0.0) -> list[AnswerEvent]:
         async with self.reading:
+            self.core.save()
             return self.core.read(await self.call(self.core.answers_call(wait)))
 
     async def states(self, keys: Sequence[str]) -> dict[str, PairState]:

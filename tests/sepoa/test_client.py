@@ -196,15 +196,37 @@ def test_a_client_killed_while_waiting_resumes_from_its_cursor(
     queries = first.ask(pairs(4))
     label_all(app_client, run_id, "cat", most=2)
     seen = [event.key for event in first.answers()]
-    assert len(seen) == 2 and cursor.read_text() == first.cursor
-    del first  # killed here: what it read is in its cursor file
-    label_all(app_client, run_id, "dan", most=2)
+    assert len(seen) == 2 and first.answers() == []  # read on: those two are handled
+    assert cursor.read_text() == first.cursor
+    label_all(app_client, run_id, "dan", most=1)
+    [mid_page] = first.answers()
+    del first  # killed while it handled that page: its cursor file is still before it
+    label_all(app_client, run_id, "eve", most=1)
     again = Study(URL, token, run_id, client=app_client, progress=False, cursor_file=cursor)
     assert [q.created for q in again.ask(pairs(4))] == [False] * 4  # re-asked: no duplicate
-    rest = [event.key for event in again.answers()]
-    assert len(rest) == 2 and not set(rest) & set(seen)
-    assert set(seen) | set(rest) == {q.key for q in queries}  # nothing lost
+    rest = again.answers()
+    assert [e.label_id for e in rest][:1] == [mid_page.label_id]  # read again, not lost
+    assert len(rest) == 2 and not {e.key for e in rest} & set(seen)
+    assert set(seen) | {e.key for e in rest} == {q.key for q in queries}  # nothing lost
     assert stored_queries(app_client) == 4
+
+
+def test_a_client_that_fails_while_handling_a_page_reads_it_again(
+    app_client: TestClient, tmp_path: Path
+) -> None:
+    run_id, token = run_and_token(app_client)
+    cursor = tmp_path / "run.cursor"
+    with pytest.raises(RuntimeError), Study(URL, token, run_id, client=app_client,
+                                            progress=False, cursor_file=cursor) as study:
+        study.ask(pairs(1))
+        label_all(app_client, run_id, "fay")
+        assert len(study.answers()) == 1
+        raise RuntimeError("the caller failed before it handled the page")
+    assert not cursor.exists()
+    with Study(URL, token, run_id, client=app_client, progress=False,
+               cursor_file=cursor) as study:
+        assert len(study.answers()) == 1  # the page again: handled this time
+    assert cursor.read_text() == f"{run_id}.1.0"
 
 
 def test_wait_for_returns_answers_read_before_a_crash_from_its_cursor_file(
@@ -268,8 +290,8 @@ def test_asyncio_waits_at_once_each_get_their_pairs(app_client: TestClient) -> N
 
     async def main() -> list[dict[str, str]]:
         transport = httpx.ASGITransport(app=app_client.app)  # type: ignore[arg-type]
-        async with AsyncStudy(URL, token, run_id, progress=False, client=httpx.AsyncClient(
-                transport=transport, base_url=URL)) as study:
+        async with httpx.AsyncClient(transport=transport, base_url=URL) as http, AsyncStudy(
+                URL, token, run_id, progress=False, client=http) as study:
             asked = [await study.ask([pair]) for pair in pairs(3)]
             waits = [asyncio.create_task(study.wait_for(queries, timeout=20))
                      for queries in asked]
@@ -289,7 +311,8 @@ def test_a_cursor_file_of_another_run_is_refused(app_client: TestClient,
     study = Study(URL, first_token, first, client=app_client, progress=False, cursor_file=cursor)
     study.ask(pairs(1))
     label_all(app_client, first, "ida")
-    assert len(study.answers()) == 1 and cursor.read_text() == f"{first}.1.0"
+    assert len(study.answers()) == 1 and study.answers() == []
+    assert cursor.read_text() == f"{first}.1.0"
     with pytest.raises(ValueError, match=f"run {first}'s cursor, not run {second}'s"):
         Study(URL, second_token, second, client=app_client, cursor_file=cursor)
     cursor.write_text("1.0")  # the older form, naming no run
@@ -302,8 +325,8 @@ def test_the_asyncio_client_asks_and_reads_the_same(app_client: TestClient) -> N
 
     async def main() -> tuple[list[Any], list[Any]]:
         transport = httpx.ASGITransport(app=app_client.app)  # type: ignore[arg-type]
-        async with AsyncStudy(URL, token, run_id, progress=False, client=httpx.AsyncClient(
-                transport=transport, base_url=URL)) as study:
+        async with httpx.AsyncClient(transport=transport, base_url=URL) as http, AsyncStudy(
+                URL, token, run_id, progress=False, client=http) as study:
             queries = await study.ask(pairs(2))
             await asyncio.to_thread(label_all, app_client, run_id, "eve")
             return queries, list((await study.wait_for(queries, timeout=10)).items())
