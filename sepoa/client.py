@@ -266,6 +266,8 @@ class _Core:
         if self.cursor_file is not None and self.cursor_file.exists():
             self.cursor = self.checked_cursor(self.cursor_file.read_text().strip() or "0.0")
         self.saved = self.cursor
+        self.status: str | None = None
+        """the run's status, as the last read of the feed gave it"""
 
     def checked_cursor(self, cursor: str) -> str:
         """A cursor file's cursor, if it is this run's (the feed's cursor names its run).
@@ -329,6 +331,7 @@ class _Core:
         from the one cursor the client keeps, so another's read may carry its pairs)."""
         events = [AnswerEvent.of(event) for event in body["events"]]
         self.keep(body["cursor"])
+        self.status = body["status"]
         for waiting in self.waits:
             waiting.note(events)
         return events
@@ -377,11 +380,15 @@ class Waiting:
     def done(self) -> int:
         return sum(value is not None for value in self.pending.values())
 
-    def next_wait(self) -> float | None:
+    def next_wait(self, status: str | None) -> float | None:
         """Seconds the next answers request may wait; None once every pair is answered.
-        TimeoutError once the time is up."""
+        TimeoutError once the time is up; StudyError once the run is over (`status`, as the
+        last read gave it: the feed waits for nothing then, and no answer is to come)."""
         if self.done() == len(self.pending):
             return None
+        if status is not None and status not in ("running", "paused"):
+            raise StudyError(None, f"the run is {status}: {len(self.pending) - self.done()} of "
+                                   f"{len(self.pending)} pairs still want answers")
         left = LONGEST_WAIT_S if self.deadline is None else self.deadline - time.monotonic()
         if left <= 0:
             raise TimeoutError(f"{len(self.pending) - self.done()} of {len(self.pending)} "
@@ -500,11 +507,11 @@ class Study:
         """Wait until each query (an ordinary pair) has its k answers, from where the pairs
         stand now and then as the answers come (a tqdm bar counts them); the aggregate answer
         of each, by key. TimeoutError past `timeout` seconds; ValueError for a gold pair or a
-        key no pair of the run has."""
+        key no pair of the run has; StudyError once the run is stopped, finished or failed."""
         waiting = Waiting(queries, timeout, self.core.progress)
         with self.core.watching(waiting), waiting.bar:
             waiting.start(self.states(list(waiting.pending)))
-            while (wait := waiting.next_wait()) is not None:
+            while (wait := waiting.next_wait(self.core.status)) is not None:
                 self.answers(wait=wait)
         return waiting.result()
 
@@ -583,6 +590,6 @@ class AsyncStudy:
         waiting = Waiting(queries, timeout, self.core.progress)
         with self.core.watching(waiting), waiting.bar:
             waiting.start(await self.states(list(waiting.pending)))
-            while (wait := waiting.next_wait()) is not None:
+            while (wait := waiting.next_wait(self.core.status)) is not None:
                 await self.answers(wait=wait)
         return waiting.result()

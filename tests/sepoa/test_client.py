@@ -271,6 +271,19 @@ def test_a_pair_whose_answers_are_all_skips_is_answered_skip(app_client: TestCli
     assert sorted(answers.values()) == ["first", "skip"]
 
 
+def test_wait_for_ends_when_the_run_is_stopped(app_client: TestClient) -> None:
+    """A stopped run's feed waits for nothing: wait_for says the run is over at once rather
+    than ask again and again until its time is up."""
+    run_id, token = run_and_token(app_client)
+    study = Study(URL, token, run_id, client=app_client, progress=False)
+    queries = study.ask(pairs(1))
+    assert app_client.post(f"/api/runs/{run_id}/stop", headers=OPERATOR).status_code == 200
+    started = time.monotonic()
+    with pytest.raises(StudyError, match="the run is stopped: 1 of 1 pairs"):
+        study.wait_for(queries, timeout=5)
+    assert time.monotonic() - started < 2
+
+
 def test_wait_for_refuses_a_gold_pair_at_once(app_client: TestClient) -> None:
     """A gold pair takes the answer of everyone it is shown to: never complete, so wait_for
     says so instead of waiting for ever; its answers come in answers()."""
