@@ -24,7 +24,7 @@ NO_NUL = r"^[^\x00]*$"
 
 def _no_nul(text: str) -> str:
     if "\x00" in text:
-        raise ValueError("holds a NUL character (\\u0000), which no text can store")
+        raise ValueError("the key holds a NUL character (\\u0000), which no text can store")
     return text
 
 
