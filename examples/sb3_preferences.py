@@ -43,7 +43,8 @@ from trainer.doctor import choose_backend
 from trainer.reward_model import LabelledPairs, RewardModel
 
 ANSWER_TARGETS = {"first": 0.0, "second": 1.0, "equal": 0.5}
-"""an aggregate answer as the reward model's target, P[second better]; cant_tell is dropped"""
+"""an aggregate answer as the reward model's target, P[second better]; cant_tell and skip
+are dropped"""
 
 
 @dataclass(frozen=True)
@@ -175,7 +176,7 @@ class Preferences:
         return ((obs_action - self.mean) / self.std).astype(np.float32)
 
     def add(self, first: np.ndarray, second: np.ndarray, answer: str) -> bool:
-        """One pair's aggregate answer; False for one that says nothing (cant_tell)."""
+        """One pair's aggregate answer; False for one that says nothing (cant_tell, skip)."""
         target = ANSWER_TARGETS.get(answer)
         if target is not None:
             self.pairs.add(self.features(first), self.features(second), target)

@@ -1,5 +1,6 @@
 """The answers feed: an external run's answers and withdrawals after a cursor, each with its
-pair's standing answers and their tally (`answers_after`)."""
+pair's standing answers and their tally (`answers_after`); and where pairs named by their keys
+stand now (`pair_states`), for a reader that needs no event to know a pair is answered."""
 
 from __future__ import annotations
 
@@ -11,8 +12,10 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from externalruns.runs import stored_id
 from labelqueue.errors import Invalid
 from labelqueue.models import (
+    EXTERNAL_PAIRS,
     QUERIES,
     ExternalPair,
     Label,
@@ -27,24 +30,36 @@ from runvocab.answers import DECISIVE, Answer, aggregate
 
 FEED_LIMIT = 500
 """the most events one read of the answers feed returns"""
+STATES_LIMIT = 100
+"""the most keys one read of pair states names"""
 
 @dataclass(frozen=True)
 class Cursor:
-    """Where a reader of the answers feed is: after this label id and this withdrawal id."""
+    """Where a reader of a run's answers feed is: after this label id and this withdrawal id
+    of this run. Written '<run>.<label>.<withdrawal>'; '0.0' is the start of any run's."""
 
+    run: int = 0
+    """the run whose feed gave it; 0: the start, of any run"""
     label: int = 0
     withdrawal: int = 0
 
     def __str__(self) -> str:
-        return f"{self.label}.{self.withdrawal}"
+        return "0.0" if self == Cursor() else f"{self.run}.{self.label}.{self.withdrawal}"
 
     @classmethod
     def parse(cls, text: str) -> Cursor:
-        """Invalid for text that is no cursor the feed gave."""
-        label, dot, withdrawal = text.partition(".")
-        if not (label.isdigit() and withdrawal.isdigit() and dot) or len(text) > 40:
-            raise Invalid(f"cursor {text!r} is not one the answers feed gave (like '0.0')")
-        return cls(int(label), int(withdrawal))
+        """Invalid for text that is no cursor the feed gave, or one of two numbers (the
+        older form, naming no run) other than the start."""
+        parts = text.split(".")
+        ids = [stored_id(part) for part in parts]
+        if len(parts) == 2 and ids[0] is not None and ids[1] is not None and ids != [0, 0]:
+            raise Invalid(f"cursor {text!r} names no run (the feed gives '<run>.<label>."
+                          "<withdrawal>'): read from the start, after=0.0, and pass over the "
+                          "answers already handled by their label_id")
+        if not (len(parts) in (2, 3) and all(i is not None for i in ids)):
+            raise Invalid(f"cursor {text[:40]!r} is not one the answers feed gave (like "
+                          "'0.0', the start, or '7.57.2')")
+        return cls(*(id_ or 0 for id_ in ids)) if len(parts) == 3 else cls()
 
 
 def tally(answers: Sequence[Answer]) -> tuple[Answer, bool]:
@@ -75,8 +90,8 @@ def answers_after(session: Session, *, run_id: int, cursor: Cursor,
     The cursor is exact, with nothing held back: a run's labels (and its withdrawals) commit
     in the order of their ids, since each draws its id holding the run's row lock
     (`labelqueue.labels`, `labelqueue.undo`; SQLite's one writer anyway), so a read that sees
-    one sees every one before it. Invalid for a cursor ahead of the run's answers; NotFound
-    for an unknown run."""
+    one sees every one before it. Invalid for another run's cursor or one ahead of the run's
+    answers; NotFound for an unknown run."""
     with reading(session):
         status = get_row(session, Run, run_id).status.value
         open_pairs = session.scalar(select(func.count()).select_from(QUERIES).where(
@@ -86,6 +101,9 @@ def answers_after(session: Session, *, run_id: int, cursor: Cursor,
                                     .where(Label.run_id == run_id)) or 0
         last_withdrawal = session.scalar(select(func.coalesce(func.max(Withdrawal.id), 0))
                                          .where(Withdrawal.run_id == run_id)) or 0
+        if cursor.run not in (0, run_id):
+            raise Invalid(f"cursor {cursor} is run {cursor.run}'s, not run {run_id}'s: read "
+                          f"run {run_id}'s answers from the start, after=0.0")
         if cursor.label > last_label or cursor.withdrawal > last_withdrawal:
             raise Invalid(f"cursor {cursor} is ahead of run {run_id}'s answers (its newest "
                              f"is {last_label}.{last_withdrawal})")
@@ -126,8 +144,25 @@ def answers_after(session: Session, *, run_id: int, cursor: Cursor,
                        "answer": label.answer.value, "at": withdrawal.withdrawn_at.isoformat(),
                        "flag": None, **state[label.query_id]})
     events.sort(key=lambda event: event["at"])
-    return Feed(events=events, cursor=Cursor(label_to, withdrawal_to), open_pairs=open_pairs,
-                status=status)
+    return Feed(events=events, cursor=Cursor(run_id, label_to, withdrawal_to),
+                open_pairs=open_pairs, status=status)
+
+
+def pair_states(session: Session, *, run_id: int,
+                keys: Sequence[str]) -> tuple[list[dict[str, Any]], list[str]]:
+    """The external run's pairs under these keys as they stand now, each as an answers event
+    carries it (standing answers, aggregate, tie, complete), in the order of `keys`; and the
+    keys no pair of the run has. A reader that read past a pair's answers (before a restart,
+    or for another wait) learns here that it has them. NotFound for an unknown run."""
+    keys = list(dict.fromkeys(keys))
+    with reading(session):
+        get_row(session, Run, run_id)
+        ids = dict(session.execute(
+            select(EXTERNAL_PAIRS.c.key, EXTERNAL_PAIRS.c.query_id)
+            .where(EXTERNAL_PAIRS.c.run_id == run_id, EXTERNAL_PAIRS.c.key.in_(keys)))
+            .tuples().all())
+        state = _pair_states(session, set(ids.values()))
+    return [state[ids[key]] for key in keys if key in ids], [k for k in keys if k not in ids]
 
 
 def _pair_states(session: Session, query_ids: set[int]) -> dict[int, dict[str, Any]]:

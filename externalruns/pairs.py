@@ -14,10 +14,11 @@ from datetime import datetime
 from typing import Any
 
 from sqlalchemy import func, insert, select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from externalruns.runs import is_external
-from labelqueue.errors import Conflict, Invalid
+from labelqueue.errors import Conflict, Invalid, NotFound
 from labelqueue.models import (
     EXTERNAL_PAIRS,
     QUERIES,
@@ -30,7 +31,7 @@ from labelqueue.models import (
 from labelqueue.practice import reserve
 from labelqueue.queries import checked_query_fields
 from labelqueue.runs import EXTERNAL
-from labelqueue.transaction import get_row, reading, transaction
+from labelqueue.transaction import reading, transaction
 from runvocab.answers import Answer
 from runvocab.clip_format import ClipInfo
 
@@ -38,6 +39,9 @@ KEY_MAX = 200
 """the longest idempotency key"""
 META_MAX_BYTES = 4096
 """the most a pair's hidden metadata may hold, as JSON"""
+SECONDS_APART = 0.05
+"""how much the two clips of a pair may differ in length (the label page plays them on one
+clock, in seconds)"""
 
 @dataclass(frozen=True)
 class PairSpec:
@@ -121,6 +125,11 @@ def _check_pair(index: int, pair: PairSpec, clips: Mapping[str, ClipInfo]) -> No
             f"{where}: the two clips differ in shape: {first.width}x{first.height}, "
             f"{first.frames} frames against {second.width}x{second.height}, {second.frames} "
             "frames (the label page plays them side by side on one clock)")
+    if abs(first.seconds - second.seconds) > SECONDS_APART:
+        raise Invalid(
+            f"{where}: the two clips last {first.seconds:.2f} s and {second.seconds:.2f} s "
+            f"(another frame rate); the label page plays them side by side on one clock, so "
+            f"they must last as long, within {SECONDS_APART} s")
     for name in ("returns", "trajectory_returns"):
         values = getattr(pair, name)
         if values is not None and not all(math.isfinite(v) for v in values):
@@ -146,10 +155,13 @@ def push_pairs(session: Session, *, run_id: int, pairs: Sequence[PairSpec],
     """Store the pairs as queries of the external run, all or none; one `Pushed` per pair, in
     order. `clips`: what the uploaded clips the pairs name hold (`runvocab.clip_format.ClipInfo`).
 
-    Invalid naming the pair for a missing clip, two clips of different shapes, a gold
+    Invalid naming the pair for a missing clip, two clips of different shapes or lengths
+    in seconds, a gold
     answer that is neither first nor second or contradicts the returns, or a key used twice in
     the push; Conflict for a key stored with other content, a run that is no external run or
-    takes no answers, or pairs beyond the budget. Nothing is stored on any refusal.
+    takes no answers, or pairs beyond the budget. Nothing is stored on any refusal. Pushes to
+    one run take turns on its row lock, so two at once (a retry racing its first try) store
+    each key once.
     """
     keys = Counter(pair.key for pair in pairs)
     for index, pair in enumerate(pairs):
@@ -157,8 +169,22 @@ def push_pairs(session: Session, *, run_id: int, pairs: Sequence[PairSpec],
         if keys[pair.key] > 1:
             raise Invalid(f"pairs[{index}]: key {pair.key!r} is used twice in this push")
     digests = [pair.digest() for pair in pairs]
+    try:
+        return _store(session, run_id=run_id, pairs=pairs, digests=digests, clips=clips)
+    except IntegrityError as error:  # the run's lock makes this rare: a safety net
+        raise Conflict(f"another push to run {run_id} stored some of these keys at the same "
+                       "time: push again (a stored key is not stored twice)") from error
+
+
+def _store(session: Session, *, run_id: int, pairs: Sequence[PairSpec], digests: list[str],
+           clips: Mapping[str, ClipInfo]) -> list[Pushed]:
     with transaction(session):
-        run = get_row(session, Run, run_id)
+        # Pushes to one run take turns on its row (PostgreSQL; SQLite writes one at a time):
+        # each reads the stored keys, the budget and the last position after the one before.
+        run = session.scalars(select(Run).where(Run.id == run_id).with_for_update()
+                              .execution_options(populate_existing=True)).first()
+        if run is None:
+            raise NotFound(f"run {run_id} does not exist")
         if not is_external(run):
             raise Conflict(f"run {run_id} is trained by a worker: pairs are pushed to an "
                            "external run only")
@@ -167,7 +193,7 @@ def push_pairs(session: Session, *, run_id: int, pairs: Sequence[PairSpec],
         stored = {row.key: row for row in session.execute(
             select(EXTERNAL_PAIRS.c.key, EXTERNAL_PAIRS.c.digest, EXTERNAL_PAIRS.c.query_id)
             .where(EXTERNAL_PAIRS.c.run_id == run_id,
-                   EXTERNAL_PAIRS.c.key.in_(list(keys))))}
+                   EXTERNAL_PAIRS.c.key.in_([pair.key for pair in pairs])))}
         for pair, digest in zip(pairs, digests, strict=True):
             row = stored.get(pair.key)
             if row is not None and row.digest != digest:

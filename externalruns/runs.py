@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import hmac
+import re
 import secrets
 
 from sqlalchemy import select
@@ -26,6 +27,18 @@ from labelqueue.transaction import detach, get_row, reading, transaction
 from runvocab.config import FeedbackConfig
 
 TOKEN_PREFIX = "run."
+ID_MAX = 2**31 - 1
+"""the largest id an INTEGER column holds on PostgreSQL"""
+_ID = re.compile(r"[0-9]{1,10}")
+
+
+def stored_id(text: str) -> int | None:
+    """The id `text` writes in ASCII digits, or None for text that is none (str.isdigit
+    takes '²', which int() does not) or too large for an id column."""
+    if _ID.fullmatch(text) is None or int(text) > ID_MAX:
+        return None
+    return int(text)
+
 
 def is_external(run: Run) -> bool:
     return run.algo == EXTERNAL
@@ -111,11 +124,12 @@ def run_of_token(session: Session, *, token: str) -> int | None:
     """The run a run token is scoped to, or None for a token that is no live run token."""
     if not token.startswith(TOKEN_PREFIX):
         return None
-    token_id, dot, _ = token.removeprefix(TOKEN_PREFIX).partition(".")
-    if not dot or not token_id.isdigit() or len(token_id) > 18:
+    text, dot, _ = token.removeprefix(TOKEN_PREFIX).partition(".")
+    token_id = stored_id(text)
+    if not dot or token_id is None:
         return None
     with reading(session):
-        row = session.get(RunToken, int(token_id), populate_existing=True)
+        row = session.get(RunToken, token_id, populate_existing=True)
         found = None if row is None else (row.run_id, row.token_hash, row.revoked_at)
     if found is None or found[2] is not None:
         return None

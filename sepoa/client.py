@@ -4,7 +4,7 @@
 
     study = Study("http://127.0.0.1:8000", token, run=3, cursor_file="run3.cursor")
     queries = study.ask([Pair(frames_a, frames_b, returns=(12.5, 3.0), meta={"ids": [7, 9]})])
-    answers = study.wait_for(queries)          # {key: "first" | "second" | "equal" | "cant_tell"}
+    answers = study.wait_for(queries)  # {key: "first" | "second" | "equal" | "cant_tell" | "skip"}
 
 `token` is the run's token (`POST /api/runs/{id}/tokens`, an operator's call; an operator revokes
 it with `POST /api/runs/{id}/tokens/{token_id}/revoke`, after which every call is a `StudyError`
@@ -14,7 +14,11 @@ key is its own `key`, or one made from its content: pushing the same pairs again
 restarted after a crash) makes no second query. Requests that fail on the way (a connection error,
 a 5xx, a 429) are retried with exponential backoff; a 4xx is a `StudyError` naming the problem. The
 answers feed is read from a cursor, kept in `cursor_file` when given, so a client killed while it
-waits reads on from where it was: nothing is lost, nothing comes twice.
+waits reads on from where it was: nothing is lost. The file moves past a page of answers when the
+next read begins (or at `close()`), so a client killed while it handles a page reads that page
+again. The cursor names its run: another run's file is a ValueError. `wait_for` reads where
+its pairs stand before it follows the feed, so it also returns pairs whose answers the cursor
+has passed (read by `answers()`, by another wait, or before a restart).
 
 `AsyncStudy` is the same over asyncio.
 """
@@ -26,11 +30,14 @@ import hashlib
 import io
 import json
 import os
+import threading
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
+from urllib.parse import quote
 
 import httpx
 import numpy as np
@@ -41,6 +48,15 @@ Clip = np.ndarray | str | os.PathLike[str] | bytes
 MEDIA = {".mp4": "video/mp4", ".webm": "video/webm", ".npy": "application/x-npy"}
 LONGEST_WAIT_S = 60.0
 """the longest one answers request waits on the server"""
+PUSH_PAIRS = 500
+"""the most pairs one push takes (the server's limit)"""
+PUSH_BYTES = 60 * 1024
+"""the most one push's body holds: the server reads 64 KiB by default
+(`SEPOA_BODY_LIMIT_BYTES`); a push it still finds too large (413) is split in two"""
+STATES_KEYS = 100
+"""the most keys one read of pair states names (the server's limit)"""
+STATES_URL_CHARS = 6000
+"""the most characters of keys one read of pair states sends (a URL stays short)"""
 
 
 class StudyError(Exception):
@@ -85,14 +101,18 @@ class AnswerEvent:
     kind: Literal["answer", "withdrawal"]
     key: str
     query_id: int
+    label_id: int
+    """the answer's id (a withdrawal's is the answer it takes back): with `kind`, it tells an
+    event read twice (after a restart, see `Study.answers`) from a new one"""
     labeller: str
     answer: str
     aggregate: str | None
-    """the majority of the pair's standing answers: first, second, equal, or cant_tell (when
-    most cannot tell or two answers tie); None with none standing"""
+    """the majority of the pair's standing answers: first, second, equal, cant_tell (when
+    most cannot tell or two answers tie), or skip (when every one is a skip); None with none
+    standing"""
     tie: bool
     complete: bool
-    """the pair has its k answers"""
+    """the pair has its k answers (skips count: nobody is asked again)"""
     gold: bool
     answers: dict[str, str]
     """each labeller's standing answer"""
@@ -102,10 +122,32 @@ class AnswerEvent:
     @classmethod
     def of(cls, event: Mapping[str, Any]) -> AnswerEvent:
         return cls(kind=event["kind"], key=event["key"], query_id=event["query_id"],
-                   labeller=event["labeller"], answer=event["answer"],
+                   label_id=event["label_id"], labeller=event["labeller"], answer=event["answer"],
                    aggregate=event["aggregate"], tie=event["tie"], complete=event["complete"],
                    gold=event["gold"], meta=event["meta"], raw=event,
                    answers={given["labeller"]: given["answer"] for given in event["answers"]})
+
+
+@dataclass(frozen=True)
+class PairState:
+    """One of the run's pairs as it stands now (`Study.states`): its standing answers and
+    their tally, as an `AnswerEvent` carries them."""
+
+    key: str
+    query_id: int
+    aggregate: str | None
+    tie: bool
+    complete: bool
+    gold: bool
+    answers: dict[str, str]
+    meta: Mapping[str, Any] | None
+
+    @classmethod
+    def of(cls, state: Mapping[str, Any]) -> PairState:
+        return cls(key=state["key"], query_id=state["query_id"], aggregate=state["aggregate"],
+                   tie=state["tie"], complete=state["complete"], gold=state["gold"],
+                   meta=state["meta"],
+                   answers={given["labeller"]: given["answer"] for given in state["answers"]})
 
 
 # What both forms share: requests as plain data, and what to make of the answers.
@@ -146,6 +188,43 @@ def pair_body(pair: Pair, first: str, second: str) -> dict[str, Any]:
     return {"key": key, **{name: value for name, value in body.items() if value is not None}}
 
 
+def push_batches(bodies: Sequence[dict[str, Any]]) -> list[list[dict[str, Any]]]:
+    """The pairs' bodies in order, in pushes of at most `PUSH_PAIRS` pairs and `PUSH_BYTES`
+    bytes (one pair larger than that is a push of its own)."""
+    batches: list[list[dict[str, Any]]] = []
+    batch: list[dict[str, Any]] = []
+    size = 0
+    for body in bodies:
+        item = len(compact(body)) + 1
+        if batch and (len(batch) == PUSH_PAIRS or size + item > PUSH_BYTES):
+            batches.append(batch)
+            batch, size = [], 0
+        batch.append(body)
+        size += item
+    return [*batches, batch] if batch else batches
+
+
+def push_call(batch: Sequence[dict[str, Any]]) -> Call:
+    return Call("POST", "/pairs", content=compact({"pairs": list(batch)}),
+                content_type="application/json")
+
+
+def compact(value: Any) -> bytes:
+    return json.dumps(value, separators=(",", ":")).encode()
+
+
+def halves(batch: Sequence[dict[str, Any]], error: StudyError) -> list[Sequence[dict[str, Any]]]:
+    """A push the server found too large (413), in two; the error again for any other
+    refusal, or a single pair."""
+    if error.status != 413 or len(batch) < 2:
+        raise error
+    return [batch[:len(batch) // 2], batch[len(batch) // 2:]]
+
+
+def queries_of(pushed: Iterable[Mapping[str, Any]]) -> list[Query]:
+    return [Query(item["key"], item["query_id"], item["created"]) for item in pushed]
+
+
 def retry_after(response: httpx.Response | None, attempt: int, backoff: float) -> float | None:
     """Seconds to wait before trying again, or None when the request is not to be retried: a
     connection error (no response), a 5xx or a 429 is retried."""
@@ -181,17 +260,41 @@ class _Core:
         self.headers = {"Authorization": f"Bearer {token}"}
         self.cursor_file = None if cursor_file is None else Path(cursor_file)
         self.progress = progress
+        self.waits: list[Waiting] = []
+        """the waits under way: every read of the feed reaches each"""
         self.cursor = "0.0"
         if self.cursor_file is not None and self.cursor_file.exists():
-            self.cursor = self.cursor_file.read_text().strip() or "0.0"
+            self.cursor = self.checked_cursor(self.cursor_file.read_text().strip() or "0.0")
+        self.saved = self.cursor
+        self.status: str | None = None
+        """the run's status, as the last read of the feed gave it"""
+
+    def checked_cursor(self, cursor: str) -> str:
+        """A cursor file's cursor, if it is this run's (the feed's cursor names its run).
+        ValueError for another run's, or one of two numbers (the older form, naming no run)."""
+        parts = cursor.split(".")
+        if cursor == "0.0" or (len(parts) == 3 and parts[0] == str(self.run)):
+            return cursor
+        where = f"cursor file {self.cursor_file} holds {cursor!r}"
+        if len(parts) == 3:
+            raise ValueError(f"{where}, run {parts[0]}'s cursor, not run {self.run}'s: give "
+                             "each run a cursor file of its own")
+        raise ValueError(f"{where}, a cursor that names no run: delete the file to read run "
+                         f"{self.run}'s answers from the start")
 
     def keep(self, cursor: str) -> None:
-        """Move the cursor on, on disk first (atomically) when a file keeps it."""
-        if self.cursor_file is not None:
-            tmp = self.cursor_file.with_name(self.cursor_file.name + ".tmp")
-            tmp.write_text(cursor)
-            os.replace(tmp, self.cursor_file)
+        """Move the cursor on past a page just read; its file follows at the next read
+        (`save`), once the caller has had the page."""
         self.cursor = cursor
+
+    def save(self) -> None:
+        """Write the cursor to its file (atomically), if a file keeps it: the pages read up to
+        it are handled, since the caller reads on or closes."""
+        if self.cursor_file is not None and self.saved != self.cursor:
+            tmp = self.cursor_file.with_name(self.cursor_file.name + ".tmp")
+            tmp.write_text(self.cursor)
+            os.replace(tmp, self.cursor_file)
+            self.saved = self.cursor
 
     def request(self, call: Call) -> dict[str, Any]:
         headers = dict(self.headers)
@@ -224,9 +327,44 @@ class _Core:
                     timeout=wait + 30.0)
 
     def read(self, body: Mapping[str, Any]) -> list[AnswerEvent]:
+        """The events of a read of the feed, noted by every wait under way (a wait reads on
+        from the one cursor the client keeps, so another's read may carry its pairs)."""
         events = [AnswerEvent.of(event) for event in body["events"]]
         self.keep(body["cursor"])
+        self.status = body["status"]
+        for waiting in self.waits:
+            waiting.note(events)
         return events
+
+    @contextmanager
+    def watching(self, waiting: Waiting) -> Iterator[None]:
+        self.waits.append(waiting)
+        try:
+            yield
+        finally:
+            self.waits.remove(waiting)
+
+
+def states_calls(keys: Sequence[str]) -> list[Call]:
+    """Reads of pair states for these keys, each within the server's limit on keys and a
+    URL of a sensible length."""
+    calls: list[Call] = []
+    batch: list[str] = []
+    chars = 0
+    for key in dict.fromkeys(keys):
+        size = len(quote(key, safe="")) + 5
+        if batch and (len(batch) == STATES_KEYS or chars + size > STATES_URL_CHARS):
+            calls.append(Call("GET", "/pairs", params={"key": batch}))
+            batch, chars = [], 0
+        batch.append(key)
+        chars += size
+    if batch:
+        calls.append(Call("GET", "/pairs", params={"key": batch}))
+    return calls
+
+
+def states_of(bodies: Iterable[Mapping[str, Any]]) -> dict[str, PairState]:
+    return {state["key"]: PairState.of(state) for body in bodies for state in body["pairs"]}
 
 
 class Waiting:
@@ -242,18 +380,36 @@ class Waiting:
     def done(self) -> int:
         return sum(value is not None for value in self.pending.values())
 
-    def next_wait(self) -> float | None:
+    def next_wait(self, status: str | None) -> float | None:
         """Seconds the next answers request may wait; None once every pair is answered.
-        TimeoutError once the time is up."""
+        TimeoutError once the time is up; StudyError once the run is over (`status`, as the
+        last read gave it: the feed waits for nothing then, and no answer is to come)."""
         if self.done() == len(self.pending):
             return None
+        if status is not None and status not in ("running", "paused"):
+            raise StudyError(None, f"the run is {status}: {len(self.pending) - self.done()} of "
+                                   f"{len(self.pending)} pairs still want answers")
         left = LONGEST_WAIT_S if self.deadline is None else self.deadline - time.monotonic()
         if left <= 0:
             raise TimeoutError(f"{len(self.pending) - self.done()} of {len(self.pending)} "
                                "pairs still want answers")
         return min(left, LONGEST_WAIT_S)
 
-    def note(self, events: Iterable[AnswerEvent]) -> None:
+    def start(self, states: Mapping[str, PairState]) -> None:
+        """Begin from where the pairs stand now (answers read before, by another wait or
+        before a restart, come no more in the feed). ValueError for a key no pair of the run
+        has, or a gold pair: it takes the answer of everyone it is shown to, so it is never
+        complete; its answers come in `answers()`."""
+        unknown = [key for key in self.pending if key not in states]
+        if unknown:
+            raise ValueError(f"no pair of this run has the key(s) {unknown[:5]}")
+        gold = [key for key in self.pending if states[key].gold]
+        if gold:
+            raise ValueError(f"gold pairs are never complete, so wait_for does not wait for "
+                             f"them (their answers come in answers()): {gold[:5]}")
+        self.note(states[key] for key in self.pending)
+
+    def note(self, events: Iterable[AnswerEvent | PairState]) -> None:
         for event in events:
             if event.key in self.pending:
                 self.pending[event.key] = event.aggregate if event.complete else None
@@ -273,15 +429,26 @@ class Study:
         self.core = _Core(url, token, run, retries=retries, backoff=backoff,
                           cursor_file=cursor_file, progress=progress)
         self.http = client or httpx.Client(timeout=60.0)
+        self.owned = client is None
+        """a client given is its giver's to close"""
+        self.reading = threading.Lock()
+        """one read of the feed at a time: its events reach the waits in the feed's order"""
 
     def close(self) -> None:
-        self.http.close()
+        """Keep the cursor past the last page read (it is handled), and close the connection
+        (unless the httpx client was given)."""
+        self.core.save()
+        if self.owned:
+            self.http.close()
 
     def __enter__(self) -> Study:
         return self
 
-    def __exit__(self, *_: object) -> None:
-        self.close()
+    def __exit__(self, failed: type[BaseException] | None, *_: object) -> None:
+        if failed is None:
+            self.close()
+        elif self.owned:  # the last page may not be handled: it is read again next time
+            self.http.close()
 
     @property
     def cursor(self) -> str:
@@ -307,25 +474,45 @@ class Study:
         return str(body["clip_id"])
 
     def ask(self, pairs: Sequence[Pair]) -> list[Query]:
-        """Push the pairs for people to compare (all stored or none); their queries, in
-        order. Pushing them again makes no second query."""
+        """Push the pairs for people to compare; their queries, in order. They go in pushes
+        that fit the server's limits (`push_batches`), each stored whole or not at all:
+        should one fail, asking again makes no second query of a pair stored before."""
         bodies = [pair_body(pair, self.upload(pair.first), self.upload(pair.second))
                   for pair in pairs]
-        out = self.call(Call("POST", "/pairs", json={"pairs": bodies}))
-        return [Query(item["key"], item["query_id"], item["created"]) for item in out["pairs"]]
+        return [query for batch in push_batches(bodies) for query in self.push(batch)]
+
+    def push(self, batch: Sequence[dict[str, Any]]) -> list[Query]:
+        """One push of pairs' bodies (`pair_body`), in two when the server finds it too
+        large."""
+        try:
+            return queries_of(self.call(push_call(batch))["pairs"])
+        except StudyError as error:
+            return [query for half in halves(batch, error) for query in self.push(half)]
 
     def answers(self, wait: float = 0.0) -> list[AnswerEvent]:
         """The answers and withdrawals since the cursor (waiting up to `wait` s, 60 at most,
-        for one), and the cursor moved past them."""
-        return self.core.read(self.call(self.core.answers_call(wait)))
+        for one), and the cursor moved past them. The cursor file moves past a page when the
+        next read begins, or at `close()`: a client killed while it handles a page reads that
+        page again (each event at least once; its `label_id` and kind tell one apart)."""
+        with self.reading:
+            self.core.save()  # the page read before is handled: the caller reads on
+            return self.core.read(self.call(self.core.answers_call(wait)))
+
+    def states(self, keys: Sequence[str]) -> dict[str, PairState]:
+        """Where the pairs under these keys stand now, by key (a key no pair of the run has
+        is left out); it moves no cursor."""
+        return states_of(self.call(call) for call in states_calls(keys))
 
     def wait_for(self, queries: Sequence[Query], timeout: float | None = None) -> dict[str, str]:
-        """Read answers until each query has its k answers (a tqdm bar counts them); the
-        aggregate answer of each, by key. TimeoutError past `timeout` seconds."""
+        """Wait until each query (an ordinary pair) has its k answers, from where the pairs
+        stand now and then as the answers come (a tqdm bar counts them); the aggregate answer
+        of each, by key. TimeoutError past `timeout` seconds; ValueError for a gold pair or a
+        key no pair of the run has; StudyError once the run is stopped, finished or failed."""
         waiting = Waiting(queries, timeout, self.core.progress)
-        with waiting.bar:
-            while (wait := waiting.next_wait()) is not None:
-                waiting.note(self.answers(wait=wait))
+        with self.core.watching(waiting), waiting.bar:
+            waiting.start(self.states(list(waiting.pending)))
+            while (wait := waiting.next_wait(self.core.status)) is not None:
+                self.answers(wait=wait)
         return waiting.result()
 
 
@@ -338,15 +525,22 @@ class AsyncStudy:
         self.core = _Core(url, token, run, retries=retries, backoff=backoff,
                           cursor_file=cursor_file, progress=progress)
         self.http = client or httpx.AsyncClient(timeout=60.0)
+        self.owned = client is None
+        self.reading = asyncio.Lock()
 
     async def aclose(self) -> None:
-        await self.http.aclose()
+        self.core.save()
+        if self.owned:
+            await self.http.aclose()
 
     async def __aenter__(self) -> AsyncStudy:
         return self
 
-    async def __aexit__(self, *_: object) -> None:
-        await self.aclose()
+    async def __aexit__(self, failed: type[BaseException] | None, *_: object) -> None:
+        if failed is None:
+            await self.aclose()
+        elif self.owned:
+            await self.http.aclose()
 
     @property
     def cursor(self) -> str:
@@ -374,17 +568,28 @@ class AsyncStudy:
         ids = await asyncio.gather(*(self.upload(clip) for pair in pairs
                                      for clip in (pair.first, pair.second)))
         bodies = [pair_body(pair, ids[2 * i], ids[2 * i + 1]) for i, pair in enumerate(pairs)]
-        out = await self.call(Call("POST", "/pairs", json={"pairs": bodies}))
-        return [Query(item["key"], item["query_id"], item["created"]) for item in out["pairs"]]
+        return [query for batch in push_batches(bodies) for query in await self.push(batch)]
+
+    async def push(self, batch: Sequence[dict[str, Any]]) -> list[Query]:
+        try:
+            return queries_of((await self.call(push_call(batch)))["pairs"])
+        except StudyError as error:
+            return [query for half in halves(batch, error) for query in await self.push(half)]
 
     async def answers(self, wait: float = 0.0) -> list[AnswerEvent]:
-        return self.core.read(await self.call(self.core.answers_call(wait)))
+        async with self.reading:
+            self.core.save()
+            return self.core.read(await self.call(self.core.answers_call(wait)))
+
+    async def states(self, keys: Sequence[str]) -> dict[str, PairState]:
+        return states_of([await self.call(call) for call in states_calls(keys)])
 
     async def wait_for(self, queries: Sequence[Query],
                        timeout: float | None = None) -> dict[str, str]:
-        """`Study.wait_for`, awaited."""
+        """`Study.wait_for`, awaited; several may wait at once."""
         waiting = Waiting(queries, timeout, self.core.progress)
-        with waiting.bar:
-            while (wait := waiting.next_wait()) is not None:
-                waiting.note(await self.answers(wait=wait))
+        with self.core.watching(waiting), waiting.bar:
+            waiting.start(await self.states(list(waiting.pending)))
+            while (wait := waiting.next_wait(self.core.status)) is not None:
+                await self.answers(wait=wait)
         return waiting.result()

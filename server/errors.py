@@ -5,10 +5,14 @@ of the request's: a route that refuses input raises `labelqueue.Invalid`."""
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Awaitable, Callable, Iterable, Iterator
+from typing import Any
 
 from fastapi import FastAPI, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from sqlalchemy.exc import DataError
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -81,6 +85,25 @@ def allowed_methods(request: Request) -> set[str]:
     return allowed
 
 
+def _json_safe(value: Any) -> Any:
+    """`value` with each number JSON has no form for (NaN, an infinity) as its text."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    if isinstance(value, dict):
+        return {key: _json_safe(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_json_safe(item) for item in value]
+    return value
+
+
+async def _invalid_request(_request: Request, error: Exception) -> JSONResponse:
+    # FastAPI's own 422, but a NaN or an infinity the body held (Python's JSON reads them) goes
+    # back as text: JSON has no such number, and rendering one would fail (a 500).
+    assert isinstance(error, RequestValidationError)
+    return JSONResponse(status_code=422,
+                        content={"detail": _json_safe(jsonable_encoder(error.errors()))})
+
+
 async def _http_error(request: Request, error: Exception) -> JSONResponse:
     assert isinstance(error, StarletteHTTPException)
     headers = dict(error.headers or {})
@@ -100,3 +123,4 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(OverflowError, _out_of_range)
     app.add_exception_handler(DataError, _out_of_range)
     app.add_exception_handler(StarletteHTTPException, _http_error)
+    app.add_exception_handler(RequestValidationError, _invalid_request)

@@ -18,7 +18,48 @@ def _finite(values: tuple[float, float] | None) -> tuple[float, float] | None:
     return values
 
 
+NO_NUL = r"^[^\x00]*$"
+"""text without NUL characters: PostgreSQL stores none in text, JSON included"""
+
+
+def _no_nul(text: str) -> str:
+    if "\x00" in text:
+        raise ValueError("the key holds a NUL character (\\u0000), which no text can store")
+    return text
+
+
+def _storable(value: Any, where: str = "meta") -> None:
+    """ValueError naming the place of a number that is not finite (JSON has no NaN or
+    Infinity: it was stored as null on SQLite, refused as out of range on PostgreSQL) or a
+    NUL character in a key or a string."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ValueError(f"{where} is {value}: numbers in meta must be finite")
+    if isinstance(value, str) and "\x00" in value:
+        raise ValueError(f"{where} holds a NUL character (\\u0000), which no text can store")
+    if isinstance(value, dict):
+        for key, item in value.items():
+            if "\x00" in key:
+                raise ValueError(f"a key of {where} holds a NUL character (\\u0000), which "
+                                 "no text can store")
+            _storable(item, f"{where}.{key}")
+    elif isinstance(value, list):
+        for index, item in enumerate(value):
+            _storable(item, f"{where}[{index}]")
+
+
+def _storable_meta(meta: dict[str, Any]) -> dict[str, Any]:
+    _storable(meta)
+    return meta
+
+
 Returns = Annotated[tuple[float, float] | None, AfterValidator(_finite)]
+PairKey = Annotated[str, Field(min_length=1, max_length=200,
+                               json_schema_extra={"pattern": NO_NUL}),
+                    AfterValidator(_no_nul)]
+"""a pair's idempotency key: 1-200 characters, no NUL"""
+Meta = Annotated[SmallJson, AfterValidator(_storable_meta), Field(
+    description="the client's own ids, hidden from labellers: at most 4096 bytes as JSON, "
+                "finite numbers only, no NUL character (\\u0000) in a key or a string")]
 ClipId = Annotated[str, Field(pattern=r"^[0-9a-f]{32}$",
                               description="an id `POST /api/runs/{id}/clips` gave")]
 
@@ -76,7 +117,7 @@ class ClipOut(Out):
 class PairIn(Body):
     """One pair of uploaded clips to compare."""
 
-    key: str = Field(min_length=1, max_length=200)
+    key: PairKey
     """the idempotency key, unique in the run: a pair pushed again under it is not stored
     twice; other content under a used key is a 409"""
     first_clip: ClipId
@@ -87,7 +128,7 @@ class PairIn(Body):
     """hidden: the two segments' true returns, for accuracy and the calibration report"""
     trajectory_returns: Returns = None
     """hidden: their whole episodes' returns; null: `returns`"""
-    meta: SmallJson | None = None
+    meta: Meta | None = None
     """hidden: the client's own ids, given back with the pair's answers"""
 
 
@@ -112,18 +153,9 @@ class GivenAnswer(Out):
     answer: str
 
 
-class AnswerEvent(Out):
-    """An answer to one of the run's pairs, or an answer taken back, with the pair as it
-    stands after it."""
+class PairState(Out):
+    """One of the run's pairs as it stands: its standing answers and their tally."""
 
-    kind: Literal["answer", "withdrawal"]
-    label_id: int
-    labeller_id: int
-    labeller: str
-    answer: str
-    """first, second, equal, cant_tell or skip (for a withdrawal: the answer taken back)"""
-    at: datetime
-    flag: str | None
     query_id: int
     key: str | None
     meta: dict[str, Any] | None
@@ -134,11 +166,33 @@ class AnswerEvent(Out):
     """the pair's standing answers, one per labeller"""
     aggregate: str | None
     """their majority (`runvocab.answers.aggregate`): cant_tell when most cannot tell or two
-    decisive answers tie; null with no answer standing"""
+    decisive answers tie; skip when every one is a skip; null with no answer standing"""
     tie: bool
     """two decisive answers tie for the most"""
     complete: bool
-    """the pair has its k answers"""
+    """the pair has its k answers (skips count: the queue asks no more); never for a gold
+    pair, which takes the answer of everyone it is shown to"""
+
+
+class AnswerEvent(PairState):
+    """An answer to one of the run's pairs, or an answer taken back, with the pair as it
+    stands now."""
+
+    kind: Literal["answer", "withdrawal"]
+    label_id: int
+    labeller_id: int
+    labeller: str
+    answer: str
+    """first, second, equal, cant_tell or skip (for a withdrawal: the answer taken back)"""
+    at: datetime
+    flag: str | None
+
+
+class PairStatesOut(Out):
+    pairs: list[PairState]
+    """the pairs found, in the order of the keys asked for"""
+    unknown: list[str]
+    """the keys asked for that no pair of the run has"""
 
 
 class AnswersOut(Out):

@@ -25,7 +25,7 @@ from fastapi import Path as PathParam
 from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
-from externalruns.feed import Cursor, answers_after
+from externalruns.feed import STATES_LIMIT, Cursor, answers_after, pair_states
 from externalruns.pairs import PairSpec, clip_key, push_pairs
 from externalruns.runs import (
     create_external_run,
@@ -53,7 +53,9 @@ from server.external_schemas import (
     AnswersOut,
     ClipOut,
     ExternalRunCreate,
+    PairKey,
     PairsIn,
+    PairStatesOut,
     PushOut,
     RunTokenInfo,
     RunTokenOut,
@@ -71,6 +73,8 @@ VIDEO_TYPES = {"video/mp4": "mp4", "video/webm": "webm"}
 TokenId = Annotated[int, PathParam(ge=1, le=INT32_MAX, description="the token's id (`run.<id>.`)")]
 POLL_S = 0.5
 """how often a waiting answers request looks again"""
+SIDES = (16, 1024)
+"""the narrowest and the widest a clip's width and height may be, in pixels"""
 
 
 @router.post("/external", status_code=201, response_model=RunOut,
@@ -173,19 +177,30 @@ def _frames(body: bytes, settings: Settings) -> np.ndarray:
     count, height, width = frames.shape[:3]
     if not 1 <= count <= settings.clip_max_frames:
         raise Invalid(f"{count} frames; a clip holds 1 to {settings.clip_max_frames}")
-    if height % 2 or width % 2 or not (16 <= height <= 1024 and 16 <= width <= 1024):
+    if height % 2 or width % 2 or not (_fits(height) and _fits(width)):
         raise Invalid(f"frames are {width}x{height}; width and height must be even, in "
-                         "[16, 1024] (yuv420p halves the colour planes)")
+                      f"[{SIDES[0]}, {SIDES[1]}] (yuv420p halves the colour planes)")
     return frames
+
+
+def _fits(side: int) -> bool:
+    return SIDES[0] <= side <= SIDES[1]
+
+
+def clip_id_of(body: bytes, kind: str, fps: float) -> str:
+    """An uploaded clip's id: the hash of its bytes, and of a frame array's frame rate (the
+    same frames at another rate are another clip)."""
+    rate = f"fps={fps!r};".encode() if kind == NPY else b""
+    return hashlib.sha256(rate + body).hexdigest()[:32]
 
 
 def store_clip(settings: Settings, run_id: int, body: bytes, kind: str, fps: float) -> ClipOut:
     """Check an uploaded clip with the decoder (or encode a frame array) and keep it under the
-    clips folder; the same bytes uploaded again are the same clip. Invalid naming what is
-    wrong; nothing is kept then."""
+    clips folder; the same bytes (at the same frame rate) uploaded again are the same clip.
+    Invalid naming what is wrong; nothing is kept then."""
     if not body:
         raise Invalid("the body is empty: send the clip's bytes")
-    clip_id = hashlib.sha256(body).hexdigest()[:32]
+    clip_id = clip_id_of(body, kind, fps)
     folder = _folder(settings, run_id)
     note = folder / f"{clip_id}.json"
     info = stored_clip(settings, run_id, clip_id)
@@ -207,6 +222,9 @@ def store_clip(settings: Settings, run_id: int, body: bytes, kind: str, fps: flo
             info = probe_clip(tmp)
             if kind != NPY and info.container != kind:
                 raise Invalid(f"the body is {info.container.upper()}, sent as video/{kind}")
+            if not (_fits(info.width) and _fits(info.height)):
+                raise Invalid(f"the clip is {info.width}x{info.height}; its width and height "
+                              f"must be in [{SIDES[0]}, {SIDES[1]}]")
             if info.frames > settings.clip_max_frames:
                 raise Invalid(f"the clip has {info.frames} frames; at most "
                                  f"{settings.clip_max_frames}")
@@ -237,20 +255,21 @@ async def upload_clip(
 ) -> ClipOut:
     """One clip, as the body: an MP4 (h264) or WebM (VP8, VP9, AV1) file, decoded whole to
     check it against the server's limits (`clip_upload_bytes`, `clip_max_seconds`,
-    `clip_max_frames`), or a frame array (`application/x-npy`: uint8 (frames, height, width,
-    3), as `numpy.save` writes it), encoded with the app's own clip encoder (h264, yuv420p).
+    `clip_max_frames`, sides of 16 to 1024 pixels), or a frame array (`application/x-npy`:
+    uint8 (frames, height, width, 3), as `numpy.save` writes it), encoded with the app's own
+    clip encoder (h264, yuv420p).
     Its id names it in `POST /api/runs/{id}/pairs`; the same bytes again give the same id
-    (200). An unreadable file, a codec browsers do not play, a clip over a limit: 422, nothing
-    kept. A clip no pair names is deleted `unused_upload_hours` after its last upload, or once
-    its run is stopped (`server.upload_sweep`)."""
+    (200), a frame array's at the same `fps` only. An unreadable file, a codec browsers do not
+    play, a clip over a limit: 422, nothing kept. A clip no pair names is deleted
+    `unused_upload_hours` after its last upload, or once its run is stopped
+    (`server.upload_sweep`)."""
     content_type = request.headers.get("content-type", "").partition(";")[0].strip().lower()
     kind = NPY if content_type == NPY else VIDEO_TYPES.get(content_type)
     if kind is None:
         raise HTTPException(415, f"content type {content_type or 'none'!r}: send video/mp4, "
                                  f"video/webm or {NPY}")
     body = await request.body()
-    clip_id = hashlib.sha256(body).hexdigest()[:32]
-    known = stored_clip(settings, run.id, clip_id) is not None
+    known = stored_clip(settings, run.id, clip_id_of(body, kind, fps)) is not None
     out = await run_in_threadpool(store_clip, settings, run.id, body, kind, fps)
     if known:
         response.status_code = 200
@@ -261,12 +280,13 @@ async def upload_clip(
              responses=errors(400, 404, 409, 413, 422))
 def push(run_id: RunId, body: PairsIn, run: ClientRun, response: Response, session: SessionDep,
          settings: SettingsDep) -> PushOut:
-    """Pairs of uploaded clips for people to compare, all stored or none. Each carries an
+    """Pairs of uploaded clips for people to compare, all stored or none: 1 to 500 in a body
+    of at most the server's `body_limit_bytes` (64 KiB by default; 413 past it). Each carries an
     idempotency key: pushed again under its key, a pair is not stored twice (its query comes
     back with `created` false, 200 when none is new); other content under a used key is a 409.
     `returns`, `trajectory_returns` and `meta` are hidden from labellers; a `gold` pair's
     known answer measures them. 422 for a clip not uploaded to the run or two clips of
-    different shapes; 409 past the budget or once the run is stopped."""
+    different shapes or lengths in seconds; 409 past the budget or once the run is stopped."""
     ids = {clip for pair in body.pairs for clip in (pair.first_clip, pair.second_clip)}
     clips = {clip: info for clip in ids
              if (info := stored_clip(settings, run.id, clip)) is not None}
@@ -280,12 +300,28 @@ def push(run_id: RunId, body: PairsIn, run: ClientRun, response: Response, sessi
     return PushOut.model_validate({"pairs": [vars(item) for item in pushed]})
 
 
+@router.get("/{run_id}/pairs", response_model=PairStatesOut, responses=errors(404, 409, 422))
+def states(
+    run: ClientRun, session: SessionDep,
+    key: Annotated[list[PairKey], Query(
+        min_length=1, max_length=STATES_LIMIT, description=(
+            f"a pushed pair's idempotency key, given once per key (1 to {STATES_LIMIT})"))],
+) -> PairStatesOut:
+    """Where the run's pairs under these keys stand now: each with the fields an answers event
+    carries for its pair (standing answers, aggregate, tie, complete), and the keys no pair of
+    the run has. A client that read past a pair's answers in the feed (before a restart, or
+    while waiting for other pairs) learns here that the pair has them."""
+    found, unknown = pair_states(session, run_id=run.id, keys=key)
+    return PairStatesOut.model_validate({"pairs": found, "unknown": unknown})
+
+
 @router.get("/{run_id}/answers", response_model=AnswersOut, responses=errors(404, 409, 422))
 async def answers(
     run: ClientRun, request: Request, session: SessionDep,
     after: Annotated[str, Query(max_length=40, description=(
-        "the cursor the last read gave, two whole numbers joined by a dot ('0.0': from the "
-        "start); one this run never gave is refused (422)"))] = "0.0",
+        "the cursor the last read gave, the run's id, a label's and a withdrawal's joined by "
+        "dots ('7.57.2'; '0.0': from the start); one this run never gave, another run's or "
+        "one of two numbers but the start, is refused (422)"))] = "0.0",
     wait: Annotated[float, Query(ge=0, le=60, description="seconds to wait for an answer when "
                                                          "there is none yet")] = 0.0,
 ) -> AnswersOut:
@@ -295,7 +331,7 @@ async def answers(
     answer taken back after it was read comes again as a withdrawal. With `wait`, the request
     is held until there is something new or the seconds pass. Keep the `cursor` it gives: read
     from it after a crash, nothing is lost and nothing comes twice. 422 for a cursor this run
-    never gave (one ahead of its answers)."""
+    never gave: another run's, or one ahead of its answers."""
     try:
         cursor = Cursor.parse(after)
     except ValueError as err:

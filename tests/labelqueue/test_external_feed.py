@@ -47,7 +47,7 @@ def test_the_cursor_resumes_and_a_withdrawal_follows_the_answer_it_takes_back(
     ann, _ = create_labeller(session, name="ann")
     bob, _ = create_labeller(session, name="bob")
     start = answers_after(session, run_id=run_id, cursor=Cursor())
-    assert (start.events, str(start.cursor), start.open_pairs) == ([], "0.0", 3)
+    assert (start.events, str(start.cursor), start.open_pairs) == ([], f"{run_id}.0.0", 3)
     first = answer_one(session, run_id=run_id, labeller_id=ann.id)
     answer_one(session, run_id=run_id, labeller_id=bob.id, choice="right")
     read = answers_after(session, run_id=run_id, cursor=start.cursor)

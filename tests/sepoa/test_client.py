@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import sys
+import time
 from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from pathlib import Path
@@ -17,7 +18,16 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
 from labelqueue import Query, make_engine, session_factory
-from sepoa.client import AsyncStudy, Pair, Study, StudyError
+from sepoa.client import (
+    PUSH_BYTES,
+    AsyncStudy,
+    Pair,
+    Study,
+    StudyError,
+    push_batches,
+    push_call,
+)
+from sepoa.client import Query as Asked
 from server.app import create_app
 from server.settings import Settings
 
@@ -51,20 +61,31 @@ def pairs(n: int) -> list[Pair]:
             for i in range(n)]
 
 
-def label_all(client: TestClient, run_id: int, name: str, pick: str = "left",
-              most: int = 100) -> int:
-    """A person answers up to `most` pairs of the run on the label API."""
+def label_all(client: TestClient, run_id: int, name: str,
+              pick: str | Callable[[dict[str, Any]], str] = "left", most: int = 100) -> int:
+    """A person answers up to `most` pairs of the run on the label API, clicking `pick` (a
+    side, or a function of the pair shown that says which)."""
     token, answered = bearer(new_labeller(client, name)), 0
     while answered < most:
         shown = client.get(f"/api/label/next?run_id={run_id}", headers=token)
         if shown.status_code == 204:
             break
-        body = {"choice": pick, "left_is_first": shown.json()["left_is_first"],
+        click = pick if isinstance(pick, str) else pick(shown.json())
+        body = {"choice": click, "left_is_first": shown.json()["left_is_first"],
                 "shown_at": datetime.now(UTC).isoformat()}
         assert client.post(f"/api/label/{shown.json()['query_id']}", headers=token,
                            json=body).status_code == 201
         answered += 1
     return answered
+
+
+def picking(answers: dict[int, str]) -> Callable[[dict[str, Any]], str]:
+    """Clicks that give these answers (first or second) by query id, whichever side shows
+    the first segment."""
+    def click(shown: dict[str, Any]) -> str:
+        first = answers[shown["query_id"]] == "first"
+        return "left" if first == shown["left_is_first"] else "right"
+    return click
 
 
 def stored_queries(client: TestClient) -> int:
@@ -102,16 +123,42 @@ def test_asked_pairs_come_back_with_the_answers_people_gave(app_client: TestClie
     study = Study(URL, token, run_id, client=app_client, progress=False)
     queries = study.ask(pairs(3))
     assert [q.created for q in queries] == [True] * 3
-    assert label_all(app_client, run_id, "ann", "left") == 3
-    assert label_all(app_client, run_id, "bob", "left") == 3
+    ids = [q.query_id for q in queries]
+    ann = dict(zip(ids, ("first", "first", "second"), strict=True))
+    bob = dict(zip(ids, ("first", "second", "second"), strict=True))
+    assert label_all(app_client, run_id, "ann", picking(ann)) == 3
+    assert label_all(app_client, run_id, "bob", picking(bob)) == 3
     answers = study.wait_for(queries, timeout=10)
-    events = [e for e in study.answers()]  # nothing more
-    assert events == [] and set(answers) == {q.key for q in queries}
-    # Both clicked left: the same side, so the pair's two answers agree whichever it showed.
-    assert all(value in ("first", "second", "cant_tell") for value in answers.values())
+    # Agreeing answers are the aggregate; a first against a second ties: can't tell.
+    assert answers == dict(zip([q.key for q in queries], ("first", "cant_tell", "second"),
+                               strict=True))
+    events = study.answers()  # the feed gives each of the six answers too
+    assert sorted((e.query_id, e.labeller, e.answer) for e in events) == sorted(
+        [(i, "ann", a) for i, a in ann.items()] + [(i, "bob", a) for i, a in bob.items()])
     with pytest.raises(StudyError) as refused:
         study.ask([Pair(clip(1), np.zeros((4, 16, 32, 3), np.uint8))])
     assert refused.value.status == 422 and "differ in shape" in str(refused.value)
+
+
+def test_many_pairs_are_pushed_in_pushes_the_server_takes(tmp_path: Path) -> None:
+    """Pairs with their meta past what one push's body holds (64 KiB by default, 8 here) go
+    in pushes that fit, in order: the client splits a push the server finds too large."""
+    settings = Settings(database_url=f"sqlite:///{tmp_path / 'queue.db'}", data_dir=tmp_path,
+                        operator_token=OPERATOR_TOKEN, secret_key="test-secret-key-0123456789",
+                        body_limit_bytes=8 * 1024)
+    with TestClient(create_app(settings)) as client:
+        run_id, token = run_and_token(client, budget=1000)
+        study = Study(URL, token, run_id, client=client, progress=False)
+        queries = study.ask([Pair(clip(1), clip(2), returns=(float(i), 0.5),
+                                  meta={"round": 0, "starts": [i, i + 1]}) for i in range(200)])
+        assert len(queries) == 200 and all(q.created for q in queries)
+        assert [q.query_id for q in queries] == sorted(q.query_id for q in queries)
+        assert stored_queries(client) == 200
+    bodies = [{"key": f"k{i}", "meta": {"pad": "x" * 500}} for i in range(600)]
+    batches = push_batches(bodies)
+    assert [body for batch in batches for body in batch] == bodies and len(batches) == 6
+    assert all(len(push_call(batch).content or b"") <= PUSH_BYTES for batch in batches)
+    assert [len(b) for b in push_batches([{"key": f"k{i}"} for i in range(600)])] == [500, 100]
 
 
 def test_a_retried_push_makes_no_second_query(app_client: TestClient) -> None:
@@ -149,15 +196,141 @@ def test_a_client_killed_while_waiting_resumes_from_its_cursor(
     queries = first.ask(pairs(4))
     label_all(app_client, run_id, "cat", most=2)
     seen = [event.key for event in first.answers()]
-    assert len(seen) == 2 and cursor.read_text() == first.cursor
-    del first  # killed here: what it read is in its cursor file
-    label_all(app_client, run_id, "dan", most=2)
+    assert len(seen) == 2 and first.answers() == []  # read on: those two are handled
+    assert cursor.read_text() == first.cursor
+    label_all(app_client, run_id, "dan", most=1)
+    [mid_page] = first.answers()
+    del first  # killed while it handled that page: its cursor file is still before it
+    label_all(app_client, run_id, "eve", most=1)
     again = Study(URL, token, run_id, client=app_client, progress=False, cursor_file=cursor)
     assert [q.created for q in again.ask(pairs(4))] == [False] * 4  # re-asked: no duplicate
-    rest = [event.key for event in again.answers()]
-    assert len(rest) == 2 and not set(rest) & set(seen)
-    assert set(seen) | set(rest) == {q.key for q in queries}  # nothing lost
+    rest = again.answers()
+    assert [e.label_id for e in rest][:1] == [mid_page.label_id]  # read again, not lost
+    assert len(rest) == 2 and not {e.key for e in rest} & set(seen)
+    assert set(seen) | {e.key for e in rest} == {q.key for q in queries}  # nothing lost
     assert stored_queries(app_client) == 4
+
+
+def test_a_client_that_fails_while_handling_a_page_reads_it_again(
+    app_client: TestClient, tmp_path: Path
+) -> None:
+    run_id, token = run_and_token(app_client)
+    cursor = tmp_path / "run.cursor"
+    with pytest.raises(RuntimeError), Study(URL, token, run_id, client=app_client,
+                                            progress=False, cursor_file=cursor) as study:
+        study.ask(pairs(1))
+        label_all(app_client, run_id, "fay")
+        assert len(study.answers()) == 1
+        raise RuntimeError("the caller failed before it handled the page")
+    assert not cursor.exists()
+    with Study(URL, token, run_id, client=app_client, progress=False,
+               cursor_file=cursor) as study:
+        assert len(study.answers()) == 1  # the page again: handled this time
+    assert cursor.read_text() == f"{run_id}.1.0"
+
+
+def test_wait_for_returns_answers_read_before_a_crash_from_its_cursor_file(
+    app_client: TestClient, tmp_path: Path
+) -> None:
+    run_id, token = run_and_token(app_client)
+    cursor = tmp_path / "run.cursor"
+    first = Study(URL, token, run_id, client=app_client, progress=False, cursor_file=cursor)
+    queries = first.ask(pairs(2))
+    label_all(app_client, run_id, "cat", most=1)
+    with pytest.raises(TimeoutError, match="1 of 2 pairs"):
+        first.wait_for(queries, timeout=0.5)
+    del first  # killed here, with the first pair's answer read past in its cursor file
+    label_all(app_client, run_id, "dan", most=1)
+    again = Study(URL, token, run_id, client=app_client, progress=False, cursor_file=cursor)
+    assert set(again.wait_for(again.ask(pairs(2)), timeout=5)) == {q.key for q in queries}
+
+
+def test_a_client_waits_for_pairs_whose_answers_it_read_before(
+    app_client: TestClient,
+) -> None:
+    run_id, token = run_and_token(app_client)
+    study = Study(URL, token, run_id, client=app_client, progress=False)
+    first, second = study.ask(pairs(1)), study.ask(pairs(2)[1:])
+    label_all(app_client, run_id, "eve")
+    assert len(study.answers()) == 2  # both answers read: the feed gives them no more
+    assert set(study.wait_for(first, timeout=5)) == {first[0].key}
+    assert set(study.wait_for(second, timeout=5)) == {second[0].key}
+    with pytest.raises(ValueError, match="no pair of this run"):
+        study.wait_for([Asked("nobody's", 1, False)], timeout=5)
+
+
+def test_a_pair_whose_answers_are_all_skips_is_answered_skip(app_client: TestClient) -> None:
+    """A skip counts toward k as the queue counts it (nobody is asked again): wait_for gives
+    the pair back with the aggregate skip rather than wait for ever."""
+    run_id, token = run_and_token(app_client)
+    study = Study(URL, token, run_id, client=app_client, progress=False)
+    queries = study.ask(pairs(2))
+    label_all(app_client, run_id, "kim", "skip", most=1)
+    label_all(app_client, run_id, "lee", "left", most=1)
+    answers = study.wait_for(queries, timeout=5)
+    assert sorted(answers.values()) == ["first", "skip"]
+
+
+def test_wait_for_ends_when_the_run_is_stopped(app_client: TestClient) -> None:
+    """A stopped run's feed waits for nothing: wait_for says the run is over at once rather
+    than ask again and again until its time is up."""
+    run_id, token = run_and_token(app_client)
+    study = Study(URL, token, run_id, client=app_client, progress=False)
+    queries = study.ask(pairs(1))
+    assert app_client.post(f"/api/runs/{run_id}/stop", headers=OPERATOR).status_code == 200
+    started = time.monotonic()
+    with pytest.raises(StudyError, match="the run is stopped: 1 of 1 pairs"):
+        study.wait_for(queries, timeout=5)
+    assert time.monotonic() - started < 2
+
+
+def test_wait_for_refuses_a_gold_pair_at_once(app_client: TestClient) -> None:
+    """A gold pair takes the answer of everyone it is shown to: never complete, so wait_for
+    says so instead of waiting for ever; its answers come in answers()."""
+    run_id, token = run_and_token(app_client, gold_rate=0.5)
+    study = Study(URL, token, run_id, client=app_client, progress=False)
+    [gold] = study.ask([Pair(clip(1), clip(2), key="gold", gold="first")])
+    label_all(app_client, run_id, "gil", "left")
+    started = time.monotonic()
+    with pytest.raises(ValueError, match=r"gold pairs .* \['gold'\]"):
+        study.wait_for([gold], timeout=3)
+    assert time.monotonic() - started < 2
+    assert all(event.gold for event in study.answers())
+
+
+def test_asyncio_waits_at_once_each_get_their_pairs(app_client: TestClient) -> None:
+    run_id, token = run_and_token(app_client)
+
+    async def main() -> list[dict[str, str]]:
+        transport = httpx.ASGITransport(app=app_client.app)  # type: ignore[arg-type]
+        async with httpx.AsyncClient(transport=transport, base_url=URL) as http, AsyncStudy(
+                URL, token, run_id, progress=False, client=http) as study:
+            asked = [await study.ask([pair]) for pair in pairs(3)]
+            waits = [asyncio.create_task(study.wait_for(queries, timeout=20))
+                     for queries in asked]
+            await asyncio.sleep(0.2)  # each has read where its pair stands: unanswered
+            await asyncio.to_thread(label_all, app_client, run_id, "fay")
+            return await asyncio.gather(*waits)
+
+    answered = asyncio.run(main())
+    assert [len(answers) for answers in answered] == [1, 1, 1]
+
+
+def test_a_cursor_file_of_another_run_is_refused(app_client: TestClient,
+                                                 tmp_path: Path) -> None:
+    runs = [run_and_token(app_client) for _ in range(2)]
+    cursor = tmp_path / "run.cursor"
+    (first, first_token), (second, second_token) = runs
+    study = Study(URL, first_token, first, client=app_client, progress=False, cursor_file=cursor)
+    study.ask(pairs(1))
+    label_all(app_client, first, "ida")
+    assert len(study.answers()) == 1 and study.answers() == []
+    assert cursor.read_text() == f"{first}.1.0"
+    with pytest.raises(ValueError, match=f"run {first}'s cursor, not run {second}'s"):
+        Study(URL, second_token, second, client=app_client, cursor_file=cursor)
+    cursor.write_text("1.0")  # the older form, naming no run
+    with pytest.raises(ValueError, match="names no run: delete the file"):
+        Study(URL, first_token, first, client=app_client, cursor_file=cursor)
 
 
 def test_the_asyncio_client_asks_and_reads_the_same(app_client: TestClient) -> None:
@@ -165,8 +338,8 @@ def test_the_asyncio_client_asks_and_reads_the_same(app_client: TestClient) -> N
 
     async def main() -> tuple[list[Any], list[Any]]:
         transport = httpx.ASGITransport(app=app_client.app)  # type: ignore[arg-type]
-        async with AsyncStudy(URL, token, run_id, progress=False, client=httpx.AsyncClient(
-                transport=transport, base_url=URL)) as study:
+        async with httpx.AsyncClient(transport=transport, base_url=URL) as http, AsyncStudy(
+                URL, token, run_id, progress=False, client=http) as study:
             queries = await study.ask(pairs(2))
             await asyncio.to_thread(label_all, app_client, run_id, "eve")
             return queries, list((await study.wait_for(queries, timeout=10)).items())

@@ -66,6 +66,27 @@ def test_out_of_range_integers_are_a_422_naming_the_parameter(
     assert snapshot(session) == before
 
 
+@pytest.mark.parametrize("number", ["NaN", "Infinity", "-Infinity"])
+def test_a_number_json_has_no_form_for_is_a_422_not_a_500(
+    client: TestClient, session: Session, number: str
+) -> None:
+    """Python's JSON reads NaN and Infinity: refused, the 422 gives them back as text."""
+    labeller = bearer(new_labeller(client, "alice"))
+    before = snapshot(session)
+    json_type = {"content-type": "application/json"}
+    for url, headers, body, name in [
+        ("/api/runs", OPERATOR, '{"task": "dmc:cheetah_run", "algo": "sac", "budget": %s}',
+         "budget"),
+        ("/api/runs/external", OPERATOR, '{"task": "t", "budget": 5, "gold_rate": %s}',
+         "gold_rate"),
+        ("/api/label/1", labeller, '{"choice": "left", "left_is_first": %s}', "left_is_first"),
+    ]:
+        response = client.post(url, content=body % number, headers=headers | json_type)
+        assert response.status_code == 422, (url, response.text)
+        assert _detail_names(response, name), (url, response.text)
+    assert snapshot(session) == before
+
+
 @contextmanager
 def served(settings: Settings) -> Iterator[httpx.Client]:
     """The app behind uvicorn on a free port, and a keep-alive client of it: a real socket."""

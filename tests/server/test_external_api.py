@@ -21,6 +21,7 @@ from server_helpers import OPERATOR, bearer, new_labeller, new_run
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from externalruns.runs import run_of_token
 from labelqueue import Query, claim_run
 from labelstats.calibration import calibration_report
 from rundata.clip_codec import probe_clip
@@ -155,6 +156,26 @@ def test_a_retried_push_makes_no_second_query_and_a_reused_key_is_refused(
     assert queries(session) == 2  # k3 was not stored either: all or none
 
 
+def test_the_same_frames_at_another_frame_rate_are_another_clip_and_pair_with_no_other(
+    client: TestClient,
+) -> None:
+    run_id, auth = external_run(client)
+    url, body = f"/api/runs/{run_id}/clips", frames(1, count=30)
+    uploads = [client.post(url, params={"fps": fps}, content=body, headers=auth | NPY)
+               for fps in (30, 5, 30.0)]
+    assert [u.status_code for u in uploads] == [201, 201, 200]
+    fast, slow, again = (u.json() for u in uploads)
+    assert fast["clip_id"] != slow["clip_id"] and again["clip_id"] == fast["clip_id"]
+    assert (fast["seconds"], slow["seconds"]) == pytest.approx((1.0, 6.0), abs=0.05)
+    # Played side by side on one clock, two clips of one pair must last as long.
+    other = client.post(url, params={"fps": 5}, content=frames(2, count=30), headers=auth | NPY)
+    apart = client.post(f"/api/runs/{run_id}/pairs", headers=auth, json={"pairs": [
+        pair("k", fast["clip_id"], other.json()["clip_id"])]})
+    assert apart.status_code == 422 and "last 1.00 s and 6.00 s" in apart.json()["detail"]
+    assert client.post(f"/api/runs/{run_id}/pairs", headers=auth, json={"pairs": [
+        pair("k", slow["clip_id"], other.json()["clip_id"])]}).status_code == 201
+
+
 def test_bad_clips_and_pairs_are_refused_by_name_and_nothing_is_kept(
     client: TestClient, session: Session, settings: Settings, tmp_path: Path
 ) -> None:
@@ -171,6 +192,15 @@ def test_bad_clips_and_pairs_are_refused_by_name_and_nothing_is_kept(
     codec = client.post(url, content=mpeg4.read_bytes(), headers=auth | {
         "content-type": "video/mp4"})
     assert codec.status_code == 422 and "codec is mpeg4" in codec.json()["detail"]
+    wide = tmp_path / "wide.mp4"  # a video's sides are bounded as a frame array's are
+    with imageio.get_writer(wide, format="FFMPEG", fps=10, codec="libx264",
+                            pixelformat="yuv420p", macro_block_size=2) as writer:
+        for frame in np.zeros((2, 32, 2048, 3), np.uint8):
+            writer.append_data(frame)
+    too_wide = client.post(url, content=wide.read_bytes(), headers=auth | {
+        "content-type": "video/mp4"})
+    assert too_wide.status_code == 422 and "2048x32" in too_wide.json()["detail"]
+    assert "[16, 1024]" in too_wide.json()["detail"]
     odd = client.post(url, content=frames(1, size=(31, 32)), headers=auth | NPY)
     assert odd.status_code == 422 and "must be even" in odd.json()["detail"]
     flat = client.post(url, content=frames(1)[:-10], headers=auth | NPY)
@@ -199,6 +229,32 @@ def test_bad_clips_and_pairs_are_refused_by_name_and_nothing_is_kept(
     assert queries(session) == 0
 
 
+def test_a_nul_or_a_number_json_has_not_in_a_pair_is_refused_naming_it(
+    client: TestClient, session: Session
+) -> None:
+    """PostgreSQL stores no NUL in text and JSON has no NaN (SQLite kept it as null): such a
+    key or meta is a 422 naming the field, on both databases alike."""
+    run_id, auth = external_run(client)
+    a = upload(client, run_id, auth, frames(1))
+    url, json_type = f"/api/runs/{run_id}/pairs", {"content-type": "application/json"}
+    for field, extra, said in [
+        ("key", '"key": "k\\u0000x"', "NUL character"),
+        ("meta", '"key": "k", "meta": {"s": "a\\u0000b"}', "meta.s holds a NUL"),
+        ("meta", '"key": "k", "meta": {"ok\\u0000": 1}', "a key of meta holds a NUL"),
+        ("meta", '"key": "k", "meta": {"x": NaN}', "meta.x is nan"),
+        ("meta", '"key": "k", "meta": {"ids": [1, {"r": -Infinity}]}', "meta.ids[1].r is -inf"),
+        ("returns", '"key": "k", "returns": [NaN, 1.0]', "finite"),
+    ]:
+        body = f'{{"pairs": [{{"first_clip": "{a}", "second_clip": "{a}", {extra}}}]}}'
+        refused = client.post(url, content=body, headers=auth | json_type)
+        assert refused.status_code == 422, (extra, refused.text)
+        [problem] = refused.json()["detail"]
+        assert problem["loc"][-1] == field and said in problem["msg"], (extra, problem)
+    bad_key = client.get(url, params={"key": "k\x00"}, headers=auth)
+    assert bad_key.status_code == 422 and "NUL character" in bad_key.text
+    assert queries(session) == 0
+
+
 def test_a_run_token_reaches_its_own_run_and_nothing_else(client: TestClient) -> None:
     run_id, auth = external_run(client)
     other, _ = external_run(client)
@@ -214,6 +270,23 @@ def test_a_run_token_reaches_its_own_run_and_nothing_else(client: TestClient) ->
     assert client.post(f"/api/runs/{trained}/tokens", headers=OPERATOR).status_code == 409
     forged = bearer(auth["Authorization"].removeprefix("Bearer ")[:-2] + "xx")
     assert client.get(f"/api/runs/{run_id}/answers", headers=forged).status_code == 401
+
+
+def test_a_token_id_or_cursor_of_other_digits_or_too_large_is_none(
+    client: TestClient, session: Session
+) -> None:
+    """Only ASCII digits make an id ('²' and '١' are digits to str.isdigit, not to int()), and
+    one an id column holds: a token with any other is no token (401), such a cursor no cursor
+    (422 saying what one is)."""
+    run_id, auth = external_run(client)
+    for token in ("run.\u00b2.abc", "run.\u0661.abc", "run.2147483648.abc", "run.1e3.abc"):
+        assert run_of_token(session, token=token) is None, token
+    refused = client.get(f"/api/runs/{run_id}/answers",
+                         headers=bearer("run.2147483648.abc"))  # too large for PostgreSQL
+    assert refused.status_code == 401, refused.text
+    for cursor in ("\u00b2.0", "0.\u0661", "2147483648.0"):
+        read = client.get(f"/api/runs/{run_id}/answers", params={"after": cursor}, headers=auth)
+        assert read.status_code == 422 and "is not one the answers feed gave" in read.text
 
 
 def test_the_cursor_resumes_and_an_answer_taken_back_comes_as_a_withdrawal(
@@ -245,6 +318,54 @@ def test_the_cursor_resumes_and_an_answer_taken_back_comes_as_a_withdrawal(
     for cursor in ("99.0", "0.5", "x"):
         future = client.get(f"{url}?after={cursor}", headers=auth)
         assert future.status_code == 422, cursor
+
+
+def test_where_pairs_stand_is_read_by_their_keys_without_the_feed(client: TestClient) -> None:
+    run_id, auth = external_run(client, labels_per_query=2)
+    a, b = upload(client, run_id, auth, frames(1)), upload(client, run_id, auth, frames(2))
+    client.post(f"/api/runs/{run_id}/pairs", headers=auth, json={"pairs": [
+        pair("k1", a, b, meta={"ep": 3}), pair("k2", b, a)]})
+    for name in ("ann", "bob"):
+        token = bearer(new_labeller(client, name))
+        shown = client.get(f"/api/label/next?run_id={run_id}", headers=token).json()
+        assert answer(client, token, shown, "left").status_code == 201
+    url = f"/api/runs/{run_id}/pairs"
+    read = client.get(url, params={"key": ["k2", "nope", "k1", "k2"]}, headers=auth)
+    assert read.status_code == 200, read.text
+    k2, k1 = read.json()["pairs"]
+    assert read.json()["unknown"] == ["nope"]
+    # The fields an answers event carries for its pair, as the pair stands now.
+    [event] = client.get(f"/api/runs/{run_id}/answers", headers=auth).json()["events"][-1:]
+    assert k1 == {name: event[name] for name in k1} and k1["meta"] == {"ep": 3}
+    assert (k1["complete"], len(k1["answers"]), k1["k"]) == (True, 2, 2)
+    assert (k2["key"], k2["complete"], k2["answers"], k2["aggregate"]) == ("k2", False, [], None)
+    many = client.get(url, params={"key": [f"k{i}" for i in range(101)]}, headers=auth)
+    assert many.status_code == 422 and "at most 100" in many.text
+    assert client.get(url, headers=auth).status_code == 422  # no key
+    other, _ = external_run(client)
+    assert client.get(f"/api/runs/{other}/pairs?key=k1", headers=auth).status_code == 403
+
+
+def test_a_cursor_names_its_run_and_another_runs_is_refused(client: TestClient) -> None:
+    """A cursor another run's feed gave would skip this run's answers below its ids: 422."""
+    runs = [external_run(client) for _ in range(2)]
+    for run_id, auth in runs:
+        a, b = upload(client, run_id, auth, frames(1)), upload(client, run_id, auth, frames(2))
+        client.post(f"/api/runs/{run_id}/pairs", headers=auth,
+                    json={"pairs": [pair("k1", a, b), pair("k2", b, a)]})
+    (run_a, auth_a), (run_b, auth_b) = runs
+    token = bearer(new_labeller(client, "hal"))
+    for run_id in (run_b, run_a, run_b):  # label ids 1 and 3 are run B's, 2 run A's
+        shown = client.get(f"/api/label/next?run_id={run_id}", headers=token).json()
+        assert answer(client, token, shown, "left").status_code == 201
+    cursor_a = client.get(f"/api/runs/{run_a}/answers", headers=auth_a).json()["cursor"]
+    assert cursor_a == f"{run_a}.2.0"
+    other = client.get(f"/api/runs/{run_b}/answers", params={"after": cursor_a}, headers=auth_b)
+    assert other.status_code == 422 and f"is run {run_a}'s" in other.json()["detail"]
+    older = client.get(f"/api/runs/{run_b}/answers", params={"after": "2.0"}, headers=auth_b)
+    assert older.status_code == 422 and "names no run" in older.json()["detail"]
+    start = client.get(f"/api/runs/{run_b}/answers", params={"after": "0.0"}, headers=auth_b)
+    assert [e["label_id"] for e in start.json()["events"]] == [1, 3]
 
 
 def test_a_gold_pair_known_by_its_answer_measures_labellers_and_costs_no_budget(
