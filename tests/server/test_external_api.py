@@ -252,6 +252,12 @@ def test_a_nul_or_a_number_json_has_not_in_a_pair_is_refused_naming_it(
         assert problem["loc"][-1] == field and said in problem["msg"], (extra, problem)
     bad_key = client.get(url, params={"key": "k\x00"}, headers=auth)
     assert bad_key.status_code == 422 and "NUL character" in bad_key.text
+    for field in ("task", "name"):
+        made = client.post("/api/runs/external", headers=OPERATOR,
+                           json={"task": "gym:HalfCheetah-v5", "budget": 10} | {field: "a\x00b"})
+        assert made.status_code == 422, made.text
+        [problem] = made.json()["detail"]
+        assert problem["loc"][-1] == field and "NUL" in problem["msg"], problem
     assert queries(session) == 0
 
 
