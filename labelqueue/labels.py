@@ -399,22 +399,31 @@ def _store(
 
 
 def consume_labels(session: Session, *, run_id: int) -> list[Label]:
-    """Take the run's labels no consumer has taken yet, oldest first, marking them consumed."""
+    """Take the run's labels no consumer has taken yet, oldest first, marking them consumed.
+
+    A label another transaction holds now (an undo taking it back, on PostgreSQL) is left for a
+    later call: withdrawn, it is never taken; if the undo is refused, the next call takes it.
+    """
     now = utcnow()
+    untaken = (Label.run_id == run_id) & Label.consumed_at.is_(None) & Label.withdrawn_at.is_(None)
     with transaction(session):
         # Consumers of one run take turns (a row lock on PostgreSQL; SQLite runs one write
         # transaction at a time anyway), so they never wait on each other's label rows.
         run = session.scalars(select(Run.id).where(Run.id == run_id).with_for_update()).first()
         if run is None:
             raise NotFound(f"run {run_id} does not exist")
+        # An undo locks its label, then the query and the run: waiting here for its label while
+        # holding the run would deadlock, so a label locked now is skipped, not waited for.
+        free = session.scalars(
+            select(Label.id).where(untaken).with_for_update(skip_locked=True)
+        ).all()
         ids = session.scalars(
             update(Label)
-            .where(Label.run_id == run_id, Label.consumed_at.is_(None))
-            .where(Label.withdrawn_at.is_(None))
+            .where(Label.id.in_(free), untaken)
             .values(consumed_at=now)
             .returning(Label.id),
             execution_options={"synchronize_session": False},
-        ).all()
+        ).all() if free else []
         labels = _labels_where(session, Label.id.in_(ids)) if ids else []
     return labels
 

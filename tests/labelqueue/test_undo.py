@@ -76,6 +76,47 @@ def test_a_query_whose_answer_was_taken_back_is_leased_to_that_labeller_again(
     assert again is not None and again.id == query_id
 
 
+def test_consuming_skips_a_label_an_undo_holds_rather_than_wait_for_it(
+    url: str, engine: Engine, sessions: sessionmaker[Session]
+) -> None:
+    """An undo locks its label, then the query and the run; the trainer's take locks the run,
+    then the labels. It skips a label an undo holds, so neither waits for the other (PostgreSQL
+    would abort one as a deadlock, and the worker's would end the run), and takes it on a later
+    call once the undo is refused."""
+    if not url.startswith("postgresql"):
+        pytest.skip("SQLite's writers take turns: no row locks to order")
+    with sessions() as session:
+        run = running_run(session, teacher=TeacherKind.HUMAN)
+        first, second = push_queries(session, run_id=run.id,
+                                     queries=[query_spec(0), query_spec(1)])
+        alice, _ = create_labeller(session, name="alice")
+        held, free = [], []
+        for query_id, mine in ((first, held), (second, free)):
+            assert lease_next_query(session, labeller_id=alice.id, run_id=run.id) is not None
+            label, _ = submit_label(session, query_id=query_id, labeller_id=alice.id,
+                                    choice="left", left_is_first=True)
+            mine.append(label.id)
+    taken: dict[str, list[int]] = {}
+
+    def consume() -> None:
+        with sessions() as session:
+            taken["ids"] = [label.id for label in consume_labels(session, run_id=run.id)]
+
+    # An undo half done: the first label's row locked, the run's not yet.
+    with engine.connect() as undo, undo.begin():
+        undo.execute(text("SELECT id FROM labels WHERE id = :id FOR UPDATE"), {"id": held[0]})
+        thread = threading.Thread(target=consume)
+        thread.start()
+        thread.join(timeout=5)
+        assert not thread.is_alive(), "the take waited for the label the undo holds"
+        assert taken["ids"] == free
+        undo.execute(text("SET LOCAL lock_timeout = '3s'"))
+        undo.execute(select(Run.id).where(Run.id == run.id).with_for_update())  # free at once
+    thread.join(timeout=30)
+    with sessions() as session:  # the undo gave up: the next take has the label
+        assert [label.id for label in consume_labels(session, run_id=run.id)] == held
+
+
 def test_an_undo_locks_the_queries_before_the_run_as_a_submit_does(
     url: str, engine: Engine, sessions: sessionmaker[Session]
 ) -> None:
