@@ -16,7 +16,9 @@ against the budget.
 After each gold answer the labeller's gold accuracy on the run is checked against the run's
 `feedback.gold_min_accuracy` (0: off): below it, once they gave `feedback.gold_min_answers`
 gold answers, they are paused on the run (`LabellerPause`). A paused labeller's answers stay;
-they get no more of the run's queries until an operator lifts the pause.
+they get no more of the run's queries until an operator lifts the pause, or they take back
+(`labelqueue.undo`) the gold answer that paused them and their record, without it, is no longer
+below the threshold.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import hashlib
 import hmac
 from collections.abc import Mapping
 from dataclasses import dataclass
+from datetime import datetime
 from typing import Any
 
 from sqlalchemy import Integer, bindparam, delete, func, insert, select
@@ -185,6 +188,19 @@ def pause_if_below(connection: DriverConnection, *, labeller_id: int, run_id: in
         return False
     _PAUSE.count(connection, params | {"answers": answers, "correct": correct, "at": utcnow()})
     return True
+
+
+def lift_pause_made_since(session: Session, *, labeller_id: int, run_id: int,
+                          since: datetime) -> None:
+    """A gold answer given at `since` was taken back: lift the labeller's pause on the run if it
+    was made since (by that answer or a later one), then check again what their gold record
+    says without it. A pause made before stands: that answer did not cause it."""
+    lifted = session.execute(delete(LabellerPause).where(
+        LabellerPause.run_id == run_id, LabellerPause.labeller_id == labeller_id,
+        LabellerPause.paused_at >= since))
+    if getattr(lifted, "rowcount", 0):
+        pause_if_below(DriverConnection.under(session.connection()), labeller_id=labeller_id,
+                       run_id=run_id)
 
 
 def pause_notice(answers: int, correct: int, settings: GoldSettings) -> str:

@@ -7,7 +7,9 @@ entry test).
 The label is not deleted: it stays with its `withdrawn_at`, so the export shows what was
 answered and taken back. The trainer's reads (`consume_labels`, `labels_for_queries`) skip
 withdrawn labels, and the labeller may answer the query again (one standing answer per labeller
-and query). The query gets its label count back, the run its budget.
+and query). The query gets its label count back, the run its budget; a gold answer taken back
+lifts the pause it caused, unless the labeller's gold record is still below the run's threshold
+without it (`labelqueue.gold`).
 
 Who wins between an undo and the trainer: the worker uses a person's label only once it is
 older than `SETTLE_SECONDS` (the undo window and a margin for the two hosts' clocks), and an
@@ -25,6 +27,7 @@ from sqlalchemy import and_, or_, select, update
 from sqlalchemy.orm import Session
 
 from labelqueue.errors import Conflict, NotFound, Revoked, RunClosed, StaleToken
+from labelqueue.gold import lift_pause_made_since
 from labelqueue.models import (
     Invite,
     Invitee,
@@ -151,6 +154,9 @@ def withdraw_label(
         # labels do: the answers feed's cursor misses none (`externalruns.feed`).
         session.add(Withdrawal(label_id=label.id, run_id=run.id, withdrawn_at=now))
         session.flush()
+        if query.gold and not query.practice:  # the answer may be what paused the labeller
+            lift_pause_made_since(session, labeller_id=labeller_id, run_id=run.id,
+                                  since=label.answered_at)
         label = get_row(session, Label, label.id)
         query = get_row(session, Query, query_id)
         detach(session, label, query)

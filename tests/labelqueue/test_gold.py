@@ -333,3 +333,40 @@ def test_newcomers_first_checks_are_drawn_at_random_among_the_runs_gold(
     # Not the run's oldest for all: newcomers' first checks are spread over its gold pairs.
     assert len(firsts) == 16 and len(set(firsts)) >= 5
     assert max(firsts.count(f) for f in set(firsts)) <= len(firsts) // 2
+
+
+def last_gold_answered(session: Session, gold: list[int]) -> int:
+    return labels_for_queries(session, query_ids=gold)[-1].query_id
+
+
+def test_taking_back_the_gold_answer_that_paused_a_labeller_lifts_the_pause(
+    session: Session,
+) -> None:
+    run = gold_run(session, **pause_settings())
+    plain, gold = push(session, run, plain=40, gold=10)
+    ann, _ = create_labeller(session, name="ann")
+    answer_gold(session, ann.id, run, gold, [RIGHT, RIGHT, WRONG, WRONG])  # 2 of 4: not below
+    answer_gold(session, ann.id, run, gold, [WRONG])  # a slip: 2 of 5
+    assert len(paused_labellers(session, run_id=run.id)) == 1
+    slip = last_gold_answered(session, gold)
+
+    withdraw_label(session, query_id=slip, labeller_id=ann.id)
+    assert paused_labellers(session, run_id=run.id) == []  # 2 of 4 again
+    submit_label(session, query_id=slip, labeller_id=ann.id,
+                 choice=click_of_answer(RIGHT, left_is_first=True), left_is_first=True)
+    assert paused_labellers(session, run_id=run.id) == []  # 3 of 5
+    assert lease_next_query(session, labeller_id=ann.id, run_id=run.id) is not None
+
+
+def test_taking_back_a_gold_answer_keeps_a_pause_the_rest_of_the_record_earns(
+    session: Session,
+) -> None:
+    run = gold_run(session, **pause_settings())
+    plain, gold = push(session, run, plain=40, gold=10)
+    ann, _ = create_labeller(session, name="ann")
+    answer_gold(session, ann.id, run, gold, [WRONG] * 4)
+    assert lift_pause(session, run_id=run.id, labeller_id=ann.id)
+    answer_gold(session, ann.id, run, gold, [WRONG])  # paused again: 0 of 5
+    withdraw_label(session, query_id=last_gold_answered(session, gold), labeller_id=ann.id)
+    [pause] = paused_labellers(session, run_id=run.id)  # 0 of 4 is below all the same
+    assert (pause.gold_answers, pause.gold_correct) == (4, 0)

@@ -42,9 +42,12 @@ export async function attempt(task) {
   }
 }
 
-/** No more pairs: the loops stop and the pairs in hand are let go (their leases run out). */
+/** No more pairs: the loops stop and the pairs in hand are let go (their leases run out). The
+ * last answer is no longer offered back: its pair would have nowhere to be shown. */
 function stopLabelling() {
   clearTimeout(state.timer);
+  state.last = null;
+  $("undo").hidden = true;
   state.next?.remove();
   state.current?.remove();
   state.current = state.next = null;
