@@ -50,6 +50,7 @@ from labelqueue.models import (
     PAUSES,
     QUERIES,
     RUNS,
+    Label,
     Query,
     QueryStatus,
     Run,
@@ -188,7 +189,9 @@ def set_clips(
 
 
 def cancel_queries(session: Session, *, run_id: int, query_ids: Sequence[int] | None = None) -> int:
-    """Withdraw a run's open queries (all, or those named); how many were withdrawn.
+    """Close a run's queries (all, or those named): withdraw the open ones, and mark the answers
+    they have taken (consumed), so none can be taken back once its round has closed
+    (`labelqueue.undo`); how many queries were withdrawn.
 
     A labeller holding a lease on one gets LeaseError when it submits.
     """
@@ -196,10 +199,16 @@ def cancel_queries(session: Session, *, run_id: int, query_ids: Sequence[int] | 
         Query.run_id == run_id,
         Query.status.in_([QueryStatus.PENDING, QueryStatus.LEASED]),
     ]
+    answers = [Label.run_id == run_id, Label.consumed_at.is_(None), Label.withdrawn_at.is_(None)]
     if query_ids is not None:
         condition.append(Query.id.in_(query_ids))
+        answers.append(Label.query_id.in_(query_ids))
     with transaction(session):
         get_row(session, Run, run_id)
+        # The labels before the queries, in an undo's order (its label, then its query): an undo
+        # under way commits first, and its pair, leased again, is then withdrawn here.
+        session.execute(update(Label).where(*answers).values(consumed_at=utcnow()),
+                        execution_options={"synchronize_session": False})
         return changed(
             session,
             update(Query)

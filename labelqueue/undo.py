@@ -13,8 +13,9 @@ without it (`labelqueue.gold`).
 
 Who wins between an undo and the trainer: the worker uses a person's label only once it is
 older than `SETTLE_SECONDS` (the undo window and a margin for the two hosts' clocks), and an
-undo is refused once the label is older than the window, taken by the trainer, or its query
-cancelled (the worker cancels a round's open queries before it closes the round early).
+undo is refused once the label is older than the window, taken by the trainer, or its round
+closed: the worker closes a round with `cancel_queries`, which withdraws its open queries and
+marks the answers they have taken, before it reads them.
 """
 
 from __future__ import annotations
@@ -105,8 +106,8 @@ def withdraw_label(
                               "answer cannot be taken back")
         age = (now - label.answered_at).total_seconds()
         if label.consumed_at is not None:
-            raise UndoRefused("the trainer has already taken that answer: it can no longer be "
-                              "taken back")
+            raise UndoRefused("the trainer has already taken that answer (its round has "
+                              "closed): it can no longer be taken back")
         if age > window_seconds:
             raise UndoRefused(f"that answer was given {age:.0f} s ago: answers can be taken "
                               f"back for {window_seconds:.0f} s only")

@@ -17,6 +17,7 @@ from labelqueue import (
     QueryStatus,
     TeacherKind,
     UndoRefused,
+    cancel_queries,
     consume_labels,
     create_labeller,
     labels_for_queries,
@@ -153,3 +154,22 @@ def test_an_undo_locks_the_queries_before_the_run_as_a_submit_does(
     thread.join(timeout=30)
     assert "back" in taken
     assert read_run(sessions(), run_id=run.id).labels_used == 0
+
+
+def test_an_answer_cannot_be_taken_back_once_its_round_has_closed(session: Session) -> None:
+    """The worker closes a round in three steps (cancel its open queries, take the labels, read
+    the round's); an undo between the first two would lease a pair of the closed round again,
+    and its new answer would be charged and never trained on."""
+    run = running_run(session, teacher=TeacherKind.HUMAN)
+    ids = push_queries(session, run_id=run.id, queries=[query_spec(0), query_spec(1)])
+    alice, _ = create_labeller(session, name="alice")
+    query = lease_next_query(session, labeller_id=alice.id, run_id=run.id)
+    assert query is not None
+    label, _ = submit_label(session, query_id=query.id, labeller_id=alice.id, choice="left",
+                            left_is_first=True)
+    cancel_queries(session, run_id=run.id, query_ids=ids)
+    with pytest.raises(UndoRefused, match="round has closed"):
+        withdraw_label(session, query_id=query.id, labeller_id=alice.id)
+    consume_labels(session, run_id=run.id)
+    assert [kept.id for kept in labels_for_queries(session, query_ids=ids)] == [label.id]
+    assert read_run(session, run_id=run.id).labels_used == 1
