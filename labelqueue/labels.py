@@ -298,8 +298,10 @@ def submit_label(
     neither (OtherRun): the lease serves them their invite's run only.
 
     `flag` marks the pair as one nobody can judge (`runvocab.answers.Flag`), with an optional
-    `flag_note`; only a skip may carry one (Invalid otherwise), so a flagged pair is never
-    trained on.
+    `flag_note`; only a skip may carry one (Invalid otherwise), so the flagging answer itself is
+    never trained on. The pair may be, when `feedback.labels_per_query` asks several people and
+    the others answered it: skips are not answers, and theirs decide
+    (`runvocab.answers.aggregate`).
     """
     choice = Click(choice)
     flag, flag_note = check_flag(choice, flag, flag_note)

@@ -394,7 +394,8 @@ class Label(Base):
     """when the labeller took the answer back (`labelqueue.undo`); none for a standing label"""
     flag: Mapped[Flag | None] = mapped_column(_enum(Flag, "flag"))
     """the labeller flagged the pair as broken (`runvocab.answers.Flag`); only with a skip, so
-    never trained on; none for an unflagged answer"""
+    this answer is never trained on (other labellers' answers to the pair may be); none for an
+    unflagged answer"""
     flag_note: Mapped[str | None] = mapped_column(Text)
     """the labeller's optional words on the flag"""
     practice: Mapped[bool] = mapped_column(Boolean, default=False)
