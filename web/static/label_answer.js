@@ -33,12 +33,12 @@ export function answer(choice, flag = null) {
   }
   if (practising) $("stage").hidden = true;
   updateButtons();
-  // An entry test measures the first try: its practice answers cannot be taken back.
-  if (practising && state.entryTest) withholdUndo();
-  else offerUndo(done);
+  withholdUndo(); // the last answer's offer ends; this one's comes once it is saved
   serial(() => attempt(async () => {
     try {
-      await submit(done.query.query_id, body);
+      const status = await submit(done.query.query_id, body);
+      // An entry test measures the first try: its practice answers cannot be taken back.
+      if (status != null && !(practising && state.entryTest)) offerUndo(done, status === 201);
     } finally {
       state.submitting = false;
       if (practising && !$("practice-dialog").open) $("stage").hidden = false;
@@ -51,10 +51,11 @@ export function answer(choice, flag = null) {
   }));
 }
 
+/** Sends the answer; its status when stored (201, or 200 for one stored before), null when
+ * refused or not saved (said on screen). */
 async function submit(queryId, body) {
   try {
     const { status, data } = await request("POST", `/api/label/${queryId}`, body);
-    if (state.last?.pair.query.query_id === queryId) state.last.counted = status === 201;
     if (data?.practice_feedback && status === 201) explainPractice(data.practice_feedback, data.choice);
     if (status === 201) {
       state.session += 1;
@@ -62,9 +63,11 @@ async function submit(queryId, body) {
       showCounts();
       if (state.target != null) await loadProgress(); // decisive answers on the run count
     }
+    return status;
   } catch (error) {
     if (error instanceof SignedOut) throw error;
     if (error.status === 409) notice(`That pair can no longer be answered (${error.message}): moving on.`);
     else notice(`Your answer could not be saved: ${error.message}`, "error");
+    return null;
   }
 }

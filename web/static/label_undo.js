@@ -1,5 +1,5 @@
-// Taking the last answer back: the Undo button (Backspace, U) for UNDO_MS after an answer; the
-// server has the last word on whether the answer can still be withdrawn.
+// Taking the last answer back: the Undo button (Backspace, U) for UNDO_MS after an answer is
+// saved; the server has the last word on whether the answer can still be withdrawn.
 
 import { SignedOut, request } from "./api.js";
 import { state } from "./label_state.js";
@@ -11,9 +11,10 @@ const UNDO_MS = 10_000; // an answer can be taken back this long (the server has
 
 const $ = (id) => document.getElementById(id);
 
-/** The Undo button, for UNDO_MS after an answer. */
-export function offerUndo(pair) {
-  state.last = { pair, counted: false };
+/** The Undo button, for UNDO_MS after an answer was saved; `counted`: whether it added to the
+ * page's counts (taken back, it comes off them). */
+export function offerUndo(pair, counted) {
+  state.last = { pair, counted };
   $("undo").hidden = false;
   clearTimeout(offerUndo.timer);
   offerUndo.timer = setTimeout(() => ($("undo").hidden = true), UNDO_MS);
