@@ -31,11 +31,11 @@ def database_args(p: argparse.ArgumentParser, inherit: bool = False) -> None:
 LABELLER_ACTIONS = {
     "revoke": "revoke a labeller's access (its labels stay): leasing, answering and taking "
     "answers back stop at once on every server; reads (label count, clips) within "
-    "SEPOA_AUTH_CACHE_SECONDS (5 s)",
+    "SEPOA_AUTH_CACHE_SECONDS (5 s); an operator-role labeller loses everything at once",
     "activate": "restore a revoked labeller's access",
     "token": "give a labeller a new token (printed once): the old one stops leasing, answering "
     "and taking answers back at once on every server, and reading within "
-    "SEPOA_AUTH_CACHE_SECONDS (5 s)",
+    "SEPOA_AUTH_CACHE_SECONDS (5 s) (an operator-role labeller's: everything at once)",
 }
 NAME_MAX = 100
 LABEL_FORMATS = ("jsonl", "csv", "parquet")

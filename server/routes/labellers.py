@@ -45,7 +45,7 @@ def patch_labeller(
 ) -> LabellerOut:
     """Revoke (`active: false`) or restore a labeller, change its role or name. Leasing and
     answering stop at once everywhere; other reads stop at once in this server process, and
-    within `SEPOA_AUTH_CACHE_SECONDS` in others."""
+    within `SEPOA_AUTH_CACHE_SECONDS` in others (an operator-role labeller's: at once)."""
     labeller = update_labeller(
         session, labeller_id=labeller_id, active=body.active, role=body.role, name=body.name
     )
