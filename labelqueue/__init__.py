@@ -102,6 +102,7 @@ from labelqueue.runs import (
     set_run_status,
     set_teacher,
     silent_holders,
+    stop_run,
 )
 from labelqueue.schema import check_database, integrity_problem, migrate, schema_revisions
 from labelqueue.sqlite_writer import WriterBusy, without_waiting
@@ -177,6 +178,7 @@ __all__ = [
     "set_clips",
     "set_labeller_active",
     "set_run_status",
+    "stop_run",
     "sqlite_url",
     "set_teacher",
     "session_factory",
