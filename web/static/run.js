@@ -119,7 +119,8 @@ async function showConfig() {
 }
 
 function teacherText(run) {
-  const eps = run.teacher_params?.eps;
+  // ε is set by the teacher parameters or by a config override; the API refuses both at once.
+  const eps = run.teacher_params?.eps ?? run.config?.["teacher.eps"];
   if (run.teacher === "human") {
     return `people${eps != null ? ` (scripted shadow teacher ε=${eps})` : ""}`;
   }
