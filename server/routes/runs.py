@@ -152,7 +152,7 @@ def get_defaults(
     config = request.query_params.get("config", "{}")
     try:
         overrides = json.loads(config) if len(config) <= CONFIG_MAX_BYTES else None
-    except ValueError:
+    except (ValueError, RecursionError):  # RecursionError: nested deeper than json can follow
         overrides = None
     if not isinstance(overrides, dict):
         raise RequestValidationError([{"type": "value_error", "loc": ("query", "config"),
