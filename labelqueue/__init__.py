@@ -52,6 +52,7 @@ from labelqueue.keys import server_key
 from labelqueue.label_stats import LabelThroughput, label_throughput, labels_given
 from labelqueue.labellers import (
     authenticate,
+    check_person_name,
     create_labeller,
     find_labeller,
     labeller_names,
@@ -150,6 +151,7 @@ __all__ = [
     "Worker",
     "WriterBusy",
     "authenticate",
+    "check_person_name",
     "check_database",
     "check_url",
     "integrity_problem",
