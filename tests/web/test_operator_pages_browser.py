@@ -175,3 +175,11 @@ def test_the_pages_show_a_teacher_error_rate_set_by_a_config_override(
         assert "scripted (ε=0.3)" in page.inner_text("#run-facts")
     finally:
         live.stop_run(run_id)
+
+
+def test_a_run_page_for_an_id_no_run_can_have_says_so_once(live: LiveServer, page: Any) -> None:
+    page.goto(f"{live.url}/runs/-5#token={OPERATOR_TOKEN}")
+    page.wait_for_selector("#notice:not([hidden])")
+    page.wait_for_selector("#loading", state="hidden")
+    notice = page.inner_text("#notice")
+    assert "greater than or equal to 1" in notice and "Could not refresh" not in notice
