@@ -52,6 +52,7 @@ from labelqueue.keys import server_key
 from labelqueue.label_stats import LabelThroughput, label_throughput, labels_given
 from labelqueue.labellers import (
     authenticate,
+    check_person_name,
     create_labeller,
     find_labeller,
     labeller_names,
@@ -102,6 +103,7 @@ from labelqueue.runs import (
     set_run_status,
     set_teacher,
     silent_holders,
+    stop_run,
 )
 from labelqueue.schema import check_database, integrity_problem, migrate, schema_revisions
 from labelqueue.sqlite_writer import WriterBusy, without_waiting
@@ -149,6 +151,7 @@ __all__ = [
     "Worker",
     "WriterBusy",
     "authenticate",
+    "check_person_name",
     "check_database",
     "check_url",
     "integrity_problem",
@@ -177,6 +180,7 @@ __all__ = [
     "set_clips",
     "set_labeller_active",
     "set_run_status",
+    "stop_run",
     "sqlite_url",
     "set_teacher",
     "session_factory",

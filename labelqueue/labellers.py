@@ -16,7 +16,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from labelqueue.errors import Conflict
-from labelqueue.models import LABELLERS, Labeller, Query, QueryStatus, Role
+from labelqueue.models import LABELLERS, SCRIPTED_TEACHER, Labeller, Query, QueryStatus, Role
 from labelqueue.transaction import (
     changed,
     detach,
@@ -29,6 +29,30 @@ from labelqueue.transaction import (
 
 def hash_token(token: str) -> str:
     return hashlib.sha256(token.encode()).hexdigest()
+
+
+def check_person_name(name: str) -> None:
+    """Conflict for the scripted teacher's name, which no person may take: the worker answers
+    for scripted runs as the labeller of that name, whoever holds it (`create_labeller` makes it
+    for the worker; an operator's create or rename checks here)."""
+    if name == SCRIPTED_TEACHER:
+        raise Conflict(f"the name {SCRIPTED_TEACHER!r} is the scripted teacher's (workers answer "
+                       "as the labeller of that name); choose another")
+
+
+def _check_scripted_change(labeller: Labeller, *, active: bool | None, name: str | None) -> None:
+    """Conflict for a change that would break the scripted teacher: revoking it leaves scripted
+    runs waiting for answers for ever; renaming it, or another to its name, misleads workers."""
+    if labeller.name != SCRIPTED_TEACHER:
+        if name is not None:
+            check_person_name(name)
+        return
+    if active is False:
+        raise Conflict(f"labeller {labeller.id} is the scripted teacher: revoked, runs it "
+                       "teaches would wait for answers for ever; stop or switch those runs")
+    if name is not None and name != SCRIPTED_TEACHER:
+        raise Conflict(f"labeller {labeller.id} is the scripted teacher, found by workers by "
+                       f"its name {SCRIPTED_TEACHER!r}: it cannot be renamed")
 
 
 def create_labeller(
@@ -89,13 +113,15 @@ def update_labeller(
     role: Role | str | None = None,
     name: str | None = None,
 ) -> Labeller:
-    """Change what is given (None keeps it); NotFound, or Conflict if the name is taken.
+    """Change what is given (None keeps it); NotFound, or Conflict if the name is taken, is
+    the scripted teacher's, or the change would revoke or rename the scripted teacher.
 
     Deactivating revokes at once: leasing and answering read `active` in their own transaction,
     and the labeller's leases are released for others. Its labels stay on record.
     """
     with transaction(session):
         labeller = get_row(session, Labeller, labeller_id)
+        _check_scripted_change(labeller, active=active, name=name)
         if active is not None:
             labeller.active = active
             if not active:  # others may take its queries at once
@@ -113,9 +139,13 @@ def update_labeller(
 
 
 def rotate_token(session: Session, *, labeller_id: int) -> tuple[Labeller, str]:
-    """A new bearer token for the labeller; the old one stops working. NotFound if none."""
+    """A new bearer token for the labeller; the old one stops working. NotFound if none;
+    Conflict for the scripted teacher, whose answers no person may give."""
     with transaction(session):
         labeller = get_row(session, Labeller, labeller_id)
+        if labeller.name == SCRIPTED_TEACHER:
+            raise Conflict(f"labeller {labeller_id} is the scripted teacher: no person answers "
+                           "as it, so it takes no token")
         token = f"{labeller.id}.{secrets.token_urlsafe(32)}"
         labeller.token_hash = hash_token(token)
         detach(session, labeller)

@@ -5,6 +5,7 @@
     operator:  running <-> paused (pause, resume)
                running | paused -> stopping (stop; the worker checkpoints and ends as stopped)
                queued | stopping -> stopped (cancel; or a stop whose worker died)
+               running | paused | stopping, no worker holds it -> stopped (stop_run)
                stopped | failed -> queued (requeue)
 
 A worker that stops heartbeating loses its running run to the next worker that claims one; the
@@ -355,6 +356,40 @@ def set_run_status(session: Session, *, run_id: int, status: RunStatus | str) ->
         run = get_row(session, Run, run_id)
         if not moved:
             raise InvalidTransition(f"run {run_id} is {run.status}; it cannot be made {target}")
+        detach(session, run)
+    return run
+
+
+def stop_run(session: Session, *, run_id: int, force: bool = False) -> Run:
+    """An operator's stop, one conditional UPDATE that chooses from the run as it is then (a
+    claim or a worker's end between a read and the move cannot turn it into a 409).
+
+    Running or paused with a worker: stopping (the worker checkpoints, then ends it as stopped).
+    Stopped at once: queued; running, paused or stopping with no worker holding it (released
+    by SIGTERM or preemption, or an external run), which no worker would ever claim to end;
+    stopping with `force` (its worker died before acknowledging). InvalidTransition otherwise.
+    """
+    live = Run.status.in_((RunStatus.RUNNING, RunStatus.PAUSED))
+    unheld = Run.worker_id.is_(None)
+    stopping = Run.status == RunStatus.STOPPING
+    ends_now = or_(Run.status == RunStatus.QUEUED, and_(live, unheld),
+                   stopping if force else and_(stopping, unheld))
+    now = utcnow()
+    with transaction(session):
+        moved = changed(
+            session,
+            update(Run)
+            .where(Run.id == run_id, or_(live, ends_now))
+            .values(
+                status=case((ends_now, RunStatus.STOPPED.value),
+                            else_=RunStatus.STOPPING.value),
+                finished_at=case((ends_now, literal(now, UTCDateTime())),
+                                 else_=Run.finished_at),
+            ),
+        )
+        run = get_row(session, Run, run_id)
+        if not moved:
+            raise InvalidTransition(f"run {run_id} is {run.status}; it cannot be stopped")
         detach(session, run)
     return run
 

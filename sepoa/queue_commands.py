@@ -29,13 +29,14 @@ def database_args(p: argparse.ArgumentParser, inherit: bool = False) -> None:
 
 
 LABELLER_ACTIONS = {
-    "revoke": "revoke a labeller's access (its labels stay): leasing, answering and taking "
+    "revoke": "revoke a labeller's access (its labels stay; not the scripted teacher's, "
+    "scripted-teacher, whose runs would wait for ever): leasing, answering and taking "
     "answers back stop at once on every server; reads (label count, clips) within "
-    "SEPOA_AUTH_CACHE_SECONDS (5 s)",
+    "SEPOA_AUTH_CACHE_SECONDS (5 s); an operator-role labeller loses everything at once",
     "activate": "restore a revoked labeller's access",
-    "token": "give a labeller a new token (printed once): the old one stops leasing, answering "
-    "and taking answers back at once on every server, and reading within "
-    "SEPOA_AUTH_CACHE_SECONDS (5 s)",
+    "token": "give a labeller (not scripted-teacher) a new token (printed once): the old one "
+    "stops leasing, answering and taking answers back at once on every server, and reading within "
+    "SEPOA_AUTH_CACHE_SECONDS (5 s) (an operator-role labeller's: everything at once)",
 }
 NAME_MAX = 100
 LABEL_FORMATS = ("jsonl", "csv", "parquet")
@@ -306,6 +307,7 @@ def _labeller(args: argparse.Namespace) -> int:
     from labelqueue import (
         Conflict,
         Labeller,
+        check_person_name,
         create_labeller,
         find_labeller,
         rotate_token,
@@ -322,6 +324,7 @@ def _labeller(args: argparse.Namespace) -> int:
         with session_factory(engine)() as session:
             if args.action == "create":
                 try:
+                    check_person_name(args.name)
                     labeller, token = create_labeller(session, name=args.name, role=args.role)
                 except Conflict as err:
                     return fail(str(err))
@@ -336,12 +339,18 @@ def _labeller(args: argparse.Namespace) -> int:
                 if found is None:
                     return fail(f"no labeller named {name!r} (sepoa labeller list shows them)")
                 if args.action == "token":
-                    _, token = rotate_token(session, labeller_id=found.id)
+                    try:
+                        _, token = rotate_token(session, labeller_id=found.id)
+                    except Conflict as err:  # the scripted teacher
+                        return fail(str(err))
                     print(f"new token for {name!r} (shown once; the old one no longer works):")
                     print(token)
                 else:
                     active = args.action == "activate"
-                    update_labeller(session, labeller_id=found.id, active=active)
+                    try:
+                        update_labeller(session, labeller_id=found.id, active=active)
+                    except Conflict as err:  # revoking the scripted teacher
+                        return fail(str(err))
                     print(f"{name!r} {'activated' if active else 'revoked'}")
     except DBAPIError as err:  # damage the integrity check does not see, a database gone away
         return fail(f"cannot use the queue database: {database_reason(err)}")
@@ -353,7 +362,8 @@ def _labeller(args: argparse.Namespace) -> int:
 def _labeller_arguments(p: argparse.ArgumentParser) -> None:
     database_args(p)
     labeller_sub = p.add_subparsers(dest="action", required=True)
-    create = labeller_sub.add_parser("create", help="a new labeller; prints its token once")
+    create = labeller_sub.add_parser("create", help="a new labeller; prints its token once "
+                                     "(any name but scripted-teacher, the workers' own)")
     create.add_argument("name")
     create.add_argument("--role", choices=("labeller", "operator"), default="labeller")
     database_args(create, inherit=True)

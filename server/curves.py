@@ -1,9 +1,10 @@
 """A run's learning curve beside its peers', as the experiment report draws it.
 
-Peers are the runs in the database with the same task, preset and teacher error rate. Each
-algorithm is one curve: the mean and standard deviation across its runs (seeds) of the
-evaluation return, on the steps all of them reached (figures/curves.py). The run
-itself is drawn alone as well, so it can be told from its group.
+Peers are the runs in the database with the same task, preset, teacher kind (human or scripted)
+and teacher error rate (as the run's stored configuration says). Each algorithm is one curve:
+the mean and standard deviation across its runs (seeds) of the evaluation return, on the steps
+all of them reached (figures/curves.py), named with the number of runs it draws. The run itself
+is drawn alone as well, so it can be told from its group.
 
 Drawing a figure takes about a second of CPU (matplotlib), so it is done by a process of its own
 at a lower priority (`server.side_process`), started at the first figure and kept: in the
@@ -42,7 +43,20 @@ _kept: OrderedDict[Hashable, bytes] = OrderedDict()
 
 
 def _eps(run: Run) -> float:
-    return float((run.teacher_params or {}).get("eps", 0.0))
+    """The teacher's error rate as the run trains with it: its stored configuration says,
+    whether `teacher_params` or a `config` override (`teacher.eps`) set it."""
+    teacher = (run.resolved_config or {}).get("teacher")
+    # A run stored without a configuration (an older one): its parameters alone.
+    eps = teacher.get("eps") if isinstance(teacher, dict) else (run.teacher_params or {}).get("eps")
+    try:
+        return float(eps if eps is not None else 0.0)
+    except (TypeError, ValueError):
+        return 0.0
+
+
+def _pool(run: Run) -> tuple[str, float]:
+    """What a run's peers share besides task and preset: who teaches it, at what error rate."""
+    return str(run.teacher), _eps(run)
 
 
 def _series(session: Session, run_id: int, metric: str) -> tuple[list[int], list[float]]:
@@ -59,11 +73,11 @@ def peer_curves_png(session: Session, run: Run, metric: str) -> bytes:
             peer for peer in session.scalars(
                 select(Run).where(Run.task == run.task, Run.preset == run.preset)
                 .order_by(Run.id))
-            if _eps(peer) == _eps(run)
+            if _pool(peer) == _pool(run)
         ]
     # The run is one of its peers: each series is read once.
     series = {peer.id: _series(session, peer.id, metric) for peer in peers}
-    counts = Counter(peer.algo for peer in peers)
+    counts = Counter(peer.algo for peer in peers if series[peer.id][0])  # the drawn ones
     curves: dict[str, list[tuple[list[int], list[float]]]] = {}
     for peer in peers:
         if series[peer.id][0]:
@@ -72,7 +86,7 @@ def peer_curves_png(session: Session, run: Run, metric: str) -> bytes:
             curves.setdefault(label, []).append(series[peer.id])
     if series[run.id][0]:
         curves[f"this run ({run.algo}, seed {run.seed})"] = [series[run.id]]
-    title = f"{run.task} · {run.preset} · ε = {_eps(run):g}"
+    title = f"{run.task} · {run.preset} · {run.teacher} teacher, ε = {_eps(run):g}"
     figure = tuple(
         (label, tuple((tuple(steps), tuple(values)) for steps, values in seeds))
         for label, seeds in curves.items()

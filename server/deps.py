@@ -90,13 +90,17 @@ def bearer_token(request: Request) -> str | None:
 
 
 class TokenCache:
-    """Tokens checked in the last `seconds`, by their sha256: a labeller's every request would
-    otherwise read its own row, on a thread of the pool, before doing its work."""
+    """Labeller-role tokens checked in the last `seconds`, by their sha256: a labeller's every
+    request would otherwise read its own row, on a thread of the pool, before doing its work.
+
+    An operator-role labeller is never kept: its rights (make operators, restore labellers)
+    must end the moment it is revoked, and operator traffic is too small to need a cache."""
 
     def __init__(self, seconds: float):
         self.seconds = seconds
         self._entries: dict[str, tuple[float, Caller]] = {}
         self._lock = threading.Lock()
+        self._generation = 0  # bumped by `forget`; a check read before it must not be kept
 
     def get(self, token: str) -> Caller | None:
         key = hashlib.sha256(token.encode()).hexdigest()
@@ -104,20 +108,30 @@ class TokenCache:
             entry = self._entries.get(key)
         return entry[1] if entry is not None and entry[0] > time.monotonic() else None
 
+    def generation(self) -> int:
+        """Take this before reading a token's row, and give it to `put`."""
+        with self._lock:
+            return self._generation
+
     def forget(self, labeller_id: int) -> None:
         """Drop the labeller's entries: a change to it applies at once in this process (other
         server processes keep their entries until they run out, `seconds` at most)."""
         with self._lock:
+            self._generation += 1
             self._entries = {
                 k: v for k, v in self._entries.items() if v[1].labeller_id != labeller_id
             }
 
-    def put(self, token: str, caller: Caller) -> None:
-        if self.seconds <= 0:
+    def put(self, token: str, caller: Caller, *, generation: int) -> None:
+        """Keep a check read at `generation`, unless a `forget` came since (the row read may
+        predate the change) or the caller is an operator."""
+        if self.seconds <= 0 or caller.role is Role.OPERATOR:
             return
         key = hashlib.sha256(token.encode()).hexdigest()
         now = time.monotonic()
         with self._lock:
+            if generation != self._generation:
+                return
             if len(self._entries) > 10_000:  # drop what has run out; bounded memory
                 self._entries = {k: v for k, v in self._entries.items() if v[0] > now}
             self._entries[key] = (now + self.seconds, caller)
@@ -126,8 +140,8 @@ class TokenCache:
 def known_caller(
     *, settings: Settings, token: str | None, cache: TokenCache | None = None
 ) -> Caller | None:
-    """The caller a token names without asking the database (the operator token, or a token in
-    the cache); None when the database must say. 401 without a token."""
+    """The caller a token names without asking the database (the operator token, or a
+    labeller-role token in the cache); None when the database must say. 401 without a token."""
     if token is None:
         raise HTTPException(401, "missing bearer token (Authorization: Bearer <token>)", HEADERS)
     admin = settings.operator_token
@@ -138,12 +152,13 @@ def known_caller(
 
 def checked_caller(*, session: Session, token: str, cache: TokenCache | None = None) -> Caller:
     """The labeller a token names, from the database (blocking); 401 when it names none."""
+    generation = cache.generation() if cache is not None else 0
     labeller = authenticate(session, token=token)
     if labeller is None:
         raise HTTPException(401, "invalid or revoked bearer token", HEADERS)
     caller = Caller(role=labeller.role, labeller_id=labeller.id, name=labeller.name)
     if cache is not None:
-        cache.put(token, caller)
+        cache.put(token, caller, generation=generation)
     return caller
 
 

@@ -14,6 +14,7 @@ from runvocab.config import build_config, typed_overrides
 from runvocab.first_round import first_round_step
 from runvocab.names import ConfigError
 from runvocab.queued_run import TOP_LEVEL_FIELDS
+from runvocab.validate import validate
 
 
 def refusal(err: ConfigError, *, teacher_params: Mapping[str, Any], config: Mapping[str, Any],
@@ -46,9 +47,12 @@ when no worker of this server has reported its own"""
 def run_defaults(*, task: str, algo: str, preset: str, config: Mapping[str, Any],
                  measured_pace: float | None) -> dict[str, Any]:
     """What a run of this task, algorithm and preset gets unless `config` says otherwise
-    (`RunDefaults`); a 422 naming the field for a config no worker could use."""
+    (`RunDefaults`); a 422 naming the field for a config no worker could use, checked as
+    `POST /api/runs` checks it (`runvocab.validate`: ranges, finite numbers, rules between
+    fields), so no value a new run would be refused is shown as a default."""
     try:
         cfg = build_config(task, preset, {"algo": algo} | typed_overrides(dict(config)))
+        validate(cfg)
     except ConfigError as err:
         raise RequestValidationError([{
             "type": "value_error", "msg": str(err), "loc": ("query", "config", err.field),

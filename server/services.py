@@ -21,10 +21,8 @@ from labelqueue import (
     NotFound,
     Query,
     Run,
-    RunStatus,
     create_run,
     lease_next_query,
-    set_run_status,
     submit_label,
     withdraw_label,
 )
@@ -80,17 +78,6 @@ def new_run(session: Session, *, spec: RunCreate) -> Run:
         instruction=spec.instruction,
         clip_size=spec.clip_size,
     )
-
-
-def stop_run(session: Session, *, run_id: int, force: bool = False) -> Run:
-    """Running or paused: stopping (the worker checkpoints, then ends it). Queued: stopped.
-
-    `force` also ends a stopping run whose worker died before acknowledging.
-    """
-    status = get_run(session, run_id=run_id).status
-    immediate = status is RunStatus.QUEUED or (force and status is RunStatus.STOPPING)
-    target = RunStatus.STOPPED if immediate else RunStatus.STOPPING
-    return set_run_status(session, run_id=run_id, status=target)
 
 
 def next_query(

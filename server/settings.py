@@ -37,8 +37,9 @@ class Settings(BaseSettings):
     clip_url_seconds: float = Field(default=900.0, gt=0)
     """how long a signed clip URL stays valid"""
     auth_cache_seconds: float = Field(default=5.0, ge=0)
-    """how long a checked token is trusted without the database (0: check every request); a
-    revoked labeller can still read for this long, but cannot lease or answer"""
+    """how long a checked labeller-role token is trusted without the database (0: check every
+    request); a revoked labeller can still read for this long, but cannot lease or answer (an
+    operator-role token is checked every request)"""
     body_limit_bytes: int = Field(default=64 * 1024, ge=1024)
     """the largest request body read; a larger one is refused with 413"""
     clip_upload_bytes: int = Field(default=16 * 1024 * 1024, ge=1024)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from labelqueue import create_labeller, rotate_token, update_labeller
+from labelqueue import check_person_name, create_labeller, rotate_token, update_labeller
 from server import services
 from server.deps import OperatorDep, SessionDep, TokenCacheDep
 from server.schemas import (
@@ -24,6 +24,9 @@ router = APIRouter(prefix="/api/labellers", tags=["labellers"], responses=errors
     "", status_code=201, response_model=LabellerCreated, responses=errors(400, 409, 413, 422)
 )
 def new_labeller(body: LabellerCreate, session: SessionDep, _: OperatorDep) -> LabellerCreated:
+    """A new labeller and its token (shown once); 409 for a name taken, or the scripted
+    teacher's (`scripted-teacher`: workers make that labeller themselves)."""
+    check_person_name(body.name)
     labeller, token = create_labeller(session, name=body.name, role=body.role)
     return LabellerCreated(id=labeller.id, name=labeller.name, role=labeller.role, token=token)
 
@@ -45,7 +48,9 @@ def patch_labeller(
 ) -> LabellerOut:
     """Revoke (`active: false`) or restore a labeller, change its role or name. Leasing and
     answering stop at once everywhere; other reads stop at once in this server process, and
-    within `SEPOA_AUTH_CACHE_SECONDS` in others."""
+    within `SEPOA_AUTH_CACHE_SECONDS` in others (an operator-role labeller's: at once). 409
+    for a name taken or the scripted teacher's, and for revoking or renaming the scripted
+    teacher."""
     labeller = update_labeller(
         session, labeller_id=labeller_id, active=body.active, role=body.role, name=body.name
     )
@@ -55,12 +60,13 @@ def patch_labeller(
 
 
 @router.post(
-    "/{labeller_id}/token", response_model=LabellerCreated, responses=errors(404, 422)
+    "/{labeller_id}/token", response_model=LabellerCreated, responses=errors(404, 409, 422)
 )
 def new_token(
     labeller_id: LabellerId, session: SessionDep, _: OperatorDep, cache: TokenCacheDep
 ) -> LabellerCreated:
-    """A new bearer token for the labeller (shown this once); its old token stops working."""
+    """A new bearer token for the labeller (shown this once); its old token stops working. 409
+    for the scripted teacher, as whom no person answers."""
     labeller, token = rotate_token(session, labeller_id=labeller_id)
     if cache is not None:
         cache.forget(labeller_id)

@@ -2,7 +2,8 @@
 
 A page is a shell without data and needs no token: the bearer token lives in the browser
 (localStorage), and the page's JS sends it with every API call. So any run id renders a page,
-and an unknown run shows the API's 404 message there.
+and an unknown run shows the API's 404 message there (an id no run can have, such as -5, its
+422), once: the page stops refreshing.
 """
 
 from __future__ import annotations

@@ -20,6 +20,7 @@ from labelqueue import (
     set_run_status,
     set_teacher,
 )
+from labelqueue import stop_run as stop_in_queue
 from labelqueue.run_config import as_json, fields, overridden, run_config
 from runviews.activity import list_workers, runs_activity
 from runvocab.config import typed_overrides
@@ -151,7 +152,7 @@ def get_defaults(
     config = request.query_params.get("config", "{}")
     try:
         overrides = json.loads(config) if len(config) <= CONFIG_MAX_BYTES else None
-    except ValueError:
+    except (ValueError, RecursionError):  # RecursionError: nested deeper than json can follow
         overrides = None
     if not isinstance(overrides, dict):
         raise RequestValidationError([{"type": "value_error", "loc": ("query", "config"),
@@ -247,8 +248,9 @@ def resume_run(run_id: RunId, session: SessionDep, _: OperatorDep) -> RunOut:
 
 @router.post("/{run_id}/stop", response_model=RunOut, responses=MOVE_ERRORS)
 def stop_run(run_id: RunId, session: SessionDep, _: OperatorDep, force: bool = False) -> RunOut:
-    """Running/paused: stopping; queued: stopped; `force=true` also ends a stopping run."""
-    return RunOut.model_validate(services.stop_run(session, run_id=run_id, force=force))
+    """Running/paused: stopping; queued, or no worker holds it: stopped; `force=true` also ends
+    a stopping run (`labelqueue.stop_run`)."""
+    return RunOut.model_validate(stop_in_queue(session, run_id=run_id, force=force))
 
 
 @router.post("/{run_id}/requeue", response_model=RunOut, responses=MOVE_ERRORS)

@@ -13,6 +13,7 @@ from sqlalchemy.orm import Session
 
 from labelqueue import (
     Conflict,
+    InvalidTransition,
     Run,
     RunStatus,
     claim_run,
@@ -26,6 +27,7 @@ from labelqueue import (
     release_run,
     set_run_status,
     silent_holders,
+    stop_run,
     url_has_secret,
 )
 from labelqueue.models import utcnow
@@ -71,6 +73,25 @@ def test_a_paused_run_stays_paused_and_a_stopping_one_stops(session: Session) ->
     stopped = release_run(session, run_id=stopping.id, worker_id="w3")
     assert stopped.status is RunStatus.STOPPED and stopped.finished_at is not None
     assert read_run(session, run_id=stopping.id).finished_at == stopped.finished_at
+
+
+def test_a_stop_ends_at_once_a_run_no_worker_holds(session: Session) -> None:
+    held = claimed(session, "w1", "held")
+    assert stop_run(session, run_id=held.id).status is RunStatus.STOPPING
+    paused = claimed(session, "w2", "paused")
+    set_run_status(session, run_id=paused.id, status=RunStatus.PAUSED)
+    release_run(session, run_id=paused.id, worker_id="w2")
+    stopped = stop_run(session, run_id=paused.id)
+    assert (stopped.status, stopped.worker_id) == (RunStatus.STOPPED, None)
+    assert stopped.finished_at is not None
+    create_run(session, name="queued", task="dmc:walker_run", algo="pebble", budget=50)
+    queued = claim_run(session, worker_id="w3", skip=[held.id])
+    assert queued is not None
+    release_run(session, run_id=queued.id, worker_id="w3", untouched=True)
+    assert stop_run(session, run_id=queued.id).status is RunStatus.STOPPED
+    with pytest.raises(InvalidTransition, match="is stopping; it cannot be stopped"):
+        stop_run(session, run_id=held.id)
+    assert stop_run(session, run_id=held.id, force=True).status is RunStatus.STOPPED
 
 
 def test_runs_held_by_silent_workers_with_their_heartbeat_age(session: Session) -> None:

@@ -77,7 +77,7 @@ def test_figures_are_drawn_by_a_process_of_lower_priority_than_the_server(
     # The same PNG as drawn here, but not drawn by the server's process.
     figure = (("pebble (1 run)", (((1000, 2000), (1.5, 2.5)),)),
               ("this run (pebble, seed 0)", (((1000, 2000), (1.5, 2.5)),)))
-    title = "dmc:cheetah_run · tiny · ε = 0.25"
+    title = "dmc:cheetah_run · tiny · human teacher, ε = 0.25"
     assert response.content == curves.draw(figure, title, "evaluation return")
     assert curves._drawer.run(os.getpid) != os.getpid()
     assert curves._drawer.run(os.nice, 0) == min(19, os.nice(0) + NICENESS)
@@ -116,3 +116,27 @@ def test_open_run_pages_share_one_drawing_until_a_new_evaluation(
     again = client.get(f"/api/runs/{run_id}/curves.png", headers=OPERATOR)
     assert len(drawings) == 2 and again.content != pages[0].content
     assert [list(values) for _, values in drawings[1]["this run (rune, seed 0)"]] == [[4, 5, 6]]
+
+
+def test_peers_share_the_teacher_kind_and_the_error_rate_the_run_trains_with(
+    client: TestClient, session: Session, monkeypatch: pytest.MonkeyPatch, drawn_here: None
+) -> None:
+    def evaluated(returns: list[float], **body: Any) -> int:
+        run_id: int = new_run(client, algo="pebble", **body)["id"]
+        for i, value in enumerate(returns):
+            write_metrics(session, run_id=run_id, stream="eval", step=1000 * (i + 1),
+                          values={"return": value})
+        return run_id
+
+    mine = evaluated([1, 2], teacher="scripted", config={"teacher.eps": 0.3})
+    evaluated([3, 4], teacher="scripted", teacher_params={"eps": 0.3}, seed=1)
+    evaluated([], teacher="scripted", teacher_params={"eps": 0.3}, seed=2)  # none yet
+    evaluated([9, 9], teacher="scripted", seed=3)  # eps 0
+    evaluated([8, 8], teacher="human", config={"teacher.eps": 0.3}, seed=4)  # people teach it
+    drawn: dict[str, Any] = {}
+    monkeypatch.setattr(plots, "curves_png",
+                        lambda curves, **kwargs: drawn.update(curves=curves, **kwargs) or b"")
+    assert client.get(f"/api/runs/{mine}/curves.png", headers=OPERATOR).status_code == 200
+    assert sorted(drawn["curves"]) == ["pebble (2 runs)", "this run (pebble, seed 0)"]
+    assert [list(v) for _, v in drawn["curves"]["pebble (2 runs)"]] == [[1, 2], [3, 4]]
+    assert "scripted teacher, ε = 0.3" in drawn["title"]

@@ -4,10 +4,13 @@ trusts the checked token for a few seconds (`SEPOA_AUTH_CACHE_SECONDS`)."""
 
 from __future__ import annotations
 
+import pytest
 from fastapi.testclient import TestClient
 from server_helpers import bearer, new_labeller, running_run_with_queries, snapshot
 from sqlalchemy.orm import Session
 
+import server.deps
+from labelqueue import set_labeller_active
 from sepoa.cli import main
 from server.settings import Settings
 
@@ -59,3 +62,37 @@ def test_a_labeller_revoked_by_the_cli_cannot_take_an_answer_back(
     assert "deactivated" in taken_back.json()["detail"]
     assert _next(client, token, run_id).status_code == 403
     assert snapshot(session) == before  # the answer stands; no pair leased to bob again
+
+
+def test_an_operator_revoked_by_the_cli_loses_every_operator_right_at_once(
+    client: TestClient, settings: Settings
+) -> None:
+    boss = bearer(new_labeller(client, "boss", role="operator"))
+    assert client.get("/api/labellers", headers=boss).status_code == 200  # token checked
+    assert main(["labeller", "revoke", "boss", "--data-dir", str(settings.data_dir)]) == 0
+    made = client.post("/api/labellers", json={"name": "backdoor", "role": "operator"},
+                       headers=boss)
+    assert made.status_code == 401, made.text
+    restored = client.patch("/api/labellers/1", json={"active": True}, headers=boss)
+    assert restored.status_code == 401, restored.text
+    assert client.get("/api/labellers", headers=boss).status_code == 401
+
+
+def test_a_revoke_landing_during_a_token_check_is_not_undone_by_the_cache(
+    client: TestClient, session: Session, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    token = new_labeller(client, "carol")
+    labeller_id = int(token.split(".")[0])
+    read = server.deps.authenticate
+    cache = client.app.state.token_cache  # type: ignore[attr-defined]
+
+    def revoked_after_the_read(db: Session, *, token: str):  # type: ignore[no-untyped-def]
+        row = read(db, token=token)
+        set_labeller_active(session, labeller_id=labeller_id, active=False)  # what PATCH does
+        cache.forget(labeller_id)
+        return row
+
+    monkeypatch.setattr(server.deps, "authenticate", revoked_after_the_read)
+    assert client.get("/api/label/count", headers=bearer(token)).status_code == 200  # in flight
+    monkeypatch.setattr(server.deps, "authenticate", read)
+    assert client.get("/api/label/count", headers=bearer(token)).status_code == 401

@@ -101,6 +101,24 @@ def test_the_label_page_is_told_why_nothing_is_there(
     assert client.get("/api/label/status?run_id=0", headers=bearer(token)).status_code == 422
 
 
+def test_the_defaults_refuse_what_a_new_run_is_refused_naming_the_field(
+    client: TestClient,
+) -> None:
+    for config, field in (('{"feedback.budget": -5}', "feedback.budget"),
+                          ('{"feedback.segment_length": 0}', "feedback.segment_length"),
+                          ('{"sac.lr": NaN}', "sac.lr")):
+        shown = client.get("/api/runs/defaults", headers=OPERATOR,
+                           params={"task": "dmc:cheetah_run", "config": config})
+        assert shown.status_code == 422, (config, shown.text)
+        assert shown.json()["detail"][0]["loc"] == ["query", "config", field]
+        assert field in shown.json()["detail"][0]["msg"]
+    deep = client.get("/api/runs/defaults", headers=OPERATOR,
+                      params={"task": "dmc:cheetah_run", "config": "[" * 5000 + "]" * 5000})
+    assert deep.status_code == 422, deep.text
+    assert deep.json()["detail"][0]["loc"] == ["query", "config"]
+    assert "JSON object" in deep.json()["detail"][0]["msg"]
+
+
 def test_a_new_run_defaults_to_its_presets_budget_and_the_form_learns_the_clip_length(
     client: TestClient,
 ) -> None:

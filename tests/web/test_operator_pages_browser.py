@@ -159,3 +159,27 @@ def test_the_runs_page_revokes_restores_and_rekeys_a_labeller(live: LiveServer, 
     assert httpx.get(f"{live.url}/api/label/count", headers=old).status_code == 401
     fresh = {"Authorization": f"Bearer {new}"}
     assert httpx.get(f"{live.url}/api/label/count", headers=fresh).status_code == 200
+
+
+def test_the_pages_show_a_teacher_error_rate_set_by_a_config_override(
+    live: LiveServer, page: Any
+) -> None:
+    run_id = live.new_human_run(teacher="scripted", config={"teacher.eps": 0.3})
+    try:
+        page.goto(f"{live.url}/runs#token={OPERATOR_TOKEN}")
+        row = page.locator(f"#runs-body tr:has(a[href='/runs/{run_id}'])").first
+        row.wait_for()
+        assert "scripted ε=0.3" in row.inner_text()
+        page.goto(f"{live.url}/runs/{run_id}#token={OPERATOR_TOKEN}")
+        page.wait_for_selector("#run-facts dd")
+        assert "scripted (ε=0.3)" in page.inner_text("#run-facts")
+    finally:
+        live.stop_run(run_id)
+
+
+def test_a_run_page_for_an_id_no_run_can_have_says_so_once(live: LiveServer, page: Any) -> None:
+    page.goto(f"{live.url}/runs/-5#token={OPERATOR_TOKEN}")
+    page.wait_for_selector("#notice:not([hidden])")
+    page.wait_for_selector("#loading", state="hidden")
+    notice = page.inner_text("#notice")
+    assert "greater than or equal to 1" in notice and "Could not refresh" not in notice

@@ -37,10 +37,10 @@ const refresh = poller(async () => {
       `updated ${new Date().toLocaleTimeString()}`;
   } catch (error) {
     if (error instanceof SignedOut) return false;
-    if (error.status === 404) {
+    if (error.status === 404 || error.status === 422) {
       document.getElementById("loading").hidden = true;
       notify(`${error.message}.`, "error", 3600);
-      return false; // no such run: nothing to refresh
+      return false; // no such run (or an id no run can have: /runs/-5): nothing to refresh
     }
     notify(`Could not refresh: ${error.message}`, "error");
   }
@@ -119,7 +119,8 @@ async function showConfig() {
 }
 
 function teacherText(run) {
-  const eps = run.teacher_params?.eps;
+  // ε is set by the teacher parameters or by a config override; the API refuses both at once.
+  const eps = run.teacher_params?.eps ?? run.config?.["teacher.eps"];
   if (run.teacher === "human") {
     return `people${eps != null ? ` (scripted shadow teacher ε=${eps})` : ""}`;
   }

@@ -73,7 +73,8 @@ function render(runs, workers) {
 }
 
 function teacherText(run) {
-  const eps = run.teacher_params?.eps;
+  // ε is set by the teacher parameters or by a config override; the API refuses both at once.
+  const eps = run.teacher_params?.eps ?? run.config?.["teacher.eps"];
   if (run.teacher === "human") return "people";
   return eps != null ? `scripted ε=${eps}` : "scripted";
 }
