@@ -10,7 +10,7 @@ the CPU time of the process (SQLite's work included):
 - "Python": every label of the run read and bucketed in Python (how the endpoint worked before),
   withdrawn labels left out, the median of the latest 1000 human answer times;
 - "SQL": the counts per bucket and source and the median answer time worked out in SQL
-  (`labelqueue.label_throughput`), what a poll costs after a new label;
+  (`runviews.label_stats.label_throughput`), what a poll costs after a new label;
 - "SQL, unchanged": the endpoint's function when no label came or went since the last poll
   (the run, and the labels' fingerprint, read; the answer kept from the last poll).
 
@@ -47,11 +47,10 @@ from labelqueue import (
     Query,
     Run,
     create_labeller,
-    label_throughput,
     make_engine,
     session_factory,
 )
-from labelqueue.label_stats import MEDIAN_OF
+from runviews.label_stats import MEDIAN_OF, label_throughput
 from server import services
 from server.routes import stats
 from server.schemas import Throughput, ThroughputBucket

@@ -49,7 +49,6 @@ from labelqueue.grid import (
 )
 from labelqueue.instructions import set_instruction
 from labelqueue.keys import server_key
-from labelqueue.label_stats import LabelThroughput, label_throughput, labels_given
 from labelqueue.labellers import (
     authenticate,
     check_person_name,
@@ -118,9 +117,6 @@ from labelqueue.undo import (
 )
 
 __all__ = [
-    "LabelThroughput",
-    "label_throughput",
-    "labels_given",
     "DEAD_WORKER_AFTER_S",
     "DEFAULT_URL",
     "EXPORT_COLUMNS",

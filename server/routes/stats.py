@@ -1,5 +1,5 @@
 """Label statistics: a run's labelling throughput (operator) and a labeller's own label count
-(`labelqueue.label_stats`). The run page polls the throughput every 5 s: the answer is kept by
+(`runviews.label_stats`). The run page polls the throughput every 5 s: the answer is kept by
 the run's labels' fingerprint, so the pages that ask while nothing has changed share one
 computation.
 """
@@ -13,7 +13,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query
 from sqlalchemy.orm import Session
 
-from labelqueue import LabelThroughput, label_throughput, labels_given
+from runviews.label_stats import LabelThroughput, label_throughput, labels_given
 from server.deps import LabellerDep, OperatorDep, SessionDep
 from server.label_schemas import LabelCount
 from server.schemas import RunId, Throughput, ThroughputBucket, errors
