@@ -495,8 +495,11 @@ class Study:
         next read begins, or at `close()`: a client killed while it handles a page reads that
         page again (each event at least once; its `label_id` and kind tell one apart)."""
         with self.reading:
-            self.core.save()  # the page read before is handled: the caller reads on
-            return self.core.read(self.call(self.core.answers_call(wait)))
+            return self._read(wait)
+
+    def _read(self, wait: float) -> list[AnswerEvent]:
+        self.core.save()  # the page read before is handled: the caller reads on
+        return self.core.read(self.call(self.core.answers_call(wait)))
 
     def states(self, keys: Sequence[str]) -> dict[str, PairState]:
         """Where the pairs under these keys stand now, by key (a key no pair of the run has
@@ -511,8 +514,13 @@ class Study:
         waiting = Waiting(queries, timeout, self.core.progress)
         with self.core.watching(waiting), waiting.bar:
             waiting.start(self.states(list(waiting.pending)))
-            while (wait := waiting.next_wait(self.core.status)) is not None:
-                self.answers(wait=wait)
+            while True:
+                # Decided once this wait may read: the read another wait made meanwhile may
+                # have brought its pairs' answers.
+                with self.reading:
+                    if (wait := waiting.next_wait(self.core.status)) is None:
+                        break
+                    self._read(wait)
         return waiting.result()
 
 
@@ -578,8 +586,11 @@ class AsyncStudy:
 
     async def answers(self, wait: float = 0.0) -> list[AnswerEvent]:
         async with self.reading:
-            self.core.save()
-            return self.core.read(await self.call(self.core.answers_call(wait)))
+            return await self._read(wait)
+
+    async def _read(self, wait: float) -> list[AnswerEvent]:
+        self.core.save()
+        return self.core.read(await self.call(self.core.answers_call(wait)))
 
     async def states(self, keys: Sequence[str]) -> dict[str, PairState]:
         return states_of([await self.call(call) for call in states_calls(keys)])
@@ -590,6 +601,9 @@ class AsyncStudy:
         waiting = Waiting(queries, timeout, self.core.progress)
         with self.core.watching(waiting), waiting.bar:
             waiting.start(await self.states(list(waiting.pending)))
-            while (wait := waiting.next_wait(self.core.status)) is not None:
-                await self.answers(wait=wait)
+            while True:  # decided under the read lock, as `Study.wait_for` does
+                async with self.reading:
+                    if (wait := waiting.next_wait(self.core.status)) is None:
+                        break
+                    await self._read(wait)
         return waiting.result()

@@ -310,10 +310,15 @@ def test_asyncio_waits_at_once_each_get_their_pairs(app_client: TestClient) -> N
                      for queries in asked]
             await asyncio.sleep(0.2)  # each has read where its pair stands: unanswered
             await asyncio.to_thread(label_all, app_client, run_id, "fay")
-            return await asyncio.gather(*waits)
+            labelled = time.monotonic()
+            answered = await asyncio.gather(*waits)
+            return answered, time.monotonic() - labelled
 
-    answered = asyncio.run(main())
+    answered, after = asyncio.run(main())
     assert [len(answers) for answers in answered] == [1, 1, 1]
+    # One read brings every pair's answer: the waits queued behind it read no more (each of
+    # them used to wait out a long poll of its own for answers already noted).
+    assert after < 10, f"the waits ended {after:.1f} s after the last answer"
 
 
 def test_a_cursor_file_of_another_run_is_refused(app_client: TestClient,
