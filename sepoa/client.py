@@ -16,11 +16,10 @@ a 5xx, a 429) are retried with exponential backoff; a 4xx is a `StudyError` nami
 answers feed is read from a cursor, kept in `cursor_file` when given, so a client killed while it
 waits reads on from where it was: nothing is lost. The file moves past a page of answers when the
 next read begins (or at `close()`), so a client killed while it handles a page reads that page
-again. The cursor names its run: another run's file is a ValueError. `wait_for` reads where
-its pairs stand before it follows the feed, so it also returns pairs whose answers the cursor
-has passed (read by `answers()`, by another wait, or before a restart).
-
-`AsyncStudy` is the same over asyncio.
+again. The cursor names its run: another run's file is a ValueError. `wait_for` reads where its
+pairs stand before it follows the feed, so it also returns pairs whose answers the cursor has
+passed (read by `answers()`, by another wait, or before a restart). `AsyncStudy` is the same
+over asyncio.
 """
 
 from __future__ import annotations
@@ -322,6 +321,8 @@ class _Core:
         return wait
 
     def answers_call(self, wait: float) -> Call:
+        """The next read of the feed; the pages read before are handled, so the file moves on."""
+        self.save()
         wait = max(0.0, min(wait, LONGEST_WAIT_S))
         return Call("GET", "/answers", params={"after": self.cursor, "wait": wait},
                     timeout=wait + 30.0)
@@ -495,11 +496,7 @@ class Study:
         next read begins, or at `close()`: a client killed while it handles a page reads that
         page again (each event at least once; its `label_id` and kind tell one apart)."""
         with self.reading:
-            return self._read(wait)
-
-    def _read(self, wait: float) -> list[AnswerEvent]:
-        self.core.save()  # the page read before is handled: the caller reads on
-        return self.core.read(self.call(self.core.answers_call(wait)))
+            return self.core.read(self.call(self.core.answers_call(wait)))
 
     def states(self, keys: Sequence[str]) -> dict[str, PairState]:
         """Where the pairs under these keys stand now, by key (a key no pair of the run has
@@ -514,13 +511,11 @@ class Study:
         waiting = Waiting(queries, timeout, self.core.progress)
         with self.core.watching(waiting), waiting.bar:
             waiting.start(self.states(list(waiting.pending)))
-            while True:
-                # Decided once this wait may read: the read another wait made meanwhile may
-                # have brought its pairs' answers.
+            while True:  # decided under the read lock: another wait's read may have ended it
                 with self.reading:
                     if (wait := waiting.next_wait(self.core.status)) is None:
                         break
-                    self._read(wait)
+                    self.core.read(self.call(self.core.answers_call(wait)))
         return waiting.result()
 
 
@@ -586,11 +581,7 @@ class AsyncStudy:
 
     async def answers(self, wait: float = 0.0) -> list[AnswerEvent]:
         async with self.reading:
-            return await self._read(wait)
-
-    async def _read(self, wait: float) -> list[AnswerEvent]:
-        self.core.save()
-        return self.core.read(await self.call(self.core.answers_call(wait)))
+            return self.core.read(await self.call(self.core.answers_call(wait)))
 
     async def states(self, keys: Sequence[str]) -> dict[str, PairState]:
         return states_of([await self.call(call) for call in states_calls(keys)])
@@ -605,5 +596,5 @@ class AsyncStudy:
                 async with self.reading:
                     if (wait := waiting.next_wait(self.core.status)) is None:
                         break
-                    await self._read(wait)
+                    self.core.read(await self.call(self.core.answers_call(wait)))
         return waiting.result()
