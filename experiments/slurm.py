@@ -71,11 +71,11 @@ class QueueAccess:
 def seconds(time_limit: str) -> int | None:
     """A Slurm time limit in seconds (None for infinite / unlimited): minutes, MM:SS, HH:MM:SS,
     D-HH, D-HH:MM or D-HH:MM:SS. SlurmError for anything else."""
-    text = time_limit.strip()
-    if text.lower() in ("infinite", "unlimited"):
+    if time_limit.lower() in ("infinite", "unlimited"):
         return None
     days, hours, minutes, secs = 0, 0, 0, 0
-    match = re.fullmatch(r"(?:(\d+)-)?(\d+)(?::(\d+))?(?::(\d+))?", text)
+    # As written into the script: no space or line break around it, ASCII digits only.
+    match = re.fullmatch(r"(?:([0-9]+)-)?([0-9]+)(?::([0-9]+))?(?::([0-9]+))?", time_limit)
     if match is None:
         raise SlurmError(f"--time {time_limit!r}: use minutes, MM:SS, HH:MM:SS or D-HH:MM:SS")
     d, a, b, c = match.groups()
@@ -143,14 +143,44 @@ def write_url_file(results: Path, url: str) -> Path:
     return path
 
 
+SLURM_NAME = r"[A-Za-z0-9][A-Za-z0-9_.-]*"
+"""a partition's or a node's name as the script writes it: nothing sbatch or bash reads as
+anything but the name (no space, quote, `#`, `$` or line break)"""
+
+
+def check_options(*, partition: str | None = None, node: str | None = None,
+                  memory: str | None = None) -> None:
+    """SlurmError, saying what is valid, for a value the script could not hold as one #SBATCH
+    option: a space would add options of the user's to sbatch's, a line break lines to the
+    script that bash runs."""
+    if partition is not None and not re.fullmatch(rf"{SLURM_NAME}(,{SLURM_NAME})*", partition):
+        raise SlurmError(f"--partition {partition!r}: give a Slurm partition name of letters, "
+                         "digits, '_', '-' and '.', or several separated by commas (gpu,cpu)")
+    if node is not None and not re.fullmatch(SLURM_NAME, node):
+        raise SlurmError(f"--node {node!r}: give one Slurm node name of letters, digits, '_', "
+                         "'-' and '.' (gpu07)")
+    if memory is not None and not re.fullmatch(r"[0-9]+[KMGTkmgt]?", memory):
+        raise SlurmError(f"--mem {memory!r}: give a whole number with a unit K, M, G or T, "
+                         "such as 4G or 4000M (megabytes without one)")
+
+
+def check_shown(option: str, text: str) -> None:
+    """SlurmError for a value shown in the script's comments that holds a control character:
+    a line break there would start a line of its own, which bash runs."""
+    if any(ord(char) < 32 or ord(char) == 127 for char in text):
+        raise SlurmError(f"{option} {text!r}: a line break or other control character cannot "
+                         "be written in the script; use one without")
+
+
 def sbatch_path(path: Path) -> str:
     """`path` for a double-quoted #SBATCH value (sbatch splits its lines at spaces): `%`, which
     starts a filename pattern there, written `%%`. SlurmError for a path that cannot be
     written so."""
     text = str(path)
-    if '"' in text or "\n" in text:
-        raise SlurmError(f"--results {text!r}: a folder whose path holds a double quote or a "
-                         "line break cannot be written in the script; use another one")
+    check_shown("--results", text)
+    if '"' in text:
+        raise SlurmError(f"--results {text!r}: a folder whose path holds a double quote cannot "
+                         "be written in the script; use another one")
     return text.replace("%", "%%")
 
 
@@ -162,6 +192,10 @@ def sbatch_script(spec: Spec, *, workers: int, queue: QueueAccess, results: Path
     """The script's text: an array of `workers` tasks of one worker each, `threads` CPUs and
     torch threads per task (default the spec's), `memory` per task (default by the spec's
     preset), `gpus` GPUs per task, `node` to pin every task to one node."""
+    check_options(partition=partition, node=node, memory=memory)
+    check_shown("--database-url", queue.shown)
+    if queue.url_file is not None:
+        check_shown("--database-url-file", str(queue.url_file))
     threads = threads or spec.threads
     memory = memory or default_memory(spec)
     before = signal_before_for(time_limit, signal_before)

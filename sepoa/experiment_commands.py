@@ -123,8 +123,8 @@ def _experiment_arguments(p: argparse.ArgumentParser) -> None:
                        help="a results folder every node reaches (shared filesystem)")
     slurm.add_argument("--threads", type=int, default=None,
                        help="CPUs and torch threads per task (default: the spec's threads)")
-    slurm.add_argument("--mem", default=None, help="memory per task (default by the spec's "
-                       "preset: tiny 2G, small 3G, paper 8G)")
+    slurm.add_argument("--mem", default=None, help="memory per task, such as 4G or 4000M "
+                       "(default by the spec's preset: tiny 2G, small 3G, paper 8G)")
     slurm.add_argument("--time", default="24:00:00", help="each task's time limit")
     slurm.add_argument("--signal-before", type=int, default=None, metavar="SECONDS",
                        help="warn each worker (SIGUSR1) this long before the time limit, to "
@@ -132,7 +132,8 @@ def _experiment_arguments(p: argparse.ArgumentParser) -> None:
     slurm.add_argument("--requeue", action="store_true",
                        help="let Slurm requeue a task on preemption or node failure (and allow "
                        "`scontrol requeue`); the requeued task takes its run back at once")
-    slurm.add_argument("--partition", default=None)
+    slurm.add_argument("--partition", default=None,
+                       help="a Slurm partition, or several separated by commas")
     slurm.add_argument("--gpus", type=int, default=0, help="GPUs per task (--gres=gpu:N)")
     slurm.add_argument("--node", default=None, help="run every task on this node "
                        "(--nodelist); allows a SQLite queue on that node's own disk")
@@ -306,6 +307,9 @@ def _slurm(args: argparse.Namespace, url: str | None) -> int:
     from experiments.launch import default_database
     from experiments.slurm import (
         QueueAccess,
+        check_options,
+        check_shown,
+        sbatch_path,
         sbatch_script,
         signal_before_for,
         write_url_file,
@@ -317,7 +321,9 @@ def _slurm(args: argparse.Namespace, url: str | None) -> int:
         return fail("--workers and --threads must be at least 1, --gpus at least 0")
     signal_before_for(args.time, args.signal_before)  # SlurmError (a ValueError) for a bad
     # --time, or a warning the time limit leaves no room for
+    check_options(partition=args.partition, node=args.node, memory=args.mem)
     results = pathlib.Path(args.results).absolute()
+    sbatch_path(results)  # before anything is written there
     if url is None:
         if args.node is None:
             return fail("no queue database: give --database-url, --database-url-file or "
@@ -334,7 +340,9 @@ def _slurm(args: argparse.Namespace, url: str | None) -> int:
     file = args.database_url_file
     if not (file or args.database_url or os.environ.get("SEPOA_DATABASE_URL")):
         file = os.environ.get("SEPOA_DATABASE_URL_FILE") or None
+    check_shown("--database-url", mask_url(url))
     if file:
+        check_shown("--database-url-file", str(pathlib.Path(file).absolute()))
         queue = QueueAccess(mask_url(url), url_file=pathlib.Path(file).absolute())
     elif url_has_secret(url):
         queue = QueueAccess(mask_url(url), url_file=write_url_file(results, url))

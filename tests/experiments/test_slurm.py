@@ -232,6 +232,65 @@ def test_bad_options_get_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert err.startswith(message) and err.count("\n") == 1, err
 
 
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--partition", "gpu\ntouch /tmp/owned"], "error: --partition 'gpu\\ntouch /tmp/owned': "
+     "give a Slurm partition name of letters, digits, '_', '-' and '.', or several separated "
+     "by commas (gpu,cpu)"),
+    (["--partition", "gpu --wrap=id"], "error: --partition 'gpu --wrap=id': give a Slurm "
+     "partition name"),
+    (["--node", "n1\ntouch /tmp/owned"], "error: --node 'n1\\ntouch /tmp/owned': give one "
+     "Slurm node name of letters, digits, '_', '-' and '.' (gpu07)"),
+    (["--node", "n[1-4]"], "error: --node 'n[1-4]': give one Slurm node name"),
+    (["--mem", "4G --wrap=id"], "error: --mem '4G --wrap=id': give a whole number with a unit "
+     "K, M, G or T, such as 4G or 4000M (megabytes without one)"),
+    (["--mem", "1.5G"], "error: --mem '1.5G': give a whole number"),
+    (["--time", "20\n"], "error: --time '20\\n': use minutes, MM:SS, HH:MM:SS or D-HH:MM:SS"),
+    (["--time", "\u0662\u0660"], "error: --time '\u0662\u0660': use minutes"),
+    (["--results", "/shared/r\rx"], "error: --results '/shared/r\\rx': a line break or other "
+     "control character cannot be written in the script"),
+    (["--database-url", "postgresql+psycopg://u:pw@h/d\ntouch /tmp/owned"],
+     "error: --database-url 'postgresql+psycopg://u:***@h/d\\ntouch /tmp/owned': a line "
+     "break or other control character cannot be written in the script"),
+])
+def test_a_value_that_would_add_options_or_lines_to_the_script_gets_one_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str],
+        message: str) -> None:
+    """What goes into an #SBATCH line or a comment stays one option of one line: a space would
+    hand sbatch options of its own, a line break would add a line that bash runs."""
+    full = ["experiment", "slurm", str(spec_file(tmp_path)), "--workers", "2",
+            "--results", str(tmp_path / "results")]
+    if "--database-url" not in argv:
+        full += ["--database-url", "postgresql+psycopg://u@h/d"]
+    assert main(full + argv) == 2
+    out = capsys.readouterr()
+    assert out.out == "" and not (tmp_path / "results").exists()
+    assert out.err.startswith(message) and out.err.count("\n") == 1, out.err
+    assert "pw" not in out.err
+
+
+def test_a_url_file_whose_path_holds_a_line_break_is_refused(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    own = tmp_path / "queue\ntouch owned"
+    own.write_text(f"{SECRET_URL}\n")
+    own.chmod(0o600)
+    assert main(["experiment", "slurm", str(spec_file(tmp_path)), "--workers", "2",
+                 "--database-url-file", str(own)]) == 2
+    out = capsys.readouterr()
+    assert out.out == "" and out.err.count("\n") == 1
+    assert out.err.startswith(f"error: --database-url-file {str(own)!r}: a line break")
+
+
+def test_valid_slurm_names_and_memory_are_written_as_given(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    script = script_of(capsys, ["experiment", "slurm", str(spec_file(tmp_path)), "--workers",
+                                "1", "--database-url", "postgresql+psycopg://u@h/d",
+                                "--partition", "gpu,cpu_long", "--node", "gpu-07.cluster",
+                                "--mem", "4000M", "--time", "1-00:00:00"])
+    assert {"--partition=gpu,cpu_long", "--nodelist=gpu-07.cluster", "--mem=4000M",
+            "--time=1-00:00:00"} <= set(options(script))
+    assert subprocess.run(["bash", "-n"], input=script, text=True).returncode == 0
+
+
 def test_status_shows_each_runs_worker_and_heartbeat_age_and_flags_dead_ones(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     spec_path = tmp_path / "spec.toml"
