@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from sqlalchemy import select, update
+from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -29,10 +29,11 @@ def find_grid_run(session: Session, *, grid_key: str) -> Run | None:
 
 
 def grid_runs(session: Session, *, prefix: str) -> dict[str, Run]:
-    """The runs whose grid key starts with `prefix` (a spec's `<name>/`), by key."""
+    """The runs whose grid key starts with `prefix` (a spec's `<name>/`), by key. Compared as
+    text, not with LIKE, which SQLite reads case-insensitively: `Grid/` is not `grid/`."""
     with reading(session):
         rows = list(session.scalars(
-            select(Run).where(Run.grid_key.startswith(prefix, autoescape=True))
+            select(Run).where(func.substr(Run.grid_key, 1, len(prefix)) == prefix)
             .execution_options(populate_existing=True)))
         detach(session, *rows)
     return {run.grid_key: run for run in rows if run.grid_key is not None}
