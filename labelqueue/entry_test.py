@@ -3,7 +3,9 @@ right (`labelqueue.practice`) to go on; one who answers them all with fewer righ
 
 - The test is decided with the answer to the last practice pair (every one of the run's
   `feedback.practice_pairs` answered, standing answers only): passed or failed, stored on the
-  participant (`invitees.entry_passed`, `entry_correct`), and it stays decided.
+  participant (`invitees.entry_passed`, `entry_correct`), and it stays decided. One an older
+  PostgreSQL left undecided with every answer in (two last answers at once, each counting only
+  its own) is decided at their next lease, or their answer sent again (`decide_late`).
 - A practice answer is right when it is the better clip by the true reward ("equal" when the
   segments' returns are equal; an external pair's known answer otherwise), as the practice
   explanation says; a can't-tell or a skip is never right.
@@ -29,7 +31,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from sqlalchemy import Integer, bindparam, or_, select, update
+from sqlalchemy import Integer, bindparam, func, or_, select, update
 from sqlalchemy.orm import Session
 
 from labelqueue.errors import Invalid, QueueError
@@ -117,6 +119,12 @@ _PRACTISED = Prepared(
     .where(LABELS.c.labeller_id == _LABELLER, LABELS.c.run_id == _RUN,
            LABELS.c.practice.is_(True), LABELS.c.withdrawn_at.is_(None))
 )
+_PRACTISED_RUNS = Prepared(
+    select(LABELS.c.run_id)
+    .where(LABELS.c.labeller_id == _LABELLER, LABELS.c.practice.is_(True),
+           LABELS.c.withdrawn_at.is_(None))
+    .group_by(LABELS.c.run_id).order_by(func.min(LABELS.c.id))
+)
 _DECIDE = Prepared(
     update(INVITEES)
     .where(INVITEES.c.labeller_id == _LABELLER, INVITEES.c.entry_passed.is_(None))
@@ -159,7 +167,24 @@ def decide(connection: DriverConnection, *, labeller_id: int, run_id: int) -> bo
     once are counted in turn. Locks: the answer's query row, then the participant's, then the
     leases let go; a lease takes the queries' rows and then the participant's, and an
     undecided participant holds no lease of a real pair to let go (`untested`)."""
-    params: dict[str, Any] = {"labeller": labeller_id, "run": run_id}
+    decided = _decided(connection, {"labeller": labeller_id, "run": run_id})
+    return None if decided is None else decided[0]
+
+
+def decide_late(connection: DriverConnection, *, labeller_id: int) -> tuple[bool, int] | None:
+    """At a request of an undecided participant with no practice pair left to show: decide the
+    test on the first run whose practice pairs they have all answered, which an older
+    PostgreSQL's race left undecided; (whether they passed, their right answers), or None.
+    The participant's row is locked before any query's: they hold no lease (`untested`), and
+    the lease then takes its query with SKIP LOCKED."""
+    for row in _PRACTISED_RUNS.rows(connection, {"labeller": labeller_id}):
+        decided = _decided(connection, {"labeller": labeller_id, "run": row.run_id})
+        if decided is not None:
+            return decided
+    return None
+
+
+def _decided(connection: DriverConnection, params: dict[str, Any]) -> tuple[bool, int] | None:
     test = _UNDECIDED.first(connection, params)
     if test is None:
         return None
@@ -172,4 +197,4 @@ def decide(connection: DriverConnection, *, labeller_id: int, run_id: int) -> bo
     _DECIDE.count(connection, params | {"passed": passed, "correct": correct})
     if not passed:
         _LET_GO.count(connection, params)
-    return passed
+    return passed, correct

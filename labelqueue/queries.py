@@ -29,7 +29,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from labelqueue.coerce import clip_key, finite
-from labelqueue.entry_test import EntryFailed, refusal, untested
+from labelqueue.entry_test import EntryFailed, decide_late, refusal, untested
 from labelqueue.errors import Conflict, Invalid, NotFound, OtherRun, Revoked, StaleToken
 from labelqueue.gold import (
     GOLD_NEEDS_LABELS,
@@ -425,6 +425,11 @@ def lease_next_query(
         practice = (next_practice(connection, params, shown=ahead_of, until=params["until"])
                     if gold else None)
         waits = practice is None and untested(connection, holder[0], labeller_id)
+        # One an older race left undecided, every practice answer in, is decided now (and one
+        # who failed refused once that is committed).
+        late = decide_late(connection, labeller_id=labeller_id) if waits else None
+        if late is not None:
+            waits = not late[0]
         row, kept = (None, False) if practice is not None or waits else _renew_or_release(
             connection, holder, params, ahead_of=ahead_of)
         if practice is None and row is None and not waits:
@@ -434,6 +439,8 @@ def lease_next_query(
             got = practice is not None or row is not None or kept or (
                 ahead_of is not None and shows_practice(connection, ahead_of))
             asked(connection, params, got=got)
+    if late is not None and not late[0]:  # once the decision is committed
+        raise EntryFailed(refusal(late[1], holder[0].entry_pass))
     if practice is not None:
         return snapshot(Query, practice)
     return None if row is None else snapshot(Query, row._asdict())

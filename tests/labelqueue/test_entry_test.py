@@ -19,6 +19,7 @@ from labelqueue import (
     EntryFailed,
     Invalid,
     Invite,
+    Invitee,
     Query,
     QueryStatus,
     Run,
@@ -185,6 +186,67 @@ def test_two_last_practice_answers_sent_at_once_decide_the_test(
         thread.join(timeout=30)
     progress = labeller_progress(sessions(), labeller_id=bob.id)
     assert (progress.why, progress.entry_correct) == ("entry_failed", 0)
+
+
+def left_undecided(session: Session, labeller_id: int) -> None:
+    """As an older PostgreSQL race left a participant: every practice answer in, no decision
+    (two last answers at once, each counting only its own)."""
+    with session.begin():
+        session.execute(update(Invitee).where(Invitee.labeller_id == labeller_id)
+                        .values(entry_passed=None, entry_correct=None))
+
+
+def entry_decision(session: Session, labeller_id: int) -> tuple[bool | None, int | None]:
+    row = session.execute(select(Invitee.entry_passed, Invitee.entry_correct)
+                          .where(Invitee.labeller_id == labeller_id)).one()
+    session.commit()
+    return row.entry_passed, row.entry_correct
+
+
+@pytest.mark.parametrize("invite_run", ["one", "all"])
+def test_one_left_undecided_with_every_practice_answer_in_is_decided_at_the_next_lease(
+        session: Session, invite_run: str) -> None:
+    run_id = run_with(session, practice_pairs=2)
+    push_queries(session, run_id=run_id, queries=[gold(i) for i in range(2)]
+                 + [query_spec(i) for i in range(2)])
+    invite = create_invite(session, expires_at=utcnow() + timedelta(days=1),
+                           run_id=run_id if invite_run == "one" else None, entry_pass=2)
+    asked = run_id if invite_run == "one" else None
+    for name, click in (("ann", "left"), ("bob", "right")):  # right, and wrong, twice
+        who = join_invite(session, code=invite.code, participant=name).labeller
+        for _ in range(2):
+            query = lease_next_query(session, labeller_id=who.id, run_id=run_id)
+            assert query is not None and query.practice
+            submit_label(session, query_id=query.id, labeller_id=who.id, choice=click,
+                         left_is_first=True)
+        left_undecided(session, who.id)
+        if name == "ann":  # she passed, and labels real pairs from her next lease on
+            real = lease_next_query(session, labeller_id=who.id, run_id=asked)
+            assert real is not None and not real.practice
+            assert entry_decision(session, who.id) == (True, 2)
+        else:  # he failed, and is told so; the decision stays
+            with pytest.raises(EntryFailed, match="0 of your practice answers were right"):
+                lease_next_query(session, labeller_id=who.id, run_id=asked)
+            assert entry_decision(session, who.id) == (False, 0)
+            assert labeller_progress(session, labeller_id=who.id).why == "entry_failed"
+
+
+def test_one_left_undecided_is_decided_when_their_last_practice_answer_is_sent_again(
+        session: Session) -> None:
+    run_id = run_with(session, practice_pairs=1)
+    push_queries(session, run_id=run_id, queries=[gold(0), query_spec(0)])
+    invite = create_invite(session, expires_at=utcnow() + timedelta(days=1), run_id=run_id,
+                           entry_pass=1)
+    ann = join_invite(session, code=invite.code, participant="ann").labeller
+    query = lease_next_query(session, labeller_id=ann.id, run_id=run_id)
+    assert query is not None and query.practice
+    submit_label(session, query_id=query.id, labeller_id=ann.id, choice="left",
+                 left_is_first=True)
+    left_undecided(session, ann.id)
+    # The page retries the answer whose request the race left without a decision.
+    _, created = submit_label(session, query_id=query.id, labeller_id=ann.id, choice="left",
+                              left_is_first=True)
+    assert not created and entry_decision(session, ann.id) == (True, 1)
 
 
 def test_a_practice_answer_of_an_entry_test_is_never_taken_back(session: Session) -> None:
