@@ -389,7 +389,8 @@ def _store(
         # Only real answers spend the budget: a gold answer measures the labeller instead, and
         # a practice answer (to a gold pair kept apart) does neither. The run's row is locked
         # (PostgreSQL) before the label draws its id, so a run's labels commit in the order of
-        # their ids and the answers feed's cursor misses none (`externalruns.feed`).
+        # their ids and the answers feed's cursor misses none (`externalruns.feed`); a gold
+        # answer's pause check then sees the pause of one before it (never a second insert).
         if not asked.gold:
             _COUNT_LABEL.count(connection, {"run": asked.run_id})
         elif not practice and connection.dialect.name == "postgresql":

@@ -278,7 +278,9 @@ _RENEW_STATEMENT = (
     .values(lease_expires_at=_EXPIRES)
 )
 _RENEW = Prepared(_RENEW_STATEMENT)
-_RENEW_RETURNING = Prepared(_RENEW_STATEMENT.returning(*QUERIES.c))
+# A reload is not served on a run that has paused the labeller (an undo leases a pair back).
+_RENEW_RETURNING = Prepared(_RENEW_STATEMENT.where(~exists().where(
+    PAUSES.c.run_id == QUERIES.c.run_id, PAUSES.c.labeller_id == _LABELLER)).returning(*QUERIES.c))
 _RELEASE = Prepared(
     update(QUERIES)
     .where(QUERIES.c.id == _HELD, _MINE)
@@ -397,8 +399,8 @@ def lease_next_query(
     (`labelqueue.entry_test.untested`): with no practice pair to show yet, nothing.
 
     Gold pairs (`labelqueue.gold`) are mixed in at their run's rate unless `gold` is false (the
-    run's own scripted teacher). A labeller paused on a run gets none of its queries; when that
-    leaves nothing to lease, Paused says why.
+    run's own scripted teacher). A labeller paused on a run gets none of its queries, nor keeps
+    a lease there but the one it is shown; when that leaves nothing to lease, Paused says why.
 
     A labeller who joined by an invite for one run is served that run only: asking without
     `run_id` asks for it, and asking for another is refused (OtherRun), so they neither spend
@@ -432,15 +434,22 @@ def lease_next_query(
             waits = not late[0]
         row, kept = (None, False) if practice is not None or waits else _renew_or_release(
             connection, holder, params, ahead_of=ahead_of)
+        paused = None
         if practice is None and row is None and not waits:
-            row = _take_next(connection, params, key=key, ahead_of=ahead_of)
-        if for_people:  # how long a participant waits with nothing to label: a pair on their
-            # screen (`ahead_of`, a lease of theirs or a practice pair) is something to label
+            try:
+                row = _take_next(connection, params, key=key, ahead_of=ahead_of)
+            except Paused as error:  # raised once the leases given back above are committed
+                paused = error
+        if for_people and paused is None:  # how long a participant waits with nothing to
+            # label: a pair on their screen (`ahead_of`, a lease of theirs or a practice pair)
+            # is something to label; a paused one waits for no pair
             got = practice is not None or row is not None or kept or (
                 ahead_of is not None and shows_practice(connection, ahead_of))
             asked(connection, params, got=got)
     if late is not None and not late[0]:  # once the decision is committed
         raise EntryFailed(refusal(late[1], holder[0].entry_pass))
+    if paused is not None:
+        raise paused
     if practice is not None:
         return snapshot(Query, practice)
     return None if row is None else snapshot(Query, row._asdict())
@@ -479,7 +488,8 @@ def _renew_or_release(connection: DriverConnection, holder: Sequence[Any],
                       params: dict[str, Any], *, ahead_of: int | None) -> tuple[Any | None, bool]:
     """The labeller's live leases (at most the one it is shown and the one ahead of it): the
     one shown (`ahead_of`) is renewed; one of the run asked for is a reload, renewed and
-    returned; the rest, held for another run or a run that closed, are freed for others.
+    returned; the rest, held for another run, a run that closed or one that paused the
+    labeller, are freed for others.
     (the reload's row or None, whether the one shown was renewed)"""
     others, kept = [], False
     for _, held, held_run, status, *_ in holder:

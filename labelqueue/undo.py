@@ -50,7 +50,8 @@ SETTLE_SECONDS = UNDO_SECONDS + 5.0
 
 
 class UndoRefused(Conflict):
-    """The answer can no longer be taken back: too late, or the trainer took it."""
+    """The answer can no longer be taken back: too late, the trainer took it, or its round
+    closed."""
 
 
 @dataclass(frozen=True)
@@ -75,7 +76,8 @@ def withdraw_label(
     the labeller's other leases are released, but `keep`'s (the pair it is looking at now).
 
     NotFound when it has no standing answer to the query; UndoRefused when the answer is older
-    than `window_seconds`, the trainer has taken it, or it is a practice answer of a labeller
+    than `window_seconds`, the trainer has taken it or its round has closed (a check or practice
+    answer, never the trainer's, says the latter), or it is a practice answer of a labeller
     whose invite makes the practice round an entry test (`labelqueue.entry_test`: the test
     measures the first try, not one made after the explanation); RunClosed when the run takes
     no answers; Conflict when the pair has been cancelled or another labeller holds it now. On
@@ -105,9 +107,9 @@ def withdraw_label(
             raise UndoRefused("this study's practice answers are its entry test: a practice "
                               "answer cannot be taken back")
         age = (now - label.answered_at).total_seconds()
+        query = get_row(session, Query, query_id)
         if label.consumed_at is not None:
-            raise UndoRefused("the trainer has already taken that answer (its round has "
-                              "closed): it can no longer be taken back")
+            raise _sealed(query, "already")
         if age > window_seconds:
             raise UndoRefused(f"that answer was given {age:.0f} s ago: answers can be taken "
                               f"back for {window_seconds:.0f} s only")
@@ -118,9 +120,8 @@ def withdraw_label(
                    Label.consumed_at.is_(None))
             .values(withdrawn_at=now),
         )
-        if not withdrawn:  # the trainer took it meanwhile (PostgreSQL)
-            raise UndoRefused("the trainer has just taken that answer: it can no longer be "
-                              "taken back")
+        if not withdrawn:  # the trainer took it, or its round closed, meanwhile (PostgreSQL)
+            raise _sealed(query, "just")
         run = get_row(session, Run, label.run_id)
         if run.status not in LABELLABLE:
             raise RunClosed(f"run {run.id} is {run.status}: it takes no more answers, so the "
@@ -165,6 +166,16 @@ def withdraw_label(
         query.status, query.lease_holder = QueryStatus.LEASED, labeller_id
         query.leased_at, query.lease_expires_at = now, now + timedelta(seconds=lease_seconds)
     return Withdrawn(label=label, query=query)
+
+
+def _sealed(query: Query, when: str) -> UndoRefused:
+    """The refusal of an answer sealed `when` ("already", "just"): the trainer takes ordinary
+    answers as a round closes, but never a check or practice answer: the close sealed that."""
+    if query.gold:
+        return UndoRefused(f"the round that answer was given in has {when} closed: it can no "
+                           "longer be taken back")
+    return UndoRefused(f"the trainer has {when} taken that answer (its round has closed): it "
+                       "can no longer be taken back")
 
 
 def _lease_again(session: Session, *, query_id: int, labeller_id: int, now: datetime,

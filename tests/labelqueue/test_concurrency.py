@@ -11,11 +11,13 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from datetime import timedelta
 from itertools import combinations
 from typing import TypeVar
 
+import pytest
 from queue_helpers import query_spec, running_run
-from sqlalchemy import func, select, update
+from sqlalchemy import Connection, Engine, func, select, text, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from labelqueue import (
@@ -23,11 +25,13 @@ from labelqueue import (
     Query,
     QueryStatus,
     Run,
+    TeacherKind,
     claim_run,
     consume_labels,
     create_labeller,
     create_run,
     lease_next_query,
+    paused_labellers,
     push_queries,
     submit_label,
 )
@@ -201,3 +205,54 @@ def test_racing_consumers_split_the_labels_between_them(sessions: sessionmaker[S
     for a, b in combinations(results, 2):
         assert not set(a) & set(b)
     assert sum(map(len, results)) == 24
+
+
+def lock_waits(connection: Connection, n: int) -> bool:
+    """Whether `n` sessions of this database wait for a lock, within 5 s."""
+    for _ in range(100):
+        connection.execute(text("SELECT pg_stat_clear_snapshot()"))  # else read once per xact
+        if connection.scalar(text("SELECT count(*) FROM pg_stat_activity WHERE wait_event_type "
+                                  "= 'Lock' AND datname = current_database()")) == n:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def test_two_gold_answers_at_once_that_both_pause_make_one_pause(
+    url: str, engine: Engine, sessions: sessionmaker[Session]
+) -> None:
+    """Two tabs of one labeller send a wrong check answer each at the same moment, each enough
+    to pause them. A gold answer locks its run's row before it reads the gold record, so the
+    second sees the first one's pause: both answers stored and one pause, where a second insert
+    of the pause would break its unique constraint (a 500 over REST)."""
+    if not url.startswith("postgresql"):
+        pytest.skip("SQLite's writers take turns: no row locks to order")
+    with sessions() as session:
+        create_run(session, name="r", task="dmc:cheetah_run", algo="pebble", budget=10,
+                   teacher=TeacherKind.HUMAN, config={"feedback.gold_min_accuracy": 0.5,
+                                                      "feedback.gold_min_answers": 1})
+        run = claim_run(session, worker_id="w")
+        assert run is not None
+        golds = push_queries(session, run_id=run.id,
+                             queries=[query_spec(i, gold=True) for i in range(2)])
+        alice = create_labeller(session, name="alice")[0].id
+        session.execute(update(Query).where(Query.id.in_(golds)).values(  # one on each tab
+            status=QueryStatus.LEASED, lease_holder=alice, leased_at=utcnow(),
+            lease_expires_at=utcnow() + timedelta(minutes=2)))
+        session.commit()
+
+    def wrong(query_id: int) -> tuple[Label, bool]:  # the first segment: the worse one
+        with sessions() as session:
+            return submit_label(session, query_id=query_id, labeller_id=alice, choice="left",
+                                left_is_first=True)
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        with engine.connect() as holder, holder.begin():
+            holder.execute(select(Run.id).where(Run.id == run.id).with_for_update())
+            answers = [pool.submit(wrong, query_id) for query_id in golds]
+            assert lock_waits(holder, 2), "the answers did not both wait for the run's row"
+        results = [answer.result(timeout=30) for answer in answers]
+    assert [created for _, created in results] == [True, True]
+    with sessions() as session:
+        [pause] = paused_labellers(session, run_id=run.id)
+    assert (pause.labeller_id, pause.gold_answers, pause.gold_correct) == (alice, 1, 0)

@@ -370,3 +370,23 @@ def test_taking_back_a_gold_answer_keeps_a_pause_the_rest_of_the_record_earns(
     withdraw_label(session, query_id=last_gold_answered(session, gold), labeller_id=ann.id)
     [pause] = paused_labellers(session, run_id=run.id)  # 0 of 4 is below all the same
     assert (pause.gold_answers, pause.gold_correct) == (4, 0)
+
+
+def test_the_lease_after_an_undo_whose_pause_stands_says_paused(session: Session) -> None:
+    """The undo leases the gold pair back to the labeller; while the pause stands, the next
+    lease says Paused instead of serving it, and the pair goes back to the others."""
+    run = gold_run(session, **pause_settings())
+    plain, gold = push(session, run, plain=40, gold=10)
+    ann, _ = create_labeller(session, name="ann")
+    answer_gold(session, ann.id, run, gold, [WRONG] * 4)  # paused: 0 of 4
+    assert lift_pause(session, run_id=run.id, labeller_id=ann.id)
+    answer_gold(session, ann.id, run, gold, [WRONG])  # paused again: 0 of 5
+    slip = last_gold_answered(session, gold)
+    withdrawn = withdraw_label(session, query_id=slip, labeller_id=ann.id)
+    assert withdrawn.query.lease_holder == ann.id
+    assert len(paused_labellers(session, run_id=run.id)) == 1  # 0 of 4 stands
+    with pytest.raises(Paused, match="0 of your 4"):
+        lease_next_query(session, labeller_id=ann.id, run_id=run.id)
+    with pytest.raises(Paused):
+        lease_next_query(session, labeller_id=ann.id)  # any human-taught run: only this one
+    assert fresh(session, slip).lease_holder is None

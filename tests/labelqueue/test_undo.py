@@ -18,8 +18,10 @@ from labelqueue import (
     TeacherKind,
     UndoRefused,
     cancel_queries,
+    claim_run,
     consume_labels,
     create_labeller,
+    create_run,
     labels_for_queries,
     lease_next_query,
     push_queries,
@@ -173,3 +175,29 @@ def test_an_answer_cannot_be_taken_back_once_its_round_has_closed(session: Sessi
     consume_labels(session, run_id=run.id)
     assert [kept.id for kept in labels_for_queries(session, query_ids=ids)] == [label.id]
     assert read_run(session, run_id=run.id).labels_used == 1
+
+
+def test_a_check_or_practice_answer_taken_back_after_its_round_closed_says_the_round_closed(
+    session: Session,
+) -> None:
+    """The trainer never takes a check or practice answer; the round's close seals it (the
+    worker's `consume_labels`), and the refusal says that, not that the trainer took it."""
+    create_run(session, name="r", task="dmc:cheetah_run", algo="pebble", budget=100,
+               teacher=TeacherKind.HUMAN,
+               config={"feedback.practice_pairs": 1, "feedback.gold_rate": 0.5})
+    run = claim_run(session, worker_id="worker-a")
+    assert run is not None
+    practice, plain, gold = push_queries(session, run_id=run.id, queries=[
+        query_spec(0, gold=True), query_spec(1), query_spec(2, gold=True)])
+    alice, _ = create_labeller(session, name="alice")
+    for expected in (practice, plain, gold):  # a check is due after one ordinary answer
+        query = lease_next_query(session, labeller_id=alice.id, run_id=run.id)
+        assert query is not None and query.id == expected
+        submit_label(session, query_id=query.id, labeller_id=alice.id, choice="left",
+                     left_is_first=True)
+    cancel_queries(session, run_id=run.id, query_ids=[plain])  # the worker closes the round
+    consume_labels(session, run_id=run.id)
+    for query_id in (practice, gold):
+        with pytest.raises(UndoRefused, match="round .*closed") as refused:
+            withdraw_label(session, query_id=query_id, labeller_id=alice.id)
+        assert "trainer" not in str(refused.value)
