@@ -28,9 +28,9 @@ from sqlalchemy.orm import Session
 
 from labelqueue.errors import NotFound
 from labelqueue.instructions import InstructionHistory, instructions_at
-from labelqueue.models import ExternalPair, Label, Labeller, Query, Run
+from labelqueue.models import ExternalPair, Label, Labeller, LabelSource, Query, Run
 from labelqueue.transaction import reading
-from runvocab.answers import Answer, aggregate
+from runvocab.answers import Answer, trained_answer
 from runvocab.instructions import instruction_sha256, run_instruction
 from runvocab.query_fields import QUERY_FIELDS, FieldType
 
@@ -85,9 +85,9 @@ COLUMNS: tuple[Column, ...] = (
     _c("labels_per_query", "int64", "distinct labellers' answers the query asked for; null for "
        "a gold pair, which every labeller may answer once", nullable=True),
     _c("query_answers", "int64", "standing answers (not withdrawn) the query got in all"),
-    _c("aggregate", "string", "the query's answer by majority over its standing answers "
-       "(`runvocab.answers.aggregate`): what the reward model trains on; null for a gold pair",
-       nullable=True),
+    _c("aggregate", "string", "the query's answer the reward model trains on: the scripted "
+       "teacher's if it answered, else the majority over its standing answers "
+       "(`runvocab.answers.trained_answer`); null for a gold pair", nullable=True),
     _c("labeller_id", "int64", "who answered"),
     _c("labeller_name", "string", "who answered, by name"),
     _c("source", "string", "what answered: human or scripted"),
@@ -210,7 +210,7 @@ def correct_answer(first_return: float | None, second_return: float | None) -> s
 
 
 def _row(stored: Mapping[str, Any], instructions: InstructionHistory,
-         answers: Mapping[int, list[Answer]]) -> dict[str, Any]:
+         answers: Mapping[int, list[tuple[Answer, bool]]]) -> dict[str, Any]:
     got = {name: _plain(value) for name, value in stored.items()}
     given = instructions.at(got["run_id"], got["answered_at"])
     # A run from before instructions were recorded showed its task's own until its first edit.
@@ -226,7 +226,7 @@ def _row(stored: Mapping[str, Any], instructions: InstructionHistory,
         "left_segment": "first" if got["left_is_first"] else "second",
         "labels_per_query": None if got["gold"] else got["needs_labels"],
         "query_answers": len(given_to_query),
-        "aggregate": None if got["gold"] else aggregate(given_to_query).value,
+        "aggregate": None if got["gold"] else trained_answer(given_to_query).value,
         "agrees_with_shadow": (
             preferred == shadow
             if preferred in _SEGMENT_ANSWERS and shadow in _SEGMENT_ANSWERS
@@ -286,15 +286,16 @@ def export_rows(
 
 
 def standing_answers(session: Session, *, query_ids: set[int],
-                     last: int | None = None) -> dict[int, list[Answer]]:
-    """Each query's standing answers (not withdrawn), by query id; with `last`, only labels up
-    to that id (those an export found when it started)."""
-    answers: dict[int, list[Answer]] = {}
+                     last: int | None = None) -> dict[int, list[tuple[Answer, bool]]]:
+    """Each query's standing answers (not withdrawn), each with whether the scripted teacher
+    gave it, by query id; with `last`, only labels up to that id (those an export found)."""
+    answers: dict[int, list[tuple[Answer, bool]]] = {}
     bound = [] if last is None else [Label.id <= last]
     with reading(session):
-        rows = session.execute(select(Label.query_id, Label.answer).where(
+        rows = session.execute(select(Label.query_id, Label.answer, Label.source).where(
             Label.query_id.in_(query_ids), Label.withdrawn_at.is_(None), *bound)
             .order_by(Label.id))
-        for query_id, answer in rows:
-            answers.setdefault(query_id, []).append(Answer(answer))
+        for query_id, answer, source in rows:
+            answers.setdefault(query_id, []).append(
+                (Answer(answer), source == LabelSource.SCRIPTED))
     return answers

@@ -5,14 +5,15 @@ names one of them, or says they are equal, or that the labeller cannot tell, or 
 right exist only on the screen: a click is turned into an answer at the door, with the sides the
 server chose, and the label row keeps both the click and the sides.
 
-Several labellers may answer one query; `aggregate` turns their answers into the one answer the
-reward model trains on.
+Several labellers may answer one query; `aggregate` turns their answers into one, and
+`trained_answer` says which answers the reward model trains on (the scripted teacher's alone,
+when it answered).
 """
 
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from enum import StrEnum
 
 
@@ -99,3 +100,12 @@ def aggregate(answers: Iterable[Answer | str]) -> Answer:
     if not decisive or (len(decisive) > 1 and decisive[0][1] == decisive[1][1]):
         return Answer.CANT_TELL
     return decisive[0][0]
+
+
+def trained_answer(answers: Sequence[tuple[Answer | str, bool]]) -> Answer:
+    """The one answer the reward model trains on, from a query's standing answers, each with
+    whether the scripted teacher gave it: the scripted teacher's first answer when it answered
+    (its one answer decides the query), else `aggregate` of them all. The trainer takes it so
+    (`trainer.queue_hooks._answer`), and the export's `aggregate` column says it."""
+    scripted = [answer for answer, by_teacher in answers if by_teacher]
+    return aggregate(scripted[:1] or [answer for answer, _ in answers])

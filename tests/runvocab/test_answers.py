@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import pytest
 
-from runvocab.answers import Answer, Click, aggregate, answer_of_click, click_of_answer
+from runvocab.answers import (
+    Answer,
+    Click,
+    aggregate,
+    answer_of_click,
+    click_of_answer,
+    trained_answer,
+)
 
 F, S, E, C, K = Answer.FIRST, Answer.SECOND, Answer.EQUAL, Answer.CANT_TELL, Answer.SKIP
 
@@ -42,6 +49,14 @@ def test_aggregate_by_hand(answers: list[Answer], expected: Answer) -> None:
 def test_aggregate_refuses_a_word_it_does_not_know() -> None:
     with pytest.raises(ValueError):
         aggregate(["first", "left"])  # a click is not an answer
+
+
+def test_the_scripted_teachers_answer_is_trained_on_over_peoples() -> None:
+    people = [(F, False), (F, False)]
+    assert trained_answer(people) is F
+    assert trained_answer([*people, (S, True)]) is S  # the teacher answered last: it decides
+    assert trained_answer([(K, False), (K, False), ("first", True)]) is F
+    assert trained_answer([]) is aggregate([])
 
 
 @pytest.mark.parametrize("left_is_first", [True, False])

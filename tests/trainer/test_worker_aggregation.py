@@ -17,11 +17,18 @@ from labelqueue import (
     LabelSource,
     Query,
     claim_run,
+    create_labeller,
     create_run,
+    export_rows,
+    labels_for_queries,
     lease_next_query,
     make_engine,
     migrate,
+    push_queries,
     session_factory,
+    set_teacher,
+    submit_answer,
+    submit_label,
 )
 from runvocab.answers import Answer
 from runvocab.config import build_config
@@ -80,6 +87,57 @@ def test_the_scripted_teachers_answer_decides_over_peoples() -> None:
     assert (out.choice, out.labeller, out.source) == (Answer.SECOND, "scripted-teacher",
                                                       "scripted")
     assert out.answered_at == (T0 + timedelta(seconds=3)).timestamp()
+
+
+# (people's answers, then the scripted teacher's or None): each one run's only query, k = 3
+MIXED = [
+    (["first", "first"], "second"),  # two people, then the teacher, who decides
+    (["cant_tell", "cant_tell"], "first"),
+    (["first"], "cant_tell"),
+    ([], "equal"),
+    (["second", "first", "first"], None),  # people only: their majority
+    (["first", "second", "skip"], None),
+]
+
+
+def test_the_exports_aggregate_is_what_the_trainer_trains_on(tmp_path: Path) -> None:
+    """A query people answered before the operator switched the run to the scripted teacher
+    is trained on the teacher's answer alone: the export's `aggregate` says the same answer as
+    the trainer's own rule, query by query."""
+    url = f"sqlite:///{tmp_path / 'queue.db'}"
+    migrate(url)
+    sessions = session_factory(make_engine(url))
+    scripted = scripted_labeller_id(sessions)
+    query_ids = []
+    with sessions() as session:
+        people = [create_labeller(session, name=n)[0].id for n in ("ann", "bob", "cy")]
+        for i, (answers, teacher_says) in enumerate(MIXED):
+            run = create_run(session, name=f"r{i}", task="dmc:cheetah_run", algo="pebble",
+                             budget=100, config={"feedback.labels_per_query": 3})
+            assert claim_run(session, worker_id=f"w{i}") is not None
+            [query_id] = push_queries(session, run_id=run.id, queries=[{
+                "round": 0, "position": 0, "step": 1000, "segment_length": 50,
+                "first_trajectory": 0, "first_start": 10, "second_trajectory": 1,
+                "second_start": 20, "first_segment_return": 1.5, "second_segment_return": 2.5,
+                "first_clip": "q-a.mp4", "second_clip": "q-b.mp4", "needs_labels": 3}])
+            for person, answer in zip(people, answers, strict=False):
+                leased = lease_next_query(session, labeller_id=person, run_id=run.id)
+                assert leased is not None and leased.id == query_id
+                submit_label(session, query_id=query_id, labeller_id=person,
+                             choice={"first": "left", "second": "right"}.get(answer, answer),
+                             left_is_first=True)
+            if teacher_says is not None:
+                set_teacher(session, run_id=run.id, teacher="scripted", params={})
+                leased = lease_next_query(session, labeller_id=scripted, run_id=run.id)
+                assert leased is not None and leased.id == query_id
+                submit_answer(session, query_id=query_id, labeller_id=scripted,
+                              answer=teacher_says)
+            query_ids.append(query_id)
+        exported = {(row["query_id"], row["aggregate"]) for row in export_rows(session)}
+        trained = {(q, _answer(labels_for_queries(session, query_ids=[q]), NAMES).choice.value)
+                   for q in query_ids}
+    assert exported == trained
+    assert dict(exported)[query_ids[0]] == "second"  # not the people's majority
 
 
 def test_a_labeller_without_a_name_is_named_by_id() -> None:
