@@ -196,6 +196,8 @@ def report_markdown(report: CalibrationReport, *, source: str) -> str:
         "",
         f"From {source}: {report.rows} labels of {len(report.runs)} run(s)"
         + (f", {report.without_truth} without ground truth left out" if report.without_truth
+           else "")
+        + (f", {report.gold_answers} gold or practice answers left out" if report.gold_answers
            else "") + f". Intervals at {pct}; how to read them: docs/QUALITY.md.",
         "",
         "## Per labeller",

@@ -23,6 +23,9 @@ the same. Definitions:
 - position bias: the share of "left" among left and right clicks, with its Wilson interval and
   the exact binomial test against 0.5.
 - eps: `calibration_stats.fit_noisy_teacher` on (gap, outcome) of every non-skip answer.
+
+Only answers to the algorithms' own queries count: gold and practice answers (pairs far apart
+by construction, which `labeller_quality` scores apart) are left out, and counted.
 """
 
 from __future__ import annotations
@@ -154,6 +157,8 @@ class CalibrationReport:
     """label rows read"""
     without_truth: int
     """rows left out for a missing ground-truth return"""
+    gold_answers: int
+    """gold and practice answers left out (known-answer pairs, not the algorithms' queries)"""
     everyone: Group
     labellers: list[Group]
     """one group per labeller, by labeller id"""
@@ -367,14 +372,18 @@ def calibration_report(
     recent: int = RECENT_TRAJECTORIES,
 ) -> CalibrationReport:
     """The report of `rows` (export rows: dicts holding at least `REQUIRED_COLUMNS`; other keys
-    are ignored; rows withdrawn by their labeller are left out). ValueError for rows without
-    those columns or for bad `edges`."""
+    are ignored; rows withdrawn by their labeller are left out, gold and practice answers are
+    counted in `rows` and `gold_answers` only). ValueError for rows without those columns or
+    for bad `edges`."""
     edges = check_edges(edges)
     # An answer taken back (undo) is not an answer.
     table = [row for row in rows if row.get("withdrawn_at") is None]
     if table and (missing := missing_columns(set().union(*(row.keys() for row in table)))):
         raise ValueError(f"the label rows lack the columns {', '.join(missing)}")
-    answers, without_truth = _answers(table, recent)
+    # Gold and practice pairs are far apart by construction, not the algorithms' queries: the
+    # labeller quality table scores them apart (`labeller_quality`).
+    own = [row for row in table if not row.get("gold") and not row.get("practice")]
+    answers, without_truth = _answers(own, recent)
     by_labeller: dict[int, list[_Answer]] = {}
     for answer in answers:
         by_labeller.setdefault(answer.labeller_id, []).append(answer)
@@ -386,6 +395,7 @@ def calibration_report(
         edges=[None if e == math.inf else e for e in edges],
         rows=len(table),
         without_truth=without_truth,
+        gold_answers=len(table) - len(own),
         everyone=_group("everyone", None, answers, edges, level),
         labellers=[
             # A renamed labeller is shown by its newest name.

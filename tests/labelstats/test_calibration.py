@@ -179,6 +179,29 @@ def test_outcomes_bins_and_rates_follow_the_definitions() -> None:
     assert report.edges == [0.0, 0.5, None]
 
 
+def test_gold_and_practice_answers_are_left_out_of_the_algorithms_numbers() -> None:
+    """Gold and practice pairs are known-answer pairs far apart by construction, not the
+    algorithm's queries: counted in, they would lift its match ratio, its median gap and the
+    fitted eps of everyone who answered them (the labeller quality table scores them apart)."""
+    own = [row(query_id=q, r_avg=100.0, first_trajectory_return=100.0,
+               second_trajectory_return=99.0,
+               **({} if q % 2 else {"choice": "right", "answer": "second"}))
+           for q in range(10)]  # gap 0.01, right half the time
+    known = [row(query_id=100 + q, gold=True, practice=q < 3, r_avg=100.0,
+                 first_trajectory_return=100.0, second_trajectory_return=0.0)
+             for q in range(10)]  # gap 1, all right
+    alone, mixed = calibration_report(own), calibration_report(own + known)
+    for report in (alone, mixed):
+        [pebble] = report.algos
+        assert (pebble.queries, pebble.rates.answers, pebble.rates.match_ratio) == (10, 10, 0.5)
+        assert pebble.median_gap == pytest.approx(0.01)
+        [ann] = report.labellers
+        assert ann.rates.answers == report.everyone.rates.answers == 10
+        assert sum(b.rates.answers for b in report.everyone.bins) == 10
+    assert mixed.everyone.fit == alone.everyone.fit
+    assert (mixed.rows, mixed.gold_answers, alone.gold_answers) == (20, 10, 0)
+
+
 def test_a_first_or_second_answer_on_tied_segments_is_no_verdict() -> None:
     """Exactly tied segments have no right side: a first/second answer there is neither right
     nor wrong (the trainer's is_correct gives None), so it cannot pull the match ratio below

@@ -499,8 +499,8 @@ def test_the_calibration_report_reads_an_external_runs_answers_by_the_returns_it
     returns = {f"p{i}": (float(rng.uniform(50, 150)), float(rng.uniform(50, 150)))
                for i in range(12)}
     clips = [rng.integers(0, 255, (6, 32, 48, 3), dtype=np.uint8) for _ in range(4)]
-    # A gold pair known by its answer only: no returns, so the report counts its answers
-    # without truth.
+    # A gold pair known by its answer only: the report leaves its answers out of its numbers,
+    # as any gold pair's, and counts them.
     pushed = study.ask([Pair(clips[i % 4], clips[(i + 1) % 4], key=key, returns=pair_returns)
                         for i, (key, pair_returns) in enumerate(returns.items())]
                        + [Pair(clips[0], clips[2], key="gold", gold="first")])
@@ -518,7 +518,8 @@ def test_the_calibration_report_reads_an_external_runs_answers_by_the_returns_it
     response = client.get(f"/api/quality/calibration?run_id={run_id}", headers=OPERATOR)
     assert response.status_code == 200, response.text
     report = response.json()
-    assert (report["runs"], report["rows"], report["without_truth"]) == ([run_id], 26, 2)
+    assert (report["runs"], report["rows"], report["without_truth"], report["gold_answers"]) \
+        == ([run_id], 26, 0, 2)
     truth, lefty = report["labellers"]
     assert (truth["name"], truth["rates"]["answers"], truth["rates"]["correct"]) == (
         "truthful", 12, 12)
