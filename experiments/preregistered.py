@@ -8,7 +8,8 @@
 - Probability of improvement of the reference variant over each compared one (and of any
   further pair `[analysis] also` names), P(X > Y) over pairs of runs (ties count half), with
   its 95 % stratified-bootstrap interval (rliable).
-- Curves: the IQM over a variant's finished runs at each evaluation step, with its 95 % interval.
+- Curves: the IQM over a variant's finished runs at each evaluation step, with its 95 % interval
+  (every task, eps and budget pooled, as in the primary metric; one panel says which).
 - Mechanism, per run then per variant (mean and 95 % percentile-bootstrap interval over runs):
   SAC updates and those on r_hat (episodes.csv's last row), pretraining steps, labels used, the
   distinguishable ratio of the selected queries (rounds after the first), the same-agent
@@ -348,7 +349,8 @@ def rounds_table(results: Results) -> pd.DataFrame:
 
 def iqm_bands(results: Results, runs: pd.DataFrame) -> dict[str, Band]:
     """Per variant: the IQM of the evaluation return over its finished runs at each evaluation
-    step they share, with the 95 % interval as the band."""
+    step they share, with the 95 % interval as the band. Each run is one value, whatever its
+    task, eps or budget: the runs the primary table scores, pooled as it pools them."""
     done = runs[runs["state"] == "done"][KEYS]
     evals = results.evals.merge(done, on=KEYS)
     bands = {}
@@ -356,7 +358,8 @@ def iqm_bands(results: Results, runs: pd.DataFrame) -> dict[str, Band]:
         sub = evals[evals["variant"] == variant]
         if sub.empty:
             continue
-        table = sub.pivot_table(index="step", columns=["task", "seed"], values="return")
+        table = sub.pivot_table(index="step", columns=[k for k in KEYS if k != "variant"],
+                                values="return")
         table = table.dropna()
         if table.empty:
             continue

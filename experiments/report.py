@@ -27,7 +27,7 @@ from experiments.proposition import (
 from experiments.results import KEYS, STATES, Results, load_results
 from experiments.sessions import worked
 from experiments.skill_quality import quality_markdown, quality_table, snapshots_quality_files
-from experiments.spec import METRICS, grid_snapshots
+from experiments.spec import METRICS, Spec, grid_snapshots
 from experiments.stop_rule import recorded_stop_rule
 from experiments.tables import (
     DIAGNOSTICS,
@@ -236,6 +236,16 @@ RUNS_DOC = ("Every planned run with its state (done, stopped by an operator, fai
             "(scripts/grid_part_on_gpu.sh), the GPU each such run trained on.")
 
 
+def _pooled(spec: Spec) -> tuple[str, str]:
+    """The IQM curves' one panel, named by what its runs pool: (eps and budgets, tasks)."""
+    def named(things: list[str]) -> str:
+        return ", ".join(things) + (" pooled" if len(things) > 1 else "")
+    row = "eps " + named([f"{e:g}" for e in spec.eps])
+    if len(spec.budgets) > 1:
+        row += "; budgets " + named([str(b) for b in spec.budgets])
+    return row, named(list(spec.tasks))
+
+
 def preregistered_sections(results: Results, out: Path
                            ) -> tuple[list[str], dict[str, pd.DataFrame],
                                       dict[str, tuple[str, str, str]]]:
@@ -249,10 +259,10 @@ def preregistered_sections(results: Results, out: Path
     mechanism = preregistered.mechanism_table(results, runs)
     rounds = preregistered.rounds_table(results)
     bands = preregistered.iqm_bands(results, runs)
-    rows = [f"eps {e:g}" for e in results.spec.eps]
+    row, col = _pooled(results.spec)
     (out / "iqm-curves.png").write_bytes(grid_png(
-        {(rows[0], results.spec.tasks[0]): bands}, rows[:1], list(results.spec.tasks[:1]),
-        title=results.spec.title + ": IQM, 95 % CI", ylabel="evaluation return"))
+        {(row, col): bands}, [row], [col], title=results.spec.title + ": IQM, 95 % CI",
+        ylabel="evaluation return"))
     metric = METRICS[analysis.metric]
     period = worked(results.folder)  # what a stop rule in wall time reads
     rule = recorded_stop_rule(results.spec, results.folder)

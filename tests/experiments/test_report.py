@@ -543,6 +543,73 @@ def test_arms_with_unequal_updates_on_r_hat_are_also_scored_at_equal_updates(
     assert "the fewest 600" in index and "[450, 600]" in index
 
 
+TWO_EPS = """
+name = "two-eps"
+preset = "tiny"
+steps = 800
+tasks = ["dmc:cheetah_run"]
+eps = [0.1, 0.3]
+seeds = [0, 1, 2, 3]
+
+[analysis]
+metric = "final_quarter"
+reference = "R"
+compare_to = ["X"]
+
+[variants.R]
+algo = "pebble"
+
+[variants.X]
+algo = "surf"
+"""
+
+
+def test_the_iqm_curves_are_over_runs_and_say_what_they_pool(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each run is one curve of the IQM, as each is one score of the primary table: a seed's
+    runs at two eps are not averaged into one; and the one panel, which pools both eps, says
+    so rather than naming the first."""
+    from experiments import preregistered, report
+
+    monkeypatch.setattr(preregistered, "REPS", 200)
+    monkeypatch.setattr(preregistered, "CURVE_REPS", 50)
+    folder = tmp_path / "two-eps"
+    folder.mkdir()
+    (folder / "spec.toml").write_text(TWO_EPS)
+    for variant in "RX":
+        for eps in (0.1, 0.3):
+            for seed in range(4):
+                run = folder / "dmc-cheetah_run" / variant / f"eps{eps:g}" / f"s{seed}"
+                run.mkdir(parents=True)
+                (run / "config.json").write_text(json.dumps(
+                    {"algo": "pebble", "unsup_steps": 0,
+                     "feedback": {"budget": 30, "selection": "disagreement"}}))
+                # eps 0.1: 100 at every seed; eps 0.3: 0, but 500 at seed 3
+                final = 100 if eps == 0.1 else 500 * (seed == 3)
+                _write_csv(run / "eval.csv", "step,return", ["400,0", f"800,{final}"])
+                (run / "done.json").write_text('{"step": 800}')
+    results = load_results(folder)
+    runs = preregistered.per_run(results)
+    primary = preregistered.primary_table(results, runs).set_index("variant")
+    bands = preregistered.iqm_bands(results, runs)
+    # IQM of 0, 0, 0, 100, 100, 100, 100, 500: the mean of the middle half, 75.
+    assert primary.loc["R", "iqm"] == pytest.approx(75.0)
+    assert bands["R"].n == 8 and bands["R"].mean[-1] == pytest.approx(75.0)
+
+    drawn: list[tuple[list[str], list[str], list[tuple[str, str]]]] = []
+    real = report.grid_png
+
+    def watched(panels, rows, cols, **kw):  # type: ignore[no-untyped-def]
+        drawn.append((list(rows), list(cols), sorted(panels)))
+        return real(panels, rows, cols, **kw)
+
+    monkeypatch.setattr(report, "grid_png", watched)
+    report.preregistered_sections(results, tmp_path)
+    [(rows, cols, panels)] = drawn
+    assert (rows, cols) == (["eps 0.1, 0.3 pooled"], ["dmc:cheetah_run"])
+    assert panels == [(rows[0], cols[0])]
+
+
 def test_bootstrap_intervals_are_the_same_on_every_call() -> None:
     """rliable resamples from NumPy's global generator whatever random_state it is given: a
     report's intervals must not depend on what drew from that generator before."""
