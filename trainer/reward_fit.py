@@ -191,17 +191,23 @@ TRUE_ORDER_PAIRS = 1000
 """random segment pairs ordered by their true returns, on which fits are compared too"""
 
 
+def _long_enough(dataset: LabelledDataset, length: int) -> list[int]:
+    """The episodes that hold a segment of `length` steps."""
+    return [i for i, e in enumerate(dataset.episodes) if e.length >= length]
+
+
 def true_order_pairs(dataset: LabelledDataset, n: int, length: int, seed: int) -> Pairs:
-    """`n` random pairs of segments of `length` steps from two different episodes (the same
-    one when there is only one), each targeted by which has the larger true return (exact ties
-    left out): pairs no model trained on, judged by the task itself."""
+    """`n` random pairs of segments of `length` steps from two different episodes at least
+    that long (the same one when there is only one), each targeted by which has the larger true
+    return (exact ties left out): pairs no model trained on, judged by the task itself. No
+    pairs when no episode is that long or every pair ties (`pair_accuracy` is then nan)."""
     rng = np.random.default_rng([seed, 0x7A0E])
-    episodes = dataset.episodes
+    episodes, long = dataset.episodes, _long_enough(dataset, length)
     seg0, seg1, targets = [], [], []
-    for _ in range(n):
-        a = int(rng.integers(len(episodes)))
-        b = a if len(episodes) == 1 else int((a + rng.integers(1, len(episodes)))
-                                             % len(episodes))
+    for _ in range(n if long else 0):
+        a = int(rng.integers(len(long)))
+        b = a if len(long) == 1 else int((a + rng.integers(1, len(long))) % len(long))
+        a, b = long[a], long[b]
         sa, sb = (int(rng.integers(episodes[i].length - length + 1)) for i in (a, b))
         ra = episodes[a].rewards[sa:sa + length].sum(dtype=np.float64)
         rb = episodes[b].rewards[sb:sb + length].sum(dtype=np.float64)
@@ -210,8 +216,11 @@ def true_order_pairs(dataset: LabelledDataset, n: int, length: int, seed: int) -
         seg0.append(_segment(dataset, a, sa, length))
         seg1.append(_segment(dataset, b, sb, length))
         targets.append(1.0 if rb > ra else 0.0)
-    return Pairs(np.stack(seg0), np.stack(seg1), np.asarray(targets, np.float32),
-                 np.arange(len(targets)), np.zeros(len(targets), np.int64))
+    dim = episodes[0].observations.shape[1] + episodes[0].actions.shape[1] if episodes else 0
+    none = np.zeros((0, length, dim), np.float32)
+    return Pairs(np.stack(seg0) if seg0 else none, np.stack(seg1) if seg1 else none,
+                 np.asarray(targets, np.float32), np.arange(len(targets)),
+                 np.zeros(len(targets), np.int64))
 
 
 def run_reward_model(checkpoint: str, dataset: LabelledDataset) -> RewardModel:
@@ -251,15 +260,17 @@ def compare(run_model: RewardModel, result: FitResult, dataset: LabelledDataset,
 
 
 def _unlabelled_pairs(dataset: LabelledDataset, length: int, seed: int) -> PairSampler:
-    """SURF's unlabelled pairs: random segments of two different episodes (of one, when the
-    dataset has only one)."""
+    """SURF's unlabelled pairs: random segments of the episodes at least `length` steps
+    long."""
     rng = np.random.default_rng([seed, 0x5E6])
-    episodes = dataset.episodes
+    episodes, long = dataset.episodes, np.asarray(_long_enough(dataset, length))
+    if not len(long):
+        raise DatasetError(f"{dataset.path}: no episode holds a segment of {length} steps")
 
     def sample(n: int) -> tuple[np.ndarray, np.ndarray]:
         sides = []
         for _ in range(2):
-            which = rng.integers(len(episodes), size=n)
+            which = long[rng.integers(len(long), size=n)]
             segs = [
                 _segment(dataset, int(i),
                          int(rng.integers(episodes[i].length - length + 1)), length)

@@ -5,17 +5,22 @@ with the run's own reward model, and a new run started from the fit (`reward.ini
 from __future__ import annotations
 
 import json
+import math
 import shutil
+from pathlib import Path
 
+import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import torch
 from worker_helpers import RUN, database, worker_config
 
 from labelqueue import create_run
+from rundata.dataset import DatasetEpisode, LabelledDataset
 from runvocab.config import build_config
 from sepoa.cli import main
 from trainer.loop import TrainingRun
+from trainer.reward_fit import _unlabelled_pairs, fit, true_order_pairs
 from trainer.worker import run_worker
 
 TOLERANCE = 0.1
@@ -126,3 +131,52 @@ def test_bad_datasets_get_one_line_naming_the_problem(exported, capsys):
     taken.write_bytes(b"mine")
     code, _, err = _fit(exported, capsys, "--out", str(taken))
     assert code == 2 and "exists" in err and taken.read_bytes() == b"mine"
+
+
+SHORT = -1.0
+"""the observations of episodes shorter than a segment, so that a segment of one shows"""
+
+
+def synthetic(lengths: list[int], *, rewards: bool) -> LabelledDataset:
+    """Episodes of these lengths (3 observations, 2 actions; those shorter than 20 steps
+    observe SHORT), with random or all-zero true rewards, and 8 labelled pairs of 20 steps in
+    the first episode at least 20 long, over two rounds."""
+    rng = np.random.default_rng(0)
+    episodes = [DatasetEpisode(
+        observations=rng.normal(size=(n + 1, 3)).astype(np.float32) if n >= 20
+        else np.full((n + 1, 3), SHORT, np.float32),
+        actions=rng.normal(size=(n, 2)).astype(np.float32),
+        rewards=rng.normal(size=n).astype(np.float32) if rewards else np.zeros(n, np.float32),
+        states=np.zeros((n + 1, 4)), context=0) for n in lengths]
+    long = next(i for i, n in enumerate(lengths) if n >= 20)
+    queries = [{"query_id": q, "round": q // 4, "first_episode": long, "first_start": q,
+                "second_episode": long, "second_start": q + 10, "segment_length": 20,
+                "aggregate": "first" if q % 2 else "second"} for q in range(8)]
+    info = {"task": "dmc:reacher_easy", "obs_dim": 3, "action_dim": 2,
+            "config": {"reward": {"ensemble_size": 1, "hidden_dim": 8, "hidden_layers": 1,
+                                  "max_epochs": 1}}}
+    return LabelledDataset(path=Path("synthetic"), info=info, episodes=episodes,
+                           queries=queries)
+
+
+def test_segments_come_from_episodes_long_enough_to_hold_one() -> None:
+    dataset = synthetic([10, 60, 5, 40], rewards=True)
+    pairs = true_order_pairs(dataset, 200, 20, 0)
+    assert len(pairs.targets) > 100 and pairs.seg0.shape[1:] == (20, 5)
+    assert (pairs.seg0 != SHORT).all() and (pairs.seg1 != SHORT).all()
+    first, second = _unlabelled_pairs(dataset, 20, 0)(50)
+    assert first.shape == second.shape == (50, 20, 5)
+    assert (first != SHORT).all() and (second != SHORT).all()
+    none = true_order_pairs(synthetic([10, 5, 20], rewards=True), 100, 30, 0)
+    assert none.seg0.shape == (0, 30, 5) and len(none.targets) == 0
+
+
+def test_a_fit_whose_true_order_pairs_all_tie_reports_nan_and_finishes() -> None:
+    """All-zero true rewards tie every pair: no pair is decisive, so the true-order accuracy is
+    nan (null in the command's JSON), and the fit, a whole training long, is not lost."""
+    dataset = synthetic([60, 60, 60], rewards=False)
+    assert len(true_order_pairs(dataset, 1000, 20, 0).targets) == 0
+    result = fit(dataset, holdout=0.25)
+    assert math.isnan(result.metrics["true_order_accuracy"])
+    assert (result.metrics["pairs"], result.metrics["trainings"]) == (8, 2)
+
