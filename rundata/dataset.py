@@ -439,7 +439,10 @@ def _check_query_columns(table: Any, queries_path: Path) -> None:
     missing = [c for c in pointers if c not in table.column_names]
     if missing:
         raise DatasetError(f"{queries_path}: columns {missing} are missing")
-    for column in pointers[:6]:  # the ids, episodes, starts and length
+    # The ids, episodes, starts and length, then the round a fit replays (`sepoa reward fit`).
+    for column in (*pointers[:6], "round"):
+        if column not in table.column_names:
+            raise DatasetError(f"{queries_path}: column {column} is missing")
         kind = table.schema.field(column).type
         if not (pa.types.is_integer(kind) or pa.types.is_null(kind)):
             raise DatasetError(f"{queries_path}: column {column} holds {kind} values; "

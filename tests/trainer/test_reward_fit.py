@@ -10,9 +10,11 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 import torch
+from labelling_helpers import exported_dataset
 from worker_helpers import RUN, database, worker_config
 
 from labelqueue import create_run
@@ -179,4 +181,28 @@ def test_a_fit_whose_true_order_pairs_all_tie_reports_nan_and_finishes() -> None
     result = fit(dataset, holdout=0.25)
     assert math.isnan(result.metrics["true_order_accuracy"])
     assert (result.metrics["pairs"], result.metrics["trainings"]) == (8, 2)
+
+
+def hand_labelled(folder: Path, aggregates: list[str], *, rounds: bool = True) -> Path:
+    """A small unlabelled dataset export (4 episodes of 60 steps) given a queries.parquet of
+    hand-made pairs of 20 steps with these aggregates: the pointers, and `round` unless not."""
+    path = exported_dataset(folder / "datasets")
+    n = len(aggregates)
+    columns = {"query_id": list(range(n)), "first_episode": [i % 4 for i in range(n)],
+               "first_start": [5 * i for i in range(n)],
+               "second_episode": [(i + 1) % 4 for i in range(n)],
+               "second_start": [0] * n, "segment_length": [20] * n, "aggregate": aggregates}
+    if rounds:
+        columns["round"] = [i // 2 for i in range(n)]
+    pq.write_table(pa.table(columns), path / "queries.parquet")
+    return path
+
+
+def test_a_queries_table_without_rounds_gets_one_line(tmp_path: Path, capsys) -> None:
+    path = hand_labelled(tmp_path, ["first", "second", "first", "second"], rounds=False)
+    out = tmp_path / "fit.pt"
+    assert main(["reward", "fit", str(path), "--out", str(out), "--epochs", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.endswith("queries.parquet: column round is missing"), err
+    assert len(err.splitlines()) == 1 and not out.exists()
 
