@@ -392,10 +392,14 @@ def _run_report(args: argparse.Namespace) -> int:
     from experiments.report import write_report
     from experiments.spec import SpecError
 
+    if args.out is not None and os.path.exists(args.out) and not os.path.isdir(args.out):
+        return fail(f"--out {args.out} is a file: give a folder for the report")
     try:
         files = write_report(args.folder, args.out)
     except SpecError as err:
         return fail(str(err))
+    except OSError as err:  # a folder that cannot be made or written
+        return fail(f"cannot write the report: {err.filename}: {err.strerror or err}")
     print("\n".join(str(f) for f in files))
     return 0
 

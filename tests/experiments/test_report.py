@@ -202,6 +202,23 @@ def test_report_of_a_folder_without_spec_is_an_error(tmp_path: Path, capsys) -> 
         write_report(tmp_path)
 
 
+def test_a_report_out_that_is_a_file_is_one_line_of_error(results: Path, tmp_path: Path,
+                                                           capsys) -> None:
+    from sepoa.cli import main
+
+    taken = tmp_path / "afile"
+    taken.write_text("mine")
+    capsys.readouterr()
+    assert main(["report", str(results), "--out", str(taken)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"--out {taken} is a file" in err and len(err.splitlines()) == 1, err
+    assert taken.read_text() == "mine"
+    # A folder that cannot be made (its parent is a file) says so too.
+    assert main(["report", str(results), "--out", str(taken / "report")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert str(taken) in err and len(err.splitlines()) == 1, err
+
+
 def test_plots_draw_plain_data_without_torch() -> None:
     png = curves_png({"a": [([0, 1, 2], [0.0, 1.0, 2.0]), ([0, 2], [1.0, 3.0])],
                       "b": Band(np.array([0, 2]), np.array([1.0, 1.0]),
