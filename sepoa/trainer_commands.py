@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 from typing import TYPE_CHECKING
@@ -362,7 +363,9 @@ def _run_reward_fit(args: argparse.Namespace) -> int:
               f"{m['run_heldout_accuracy']:.3f} (it trained on these pairs), on true-order "
               f"pairs {m['run_true_order_accuracy']:.3f}, r_hat vs true reward r = "
               f"{m['run_reward_corr']:.3f}", file=sys.stderr)
-    print(json.dumps({"model": out} | m))
+    # A figure with nothing to measure (no decisive pair) is nan: null in JSON, which has no NaN.
+    plain = {k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in m.items()}
+    print(json.dumps({"model": out} | plain, allow_nan=False))
     return 0
 
 

@@ -206,3 +206,20 @@ def test_a_queries_table_without_rounds_gets_one_line(tmp_path: Path, capsys) ->
     assert err.endswith("queries.parquet: column round is missing"), err
     assert len(err.splitlines()) == 1 and not out.exists()
 
+
+def test_a_figure_without_pairs_to_measure_prints_as_null(tmp_path: Path, capsys) -> None:
+    """Every pair answered equal: no held-out or training pair is decisive, so those
+    accuracies are nan, which standard output's JSON gives as null (NaN is no JSON)."""
+    path = hand_labelled(tmp_path, ["equal"] * 6)
+    out = tmp_path / "fit.pt"
+    capsys.readouterr()
+    assert main(["reward", "fit", str(path), "--out", str(out), "--epochs", "1"]) == 0
+    printed = capsys.readouterr().out
+
+    def refuse(constant: str) -> None:
+        raise AssertionError(f"{constant} in {printed}")
+
+    m = json.loads(printed, parse_constant=refuse)
+    assert m["heldout_accuracy"] is None and m["train_accuracy"] is None
+    assert m["pairs"] == 6 and out.exists()
+
