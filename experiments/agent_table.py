@@ -13,6 +13,7 @@ not); a run short of a point is left out of it, and an episode row without α, Q
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import Any
 
 import pandas as pd
@@ -81,12 +82,13 @@ def agent_table(results: Results) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def agent_markdown(table: pd.DataFrame, seeds: int) -> str:
+def agent_markdown(table: pd.DataFrame, seeds: Mapping[str, int]) -> str:
+    """The table in Markdown; `(n=k)` below the variant's planned `seeds`."""
     if table.empty:
         return "No run has logged an episode yet."
     header = ["task", "eps", "budget", "variant", "step"] + [h for h, _ in COLUMNS.values()]
     rows = [[r["task"], f"{r['eps']:g}", str(r["budget"]), r["variant"], f"{r['point']:,}"]
-            + [cell(r[f"{c}_mean"], r[f"{c}_std"], r[f"{c}_n"], digits, seeds)
+            + [cell(r[f"{c}_mean"], r[f"{c}_std"], r[f"{c}_n"], digits, seeds[r["variant"]])
                for c, (_, digits) in COLUMNS.items()]
             for _, r in table.iterrows()]
     return markdown_table(header, rows)

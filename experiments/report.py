@@ -10,6 +10,7 @@ same); besides them:
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -143,13 +144,14 @@ def write_figures(results: Results, out: Path) -> list[tuple[str, str, dict]]:
     return written
 
 
-def _short_curves(panels: dict[tuple[str, str], dict[str, Band]], seeds: int,
+def _short_curves(panels: dict[tuple[str, str], dict[str, Band]], seeds: Mapping[str, int],
                   steps: int) -> list[str]:
-    """Curves with fewer seeds than planned, or that stop before the spec's steps."""
-    return [f"{col}, {row}: {label}: {band.n} of {seeds} seeds"
+    """Curves with fewer seeds than their variant planned, or that stop before the spec's
+    steps."""
+    return [f"{col}, {row}: {label}: {band.n} of {seeds[label]} seeds"
             + (f", up to step {band.steps[-1]:g}" if len(band.steps) else ", no evaluation")
             for (row, col), curves in panels.items() for label, band in curves.items()
-            if band.n < seeds or not len(band.steps) or band.steps[-1] < steps]
+            if band.n < seeds[label] or not len(band.steps) or band.steps[-1] < steps]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -160,7 +162,8 @@ FINAL_DOC = ("Final return: the `return` of the last evaluation (eval.csv's last
              "the last column lists them with the step of their last evaluation.")
 QUERIES_DOC = ("Final return (as in the final-return table) by number of queries: a row per "
                "budget (each run's `feedback.budget`), a column per variant; mean ± sample std "
-               "across finished seeds, `(n=k)` when fewer than the spec's seeds finished.")
+               "across finished seeds, `(n=k)` when fewer than the variant's planned seeds "
+               "finished.")
 DISTINGUISHABILITY_DOC = (
     "Distinguishable ratio of the selected queries (rounds.csv `distinguishable_ratio`): per "
     "run the mean over every round after the first (the first round is uniform for every "
@@ -338,7 +341,7 @@ def write_report(folder: str | Path, out: str | Path | None = None) -> list[Path
     out = Path(out) if out is not None else results.folder / "report"
     out.mkdir(parents=True, exist_ok=True)
     metaworld = any(t.startswith("metaworld:") for t in spec.tasks)
-    seeds = len(spec.seeds)
+    seeds = {v.label: len(v.seeds or spec.seeds) for v in spec.variants}  # each one's own
 
     final = final_table(results)
     queries = final[["task", "eps", "budget", "variant", "algo", "return_mean", "return_std",

@@ -3,8 +3,8 @@ as data frames and as Markdown.
 
 The numbers, exactly (docs/EXPERIMENTS.md says the same):
 - Across seeds, "mean ± std" is the mean and the sample standard deviation (ddof=1); with one
-  seed there is no std and the cell shows the mean alone. A cell with fewer seeds than the
-  spec plans says `(n=k)`.
+  seed there is no std and the cell shows the mean alone. A cell with fewer seeds than its
+  variant plans (its own seeds, else the spec's) says `(n=k)`.
 - Final return of a run: the `return` of the last row of its eval.csv (itself the mean over
   that evaluation's episodes), for finished runs only (done.json); unfinished runs are counted
   and listed with the step of their last evaluation, never averaged in.
@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from typing import Any
 
 import numpy as np
@@ -255,21 +255,23 @@ def final_markdown(table: pd.DataFrame, metaworld: bool) -> str:
     return "\n\n".join(parts) if parts else "No runs."
 
 
-def queries_markdown(table: pd.DataFrame, variants: list[str], seeds: int) -> str:
-    """Per task and eps: a row per budget, a column per variant, final return cells."""
+def queries_markdown(table: pd.DataFrame, variants: list[str], seeds: Mapping[str, int]
+                     ) -> str:
+    """Per task and eps: a row per budget, a column per variant, final return cells (`(n=k)`
+    below the variant's planned `seeds`)."""
     parts = []
     for (task, eps), group in table.groupby(["task", "eps"], sort=False):
         present = [v for v in variants if v in set(group["variant"])]
         rows = []
         for budget, by_budget in group.groupby("budget", sort=True):
-            cells = {r.variant: cell(r.return_mean, r.return_std, r.n, 1, seeds)
+            cells = {r.variant: cell(r.return_mean, r.return_std, r.n, 1, seeds[r.variant])
                      for r in by_budget.itertuples()}
             rows.append([str(budget)] + [cells.get(v, "–") for v in present])
         parts.append(f"### {task}, eps {eps:g}\n\n" + markdown_table(["queries", *present], rows))
     return "\n\n".join(parts) if parts else "No runs."
 
 
-def distinguishability_markdown(table: pd.DataFrame, seeds: int) -> str:
+def distinguishability_markdown(table: pd.DataFrame, seeds: Mapping[str, int]) -> str:
     if table.empty:
         return "No variant selects queries (only sac runs)."
     variants = list(dict.fromkeys(table["variant"]))
@@ -277,17 +279,19 @@ def distinguishability_markdown(table: pd.DataFrame, seeds: int) -> str:
     header = ["task", "eps", "budget"] + [f"{v} ({rules[v]})" for v in variants]
     rows = []
     for (task, eps, budget), group in table.groupby(GROUP, sort=False):
-        cells = {r.variant: cell(r.mean, r.std, r.n, 3, seeds) for r in group.itertuples()}
+        cells = {r.variant: cell(r.mean, r.std, r.n, 3, seeds[r.variant])
+                 for r in group.itertuples()}
         rows.append([task, f"{eps:g}", str(budget)] + [cells.get(v, "–") for v in variants])
     return markdown_table(header, rows)
 
 
-def same_agent_markdown(table: pd.DataFrame, seeds: int) -> str:
+def same_agent_markdown(table: pd.DataFrame, seeds: Mapping[str, int]) -> str:
     header = ["task", "eps", "budget", "variant", "rule", "distinguishable", "compared rule",
               "distinguishable (compared)"]
     rows = [[r.task, f"{r.eps:g}", str(r.budget), r.variant, r.selection,
-             cell(r.own_mean, r.own_std, r.n, 3, seeds), r.compare_rule,
-             cell(r.compared_mean, r.compared_std, r.n, 3, seeds)] for r in table.itertuples()]
+             cell(r.own_mean, r.own_std, r.n, 3, seeds[r.variant]), r.compare_rule,
+             cell(r.compared_mean, r.compared_std, r.n, 3, seeds[r.variant])]
+            for r in table.itertuples()]
     return markdown_table(header, rows)
 
 
@@ -300,13 +304,14 @@ DIAGNOSTICS_HEADER = {"reward_corr_mean": ("reward corr (mean over rounds)", 3),
 """diagnostic -> its Markdown column header and decimals"""
 
 
-def diagnostics_markdown(table: pd.DataFrame, seeds: int) -> str:
+def diagnostics_markdown(table: pd.DataFrame, seeds: Mapping[str, int]) -> str:
     if table.empty:
         return "No variant selects queries (only sac runs)."
     have = [c for c in DIAGNOSTICS_HEADER if f"{c}_mean" in table]
     header = ["task", "eps", "budget", "variant"] + [DIAGNOSTICS_HEADER[c][0] for c in have]
     rows = [[r["task"], f"{r['eps']:g}", str(r["budget"]), r["variant"]]
-            + [cell(r[f"{c}_mean"], r[f"{c}_std"], r["n"], DIAGNOSTICS_HEADER[c][1], seeds)
+            + [cell(r[f"{c}_mean"], r[f"{c}_std"], r["n"], DIAGNOSTICS_HEADER[c][1],
+                    seeds[r["variant"]])
                for c in have]
             for _, r in table.iterrows()]
     return markdown_table(header, rows)

@@ -627,6 +627,57 @@ def test_the_iqm_curves_are_over_runs_and_say_what_they_pool(
     assert panels == [(rows[0], cols[0])]
 
 
+OWN_SEEDS = """
+name = "own-seeds"
+preset = "tiny"
+steps = 600
+tasks = ["dmc:cheetah_run"]
+eps = [0.3]
+seeds = [0, 1, 2, 3]
+
+[variants.A]
+algo = "pebble"
+
+[variants.B]
+algo = "surf"
+seeds = [0, 1]
+"""
+
+
+def test_a_variant_with_its_own_seeds_is_complete_with_them(tmp_path: Path) -> None:
+    """B plans 2 seeds and finished both: no table or curve note calls it short of the spec's
+    4; A, one of whose 4 runs stopped at step 400, is."""
+    folder = tmp_path / "own-seeds"
+    folder.mkdir()
+    (folder / "spec.toml").write_text(OWN_SEEDS)
+    for variant, seeds in (("A", 4), ("B", 2)):
+        for seed in range(seeds):
+            run = folder / "dmc-cheetah_run" / variant / "eps0.3" / f"s{seed}"
+            run.mkdir(parents=True)
+            (run / "config.json").write_text(json.dumps(
+                {"feedback": {"budget": 100, "selection": "disagreement"}}))
+            stopped = (variant, seed) == ("A", 3)
+            evals = [(200, 1.0), (400, 2.0)] + ([] if stopped else [(600, 3.0 + seed)])
+            _write_csv(run / "eval.csv", "step,return", [f"{s},{r}" for s, r in evals])
+            _write_csv(run / "rounds.csv", "step,round,labels_used,distinguishable_ratio",
+                       ["200,0,50,0.5", f"400,1,100,{0.6 + 0.1 * seed}"])
+            _write_csv(run / "episodes.csv", "step,episode,return,updates,reward_updates",
+                       ["400,1,0,400,200"])
+            if not stopped:
+                (run / "done.json").write_text(json.dumps({"step": 600}))
+    write_report(folder)
+    out = folder / "report"
+    queries = (out / "queries.md").read_text()
+    assert "| 100 | 4.0 ± 1.0 (n=3) | 3.5 ± 0.7 |" in queries
+    for name in ("distinguishability", "agent"):
+        rows = [line for line in (out / f"{name}.md").read_text().splitlines()
+                if line.startswith("| dmc:cheetah_run")]
+        assert rows and not any("(n=" in line for line in rows), (name, rows)
+    notes = [line for line in (out / "report.md").read_text().splitlines()
+             if line.startswith("- dmc:cheetah_run")]
+    assert notes and not any(": B:" in line for line in notes), notes
+
+
 def test_bootstrap_intervals_are_the_same_on_every_call() -> None:
     """rliable resamples from NumPy's global generator whatever random_state it is given: a
     report's intervals must not depend on what drew from that generator before."""
