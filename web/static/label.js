@@ -16,7 +16,7 @@
 import { start } from "./api.js";
 import { startStudy, study } from "./study.js";
 import { clock, state } from "./label_state.js";
-import { notice, showCounts } from "./label_screen.js";
+import { showCounts, showStopped } from "./label_screen.js";
 import {
   fitClips, replay, seekFrame, setPaused, setSpeed, startClock, stepFrames,
 } from "./label_player.js";
@@ -85,7 +85,7 @@ function onKey(event) {
 
 start(() => {
   if (state.runId !== null && !/^\d+$/.test(state.runId)) {
-    notice(`“?run=${state.runId}” is not a run id.`, "error");
+    showStopped(`“?run=${state.runId}” is not a run id.`);
     return;
   }
   if (state.runId) {

@@ -1,13 +1,14 @@
 // The label page's calls to the label API, run one at a time and in order, so an answer is
 // stored before the next preload asks the server what this labeller holds: leasing the pair to
 // show, preloading (and renewing) the next one with `ahead_of`, polling while there is nothing
-// to label, and the labeller's progress. A failed call is shown and retried; a refused token or
-// a pause stops them all.
+// to label, and the labeller's progress. A call that got no answer, or a failing or busy
+// server's, is shown and asked again; a refusal that stands (an unknown run, one taught by a
+// script) is shown for good and, as a refused token or a pause does, stops them all.
 
-import { Paused, SignedOut, request } from "./api.js";
+import { ApiError, Paused, SignedOut, request } from "./api.js";
 import { explainPause, explainWait, showProgress, study } from "./study.js";
 import { noteServerClock, state } from "./label_state.js";
-import { notice, showCounts, showPaused, showWaiting } from "./label_screen.js";
+import { notice, showCounts, showStopped, showWaiting } from "./label_screen.js";
 import { Pair, show } from "./label_pair.js";
 
 const POLL_MS = 2000; // nothing to label, or nothing preloaded yet: ask again this often
@@ -23,22 +24,24 @@ export function serial(task) {
   return run;
 }
 
-/** Runs `task` in turn; a failure is shown and retried, a refused token stops everything. */
+/** Runs `task` in turn; a passing failure is shown and the task retried, one that stands (or
+ * a refused token, or a pause) stops everything. */
 export async function attempt(task) {
   try {
     await task();
   } catch (error) {
-    if (error instanceof SignedOut || error instanceof Paused) {
-      stopLabelling();
-      if (error instanceof Paused) {
-        showPaused(error.message);
-        // One who joined by an invite: the study's end, with their code or the operator's word.
-        if (await explainPause().catch(() => false)) $("notice").hidden = true;
-      }
+    if (error instanceof ApiError && error.transient) {
+      notice(`${error.message} (retrying)`, "error");
+      schedule(task, RETRY_MS);
       return;
     }
-    notice(`${error.message} (retrying)`, "error");
-    schedule(task, RETRY_MS);
+    stopLabelling();
+    if (error instanceof SignedOut) return;
+    showStopped(error.message);
+    // One who joined by an invite: the study's end, with their code or the operator's word.
+    if (error instanceof Paused && await explainPause().catch(() => false)) {
+      $("notice").hidden = true;
+    }
   }
 }
 
