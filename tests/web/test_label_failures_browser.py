@@ -92,6 +92,27 @@ def test_an_answer_that_gets_no_answer_is_sent_again_and_counted_once(
     page.wait_for_selector(ANSWERABLE)
 
 
+def test_a_progress_failing_at_load_is_asked_again_before_pairs_are_leased(
+    live: LiveServer, page: Any, runs: list[int]
+) -> None:
+    runs.append(run_id := live.new_human_run())
+    first, *_ = live.push_rendered_queries(run_id, 3)
+    page.route(PROGRESS, lambda route: route.fulfill(status=500, json={"detail": "boom"}), times=1)
+    made = calls(page)
+    join(page, live, run_id, "P-progress", target=1)
+    page.wait_for_selector(ANSWERABLE)
+    # The progress came, after a failure, before the first pair was leased.
+    asked = [call.split("?")[0] for call in made]
+    assert asked[:3] == ["GET /label/progress", "GET /label/progress", "GET /label/next"]
+    assert page.inner_text("#count-target").strip() == "· 0 of 1 towards the study"
+    page.keyboard.press("1")
+    # One answer reaches the target: the study's end, with the code, though pairs are left.
+    page.wait_for_selector("#completion:not([hidden])")
+    assert page.inner_text("#completion-code")
+    assert page.is_hidden("#stage")
+    assert len(stored_soon(live, first)) == 1
+
+
 def test_a_progress_failing_after_an_answer_leaves_it_saved_and_undoable(
     live: LiveServer, page: Any, runs: list[int]
 ) -> None:

@@ -21,7 +21,7 @@ import {
   fitClips, replay, seekFrame, setPaused, setSpeed, startClock, stepFrames,
 } from "./label_player.js";
 import { toggleInstruction } from "./label_instruction.js";
-import { loadCurrent, loadProgress, schedule, serial } from "./label_calls.js";
+import { attempt, loadCurrent, loadProgress, schedule } from "./label_calls.js";
 import { answer } from "./label_answer.js";
 import { undo } from "./label_undo.js";
 import { openFlag, sendFlag } from "./label_flag.js";
@@ -145,6 +145,10 @@ start(() => {
   });
   addEventListener("resize", fitClips);
   startStudy(() => schedule(loadCurrent, 0));
-  serial(() => loadProgress().catch(() => {})); // a nicety: "–" if it fails
-  schedule(loadCurrent, 0);
+  // The progress first, asked until it comes: it says an invited participant's run, target
+  // and entry test, which the pairs leased and the answers' Undo depend on.
+  schedule(async () => {
+    await loadProgress();
+    await attempt(loadCurrent);
+  }, 0);
 });
