@@ -41,6 +41,7 @@ const $ = (id) => document.getElementById(id);
 
 function onKey(event) {
   if (event.repeat || event.ctrlKey || event.metaKey || event.altKey) return;
+  if (state.stopped) return; // a pause, the study's end: the page's keys are off
   if ($("flag-dialog").open || $("practice-dialog").open) return; // a dialog has the keys
   if (event.key === "f" || event.key === "F") {
     event.preventDefault();
@@ -144,7 +145,10 @@ start(() => {
     toggleInstruction();
   });
   addEventListener("resize", fitClips);
-  startStudy(() => schedule(loadCurrent, 0));
+  startStudy(() => { // past the target, by choice
+    state.stopped = false;
+    schedule(loadCurrent, 0);
+  });
   // The progress first, asked until it comes: it says an invited participant's run, target
   // and entry test, which the pairs leased and the answers' Undo depend on.
   schedule(async () => {

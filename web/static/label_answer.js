@@ -15,11 +15,11 @@ import { offerUndo, withholdUndo } from "./label_undo.js";
 const $ = (id) => document.getElementById(id);
 
 /** Answers the shown pair; `flag` ({flag, flag_note}) goes with a skip, allowed before the
- * clips have played through (a broken clip may never play). */
+ * clips have played through (a broken clip may never play). False when nothing was answered. */
 export function answer(choice, flag = null) {
   const done = state.current;
   const button = document.querySelector(`[data-choice="${choice}"]`);
-  if (!done || state.submitting || (button.disabled && !flag)) return;
+  if (!done || state.stopped || state.submitting || (button.disabled && !flag)) return false;
   state.submitting = true;
   clearTimeout(state.timer);
   const body = {
@@ -39,6 +39,7 @@ export function answer(choice, flag = null) {
   withholdUndo(); // the last answer's offer ends; this one's comes once it is saved
   const sent = { done, body, practising, tried: false };
   serial(() => attempt(() => store(sent)));
+  return true;
 }
 
 /** The answer's POST (asked again by `attempt` while it fails for a while), then what follows

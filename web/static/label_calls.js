@@ -8,7 +8,7 @@
 import { ApiError, Paused, SignedOut, request } from "./api.js";
 import { explainPause, explainWait, showProgress, study } from "./study.js";
 import { noteServerClock, state } from "./label_state.js";
-import { notice, showCounts, showStopped, showWaiting } from "./label_screen.js";
+import { notice, showCounts, showStopped, showWaiting, updateButtons } from "./label_screen.js";
 import { Pair, show } from "./label_pair.js";
 
 const POLL_MS = 2000; // nothing to label, or nothing preloaded yet: ask again this often
@@ -46,14 +46,19 @@ export async function attempt(task) {
 }
 
 /** No more pairs: the loops stop and the pairs in hand are let go (their leases run out). The
- * last answer is no longer offered back: its pair would have nowhere to be shown. */
+ * last answer is no longer offered back: its pair would have nowhere to be shown. Keys do
+ * nothing until labelling resumes (past a study's target, by choice). */
 function stopLabelling() {
   clearTimeout(state.timer);
+  state.stopped = true;
+  state.submitting = false;
   state.last = null;
   $("undo").hidden = true;
   state.next?.remove();
   state.current?.remove();
   state.current = state.next = null;
+  updateButtons();
+  if ($("flag-dialog").open) $("flag-dialog").close(); // its pair is gone
 }
 
 export function schedule(task, ms) {
@@ -82,11 +87,14 @@ export async function runBrief(id) {
 
 /** Nothing on screen: lease a pair and show it, or wait and ask again. */
 export async function loadCurrent() {
-  if (study.complete) return;
+  if (study.complete || state.stopped) return;
   const query = await fetchNext(null);
   if (!query) {
     showWaiting();
-    if (await explainWait(state.runId)) return; // the study is complete: nothing more to ask for
+    if (await explainWait(state.runId)) { // the study is complete: nothing more to ask for
+      stopLabelling();
+      return;
+    }
     schedule(loadCurrent, POLL_MS);
     return;
   }
