@@ -88,3 +88,21 @@ def test_the_answer_that_completes_a_study_cannot_be_taken_back(
     assert page.is_hidden("#stage")
     checked = live.api("POST", "/api/invites/verify", json={"code": code})
     assert (checked["participant"], checked["counted"]) == ("P-last", 1)
+
+
+def test_a_token_typed_after_signing_out_is_typed_not_taken_as_keys(
+    live: LiveServer, page: Any, runs: list[int]
+) -> None:
+    lee = live.new_labeller("lee-signs-out")
+    runs.append(run_id := live.new_human_run())
+    live.push_rendered_queries(run_id, 2)
+    page.goto(f"{live.url}/label?run={run_id}#token={lee.token}")
+    page.wait_for_selector("#flag:not([disabled])")
+    page.click("#sign-out")
+    page.wait_for_selector("#signin", state="visible")
+    page.click("#signin-token")
+    page.keyboard.type("7.abcfdeF")  # f and F: the flag shortcut; s, 1, u: answers and Undo
+    page.keyboard.type(" s1u")
+    assert page.input_value("#signin-token") == "7.abcfdeF s1u"
+    assert page.evaluate("document.querySelector('#flag-dialog').open") is False
+    assert page.evaluate("document.activeElement.id") == "signin-token"

@@ -41,14 +41,15 @@ const $ = (id) => document.getElementById(id);
 
 function onKey(event) {
   if (event.repeat || event.ctrlKey || event.metaKey || event.altKey) return;
-  if (state.stopped) return; // a pause, the study's end: the page's keys are off
+  // Signed out (the sign-in form has the keys) or labelling stopped: the page's keys are off.
+  if ($("app").hidden || state.stopped) return;
   if ($("flag-dialog").open || $("practice-dialog").open) return; // a dialog has the keys
+  if (event.target.closest?.("input, textarea, select")) return; // typing, not a shortcut
   if (event.key === "f" || event.key === "F") {
     event.preventDefault();
     openFlag();
     return;
   }
-  if (event.target.closest?.("input, textarea, select")) return;
   if (event.key === "r" || event.key === "R") {
     event.preventDefault();
     replay();
