@@ -108,3 +108,41 @@ def test_a_practice_round_is_explained_then_real_pairs_follow(
         assert cell.inner_text() == f"{1 if first_left else 0}/2 right"
     finally:
         live.stop_run(run_id)
+
+
+def test_the_answer_time_starts_once_the_pair_is_in_view_after_the_explanation(
+    live: LiveServer, page: Any
+) -> None:
+    gil = live.new_labeller("gil-practice")
+    run_id = live.new_human_run(config={"feedback.practice_pairs": 1})
+    real, gold = live.push_rendered_queries(run_id, 2)
+    with live.sessions() as session:
+        session.execute(update(Query).where(Query.id == gold)
+                        .values(gold=True, needs_labels=GOLD_NEEDS_LABELS, practice=True))
+        session.commit()
+    try:
+        page.goto(f"{live.url}/label?run={run_id}#token={gil.token}")
+        page.wait_for_function(DECODED, arg=SHOWN)
+        assert int(page.get_attribute(SHOWN, "data-query-id")) == gold
+        answer_when_ready(page, "ArrowLeft")
+        page.wait_for_selector("#practice-dialog[open]")
+        page.wait_for_timeout(4000)  # reading the explanation; the real pair waits behind it
+        page.keyboard.press("Enter")
+        shown = time.monotonic()
+        page.wait_for_selector("#practice-dialog:not([open])", state="attached")
+        assert int(page.get_attribute(SHOWN, "data-query-id")) == real
+        answer_when_ready(page, "ArrowLeft")
+        on_screen = time.monotonic() - shown
+        deadline = time.monotonic() + 5
+        while True:
+            with live.sessions() as session:
+                labels = labels_for_queries(session, query_ids=[real])
+            if labels or time.monotonic() > deadline:
+                break
+            time.sleep(0.05)
+        [label] = labels
+        answer_time = (label.answered_at - label.shown_at).total_seconds()
+        # The time it was in view, not the time spent reading the practice explanation.
+        assert answer_time < on_screen + 1.0, (answer_time, on_screen)
+    finally:
+        live.stop_run(run_id)

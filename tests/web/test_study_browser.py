@@ -88,6 +88,29 @@ def test_a_stopped_runs_invite_shows_a_closed_page(
     page.context.close()
 
 
+def test_participants_sharing_a_browser_each_join_as_themselves(
+    live: LiveServer, browser: Any, runs: list[int]
+) -> None:
+    runs.append(run_id := live.new_human_run())
+    invite = live.api("POST", "/api/invites", json={"run_id": run_id, "max_uses": 5})
+    page = phone(browser)
+    token = "localStorage.getItem('sepoa.labeller-token')"
+    join_and_start(page, invite["url"], "SHARED-A")
+    first = page.evaluate(token)
+    # Another participant's link in the same browser: they join as themselves, not as A.
+    join_and_start(page, invite["url"], "SHARED-B")
+    second = page.evaluate(token)
+    assert second != first
+    names = [lab["name"] for lab in live.api("GET", "/api/labellers")]
+    assert "SHARED-A" in names and "SHARED-B" in names
+    # A's link again: A is given back (a new token, no new use of the link).
+    join_and_start(page, invite["url"], "SHARED-A")
+    assert page.evaluate(token) not in (first, second)
+    listed = next(i for i in live.api("GET", "/api/invites") if i["id"] == invite["id"])
+    assert listed["uses"] == 2
+    page.context.close()
+
+
 def test_a_run_that_ends_mid_session_gives_study_complete_with_the_code_and_redirect(
     live: LiveServer, browser: Any, runs: list[int]
 ) -> None:

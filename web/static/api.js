@@ -9,10 +9,20 @@ const STORAGE = { labeller: "sepoa.labeller-token", operator: "sepoa.operator-to
 const role = document.body.dataset.role;
 let token = null;
 
+const TIMEOUT_MS = 15_000; // a request with no whole answer by then is given up (asked again)
+
+/** A request that failed: `status` is the HTTP status, or 0 when no answer came (the server
+ * could not be reached, or did not answer within TIMEOUT_MS). */
 export class ApiError extends Error {
   constructor(status, detail) {
     super(describe(detail) || `HTTP ${status}`);
     this.status = status;
+  }
+
+  /** Worth asking again: no answer, the server failing or busy (5xx), or asking to be asked
+   * later (408, 429); any other refusal stands until something else changes. */
+  get transient() {
+    return this.status === 0 || this.status >= 500 || this.status === 408 || this.status === 429;
   }
 }
 
@@ -65,25 +75,47 @@ function signOut(message) {
 
 /** `{status, data, response}`; data is the parsed JSON body (null for 204). */
 export async function request(method, path, body) {
-  const response = await send(method, path, body);
-  const data = response.status === 204 ? null : await response.json();
-  return { status: response.status, data, response };
+  return send(method, path, body, async (response) => {
+    const data = response.status === 204 ? null : await response.json();
+    return { status: response.status, data, response };
+  });
 }
 
 /** A binary resource (an image) as a Blob, with the same sign-in and error handling. */
 export async function getBlob(path) {
-  return (await send("GET", path)).blob();
+  return send("GET", path, undefined, (response) => response.blob());
 }
 
-async function send(method, path, body) {
+/** The request, its refusals turned into errors, and its body as `read` reads it; all of it
+ * within TIMEOUT_MS, else an ApiError of status 0 (as when the server cannot be reached). */
+async function send(method, path, body, read) {
   if (!token) throw new SignedOut();
   const headers = { Authorization: `Bearer ${token}` };
   if (body !== undefined) headers["Content-Type"] = "application/json";
-  const response = await fetch(path, {
-    method,
-    headers,
-    body: body === undefined ? undefined : JSON.stringify(body),
-  });
+  const abort = new AbortController();
+  const timer = setTimeout(() => abort.abort(), TIMEOUT_MS);
+  try {
+    const response = await fetch(path, {
+      method,
+      headers,
+      body: body === undefined ? undefined : JSON.stringify(body),
+      signal: abort.signal,
+    });
+    await refuse(response);
+    return await read(response);
+  } catch (error) {
+    if (error instanceof ApiError || error instanceof SignedOut || error instanceof Paused)
+      throw error;
+    throw new ApiError(0, abort.signal.aborted
+      ? `no answer from the server within ${TIMEOUT_MS / 1000} s`
+      : "the server could not be reached");
+  } finally {
+    clearTimeout(timer);
+  }
+}
+
+/** Throws what a refused request means: signed out (the sign-in form), paused, or an ApiError. */
+async function refuse(response) {
   if (response.status === 401 || response.status === 403) {
     const data = await response.json().catch(() => null);
     const detail = describe(data && data.detail);
@@ -99,7 +131,6 @@ async function send(method, path, body) {
     const data = await response.json().catch(() => null);
     throw new ApiError(response.status, data && data.detail);
   }
-  return response;
 }
 
 export const get = (path) => request("GET", path).then((r) => r.data);

@@ -1,5 +1,6 @@
 // The invite link's page: join once (a new labeller, signed in in this browser), then offer the
-// label page. A reload, or opening the link again in this browser, keeps the labeller it made.
+// label page. A reload, or opening the link again in this browser, keeps the labeller it made,
+// for the same participant only: another participant's link (a shared browser) joins anew.
 // A study with a consent text joins only once the person agrees to it. The participant's id
 // comes from `?participant=`, or a platform's own parameter (Prolific's PROLIFIC_PID, MTurk's
 // workerId).
@@ -25,10 +26,24 @@ function participantId() {
   return PARTICIPANT_PARAMS.map((name) => params.get(name)).find((value) => value) || null;
 }
 
+/** Who joined this link in this browser before, {name, participant}; null if nobody did. */
+function joinedBefore() {
+  const stored = localStorage.getItem(joinedKey);
+  if (!stored) return null;
+  try {
+    const joined = JSON.parse(stored);
+    if (typeof joined?.name === "string") return joined;
+  } catch {
+    // a name alone, kept before the participant was kept with it
+  }
+  return { name: stored, participant: null };
+}
+
 async function join() {
-  const earlier = localStorage.getItem(joinedKey);
-  if (earlier && localStorage.getItem("sepoa.labeller-token")) {
-    ready(earlier);
+  const earlier = joinedBefore();
+  if (earlier && earlier.participant === participantId()
+      && localStorage.getItem("sepoa.labeller-token")) {
+    ready(earlier.name);
     return;
   }
   if (document.body.dataset.consent === "required") {
@@ -62,7 +77,7 @@ async function joinNow(consent) {
     return;
   }
   keepToken("labeller", data.token);
-  localStorage.setItem(joinedKey, data.name);
+  localStorage.setItem(joinedKey, JSON.stringify({ name: data.name, participant }));
   ready(data.name);
 }
 

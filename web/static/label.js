@@ -16,12 +16,12 @@
 import { start } from "./api.js";
 import { startStudy, study } from "./study.js";
 import { clock, state } from "./label_state.js";
-import { notice, showCounts } from "./label_screen.js";
+import { showCounts, showStopped } from "./label_screen.js";
 import {
   fitClips, replay, seekFrame, setPaused, setSpeed, startClock, stepFrames,
 } from "./label_player.js";
 import { toggleInstruction } from "./label_instruction.js";
-import { loadCurrent, loadProgress, schedule, serial } from "./label_calls.js";
+import { attempt, loadCurrent, loadProgress, schedule } from "./label_calls.js";
 import { answer } from "./label_answer.js";
 import { undo } from "./label_undo.js";
 import { openFlag, sendFlag } from "./label_flag.js";
@@ -41,13 +41,15 @@ const $ = (id) => document.getElementById(id);
 
 function onKey(event) {
   if (event.repeat || event.ctrlKey || event.metaKey || event.altKey) return;
+  // Signed out (the sign-in form has the keys) or labelling stopped: the page's keys are off.
+  if ($("app").hidden || state.stopped) return;
   if ($("flag-dialog").open || $("practice-dialog").open) return; // a dialog has the keys
+  if (event.target.closest?.("input, textarea, select")) return; // typing, not a shortcut
   if (event.key === "f" || event.key === "F") {
     event.preventDefault();
     openFlag();
     return;
   }
-  if (event.target.closest?.("input, textarea, select")) return;
   if (event.key === "r" || event.key === "R") {
     event.preventDefault();
     replay();
@@ -85,7 +87,7 @@ function onKey(event) {
 
 start(() => {
   if (state.runId !== null && !/^\d+$/.test(state.runId)) {
-    notice(`“?run=${state.runId}” is not a run id.`, "error");
+    showStopped(`“?run=${state.runId}” is not a run id.`);
     return;
   }
   if (state.runId) {
@@ -144,7 +146,14 @@ start(() => {
     toggleInstruction();
   });
   addEventListener("resize", fitClips);
-  startStudy(() => schedule(loadCurrent, 0));
-  serial(() => loadProgress().catch(() => {})); // a nicety: "–" if it fails
-  schedule(loadCurrent, 0);
+  startStudy(() => { // past the target, by choice
+    state.stopped = false;
+    schedule(loadCurrent, 0);
+  });
+  // The progress first, asked until it comes: it says an invited participant's run, target
+  // and entry test, which the pairs leased and the answers' Undo depend on.
+  schedule(async () => {
+    await loadProgress();
+    await attempt(loadCurrent);
+  }, 0);
 });

@@ -1,13 +1,14 @@
 // The label page's calls to the label API, run one at a time and in order, so an answer is
 // stored before the next preload asks the server what this labeller holds: leasing the pair to
 // show, preloading (and renewing) the next one with `ahead_of`, polling while there is nothing
-// to label, and the labeller's progress. A failed call is shown and retried; a refused token or
-// a pause stops them all.
+// to label, and the labeller's progress. A call that got no answer, or a failing or busy
+// server's, is shown and asked again; a refusal that stands (an unknown run, one taught by a
+// script) is shown for good and, as a refused token or a pause does, stops them all.
 
-import { Paused, SignedOut, request } from "./api.js";
+import { ApiError, Paused, SignedOut, request } from "./api.js";
 import { explainPause, explainWait, showProgress, study } from "./study.js";
 import { noteServerClock, state } from "./label_state.js";
-import { notice, showCounts, showPaused, showWaiting } from "./label_screen.js";
+import { notice, showCounts, showStopped, showWaiting, updateButtons } from "./label_screen.js";
 import { Pair, show } from "./label_pair.js";
 
 const POLL_MS = 2000; // nothing to label, or nothing preloaded yet: ask again this often
@@ -23,34 +24,41 @@ export function serial(task) {
   return run;
 }
 
-/** Runs `task` in turn; a failure is shown and retried, a refused token stops everything. */
+/** Runs `task` in turn; a passing failure is shown and the task retried, one that stands (or
+ * a refused token, or a pause) stops everything. */
 export async function attempt(task) {
   try {
     await task();
   } catch (error) {
-    if (error instanceof SignedOut || error instanceof Paused) {
-      stopLabelling();
-      if (error instanceof Paused) {
-        showPaused(error.message);
-        // One who joined by an invite: the study's end, with their code or the operator's word.
-        if (await explainPause().catch(() => false)) $("notice").hidden = true;
-      }
+    if (error instanceof ApiError && error.transient) {
+      notice(`${error.message} (retrying)`, "error");
+      schedule(task, RETRY_MS);
       return;
     }
-    notice(`${error.message} (retrying)`, "error");
-    schedule(task, RETRY_MS);
+    stopLabelling();
+    if (error instanceof SignedOut) return;
+    showStopped(error.message);
+    // One who joined by an invite: the study's end, with their code or the operator's word.
+    if (error instanceof Paused && await explainPause().catch(() => false)) {
+      $("notice").hidden = true;
+    }
   }
 }
 
 /** No more pairs: the loops stop and the pairs in hand are let go (their leases run out). The
- * last answer is no longer offered back: its pair would have nowhere to be shown. */
+ * last answer is no longer offered back: its pair would have nowhere to be shown. Keys do
+ * nothing until labelling resumes (past a study's target, by choice). */
 function stopLabelling() {
   clearTimeout(state.timer);
+  state.stopped = true;
+  state.submitting = false;
   state.last = null;
   $("undo").hidden = true;
   state.next?.remove();
   state.current?.remove();
   state.current = state.next = null;
+  updateButtons();
+  if ($("flag-dialog").open) $("flag-dialog").close(); // its pair is gone
 }
 
 export function schedule(task, ms) {
@@ -79,11 +87,14 @@ export async function runBrief(id) {
 
 /** Nothing on screen: lease a pair and show it, or wait and ask again. */
 export async function loadCurrent() {
-  if (study.complete) return;
+  if (study.complete || state.stopped) return;
   const query = await fetchNext(null);
   if (!query) {
     showWaiting();
-    if (await explainWait(state.runId)) return; // the study is complete: nothing more to ask for
+    if (await explainWait(state.runId)) { // the study is complete: nothing more to ask for
+      stopLabelling();
+      return;
+    }
     schedule(loadCurrent, POLL_MS);
     return;
   }

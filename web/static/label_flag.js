@@ -1,6 +1,7 @@
 // Flagging a pair nobody can judge (clip broken, agent not visible, other, with a note): a
 // dialog that pauses the clips; its answer is a skip that carries the flag.
 
+import { state } from "./label_state.js";
 import { setPaused } from "./label_player.js";
 import { notice } from "./label_screen.js";
 import { answer } from "./label_answer.js";
@@ -10,7 +11,7 @@ const FLAG_TEXT = { clip_broken: "clip broken", not_visible: "agent not visible"
 const $ = (id) => document.getElementById(id);
 
 export function openFlag() {
-  if ($("flag").disabled || $("flag-dialog").open) return;
+  if (!state.current || $("flag").disabled || $("flag-dialog").open) return;
   $("flag-form").reset();
   setPaused(true); // look at the frame that shows the problem
   $("flag-dialog").showModal();
@@ -25,6 +26,6 @@ export function sendFlag(event) {
   if (!flag) return; // the radios are required: the browser says so
   const note = $("flag-note").value.trim();
   $("flag-dialog").close();
-  answer("skip", { flag, flag_note: note || null });
+  if (!answer("skip", { flag, flag_note: note || null })) return; // no pair to flag any more
   notice(`Pair flagged (${FLAG_TEXT[flag]}) and skipped: thank you.`);
 }

@@ -72,7 +72,8 @@ function advance(pair, dt) {
     videos.forEach((v) => v.pause()); // the clock waits for the slower clip
     return;
   }
-  pair.shownAt ??= serverNow(); // first frame on screen: the answer time starts here
+  // First frame in view: the answer time starts here (not behind a practice explanation).
+  if (!pair.shownAt && inView()) pair.shownAt = serverNow();
   if (clock.paused) { // held on one frame: both clips shown at the clock's time, not playing
     hold(pair, Math.min(clock.t, length));
     return;
@@ -95,6 +96,11 @@ function advance(pair, dt) {
     if (video.paused && target < video.duration - 0.04) video.play().catch(() => {});
   }
   showFrame(pair);
+}
+
+/** The stage is on screen, with no dialog over it. */
+function inView() {
+  return !$("stage").hidden && !$("practice-dialog").open && !$("flag-dialog").open;
 }
 
 // ---- the player: pause, scrub, frame steps on the shared timeline ---------------------------

@@ -5,8 +5,10 @@ import { clock, state } from "./label_state.js";
 
 const $ = (id) => document.getElementById(id);
 
+/** A passing message (it hides after a while); none replaces a standing alert (showStopped). */
 export function notice(message, kind = "info") {
   const box = $("notice");
+  if (box.getAttribute("role") === "alert") return;
   box.textContent = message;
   box.className = `notice ${kind}`;
   box.hidden = false;
@@ -14,12 +16,13 @@ export function notice(message, kind = "info") {
   notice.timer = setTimeout(() => (box.hidden = true), 5000);
 }
 
-/** A paused labeller: the reason as an alert, in place of the pairs. */
-export function showPaused(message) {
+/** Labelling stopped for a reason asking again cannot change (a pause, a run that cannot be
+ * labelled here): the reason as an alert that stays, in place of the pairs. */
+export function showStopped(message) {
   const box = $("notice");
   clearTimeout(notice.timer);
   box.textContent = message.charAt(0).toUpperCase() + message.slice(1);
-  box.className = "notice error paused";
+  box.className = "notice error stopped";
   box.setAttribute("role", "alert");
   box.hidden = false;
   $("waiting").hidden = true;

@@ -19,6 +19,8 @@ export const state = {
   target: null, // answers after which the caller's invite shows a completion code
   entryTest: false, // the caller's invite makes the practice round a test: no Undo there
   last: null, // the last answer, while it may be taken back: {pair, counted}
+  progressDue: false, // an answer counted towards the study's target: its progress is asked
+  stopped: false, // paused, refused, signed out or the study complete: no pairs, no keys
 };
 
 /** One master time for both clips: where the timeline is, full passes of the shown pair. */

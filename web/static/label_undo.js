@@ -29,8 +29,11 @@ export function withholdUndo() {
 
 /** Backspace, U or the button: the server withdraws the last answer (within its window and
  * while the trainer has not taken it) and leases the pair back, which is shown again; the pair
- * on screen waits, hidden, as the next one. Refusals are said as the server says them. */
+ * on screen waits, hidden, as the next one. Refusals are said as the server says them. Once
+ * labelling has stopped (the study complete, a pause) nothing is taken back: the answer that
+ * completed a study stands. */
 export function undo() {
+  if (state.stopped) return;
   const last = state.last;
   if (!last) {
     notice("There is no answer to take back.");
@@ -39,6 +42,7 @@ export function undo() {
   state.last = null;
   $("undo").hidden = true;
   serial(async () => {
+    if (state.stopped) return; // the answer's progress, asked before this, completed the study
     const shown = state.current;
     try {
       const { data } = await request("POST", `/api/label/${last.pair.query.query_id}/withdraw`,
