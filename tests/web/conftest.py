@@ -166,3 +166,16 @@ def page(browser: Any) -> Iterator[Any]:
     page.set_default_timeout(10_000)
     yield page
     context.close()
+
+
+@pytest.fixture
+def runs(live: LiveServer) -> Iterator[list[int]]:
+    """Runs a test makes, stopped afterwards; other tests' open runs are stopped first, so that
+    their leftover pairs do not reach this test's labellers."""
+    for run in live.api("GET", "/api/runs"):
+        if run["status"] in ("running", "paused", "queued"):
+            live.stop_run(run["id"])
+    made: list[int] = []
+    yield made
+    for run_id in made:
+        live.stop_run(run_id)

@@ -5,10 +5,8 @@ from __future__ import annotations
 
 import re
 import time
-from collections.abc import Iterator
 from typing import Any
 
-import pytest
 from web_helpers import LiveServer
 
 from labelqueue import labels_for_queries
@@ -16,18 +14,6 @@ from labelqueue import labels_for_queries
 SHOWN = "#pairs .pair:not([hidden])"
 ANSWERABLE = '[data-choice="left"]:not([disabled])'
 PROGRESS = re.compile(r"/api/label/progress$")
-
-
-@pytest.fixture
-def runs(live: LiveServer) -> Iterator[list[int]]:
-    """Runs a test makes, stopped afterwards; other tests' open runs are stopped first."""
-    for run in live.api("GET", "/api/runs"):
-        if run["status"] in ("running", "paused", "queued"):
-            live.stop_run(run["id"])
-    made: list[int] = []
-    yield made
-    for run_id in made:
-        live.stop_run(run_id)
 
 
 def standing(live: LiveServer, query_id: int) -> list[Any]:

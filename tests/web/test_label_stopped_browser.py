@@ -4,28 +4,14 @@ out), in a real headless Chromium against a real server: what its keys and butto
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
 from typing import Any
 
-import pytest
 from web_helpers import LiveServer
 
 from labelqueue import LabellerPause, labels_for_queries
 
 SHOWN = "#pairs .pair:not([hidden])"
 ANSWERABLE = '[data-choice="left"]:not([disabled])'
-
-
-@pytest.fixture
-def runs(live: LiveServer) -> Iterator[list[int]]:
-    """Runs a test makes, stopped afterwards; other tests' open runs are stopped first."""
-    for run in live.api("GET", "/api/runs"):
-        if run["status"] in ("running", "paused", "queued"):
-            live.stop_run(run["id"])
-    made: list[int] = []
-    yield made
-    for run_id in made:
-        live.stop_run(run_id)
 
 
 def standing(live: LiveServer, query_id: int, timeout: float = 5.0) -> list[Any]:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Iterator
 from datetime import timedelta
 from pathlib import Path
 from typing import Any
@@ -65,19 +64,6 @@ CONTRAST = """() => {
     }
     return failures;
 }"""
-
-
-@pytest.fixture
-def runs(live: LiveServer) -> Iterator[list[int]]:
-    """Runs a test makes, stopped afterwards; other tests' runs are stopped first, so that
-    their leftover pairs do not reach this test's labellers."""
-    for run in live.api("GET", "/api/runs"):
-        if run["status"] in ("running", "paused", "queued"):
-            live.stop_run(run["id"])
-    made: list[int] = []
-    yield made
-    for run_id in made:
-        live.stop_run(run_id)
 
 
 def context_page(browser: Any, width: int, height: int) -> Any:

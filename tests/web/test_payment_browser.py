@@ -8,7 +8,7 @@ from __future__ import annotations
 from typing import Any
 
 from sqlalchemy import update
-from test_study_browser import join_and_start, phone, runs, screenshot  # noqa: F401
+from test_study_browser import join_and_start, phone, screenshot
 from web_helpers import OPERATOR_TOKEN, LiveServer
 
 from labelqueue.gold import GOLD_NEEDS_LABELS

@@ -10,12 +10,10 @@ With SEPOA_SCREENSHOT_DIR set, the screens are saved there (the docs/study-*.png
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
 from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
-import pytest
 from sqlalchemy import update
 from web_helpers import OPERATOR_TOKEN, LiveServer
 
@@ -25,18 +23,6 @@ from labelqueue.models import utcnow
 PHONE = {"width": 390, "height": 844}
 ANSWERABLE = '[data-choice="left"]:not([disabled])'
 REDIRECT = "https://study.example.org/complete?cc=C0FFEE"
-
-
-@pytest.fixture
-def runs(live: LiveServer) -> Iterator[list[int]]:
-    """Runs a test makes, stopped afterwards; other tests' open runs are stopped first."""
-    for run in live.api("GET", "/api/runs"):
-        if run["status"] in ("running", "paused", "queued"):
-            live.stop_run(run["id"])
-    made: list[int] = []
-    yield made
-    for run_id in made:
-        live.stop_run(run_id)
 
 
 def phone(browser: Any) -> Any:
