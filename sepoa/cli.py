@@ -25,7 +25,7 @@ import importlib
 import signal
 import sys
 
-from sepoa.parser import Command, OneLineParser
+from sepoa.parser import Command, DefaultsHelpFormatter, OneLineParser
 
 COMMANDS: dict[str, tuple[str, str]] = {
     "up": ("sepoa.up", "start the server and a worker on SQLite, with a demo run"),
@@ -74,7 +74,7 @@ def build_parser(given: str | None = None) -> OneLineParser:
             continue
         found = command(name)
         p = sub.add_parser(name, help=text, description=text, formatter_class=(
-            argparse.ArgumentDefaultsHelpFormatter if found.defaults_in_help
+            DefaultsHelpFormatter if found.defaults_in_help
             else argparse.HelpFormatter))
         found.arguments(p)
     return parser

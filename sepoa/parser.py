@@ -34,6 +34,17 @@ class OneLineParser(argparse.ArgumentParser):
         return super().add_argument(*args, **kwargs)
 
 
+class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """`--help` with each flag's default after its help, but for a flag whose default is None
+    (its help says what leaving it out means: "the preset's", "<data-dir>/clips when unset"),
+    where "(default: None)" would tell nothing."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.default is None:
+            return action.help
+        return super()._get_help_string(action)
+
+
 def _bounds(low: float | None, high: float | None) -> str:
     if low is not None and high is not None:
         return f": give {low} to {high}"

@@ -24,7 +24,7 @@ import os
 import sys
 from typing import TYPE_CHECKING
 
-from sepoa.parser import Command, fail, integer, real
+from sepoa.parser import Command, DefaultsHelpFormatter, fail, integer, real
 
 if TYPE_CHECKING:
     from runvocab.config import RunConfig
@@ -32,40 +32,65 @@ if TYPE_CHECKING:
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 
-def _train_arguments(p: argparse.ArgumentParser) -> None:
-    from runvocab.config import add_config_arguments
-    from runvocab.names import SIZE_PRESETS, TEACHER_KINDS
+DEFAULT_TASK = "dmc:cheetah_run"
+DEFAULT_PRESET = "paper"
+"""what `train` and `pretrain` take without --task and --preset: the paper's sizes (1 M steps,
+2 x 1024 nets), GPU work; --preset small learns on a CPU"""
+PRESET_DEFAULT = " (default: the preset's)"
+"""what a configuration field's flag says of its default: None here, the preset's value then"""
 
-    p.add_argument("--task", default=None, help="dmc:<domain>_<task> or metaworld:<name>")
-    p.add_argument("--preset", default=None, help=" | ".join(SIZE_PRESETS))
-    p.add_argument("--teacher", dest="teacher.kind", default=None, help=" | ".join(TEACHER_KINDS))
+
+def _task_and_preset(p: argparse.ArgumentParser) -> None:
+    from runvocab.names import SIZE_PRESETS
+
+    p.add_argument("--task", default=DEFAULT_TASK, help="dmc:<domain>_<task> or "
+                   "metaworld:<name>")
+    p.add_argument("--preset", default=DEFAULT_PRESET, help=" | ".join(SIZE_PRESETS) + "; paper "
+                   "is 1 M steps with 2 x 1024 nets (GPU work), small learns on a CPU")
+
+
+def _add_config_arguments(p: argparse.ArgumentParser, exclude: tuple[str, ...] = ()) -> None:
+    """A flag per configuration field (`runvocab.config.add_config_arguments`), each saying
+    that leaving it out takes the preset's value."""
+    from runvocab.config import add_config_arguments
+
+    before = len(p._actions)
+    add_config_arguments(p, exclude=exclude)
+    for action in p._actions[before:]:
+        action.help = (action.help or "") + PRESET_DEFAULT
+
+
+def _train_arguments(p: argparse.ArgumentParser) -> None:
+    from runvocab.names import TEACHER_KINDS
+
+    _task_and_preset(p)
+    p.add_argument("--teacher", dest="teacher.kind", default=None,
+                   help=" | ".join(TEACHER_KINDS) + PRESET_DEFAULT)
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --run-dir from its last checkpoint")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    add_config_arguments(p)
+    _add_config_arguments(p)
 
 
 def _pretrain_arguments(p: argparse.ArgumentParser) -> None:
-    from runvocab.config import add_config_arguments
     from runvocab.config.args import value_type
-    from runvocab.names import SIZE_PRESETS
 
-    p.add_argument("--task", default=None, help="dmc:<domain>_<task> or metaworld:<name>")
-    p.add_argument("--preset", default=None, help=" | ".join(SIZE_PRESETS))
+    _task_and_preset(p)
     p.add_argument("--steps", dest="skill.pretrain_steps", default=None,
-                   type=value_type("skill.pretrain_steps"), help="pretraining environment steps")
+                   type=value_type("skill.pretrain_steps"),
+                   help="pretraining environment steps" + PRESET_DEFAULT)
     p.add_argument("--out", default=None, help="snapshot file; default "
                    "<skill.snapshot_dir>/<task>-<backend>-<steps>-s<seed>.pt")
     p.add_argument("--quality-skills", type=integer("a count of skills", low=0), default=50,
                    metavar="N",
                    help="beside each snapshot, the task return of N random skills (one "
                    "deterministic episode each) against N episodes of random actions; 0: none")
-    p.add_argument("--snapshots-at", type=_steps_list, default=(), metavar="STEPS",
+    p.add_argument("--snapshots-at", type=_steps_list, default=None, metavar="STEPS",
                    help="also write a snapshot (and its quality) at these steps, "
                    "comma-separated, e.g. 100000,200000,500000")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     # --steps is the pretraining length here, not the online run's.
-    add_config_arguments(p, exclude=("steps",))
+    _add_config_arguments(p, exclude=("steps",))
 
 
 def _steps_list(text: str) -> tuple[int, ...]:
@@ -110,10 +135,10 @@ def _run_pretrain(args: argparse.Namespace) -> int:
 
     start = time.time()
     try:
-        cfg = build_config(args.task or "dmc:cheetah_run", args.preset or "paper",
-                           overrides_from_args(args))
+        cfg = build_config(args.task, args.preset, overrides_from_args(args))
         path = pretrain(cfg, out=args.out, progress=not args.no_progress, tick=tick,
-                        quality_skills=args.quality_skills, snapshots_at=args.snapshots_at)
+                        quality_skills=args.quality_skills,
+                        snapshots_at=args.snapshots_at or ())
     except PretrainingLeft as err:
         print(f"sepoa pretrain: {err}; the same command goes on from there", file=sys.stderr,
               flush=True)
@@ -295,7 +320,7 @@ def _reward_arguments(p: argparse.ArgumentParser) -> None:
     fit = actions.add_parser(
         "fit", help="train the run's reward ensemble on an exported dataset's labels; report "
         "held-out accuracy and the correlation of r_hat with the true reward; save the model "
-        "for reward.init_from", formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        "for reward.init_from", formatter_class=DefaultsHelpFormatter)
     fit.add_argument("dataset", help="a dataset folder (sepoa export --dataset) or its Minari id "
                      "under MINARI_DATASETS_PATH")
     fit.add_argument("--out", default=None,
@@ -388,9 +413,7 @@ def _config_from_args(args: argparse.Namespace) -> RunConfig:
             raise ValueError(f"--resume keeps the run's configuration; "
                              f"cannot change {', '.join(sorted(ignored))}")
         return apply_overrides(cfg, overrides)
-    task = args.task or "dmc:cheetah_run"
-    preset = args.preset or "paper"
-    return build_config(task, preset, overrides)
+    return build_config(args.task, args.preset, overrides)
 
 
 def _run_train(args: argparse.Namespace) -> int:

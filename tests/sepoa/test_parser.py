@@ -72,6 +72,19 @@ def test_every_command_builds_and_has_help(name: str,
     assert capsys.readouterr().out.startswith(f"usage: sepoa {name}")
 
 
+def test_train_and_pretrain_help_show_the_defaults_an_absent_flag_takes(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Without --preset a run is the paper's (1 M steps, 1024-wide nets), without --task
+    cheetah run; a configuration field left out is the preset's, never "None"."""
+    for name in ("train", "pretrain"):
+        with pytest.raises(SystemExit):
+            main([name, "--help"])
+        out = " ".join(capsys.readouterr().out.split())
+        assert "None" not in out, name
+        assert "(default: dmc:cheetah_run)" in out and "(default: paper)" in out, name
+        assert re.search(r"--sac\.lr FLOAT [^(]*\(default: the preset's\)", out), name
+
+
 def test_the_top_level_help_lists_every_command(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         main(["--help"])
