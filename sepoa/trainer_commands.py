@@ -80,7 +80,8 @@ def _pretrain_arguments(p: argparse.ArgumentParser) -> None:
                    type=value_type("skill.pretrain_steps"),
                    help="pretraining environment steps" + PRESET_DEFAULT)
     p.add_argument("--out", default=None, help="snapshot file; default "
-                   "<skill.snapshot_dir>/<task>-<backend>-<steps>-s<seed>.pt")
+                   "<skill.snapshot_dir>/<task>-<backend>-<steps>-s<seed>-<hash>.pt, the "
+                   "hash covering every setting pretraining reads")
     p.add_argument("--quality-skills", type=integer("a count of skills", low=0), default=50,
                    metavar="N",
                    help="beside each snapshot, the task return of N random skills (one "

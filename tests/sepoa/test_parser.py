@@ -85,6 +85,23 @@ def test_train_and_pretrain_help_show_the_defaults_an_absent_flag_takes(
         assert re.search(r"--sac\.lr FLOAT [^(]*\(default: the preset's\)", out), name
 
 
+def test_the_help_names_snapshots_as_pretraining_does(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """pretrain --out and the skill.snapshot_dir field give the name with its settings hash
+    (`runvocab.snapshot_names.default_snapshot_path`)."""
+    from runvocab.config import build_config
+    from runvocab.snapshot_names import default_snapshot_path
+
+    name = os.path.basename(default_snapshot_path(build_config("dmc:cheetah_run", "tiny", {})))
+    assert re.fullmatch(r"dmc-cheetah_run-aps-\d+-s0-[0-9a-f]{10}\.pt", name), name
+    for command, flag in (("pretrain", "--out OUT"), ("train", "--skill.snapshot-dir STR")):
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        out = " ".join(capsys.readouterr().out.split("options:")[1].split())
+        said = out.replace("- <", "-<").split(flag)[1].split(" --")[0]
+        assert "<task>-<backend>-<steps>-s<seed>-<hash>.pt" in said, (command, said)
+
+
 def test_the_top_level_help_lists_every_command(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         main(["--help"])
