@@ -82,16 +82,30 @@ def _pretrain_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=None, help="snapshot file; default "
                    "<skill.snapshot_dir>/<task>-<backend>-<steps>-s<seed>-<hash>.pt, the "
                    "hash covering every setting pretraining reads")
-    p.add_argument("--quality-skills", type=integer("a count of skills", low=0), default=50,
-                   metavar="N",
+    p.add_argument("--quality-skills", type=_quality_skills, default=50, metavar="N",
                    help="beside each snapshot, the task return of N random skills (one "
-                   "deterministic episode each) against N episodes of random actions; 0: none")
+                   "deterministic episode each) against N episodes of random actions; 0: none, "
+                   f"else at least {QUALITY_TOP}, for its top-{QUALITY_TOP} mean")
     p.add_argument("--snapshots-at", type=_steps_list, default=None, metavar="STEPS",
                    help="also write a snapshot (and its quality) at these steps, "
                    "comma-separated, e.g. 100000,200000,500000")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     # --steps is the pretraining length here, not the online run's.
     _add_config_arguments(p, exclude=("steps",))
+
+
+QUALITY_TOP = 5
+"""the fewest skills a quality measurement takes, for its top-5 mean
+(`trainer.skills.quality.TOP`, not imported here: it would load torch for --help)"""
+
+
+def _quality_skills(text: str) -> int:
+    count = integer("a count of skills", low=0)(text)
+    if 0 < count < QUALITY_TOP:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is too few skills: give 0 (no quality measurement) or at least "
+            f"{QUALITY_TOP}")
+    return count
 
 
 def _steps_list(text: str) -> tuple[int, ...]:

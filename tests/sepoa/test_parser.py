@@ -33,6 +33,8 @@ ROOT = Path(__file__).resolve().parents[2]
                                                "give at least 1"]),
     (["label-dataset", "d", "--budget", "-3"], ["--budget", "'-3' is not a budget",
                                                 "give 1 to 2147483647"]),
+    (["pretrain", "--quality-skills", "3"], ["--quality-skills", "'3' is too few skills",
+                                             "give 0 (no quality measurement) or at least 5"]),
     (["train", "--reward.surf", "flase"], ["--reward.surf", "true/false, yes/no, on/off or 1/0"]),
     (["export", "--format", "xml"], ["invalid choice: 'xml'", "'jsonl', 'csv', 'parquet'"]),
     (["serve", "--prot", "80"], ["unrecognized arguments: --prot 80"]),
@@ -48,6 +50,14 @@ def test_a_mistake_is_one_line_with_exit_status_2(argv: list[str], words: list[s
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.endswith("--help)\n"), err
     assert all(word in err for word in words), err
+
+
+def test_pretrain_takes_the_quality_skills_the_measurement_needs() -> None:
+    from sepoa.trainer_commands import QUALITY_TOP, _quality_skills
+    from trainer.skills.quality import TOP
+
+    assert QUALITY_TOP == TOP
+    assert [_quality_skills(n) for n in ("0", "5", "50")] == [0, 5, 50]
 
 
 def test_typed_values_name_the_range() -> None:
