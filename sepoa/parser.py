@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import os
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -88,6 +89,16 @@ def real(what: str = "a number", low: float | None = None,
 
     parse.__name__ = what
     return parse
+
+
+def environment(name: str, default: str, kind: Callable[[str], Any]) -> Any:
+    """The variable `name` (`default` when unset or empty) parsed by the argparse type `kind`;
+    ValueError naming the variable, for a command to refuse in one line."""
+    text = os.environ.get(name) or default
+    try:
+        return kind(text)
+    except argparse.ArgumentTypeError as err:
+        raise ValueError(f"{name}={err}") from None
 
 
 PORT = integer("a TCP port", 1, PORT_MAX)

@@ -24,7 +24,7 @@ import os
 import sys
 from typing import TYPE_CHECKING
 
-from sepoa.parser import Command, DefaultsHelpFormatter, fail, integer, real
+from sepoa.parser import Command, DefaultsHelpFormatter, environment, fail, integer, real
 
 if TYPE_CHECKING:
     from runvocab.config import RunConfig
@@ -192,16 +192,16 @@ def _worker_arguments(p: argparse.ArgumentParser) -> None:
                    help="name in the database (env SEPOA_WORKER_ID; host-pid if unset); a "
                    "worker restarted under the same id takes its runs back at once")
     p.add_argument("--once", action="store_true", help="exit when no run is waiting")
-    p.add_argument("--poll-seconds", type=float, default=2.0)
+    p.add_argument("--poll-seconds", type=_poll_seconds, default=2.0,
+                   help="how long to wait before looking for a run again")
     p.add_argument("--device", default=None,
                    help="overrides each run's device: auto | cpu | cuda | cuda:N")
     p.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads per run; default: the cores divided by "
                    "--host-processes")
-    p.add_argument("--host-processes", type=int,
-                   default=int(env("SEPOA_HOST_PROCESSES", "2")),
+    p.add_argument("--host-processes", type=HOST_PROCESSES, default=None,
                    help="processes sharing this host's cores: the training workers, plus one "
-                   "for the server if it runs here (env SEPOA_HOST_PROCESSES)")
+                   "for the server if it runs here (env SEPOA_HOST_PROCESSES; default 2)")
     p.add_argument("--clip-size", type=int, default=256,
                    help="clip width and height in pixels, for runs that choose no clip_size")
     p.add_argument("--clip-fps", type=float, default=100 / 3,
@@ -210,6 +210,16 @@ def _worker_arguments(p: argparse.ArgumentParser) -> None:
                    help="shadow map texels (0: no shadows); larger is slower on a CPU")
     p.add_argument("--clip-multisamples", type=int, default=0,
                    help="off-screen multisampling; 0 is fastest on a CPU")
+
+
+HOST_PROCESSES = integer("a count of processes", 1)
+
+
+def _poll_seconds(text: str) -> float:
+    seconds: float = real("a number of seconds")(text)
+    if seconds <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds above 0")
+    return seconds
 
 
 def _run_worker(args: argparse.Namespace) -> int:
@@ -221,6 +231,11 @@ def _run_worker(args: argparse.Namespace) -> int:
     from labelqueue.errors import database_reason
     from trainer.clips import ClipConfig  # no MuJoCo yet: the rendering check comes first
 
+    if args.host_processes is None:
+        try:
+            args.host_processes = environment("SEPOA_HOST_PROCESSES", "2", HOST_PROCESSES)
+        except ValueError as err:
+            return fail(str(err))
     try:
         clip = ClipConfig(width=args.clip_size, height=args.clip_size, fps=args.clip_fps,
                           shadow_size=args.clip_shadow_size, multisamples=args.clip_multisamples)

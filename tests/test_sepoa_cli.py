@@ -100,9 +100,10 @@ def test_a_damaged_or_read_only_database_is_refused_in_one_line(tmp_path):
         assert "attempt to write a readonly database" in lines[0], lines[0]
 
 
-def _sepoa(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+def _sepoa(*args: str, cwd: Path,
+           env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
     code = "import sys; from sepoa.cli import main; sys.exit(main())"
-    env = os.environ | {"OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    env = os.environ | {"OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)} | (env or {})
     return subprocess.run([sys.executable, "-c", code, *args], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=120)
 
@@ -156,3 +157,30 @@ def test_every_cli_mistake_is_one_line_with_exit_status_2(tmp_path, capsys):
     capsys.readouterr()
     assert main(["labeller", "list", "--data-dir", str(data)]) == 0
     assert capsys.readouterr().out.splitlines() == ["1\tzoe\tlabeller\tactive"]
+
+
+def test_a_worker_refuses_a_bad_host_count_or_poll_interval_in_one_line(tmp_path):
+    """SEPOA_HOST_PROCESSES is parsed as the worker starts, named when it is no count (and
+    --help shows regardless); --poll-seconds takes a time above 0, where 0 busy-looped and a
+    negative one failed in the worker's first wait."""
+    fresh = str(tmp_path / "fresh")
+    bad = {"SEPOA_HOST_PROCESSES": "abc"}
+    shown = _sepoa("worker", "--help", cwd=tmp_path, env=bad)
+    assert shown.returncode == 0 and "SEPOA_HOST_PROCESSES" in shown.stdout, shown.stderr
+    cases = [
+        (("worker", "--once", "--data-dir", fresh), bad,
+         ["SEPOA_HOST_PROCESSES='abc' is not a count of processes", "at least 1"]),
+        (("worker", "--once", "--data-dir", fresh), {"SEPOA_HOST_PROCESSES": "0"},
+         ["SEPOA_HOST_PROCESSES='0'", "at least 1"]),
+        (("worker", "--once", "--data-dir", fresh, "--poll-seconds", "-1"), {},
+         ["--poll-seconds", "'-1' is not a number of seconds above 0"]),
+        (("worker", "--once", "--data-dir", fresh, "--poll-seconds", "0"), {},
+         ["--poll-seconds", "'0' is not a number of seconds above 0"]),
+    ]
+    for args, env, words in cases:
+        done = _sepoa(*args, cwd=tmp_path, env=env)
+        lines = done.stderr.strip().splitlines()
+        assert done.returncode == 2, (args, env, done.stderr)
+        assert len(lines) == 1 and "Traceback" not in done.stderr, (args, env, done.stderr)
+        assert all(word in lines[0] for word in words), (args, lines[0])
+    assert not os.path.exists(fresh)
