@@ -265,6 +265,9 @@ def _label_dataset(args: argparse.Namespace) -> int:
         found = labelling_dataset(args.dataset)
     except ConfigError as err:
         return fail(str(err))
+    # Off-screen rendering through EGL unless told otherwise, as the trainer's commands do:
+    # before MuJoCo is imported.
+    os.environ.setdefault("MUJOCO_GL", "egl")
     try:  # the task's own sizes, where the trainer is installed (a worker checks them anyway)
         from trainer.dataset_labelling import dataset_pool
     except ImportError:
