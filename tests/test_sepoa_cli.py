@@ -184,3 +184,46 @@ def test_a_worker_refuses_a_bad_host_count_or_poll_interval_in_one_line(tmp_path
         assert len(lines) == 1 and "Traceback" not in done.stderr, (args, env, done.stderr)
         assert all(word in lines[0] for word in words), (args, lines[0])
     assert not os.path.exists(fresh)
+
+
+def test_serve_and_up_check_the_settings_before_the_database_in_one_line_naming_them(
+        tmp_path):
+    """A bad --public-url is refused before the database is made or migrated; a bad SEPOA_
+    variable is named (where pydantic's report took four lines, or --public-url was blamed),
+    its value not shown when it is a secret."""
+    fresh = tmp_path / "fresh"
+    url, bad_url = "https://label.example.org", "label.example.org"
+    cases = [
+        (("serve", "--public-url", bad_url), {}, [f"--public-url {bad_url!r}", "https://"]),
+        (("up", "--no-demo", "--public-url", bad_url), {}, [f"--public-url {bad_url!r}"]),
+        (("serve", "--public-url", url), {"SEPOA_JOIN_BURST": "0"},
+         ["SEPOA_JOIN_BURST='0'", "greater than or equal to 1"]),
+        (("serve",), {"SEPOA_LEASE_PER_S": "x", "SEPOA_CLIP_MAX_FRAMES": "0"},
+         ["SEPOA_LEASE_PER_S='x'", "SEPOA_CLIP_MAX_FRAMES='0'"]),
+        (("serve",), {"SEPOA_SECRET_KEY": "hush"},
+         ["SEPOA_SECRET_KEY (its value not shown)", "at least 16 characters"]),
+        (("up", "--no-demo"), {"SEPOA_JOIN_BURST": "0"}, ["SEPOA_JOIN_BURST='0'"]),
+    ]
+    for args, env, words in cases:
+        with socket.socket() as free:
+            free.bind(("127.0.0.1", 0))
+            port = str(free.getsockname()[1])
+        done = _sepoa(*args, "--data-dir", str(fresh), "--port", port, cwd=tmp_path, env=env)
+        lines = done.stderr.strip().splitlines()
+        assert done.returncode == 2, (args, env, done.stderr)
+        assert len(lines) == 1 and "Traceback" not in done.stderr, (args, env, done.stderr)
+        assert all(word in lines[0] for word in words), (args, env, lines[0])
+        if words[0].startswith("SEPOA_"):  # not blamed on the URL
+            assert "--public-url" not in lines[0], lines[0]
+        assert "hush" not in lines[0]
+        assert not fresh.exists(), (args, env)
+
+
+def test_up_gives_the_server_its_own_secret_key_whatever_sepoa_secret_key_says(monkeypatch):
+    import argparse
+
+    from sepoa.up import _settings
+
+    monkeypatch.setenv("SEPOA_SECRET_KEY", "short")
+    given = argparse.Namespace(public_url="https://label.example.org/")
+    assert _settings(given, secret_key=os.urandom(24).hex()) == "https://label.example.org"
