@@ -301,11 +301,9 @@ def _doctor_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"a task to render (repeatable); default {' and '.join(TASKS)}")
     p.add_argument("--size", type=int, default=128, help="frame width and height in pixels")
     p.add_argument("--frames", type=int, default=20, help="frames timed after the first")
-    p.add_argument("--database-url", default=os.environ.get("SEPOA_DATABASE_URL"),
-                   help="the queue database checked first (env SEPOA_DATABASE_URL; default "
-                   "sqlite:///<data-dir>/queue.db)")
-    p.add_argument("--data-dir", default=os.environ.get("SEPOA_DATA_DIR", "data"),
-                   help="where the SQLite file lives (env SEPOA_DATA_DIR)")
+    from sepoa.queue_commands import database_args
+
+    database_args(p)  # the queue database, checked first
 
 
 def _check_queue_database(url: str) -> int:
@@ -330,13 +328,13 @@ def _check_queue_database(url: str) -> int:
 
 
 def _run_doctor(args: argparse.Namespace) -> int:
-    from labelqueue.db_url import check_url, sqlite_url
+    from sepoa.queue_commands import database_url
     from trainer.doctor import BACKENDS, TASKS, run_doctor
 
     if not 16 <= args.size <= 2048 or args.frames < 0:
         return fail("--size takes 16 to 2048 pixels and --frames at least 0")
     try:
-        url = check_url(args.database_url or sqlite_url(args.data_dir))
+        url = database_url(args)
     except ValueError as err:
         return fail(str(err))
     if _check_queue_database(url):

@@ -227,3 +227,37 @@ def test_up_gives_the_server_its_own_secret_key_whatever_sepoa_secret_key_says(m
     monkeypatch.setenv("SEPOA_SECRET_KEY", "short")
     given = argparse.Namespace(public_url="https://label.example.org/")
     assert _settings(given, secret_key=os.urandom(24).hex()) == "https://label.example.org"
+
+
+def test_every_command_on_the_queue_database_reads_the_url_file_in_the_environment(
+        tmp_path, capsys, monkeypatch):
+    """SEPOA_DATABASE_URL_FILE names the queue database for export, labeller, invite,
+    label-dataset, doctor, up and serve as for the worker and experiments: `labeller create`
+    wrote to a new ./data/queue.db instead."""
+    from sepoa.cli import build_parser
+    from sepoa.queue_commands import database_url
+
+    url = f"sqlite:///{tmp_path / 'elsewhere' / 'queue.db'}"
+    url_file = tmp_path / "queue-url"
+    url_file.write_text(f"# the study's queue\n{url}\n")
+    url_file.chmod(0o600)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("SEPOA_DATABASE_URL", raising=False)
+    monkeypatch.delenv("SEPOA_DATA_DIR", raising=False)
+    monkeypatch.setenv("SEPOA_DATABASE_URL_FILE", str(url_file))
+    assert main(["labeller", "create", "bob"]) == 0
+    assert main(["labeller", "list"]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == "1\tbob\tlabeller\tactive"
+    assert (tmp_path / "elsewhere" / "queue.db").exists()
+    assert main(["export", "--out", "labels.jsonl"]) == 0
+    assert not (tmp_path / "data").exists()
+    for argv in (["export"], ["labeller", "list"], ["invite", "verify", "X"],
+                 ["label-dataset", "d", "--budget", "1"], ["doctor"], ["up"], ["serve"]):
+        args = build_parser(argv[0]).parse_args(argv)
+        assert database_url(args) == url, argv
+    # A flag still wins over the environment; the two flags together are refused.
+    args = build_parser("serve").parse_args(["serve", "--database-url", "sqlite:///x.db"])
+    assert database_url(args) == "sqlite:///x.db"
+    assert main(["labeller", "list", "--database-url", "sqlite:///x.db",
+                 "--database-url-file", str(url_file)]) == 2
+    assert "not both" in capsys.readouterr().err
