@@ -117,6 +117,10 @@ def test_the_top_level_help_lists_every_command(capsys: pytest.CaptureFixture[st
         main(["--help"])
     out = capsys.readouterr().out
     assert all(re.search(rf"^    {re.escape(name)}\b", out, re.M) for name in COMMANDS), out
+    # Every action of a command is in its line: labeller's token, invite's participants.
+    lines = " ".join(out.split())
+    assert "revoke or restore labellers, or give one a new token" in lines
+    assert "or list an invite's participants" in lines
 
 
 def test_the_commands_the_docs_show_exist(capsys: pytest.CaptureFixture[str]) -> None:
