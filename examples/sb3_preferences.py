@@ -37,7 +37,7 @@ from stable_baselines3 import SAC
 from stable_baselines3.common.logger import Logger
 
 from runvocab.config import RewardConfig
-from sepoa.client import Pair, Study
+from sepoa.client import Pair, Study, StudyError
 from trainer.clips import ClipConfig, render_quality
 from trainer.doctor import choose_backend
 from trainer.reward_model import LabelledPairs, RewardModel
@@ -274,12 +274,37 @@ def ask_round(study: Study, steps: Steps, film: Film, preferences: Preferences, 
     return len(queries), used
 
 
+CHECK_KEY = "sb3-preferences-connection-check"
+"""a pair key asked about before anything runs: the answer (no such pair) says the server is
+there and takes the run's token"""
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if not (args.token and args.run):
         sys.exit("give the external run's --run and --token (docs/EXTERNAL.md)")
     if args.rounds < 1:
         sys.exit("give at least one round (--rounds)")
+    try:
+        ClipConfig(width=args.size, height=args.size)
+    except ValueError as err:
+        sys.exit(f"--size {args.size}: {err}")
+    try:
+        # The server, the run and its token, before minutes of rendering and training: a few
+        # quick tries, not the client's half minute of retries.
+        with Study(args.url, args.token, args.run, retries=2, progress=False) as check:
+            check.states([CHECK_KEY])
+        with Study(args.url, args.token, args.run, cursor_file=args.cursor_file or None,
+                   progress=args.progress) as study:
+            return run(args, study)
+    except StudyError as err:  # refused (a 4xx), unreachable, or the run is over
+        sys.exit(f"sepoa server {args.url}, run {args.run}: {err}")
+    except (ValueError, TimeoutError) as err:  # a cursor file of another run; answers late
+        sys.exit(str(err))
+
+
+def run(args: Args, study: Study) -> int:
+    """The agent, its rounds of asking through `study` and training, and the summary."""
     # MuJoCo reads its GL backend once, at import (by gym.make): EGL, else OSMesa, as the app's
     # worker chooses it.
     choose_backend(lambda line: print(line, flush=True))
@@ -302,20 +327,18 @@ def main(argv: list[str] | None = None) -> int:
     preferences.standardise_by(np.stack(steps.obs_action))
     asked = used = 0
     started = time.monotonic()
-    with Study(args.url, args.token, args.run, cursor_file=args.cursor_file or None,
-               progress=args.progress) as study:
-        for round_ in range(args.rounds):
-            pushed, said = ask_round(study, steps, film, preferences, args, round_, rng)
-            asked, used = asked + pushed, used + said
-            fit = preferences.train()
-            relabel(agent, preferences)
-            print(f"round {round_}: {used} answers so far; reward model "
-                  f"{ {k: round(v, 3) for k, v in fit.items()} }", flush=True)
-            since = len(steps)
-            agent.learn(args.steps_per_round, reset_num_timesteps=False)
-            per_step = np.mean(steps.true_reward[since:])
-            print(f"round {round_}: SAC at {agent._n_updates} updates; true reward per step "
-                  f"since the answers {per_step:.3f}", flush=True)
+    for round_ in range(args.rounds):
+        pushed, said = ask_round(study, steps, film, preferences, args, round_, rng)
+        asked, used = asked + pushed, used + said
+        fit = preferences.train()
+        relabel(agent, preferences)
+        print(f"round {round_}: {used} answers so far; reward model "
+              f"{ {k: round(v, 3) for k, v in fit.items()} }", flush=True)
+        since = len(steps)
+        agent.learn(args.steps_per_round, reset_num_timesteps=False)
+        per_step = np.mean(steps.true_reward[since:])
+        print(f"round {round_}: SAC at {agent._n_updates} updates; true reward per step "
+              f"since the answers {per_step:.3f}", flush=True)
     film.env.close()
     env.close()
     summary = {"pairs_asked": asked, "answers_used": used,

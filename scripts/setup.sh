@@ -1,19 +1,38 @@
 #!/usr/bin/env bash
-# Installs everything the project needs on a fresh Debian machine: the system libraries for
-# off-screen MuJoCo rendering, the tools the tests use (headless Chromium for the browser tests,
-# PostgreSQL for the queue's PostgreSQL variants, docker-compose v1 to validate the compose
-# file, Slurm and MUNGE for the Slurm test, which configures and starts its own daemons), a
-# virtual environment in .venv, torch, and the project itself.
+# Installs what the app needs on a fresh Debian machine: the system libraries for off-screen
+# MuJoCo rendering, a virtual environment in .venv, torch (its CPU build where no GPU is
+# present), and the project with every command (`sepoa up` and the rest) and its postgres extra
+# (psycopg, for a queue on a PostgreSQL server).
+#
+# With --for-tests (scripts/test.sh), also what the tests use: headless Chromium for the browser
+# tests, PostgreSQL's server for the queue's PostgreSQL variants, docker-compose v1 to validate
+# the compose file, Slurm and MUNGE for the Slurm test (which configures and starts its own
+# daemons), and the project's dev extra (pytest, ruff, mypy, Stable-Baselines3, playwright).
+#
+# Run again, it installs only what is missing: a set-up machine takes a few seconds.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+for_tests=false
+case "${1-}" in
+    --for-tests) for_tests=true ;;
+    "") ;;
+    *) echo "usage: bash scripts/setup.sh [--for-tests]" >&2; exit 2 ;;
+esac
+
 apt_packages=(
     libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 libglfw3  # off-screen MuJoCo: EGL, OSMesa
-    chromium        # headless browser tests (Python playwright, executable_path=/usr/bin/chromium)
-    postgresql      # scripts/test.sh starts a throwaway cluster for the PostgreSQL test variants
-    docker-compose  # v1: `docker-compose config` validates docker-compose.yml without an engine
-    slurm-wlm munge # tests/experiments/test_slurm_cluster.py starts a throwaway one-node cluster
 )
+extras=(postgres)
+if $for_tests; then
+    apt_packages+=(
+        chromium        # headless browser tests (Python playwright, executable_path=/usr/bin/chromium)
+        postgresql      # scripts/test.sh starts a throwaway cluster for the PostgreSQL test variants
+        docker-compose  # v1: `docker-compose config` validates docker-compose.yml without an engine
+        slurm-wlm munge # tests/experiments/test_slurm_cluster.py starts a throwaway one-node cluster
+    )
+    extras=(dev postgres)
+fi
 missing=()
 for pkg in "${apt_packages[@]}"; do
     # "install ok installed", not just known to dpkg (a removed package keeps its config files).
@@ -56,5 +75,42 @@ if ! .venv/bin/python -c "import torch" 2>/dev/null; then
         pip_install "torch==2.13.0" || pip_install "torch>=2.4,<2.14"
     fi
 fi
-pip_install -e ".[dev,postgres]"
+# Whether the project and pyproject.toml's requirements (the given extras' too) are installed
+# in versions they accept; anything missing, stale or unreadable means no, and pip installs.
+installed() {
+    .venv/bin/python - "$@" <<'EOF' >/dev/null 2>&1
+import sys
+import tomllib
+from importlib.metadata import requires, version
+
+try:
+    from packaging.requirements import Requirement
+except ImportError:
+    from pip._vendor.packaging.requirements import Requirement
+
+
+def satisfied(req: Requirement) -> bool:
+    if not req.specifier.contains(version(req.name), prereleases=True):
+        return False
+    for extra in req.extras:  # uvicorn[standard], minari[hdf5], psycopg[binary]
+        for text in requires(req.name) or []:
+            sub = Requirement(text)
+            if sub.marker is not None and sub.marker.evaluate({"extra": extra}) and \
+                    not sub.marker.evaluate({"extra": ""}) and not satisfied(sub):
+                return False
+    return True
+
+
+with open("pyproject.toml", "rb") as f:
+    project = tomllib.load(f)["project"]
+version(project["name"])
+wanted = [*project["dependencies"],
+          *(text for extra in sys.argv[1:] for text in project["optional-dependencies"][extra])]
+reqs = [Requirement(text) for text in wanted]
+sys.exit(0 if all(satisfied(r) for r in reqs if r.marker is None or r.marker.evaluate()) else 1)
+EOF
+}
+if ! [ -x .venv/bin/sepoa ] || ! installed "${extras[@]}"; then
+    pip_install -e ".[$(IFS=,; echo "${extras[*]}")]"
+fi
 echo "set-up done: $(.venv/bin/python -c 'import torch, mujoco, dm_control; print("torch", torch.__version__, "mujoco", mujoco.__version__)')"

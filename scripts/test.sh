@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
-# Sets the project up from nothing (scripts/setup.sh) and runs the whole test suite, the queue
-# tests on a throwaway PostgreSQL cluster too (scripts/with_postgres.sh; CI must exercise it, so
-# a cluster that cannot start fails the run).
+# Sets the project and the tests' tools up from nothing (scripts/setup.sh --for-tests) and runs
+# the whole test suite, the queue tests on a throwaway PostgreSQL cluster too
+# (scripts/with_postgres.sh; CI must exercise it, so a cluster that cannot start fails the run).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup.sh
+bash scripts/setup.sh --for-tests
 # d3rlpy and TorchRL, which tests/test_dataset_readers.py reads a dataset export with, in an
 # environment of their own (their pins clash with the project's; about two minutes when new).
 bash scripts/readers_env.sh

@@ -8,8 +8,8 @@
 #
 #   bash scripts/with_postgres.sh .venv/bin/python -m pytest -q tests/labelqueue
 #
-# Needs Debian's postgresql package (scripts/setup.sh installs it). PostgreSQL refuses to run as
-# root: as root the cluster runs as the `postgres` user. Exits 1, saying why, when the cluster
+# Needs Debian's postgresql package (scripts/setup.sh --for-tests installs it). PostgreSQL
+# refuses to run as root: as root the cluster runs as the `postgres` user. Exits 1, saying why, when the cluster
 # cannot be started; otherwise with the command's exit status.
 set -euo pipefail
 
@@ -21,7 +21,7 @@ fi
 bindir=$(ls -d /usr/lib/postgresql/*/bin 2>/dev/null | sort -V | tail -n 1 || true)
 if [ -z "$bindir" ] || [ ! -x "$bindir/initdb" ]; then
     echo "with_postgres: no PostgreSQL server found under /usr/lib/postgresql/*/bin" \
-        "(apt-get install postgresql; scripts/setup.sh does)" >&2
+        "(apt-get install postgresql; scripts/setup.sh --for-tests does)" >&2
     exit 1
 fi
 

@@ -14,6 +14,7 @@
     sepoa labeller create alice [--role operator]
     sepoa labeller revoke alice | activate alice | token alice | list
     sepoa invite verify PILOT-7KQ3-M9XD-2WPA   # whose completion code is it, how far did they get
+    sepoa invite participants 4 --csv          # everyone who joined invite 4, to pay from
     sepoa doctor                      # can this machine render clips? (EGL, OSMesa, fps, upright)
     sepoa tasks | presets
 """
@@ -25,7 +26,7 @@ import importlib
 import signal
 import sys
 
-from sepoa.parser import Command, OneLineParser
+from sepoa.parser import Command, DefaultsHelpFormatter, OneLineParser
 
 COMMANDS: dict[str, tuple[str, str]] = {
     "up": ("sepoa.up", "start the server and a worker on SQLite, with a demo run"),
@@ -46,8 +47,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "label-dataset": ("sepoa.queue_commands", "queue a labelling-only run over a dataset "
                       "export: pairs of its episodes for people to label, no training "
                       "(docs/EXPORT.md)"),
-    "labeller": ("sepoa.queue_commands", "create, list, revoke or restore labellers"),
-    "invite": ("sepoa.queue_commands", "check a participant's completion code"),
+    "labeller": ("sepoa.queue_commands", "create, list, revoke or restore labellers, or give "
+                 "one a new token"),
+    "invite": ("sepoa.queue_commands", "check a participant's completion code, or list an "
+               "invite's participants (answers, gold score, code) to pay from"),
     "doctor": ("sepoa.trainer_commands", "check off-screen rendering: EGL and OSMesa, GL "
                "strings, fps, upright frames"),
     "tasks": ("sepoa.trainer_commands", "list valid task names"),
@@ -74,7 +77,7 @@ def build_parser(given: str | None = None) -> OneLineParser:
             continue
         found = command(name)
         p = sub.add_parser(name, help=text, description=text, formatter_class=(
-            argparse.ArgumentDefaultsHelpFormatter if found.defaults_in_help
+            DefaultsHelpFormatter if found.defaults_in_help
             else argparse.HelpFormatter))
         found.arguments(p)
     return parser

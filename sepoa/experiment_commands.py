@@ -32,7 +32,7 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
-from sepoa.parser import Command, fail
+from sepoa.parser import Command, DefaultsHelpFormatter, fail
 from sepoa.supervisor import Supervisor
 
 STOP_GRACE_S = 120.0
@@ -65,7 +65,7 @@ def _experiment_arguments(p: argparse.ArgumentParser) -> None:
     actions = p.add_subparsers(dest="action", required=True)
     run = actions.add_parser("run", help="enqueue the spec's runs and train them with local "
                              "workers; finished runs stay, failed ones are queued again",
-                             formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                             formatter_class=DefaultsHelpFormatter)
     run.add_argument("spec", help="the spec file (TOML)")
     run.add_argument("--results", default="results",
                      help="runs go to <results>/<spec name>/<run>")
@@ -115,7 +115,7 @@ def _experiment_arguments(p: argparse.ArgumentParser) -> None:
     kept.add_argument("--results", default="results")
     kept.add_argument("--out", required=True, metavar="DIR", help="the folder to copy into")
     slurm = actions.add_parser("slurm", help="print an sbatch array script of N workers",
-                               formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                               formatter_class=DefaultsHelpFormatter)
     slurm.add_argument("spec", help="the spec file (TOML)")
     slurm.add_argument("--workers", type=int, required=True, help="array tasks, one worker each")
     _database(slurm, default="none: a PostgreSQL server every node reaches")

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import os
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -32,6 +33,17 @@ class OneLineParser(argparse.ArgumentParser):
         elif kind is float:
             kwargs["type"] = real()
         return super().add_argument(*args, **kwargs)
+
+
+class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """`--help` with each flag's default after its help, but for a flag whose default is None
+    (its help says what leaving it out means: "the preset's", "<data-dir>/clips when unset"),
+    where "(default: None)" would tell nothing."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.default is None:
+            return action.help
+        return super()._get_help_string(action)
 
 
 def _bounds(low: float | None, high: float | None) -> str:
@@ -77,6 +89,16 @@ def real(what: str = "a number", low: float | None = None,
 
     parse.__name__ = what
     return parse
+
+
+def environment(name: str, default: str, kind: Callable[[str], Any]) -> Any:
+    """The variable `name` (`default` when unset or empty) parsed by the argparse type `kind`;
+    ValueError naming the variable, for a command to refuse in one line."""
+    text = os.environ.get(name) or default
+    try:
+        return kind(text)
+    except argparse.ArgumentTypeError as err:
+        raise ValueError(f"{name}={err}") from None
 
 
 PORT = integer("a TCP port", 1, PORT_MAX)

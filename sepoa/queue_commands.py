@@ -18,12 +18,18 @@ if TYPE_CHECKING:
 
 def database_args(p: argparse.ArgumentParser, inherit: bool = False) -> None:
     """`inherit`: on a sub-action, where an absent flag keeps the parent parser's value (so
-    `sepoa labeller --data-dir D create x` and `sepoa labeller create x --data-dir D` agree)."""
-    url = argparse.SUPPRESS if inherit else os.environ.get("SEPOA_DATABASE_URL")
+    `sepoa labeller --data-dir D create x` and `sepoa labeller create x --data-dir D` agree).
+    The URL's variables are read by `database_url`, in `labelqueue.database_url`'s order."""
+    unset = argparse.SUPPRESS if inherit else None
     data = argparse.SUPPRESS if inherit else os.environ.get("SEPOA_DATA_DIR", "data")
-    p.add_argument("--database-url", default=url,
-                   help="the queue database (env SEPOA_DATABASE_URL; default: "
-                   "sqlite:///<data-dir>/queue.db)")
+    p.add_argument("--database-url", default=unset,
+                   help="the queue database (env SEPOA_DATABASE_URL, else the file named by "
+                   "SEPOA_DATABASE_URL_FILE; default: sqlite:///<data-dir>/queue.db); a URL "
+                   "here shows in `ps`: keep a password in the environment or a "
+                   "--database-url-file")
+    p.add_argument("--database-url-file", default=unset, metavar="FILE",
+                   help="a file (mode 600) holding the queue database's URL (env "
+                   "SEPOA_DATABASE_URL_FILE)")
     p.add_argument("--data-dir", default=data,
                    help="where the SQLite file, runs and clips live (env SEPOA_DATA_DIR)")
 
@@ -45,10 +51,14 @@ DATASET_FORMATS = ("arrow", "hdf5")
 
 
 def database_url(args: argparse.Namespace) -> str:
-    """The queue database's URL; ValueError when it is not one this app can open."""
+    """The queue database's URL: --database-url or --database-url-file, else
+    SEPOA_DATABASE_URL, else the file SEPOA_DATABASE_URL_FILE names, else the SQLite file in
+    --data-dir; ValueError when it is not one this app can open, or its file cannot be read."""
     from labelqueue import check_url, sqlite_url
+    from labelqueue import database_url as given_url
 
-    return check_url(args.database_url or sqlite_url(args.data_dir))
+    return check_url(given_url(args.database_url, args.database_url_file)
+                     or sqlite_url(args.data_dir))
 
 
 def _export_arguments(p: argparse.ArgumentParser) -> None:
@@ -265,6 +275,9 @@ def _label_dataset(args: argparse.Namespace) -> int:
         found = labelling_dataset(args.dataset)
     except ConfigError as err:
         return fail(str(err))
+    # Off-screen rendering through EGL unless told otherwise, as the trainer's commands do:
+    # before MuJoCo is imported.
+    os.environ.setdefault("MUJOCO_GL", "egl")
     try:  # the task's own sizes, where the trainer is installed (a worker checks them anyway)
         from trainer.dataset_labelling import dataset_pool
     except ImportError:

@@ -24,7 +24,7 @@ import os
 import sys
 from typing import TYPE_CHECKING
 
-from sepoa.parser import Command, fail, integer, real
+from sepoa.parser import Command, DefaultsHelpFormatter, environment, fail, integer, real
 
 if TYPE_CHECKING:
     from runvocab.config import RunConfig
@@ -32,40 +32,80 @@ if TYPE_CHECKING:
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 
-def _train_arguments(p: argparse.ArgumentParser) -> None:
-    from runvocab.config import add_config_arguments
-    from runvocab.names import SIZE_PRESETS, TEACHER_KINDS
+DEFAULT_TASK = "dmc:cheetah_run"
+DEFAULT_PRESET = "paper"
+"""what `train` and `pretrain` take without --task and --preset: the paper's sizes (1 M steps,
+2 x 1024 nets), GPU work; --preset small learns on a CPU"""
+PRESET_DEFAULT = " (default: the preset's)"
+"""what a configuration field's flag says of its default: None here, the preset's value then"""
 
-    p.add_argument("--task", default=None, help="dmc:<domain>_<task> or metaworld:<name>")
-    p.add_argument("--preset", default=None, help=" | ".join(SIZE_PRESETS))
-    p.add_argument("--teacher", dest="teacher.kind", default=None, help=" | ".join(TEACHER_KINDS))
+
+def _task_and_preset(p: argparse.ArgumentParser) -> None:
+    from runvocab.names import SIZE_PRESETS
+
+    p.add_argument("--task", default=DEFAULT_TASK, help="dmc:<domain>_<task> or "
+                   "metaworld:<name>")
+    p.add_argument("--preset", default=DEFAULT_PRESET, help=" | ".join(SIZE_PRESETS) + "; paper "
+                   "is 1 M steps with 2 x 1024 nets (GPU work), small learns on a CPU")
+
+
+def _add_config_arguments(p: argparse.ArgumentParser, exclude: tuple[str, ...] = ()) -> None:
+    """A flag per configuration field (`runvocab.config.add_config_arguments`), each saying
+    that leaving it out takes the preset's value."""
+    from runvocab.config import add_config_arguments
+
+    before = len(p._actions)
+    add_config_arguments(p, exclude=exclude)
+    for action in p._actions[before:]:
+        action.help = (action.help or "") + PRESET_DEFAULT
+
+
+def _train_arguments(p: argparse.ArgumentParser) -> None:
+    from runvocab.names import TEACHER_KINDS
+
+    _task_and_preset(p)
+    p.add_argument("--teacher", dest="teacher.kind", default=None,
+                   help=" | ".join(TEACHER_KINDS) + PRESET_DEFAULT)
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --run-dir from its last checkpoint")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    add_config_arguments(p)
+    _add_config_arguments(p)
 
 
 def _pretrain_arguments(p: argparse.ArgumentParser) -> None:
-    from runvocab.config import add_config_arguments
     from runvocab.config.args import value_type
-    from runvocab.names import SIZE_PRESETS
 
-    p.add_argument("--task", default=None, help="dmc:<domain>_<task> or metaworld:<name>")
-    p.add_argument("--preset", default=None, help=" | ".join(SIZE_PRESETS))
+    _task_and_preset(p)
     p.add_argument("--steps", dest="skill.pretrain_steps", default=None,
-                   type=value_type("skill.pretrain_steps"), help="pretraining environment steps")
+                   type=value_type("skill.pretrain_steps"),
+                   help="pretraining environment steps" + PRESET_DEFAULT)
     p.add_argument("--out", default=None, help="snapshot file; default "
-                   "<skill.snapshot_dir>/<task>-<backend>-<steps>-s<seed>.pt")
-    p.add_argument("--quality-skills", type=integer("a count of skills", low=0), default=50,
-                   metavar="N",
+                   "<skill.snapshot_dir>/<task>-<backend>-<steps>-s<seed>-<hash>.pt, the "
+                   "hash covering every setting pretraining reads")
+    p.add_argument("--quality-skills", type=_quality_skills, default=50, metavar="N",
                    help="beside each snapshot, the task return of N random skills (one "
-                   "deterministic episode each) against N episodes of random actions; 0: none")
-    p.add_argument("--snapshots-at", type=_steps_list, default=(), metavar="STEPS",
+                   "deterministic episode each) against N episodes of random actions; 0: none, "
+                   f"else at least {QUALITY_TOP}, for its top-{QUALITY_TOP} mean")
+    p.add_argument("--snapshots-at", type=_steps_list, default=None, metavar="STEPS",
                    help="also write a snapshot (and its quality) at these steps, "
                    "comma-separated, e.g. 100000,200000,500000")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     # --steps is the pretraining length here, not the online run's.
-    add_config_arguments(p, exclude=("steps",))
+    _add_config_arguments(p, exclude=("steps",))
+
+
+QUALITY_TOP = 5
+"""the fewest skills a quality measurement takes, for its top-5 mean
+(`trainer.skills.quality.TOP`, not imported here: it would load torch for --help)"""
+
+
+def _quality_skills(text: str) -> int:
+    count = integer("a count of skills", low=0)(text)
+    if 0 < count < QUALITY_TOP:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is too few skills: give 0 (no quality measurement) or at least "
+            f"{QUALITY_TOP}")
+    return count
 
 
 def _steps_list(text: str) -> tuple[int, ...]:
@@ -110,10 +150,10 @@ def _run_pretrain(args: argparse.Namespace) -> int:
 
     start = time.time()
     try:
-        cfg = build_config(args.task or "dmc:cheetah_run", args.preset or "paper",
-                           overrides_from_args(args))
+        cfg = build_config(args.task, args.preset, overrides_from_args(args))
         path = pretrain(cfg, out=args.out, progress=not args.no_progress, tick=tick,
-                        quality_skills=args.quality_skills, snapshots_at=args.snapshots_at)
+                        quality_skills=args.quality_skills,
+                        snapshots_at=args.snapshots_at or ())
     except PretrainingLeft as err:
         print(f"sepoa pretrain: {err}; the same command goes on from there", file=sys.stderr,
               flush=True)
@@ -152,16 +192,16 @@ def _worker_arguments(p: argparse.ArgumentParser) -> None:
                    help="name in the database (env SEPOA_WORKER_ID; host-pid if unset); a "
                    "worker restarted under the same id takes its runs back at once")
     p.add_argument("--once", action="store_true", help="exit when no run is waiting")
-    p.add_argument("--poll-seconds", type=float, default=2.0)
+    p.add_argument("--poll-seconds", type=_poll_seconds, default=2.0,
+                   help="how long to wait before looking for a run again")
     p.add_argument("--device", default=None,
                    help="overrides each run's device: auto | cpu | cuda | cuda:N")
     p.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads per run; default: the cores divided by "
                    "--host-processes")
-    p.add_argument("--host-processes", type=int,
-                   default=int(env("SEPOA_HOST_PROCESSES", "2")),
+    p.add_argument("--host-processes", type=HOST_PROCESSES, default=None,
                    help="processes sharing this host's cores: the training workers, plus one "
-                   "for the server if it runs here (env SEPOA_HOST_PROCESSES)")
+                   "for the server if it runs here (env SEPOA_HOST_PROCESSES; default 2)")
     p.add_argument("--clip-size", type=int, default=256,
                    help="clip width and height in pixels, for runs that choose no clip_size")
     p.add_argument("--clip-fps", type=float, default=100 / 3,
@@ -170,6 +210,16 @@ def _worker_arguments(p: argparse.ArgumentParser) -> None:
                    help="shadow map texels (0: no shadows); larger is slower on a CPU")
     p.add_argument("--clip-multisamples", type=int, default=0,
                    help="off-screen multisampling; 0 is fastest on a CPU")
+
+
+HOST_PROCESSES = integer("a count of processes", 1)
+
+
+def _poll_seconds(text: str) -> float:
+    seconds: float = real("a number of seconds")(text)
+    if seconds <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds above 0")
+    return seconds
 
 
 def _run_worker(args: argparse.Namespace) -> int:
@@ -181,6 +231,11 @@ def _run_worker(args: argparse.Namespace) -> int:
     from labelqueue.errors import database_reason
     from trainer.clips import ClipConfig  # no MuJoCo yet: the rendering check comes first
 
+    if args.host_processes is None:
+        try:
+            args.host_processes = environment("SEPOA_HOST_PROCESSES", "2", HOST_PROCESSES)
+        except ValueError as err:
+            return fail(str(err))
     try:
         clip = ClipConfig(width=args.clip_size, height=args.clip_size, fps=args.clip_fps,
                           shadow_size=args.clip_shadow_size, multisamples=args.clip_multisamples)
@@ -246,11 +301,9 @@ def _doctor_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"a task to render (repeatable); default {' and '.join(TASKS)}")
     p.add_argument("--size", type=int, default=128, help="frame width and height in pixels")
     p.add_argument("--frames", type=int, default=20, help="frames timed after the first")
-    p.add_argument("--database-url", default=os.environ.get("SEPOA_DATABASE_URL"),
-                   help="the queue database checked first (env SEPOA_DATABASE_URL; default "
-                   "sqlite:///<data-dir>/queue.db)")
-    p.add_argument("--data-dir", default=os.environ.get("SEPOA_DATA_DIR", "data"),
-                   help="where the SQLite file lives (env SEPOA_DATA_DIR)")
+    from sepoa.queue_commands import database_args
+
+    database_args(p)  # the queue database, checked first
 
 
 def _check_queue_database(url: str) -> int:
@@ -275,13 +328,13 @@ def _check_queue_database(url: str) -> int:
 
 
 def _run_doctor(args: argparse.Namespace) -> int:
-    from labelqueue.db_url import check_url, sqlite_url
+    from sepoa.queue_commands import database_url
     from trainer.doctor import BACKENDS, TASKS, run_doctor
 
     if not 16 <= args.size <= 2048 or args.frames < 0:
         return fail("--size takes 16 to 2048 pixels and --frames at least 0")
     try:
-        url = check_url(args.database_url or sqlite_url(args.data_dir))
+        url = database_url(args)
     except ValueError as err:
         return fail(str(err))
     if _check_queue_database(url):
@@ -295,7 +348,7 @@ def _reward_arguments(p: argparse.ArgumentParser) -> None:
     fit = actions.add_parser(
         "fit", help="train the run's reward ensemble on an exported dataset's labels; report "
         "held-out accuracy and the correlation of r_hat with the true reward; save the model "
-        "for reward.init_from", formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        "for reward.init_from", formatter_class=DefaultsHelpFormatter)
     fit.add_argument("dataset", help="a dataset folder (sepoa export --dataset) or its Minari id "
                      "under MINARI_DATASETS_PATH")
     fit.add_argument("--out", default=None,
@@ -388,9 +441,7 @@ def _config_from_args(args: argparse.Namespace) -> RunConfig:
             raise ValueError(f"--resume keeps the run's configuration; "
                              f"cannot change {', '.join(sorted(ignored))}")
         return apply_overrides(cfg, overrides)
-    task = args.task or "dmc:cheetah_run"
-    preset = args.preset or "paper"
-    return build_config(task, preset, overrides)
+    return build_config(args.task, args.preset, overrides)
 
 
 def _run_train(args: argparse.Namespace) -> int:

@@ -147,18 +147,35 @@ def _public_url_arg(p: argparse.ArgumentParser) -> None:
                    "SEPOA_PUBLIC_URL)")
 
 
-def _public_url(args: argparse.Namespace) -> str | None:
-    """--public-url as the server will use it; ValueError naming the flag for a bad one."""
-    if not args.public_url:
-        return None
+def _settings(args: argparse.Namespace, **given: str) -> str | None:
+    """The server's settings, checked before anything is created as the server will read them:
+    --public-url (returned as the server will use it) and every SEPOA_ variable, with the
+    values `given` (those the command sets itself) in place of theirs. ValueError naming the
+    flag, or each variable that is wrong, in one line."""
     from pydantic import ValidationError
 
     from server.settings import Settings
 
+    public = {"public_url": args.public_url} if args.public_url else {}
     try:
-        return Settings(public_url=args.public_url).public_url
+        return Settings(**given, **public).public_url  # type: ignore[arg-type]
     except ValidationError as err:
-        raise ValueError(f"--public-url {args.public_url!r}: {err.errors()[0]['msg']}") from None
+        errors = err.errors()
+    url = [e["msg"] for e in errors if e["loc"] == ("public_url",)]
+    if url:
+        raise ValueError(f"--public-url {args.public_url!r}: {url[0]}")
+    raise ValueError("; ".join(_variable(e["loc"], e["input"]) + f": {e['msg']}"
+                               for e in errors))
+
+
+SECRET_SETTINGS = ("secret_key", "operator_token", "database_url")
+"""settings whose value an error never shows"""
+
+
+def _variable(loc: tuple[int | str, ...], value: object) -> str:
+    name = "_".join(map(str, loc))
+    shown = " (its value not shown)" if name in SECRET_SETTINGS else f"={value!r}"
+    return f"SEPOA_{name.upper()}{shown}"
 
 
 def _up_arguments(p: argparse.ArgumentParser) -> None:
@@ -178,9 +195,14 @@ def _up_arguments(p: argparse.ArgumentParser) -> None:
 def _run_up(args: argparse.Namespace) -> int:
     if args.workers < 1 or (args.threads is not None and args.threads < 1):
         return fail("--workers and --threads must be at least 1")
-    return up(database_url=database_url(args), data_dir=args.data_dir, host=args.host,
-              port=args.port, workers=args.workers, demo=not args.no_demo,
-              threads=args.threads, public_url=_public_url(args))
+    url = database_url(args)
+    # The server gets the credentials' secret key (one of this form on a fresh database), not
+    # SEPOA_SECRET_KEY's.
+    public_url = _settings(args, database_url=url, data_dir=args.data_dir,
+                           secret_key=os.urandom(24).hex())
+    return up(database_url=url, data_dir=args.data_dir, host=args.host, port=args.port,
+              workers=args.workers, demo=not args.no_demo, threads=args.threads,
+              public_url=public_url)
 
 
 def _serve_arguments(p: argparse.ArgumentParser) -> None:
@@ -198,8 +220,10 @@ def _run_serve(args: argparse.Namespace) -> int:
     if not port_free(args.host, args.port):
         return fail(f"{args.host}:{args.port} is in use; pick another with --port")
     url = database_url(args)
+    # Checked before the database is made or migrated, and before the environment the server
+    # reads is set.
+    public_url = _settings(args, database_url=url, data_dir=args.data_dir)
     check_database(url, writable=True)  # damaged, read-only: one line here, not a traceback
-    public_url = _public_url(args)  # checked before the environment the server reads is set
     os.environ["SEPOA_DATABASE_URL"] = url
     os.environ["SEPOA_DATA_DIR"] = args.data_dir
     if public_url is not None:

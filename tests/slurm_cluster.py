@@ -1,6 +1,7 @@
 """A throwaway one-node Slurm cluster for tests: munged, slurmctld and slurmd from Debian's
-`munge` and `slurm-wlm` (scripts/setup.sh installs them), each with its files in one temporary
-folder and its own ports on 127.0.0.1, so nothing of the machine's own Slurm (if any) is used.
+`munge` and `slurm-wlm` (scripts/setup.sh --for-tests installs them), each with its files in
+one temporary folder and its own ports on 127.0.0.1, so nothing of the machine's own Slurm
+(if any) is used.
 
     with slurm_cluster(tmp_path / "slurm") as cluster:
         job = cluster.sbatch(script_path)
@@ -56,7 +57,7 @@ class Cluster:
         missing = [name for name in DAEMONS + CLIENTS if _which(name) is None]
         if missing:
             raise SlurmUnavailable(f"{', '.join(missing)} not installed (apt-get install "
-                                   "slurm-wlm munge; scripts/setup.sh does)")
+                                   "slurm-wlm munge; scripts/setup.sh --for-tests does)")
         if os.geteuid() != 0:
             raise SlurmUnavailable("slurmd must run as root to start jobs")
         folder = self.folder

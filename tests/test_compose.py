@@ -25,8 +25,8 @@ def compose_config(tmp_path: Path, *args: str, **env: str) -> dict[str, Any]:
     """The normalised compose file, as `docker-compose [args] config` prints it."""
     binary = shutil.which("docker-compose")
     if binary is None:
-        pytest.fail("docker-compose is not installed: scripts/setup.sh installs it "
-                    "(apt-get install docker-compose)")
+        pytest.fail("docker-compose is not installed: scripts/setup.sh --for-tests installs "
+                    "it (apt-get install docker-compose)")
     # Only the variables given here: none from the caller's shell or a stray .env file.
     clean = {k: v for k, v in os.environ.items()
              if not k.startswith(("SEPOA_", "POSTGRES_", "COMPOSE_", "DOCKER_"))}

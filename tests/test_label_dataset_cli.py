@@ -3,7 +3,11 @@ and a dataset no worker could serve is refused in one line, with nothing stored.
 
 from __future__ import annotations
 
+import os
 import shutil
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 from labelling_helpers import drop_states, edit_info, exported_dataset, malformed_copies
@@ -125,3 +129,19 @@ def test_malformed_datasets_get_one_line_from_label_dataset_and_reward_fit(
             err = capsys.readouterr().err
             assert message in err and len(err.strip().splitlines()) == 1, (name, args[0], err)
     assert not data.exists() and not (tmp_path / "r.pt").exists()
+
+
+def test_the_dataset_is_checked_with_mujoco_rendering_through_egl(source, tmp_path):
+    """As the trainer's commands, label-dataset sets MUJOCO_GL=egl before MuJoCo is imported
+    (the README's default; MuJoCo reads it once, on import)."""
+    root = Path(__file__).resolve().parents[1]
+    code = ("import os, sys; from sepoa.cli import main; status = main(sys.argv[1:]); "
+            "print(status, 'mujoco' in sys.modules, os.environ.get('MUJOCO_GL'))")
+    env = {k: v for k, v in os.environ.items() if k != "MUJOCO_GL"} | {
+        "PYTHONPATH": str(root), "OMP_NUM_THREADS": "1"}
+    done = subprocess.run(
+        [sys.executable, "-c", code, "label-dataset", str(source), "--budget", "5",
+         "--data-dir", str(tmp_path / "data")], env=env, capture_output=True, text=True,
+        timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines()[-1] == "0 True egl", done.stdout

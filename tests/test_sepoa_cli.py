@@ -100,9 +100,10 @@ def test_a_damaged_or_read_only_database_is_refused_in_one_line(tmp_path):
         assert "attempt to write a readonly database" in lines[0], lines[0]
 
 
-def _sepoa(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+def _sepoa(*args: str, cwd: Path,
+           env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
     code = "import sys; from sepoa.cli import main; sys.exit(main())"
-    env = os.environ | {"OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    env = os.environ | {"OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)} | (env or {})
     return subprocess.run([sys.executable, "-c", code, *args], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=120)
 
@@ -156,3 +157,107 @@ def test_every_cli_mistake_is_one_line_with_exit_status_2(tmp_path, capsys):
     capsys.readouterr()
     assert main(["labeller", "list", "--data-dir", str(data)]) == 0
     assert capsys.readouterr().out.splitlines() == ["1\tzoe\tlabeller\tactive"]
+
+
+def test_a_worker_refuses_a_bad_host_count_or_poll_interval_in_one_line(tmp_path):
+    """SEPOA_HOST_PROCESSES is parsed as the worker starts, named when it is no count (and
+    --help shows regardless); --poll-seconds takes a time above 0, where 0 busy-looped and a
+    negative one failed in the worker's first wait."""
+    fresh = str(tmp_path / "fresh")
+    bad = {"SEPOA_HOST_PROCESSES": "abc"}
+    shown = _sepoa("worker", "--help", cwd=tmp_path, env=bad)
+    assert shown.returncode == 0 and "SEPOA_HOST_PROCESSES" in shown.stdout, shown.stderr
+    cases = [
+        (("worker", "--once", "--data-dir", fresh), bad,
+         ["SEPOA_HOST_PROCESSES='abc' is not a count of processes", "at least 1"]),
+        (("worker", "--once", "--data-dir", fresh), {"SEPOA_HOST_PROCESSES": "0"},
+         ["SEPOA_HOST_PROCESSES='0'", "at least 1"]),
+        (("worker", "--once", "--data-dir", fresh, "--poll-seconds", "-1"), {},
+         ["--poll-seconds", "'-1' is not a number of seconds above 0"]),
+        (("worker", "--once", "--data-dir", fresh, "--poll-seconds", "0"), {},
+         ["--poll-seconds", "'0' is not a number of seconds above 0"]),
+    ]
+    for args, env, words in cases:
+        done = _sepoa(*args, cwd=tmp_path, env=env)
+        lines = done.stderr.strip().splitlines()
+        assert done.returncode == 2, (args, env, done.stderr)
+        assert len(lines) == 1 and "Traceback" not in done.stderr, (args, env, done.stderr)
+        assert all(word in lines[0] for word in words), (args, lines[0])
+    assert not os.path.exists(fresh)
+
+
+def test_serve_and_up_check_the_settings_before_the_database_in_one_line_naming_them(
+        tmp_path):
+    """A bad --public-url is refused before the database is made or migrated; a bad SEPOA_
+    variable is named (where pydantic's report took four lines, or --public-url was blamed),
+    its value not shown when it is a secret."""
+    fresh = tmp_path / "fresh"
+    url, bad_url = "https://label.example.org", "label.example.org"
+    cases = [
+        (("serve", "--public-url", bad_url), {}, [f"--public-url {bad_url!r}", "https://"]),
+        (("up", "--no-demo", "--public-url", bad_url), {}, [f"--public-url {bad_url!r}"]),
+        (("serve", "--public-url", url), {"SEPOA_JOIN_BURST": "0"},
+         ["SEPOA_JOIN_BURST='0'", "greater than or equal to 1"]),
+        (("serve",), {"SEPOA_LEASE_PER_S": "x", "SEPOA_CLIP_MAX_FRAMES": "0"},
+         ["SEPOA_LEASE_PER_S='x'", "SEPOA_CLIP_MAX_FRAMES='0'"]),
+        (("serve",), {"SEPOA_SECRET_KEY": "hush"},
+         ["SEPOA_SECRET_KEY (its value not shown)", "at least 16 characters"]),
+        (("up", "--no-demo"), {"SEPOA_JOIN_BURST": "0"}, ["SEPOA_JOIN_BURST='0'"]),
+    ]
+    for args, env, words in cases:
+        with socket.socket() as free:
+            free.bind(("127.0.0.1", 0))
+            port = str(free.getsockname()[1])
+        done = _sepoa(*args, "--data-dir", str(fresh), "--port", port, cwd=tmp_path, env=env)
+        lines = done.stderr.strip().splitlines()
+        assert done.returncode == 2, (args, env, done.stderr)
+        assert len(lines) == 1 and "Traceback" not in done.stderr, (args, env, done.stderr)
+        assert all(word in lines[0] for word in words), (args, env, lines[0])
+        if words[0].startswith("SEPOA_"):  # not blamed on the URL
+            assert "--public-url" not in lines[0], lines[0]
+        assert "hush" not in lines[0]
+        assert not fresh.exists(), (args, env)
+
+
+def test_up_gives_the_server_its_own_secret_key_whatever_sepoa_secret_key_says(monkeypatch):
+    import argparse
+
+    from sepoa.up import _settings
+
+    monkeypatch.setenv("SEPOA_SECRET_KEY", "short")
+    given = argparse.Namespace(public_url="https://label.example.org/")
+    assert _settings(given, secret_key=os.urandom(24).hex()) == "https://label.example.org"
+
+
+def test_every_command_on_the_queue_database_reads_the_url_file_in_the_environment(
+        tmp_path, capsys, monkeypatch):
+    """SEPOA_DATABASE_URL_FILE names the queue database for export, labeller, invite,
+    label-dataset, doctor, up and serve as for the worker and experiments: `labeller create`
+    wrote to a new ./data/queue.db instead."""
+    from sepoa.cli import build_parser
+    from sepoa.queue_commands import database_url
+
+    url = f"sqlite:///{tmp_path / 'elsewhere' / 'queue.db'}"
+    url_file = tmp_path / "queue-url"
+    url_file.write_text(f"# the study's queue\n{url}\n")
+    url_file.chmod(0o600)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("SEPOA_DATABASE_URL", raising=False)
+    monkeypatch.delenv("SEPOA_DATA_DIR", raising=False)
+    monkeypatch.setenv("SEPOA_DATABASE_URL_FILE", str(url_file))
+    assert main(["labeller", "create", "bob"]) == 0
+    assert main(["labeller", "list"]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == "1\tbob\tlabeller\tactive"
+    assert (tmp_path / "elsewhere" / "queue.db").exists()
+    assert main(["export", "--out", "labels.jsonl"]) == 0
+    assert not (tmp_path / "data").exists()
+    for argv in (["export"], ["labeller", "list"], ["invite", "verify", "X"],
+                 ["label-dataset", "d", "--budget", "1"], ["doctor"], ["up"], ["serve"]):
+        args = build_parser(argv[0]).parse_args(argv)
+        assert database_url(args) == url, argv
+    # A flag still wins over the environment; the two flags together are refused.
+    args = build_parser("serve").parse_args(["serve", "--database-url", "sqlite:///x.db"])
+    assert database_url(args) == "sqlite:///x.db"
+    assert main(["labeller", "list", "--database-url", "sqlite:///x.db",
+                 "--database-url-file", str(url_file)]) == 2
+    assert "not both" in capsys.readouterr().err

@@ -276,7 +276,8 @@ class SkillConfig:
     score_spread: str = "var"
     """online: spread of P in the selection score: var (the paper) | std (the authors' code)"""
     snapshot_dir: str = "snapshots"
-    """where `sepoa pretrain` writes <task>-<backend>-<steps>-s<seed>.pt by default"""
+    """where `sepoa pretrain` writes <task>-<backend>-<steps>-s<seed>-<hash>.pt by default (the
+    hash covers every setting pretraining reads)"""
     snapshot: str = ""
     """online S-EPOA: the snapshot to start from; empty = the default name in snapshot_dir"""
     snapshot_seed: int = -1

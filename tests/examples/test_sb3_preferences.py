@@ -4,8 +4,10 @@ from those answers orders held-out segments by their true returns, and SAC train
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
+import socket
 import subprocess
 import sys
 import threading
@@ -14,6 +16,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
@@ -124,3 +127,47 @@ def test_sac_trains_on_a_reward_learned_from_answers_over_the_label_api(tmp_path
     # environment's though it never saw them.
     assert result["sac_updates"] >= 2 * 300 - 2
     assert result["replay_reward_vs_true"] > 0.3
+
+
+def _example(monkeypatch: pytest.MonkeyPatch, rendered: list[bool]) -> Any:
+    """The example as a module, whose rendering check (its first step) notes in `rendered`
+    that it ran."""
+    spec = importlib.util.spec_from_file_location("sb3_preferences", EXAMPLE)
+    assert spec is not None and spec.loader is not None
+    example = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, spec.name, example)  # where its dataclasses look
+    spec.loader.exec_module(example)
+    monkeypatch.setattr(example, "choose_backend", lambda say: rendered.append(True))
+    return example
+
+
+def test_a_server_it_cannot_use_or_a_bad_size_is_one_line_before_anything_runs(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """No server there, a token it refuses, clips of a size no clip has: the example says so
+    in one line (SystemExit's message) at once, where it rendered and trained first and then
+    ended in a traceback (a StudyError after half a minute of retries, a ValueError)."""
+    rendered: list[bool] = []
+    example = _example(monkeypatch, rendered)
+    with socket.socket() as closed:
+        closed.bind(("127.0.0.1", 0))
+        nobody = f"http://127.0.0.1:{closed.getsockname()[1]}"
+    settings = Settings(database_url=f"sqlite:///{tmp_path / 'queue.db'}", data_dir=tmp_path,
+                        operator_token=OPERATOR["Authorization"].split()[1],
+                        secret_key="examples-secret-key-0123456789")
+    with served(settings) as url:
+        run = httpx.post(f"{url}/api/runs/external", headers=OPERATOR, json={
+            "task": "gym:HalfCheetah-v5", "budget": 16}).json()
+        cases = [
+            ([nobody, "run.1.not-a-token", "1"], [], [nobody, "gave up after 3 tries"]),
+            ([url, "run.1.not-a-token", str(run["id"])], [], ["401"]),
+            ([url, "x", "1"], ["--size", "7"], ["--size 7", "64, 512"]),
+        ]
+        for (where, token, run_id), more, words in cases:
+            started = time.monotonic()
+            with pytest.raises(SystemExit) as exited:
+                example.main(["--preset", "tiny", "--url", where, "--token", token,
+                              "--run", run_id, *more])
+            said = str(exited.value.code)
+            assert "\n" not in said and all(word in said for word in words), said
+            assert time.monotonic() - started < 10, said
+    assert rendered == []

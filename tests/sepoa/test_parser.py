@@ -33,6 +33,8 @@ ROOT = Path(__file__).resolve().parents[2]
                                                "give at least 1"]),
     (["label-dataset", "d", "--budget", "-3"], ["--budget", "'-3' is not a budget",
                                                 "give 1 to 2147483647"]),
+    (["pretrain", "--quality-skills", "3"], ["--quality-skills", "'3' is too few skills",
+                                             "give 0 (no quality measurement) or at least 5"]),
     (["train", "--reward.surf", "flase"], ["--reward.surf", "true/false, yes/no, on/off or 1/0"]),
     (["export", "--format", "xml"], ["invalid choice: 'xml'", "'jsonl', 'csv', 'parquet'"]),
     (["serve", "--prot", "80"], ["unrecognized arguments: --prot 80"]),
@@ -48,6 +50,14 @@ def test_a_mistake_is_one_line_with_exit_status_2(argv: list[str], words: list[s
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.endswith("--help)\n"), err
     assert all(word in err for word in words), err
+
+
+def test_pretrain_takes_the_quality_skills_the_measurement_needs() -> None:
+    from sepoa.trainer_commands import QUALITY_TOP, _quality_skills
+    from trainer.skills.quality import TOP
+
+    assert QUALITY_TOP == TOP
+    assert [_quality_skills(n) for n in ("0", "5", "50")] == [0, 5, 50]
 
 
 def test_typed_values_name_the_range() -> None:
@@ -72,11 +82,45 @@ def test_every_command_builds_and_has_help(name: str,
     assert capsys.readouterr().out.startswith(f"usage: sepoa {name}")
 
 
+def test_train_and_pretrain_help_show_the_defaults_an_absent_flag_takes(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Without --preset a run is the paper's (1 M steps, 1024-wide nets), without --task
+    cheetah run; a configuration field left out is the preset's, never "None"."""
+    for name in ("train", "pretrain"):
+        with pytest.raises(SystemExit):
+            main([name, "--help"])
+        out = " ".join(capsys.readouterr().out.split())
+        assert "None" not in out, name
+        assert "(default: dmc:cheetah_run)" in out and "(default: paper)" in out, name
+        assert re.search(r"--sac\.lr FLOAT [^(]*\(default: the preset's\)", out), name
+
+
+def test_the_help_names_snapshots_as_pretraining_does(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """pretrain --out and the skill.snapshot_dir field give the name with its settings hash
+    (`runvocab.snapshot_names.default_snapshot_path`)."""
+    from runvocab.config import build_config
+    from runvocab.snapshot_names import default_snapshot_path
+
+    name = os.path.basename(default_snapshot_path(build_config("dmc:cheetah_run", "tiny", {})))
+    assert re.fullmatch(r"dmc-cheetah_run-aps-\d+-s0-[0-9a-f]{10}\.pt", name), name
+    for command, flag in (("pretrain", "--out OUT"), ("train", "--skill.snapshot-dir STR")):
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        out = " ".join(capsys.readouterr().out.split("options:")[1].split())
+        said = out.replace("- <", "-<").split(flag)[1].split(" --")[0]
+        assert "<task>-<backend>-<steps>-s<seed>-<hash>.pt" in said, (command, said)
+
+
 def test_the_top_level_help_lists_every_command(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         main(["--help"])
     out = capsys.readouterr().out
     assert all(re.search(rf"^    {re.escape(name)}\b", out, re.M) for name in COMMANDS), out
+    # Every action of a command is in its line: labeller's token, invite's participants.
+    lines = " ".join(out.split())
+    assert "revoke or restore labellers, or give one a new token" in lines
+    assert "or list an invite's participants" in lines
 
 
 def test_the_commands_the_docs_show_exist(capsys: pytest.CaptureFixture[str]) -> None:

@@ -1,7 +1,8 @@
 """A real server (uvicorn in a subprocess, temp SQLite DB), real clips and a headless Chromium.
 
 Debian's chromium is driven by the `playwright` package (never `playwright install`). A missing
-browser fails these tests rather than skipping them: CI installs it (scripts/setup.sh).
+browser fails these tests rather than skipping them: CI installs it (scripts/setup.sh
+--for-tests).
 """
 
 from __future__ import annotations
@@ -146,7 +147,8 @@ def browser() -> Iterator[Any]:
     if not CHROMIUM.exists():
         pytest.fail(
             f"{CHROMIUM} is missing: the browser tests need Debian's chromium "
-            "(apt-get install -y --no-install-recommends chromium; see scripts/setup.sh)"
+            "(apt-get install -y --no-install-recommends chromium; scripts/setup.sh "
+            "--for-tests does)"
         )
     try:
         from playwright.sync_api import sync_playwright
