@@ -150,6 +150,7 @@ def test_a_spent_budget_or_a_pause_completes_the_study_with_a_code_or_the_operat
                          pause_message="Please return the study on Prolific.")
     one = join_invite(session, code=coded.code).labeller
     two = join_invite(session, code=told.code).labeller
+    three = join_invite(session, code=coded.code).labeller  # never paused
     for labeller in (one, two):
         session.add(LabellerPause(run_id=run.id, labeller_id=labeller.id, gold_answers=4,
                                   gold_correct=1))
@@ -163,7 +164,8 @@ def test_a_spent_budget_or_a_pause_completes_the_study_with_a_code_or_the_operat
 
     with session.begin():
         session.execute(update(Run).where(Run.id == run.id).values(labels_used=100))
-    assert labeller_progress(session, labeller_id=one.id).why == "runs_over"
+    assert labeller_progress(session, labeller_id=one.id).why == "paused"  # found first, kept
+    assert labeller_progress(session, labeller_id=three.id).why == "runs_over"
 
 
 def test_consent_is_required_when_the_invite_has_a_text(session: Session) -> None:
@@ -320,11 +322,11 @@ def test_an_all_runs_study_ends_when_every_budget_is_spent_and_pauses_on_every_o
     [row] = participants(session, invite_id=invite.id)
     assert (row.paused, row.why, row.code_valid) == (True, "paused", True)
 
-    # Both budgets spent: the study is over, with their code.
+    # Both budgets spent: the study is over, with their code; it ended for them at the pause.
     spend(session, first.id, 100)
     progress = labeller_progress(session, labeller_id=pat.id)
-    assert (progress.complete, progress.why) == (True, "runs_over")
-    assert progress.completion_code is not None
+    assert (progress.complete, progress.why) == (True, "paused")
+    assert progress.completion_code == row.completion_code
 
 
 def test_a_one_run_participant_is_served_their_run_only_and_never_waits_on_another(
