@@ -92,36 +92,59 @@ class Verified:
     """the code is earned (`Progress.earned`): pay them"""
 
 
-def verify_code(session: Session, code: str) -> Verified | None:
-    """Whose completion code this is, or None when it is no participant's. The study-code prefix
-    may be left out; case, spaces, dashes, and O/0, I/L/1 confusions do not matter."""
+@dataclass(frozen=True)
+class Owner:
+    """Whose completion code it is: a participant of an invite."""
+
+    labeller_id: int
+    labeller: str
+    participant: str | None
+    invite: Invite
+
+
+def code_owners(session: Session) -> dict[str, Owner]:
+    """Every participant's own part of their code (`OWN_CHARS`, without dashes), with whose it
+    is: one HMAC per participant, made once however many codes are then checked."""
+    key = server_key(session)
+    with reading(session):
+        rows = session.execute(
+            select(Invitee.labeller_id, Labeller.name, Invitee.participant, Invite)
+            .join(Invite, Invite.id == Invitee.invite_id)
+            .join(Labeller, Labeller.id == Invitee.labeller_id)
+        ).all()
+        session.expunge_all()
+    return {_own_part(key, invite.id, labeller_id).replace("-", ""):
+            Owner(labeller_id, name, participant, invite)
+            for labeller_id, name, participant, invite in rows}
+
+
+def code_owner(owners: dict[str, Owner], code: str) -> Owner | None:
+    """Whose completion code this is (`owners`: from `code_owners`), or None when it is no
+    participant's. The study-code prefix may be left out (a wrong one makes it nobody's);
+    case, spaces, dashes, and O/0, I/L/1 confusions do not matter."""
     given = _normalised(code)
     if len(given) < OWN_CHARS:
         return None
     # The own part is the last twelve characters; the rest is the study code, if given.
     own, prefix = given[-OWN_CHARS:], given[:-OWN_CHARS]
-    key = server_key(session)
-    with reading(session):
-        rows = session.execute(
-            select(Invitee.labeller_id, Invite)
-            .join(Invite, Invite.id == Invitee.invite_id)
-            .order_by(Invitee.labeller_id)
-        ).all()
-        session.expunge_all()
-    for labeller_id, invite in rows:
-        # As bytes: compare_digest refuses str with characters beyond ASCII.
-        if not hmac.compare_digest(_own_part(key, invite.id, labeller_id).replace("-", "")
-                                   .encode(), own.encode()):
-            continue
-        if prefix and _normalised(invite.completion_code or "") != prefix:
-            return None
-        progress = labeller_progress(session, labeller_id=labeller_id)
-        with reading(session):
-            name = session.scalar(select(Labeller.name).where(Labeller.id == labeller_id))
-        return Verified(invite.id, labeller_id, name or "", progress.participant, invite.run_id,
-                        progress.counted, invite.target_answers, progress.complete, progress.why,
-                        progress.earned)
-    return None
+    owner = owners.get(own)
+    if owner is None or prefix and _normalised(owner.invite.completion_code or "") != prefix:
+        return None
+    return owner
+
+
+def verify_code(session: Session, code: str, *,
+                owners: dict[str, Owner] | None = None) -> Verified | None:
+    """Whose completion code this is and how far they got, or None when it is no participant's
+    (`code_owner`). Checking many codes, pass `owners` (`code_owners`), made once for all."""
+    owner = code_owner(code_owners(session) if owners is None else owners, code)
+    if owner is None:
+        return None
+    invite = owner.invite
+    progress = labeller_progress(session, labeller_id=owner.labeller_id)
+    return Verified(invite.id, owner.labeller_id, owner.labeller, progress.participant,
+                    invite.run_id, progress.counted, invite.target_answers, progress.complete,
+                    progress.why, progress.earned)
 
 
 def completion_redirect(url: str, *, code: str, participant: str | None) -> str:

@@ -234,6 +234,9 @@ class ParticipantOut(Out):
 class CodesRequest(Body):
     codes: list[str] = Field(min_length=1, max_length=2000)
     """completion codes as participants handed them in (blank ones are left out)"""
+    invite_id: Positive | None = None
+    """the study (invite) they were handed in for: another invite's participant's code is then
+    `other_study`, never valid; null: any invite's"""
 
 
 class CodeCheckOut(Out):
@@ -243,4 +246,7 @@ class CodeCheckOut(Out):
     participant: str | None
     labeller_id: int | None
     invite_id: int | None
-    why: StudyEnd | Literal["not_complete", "unknown"] | None
+    why: StudyEnd | Literal["not_complete", "unknown", "other_study"] | None
+    """why the study is complete; `not_complete`; `unknown`: nobody's code; `other_study`: a
+    participant's code of another invite than `invite_id` of the request (this `invite_id` is
+    theirs)"""

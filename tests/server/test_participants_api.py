@@ -243,3 +243,32 @@ def test_a_completion_found_with_a_code_stays_earned_whatever_the_run_does_later
             for r in rows] == [("ann", True, "runs_over", True, 2),
                                ("bob", False, None, False, 0),
                                ("cat", True, "paused", True, 0)]
+
+
+def test_codes_checked_for_one_study_tell_another_studys_apart(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    run_id, _ = running_run_with_queries(client, session, settings, n=4)
+    mine, other = (invite(client, run_id=run_id, target_answers=1) for _ in range(2))
+    ann, zed = joined(client, mine["code"], "ann"), joined(client, other["code"], "zed")
+    codes = []
+    for who in (ann, zed):
+        answer(client, who["token"])
+        codes.append(client.get("/api/label/progress",
+                                headers=bearer(who["token"])).json()["completion_code"])
+
+    def checked(**scope: Any) -> list[tuple[bool, str, int | None]]:
+        response = client.post("/api/invites/verify-codes", headers=OPERATOR,
+                               json={"codes": [*codes, "AAAA-BBBB-CCCC"], **scope})
+        assert response.status_code == 200, response.text
+        return [(c["valid"], c["why"], c["invite_id"]) for c in response.json()]
+
+    # Checked for ann's study, zed's earned code is another study's: not to be paid there.
+    assert checked(invite_id=mine["id"]) == [
+        (True, "target", mine["id"]), (False, "other_study", other["id"]),
+        (False, "unknown", None)]
+    assert checked() == [(True, "target", mine["id"]), (True, "target", other["id"]),
+                         (False, "unknown", None)]
+    missing = client.post("/api/invites/verify-codes", headers=OPERATOR,
+                          json={"codes": codes, "invite_id": 999})
+    assert missing.status_code == 404 and "invite 999" in missing.json()["detail"]
