@@ -212,6 +212,14 @@ def read_invite(session: Session, *, code: str) -> Invite | None:
     return invite
 
 
+def invite_run(session: Session, *, labeller_id: int) -> int | None:
+    """The one run the labeller's invite is for; None for an all-runs invite, or a labeller
+    who joined by none."""
+    with reading(session):
+        return session.scalar(select(Invite.run_id).join(Invitee, Invitee.invite_id == Invite.id)
+                              .where(Invitee.labeller_id == labeller_id))
+
+
 def revoke_invite(session: Session, *, invite_id: int) -> Invite:
     """Stop the invite admitting anyone (again: no change). Labellers who joined by it keep
     their access (revoke them one by one). NotFound for an unknown invite."""
