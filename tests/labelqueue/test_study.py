@@ -24,6 +24,7 @@ from crowdstudy.invites import (
 )
 from crowdstudy.participants import participants, verify_codes
 from labelqueue import (
+    Invalid,
     Invitee,
     LabellerPause,
     OtherRun,
@@ -175,6 +176,10 @@ def test_consent_is_required_when_the_invite_has_a_text(session: Session) -> Non
     with pytest.raises(ValueError, match="consent"):
         join_invite(session, code=invite.code)
     assert join_invite(session, code=invite.code, consent=True).labeller.id > 0
+    # A consent text of white space is refused, not taken for none (which asks no consent).
+    for field in ("consent_text", "pause_message", "note"):
+        with pytest.raises(Invalid, match=f"{field} is blank"):
+            create_invite(session, expires_at=week(), **{field: " \n\t "})
     with pytest.raises(ValueError, match="redirect_url"):
         create_invite(session, expires_at=week(), redirect_url="javascript:alert(1)")
 
