@@ -417,7 +417,8 @@ class Throughput(BaseModel):
     bucket_s: int
     total: int
     by_source: dict[str, int]
-    """labels per source: human, scripted, gold (every source present, 0 if none)"""
+    """labels per source: human, scripted (every `LabelSource` present, 0 if none; an answer
+    on a gold pair counts under the source that gave it)"""
     median_answer_s: float | None
     """median of answered_at - shown_at over the latest 1000 standing human labels that record
     shown_at; None if none"""
