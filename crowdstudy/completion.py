@@ -6,6 +6,10 @@ shown once the target is reached, once the invite's runs are over, or on a pause
 checks a code with `verify_code`. Only decisive answers (`runvocab.answers.DECISIVE`) on the
 invite's own runs count towards the target: skips, can't-tells and answers on other runs do
 not.
+
+A completion with a code is kept once found (`invitees.completed_at`, `completed_why`): the
+participant may have been shown their code, so it stays earned, for the same reason, whatever
+their runs do later (a run requeued, a pause lifted) and though they label more.
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ import re
 from dataclasses import dataclass, replace
 from urllib.parse import parse_qsl, quote, urlencode, urlsplit, urlunsplit
 
-from sqlalchemy import func, select
+from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
 from crowdstudy.invites import live_runs, runs_open
@@ -28,8 +32,9 @@ from labelqueue.models import (
     Labeller,
     LabellerPause,
     LabelSource,
+    utcnow,
 )
-from labelqueue.transaction import reading
+from labelqueue.transaction import changed, reading, transaction
 from runvocab.answers import DECISIVE
 
 CODE_ALPHABET = "0123456789ABCDEFGHJKMNPQRSTVWXYZ"
@@ -87,36 +92,59 @@ class Verified:
     """the code is earned (`Progress.earned`): pay them"""
 
 
-def verify_code(session: Session, code: str) -> Verified | None:
-    """Whose completion code this is, or None when it is no participant's. The study-code prefix
-    may be left out; case, spaces, dashes, and O/0, I/L/1 confusions do not matter."""
+@dataclass(frozen=True)
+class Owner:
+    """Whose completion code it is: a participant of an invite."""
+
+    labeller_id: int
+    labeller: str
+    participant: str | None
+    invite: Invite
+
+
+def code_owners(session: Session) -> dict[str, Owner]:
+    """Every participant's own part of their code (`OWN_CHARS`, without dashes), with whose it
+    is: one HMAC per participant, made once however many codes are then checked."""
+    key = server_key(session)
+    with reading(session):
+        rows = session.execute(
+            select(Invitee.labeller_id, Labeller.name, Invitee.participant, Invite)
+            .join(Invite, Invite.id == Invitee.invite_id)
+            .join(Labeller, Labeller.id == Invitee.labeller_id)
+        ).all()
+        session.expunge_all()
+    return {_own_part(key, invite.id, labeller_id).replace("-", ""):
+            Owner(labeller_id, name, participant, invite)
+            for labeller_id, name, participant, invite in rows}
+
+
+def code_owner(owners: dict[str, Owner], code: str) -> Owner | None:
+    """Whose completion code this is (`owners`: from `code_owners`), or None when it is no
+    participant's. The study-code prefix may be left out (a wrong one makes it nobody's);
+    case, spaces, dashes, and O/0, I/L/1 confusions do not matter."""
     given = _normalised(code)
     if len(given) < OWN_CHARS:
         return None
     # The own part is the last twelve characters; the rest is the study code, if given.
     own, prefix = given[-OWN_CHARS:], given[:-OWN_CHARS]
-    key = server_key(session)
-    with reading(session):
-        rows = session.execute(
-            select(Invitee.labeller_id, Invite)
-            .join(Invite, Invite.id == Invitee.invite_id)
-            .order_by(Invitee.labeller_id)
-        ).all()
-        session.expunge_all()
-    for labeller_id, invite in rows:
-        # As bytes: compare_digest refuses str with characters beyond ASCII.
-        if not hmac.compare_digest(_own_part(key, invite.id, labeller_id).replace("-", "")
-                                   .encode(), own.encode()):
-            continue
-        if prefix and _normalised(invite.completion_code or "") != prefix:
-            return None
-        progress = labeller_progress(session, labeller_id=labeller_id)
-        with reading(session):
-            name = session.scalar(select(Labeller.name).where(Labeller.id == labeller_id))
-        return Verified(invite.id, labeller_id, name or "", progress.participant, invite.run_id,
-                        progress.counted, invite.target_answers, progress.complete, progress.why,
-                        progress.earned)
-    return None
+    owner = owners.get(own)
+    if owner is None or prefix and _normalised(owner.invite.completion_code or "") != prefix:
+        return None
+    return owner
+
+
+def verify_code(session: Session, code: str, *,
+                owners: dict[str, Owner] | None = None) -> Verified | None:
+    """Whose completion code this is and how far they got, or None when it is no participant's
+    (`code_owner`). Checking many codes, pass `owners` (`code_owners`), made once for all."""
+    owner = code_owner(code_owners(session) if owners is None else owners, code)
+    if owner is None:
+        return None
+    invite = owner.invite
+    progress = labeller_progress(session, labeller_id=owner.labeller_id)
+    return Verified(invite.id, owner.labeller_id, owner.labeller, progress.participant,
+                    invite.run_id, progress.counted, invite.target_answers, progress.complete,
+                    progress.why, progress.earned)
 
 
 def completion_redirect(url: str, *, code: str, participant: str | None) -> str:
@@ -157,7 +185,9 @@ class Progress:
     budget is spent), "paused" (check pairs paused the participant) or "nothing_left" (they
     asked for pairs and got none for the invite's `wait_limit_s`: `labelqueue.waiting`) or
     "entry_failed" (they answered every practice pair with fewer right than the invite's
-    `entry_pass`: `labelqueue.entry_test`; let go without a code)"""
+    `entry_pass`: `labelqueue.entry_test`; let go without a code). The first of these that came
+    with a code is kept (`invitees.completed_why`) and stays the answer from then on, though
+    the run be requeued or the pause lifted, and though they label more (`counted` grows)"""
     participant: str | None = None
     redirect_url: str | None = None
     """where to send the participant now, filled in for them; none until complete"""
@@ -188,21 +218,22 @@ def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
     invite's runs against its target (practice answers never count), and whether the study is
     complete for them (target reached, runs over or budget spent, paused by check pairs, or
     nothing left to label after waiting), with their own code; or let go without one, having
-    failed the invite's entry test (which comes before every other end)."""
+    failed the invite's entry test (which comes before every other end). The first completion
+    found with a code is kept (`_keep`) and wins over what their runs say later."""
     with reading(session):
         standing = (Label.labeller_id == labeller_id, Label.source == LabelSource.HUMAN,
                     Label.withdrawn_at.is_(None))
         labels = session.scalar(select(func.count(Label.id)).where(*standing)) or 0
         row = session.execute(
             select(Invite, Invitee.participant, Invitee.nothing_left_at, Invitee.entry_passed,
-                   Invitee.entry_correct, Labeller.active)
+                   Invitee.entry_correct, Invitee.completed_why, Labeller.active)
             .join(Invitee, Invitee.invite_id == Invite.id)
             .join(Labeller, Labeller.id == Invitee.labeller_id)
             .where(Invitee.labeller_id == labeller_id)
         ).one_or_none()
         if row is None:
             return Progress(labels, None, None, None, counted=labels)
-        invite, participant, nothing_left, entry_passed, entry_correct, active = row
+        invite, participant, nothing_left, entry_passed, entry_correct, kept, active = row
         on_runs = [Label.run_id == invite.run_id] if invite.run_id is not None else []
         # Practice answers never count toward a target (labelqueue.practice).
         counted = session.scalar(select(func.count(Label.id)).where(
@@ -213,8 +244,9 @@ def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
         session.expunge_all()
     reached = invite.target_answers is not None and counted >= invite.target_answers
     failed = entry_passed is not None and not entry_passed
-    why = ("entry_failed" if failed else "target" if reached else "runs_over" if over
-           else "paused" if paused else "nothing_left" if nothing_left is not None else None)
+    why = kept or (
+        "entry_failed" if failed else "target" if reached else "runs_over" if over
+        else "paused" if paused else "nothing_left" if nothing_left is not None else None)
     progress = Progress(labels, invite.target_answers, None, invite.run_id, counted=counted,
                         invited=True, complete=why is not None, why=why, paused=paused,
                         active=active,
@@ -226,10 +258,24 @@ def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
         return replace(progress, pause_message=invite.pause_message)
     if why == "paused" and invite.pause_message:
         return replace(progress, pause_message=invite.pause_message)
+    if kept is None:  # complete, with a code, for the first time: kept from now on
+        progress = replace(progress, why=_keep(session, labeller_id=labeller_id, why=why))
     code = participant_code(server_key(session), invite, labeller_id)
     redirect = (completion_redirect(invite.redirect_url, code=code, participant=participant)
                 if invite.redirect_url else None)
     return replace(progress, completion_code=code, redirect_url=redirect)
+
+
+def _keep(session: Session, *, labeller_id: int, why: str) -> str:
+    """Record that the participant's study is complete with a code, for `why`, unless it was
+    already (a request beside this one): the reason kept, first come."""
+    with transaction(session):
+        changed(session, update(Invitee).where(
+            Invitee.labeller_id == labeller_id, Invitee.completed_at.is_(None),
+        ).values(completed_at=utcnow(), completed_why=why))
+        kept = session.scalar(select(Invitee.completed_why)
+                              .where(Invitee.labeller_id == labeller_id))
+    return kept or why
 
 
 def _paused(session: Session, invite: Invite, labeller_id: int, live: list[int]) -> bool:

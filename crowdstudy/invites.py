@@ -169,7 +169,9 @@ def create_invite(
     a participant who asked this long with nothing to label finishes with their code
     (`labelqueue.waiting`; None: `WAIT_LIMIT_S`). `entry_pass`: an entry test, the practice
     answers of the run's `feedback.practice_pairs` a participant must get right to go on
-    (`labelqueue.entry_test`; Invalid unless from 1 to the run's practice pairs)."""
+    (`labelqueue.entry_test`; Invalid unless from 1 to the run's practice pairs). `note`,
+    `consent_text` and `pause_message` are stored without their outer white space; Invalid
+    for one that is nothing else (a consent text of spaces would ask no consent)."""
     if expires_at <= utcnow():
         raise Invalid("expires_at is in the past: an invite must expire in the future")
     for name, value in (("max_uses", max_uses), ("target_answers", target_answers),
@@ -177,6 +179,8 @@ def create_invite(
         if value is not None and value < 1:
             raise Invalid(f"{name} must be at least 1 (or left out), got {value}")
     redirect_url = check_redirect_url(redirect_url)
+    note, consent_text, pause_message = (_filled(name, text) for name, text in (
+        ("note", note), ("consent_text", consent_text), ("pause_message", pause_message)))
     with transaction(session):
         if run_id is not None:
             get_row(session, Run, run_id)
@@ -185,13 +189,21 @@ def create_invite(
             code=secrets.token_urlsafe(CODE_BYTES), run_id=run_id, note=note,
             expires_at=expires_at, max_uses=max_uses, uses=0, target_answers=target_answers,
             completion_code=completion_code, redirect_url=redirect_url,
-            consent_text=(consent_text or "").strip() or None,
-            pause_message=(pause_message or "").strip() or None, wait_limit_s=wait_limit_s,
+            consent_text=consent_text, pause_message=pause_message, wait_limit_s=wait_limit_s,
             entry_pass=entry_pass,
         )
         session.add(invite)
         detach(session, invite)
     return invite
+
+
+def _filled(name: str, text: str | None) -> str | None:
+    """`text` without its outer white space; Invalid when that is all it holds."""
+    if text is None:
+        return None
+    if not text.strip():
+        raise Invalid(f"{name} is blank: give some text besides white space, or leave it out")
+    return text.strip()
 
 
 def list_invites(session: Session) -> list[Invite]:
@@ -210,6 +222,14 @@ def read_invite(session: Session, *, code: str) -> Invite | None:
         if invite is not None:
             detach(session, invite)
     return invite
+
+
+def invite_run(session: Session, *, labeller_id: int) -> int | None:
+    """The one run the labeller's invite is for; None for an all-runs invite, or a labeller
+    who joined by none."""
+    with reading(session):
+        return session.scalar(select(Invite.run_id).join(Invitee, Invitee.invite_id == Invite.id)
+                              .where(Invitee.labeller_id == labeller_id))
 
 
 def revoke_invite(session: Session, *, invite_id: int) -> Invite:

@@ -23,7 +23,13 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from crowdstudy.completion import labeller_progress, participant_code, verify_code
+from crowdstudy.completion import (
+    code_owner,
+    code_owners,
+    labeller_progress,
+    participant_code,
+    verify_code,
+)
 from labelqueue.errors import NotFound
 from labelqueue.gold import gold_answer
 from labelqueue.keys import server_key
@@ -158,17 +164,32 @@ class CodeCheck:
     labeller_id: int | None
     invite_id: int | None
     why: str | None
-    """why their study is complete, or "not_complete", or "unknown" (nobody's code)"""
+    """why their study is complete, or "not_complete", or "unknown" (nobody's code), or
+    "other_study" (a participant's of another invite than the one checked for: not valid
+    here)"""
 
 
-def verify_codes(session: Session, codes: Iterable[str]) -> list[CodeCheck]:
+def verify_codes(session: Session, codes: Iterable[str], *,
+                 invite_id: int | None = None) -> list[CodeCheck]:
     """Each code of a list, in order: whose it is and whether it is earned. Blank lines are
-    left out; a code given twice is checked twice (and said so by the caller if it wants)."""
+    left out; a code given twice is checked twice (and said so by the caller if it wants).
+    With `invite_id` (NotFound for an unknown one), a code of another invite's participant is
+    "other_study", never valid. Whose each code is is looked up once for the whole list."""
+    if invite_id is not None:
+        with reading(session):
+            if session.get(Invite, invite_id) is None:
+                raise NotFound(f"invite {invite_id} does not exist")
+    owners = code_owners(session)
     out = []
     for code in (c.strip() for c in codes):
         if not code:
             continue
-        found = verify_code(session, code)
+        owner = code_owner(owners, code)
+        if owner is not None and invite_id not in (None, owner.invite.id):
+            out.append(CodeCheck(code, False, owner.participant, owner.labeller_id,
+                                 owner.invite.id, "other_study"))
+            continue
+        found = verify_code(session, code, owners=owners)
         if found is None:
             out.append(CodeCheck(code, False, None, None, None, "unknown"))
             continue

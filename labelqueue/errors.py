@@ -40,6 +40,12 @@ class OtherRun(QueueError):
     """The labeller joined by an invite for one run and asked for, or answered, another: they
     label their invite's run only."""
 
+    @classmethod
+    def asking(cls, own: int, asked: int | None) -> "OtherRun":
+        """The refusal of a one-run invitee (of run `own`) asking for run `asked`."""
+        return cls(f"you joined this study for run {own}: pairs of run {asked} are not yours "
+                   f"to label (ask for run {own}, or for no run)")
+
 
 class Invalid(QueueError, ValueError):
     """A value given to the operation is not valid; the message names it and what is valid. (A

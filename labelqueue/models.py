@@ -258,6 +258,10 @@ class Invitee(Base):
     nothing_left_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     """when they had waited the invite's `wait_limit_s` with nothing to label: their study is
     complete from then on ("nothing left to label")"""
+    completed_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    """when their study was first found complete with a code: it stays complete from then on,
+    why `completed_why` says, whatever their runs do later (`crowdstudy.completion`)"""
+    completed_why: Mapped[str | None] = mapped_column(String(20))
     entry_passed: Mapped[bool | None] = mapped_column(Boolean)
     """the invite's entry test, once decided (all practice pairs answered): passed, or failed
     and let go without a code; none: undecided, or no test (`labelqueue.entry_test`)"""

@@ -473,8 +473,7 @@ def _check_asker(holder: Sequence[Any], params: dict[str, Any], *, for_people: b
         raise EntryFailed(refusal(holder[0].entry_correct, holder[0].entry_pass))
     own = holder[0].invite_run
     if own is not None and run_id not in (None, own):
-        raise OtherRun(f"you joined this study for run {own}: pairs of run {run_id} are not "
-                       f"yours to label (ask for run {own}, or for no run)")
+        raise OtherRun.asking(own, run_id)
     if own is not None:
         params["run"] = own
     if for_people and run_id is not None:

@@ -231,6 +231,21 @@ with a 422 naming the field (the database would refuse it, in words about number
 _TEXT_CHAR = r"[^\x00-\x08\x0b\x0c\x0e-\x1f]"
 _VISIBLE_CHAR = r"[^\x00-\x20\x85\xa0\u1680\u2000-\u200a\u2028\u2029\u202f\u205f\u3000]"
 INSTRUCTION_PATTERN = f"^{_TEXT_CHAR}*{_VISIBLE_CHAR}{_TEXT_CHAR}*$"
+NOT_BLANK = f"^[^\\x00]*{_VISIBLE_CHAR}[^\\x00]*$"
+"""text without a NUL character and with something besides white space"""
+
+
+def _not_blank(text: str) -> str:
+    if not re.search(_VISIBLE_CHAR, _no_nul(text)):
+        raise ValueError("is blank: give some text besides white space, or leave it out")
+    return text.strip()
+
+
+FilledText = Annotated[str, AfterValidator(_not_blank),
+                       Field(json_schema_extra={"pattern": NOT_BLANK})]
+"""free text that must say something (a name, a note, a consent text): as `PlainText`, stored
+without its outer white space, and refused with a 422 naming the field when nothing else is
+left (a blank name, or a consent text of spaces that would ask no consent)"""
 InstructionText = Annotated[str, AfterValidator(clean_instruction),
                             Field(max_length=MAX_INSTRUCTION_CHARS,
                                   json_schema_extra={"minLength": 1,
@@ -252,7 +267,7 @@ class RunCreate(Body):
     teacher: TeacherKind = TeacherKind.HUMAN
     teacher_params: TeacherJson = Field(default_factory=dict, examples=[{"eps": 0.1}])
     config: RunConfigJson = Field(default_factory=dict, examples=[{"sac.lr": 1e-4}])
-    name: PlainText | None = Field(default=None, min_length=1, max_length=200)
+    name: FilledText | None = Field(default=None, min_length=1, max_length=200)
     """defaults to `<task>-<algo>-s<seed>`"""
     instruction: InstructionText | None = None
     """what labellers are told "better" means; defaults to the task's own instruction"""
@@ -288,7 +303,7 @@ class LabellingRunCreate(Body):
     teacher_params: TeacherJson = Field(default_factory=dict, examples=[{"eps": 0.1}])
     config: RunConfigJson = Field(default_factory=dict,
                                  examples=[{"reward.hidden_dim": 64}])
-    name: PlainText | None = Field(default=None, min_length=1, max_length=200)
+    name: FilledText | None = Field(default=None, min_length=1, max_length=200)
     """defaults to `label <dataset id>`"""
     instruction: InstructionText | None = None
     clip_size: ClipSizeName | None = None
@@ -353,7 +368,7 @@ class MetricOut(Out):
 
 
 class LabellerCreate(Body):
-    name: PlainText = Field(min_length=1, max_length=100)
+    name: FilledText = Field(min_length=1, max_length=100)
     role: Role = Role.LABELLER
 
 
@@ -363,7 +378,7 @@ class LabellerUpdate(Body):
     active: bool | None = None
     """false revokes the labeller's access (its labels stay); true restores it"""
     role: Role | None = None
-    name: PlainText | None = Field(default=None, min_length=1, max_length=100)
+    name: FilledText | None = Field(default=None, min_length=1, max_length=100)
 
 
 class LabellerOut(Out):
@@ -402,7 +417,8 @@ class Throughput(BaseModel):
     bucket_s: int
     total: int
     by_source: dict[str, int]
-    """labels per source: human, scripted, gold (every source present, 0 if none)"""
+    """labels per source: human, scripted (every `LabelSource` present, 0 if none; an answer
+    on a gold pair counts under the source that gave it)"""
     median_answer_s: float | None
     """median of answered_at - shown_at over the latest 1000 standing human labels that record
     shown_at; None if none"""

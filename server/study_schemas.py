@@ -12,8 +12,8 @@ from pydantic import BaseModel, Field
 from crowdstudy.invites import InviteState
 from server.schemas import (
     Body,
+    FilledText,
     Out,
-    PlainText,
     Positive,
 )
 
@@ -46,7 +46,7 @@ class InviteCreate(Body):
                                         pattern=r"^[A-Za-z0-9_-]+$")
     """the study's code (a platform's): the prefix of every participant's own completion code
     (`<this>-XXXX-XXXX-XXXX`); null: their own part alone"""
-    note: PlainText | None = Field(default=None, min_length=1, max_length=200)
+    note: FilledText | None = Field(default=None, min_length=1, max_length=200)
     """the operator's own name for the link"""
     redirect_url: str | None = Field(default=None, min_length=1, max_length=2000,
                                      pattern=REDIRECT_PATTERN,
@@ -55,9 +55,9 @@ class InviteCreate(Body):
     """where a participant is sent when their study is complete (a platform's completion URL):
     `{code}` and `{participant}` in it are filled in; without either, `participant=<id>` is
     added when the link was opened with one"""
-    consent_text: PlainText | None = Field(default=None, min_length=1, max_length=8000)
+    consent_text: FilledText | None = Field(default=None, min_length=1, max_length=8000)
     """shown on the invite's page: nobody joins without agreeing to it"""
-    pause_message: PlainText | None = Field(default=None, min_length=1, max_length=2000)
+    pause_message: FilledText | None = Field(default=None, min_length=1, max_length=2000)
     """what a participant paused by check pairs is told instead of being given their code (their
     code is then not earned: the message should ask them to return the study)"""
     wait_limit_s: Positive | None = None
@@ -234,6 +234,9 @@ class ParticipantOut(Out):
 class CodesRequest(Body):
     codes: list[str] = Field(min_length=1, max_length=2000)
     """completion codes as participants handed them in (blank ones are left out)"""
+    invite_id: Positive | None = None
+    """the study (invite) they were handed in for: another invite's participant's code is then
+    `other_study`, never valid; null: any invite's"""
 
 
 class CodeCheckOut(Out):
@@ -243,4 +246,7 @@ class CodeCheckOut(Out):
     participant: str | None
     labeller_id: int | None
     invite_id: int | None
-    why: StudyEnd | Literal["not_complete", "unknown"] | None
+    why: StudyEnd | Literal["not_complete", "unknown", "other_study"] | None
+    """why the study is complete; `not_complete`; `unknown`: nobody's code; `other_study`: a
+    participant's code of another invite than `invite_id` of the request (this `invite_id` is
+    theirs)"""

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from labelqueue import set_instruction
+from crowdstudy.invites import invite_run
+from labelqueue import OtherRun, set_instruction
 from runvocab.clip_format import (
     CLIP_FPS,
     CLIP_SIZES,
@@ -41,9 +42,14 @@ def put_instruction(
 @router.get(
     "/label/runs/{run_id}", tags=["label"], response_model=RunBrief, responses=errors(404, 422)
 )
-def run_brief(run_id: RunId, session: SessionDep, _: LabellerDep) -> RunBrief:
+def run_brief(run_id: RunId, session: SessionDep, caller: LabellerDep) -> RunBrief:
     """What the label page shows above a pair of this run: its instruction, and how fast its
-    clips play against the task's own time."""
+    clips play against the task's own time. A participant of a one-run invite reads that run's
+    only: another's is a 403 naming theirs, as `GET /api/label/next` answers."""
+    assert caller.labeller_id is not None
+    own = invite_run(session, labeller_id=caller.labeller_id)
+    if own is not None and own != run_id:
+        raise OtherRun.asking(own, run_id)
     run = services.get_run(session, run_id=run_id)
     text = run_instruction(run.task, run.instruction)
     width, height = CLIP_SIZES[run.clip_size or DEFAULT_CLIP_SIZE]

@@ -54,14 +54,17 @@ def get_participants(
     "/api/invites/verify-codes",
     tags=["invites"],
     response_model=list[CodeCheckOut],
-    responses=errors(400, 401, 403, 413, 422),
+    responses=errors(400, 401, 403, 404, 413, 422),
 )
 def post_verify_codes(body: CodesRequest, session: SessionDep,
                       _: OperatorDep) -> list[CodeCheckOut]:
     """Many completion codes at once, as participants handed them in: for each, whose it is
     and whether it is earned (`valid`: pay them); `why` "unknown" for nobody's code,
-    "not_complete" for a study not complete yet. Blank codes are left out."""
-    return [CodeCheckOut.model_validate(c) for c in verify_codes(session, body.codes)]
+    "not_complete" for a study not complete yet. Blank codes are left out. With `invite_id`
+    (404 for an unknown one), a code of another invite's participant is "other_study", not
+    valid for this one."""
+    return [CodeCheckOut.model_validate(c)
+            for c in verify_codes(session, body.codes, invite_id=body.invite_id)]
 
 
 @pages.get("/invites/{invite_id}/participants", response_class=HTMLResponse)

@@ -24,6 +24,7 @@ from crowdstudy.invites import (
 )
 from crowdstudy.participants import participants, verify_codes
 from labelqueue import (
+    Invalid,
     Invitee,
     LabellerPause,
     OtherRun,
@@ -150,6 +151,7 @@ def test_a_spent_budget_or_a_pause_completes_the_study_with_a_code_or_the_operat
                          pause_message="Please return the study on Prolific.")
     one = join_invite(session, code=coded.code).labeller
     two = join_invite(session, code=told.code).labeller
+    three = join_invite(session, code=coded.code).labeller  # never paused
     for labeller in (one, two):
         session.add(LabellerPause(run_id=run.id, labeller_id=labeller.id, gold_answers=4,
                                   gold_correct=1))
@@ -163,7 +165,8 @@ def test_a_spent_budget_or_a_pause_completes_the_study_with_a_code_or_the_operat
 
     with session.begin():
         session.execute(update(Run).where(Run.id == run.id).values(labels_used=100))
-    assert labeller_progress(session, labeller_id=one.id).why == "runs_over"
+    assert labeller_progress(session, labeller_id=one.id).why == "paused"  # found first, kept
+    assert labeller_progress(session, labeller_id=three.id).why == "runs_over"
 
 
 def test_consent_is_required_when_the_invite_has_a_text(session: Session) -> None:
@@ -173,6 +176,10 @@ def test_consent_is_required_when_the_invite_has_a_text(session: Session) -> Non
     with pytest.raises(ValueError, match="consent"):
         join_invite(session, code=invite.code)
     assert join_invite(session, code=invite.code, consent=True).labeller.id > 0
+    # A consent text of white space is refused, not taken for none (which asks no consent).
+    for field in ("consent_text", "pause_message", "note"):
+        with pytest.raises(Invalid, match=f"{field} is blank"):
+            create_invite(session, expires_at=week(), **{field: " \n\t "})
     with pytest.raises(ValueError, match="redirect_url"):
         create_invite(session, expires_at=week(), redirect_url="javascript:alert(1)")
 
@@ -320,11 +327,11 @@ def test_an_all_runs_study_ends_when_every_budget_is_spent_and_pauses_on_every_o
     [row] = participants(session, invite_id=invite.id)
     assert (row.paused, row.why, row.code_valid) == (True, "paused", True)
 
-    # Both budgets spent: the study is over, with their code.
+    # Both budgets spent: the study is over, with their code; it ended for them at the pause.
     spend(session, first.id, 100)
     progress = labeller_progress(session, labeller_id=pat.id)
-    assert (progress.complete, progress.why) == (True, "runs_over")
-    assert progress.completion_code is not None
+    assert (progress.complete, progress.why) == (True, "paused")
+    assert progress.completion_code == row.completion_code
 
 
 def test_a_one_run_participant_is_served_their_run_only_and_never_waits_on_another(

@@ -299,3 +299,37 @@ def test_a_deep_body_in_utf16_or_utf32_is_a_400_too(client: TestClient, encoding
     assert refused.status_code == 400, refused.text
     shallow = '{"choice": "left"}'.encode(encoding)
     assert not nests_deeper_than(shallow, JSON_DEPTH_LIMIT)
+
+
+def test_blank_names_notes_and_consent_texts_are_a_422_naming_the_field(
+    client: TestClient,
+) -> None:
+    blank = " \t\u3000\n "
+    new_labeller(client, "ann")
+    [ann] = client.get("/api/labellers", headers=OPERATOR).json()
+    refused = [
+        ("POST", "/api/labellers", {"name": blank}, "name"),
+        ("PATCH", f"/api/labellers/{ann['id']}", {"name": "   "}, "name"),
+        ("POST", "/api/runs", {"task": "dmc:cheetah_run", "algo": "pebble", "name": blank},
+         "name"),
+        ("POST", "/api/invites", {"note": "  "}, "note"),
+        # A consent text of spaces would let people join without agreeing to anything.
+        ("POST", "/api/invites", {"consent_text": blank}, "consent_text"),
+        ("POST", "/api/invites", {"pause_message": blank}, "pause_message"),
+    ]
+    for method, path, body, field in refused:
+        response = client.request(method, path, json=body, headers=OPERATOR)
+        assert response.status_code == 422, (path, body, response.text)
+        [problem] = response.json()["detail"]
+        assert problem["loc"] == ["body", field] and "blank" in problem["msg"], problem
+    assert [who["name"] for who in client.get("/api/labellers", headers=OPERATOR).json()] == [
+        "ann"]
+    assert client.get("/api/invites", headers=OPERATOR).json() == []
+    # Text with something in it is stored without its outer white space.
+    made = client.post("/api/labellers", json={"name": "  bob "}, headers=OPERATOR).json()
+    renamed = client.patch(f"/api/labellers/{ann['id']}", json={"name": "\tann-2 "},
+                           headers=OPERATOR).json()
+    study = client.post("/api/invites", headers=OPERATOR, json={
+        "note": " pilot ", "consent_text": "\n We keep your answers. \n"}).json()
+    assert (made["name"], renamed["name"], study["note"], study["consent_text"]) == (
+        "bob", "ann-2", "pilot", "We keep your answers.")

@@ -118,3 +118,23 @@ def test_bad_instructions_and_clip_sizes_are_a_422_naming_the_field(client: Test
                       headers=bearer(token)).status_code == 403
     assert client.get(f"/api/label/runs/{run['id']}", headers=OPERATOR).status_code == 403
     assert client.get(f"/api/label/runs/{run['id']}").status_code == 401
+
+
+def test_a_one_run_participant_reads_their_runs_instruction_only(client: TestClient) -> None:
+    mine, other = (new_run(client, instruction=f"Secret words of run {i}.")["id"]
+                   for i in (1, 2))
+    study = client.post("/api/invites", json={"run_id": mine}, headers=OPERATOR).json()
+    token = client.post(f"/api/join/{study['code']}", json={"participant": "p1"}).json()["token"]
+    assert client.get(f"/api/label/runs/{mine}", headers=bearer(token)).json()[
+        "instruction"] == "Secret words of run 1."
+    # Another run's instruction is refused as its pairs are, in the same words.
+    refused = client.get(f"/api/label/runs/{other}", headers=bearer(token))
+    pairs = client.get(f"/api/label/next?run_id={other}", headers=bearer(token))
+    assert refused.status_code == pairs.status_code == 403
+    assert refused.json() == pairs.json()
+    assert "Secret" not in refused.text and f"for run {mine}" in refused.text
+    # Joined by an all-runs invite, or by none: every run's.
+    everyone = client.post("/api/invites", json={}, headers=OPERATOR).json()
+    for who in (client.post(f"/api/join/{everyone['code']}", json={}).json()["token"],
+                new_labeller(client, "alice")):
+        assert client.get(f"/api/label/runs/{other}", headers=bearer(who)).status_code == 200

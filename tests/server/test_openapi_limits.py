@@ -101,6 +101,11 @@ def test_what_the_document_refuses_the_server_refuses_and_what_it_takes_the_serv
                                              "redirect_url": "https://e.org/x?cc={code}"},
                        headers=OPERATOR)
     assert made.status_code == 201, made.text
+    # Names, notes and consent texts: something besides white space (and no NUL).
+    consent = _schema(document, invite["consent_text"])
+    for text in ("We keep your answers.", " x ", "", " ", "\t\n", "\u3000", "\x01", "a\x00b"):
+        response = client.post("/api/invites", json={"consent_text": text}, headers=OPERATOR)
+        assert (response.status_code == 201) == _valid(consent, text), (text, response.text)
 
     # A run's config and teacher parameters: their field names and the JSON each takes.
     config = _schema(document, schemas["RunCreate"]["properties"]["config"])

@@ -15,7 +15,7 @@ from server_helpers import OPERATOR, bearer, running_run_with_queries
 from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
-from labelqueue import Invitee, Query
+from labelqueue import Invitee, LabellerPause, Query, claim_run
 from labelqueue.models import utcnow
 from server.app import create_app
 from server.settings import Settings
@@ -193,3 +193,82 @@ def test_participants_see_no_operator_link_and_may_decline_consent(client: TestC
     assert 'href="/runs"' in client.get("/runs").text
     join_page = client.get(f"/join/{made['code']}").text
     assert 'id="consent-decline"' in join_page and "nothing was recorded" in join_page
+
+
+def test_a_completion_found_with_a_code_stays_earned_whatever_the_run_does_later(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    run_id, _ = running_run_with_queries(client, session, settings, n=6)
+    study = invite(client, run_id=run_id, target_answers=5)
+    ann, bob, cat = (joined(client, study["code"], who) for who in ("ann", "bob", "cat"))
+    answer(client, ann["token"])
+
+    def progress(who: dict[str, Any]) -> dict[str, Any]:
+        body: dict[str, Any] = client.get("/api/label/progress",
+                                          headers=bearer(who["token"])).json()
+        return body
+
+    def checked(*codes: str) -> list[tuple[bool, str]]:
+        response = client.post("/api/invites/verify-codes", headers=OPERATOR,
+                               json={"codes": list(codes)})
+        return [(c["valid"], c["why"]) for c in response.json()]
+
+    # The operator stops the run: ann's page shows her code (bob looks at nothing meanwhile).
+    for stop in ("", "?force=true"):
+        assert client.post(f"/api/runs/{run_id}/stop{stop}", headers=OPERATOR).is_success
+    shown = progress(ann)
+    assert (shown["complete"], shown["why"], shown["counted"]) == (True, "runs_over", 1)
+    code = shown["completion_code"]
+    # The run is requeued and trains again: her code stays earned, and she may label more.
+    assert client.post(f"/api/runs/{run_id}/requeue", headers=OPERATOR).is_success
+    assert claim_run(session, worker_id="worker-1") is not None
+    assert answer(client, ann["token"]) is not None
+    again = progress(ann)
+    assert (again["complete"], again["why"], again["counted"]) == (True, "runs_over", 2)
+    assert again["completion_code"] == code
+    assert checked(code) == [(True, "runs_over")]
+    assert not progress(bob)["complete"]  # never found complete: nothing kept for him
+
+    # Check pairs pause cat: her code is shown; the operator lifts the pause; it stays earned.
+    with session.begin():
+        session.add(LabellerPause(run_id=run_id, labeller_id=cat["labeller_id"],
+                                  gold_answers=4, gold_correct=1))
+    paused = progress(cat)
+    assert (paused["complete"], paused["why"]) == (True, "paused")
+    assert client.delete(f"/api/quality/runs/{run_id}/pauses/{cat['labeller_id']}",
+                         headers=OPERATOR).status_code == 204
+    assert checked(paused["completion_code"], code) == [(True, "paused"), (True, "runs_over")]
+    rows = client.get(f"/api/invites/{study['id']}/participants", headers=OPERATOR).json()
+    assert [(r["participant"], r["complete"], r["why"], r["code_valid"], r["counted"])
+            for r in rows] == [("ann", True, "runs_over", True, 2),
+                               ("bob", False, None, False, 0),
+                               ("cat", True, "paused", True, 0)]
+
+
+def test_codes_checked_for_one_study_tell_another_studys_apart(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    run_id, _ = running_run_with_queries(client, session, settings, n=4)
+    mine, other = (invite(client, run_id=run_id, target_answers=1) for _ in range(2))
+    ann, zed = joined(client, mine["code"], "ann"), joined(client, other["code"], "zed")
+    codes = []
+    for who in (ann, zed):
+        answer(client, who["token"])
+        codes.append(client.get("/api/label/progress",
+                                headers=bearer(who["token"])).json()["completion_code"])
+
+    def checked(**scope: Any) -> list[tuple[bool, str, int | None]]:
+        response = client.post("/api/invites/verify-codes", headers=OPERATOR,
+                               json={"codes": [*codes, "AAAA-BBBB-CCCC"], **scope})
+        assert response.status_code == 200, response.text
+        return [(c["valid"], c["why"], c["invite_id"]) for c in response.json()]
+
+    # Checked for ann's study, zed's earned code is another study's: not to be paid there.
+    assert checked(invite_id=mine["id"]) == [
+        (True, "target", mine["id"]), (False, "other_study", other["id"]),
+        (False, "unknown", None)]
+    assert checked() == [(True, "target", mine["id"]), (True, "target", other["id"]),
+                         (False, "unknown", None)]
+    missing = client.post("/api/invites/verify-codes", headers=OPERATOR,
+                          json={"codes": codes, "invite_id": 999})
+    assert missing.status_code == 404 and "invite 999" in missing.json()["detail"]

@@ -1,6 +1,7 @@
 """A paid study on a phone, in a real headless Chromium: the practice pair's explanation is a
 screen of its own, a participant left with nothing to label finishes with their code after the
-invite's wait, and the operator's participants page lists them with the code earned. With
+invite's wait, and the operator's participants page lists them with the code earned and checks
+codes for this study (another study's code is not paid). With
 SEPOA_SCREENSHOT_DIR=docs it writes the three phone screenshots."""
 
 from __future__ import annotations
@@ -11,8 +12,10 @@ from sqlalchemy import update
 from test_study_browser import join_and_start, phone, screenshot
 from web_helpers import OPERATOR_TOKEN, LiveServer
 
+from crowdstudy.completion import participant_code
 from labelqueue.gold import GOLD_NEEDS_LABELS
-from labelqueue.models import Query
+from labelqueue.keys import server_key
+from labelqueue.models import Invite, Query
 
 
 def test_practice_nothing_left_and_the_list_to_pay_from_on_a_phone(
@@ -53,4 +56,17 @@ def test_practice_nothing_left_and_the_list_to_pay_from_on_a_phone(
     row = operator.inner_text("#participants-body tr")
     assert "P-pay" in row and code in row and "earned" in row and "1 practice" in row
     screenshot(operator, "participants-phone.png")
+    # Codes checked on this study's page: a code of another study's participant is not paid.
+    other = live.api("POST", "/api/invites", json={"run_id": run_id})
+    zed = live.api("POST", f"/api/join/{other['code']}", json={"participant": "Z-other"})
+    with live.sessions() as session:
+        others = participant_code(server_key(session), session.get_one(Invite, other["id"]),
+                                  zed["labeller_id"])
+    operator.fill("#codes", f"{code}\n{others}")
+    operator.click("#codes-form button[type=submit]")
+    operator.wait_for_selector("#codes-result li:nth-child(2)")
+    [paid, refused] = operator.locator("#codes-result li").all_inner_texts()
+    assert paid.startswith(f"{code} — pay P-pay")
+    assert refused == (f"{others} — another study's code (invite {other['id']}): not to be "
+                       "paid for this one")
     operator.context.close()

@@ -1,6 +1,6 @@
 // A study's participants, to pay from (operators): who joined, what they did, their code and
 // whether it is earned (GET /api/invites/<id>/participants), the same as a CSV file, and many
-// codes checked at once (POST /api/invites/verify-codes).
+// codes checked at once for this study (POST /api/invites/verify-codes with its invite_id).
 
 import { SignedOut, download, get, post, start } from "./api.js";
 import { el, notify } from "./dom.js";
@@ -45,13 +45,15 @@ async function load() {
 async function checkCodes(event) {
   event.preventDefault();
   const codes = $("codes").value.split(/\n/).map((c) => c.trim()).filter(Boolean);
-  const checked = await post("/api/invites/verify-codes", { codes });
+  const checked = await post("/api/invites/verify-codes", { codes, invite_id: Number(invite) });
   $("codes-result").replaceChildren(...checked.map((c) => el("li", { "data-valid": c.valid },
     el("code", {}, c.code), " — ",
     c.valid ? `pay ${c.participant ?? `labeller ${c.labeller_id}`} (${WHY[c.why] ?? c.why})`
       : c.why === "unknown" ? "nobody's code"
-        : c.why === "not_complete" ? `${c.participant ?? "?"}: not complete yet`
-          : `${c.participant ?? "?"}: ${WHY[c.why] ?? c.why}, not to be paid`)));
+        : c.why === "other_study"
+          ? `another study's code (invite ${c.invite_id}): not to be paid for this one`
+          : c.why === "not_complete" ? `${c.participant ?? "?"}: not complete yet`
+            : `${c.participant ?? "?"}: ${WHY[c.why] ?? c.why}, not to be paid`)));
 }
 
 function guard(task) {
