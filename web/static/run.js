@@ -118,6 +118,10 @@ async function showConfig() {
     }));
 }
 
+// The statuses in which a run's teacher may change (labelqueue.TEACHABLE): a run that ended,
+// or is ending, keeps the teacher it trained with (PUT /teacher is a 409).
+const TEACHABLE = ["queued", "running", "paused"];
+
 function teacherText(run) {
   // ε is set by the teacher parameters or by a config override; the API refuses both at once.
   const eps = run.teacher_params?.eps ?? run.config?.["teacher.eps"];
@@ -177,6 +181,12 @@ function showRun(run) {
     }, label)));
   showInstruction(run);
   const form = document.getElementById("teacher-form");
+  const teachable = TEACHABLE.includes(run.status);
+  form.hidden = !teachable;
+  const closed = document.getElementById("teacher-closed");
+  closed.hidden = teachable;
+  closed.textContent = teachable ? ""
+    : `This run is ${run.status}: it keeps the teacher it trained with, ${teacherText(run)}.`;
   if (!form.contains(document.activeElement)) { // leave what the operator is typing alone
     form.elements.teacher.value = run.teacher;
     form.elements.eps.value = run.teacher_params?.eps ?? "";
