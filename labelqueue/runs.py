@@ -434,13 +434,13 @@ def set_teacher(
     params: Mapping[str, Any] | None = None,
 ) -> Run:
     """Switch who answers a run's queries; the worker reads it when it opens its next round.
-    The run's stored configuration takes the new parameters (a ConfigError names a bad one).
-    InvalidTransition unless the run is one a worker still trains (`TEACHABLE`): a run that
-    ended keeps the teacher it trained with."""
+    The run's stored configuration takes the new parameters (a ConfigError names a bad one),
+    which replace its `config`'s own (`teacher.eps`). InvalidTransition unless the run is one
+    a worker still trains (`TEACHABLE`): a run that ended keeps the teacher it trained with."""
     with transaction(session):
-        resolved = with_teacher(get_row(session, Run, run_id), params or {})
+        config, resolved = with_teacher(get_row(session, Run, run_id), params or {})
         moved = changed(session, update(Run).where(Run.id == run_id, Run.status.in_(TEACHABLE))
-                        .values(teacher=TeacherKind(teacher),
+                        .values(teacher=TeacherKind(teacher), config=config,
                                 teacher_params=json_object(params or {}),
                                 **({} if resolved is None else {"resolved_config": resolved})))
         run = get_row(session, Run, run_id)

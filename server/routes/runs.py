@@ -263,18 +263,17 @@ def requeue_run(run_id: RunId, session: SessionDep, _: OperatorDep) -> RunOut:
     "/{run_id}/teacher", response_model=RunOut, responses=errors(400, 404, 409, 413, 422)
 )
 def put_teacher(run_id: RunId, body: TeacherUpdate, session: SessionDep, _: OperatorDep) -> RunOut:
-    """The run's teacher from now on, with its parameters checked as a worker will use them.
-    409 for a run no worker will train again (finished, failed, stopped, stopping: it keeps the
-    teacher it trained with) and for an external run (its client's people answer it, no teacher
-    a worker runs)."""
+    """The run's teacher from now on, with its parameters checked as a worker will use them;
+    they replace the run's `config`'s own (`teacher.eps`). 409 for a run no worker will train
+    again (finished, failed, stopped, stopping: it keeps the teacher it trained with) and for
+    an external run (its client's people answer it, no teacher a worker runs)."""
     if is_external(services.get_run(session, run_id=run_id)):
         raise HTTPException(409, f"run {run_id} is an external run: no worker trains it, so it "
                                  "has no teacher to set; the people of its invites answer it")
     try:
         run = set_teacher(session, run_id=run_id, teacher=body.teacher, params=body.params)
-    except ConfigError as err:
-        config = services.get_run(session, run_id=run_id).config
-        raise refusal(err, teacher_params=body.params, config=config, params_at="params") from None
+    except ConfigError as err:  # located in `params`, the one place the request gives it
+        raise refusal(err, teacher_params=body.params, config={}, params_at="params") from None
     return RunOut.model_validate(run)
 
 

@@ -122,9 +122,12 @@ async function showConfig() {
 // or is ending, keeps the teacher it trained with (PUT /teacher is a 409).
 const TEACHABLE = ["queued", "running", "paused"];
 
+/** The run's teacher ε as set: by the teacher parameters or by a config override (a run holds
+ * it once: a new run may not give both, and a switch's parameters replace the config's). */
+const epsOf = (run) => run.teacher_params?.eps ?? run.config?.["teacher.eps"];
+
 function teacherText(run) {
-  // ε is set by the teacher parameters or by a config override; the API refuses both at once.
-  const eps = run.teacher_params?.eps ?? run.config?.["teacher.eps"];
+  const eps = epsOf(run);
   if (run.teacher === "human") {
     return `people${eps != null ? ` (scripted shadow teacher ε=${eps})` : ""}`;
   }
@@ -189,7 +192,7 @@ function showRun(run) {
     : `This run is ${run.status}: it keeps the teacher it trained with, ${teacherText(run)}.`;
   if (!form.contains(document.activeElement)) { // leave what the operator is typing alone
     form.elements.teacher.value = run.teacher;
-    form.elements.eps.value = run.teacher_params?.eps ?? "";
+    form.elements.eps.value = epsOf(run) ?? "";
   }
 }
 
