@@ -256,3 +256,30 @@ def test_the_runs_page_shows_the_newest_runs_and_the_workers_heard_from_lately(
     assert page.locator("#runs-more").is_hidden()  # no older ones left
     page.wait_for_selector("#workers-body tr")
     assert page.locator("#workers-body tr[data-worker='restarted-long-ago']").count() == 0
+
+
+def test_an_operator_who_gives_themselves_a_new_token_stays_signed_in_with_it(
+        live: LiveServer, page: Any) -> None:
+    me = live.api("POST", "/api/labellers", json={"name": "operator-self", "role": "operator"})
+    page.on("dialog", lambda dialog: dialog.accept())
+    page.goto(f"{live.url}/runs#token={me['token']}")
+    row = "#labellers-body tr[data-labeller='operator-self']"
+    page.wait_for_selector(row)
+    page.wait_for_selector("#updated:text('updated')")
+    page.click(f"{row} button:text('New token')")
+    page.wait_for_selector("#new-token:not([hidden]) code")
+    new = page.inner_text("#new-token code")
+    assert new != me["token"]
+    # The runs poll (every 5 s) goes on with the new token: still signed in, the token shown.
+    before = page.inner_text("#updated")
+    page.wait_for_function(f"document.getElementById('updated').textContent !== {before!r}",
+                           timeout=15_000)
+    assert page.locator("#app").is_visible() and page.locator("#signin").is_hidden()
+    assert page.inner_text("#new-token code") == new
+    assert "this page now signs in with it" in page.inner_text("#new-token")
+    assert page.evaluate("localStorage.getItem('sepoa.operator-token')") == new
+    old = {"Authorization": f"Bearer {me['token']}"}
+    assert httpx.get(f"{live.url}/api/runs?limit=1", headers=old).status_code == 401
+    page.reload()  # a later visit signs in with it too
+    page.wait_for_selector(row)
+    assert page.locator("#signin").is_hidden()
