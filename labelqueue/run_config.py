@@ -61,13 +61,13 @@ def run_config(run: Run) -> RunConfig:
     its fields resolved against today's presets (a ConfigError when they no longer resolve)."""
     if run.resolved_config is not None:
         return from_json(run.resolved_config)
-    return _resolved_now(run, run.teacher_params)
+    return _resolved_now(run, run.teacher_params, run.config)
 
 
-def _resolved_now(run: Run, teacher_params: Mapping[str, Any]) -> RunConfig:
+def _resolved_now(run: Run, teacher_params: Mapping[str, Any],
+                  config: Mapping[str, Any]) -> RunConfig:
     return queued_run_config(task=run.task, algo=run.algo, preset=run.preset, seed=run.seed,
-                             budget=run.budget, teacher_params=teacher_params,
-                             config=run.config)
+                             budget=run.budget, teacher_params=teacher_params, config=config)
 
 
 def fields(stored: Mapping[str, Any]) -> dict[str, Any]:
@@ -87,14 +87,17 @@ def overridden(run: Run) -> list[str]:
     return [*run.config, *(f"teacher.{name}" for name in run.teacher_params)]
 
 
-def with_teacher(run: Run, params: Mapping[str, Any]) -> dict[str, Any] | None:
-    """The run's stored configuration with new teacher parameters (None for a run stored
-    without one): the teacher section as the run's overrides and `params` make it, the rest
-    as stored. A ConfigError names a bad or contradictory parameter."""
-    fresh = _resolved_now(run, params)
+def with_teacher(run: Run, params: Mapping[str, Any]
+                 ) -> tuple[dict[str, Any], dict[str, Any] | None]:
+    """The run's `config` and stored configuration (None for a run stored without one) with new
+    teacher parameters: `params` take the place of the config's own (`teacher.eps`), so the run
+    holds each once; the rest as stored. A ConfigError names a bad or contradictory parameter."""
+    given = {f"teacher.{name}" for name in params}
+    config = {path: value for path, value in run.config.items() if path not in given}
+    teacher = _resolved_now(run, params, config).teacher
     if run.resolved_config is None:
-        return None
-    return as_json(dataclasses.replace(from_json(run.resolved_config), teacher=fresh.teacher))
+        return config, None
+    return config, as_json(dataclasses.replace(from_json(run.resolved_config), teacher=teacher))
 
 
 def run_feedback(row: Any) -> Mapping[str, Any]:

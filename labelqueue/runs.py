@@ -61,6 +61,8 @@ WORKER_ENDS = (RunStatus.FINISHED, RunStatus.FAILED, RunStatus.STOPPED)
 """the statuses a worker may end its run with"""
 OWNED = (RunStatus.RUNNING, RunStatus.PAUSED, RunStatus.STOPPING)
 """the statuses in which a run belongs to its worker"""
+TEACHABLE = (RunStatus.QUEUED, RunStatus.RUNNING, RunStatus.PAUSED)
+"""the statuses in which a run's teacher may change: a worker trains it, or will"""
 
 
 def labels_per_query(run: Run) -> int:
@@ -432,12 +434,18 @@ def set_teacher(
     params: Mapping[str, Any] | None = None,
 ) -> Run:
     """Switch who answers a run's queries; the worker reads it when it opens its next round.
-    The run's stored configuration takes the new parameters (a ConfigError names a bad one)."""
+    The run's stored configuration takes the new parameters (a ConfigError names a bad one),
+    which replace its `config`'s own (`teacher.eps`). InvalidTransition unless the run is one
+    a worker still trains (`TEACHABLE`): a run that ended keeps the teacher it trained with."""
     with transaction(session):
+        config, resolved = with_teacher(get_row(session, Run, run_id), params or {})
+        moved = changed(session, update(Run).where(Run.id == run_id, Run.status.in_(TEACHABLE))
+                        .values(teacher=TeacherKind(teacher), config=config,
+                                teacher_params=json_object(params or {}),
+                                **({} if resolved is None else {"resolved_config": resolved})))
         run = get_row(session, Run, run_id)
-        resolved = with_teacher(run, params or {})
-        run.teacher = TeacherKind(teacher)
-        run.teacher_params = json_object(params or {})
-        run.resolved_config = resolved
+        if not moved:
+            raise InvalidTransition(f"run {run_id} is {run.status}: its teacher changes only "
+                                    "while it is queued, running or paused (requeue it first)")
         detach(session, run)
     return run

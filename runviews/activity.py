@@ -11,7 +11,7 @@ page shows a labeller the same in their terms when there is nothing for them to 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import datetime, timedelta
 from typing import Any, Literal
 
 from sqlalchemy import func, select, union
@@ -34,6 +34,9 @@ from labelqueue.transaction import reading
 
 LIVE_WORKER_S = 60.0
 """a worker heard from within this is alive (they report every few seconds, even when idle)"""
+RECENT_WORKER_S = 86_400.0
+"""the workers panel lists those heard from within this by default (a day: dead ones stay in
+sight long enough to be noticed)"""
 ACTIVE_LABELLER_S = 120.0
 """a labeller is active while leasing or answering: they answered one of the run's pairs
 within this, or hold a live lease taken within this (a page left open renews its leases, but
@@ -65,12 +68,19 @@ def _worker_state(worker: Worker, now: datetime) -> WorkerState:
                        worker.last_seen_at, silent, state)
 
 
-def list_workers(session: Session, now: datetime | None = None) -> list[WorkerState]:
-    """Every worker that ever reported, the most recently seen first."""
+def list_workers(session: Session, now: datetime | None = None,
+                 seen_within_s: float | None = RECENT_WORKER_S,
+                 limit: int | None = None) -> list[WorkerState]:
+    """The workers heard from within `seen_within_s` (None: every one that ever reported), the
+    most recently seen first, at most `limit` of them. Each worker process has a row of its own
+    (`host-pid`) that is never deleted, so every restart adds one: listing them all grows for
+    ever."""
     now = now or utcnow()
+    statement = select(Worker).order_by(Worker.last_seen_at.desc(), Worker.id).limit(limit)
+    if seen_within_s is not None:
+        statement = statement.where(Worker.last_seen_at >= now - timedelta(seconds=seen_within_s))
     with reading(session):
-        workers = list(session.scalars(select(Worker).order_by(Worker.last_seen_at.desc(),
-                                                               Worker.id)))
+        workers = list(session.scalars(statement))
         session.expunge_all()
     return [_worker_state(worker, now) for worker in workers]
 
@@ -152,7 +162,9 @@ def runs_activity(session: Session, runs: list[Run], now: datetime | None = None
             select(LabellerPause.run_id, LabellerPause.labeller_id)
             .where(LabellerPause.run_id.in_(ids))).all()
         active_rows = session.execute(select(answering.c.run_id, answering.c.labeller_id)).all()
-        workers = list(session.scalars(select(Worker)))
+        # Only the live ones count, and their number is bounded; the dead are not.
+        workers = list(session.scalars(select(Worker).where(
+            Worker.last_seen_at >= now - timedelta(seconds=LIVE_WORKER_S))))
         queued = session.execute(
             select(Run.id, Run.created_at).where(Run.status == RunStatus.QUEUED)
             .order_by(Run.created_at, Run.id)).all()

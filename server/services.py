@@ -44,9 +44,14 @@ def get_run(session: Session, *, run_id: int) -> Run:
     return run
 
 
-def list_runs(session: Session) -> list[Run]:
+def list_runs(session: Session, *, before: int | None = None,
+              limit: int | None = None) -> list[Run]:
+    """The runs older than run `before` (every run without it), oldest first; with `limit`,
+    the `limit` newest of them."""
+    statement = select(Run).where(*([Run.id < before] if before is not None else []))
     with reading(session):
-        return list(session.scalars(select(Run).order_by(Run.id)))
+        newest = list(session.scalars(statement.order_by(Run.id.desc()).limit(limit)))
+    return newest[::-1]
 
 
 def list_labellers(session: Session) -> list[Labeller]:

@@ -22,7 +22,7 @@ from labelqueue import (
 )
 from labelqueue import stop_run as stop_in_queue
 from labelqueue.run_config import as_json, fields, overridden, run_config
-from runviews.activity import list_workers, runs_activity
+from runviews.activity import RECENT_WORKER_S, list_workers, runs_activity
 from runvocab.config import typed_overrides
 from runvocab.names import ConfigError
 from server import curves, services
@@ -30,6 +30,7 @@ from server.deps import OperatorDep, SessionDep, SettingsDep
 from server.run_check import refusal, run_defaults
 from server.schemas import (
     CONFIG_MAX_BYTES,
+    INT32_MAX,
     ActivityOut,
     AfterStep,
     AlgoName,
@@ -173,9 +174,24 @@ def _pretraining_pace(session: Any) -> float | None:
     return None
 
 
-@router.get("", response_model=list[RunOut])
-def list_runs(session: SessionDep, _: OperatorDep) -> list[RunOut]:
-    return [RunOut.model_validate(run) for run in services.list_runs(session)]
+MAX_RUNS_PAGE = 1000
+"""the most runs one `GET /api/runs?limit=` lists"""
+
+
+@router.get("", response_model=list[RunOut], responses=errors(422))
+def list_runs(
+    session: SessionDep,
+    _: OperatorDep,
+    limit: Annotated[int | None, Query(ge=1, le=MAX_RUNS_PAGE, description=(
+        "the newest this many only (left out: every run)"))] = None,
+    before: Annotated[int | None, Query(ge=1, le=INT32_MAX,
+                                        description="runs older than this id only")] = None,
+) -> list[RunOut]:
+    """Every run, oldest first. A page: `limit=N` lists the N newest (older than run `before`
+    when given), still oldest first; the next older page is `before=<its first run's id>`. A
+    page of `limit` runs may have older ones before it; a shorter one has none."""
+    runs = services.list_runs(session, before=before, limit=limit)
+    return [RunOut.model_validate(run) for run in runs]
 
 
 @router.get("/{run_id}", response_model=RunOut, responses=errors(404, 422))
@@ -263,22 +279,36 @@ def requeue_run(run_id: RunId, session: SessionDep, _: OperatorDep) -> RunOut:
     "/{run_id}/teacher", response_model=RunOut, responses=errors(400, 404, 409, 413, 422)
 )
 def put_teacher(run_id: RunId, body: TeacherUpdate, session: SessionDep, _: OperatorDep) -> RunOut:
-    """The run's teacher from now on, with its parameters checked as a worker will use them
-    (409 for an external run: its client's people answer it, no teacher a worker runs)."""
+    """The run's teacher from now on, with its parameters checked as a worker will use them;
+    they replace the run's `config`'s own (`teacher.eps`). 409 for a run no worker will train
+    again (finished, failed, stopped, stopping: it keeps the teacher it trained with) and for
+    an external run (its client's people answer it, no teacher a worker runs)."""
     if is_external(services.get_run(session, run_id=run_id)):
         raise HTTPException(409, f"run {run_id} is an external run: no worker trains it, so it "
                                  "has no teacher to set; the people of its invites answer it")
     try:
         run = set_teacher(session, run_id=run_id, teacher=body.teacher, params=body.params)
-    except ConfigError as err:
-        config = services.get_run(session, run_id=run_id).config
-        raise refusal(err, teacher_params=body.params, config=config, params_at="params") from None
+    except ConfigError as err:  # located in `params`, the one place the request gives it
+        raise refusal(err, teacher_params=body.params, config={}, params_at="params") from None
     return RunOut.model_validate(run)
 
 
-@workers_router.get("", response_model=list[WorkerOut])
-def get_workers(session: SessionDep, _: OperatorDep) -> list[WorkerOut]:
-    """Every trainer worker that ever reported, the most recently seen first: its host, its
-    run, when it last reported, and whether it trains, idles, went silent (no word for a
-    minute) or is dead (five minutes: another worker may take its run)."""
-    return [WorkerOut(**vars(worker)) for worker in list_workers(session)]
+MAX_WORKERS = 1000
+"""the most workers one `GET /api/workers` lists"""
+
+
+@workers_router.get("", response_model=list[WorkerOut], responses=errors(422))
+def get_workers(
+    session: SessionDep,
+    _: OperatorDep,
+    every: Annotated[bool, Query(alias="all", description=(
+        "every worker that ever reported, not only those heard from in the last day"))] = False,
+    limit: Annotated[int, Query(ge=1, le=MAX_WORKERS)] = 100,
+) -> list[WorkerOut]:
+    """The trainer workers heard from in the last day (`all=true`: every one that ever
+    reported; each worker process is a row of its own, so each restart adds one), the most
+    recently seen first, at most `limit`: its host, its run, when it last reported, and
+    whether it trains, idles, went silent (no word for a minute) or is dead (five minutes:
+    another worker may take its run)."""
+    workers = list_workers(session, seen_within_s=None if every else RECENT_WORKER_S, limit=limit)
+    return [WorkerOut(**vars(worker)) for worker in workers]

@@ -10,7 +10,7 @@ from server_helpers import OPERATOR, new_run
 from sqlalchemy import update
 from sqlalchemy.orm import Session
 
-from labelqueue import Run, read_run
+from labelqueue import Run, claim_run, finish_run, read_run
 from labelqueue.run_config import run_config
 from runvocab.config import PRESETS
 
@@ -76,3 +76,43 @@ def test_a_teacher_switch_changes_the_stored_teacher(client: TestClient, session
     assert refused.status_code == 422
     assert refused.json()["detail"][0]["loc"] == ["body", "params", "eps"]
     assert run_config(read_run(session, run_id=run["id"])).teacher.eps == 0.4
+
+
+@pytest.mark.parametrize("end", ["finished", "failed", "stopped", "stopping"])
+def test_a_run_no_worker_asks_again_keeps_the_teacher_it_had(
+        client: TestClient, session: Session, end: str) -> None:
+    run = new_run(client, teacher="scripted", teacher_params={"eps": 0.1})
+    assert claim_run(session, worker_id="w") is not None
+    if end == "stopping":
+        client.post(f"/api/runs/{run['id']}/stop", headers=OPERATOR)
+    else:
+        finish_run(session, run_id=run["id"], worker_id="w", status=end)
+    before = client.get(f"/api/runs/{run['id']}/config", headers=OPERATOR).json()
+    refused = client.put(f"/api/runs/{run['id']}/teacher", headers=OPERATOR,
+                         json={"teacher": "human", "params": {"eps": 0.3}})
+    assert refused.status_code == 409, refused.text
+    assert f"run {run['id']} is {end}" in refused.json()["detail"]
+    stored = read_run(session, run_id=run["id"])
+    assert (stored.teacher, stored.teacher_params) == ("scripted", {"eps": 0.1})
+    assert client.get(f"/api/runs/{run['id']}/config", headers=OPERATOR).json() == before
+    assert before["values"]["teacher.eps"] == 0.1
+
+
+def test_a_switch_gives_a_new_eps_to_a_run_whose_config_set_it(
+        client: TestClient, session: Session) -> None:
+    run = new_run(client, teacher="scripted", config={"teacher.eps": 0.2, "sac.lr": 0.001})
+    switched = client.put(f"/api/runs/{run['id']}/teacher", headers=OPERATOR,
+                          json={"teacher": "scripted", "params": {"eps": 0.1}})
+    assert switched.status_code == 200, switched.text
+    # The parameters take the config's place: the run holds the eps once, the new one.
+    assert switched.json()["config"] == {"sac.lr": 0.001}
+    assert switched.json()["teacher_params"] == {"eps": 0.1}
+    shown = client.get(f"/api/runs/{run['id']}/config", headers=OPERATOR).json()
+    assert (shown["values"]["teacher.eps"], shown["values"]["sac.lr"]) == (0.1, 0.001)
+    assert sorted(shown["overridden"]) == ["sac.lr", "teacher.eps"]
+    # A switch that leaves eps out keeps the config's: only what `params` names is replaced.
+    other = new_run(client, name="other", config={"teacher.eps": 0.2})
+    kept = client.put(f"/api/runs/{other['id']}/teacher", headers=OPERATOR,
+                      json={"teacher": "scripted", "params": {}})
+    assert kept.status_code == 200 and kept.json()["config"] == {"teacher.eps": 0.2}
+    assert run_config(read_run(session, run_id=other["id"])).teacher.eps == 0.2

@@ -5,20 +5,26 @@ the labellers panel revokes, restores and re-keys a labeller."""
 from __future__ import annotations
 
 import json
+from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
 import httpx
+from sqlalchemy import func, select
 from web_helpers import OPERATOR_TOKEN, LiveServer
 
 from labelqueue import (
+    Run,
     RunStatus,
+    Worker,
     create_labeller,
+    heartbeat,
     lease_next_query,
     read_run,
     submit_label,
     write_metrics,
 )
+from labelqueue.models import utcnow
 
 
 def test_the_new_run_form_explains_refusals_and_creates_runs(live: LiveServer, page: Any) -> None:
@@ -183,3 +189,97 @@ def test_a_run_page_for_an_id_no_run_can_have_says_so_once(live: LiveServer, pag
     page.wait_for_selector("#loading", state="hidden")
     notice = page.inner_text("#notice")
     assert "greater than or equal to 1" in notice and "Could not refresh" not in notice
+
+
+def test_a_run_page_asks_only_for_new_curve_points_and_sees_a_resume_rewrite_them(
+        live: LiveServer, page: Any) -> None:
+    run_id = live.new_human_run()
+    worker = f"web-test-worker-{run_id}"
+
+    def episode(session: Any, step: int, value: float) -> None:
+        write_metrics(session, run_id=run_id, stream="episodes", step=step,
+                      values={"return": value, "labels_used": 0})
+
+    with live.sessions() as session:
+        heartbeat(session, run_id=run_id, worker_id=worker, step=2000)
+        episode(session, 1000, 100.0)
+        episode(session, 2000, 200.0)
+    asked: list[str] = []
+    page.on("request", lambda request: asked.append(request.url) if "/metrics?" in request.url
+            else None)
+    page.goto(f"{live.url}/runs/{run_id}#token={OPERATOR_TOKEN}")
+    dots = "#chart-return circle title"
+    page.wait_for_function(f"document.querySelectorAll('{dots}').length === 2")
+    with live.sessions() as session:
+        heartbeat(session, run_id=run_id, worker_id=worker, step=3000)
+        episode(session, 3000, 300.0)
+    page.wait_for_function(f"document.querySelectorAll('{dots}').length === 3", timeout=15_000)
+    # A worker resumes the run from its checkpoint at step 1500 and writes steps 2000 and 3000
+    # again: the page shows the new values, not the ones it had.
+    with live.sessions() as session:
+        heartbeat(session, run_id=run_id, worker_id=worker, step=1500)
+        episode(session, 2000, 222.0)
+        episode(session, 3000, 333.0)
+    page.wait_for_function(
+        f"[...document.querySelectorAll('{dots}')].map(t => t.textContent).join(' ')"
+        ".includes(': 222') && [...document.querySelectorAll('" + dots + "')]"
+        ".map(t => t.textContent).join(' ').includes(': 333')", timeout=20_000)
+    titles = page.eval_on_selector_all(dots, "ts => ts.map(t => t.textContent)")
+    assert len(titles) == 3 and not any(": 200" in t or ": 300" in t for t in titles), titles
+    # Episodes past the first refresh: only those after a step the page has (the empty streams
+    # are asked whole: there is nothing of them to send again).
+    episodes = [url for url in asked if "stream=episodes" in url]
+    assert "after_step" not in episodes[0] and len(episodes) > 2
+    assert all("after_step=" in url for url in episodes[1:]), episodes
+    live.stop_run(run_id)
+
+
+def test_the_runs_page_shows_the_newest_runs_and_the_workers_heard_from_lately(
+        live: LiveServer, page: Any) -> None:
+    with live.sessions() as session, session.begin():
+        have = session.scalar(select(func.count()).select_from(Run)) or 0
+        session.add_all(Run(name=f"old-{i}", task="dmc:cheetah_run", algo="pebble",
+                            preset="tiny", seed=i, config={}, teacher="human",
+                            teacher_params={}, budget=10, status="finished", progress={})
+                        for i in range(max(0, 105 - have)))
+        session.merge(Worker(id="restarted-long-ago", host="old-host",
+                             first_seen_at=utcnow() - timedelta(days=3),
+                             last_seen_at=utcnow() - timedelta(days=2)))
+    total = len(live.api("GET", "/api/runs"))
+    page.goto(f"{live.url}/runs#token={OPERATOR_TOKEN}")
+    page.wait_for_selector("#runs-body tr a")
+    assert page.locator("#runs-body tr").count() == 100  # the newest 100 of them
+    newest = max(run["id"] for run in live.api("GET", "/api/runs?limit=1"))
+    assert page.inner_text("#runs-body tr:first-child td:first-child") == str(newest)
+    page.click("#runs-more")
+    page.wait_for_function(f"document.querySelectorAll('#runs-body tr').length === {total}")
+    assert page.locator("#runs-more").is_hidden()  # no older ones left
+    page.wait_for_selector("#workers-body tr")
+    assert page.locator("#workers-body tr[data-worker='restarted-long-ago']").count() == 0
+
+
+def test_an_operator_who_gives_themselves_a_new_token_stays_signed_in_with_it(
+        live: LiveServer, page: Any) -> None:
+    me = live.api("POST", "/api/labellers", json={"name": "operator-self", "role": "operator"})
+    page.on("dialog", lambda dialog: dialog.accept())
+    page.goto(f"{live.url}/runs#token={me['token']}")
+    row = "#labellers-body tr[data-labeller='operator-self']"
+    page.wait_for_selector(row)
+    page.wait_for_selector("#updated:text('updated')")
+    page.click(f"{row} button:text('New token')")
+    page.wait_for_selector("#new-token:not([hidden]) code")
+    new = page.inner_text("#new-token code")
+    assert new != me["token"]
+    # The runs poll (every 5 s) goes on with the new token: still signed in, the token shown.
+    before = page.inner_text("#updated")
+    page.wait_for_function(f"document.getElementById('updated').textContent !== {before!r}",
+                           timeout=15_000)
+    assert page.locator("#app").is_visible() and page.locator("#signin").is_hidden()
+    assert page.inner_text("#new-token code") == new
+    assert "this page now signs in with it" in page.inner_text("#new-token")
+    assert page.evaluate("localStorage.getItem('sepoa.operator-token')") == new
+    old = {"Authorization": f"Bearer {me['token']}"}
+    assert httpx.get(f"{live.url}/api/runs?limit=1", headers=old).status_code == 401
+    page.reload()  # a later visit signs in with it too
+    page.wait_for_selector(row)
+    assert page.locator("#signin").is_hidden()

@@ -88,19 +88,26 @@ export async function getBlob(path) {
 
 /** The request, its refusals turned into errors, and its body as `read` reads it; all of it
  * within TIMEOUT_MS, else an ApiError of status 0 (as when the server cannot be reached). */
-async function send(method, path, body, read) {
+async function send(method, path, body, read, { retry = true } = {}) {
   if (!token) throw new SignedOut();
-  const headers = { Authorization: `Bearer ${token}` };
-  if (body !== undefined) headers["Content-Type"] = "application/json";
   const abort = new AbortController();
   const timer = setTimeout(() => abort.abort(), TIMEOUT_MS);
+  const call = (bearer) => fetch(path, {
+    method,
+    headers: { Authorization: `Bearer ${bearer}`,
+      ...(body === undefined ? {} : { "Content-Type": "application/json" }) },
+    body: body === undefined ? undefined : JSON.stringify(body),
+    signal: abort.signal,
+  });
   try {
-    const response = await fetch(path, {
-      method,
-      headers,
-      body: body === undefined ? undefined : JSON.stringify(body),
-      signal: abort.signal,
-    });
+    const sent = token;
+    let response = await call(sent);
+    // Refused at the door (nothing was done): perhaps this page's token was just replaced.
+    const other = response.status === 401 && retry ? await tokenAfter(sent) : null;
+    if (other) {
+      response = await call(other);
+      if (response.ok && token !== other) adopt(other);
+    }
     await refuse(response);
     return await read(response);
   } catch (error) {
@@ -111,6 +118,41 @@ async function send(method, path, body, read) {
       : "the server could not be reached");
   } finally {
     clearTimeout(timer);
+  }
+}
+
+// A labeller's new token (POST /api/labellers/{id}/token) stops the old one at once. When the
+// labeller is the operator signed in here, the page goes on with the new token, not signed out.
+let replacing = null; // while this page gives a labeller a new token: a promise of that token
+
+/** After a 401 to a request sent with `sent`, the token to try instead, if any: the page's own
+ * when it took another meanwhile, else the one it is giving a labeller now (its own if the
+ * labeller is the one signed in here: the retry says). */
+async function tokenAfter(sent) {
+  if (token && token !== sent) return token;
+  const fresh = replacing && (await replacing);
+  return fresh && fresh !== sent ? fresh : null;
+}
+
+function adopt(fresh) {
+  token = fresh;
+  localStorage.setItem(STORAGE[role], fresh);
+}
+
+/** A new token for labeller `id` ({id, name, role, token}, shown once); `own` when it was the
+ * labeller signed in here, whose old token is refused from now on: the page (and this browser,
+ * next time) signs in with the new one instead. */
+export async function newLabellerToken(id) {
+  const sent = token;
+  const made = send("POST", `/api/labellers/${id}/token`, undefined, (r) => r.json(),
+    { retry: false });
+  replacing = made.then((data) => data.token, () => null);
+  try {
+    const data = await made;
+    await get("/api/runs?limit=1"); // is the old token refused now? (then the new one is ours)
+    return { ...data, own: token === data.token && token !== sent };
+  } finally {
+    replacing = null;
   }
 }
 

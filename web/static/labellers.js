@@ -1,7 +1,7 @@
 // The labellers table on the runs page: revoke or restore access, switch role, give a new token;
 // below it, each labeller's quality for all runs or one (quality.js).
 
-import { SignedOut, get, request } from "./api.js";
+import { SignedOut, get, newLabellerToken, request } from "./api.js";
 import { el, notify } from "./dom.js";
 import { startQuality } from "./quality.js";
 
@@ -67,9 +67,12 @@ async function change(who, body, done, ask) {
 async function newToken(who) {
   if (!confirm(`Give ${who.name} a new token? The old one stops working.`)) return;
   try {
-    const { data } = await request("POST", `/api/labellers/${who.id}/token`);
+    // When `who` is the operator signed in here, the page goes on with the new token.
+    const data = await newLabellerToken(who.id);
     const shown = document.getElementById("new-token");
-    shown.replaceChildren(`New token for ${data.name} (shown once): `, el("code", {}, data.token));
+    shown.replaceChildren(`New token for ${data.name} (shown once): `, el("code", {}, data.token),
+      data.own ? ". It was this page's own token: this page now signs in with it; keep it "
+        + "to sign in elsewhere." : null);
     shown.hidden = false;
   } catch (error) {
     if (!(error instanceof SignedOut)) notify(`${who.name}: ${error.message}`, "error");

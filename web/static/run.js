@@ -16,11 +16,9 @@ const refresh = poller(async () => {
   try {
     const run = await get(`/api/runs/${runId}`);
     const bucket = bucketFor(run);
-    const [activity, episodes, evals, rounds, throughput, flags] = await Promise.all([
+    const [activity, [episodes, evals, rounds], throughput, flags] = await Promise.all([
       get(`/api/runs/${runId}/activity`),
-      get(`/api/runs/${runId}/metrics?stream=episodes`),
-      get(`/api/runs/${runId}/metrics?stream=eval`),
-      get(`/api/runs/${runId}/metrics?stream=rounds`),
+      readMetrics(run),
       get(`/api/runs/${runId}/throughput?bucket_s=${bucket}`),
       get(`/api/runs/${runId}/flags`),
     ]);
@@ -46,6 +44,33 @@ const refresh = poller(async () => {
   }
   return true;
 }, 5000);
+
+// The run's three curves, kept here by step and asked for only past what the page has
+// (`after_step`): a run of many episodes would send them all every 5 s otherwise. A resumed run
+// rewrites the steps after its checkpoint, which may be steps the page has: so the page asks
+// from the step the run had reached at its last refresh when that is lower (it is, after a
+// resume), and a step sent again replaces the one kept.
+const STREAMS = ["episodes", "eval", "rounds"];
+const curves = Object.fromEntries(STREAMS.map((stream) => [stream, new Map()]));
+const lastStep = Object.fromEntries(STREAMS.map((stream) => [stream, -1]));
+let stepBefore = null; // the run's step as the previous refresh read it
+
+async function readMetrics(run) {
+  const fresh = await Promise.all(STREAMS.map((stream) => {
+    const after = Math.min(lastStep[stream], stepBefore ?? Infinity);
+    const since = after >= 0 ? `&after_step=${after}` : "";
+    return get(`/api/runs/${runId}/metrics?stream=${stream}${since}`);
+  }));
+  stepBefore = Math.max(0, run.step - 1); // a row of that very step may come after this read
+  return STREAMS.map((stream, i) => {
+    const kept = curves[stream];
+    for (const row of fresh[i]) {
+      kept.set(row.step, row);
+      lastStep[stream] = Math.max(lastStep[stream], row.step);
+    }
+    return [...kept.values()].sort((a, b) => a.step - b.step);
+  });
+}
 
 // The report's figure (the run beside its peers), drawn by the server; redrawn only when this
 // run has a new evaluation, as drawing it costs the server a fraction of a second.
@@ -118,9 +143,16 @@ async function showConfig() {
     }));
 }
 
+// The statuses in which a run's teacher may change (labelqueue.TEACHABLE): a run that ended,
+// or is ending, keeps the teacher it trained with (PUT /teacher is a 409).
+const TEACHABLE = ["queued", "running", "paused"];
+
+/** The run's teacher ε as set: by the teacher parameters or by a config override (a run holds
+ * it once: a new run may not give both, and a switch's parameters replace the config's). */
+const epsOf = (run) => run.teacher_params?.eps ?? run.config?.["teacher.eps"];
+
 function teacherText(run) {
-  // ε is set by the teacher parameters or by a config override; the API refuses both at once.
-  const eps = run.teacher_params?.eps ?? run.config?.["teacher.eps"];
+  const eps = epsOf(run);
   if (run.teacher === "human") {
     return `people${eps != null ? ` (scripted shadow teacher ε=${eps})` : ""}`;
   }
@@ -177,9 +209,15 @@ function showRun(run) {
     }, label)));
   showInstruction(run);
   const form = document.getElementById("teacher-form");
+  const teachable = TEACHABLE.includes(run.status);
+  form.hidden = !teachable;
+  const closed = document.getElementById("teacher-closed");
+  closed.hidden = teachable;
+  closed.textContent = teachable ? ""
+    : `This run is ${run.status}: it keeps the teacher it trained with, ${teacherText(run)}.`;
   if (!form.contains(document.activeElement)) { // leave what the operator is typing alone
     form.elements.teacher.value = run.teacher;
-    form.elements.eps.value = run.teacher_params?.eps ?? "";
+    form.elements.eps.value = epsOf(run) ?? "";
   }
 }
 

@@ -1,16 +1,24 @@
-// The runs table and the workers panel (refreshed every few seconds), the runs' controls, and
-// the new-run form, which shows the preset's budget and clip length and when the first pairs
-// come (GET /api/runs/defaults).
+// The runs table (the newest runs, older ones on demand) and the workers panel (those heard from
+// lately), refreshed every few seconds; the runs' controls; and the new-run form, which shows
+// the preset's budget and clip length and when the first pairs come (GET /api/runs/defaults).
 
 import { SignedOut, get, post, start } from "./api.js";
 import { ago, el, lastReturn, listErrors, notify, num, poller, runActions } from "./dom.js";
 import { loadInvites, startInvites } from "./invites.js";
 import { loadLabellers } from "./labellers.js";
 
+const PAGE = 100; // the newest runs the table shows; "Show older runs" adds as many again
+let shown = PAGE;
+
 const refresh = poller(async () => {
   try {
-    const [runs, workers] = await Promise.all([get("/api/runs"), get("/api/workers")]);
-    render(runs, workers);
+    // One more than shown: whether there are older ones. The workers: those heard from in the
+    // last day (GET /api/workers?all=true lists every one that ever reported).
+    const [page, workers] = await Promise.all([get(`/api/runs?limit=${shown + 1}`),
+      get("/api/workers")]);
+    const older = page.length > shown;
+    render(older ? page.slice(1) : page, workers);
+    document.getElementById("runs-more").hidden = !older;
     renderWorkers(workers);
     document.getElementById("updated").textContent =
       `updated ${new Date().toLocaleTimeString()}`;
@@ -213,6 +221,10 @@ function showClipNote(data = JSON.parse(document.getElementById("new-run").datas
 }
 
 start(() => {
+  document.getElementById("runs-more").addEventListener("click", () => {
+    shown += PAGE;
+    refresh();
+  });
   const form = document.getElementById("new-run");
   for (const name of ["task", "algo", "preset"]) {
     form.elements[name].addEventListener("change", showDefaults);
