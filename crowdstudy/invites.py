@@ -207,20 +207,23 @@ def _filled(name: str, text: str | None) -> str | None:
 
 
 def list_invites(session: Session) -> list[Invite]:
-    with transaction(session):
-        return list(session.scalars(select(Invite).order_by(Invite.id)))
+    """Every invite, oldest first (a read: on SQLite it takes no write lock)."""
+    with reading(session):
+        return list(session.scalars(select(Invite).order_by(Invite.id)
+                                    .execution_options(populate_existing=True)))
 
 
 def read_invite(session: Session, *, code: str) -> Invite | None:
-    """The invite with this code, or None."""
+    """The invite with this code, or None (a read: on SQLite it takes no write lock, so
+    anyone opening a link, unauthenticated, never waits for a writer nor makes one wait)."""
     if not CODE.fullmatch(code):
         return None
-    with transaction(session):
+    with reading(session):
         invite = session.scalars(
             select(Invite).where(Invite.code == code).execution_options(populate_existing=True)
         ).one_or_none()
         if invite is not None:
-            detach(session, invite)
+            session.expunge(invite)
     return invite
 
 

@@ -10,7 +10,7 @@ from datetime import timedelta
 
 import pytest
 from queue_helpers import query_spec, running_run
-from sqlalchemy import select, update
+from sqlalchemy import Engine, select, update
 from sqlalchemy.orm import Session
 
 from crowdstudy.completion import completion_redirect, labeller_progress, verify_code
@@ -21,6 +21,7 @@ from crowdstudy.invites import (
     invite_state,
     join_invite,
     list_invites,
+    read_invite,
 )
 from crowdstudy.participants import participants, verify_codes
 from labelqueue import (
@@ -38,11 +39,13 @@ from labelqueue import (
     create_run,
     heartbeat,
     lease_next_query,
+    make_engine,
     push_queries,
     read_run,
     set_labeller_active,
     set_run_status,
     submit_label,
+    without_waiting,
 )
 from labelqueue.models import utcnow
 from labelqueue.waiting import finish_if_waited
@@ -439,3 +442,20 @@ def test_an_all_runs_study_made_before_its_runs_waits_for_them(session: Session)
     early = join_invite(session, code=invite.code, participant="early").labeller
     progress = labeller_progress(session, labeller_id=early.id)
     assert (progress.complete, progress.why, progress.completion_code) == (False, None, None)
+
+
+def test_reading_invites_takes_no_write_lock(
+    engine: Engine, url: str, session: Session
+) -> None:
+    if engine.dialect.name != "sqlite":
+        pytest.skip("SQLite's write lock")
+    invite = create_invite(session, expires_at=week())
+    other = make_engine(url)  # as another process writing: SQLite's lock only
+    try:
+        with other.connect() as holder, holder.begin(), without_waiting():
+            # Opening a link (GET /join/<code>) and listing the invites wait for no writer.
+            found = read_invite(session, code=invite.code)
+            assert found is not None and found.id == invite.id
+            assert [i.id for i in list_invites(session)] == [invite.id]
+    finally:
+        other.dispose()
