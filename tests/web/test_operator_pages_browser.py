@@ -184,11 +184,21 @@ def test_the_pages_show_a_teacher_error_rate_set_by_a_config_override(
 
 
 def test_a_run_page_for_an_id_no_run_can_have_says_so_once(live: LiveServer, page: Any) -> None:
-    page.goto(f"{live.url}/runs/-5#token={OPERATOR_TOKEN}")
+    asked: list[str] = []
+    page.on("request", lambda request: asked.append(request.url) if "/api/" in request.url
+            else None)
+    page.clock.install()  # the page's timers run when the test says
+    with page.expect_response(lambda response: "/api/quality/agreement" in response.url) as card:
+        page.goto(f"{live.url}/runs/-5#token={OPERATOR_TOKEN}")
+    assert card.value.status == 422
     page.wait_for_selector("#notice:not([hidden])")
     page.wait_for_selector("#loading", state="hidden")
     notice = page.inner_text("#notice")
     assert "greater than or equal to 1" in notice and "Could not refresh" not in notice
+    first = sorted(asked)
+    page.clock.run_for(95_000)  # past every refresh period of the page (5 s, 30 s)
+    page.wait_for_timeout(500)
+    assert sorted(asked) == first, "asked again"  # every refresh stopped
 
 
 def test_a_run_page_asks_only_for_new_curve_points_and_sees_a_resume_rewrite_them(
@@ -283,3 +293,28 @@ def test_an_operator_who_gives_themselves_a_new_token_stays_signed_in_with_it(
     page.reload()  # a later visit signs in with it too
     page.wait_for_selector(row)
     assert page.locator("#signin").is_hidden()
+
+
+def test_the_invites_and_labellers_panels_refresh_and_link_each_links_participants(
+        live: LiveServer, page: Any) -> None:
+    run_id = live.new_human_run()
+    invite = live.api("POST", "/api/invites", json={"run_id": run_id, "note": "refreshed"})
+    page.clock.install()
+    page.goto(f"{live.url}/runs#token={OPERATOR_TOKEN}")
+    row = f"#invites-body tr[data-invite='{invite['id']}']"
+    page.wait_for_selector(row)
+    link = page.locator(f"{row} a.participants-link")
+    assert link.get_attribute("href") == f"/invites/{invite['id']}/participants"
+    assert page.inner_text(f"{row} td:nth-child(4)") == "0"
+    assert page.locator("#labellers-body tr[data-labeller='late-comer']").count() == 0
+
+    httpx.post(f"{live.url}/api/join/{invite['code']}", json={"participant": "P-REFRESH"})
+    live.api("POST", "/api/labellers", json={"name": "late-comer"})
+    live.stop_run(run_id)  # its link closes: nobody can join any more
+    page.clock.run_for(31_000)
+    page.wait_for_selector(f"{row} td:nth-child(4):text-is('1')")
+    page.wait_for_selector(f"{row} .badge:text-is('closed')")
+    page.wait_for_selector("#labellers-body tr[data-labeller='late-comer']")
+    page.click(f"{row} a.participants-link")
+    page.wait_for_url(f"**/invites/{invite['id']}/participants")
+    page.wait_for_selector("#participants-body :text('P-REFRESH')")

@@ -1,8 +1,11 @@
-// The invite links panel on the runs page: make a link (for one run or all), copy it, revoke it,
+// The invite links panel on the runs page (refreshed every 30 s): make a link (for one run or
+// all), copy it, revoke it, open its participants page (/invites/<id>/participants: who to pay),
 // and check a participant's completion code (POST /api/invites/verify).
 
 import { SignedOut, get, post } from "./api.js";
-import { ago, el, listErrors, notify } from "./dom.js";
+import { ago, el, listErrors, notify, poller } from "./dom.js";
+
+const REFRESH_MS = 30_000; // uses, and links closing as their runs end or they expire
 
 export function startInvites() {
   document.getElementById("new-invite").addEventListener("submit", createInvite);
@@ -38,19 +41,24 @@ async function verifyCode(event) {
   }
 }
 
-export async function loadInvites() {
+/** The links (and the runs they may be for) now, and every REFRESH_MS from then on while the
+ * tab is visible. */
+export const loadInvites = poller(async () => {
   try {
     const [invites, runs] = await Promise.all([get("/api/invites"), get("/api/runs")]);
     fillRuns(runs);
     render(invites, new Map(runs.map((run) => [run.id, run])));
   } catch (error) {
-    if (!(error instanceof SignedOut)) notify(`Could not load the invite links: ${error.message}`, "error");
+    if (error instanceof SignedOut) return false;
+    notify(`Could not load the invite links: ${error.message}`, "error");
   }
-}
+  return true;
+}, REFRESH_MS);
 
 /** The runs a link may be for: those taught by people that have not ended. */
 function fillRuns(runs) {
   const select = document.querySelector("#new-invite [name=run_id]");
+  if (select === document.activeElement) return; // being chosen from: left alone until next time
   const chosen = select.value;
   const open = runs.filter((run) => run.teacher === "human"
     && !["stopped", "finished", "failed"].includes(run.status));
@@ -116,6 +124,8 @@ function render(invites, runs) {
       title: invite.state === "closed" ? "its run is over: nobody can join" : null },
     invite.state.replace("_", " "))),
     el("td", { class: "actions" },
+      el("a", { href: `/invites/${invite.id}/participants`, class: "small participants-link" },
+        "Participants"), " ",
       el("button", { type: "button", class: "small", onclick: () => copy(invite) }, "Copy link"),
       invite.state === "revoked" ? null
         : el("button", { type: "button", class: "small", onclick: () => revoke(invite) }, "Revoke")),

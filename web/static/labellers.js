@@ -1,17 +1,27 @@
-// The labellers table on the runs page: revoke or restore access, switch role, give a new token;
-// below it, each labeller's quality for all runs or one (quality.js).
+// The labellers table on the runs page (refreshed every 30 s): revoke or restore access, switch
+// role, give a new token; below it, each labeller's quality for all runs or one (quality.js).
 
 import { SignedOut, get, newLabellerToken, request } from "./api.js";
-import { el, notify } from "./dom.js";
+import { el, notify, poller } from "./dom.js";
 import { startQuality } from "./quality.js";
 
-export async function loadLabellers() {
-  startQuality();
+const REFRESH_MS = 30_000; // others' changes (a revocation by the CLI, a participant joining)
+
+const refreshLabellers = poller(async () => {
   try {
     render(await get("/api/labellers"));
   } catch (error) {
-    if (!(error instanceof SignedOut)) notify(`Could not load the labellers: ${error.message}`, "error");
+    if (error instanceof SignedOut) return false;
+    notify(`Could not load the labellers: ${error.message}`, "error");
   }
+  return true;
+}, REFRESH_MS);
+
+/** The table now, and every REFRESH_MS from then on while the tab is visible; the quality
+ * table too (started by the first call, refreshed by later ones). */
+export function loadLabellers() {
+  startQuality();
+  refreshLabellers();
 }
 
 function render(labellers) {

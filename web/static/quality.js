@@ -155,7 +155,9 @@ async function loadAgreement(runId) {
     showAgreement(await get(`/api/quality/agreement?run_id=${runId}`));
   } catch (error) {
     if (error instanceof SignedOut) return false;
-    if (error.status === 404) return false; // run.js says the run is unknown
+    // No such run (404), or an id no run can have (422, /runs/-5): run.js says so; asking again
+    // changes nothing.
+    if (error.status === 404 || error.status === 422) return false;
     document.getElementById("agreement-facts").replaceChildren(
       el("dt", {}, "Error"), el("dd", { class: "error" }, error.message));
   }
