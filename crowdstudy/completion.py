@@ -133,13 +133,15 @@ def code_owner(owners: dict[str, Owner], code: str) -> Owner | None:
     return owner
 
 
-def verify_code(session: Session, code: str, *,
-                owners: dict[str, Owner] | None = None) -> Verified | None:
+def verify_code(session: Session, code: str) -> Verified | None:
     """Whose completion code this is and how far they got, or None when it is no participant's
-    (`code_owner`). Checking many codes, pass `owners` (`code_owners`), made once for all."""
-    owner = code_owner(code_owners(session) if owners is None else owners, code)
-    if owner is None:
-        return None
+    (`code_owner`; checking many codes, make `code_owners` once and call `verified`)."""
+    owner = code_owner(code_owners(session), code)
+    return None if owner is None else verified(session, owner)
+
+
+def verified(session: Session, owner: Owner) -> Verified:
+    """How far the owner of a code got, and whether the code is earned."""
     invite = owner.invite
     progress = labeller_progress(session, labeller_id=owner.labeller_id)
     return Verified(invite.id, owner.labeller_id, owner.labeller, progress.participant,

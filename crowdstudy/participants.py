@@ -28,7 +28,7 @@ from crowdstudy.completion import (
     code_owners,
     labeller_progress,
     participant_code,
-    verify_code,
+    verified,
 )
 from labelqueue.errors import NotFound
 from labelqueue.gold import gold_answer
@@ -185,14 +185,14 @@ def verify_codes(session: Session, codes: Iterable[str], *,
         if not code:
             continue
         owner = code_owner(owners, code)
-        if owner is not None and invite_id not in (None, owner.invite.id):
+        if owner is None:
+            out.append(CodeCheck(code, False, None, None, None, "unknown"))
+            continue
+        if invite_id not in (None, owner.invite.id):
             out.append(CodeCheck(code, False, owner.participant, owner.labeller_id,
                                  owner.invite.id, "other_study"))
             continue
-        found = verify_code(session, code, owners=owners)
-        if found is None:
-            out.append(CodeCheck(code, False, None, None, None, "unknown"))
-            continue
+        found = verified(session, owner)
         out.append(CodeCheck(code, found.earned, found.participant, found.labeller_id,
                              found.invite_id, found.why if found.complete else "not_complete"))
     return out
