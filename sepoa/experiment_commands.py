@@ -32,7 +32,7 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
-from sepoa.parser import Command, DefaultsHelpFormatter, fail
+from sepoa.parser import Command, DefaultsHelpFormatter, database_url_file_argument, fail
 from sepoa.supervisor import Supervisor
 
 STOP_GRACE_S = 120.0
@@ -44,9 +44,7 @@ small-preset S-EPOA round on a busy core); a second Ctrl-C ends the workers at o
 def _database(p: argparse.ArgumentParser, default: str = "sqlite:///<results>/queue.db") -> None:
     p.add_argument("--database-url", default=None,
                    help=f"the queue database (env SEPOA_DATABASE_URL; default {default})")
-    p.add_argument("--database-url-file", default=None, metavar="FILE",
-                   help="a file (mode 600) holding the queue database's URL, to keep a "
-                   "password out of commands and scripts (env SEPOA_DATABASE_URL_FILE)")
+    database_url_file_argument(p)
 
 
 def say(line: str) -> None:

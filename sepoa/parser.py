@@ -101,6 +101,13 @@ def environment(name: str, default: str, kind: Callable[[str], Any]) -> Any:
         raise ValueError(f"{name}={err}") from None
 
 
+def database_url_file_argument(p: argparse.ArgumentParser, default: Any = None) -> None:
+    """`--database-url-file`, as every command that opens the queue takes it."""
+    p.add_argument("--database-url-file", default=default, metavar="FILE",
+                   help="a file (mode 600) holding the queue database's URL, to keep a "
+                   "password out of commands and scripts (env SEPOA_DATABASE_URL_FILE)")
+
+
 PORT = integer("a TCP port", 1, PORT_MAX)
 RUN_ID = integer("a run id", 1, ID_MAX)
 

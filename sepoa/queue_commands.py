@@ -9,7 +9,15 @@ import sys
 import uuid
 from typing import TYPE_CHECKING
 
-from sepoa.parser import ID_MAX, RUN_ID, Command, fail, integer, refusing
+from sepoa.parser import (
+    ID_MAX,
+    RUN_ID,
+    Command,
+    database_url_file_argument,
+    fail,
+    integer,
+    refusing,
+)
 
 if TYPE_CHECKING:
     from sqlalchemy.engine import Engine
@@ -27,9 +35,7 @@ def database_args(p: argparse.ArgumentParser, inherit: bool = False) -> None:
                    "SEPOA_DATABASE_URL_FILE; default: sqlite:///<data-dir>/queue.db); a URL "
                    "here shows in `ps`: keep a password in the environment or a "
                    "--database-url-file")
-    p.add_argument("--database-url-file", default=unset, metavar="FILE",
-                   help="a file (mode 600) holding the queue database's URL (env "
-                   "SEPOA_DATABASE_URL_FILE)")
+    database_url_file_argument(p, unset)
     p.add_argument("--data-dir", default=data,
                    help="where the SQLite file, runs and clips live (env SEPOA_DATA_DIR)")
 

@@ -24,7 +24,15 @@ import os
 import sys
 from typing import TYPE_CHECKING
 
-from sepoa.parser import Command, DefaultsHelpFormatter, environment, fail, integer, real
+from sepoa.parser import (
+    Command,
+    DefaultsHelpFormatter,
+    database_url_file_argument,
+    environment,
+    fail,
+    integer,
+    real,
+)
 
 if TYPE_CHECKING:
     from runvocab.config import RunConfig
@@ -178,9 +186,7 @@ def _worker_arguments(p: argparse.ArgumentParser) -> None:
                    help="the queue database (env SEPOA_DATABASE_URL; default "
                    "sqlite:///<data-dir>/queue.db); a URL here shows in `ps`: keep a password in "
                    "the environment, a --database-url-file or a libpq password file")
-    p.add_argument("--database-url-file", default=None, metavar="FILE",
-                   help="a file (mode 600) holding the queue database's URL (env "
-                   "SEPOA_DATABASE_URL_FILE)")
+    database_url_file_argument(p)
     p.add_argument("--data-dir", default=env("SEPOA_DATA_DIR", "data"),
                    help="runs and clips go under it (env SEPOA_DATA_DIR)")
     p.add_argument("--clips-dir", default=env("SEPOA_CLIPS_DIR"),
