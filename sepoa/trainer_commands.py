@@ -132,6 +132,7 @@ def _run_pretrain(args: argparse.Namespace) -> int:
     import time
 
     from runvocab.config import build_config, overrides_from_args
+    from runvocab.snapshot_names import default_snapshot_path
     from trainer.departure import LEAVE_SIGNALS, Departure
     from trainer.envs import UnknownTaskError
     from trainer.skills.pretrain import PretrainingLeft, pretrain
@@ -159,7 +160,9 @@ def _run_pretrain(args: argparse.Namespace) -> int:
     start = time.time()
     try:
         cfg = build_config(args.task, args.preset, overrides_from_args(args))
-        path = pretrain(cfg, out=args.out, progress=not args.no_progress, tick=tick,
+        # By default the name online runs of these settings look for: it hashes the settings
+        # as given, where pretraining's own default hashes them with its skill fields resolved.
+        path = pretrain(cfg, out=args.out or default_snapshot_path(cfg), progress=not args.no_progress, tick=tick,
                         quality_skills=args.quality_skills,
                         snapshots_at=args.snapshots_at or ())
     except PretrainingLeft as err:

@@ -45,6 +45,9 @@ def test_cli_pretrain_writes_a_plain_snapshot_with_its_metrics(tmp_path):
     # the default place and name: task, backend, steps and seed, relative to where it ran
     assert re.fullmatch(r"snapshots/dmc-cheetah_run-aps-300-s0-[0-9a-f]{10}\.pt",
                         summary["snapshot"])
+    # ... the very snapshot an online run of these settings starts from
+    online = build_config("dmc:cheetah_run", "tiny", {"skill.backend": "aps", "seed": 0})
+    assert summary["snapshot"] == snapshot_path(online)
     path = tmp_path / summary["snapshot"]
     state = torch.load(path, weights_only=True)  # plain data: no pickled objects
     assert state["task"] == "dmc:cheetah_run" and state["backend"] == "aps"
