@@ -78,6 +78,42 @@ def test_an_answer_that_gets_no_answer_is_sent_again_and_counted_once(
     page.wait_for_selector(ANSWERABLE)
 
 
+def test_an_undo_that_gets_no_answer_is_sent_again_and_takes_the_answer_back_once(
+    live: LiveServer, page: Any, runs: list[int]
+) -> None:
+    labeller = live.new_labeller("kai-undo")
+    runs.append(run_id := live.new_human_run())
+    first, second, _ = live.push_rendered_queries(run_id, 3)
+    made = calls(page)
+    page.goto(f"{live.url}/label?run={run_id}#token={labeller.token}")
+    page.wait_for_selector(ANSWERABLE)
+    page.keyboard.press("1")
+    page.wait_for_selector(f'{SHOWN}[data-query-id="{second}"]')
+    text_is(page, "#count-session", "1")
+    assert len(stored_soon(live, first)) == 1
+    # The undo reaches the server and takes the answer back, but its response never comes back.
+    page.route(f"**/api/label/{first}/withdraw", lambda route: route.fetch(), times=1)
+    page.keyboard.press("u")
+    page.wait_for_function("document.querySelector('#notice').textContent.includes('retrying')",
+                           timeout=20_000)
+    assert "no answer from the server" in page.inner_text("#notice")
+    assert standing(live, first) == []
+    # Sent again, it finds nothing left to take back: the pair the first try leased back is
+    # shown again, the one it replaced waits, and the answer comes off the count once.
+    page.wait_for_selector(f'{SHOWN}[data-query-id="{first}"]', timeout=10_000)
+    assert "taken back" in page.inner_text("#notice")
+    assert page.get_attribute(f'#pairs .pair[data-query-id="{second}"]', "hidden") is not None
+    text_is(page, "#count-session", "0")
+    assert made.count(f"POST /label/{first}/withdraw") == 2
+    # The pair is answered again, and that answer stands.
+    page.wait_for_selector(ANSWERABLE)
+    page.keyboard.press("2")
+    page.wait_for_selector(f'{SHOWN}[data-query-id="{second}"]')
+    [kept] = stored_soon(live, first)
+    assert kept.choice == "right"
+    text_is(page, "#count-session", "1")
+
+
 def test_a_progress_failing_at_load_is_asked_again_before_pairs_are_leased(
     live: LiveServer, page: Any, runs: list[int]
 ) -> None:
