@@ -40,6 +40,7 @@ from labelqueue.models import (
 )
 from labelqueue.runs import budget_spent
 from labelqueue.transaction import changed, detach, get_row, reading, transaction
+from runvocab.text import filled
 
 PARTICIPANT = re.compile(r"[A-Za-z0-9_.@+-]{1,64}")
 """what a `participant` may be: a crowdsourcing platform's worker id, or a plain name"""
@@ -201,9 +202,10 @@ def _filled(name: str, text: str | None) -> str | None:
     """`text` without its outer white space; Invalid when that is all it holds."""
     if text is None:
         return None
-    if not text.strip():
-        raise Invalid(f"{name} is blank: give some text besides white space, or leave it out")
-    return text.strip()
+    try:
+        return filled(text, name)
+    except ValueError as err:
+        raise Invalid(f"{err}, or leave it out") from None
 
 
 def list_invites(session: Session) -> list[Invite]:

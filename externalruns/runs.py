@@ -25,6 +25,7 @@ from labelqueue.models import (
 from labelqueue.runs import EXTERNAL as EXTERNAL
 from labelqueue.transaction import detach, get_row, reading, transaction
 from runvocab.config import FeedbackConfig
+from runvocab.text import filled
 
 TOKEN_PREFIX = "run."
 ID_MAX = 2**31 - 1
@@ -51,16 +52,21 @@ def create_external_run(
 ) -> Run:
     """A running external run: `task` in free text (its instruction is the task's own unless
     given), `labels_per_query` answers per pair, gold and practice as for any run. Invalid
-    naming the field for a value out of range; nothing is stored then."""
+    naming the field for a value out of range, or a blank task or name; nothing is stored
+    then."""
     checks = {"budget": budget >= 1, "labels_per_query": 1 <= labels_per_query <= 50,
               "gold_rate": 0.0 <= gold_rate <= 0.5,
               "gold_min_accuracy": 0.0 <= gold_min_accuracy <= 1.0,
               "gold_min_answers": gold_min_answers >= 1,
               "practice_pairs": 0 <= practice_pairs <= 20,
-              "task": 1 <= len(task.strip()) <= 100}
+              "task": len(task) <= 100, "name": len(name) <= 200}
     for field, fine in checks.items():
         if not fine:
             raise Invalid(f"{field}: out of range")
+    try:
+        task, name = filled(task, "task"), filled(name, "name")
+    except ValueError as err:
+        raise Invalid(str(err)) from None
     feedback = dataclasses.replace(
         FeedbackConfig(), budget=budget, labels_per_query=labels_per_query, gold_rate=gold_rate,
         gold_min_accuracy=gold_min_accuracy, gold_min_answers=gold_min_answers,
@@ -68,7 +74,7 @@ def create_external_run(
     stored_instruction = checked_instruction(instruction)
     now = utcnow()
     with transaction(session):
-        run = Run(name=name, task=task.strip(), algo=EXTERNAL, preset=EXTERNAL, seed=0,
+        run = Run(name=name, task=task, algo=EXTERNAL, preset=EXTERNAL, seed=0,
                   budget=budget, teacher=TeacherKind.HUMAN, teacher_params={}, config={},
                   resolved_config={"feedback": dataclasses.asdict(feedback)},
                   status=RunStatus.RUNNING, started_at=now, instruction=stored_instruction)

@@ -33,6 +33,7 @@ from labelqueue.runs import checked_clip_size, create_run
 from rundata.dataset import DatasetError, LabelledDataset, read_dataset
 from runvocab.config import build_config
 from runvocab.names import ConfigError
+from runvocab.text import filled
 
 LABELLING_ALGO = "pebble"
 """the algorithm a labelling run records: its reward ensemble and selection rules are PEBBLE's;
@@ -121,6 +122,11 @@ def labelling_run(found: LabelledDataset, *, budget: int, per_round: int | None 
         raise LabellingError("feedback.per_round", f"per round {per_round}: give at least 1")
     if name is not None and not 1 <= len(name) <= NAME_MAX:
         raise LabellingError("name", f"name {name!r}: give 1 to {NAME_MAX} characters")
+    if name is not None:  # stored as POST /api/runs/labelling stores it
+        try:
+            name = filled(name, f"name {name!r}")
+        except ValueError as err:
+            raise LabellingError("name", str(err)) from None
     overrides = labelling_config(found, per_round=per_round, selection=selection,
                                  segment_length=segment_length, preset=preset, config=config)
     path = Path(found.path).resolve()

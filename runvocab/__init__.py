@@ -5,7 +5,8 @@ selection rules, teachers and skill backends (`names`, with the task list kept a
 `tasks.json`), one `validate` for a whole configuration (`validate`), when a run's first
 feedback round opens (`first_round`), the configuration a
 queued run describes (`queued_run`), and a query's answers (`answers`) and fields
-(`query_fields`), which cross from the trainer through the queue into the export. It imports
+(`query_fields`), which cross from the trainer through the queue into the export, and the one
+rule for text a person gives that must say something (`text`). It imports
 neither torch nor MuJoCo, so the server checks a run before accepting it with the same messages
 `sepoa train` prints.
 """

@@ -334,10 +334,16 @@ def _labeller(args: argparse.Namespace) -> int:
         update_labeller,
     )
     from labelqueue.errors import database_reason
+    from runvocab.text import filled
 
     name: str | None = getattr(args, "name", None)  # every action but list has one
     if name is not None and not 1 <= len(name) <= NAME_MAX:  # as POST /api/labellers
         return fail(f"labeller name {name!r} is not valid: give 1 to {NAME_MAX} characters")
+    if args.action == "create":  # stored as POST /api/labellers stores it
+        try:
+            args.name = filled(args.name, f"labeller name {name!r}")
+        except ValueError as err:
+            return fail(str(err))
     engine = _migrated_engine(args)
     try:
         with session_factory(engine)() as session:

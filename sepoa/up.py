@@ -154,7 +154,7 @@ def _settings(args: argparse.Namespace, **given: str) -> str | None:
     flag, or each variable that is wrong, in one line."""
     from pydantic import ValidationError
 
-    from server.settings import Settings
+    from server.settings import Settings, described
 
     public = {"public_url": args.public_url} if args.public_url else {}
     try:
@@ -164,18 +164,7 @@ def _settings(args: argparse.Namespace, **given: str) -> str | None:
     url = [e["msg"] for e in errors if e["loc"] == ("public_url",)]
     if url:
         raise ValueError(f"--public-url {args.public_url!r}: {url[0]}")
-    raise ValueError("; ".join(_variable(e["loc"], e["input"]) + f": {e['msg']}"
-                               for e in errors))
-
-
-SECRET_SETTINGS = ("secret_key", "operator_token", "database_url")
-"""settings whose value an error never shows"""
-
-
-def _variable(loc: tuple[int | str, ...], value: object) -> str:
-    name = "_".join(map(str, loc))
-    shown = " (its value not shown)" if name in SECRET_SETTINGS else f"={value!r}"
-    return f"SEPOA_{name.upper()}{shown}"
+    raise ValueError(described(errors))
 
 
 def _up_arguments(p: argparse.ArgumentParser) -> None:

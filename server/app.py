@@ -36,7 +36,7 @@ from server.routes import (
     undo,
 )
 from server.routes import export as export_routes
-from server.settings import Settings, get_settings
+from server.settings import Settings, settings_or_exit
 from server.upload_sweep import sweep_forever
 
 if TYPE_CHECKING:
@@ -47,8 +47,10 @@ TELEMETRY_OFF: TelemetryConfig = {"tracing": False, "metrics": False, "logs": Fa
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
-    """The API over the queue database `settings.database_url`, migrated at start-up."""
-    settings = settings or get_settings()
+    """The API over the queue database `settings.database_url`, migrated at start-up; without
+    `settings`, the environment's (`settings_or_exit`: a wrong one ends the process in one
+    line)."""
+    settings = settings or settings_or_exit()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

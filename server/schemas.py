@@ -27,6 +27,7 @@ from runvocab.instructions import MAX_CHARS as MAX_INSTRUCTION_CHARS
 from runvocab.instructions import clean_instruction, run_instruction
 from runvocab.names import ALGOS, SIZE_PRESETS, all_tasks, unknown, unknown_task
 from runvocab.queued_run import WORKER_FIELDS
+from runvocab.text import VISIBLE_CHAR, filled
 from runvocab.validate import MAX_INT, choice_fields
 
 INT32_MAX = 2**31 - 1
@@ -229,16 +230,13 @@ with a 422 naming the field (the database would refuse it, in words about number
 # something besides white space, and no control character but tab and line ends (its own
 # refusals name each problem).
 _TEXT_CHAR = r"[^\x00-\x08\x0b\x0c\x0e-\x1f]"
-_VISIBLE_CHAR = r"[^\x00-\x20\x85\xa0\u1680\u2000-\u200a\u2028\u2029\u202f\u205f\u3000]"
-INSTRUCTION_PATTERN = f"^{_TEXT_CHAR}*{_VISIBLE_CHAR}{_TEXT_CHAR}*$"
-NOT_BLANK = f"^[^\\x00]*{_VISIBLE_CHAR}[^\\x00]*$"
+INSTRUCTION_PATTERN = f"^{_TEXT_CHAR}*{VISIBLE_CHAR}{_TEXT_CHAR}*$"
+NOT_BLANK = f"^[^\\x00]*{VISIBLE_CHAR}[^\\x00]*$"
 """text without a NUL character and with something besides white space"""
 
 
 def _not_blank(text: str) -> str:
-    if not re.search(_VISIBLE_CHAR, _no_nul(text)):
-        raise ValueError("is blank: give some text besides white space, or leave it out")
-    return text.strip()
+    return filled(_no_nul(text))
 
 
 FilledText = Annotated[str, AfterValidator(_not_blank),

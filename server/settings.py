@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import secrets
+from collections.abc import Sequence
 from functools import lru_cache
 from pathlib import Path
 from urllib.parse import urlsplit
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic_core import ErrorDetails
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from labelqueue import DEFAULT_URL, LEASE_SECONDS
+from labelqueue import DEFAULT_URL, LEASE_SECONDS, read_url_file
 
 
 class Settings(BaseSettings):
@@ -19,7 +21,12 @@ class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="SEPOA_", frozen=True)
 
     database_url: str = DEFAULT_URL
-    """the queue database (SQLite file by default, or a `postgresql+psycopg://` URL)"""
+    """the queue database (SQLite file by default, or a `postgresql+psycopg://` URL); unset,
+    the one `database_url_file` holds when that is set"""
+    database_url_file: str | None = None
+    """a file holding the database URL, read as every `sepoa` command reads it
+    (`labelqueue.read_url_file`: mode 600, its first line that is no `#` comment), so that a
+    password stays out of the environment"""
     data_dir: Path = Path("data")
     """where the SQLite file and clips live by default"""
     clips_dir: Path | None = None
@@ -93,6 +100,17 @@ class Settings(BaseSettings):
         return path if self.public_url is None else self.public_url + path
 
     @model_validator(mode="after")
+    def _url_from_file(self) -> Settings:
+        """`database_url` from `database_url_file` when only the file is given (as
+        `labelqueue.database_url` orders them); ValueError naming the file and what is wrong
+        with it (unreadable, readable by others, no URL in it)."""
+        given = "database_url" in self.model_fields_set and self.database_url
+        if self.database_url_file and not given:
+            # frozen: set through the object's dict, once, while validating.
+            object.__setattr__(self, "database_url", read_url_file(self.database_url_file))
+        return self
+
+    @model_validator(mode="after")
     def _default_clips_dir(self) -> Settings:
         if self.clips_dir is None:
             # frozen: set through the object's dict, once, while validating.
@@ -124,3 +142,29 @@ class Settings(BaseSettings):
 def get_settings() -> Settings:
     """The process's settings, read from the environment once."""
     return Settings()
+
+
+def settings_or_exit() -> Settings:
+    """`get_settings()`, or the process ended with one line saying what is wrong (a server
+    that uvicorn starts would print a traceback)."""
+    try:
+        return get_settings()
+    except ValidationError as error:
+        raise SystemExit(f"error: {described(error.errors())}") from None
+
+
+SECRET_SETTINGS = ("secret_key", "operator_token", "database_url")
+"""settings whose value an error never shows"""
+
+
+def described(errors: Sequence[ErrorDetails]) -> str:
+    """Refused settings in one line: each variable at fault, with its value (a secret's not
+    shown), and what is wrong; a refusal of no one variable (the URL file's) as it says."""
+    return "; ".join(_variable(e["loc"], e["input"]) + f": {e['msg']}" if e["loc"]
+                     else e["msg"].removeprefix("Value error, ") for e in errors)
+
+
+def _variable(loc: tuple[int | str, ...], value: object) -> str:
+    name = "_".join(map(str, loc))
+    shown = " (its value not shown)" if name in SECRET_SETTINGS else f"={value!r}"
+    return f"SEPOA_{name.upper()}{shown}"

@@ -95,6 +95,7 @@ def test_a_dataset_no_worker_could_serve_is_refused_in_one_line_and_nothing_is_s
         "config": ([str(source), "--set", "reward.widht=3"], "reward.widht"),
         "selection": ([str(source), "--selection", "entropy"], "invalid choice: 'entropy'"),
         "budget": ([str(source), "--budget", "0"], "'0' is not a budget"),
+        "blank name": ([str(source), "--name", " \t"], "name ' \\t' is blank"),
     }
     data = tmp_path / "data"
     for name, (extra, message) in cases.items():

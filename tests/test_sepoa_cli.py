@@ -29,6 +29,22 @@ def test_labellers_are_created_and_listed_with_the_data_folder_given_anywhere(tm
     assert lines == ["1\tzoe\tlabeller\tactive", "2\tamy\toperator\tactive"]
 
 
+
+def test_a_blank_labeller_name_is_refused_in_one_line_and_a_name_is_stored_trimmed(
+    tmp_path, capsys
+):
+    """As POST /api/labellers: a name of white space alone is refused (it listed as an empty
+    line nobody could tell apart), and outer white space is not stored."""
+    data = str(tmp_path / "data")
+    for blank in (" ", "\t\u3000 "):
+        assert main(["labeller", "create", blank, "--data-dir", data]) == 2
+        [line] = capsys.readouterr().err.splitlines()
+        assert f"labeller name {blank!r} is blank" in line and "besides white space" in line
+    assert main(["labeller", "create", " zoe ", "--data-dir", data]) == 0
+    assert "'zoe' created" in capsys.readouterr().out
+    assert main(["labeller", "list", "--data-dir", data]) == 0
+    assert capsys.readouterr().out.splitlines() == ["1\tzoe\tlabeller\tactive"]
+
 def test_export_names_a_missing_database_and_writes_an_empty_one(tmp_path, capsys,
                                                                   monkeypatch):
     data = tmp_path / "data"

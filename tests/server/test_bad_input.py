@@ -316,6 +316,8 @@ def test_blank_names_notes_and_consent_texts_are_a_422_naming_the_field(
         # A consent text of spaces would let people join without agreeing to anything.
         ("POST", "/api/invites", {"consent_text": blank}, "consent_text"),
         ("POST", "/api/invites", {"pause_message": blank}, "pause_message"),
+        ("POST", "/api/runs/external", {"task": blank, "budget": 5}, "task"),
+        ("POST", "/api/runs/external", {"task": "t", "name": blank, "budget": 5}, "name"),
     ]
     for method, path, body, field in refused:
         response = client.request(method, path, json=body, headers=OPERATOR)
@@ -325,6 +327,7 @@ def test_blank_names_notes_and_consent_texts_are_a_422_naming_the_field(
     assert [who["name"] for who in client.get("/api/labellers", headers=OPERATOR).json()] == [
         "ann"]
     assert client.get("/api/invites", headers=OPERATOR).json() == []
+    assert client.get("/api/runs/external", headers=OPERATOR).json() == []
     # Text with something in it is stored without its outer white space.
     made = client.post("/api/labellers", json={"name": "  bob "}, headers=OPERATOR).json()
     renamed = client.patch(f"/api/labellers/{ann['id']}", json={"name": "\tann-2 "},

@@ -2,14 +2,25 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
-from server_helpers import OPERATOR, bearer, new_labeller, new_run, snapshot
+from server_helpers import OPERATOR, OPERATOR_TOKEN, bearer, new_labeller, new_run, snapshot
 from sqlalchemy.orm import Session
 
-from labelqueue import Run, RunStatus, claim_run, write_metrics
+from labelqueue import (
+    Run,
+    RunStatus,
+    claim_run,
+    find_labeller,
+    make_engine,
+    session_factory,
+    sqlite_url,
+    write_metrics,
+)
+from server.app import create_app
 from server.settings import Settings, get_settings
 
 
@@ -368,6 +379,43 @@ def test_settings_come_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> 
         assert get_settings() is settings
         assert str(settings.clips_dir) == "/srv/sepoa/clips" and settings.lease_seconds == 30
         assert settings.database_url == "sqlite:///data/queue.db"
+    finally:
+        get_settings.cache_clear()
+
+
+def test_a_server_started_alone_opens_the_database_the_url_file_names(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`uvicorn server.app:app` reads SEPOA_DATABASE_URL_FILE as every `sepoa` command does
+    (it opened data/queue.db instead); a file it cannot use ends the start in one line."""
+    monkeypatch.chdir(tmp_path)  # where data/queue.db would be made
+    url_file = tmp_path / "queue-url"
+    url_file.write_text(f"# the study's database\n{sqlite_url(tmp_path)}\n")
+    url_file.chmod(0o600)
+    monkeypatch.delenv("SEPOA_DATABASE_URL", raising=False)
+    monkeypatch.setenv("SEPOA_DATABASE_URL_FILE", str(url_file))
+    monkeypatch.setenv("SEPOA_OPERATOR_TOKEN", OPERATOR_TOKEN)
+    get_settings.cache_clear()
+    try:
+        with TestClient(create_app()) as client:
+            new_labeller(client, "ann")
+        engine = make_engine(sqlite_url(tmp_path))
+        with session_factory(engine)() as session:
+            assert find_labeller(session, name="ann") is not None
+        engine.dispose()
+        assert not (tmp_path / "data" / "queue.db").exists()
+        empty, missing = tmp_path / "empty", tmp_path / "missing"
+        empty.write_text("# nothing yet\n")
+        empty.chmod(0o600)
+        url_file.chmod(0o644)  # readable by others: refused, as libpq refuses such a file
+        for path, words in ((url_file, "chmod 600"), (empty, "holds no URL"),
+                            (missing, "No such file")):
+            monkeypatch.setenv("SEPOA_DATABASE_URL_FILE", str(path))
+            get_settings.cache_clear()
+            with pytest.raises(SystemExit) as ended:
+                create_app()
+            assert str(ended.value).startswith(f"error: database URL file {path}")
+            assert words in str(ended.value) and "\n" not in str(ended.value)
     finally:
         get_settings.cache_clear()
 

@@ -52,17 +52,24 @@ def calls(page: Any) -> list[str]:
     return made
 
 
+def labelling(live: LiveServer, page: Any, runs: list[int], name: str) -> list[int]:
+    """A new labeller `name` on its label page for a new run of three pairs, the first
+    answerable; the pairs' query ids."""
+    labeller = live.new_labeller(name)
+    runs.append(run_id := live.new_human_run())
+    queries = live.push_rendered_queries(run_id, 3)
+    page.goto(f"{live.url}/label?run={run_id}#token={labeller.token}")
+    page.wait_for_selector(ANSWERABLE)
+    return queries
+
+
 def test_an_answer_that_gets_no_answer_is_sent_again_and_counted_once(
     live: LiveServer, page: Any, runs: list[int]
 ) -> None:
-    labeller = live.new_labeller("hal-hang")
-    runs.append(run_id := live.new_human_run())
-    first, second, _ = live.push_rendered_queries(run_id, 3)
+    first, second, _ = labelling(live, page, runs, "hal-hang")
     # The answer reaches the server and is stored, but its response never comes back.
     page.route(f"**/api/label/{first}", lambda route: route.fetch(), times=1)
     made = calls(page)
-    page.goto(f"{live.url}/label?run={run_id}#token={labeller.token}")
-    page.wait_for_selector(ANSWERABLE)
     page.keyboard.press("1")
     page.wait_for_selector(f'{SHOWN}[data-query-id="{second}"]')
     assert len(stored_soon(live, first)) == 1
@@ -76,6 +83,38 @@ def test_an_answer_that_gets_no_answer_is_sent_again_and_counted_once(
     assert len(standing(live, first)) == 1
     # The next pair can be answered.
     page.wait_for_selector(ANSWERABLE)
+
+
+def test_an_undo_that_gets_no_answer_is_sent_again_and_takes_the_answer_back_once(
+    live: LiveServer, page: Any, runs: list[int]
+) -> None:
+    first, second, _ = labelling(live, page, runs, "kai-undo")
+    made = calls(page)
+    page.keyboard.press("1")
+    page.wait_for_selector(f'{SHOWN}[data-query-id="{second}"]')
+    text_is(page, "#count-session", "1")
+    assert len(stored_soon(live, first)) == 1
+    # The undo reaches the server and takes the answer back, but its response never comes back.
+    page.route(f"**/api/label/{first}/withdraw", lambda route: route.fetch(), times=1)
+    page.keyboard.press("u")
+    page.wait_for_function("document.querySelector('#notice').textContent.includes('retrying')",
+                           timeout=20_000)
+    assert "no answer from the server" in page.inner_text("#notice")
+    assert standing(live, first) == []
+    # Sent again, it finds nothing left to take back: the pair the first try leased back is
+    # shown again, the one it replaced waits, and the answer comes off the count once.
+    page.wait_for_selector(f'{SHOWN}[data-query-id="{first}"]', timeout=10_000)
+    assert "taken back" in page.inner_text("#notice")
+    assert page.get_attribute(f'#pairs .pair[data-query-id="{second}"]', "hidden") is not None
+    text_is(page, "#count-session", "0")
+    assert made.count(f"POST /label/{first}/withdraw") == 2
+    # The pair is answered again, and that answer stands.
+    page.wait_for_selector(ANSWERABLE)
+    page.keyboard.press("2")
+    page.wait_for_selector(f'{SHOWN}[data-query-id="{second}"]')
+    [kept] = stored_soon(live, first)
+    assert kept.choice == "right"
+    text_is(page, "#count-session", "1")
 
 
 def test_a_progress_failing_at_load_is_asked_again_before_pairs_are_leased(
@@ -123,14 +162,10 @@ def test_a_progress_failing_after_an_answer_leaves_it_saved_and_undoable(
 def test_a_failed_preload_after_an_answer_asks_again_for_the_preload_only(
     live: LiveServer, page: Any, runs: list[int]
 ) -> None:
-    labeller = live.new_labeller("ida-preload")
-    runs.append(run_id := live.new_human_run())
-    first, second, third = live.push_rendered_queries(run_id, 3)
+    first, second, third = labelling(live, page, runs, "ida-preload")
     page.route(re.compile(rf"/api/label/next\?.*ahead_of={second}(&|$)"),
                lambda route: route.fulfill(status=500, json={"detail": "boom"}), times=1)
     made = calls(page)
-    page.goto(f"{live.url}/label?run={run_id}#token={labeller.token}")
-    page.wait_for_selector(ANSWERABLE)
     page.keyboard.press("1")
     page.wait_for_selector(f'{SHOWN}[data-query-id="{second}"]')
     text_is(page, "#count-session", "1")

@@ -11,7 +11,7 @@ import { noteServerClock, state } from "./label_state.js";
 import { notice, showCounts, showStopped, showWaiting, updateButtons } from "./label_screen.js";
 import { Pair, show } from "./label_pair.js";
 
-const POLL_MS = 2000; // nothing to label, or nothing preloaded yet: ask again this often
+export const POLL_MS = 2000; // nothing to label, or nothing preloaded yet: ask again this often
 export const RENEW_MS = 30_000; // both pairs in hand: renew their leases (120 s) this often
 const RETRY_MS = 5000; // after a failed request
 
@@ -66,7 +66,7 @@ export function schedule(task, ms) {
   state.timer = setTimeout(() => serial(() => attempt(task)), ms);
 }
 
-async function fetchNext(aheadOf) {
+export async function fetchNext(aheadOf) {
   const params = new URLSearchParams();
   if (state.runId) params.set("run_id", state.runId);
   if (aheadOf != null) params.set("ahead_of", aheadOf);
@@ -87,7 +87,7 @@ export async function runBrief(id) {
 
 /** Nothing on screen: lease a pair and show it, or wait and ask again. */
 export async function loadCurrent() {
-  if (study.complete || state.stopped) return;
+  if (study.complete || state.stopped || state.submitting) return; // an undo asks again later
   const query = await fetchNext(null);
   if (!query) {
     showWaiting();
