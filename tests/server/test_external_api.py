@@ -261,6 +261,39 @@ def test_a_nul_or_a_number_json_has_not_in_a_pair_is_refused_naming_it(
     assert queries(session) == 0
 
 
+def test_a_lone_surrogate_in_a_pair_is_refused_naming_it_and_the_feed_reads_on(
+    client: TestClient, session: Session
+) -> None:
+    """JSON's "\\ud800" escape alone is no character: in meta it was stored, and every read
+    of the pair's state or answers failed (500) from then on; in a key, the 422 itself did.
+    Each is a 422 naming the field, and the run's answers stay readable."""
+    run_id, auth = external_run(client)
+    a = upload(client, run_id, auth, frames(1))
+    url, json_type = f"/api/runs/{run_id}/pairs", {"content-type": "application/json"}
+    for field, extra, said in [
+        ("key", '"key": "k\\ud800"', "valid string"),
+        ("meta", '"key": "k", "meta": {"path": "ep\\udce9.npz"}', "meta.path holds a lone"),
+        ("meta", '"key": "k", "meta": {"\\udc00": 1}', "a key of meta holds a lone"),
+        ("meta", '"key": "k", "meta": {"ids": [{"n": "\\ud83d"}]}', "meta.ids[0].n holds"),
+    ]:
+        body = f'{{"pairs": [{{"first_clip": "{a}", "second_clip": "{a}", {extra}}}]}}'
+        refused = client.post(url, content=body, headers=auth | json_type)
+        assert refused.status_code == 422, (extra, refused.text)
+        [problem] = refused.json()["detail"]
+        assert problem["loc"][-1] == field and said in problem["msg"], (extra, problem)
+    made = client.post("/api/runs/external", headers=OPERATOR | json_type,
+                       content='{"task": "cheetah \\udc80", "budget": 5}')
+    assert made.status_code == 422 and made.json()["detail"][0]["loc"][-1] == "task"
+    assert queries(session) == 0
+    stored = client.post(url, headers=auth, json={"pairs": [pair("k", a, a, meta={"ep": "🐆"})]})
+    assert stored.status_code == 201, stored.text
+    token = new_labeller(client, "ann")
+    shown = client.get(f"/api/label/next?run_id={run_id}", headers=bearer(token)).json()
+    assert answer(client, bearer(token), shown, "left").status_code == 201
+    feed = client.get(f"/api/runs/{run_id}/answers", headers=auth)
+    assert feed.status_code == 200 and feed.json()["events"][0]["meta"] == {"ep": "🐆"}
+
+
 def test_a_run_token_reaches_its_own_run_and_nothing_else(client: TestClient) -> None:
     run_id, auth = external_run(client)
     other, _ = external_run(client)
