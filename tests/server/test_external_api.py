@@ -294,6 +294,20 @@ def test_a_lone_surrogate_in_a_pair_is_refused_naming_it_and_the_feed_reads_on(
     assert feed.status_code == 200 and feed.json()["events"][0]["meta"] == {"ep": "🐆"}
 
 
+def test_meta_is_measured_in_the_bytes_it_takes_not_its_ascii_escapes(
+    client: TestClient,
+) -> None:
+    """The limit is 4096 bytes of JSON: 1 500 'é' (3 000 bytes) fit, though their \\u00e9
+    escapes would take 9 000 characters; 2 100 (4 200 bytes) do not."""
+    run_id, auth = external_run(client)
+    a = upload(client, run_id, auth, frames(1))
+    url = f"/api/runs/{run_id}/pairs"
+    fits = client.post(url, headers=auth, json={"pairs": [pair("k", a, a, meta={"n": "é" * 1500})]})
+    assert fits.status_code == 201, fits.text
+    over = client.post(url, headers=auth, json={"pairs": [pair("l", a, a, meta={"n": "é" * 2100})]})
+    assert over.status_code == 422 and "larger than 4096 bytes" in over.json()["detail"]
+
+
 def test_a_run_token_reaches_its_own_run_and_nothing_else(client: TestClient) -> None:
     run_id, auth = external_run(client)
     other, _ = external_run(client)
