@@ -176,6 +176,24 @@ def test_the_same_frames_at_another_frame_rate_are_another_clip_and_pair_with_no
         pair("k", slow["clip_id"], other.json()["clip_id"])]}).status_code == 201
 
 
+def test_frames_at_a_rate_too_slow_for_the_length_limit_are_refused_before_encoding(
+    client: TestClient, settings: Settings
+) -> None:
+    """fps is only bounded above 0: 6 frames at fps=1e-300 made ffmpeg fail (a 500), and at
+    fps=0.001 they were encoded before the clip's 6 000 s were refused. Both are a 422 naming
+    the length the frames would last; at the limit they are a clip."""
+    run_id, auth = external_run(client)
+    url = f"/api/runs/{run_id}/clips"
+    for fps in (1e-300, 0.001):
+        refused = client.post(url, params={"fps": fps}, content=frames(1), headers=auth | NPY)
+        assert refused.status_code == 422, refused.text
+        assert "6 frames at fps=" in refused.json()["detail"]
+        assert "at most 60 s" in refused.json()["detail"]
+    assert list((settings.clips_root / "external" / str(run_id)).iterdir()) == []
+    longest = client.post(url, params={"fps": 0.1}, content=frames(1), headers=auth | NPY)
+    assert longest.status_code == 201 and longest.json()["seconds"] == pytest.approx(60, abs=1)
+
+
 def test_bad_clips_and_pairs_are_refused_by_name_and_nothing_is_kept(
     client: TestClient, session: Session, settings: Settings, tmp_path: Path
 ) -> None:
