@@ -19,15 +19,14 @@ from sqlalchemy import func, select
 
 from labelqueue import Query, make_engine, session_factory
 from sepoa.client import (
-    PUSH_BYTES,
     AsyncStudy,
     Pair,
     Study,
     StudyError,
-    push_batches,
     push_call,
 )
 from sepoa.client import Query as Asked
+from sepoa.client_pairs import PUSH_BYTES, push_batches
 from server.app import create_app
 from server.settings import Settings
 
