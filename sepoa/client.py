@@ -6,20 +6,21 @@
     queries = study.ask([Pair(frames_a, frames_b, returns=(12.5, 3.0), meta={"ids": [7, 9]})])
     answers = study.wait_for(queries)  # {key: "first" | "second" | "equal" | "cant_tell" | "skip"}
 
-`token` is the run's token (`POST /api/runs/{id}/tokens`, an operator's call; an operator revokes
-it with `POST /api/runs/{id}/tokens/{token_id}/revoke`, after which every call is a `StudyError`
-with status 401). A clip is a frame array (uint8 (frames, height, width, 3): the server encodes it
-as the app's own clips are), an MP4 or WebM file, or such a file's bytes. Each pair's idempotency
-key is its own `key`, or one made from its content: pushing the same pairs again (a retry, a client
-restarted after a crash) makes no second query. Requests that fail on the way (a connection error,
-a 5xx, a 429) are retried with exponential backoff; a 4xx is a `StudyError` naming the problem. The
-answers feed is read from a cursor, kept in `cursor_file` when given, so a client killed while it
-waits reads on from where it was: nothing is lost. The file moves past a page of answers when the
-next read begins (or at `close()`), so a client killed while it handles a page reads that page
-again. The cursor names its run: another run's file is a ValueError. `wait_for` reads where its
-pairs stand before it follows the feed, so it also returns pairs whose answers the cursor has
-passed (read by `answers()`, by another wait, or before a restart). `AsyncStudy` is the same
-over asyncio.
+`token` is the run's token (`POST /api/runs/{id}/tokens`, an operator's call; an operator revokes it
+with `POST /api/runs/{id}/tokens/{token_id}/revoke`, after which every call is a `StudyError` with
+status 401). A clip is a frame array (uint8 (frames, height, width, 3), or integers within 0-255;
+float frames are a ValueError: the server encodes it as the app's own clips are), an MP4, WebM or
+.npy file, or such a file's bytes. Each pair's idempotency key is its own `key`, or one made from
+its content: pushing the same pairs again (a retry, a client restarted after a crash), or one pair
+twice in an `ask`, makes no second query. NumPy numbers in `returns` and `meta` go as plain ones.
+Requests that fail on the way (a connection error, a 5xx, a 429) are retried with exponential
+backoff; a 4xx is a `StudyError` naming the problem. The answers feed is read from a cursor, kept in
+`cursor_file` when given, so a client killed while it waits reads on from where it was: nothing is
+lost. The file moves past a page of answers when the next read begins (or at `close()`), so a client
+killed while it handles a page reads that page again. The cursor names its run: another run's file
+is a ValueError. `wait_for` reads where its pairs stand before it follows the feed, so it also
+returns pairs whose answers the cursor has passed (read by `answers()`, by another wait, or before a
+restart). `AsyncStudy` is the same over asyncio.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ from urllib.parse import quote
 import httpx
 from tqdm import tqdm  # type: ignore[import-untyped]
 
-from sepoa.client_pairs import Clip, Pair, clip_body, compact, pair_body, push_batches
+from sepoa.client_pairs import Clip, Pair, clip_body, compact, each_once, pair_body, push_batches
 
 LONGEST_WAIT_S = 60.0
 """the longest one answers request waits on the server"""
@@ -150,6 +151,12 @@ def halves(batch: Sequence[dict[str, Any]], error: StudyError) -> list[Sequence[
 
 def queries_of(pushed: Iterable[Mapping[str, Any]]) -> list[Query]:
     return [Query(item["key"], item["query_id"], item["created"]) for item in pushed]
+
+
+def in_order(bodies: Sequence[Mapping[str, Any]], pushed: Sequence[Query]) -> list[Query]:
+    """One query per pair asked, in order (a pair asked twice was pushed once: `each_once`)."""
+    by_key = {query.key: query for query in pushed}
+    return [by_key[body["key"]] for body in bodies]
 
 
 def retry_after(response: httpx.Response | None, attempt: int, backoff: float) -> float | None:
@@ -405,10 +412,12 @@ class Study:
     def ask(self, pairs: Sequence[Pair]) -> list[Query]:
         """Push the pairs for people to compare; their queries, in order. They go in pushes
         that fit the server's limits (`push_batches`), each stored whole or not at all:
-        should one fail, asking again makes no second query of a pair stored before."""
+        should one fail, asking again makes no second query of a pair stored before. A pair
+        given twice is pushed once, and both get its query."""
         bodies = [pair_body(pair, self.upload(pair.first), self.upload(pair.second))
                   for pair in pairs]
-        return [query for batch in push_batches(bodies) for query in self.push(batch)]
+        pushed = [query for batch in push_batches(each_once(bodies)) for query in self.push(batch)]
+        return in_order(bodies, pushed)
 
     def push(self, batch: Sequence[dict[str, Any]]) -> list[Query]:
         """One push of pairs' bodies (`pair_body`), in two when the server finds it too
@@ -499,7 +508,8 @@ class AsyncStudy:
         ids = await asyncio.gather(*(self.upload(clip) for pair in pairs
                                      for clip in (pair.first, pair.second)))
         bodies = [pair_body(pair, ids[2 * i], ids[2 * i + 1]) for i, pair in enumerate(pairs)]
-        return [query for batch in push_batches(bodies) for query in await self.push(batch)]
+        return in_order(bodies, [query for batch in push_batches(each_once(bodies))
+                                 for query in await self.push(batch)])
 
     async def push(self, batch: Sequence[dict[str, Any]]) -> list[Query]:
         try:
