@@ -10,7 +10,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import AfterValidator, Field
 
-from server.schemas import INT32_MAX, Body, InstructionText, Out, PlainText, SmallJson
+from server.schemas import INT32_MAX, Body, FilledText, InstructionText, Out, SmallJson
 
 
 def _finite(values: tuple[float, float] | None) -> tuple[float, float] | None:
@@ -82,9 +82,9 @@ ClipId = Annotated[str, Field(pattern=r"^[0-9a-f]{32}$",
 class ExternalRunCreate(Body):
     """A run no worker trains: a client holding its run token pushes its pairs."""
 
-    task: PlainText = Field(min_length=1, max_length=100, examples=["gym:HalfCheetah-v5"])
+    task: FilledText = Field(min_length=1, max_length=100, examples=["gym:HalfCheetah-v5"])
     """what is being trained, in free text (the instruction's default names it)"""
-    name: PlainText | None = Field(default=None, max_length=200)
+    name: FilledText | None = Field(default=None, min_length=1, max_length=200)
     instruction: InstructionText | None = None
     """what labellers are told "better" means; null: a generic one from the task's name"""
     budget: int = Field(ge=1, le=INT32_MAX)

@@ -312,6 +312,9 @@ def test_blank_names_notes_and_consent_texts_are_a_422_naming_the_field(
         ("PATCH", f"/api/labellers/{ann['id']}", {"name": "   "}, "name"),
         ("POST", "/api/runs", {"task": "dmc:cheetah_run", "algo": "pebble", "name": blank},
          "name"),
+        ("POST", "/api/runs/external", {"task": blank, "budget": 5}, "task"),
+        ("POST", "/api/runs/external", {"task": "gym:Hopper-v5", "budget": 5, "name": blank},
+         "name"),
         ("POST", "/api/invites", {"note": "  "}, "note"),
         # A consent text of spaces would let people join without agreeing to anything.
         ("POST", "/api/invites", {"consent_text": blank}, "consent_text"),
@@ -325,6 +328,7 @@ def test_blank_names_notes_and_consent_texts_are_a_422_naming_the_field(
     assert [who["name"] for who in client.get("/api/labellers", headers=OPERATOR).json()] == [
         "ann"]
     assert client.get("/api/invites", headers=OPERATOR).json() == []
+    assert client.get("/api/runs/external", headers=OPERATOR).json() == []
     # Text with something in it is stored without its outer white space.
     made = client.post("/api/labellers", json={"name": "  bob "}, headers=OPERATOR).json()
     renamed = client.patch(f"/api/labellers/{ann['id']}", json={"name": "\tann-2 "},
