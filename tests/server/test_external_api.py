@@ -30,6 +30,7 @@ from sepoa.client import Pair, Study
 from server.settings import Settings
 
 NPY = {"content-type": "application/x-npy"}
+JSON_TYPE = {"content-type": "application/json"}
 SECRET_ID = "client-episode-31337"
 
 
@@ -247,27 +248,41 @@ def test_bad_clips_and_pairs_are_refused_by_name_and_nothing_is_kept(
     assert queries(session) == 0
 
 
-def test_a_nul_or_a_number_json_has_not_in_a_pair_is_refused_naming_it(
+def refused_naming(client: TestClient, run_id: int, auth: dict[str, str], clip: str,
+                   cases: list[tuple[str, str, str]]) -> str:
+    """Push a pair of `clip` with each case's fields (raw JSON, as no Python dict holds
+    them): each is a 422 whose one problem is at the field and says `said`. The pairs URL."""
+    url = f"/api/runs/{run_id}/pairs"
+    for field, extra, said in cases:
+        body = f'{{"pairs": [{{"first_clip": "{clip}", "second_clip": "{clip}", {extra}}}]}}'
+        refused = client.post(url, content=body, headers=auth | JSON_TYPE)
+        assert refused.status_code == 422, (extra, refused.text)
+        [problem] = refused.json()["detail"]
+        assert problem["loc"][-1] == field and said in problem["msg"], (extra, problem)
+    return url
+
+
+def test_a_nul_a_lone_surrogate_or_a_number_json_has_not_in_a_pair_is_refused_naming_it(
     client: TestClient, session: Session
 ) -> None:
     """PostgreSQL stores no NUL in text and JSON has no NaN (SQLite kept it as null): such a
-    key or meta is a 422 naming the field, on both databases alike."""
+    key or meta is a 422 naming the field, on both databases alike. JSON's "\\ud800" escape
+    alone is no character: in meta it was stored, and every read of the pair's state or
+    answers failed (500) from then on; in a key, the 422 itself did."""
     run_id, auth = external_run(client)
     a = upload(client, run_id, auth, frames(1))
-    url, json_type = f"/api/runs/{run_id}/pairs", {"content-type": "application/json"}
-    for field, extra, said in [
+    url = refused_naming(client, run_id, auth, a, [
         ("key", '"key": "k\\u0000x"', "NUL character"),
         ("meta", '"key": "k", "meta": {"s": "a\\u0000b"}', "meta.s holds a NUL"),
         ("meta", '"key": "k", "meta": {"ok\\u0000": 1}', "a key of meta holds a NUL"),
         ("meta", '"key": "k", "meta": {"x": NaN}', "meta.x is nan"),
         ("meta", '"key": "k", "meta": {"ids": [1, {"r": -Infinity}]}', "meta.ids[1].r is -inf"),
         ("returns", '"key": "k", "returns": [NaN, 1.0]', "finite"),
-    ]:
-        body = f'{{"pairs": [{{"first_clip": "{a}", "second_clip": "{a}", {extra}}}]}}'
-        refused = client.post(url, content=body, headers=auth | json_type)
-        assert refused.status_code == 422, (extra, refused.text)
-        [problem] = refused.json()["detail"]
-        assert problem["loc"][-1] == field and said in problem["msg"], (extra, problem)
+        ("key", '"key": "k\\ud800"', "valid string"),
+        ("meta", '"key": "k", "meta": {"path": "ep\\udce9.npz"}', "meta.path holds a lone"),
+        ("meta", '"key": "k", "meta": {"\\udc00": 1}', "a key of meta holds a lone"),
+        ("meta", '"key": "k", "meta": {"ids": [{"n": "\\ud83d"}]}', "meta.ids[0].n holds"),
+    ])
     bad_key = client.get(url, params={"key": "k\x00"}, headers=auth)
     assert bad_key.status_code == 422 and "NUL character" in bad_key.text
     for field in ("task", "name"):
@@ -279,30 +294,16 @@ def test_a_nul_or_a_number_json_has_not_in_a_pair_is_refused_naming_it(
     assert queries(session) == 0
 
 
-def test_a_lone_surrogate_in_a_pair_is_refused_naming_it_and_the_feed_reads_on(
-    client: TestClient, session: Session
+def test_a_lone_surrogate_in_a_task_is_a_422_and_meta_of_any_character_comes_back(
+    client: TestClient,
 ) -> None:
-    """JSON's "\\ud800" escape alone is no character: in meta it was stored, and every read
-    of the pair's state or answers failed (500) from then on; in a key, the 422 itself did.
-    Each is a 422 naming the field, and the run's answers stay readable."""
     run_id, auth = external_run(client)
     a = upload(client, run_id, auth, frames(1))
-    url, json_type = f"/api/runs/{run_id}/pairs", {"content-type": "application/json"}
-    for field, extra, said in [
-        ("key", '"key": "k\\ud800"', "valid string"),
-        ("meta", '"key": "k", "meta": {"path": "ep\\udce9.npz"}', "meta.path holds a lone"),
-        ("meta", '"key": "k", "meta": {"\\udc00": 1}', "a key of meta holds a lone"),
-        ("meta", '"key": "k", "meta": {"ids": [{"n": "\\ud83d"}]}', "meta.ids[0].n holds"),
-    ]:
-        body = f'{{"pairs": [{{"first_clip": "{a}", "second_clip": "{a}", {extra}}}]}}'
-        refused = client.post(url, content=body, headers=auth | json_type)
-        assert refused.status_code == 422, (extra, refused.text)
-        [problem] = refused.json()["detail"]
-        assert problem["loc"][-1] == field and said in problem["msg"], (extra, problem)
-    made = client.post("/api/runs/external", headers=OPERATOR | json_type,
+    url = f"/api/runs/{run_id}/pairs"
+    made = client.post("/api/runs/external", headers=OPERATOR | JSON_TYPE,
                        content='{"task": "cheetah \\udc80", "budget": 5}')
     assert made.status_code == 422 and made.json()["detail"][0]["loc"][-1] == "task"
-    assert queries(session) == 0
+    assert client.get("/api/runs/external", headers=OPERATOR).json()[1:] == []
     stored = client.post(url, headers=auth, json={"pairs": [pair("k", a, a, meta={"ep": "🐆"})]})
     assert stored.status_code == 201, stored.text
     token = new_labeller(client, "ann")
