@@ -146,7 +146,8 @@ def _check_pair(index: int, pair: PairSpec, clips: Mapping[str, ClipInfo]) -> No
             if by_returns != pair.gold:
                 raise Invalid(f"{where}: the gold answer {pair.gold.value} contradicts the "
                                  f"returns {list(pair.returns)}")
-    if pair.meta is not None and len(json.dumps(pair.meta)) > META_MAX_BYTES:
+    if pair.meta is not None and len(json.dumps(pair.meta, ensure_ascii=False).encode(
+            errors="surrogatepass")) > META_MAX_BYTES:
         raise Invalid(f"{where}: meta is larger than {META_MAX_BYTES} bytes as JSON")
 
 

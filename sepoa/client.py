@@ -6,28 +6,26 @@
     queries = study.ask([Pair(frames_a, frames_b, returns=(12.5, 3.0), meta={"ids": [7, 9]})])
     answers = study.wait_for(queries)  # {key: "first" | "second" | "equal" | "cant_tell" | "skip"}
 
-`token` is the run's token (`POST /api/runs/{id}/tokens`, an operator's call; an operator revokes
-it with `POST /api/runs/{id}/tokens/{token_id}/revoke`, after which every call is a `StudyError`
-with status 401). A clip is a frame array (uint8 (frames, height, width, 3): the server encodes it
-as the app's own clips are), an MP4 or WebM file, or such a file's bytes. Each pair's idempotency
-key is its own `key`, or one made from its content: pushing the same pairs again (a retry, a client
-restarted after a crash) makes no second query. Requests that fail on the way (a connection error,
-a 5xx, a 429) are retried with exponential backoff; a 4xx is a `StudyError` naming the problem. The
-answers feed is read from a cursor, kept in `cursor_file` when given, so a client killed while it
-waits reads on from where it was: nothing is lost. The file moves past a page of answers when the
-next read begins (or at `close()`), so a client killed while it handles a page reads that page
-again. The cursor names its run: another run's file is a ValueError. `wait_for` reads where its
-pairs stand before it follows the feed, so it also returns pairs whose answers the cursor has
-passed (read by `answers()`, by another wait, or before a restart). `AsyncStudy` is the same
-over asyncio.
+`token` is the run's token (`POST /api/runs/{id}/tokens`, an operator's call; an operator revokes it
+with `POST /api/runs/{id}/tokens/{token_id}/revoke`, after which every call is a `StudyError` with
+status 401). A clip is a frame array (uint8 (frames, height, width, 3), or integers within 0-255;
+float frames are a ValueError: the server encodes it as the app's own clips are), an MP4, WebM or
+.npy file, or such a file's bytes. Each pair's idempotency key is its own `key`, or one made from
+its content: pushing the same pairs again (a retry, a client restarted after a crash), or one pair
+twice in an `ask`, makes no second query. NumPy numbers in `returns` and `meta` go as plain ones.
+Requests that fail on the way (a connection error, a 5xx, a 429) are retried with exponential
+backoff; a 4xx is a `StudyError` naming the problem. The answers feed is read from a cursor, kept in
+`cursor_file` when given, so a client killed while it waits reads on from where it was: nothing is
+lost. The file moves past a page of answers when the next read begins (or at `close()`), so a client
+killed while it handles a page reads that page again. The cursor names its run: another run's file
+is a ValueError. `wait_for` reads where its pairs stand before it follows the feed, so it also
+returns pairs whose answers the cursor has passed (read by `answers()`, by another wait, or before a
+restart). `AsyncStudy` is the same over asyncio.
 """
 
 from __future__ import annotations
 
 import asyncio
-import hashlib
-import io
-import json
 import os
 import threading
 import time
@@ -39,19 +37,12 @@ from typing import Any, Literal
 from urllib.parse import quote
 
 import httpx
-import numpy as np
 from tqdm import tqdm  # type: ignore[import-untyped]
 
-Clip = np.ndarray | str | os.PathLike[str] | bytes
-"""a frame array (uint8, (frames, height, width, 3)), an .mp4/.webm/.npy file, or its bytes"""
-MEDIA = {".mp4": "video/mp4", ".webm": "video/webm", ".npy": "application/x-npy"}
+from sepoa.client_pairs import Clip, Pair, clip_body, compact, each_once, pair_body, push_batches
+
 LONGEST_WAIT_S = 60.0
 """the longest one answers request waits on the server"""
-PUSH_PAIRS = 500
-"""the most pairs one push takes (the server's limit)"""
-PUSH_BYTES = 60 * 1024
-"""the most one push's body holds: the server reads 64 KiB by default
-(`SEPOA_BODY_LIMIT_BYTES`); a push it still finds too large (413) is split in two"""
 STATES_KEYS = 100
 """the most keys one read of pair states names (the server's limit)"""
 STATES_URL_CHARS = 6000
@@ -65,23 +56,6 @@ class StudyError(Exception):
         super().__init__(f"{status}: {detail}" if status is not None else str(detail))
         self.status = status
         self.detail = detail
-
-
-@dataclass(frozen=True)
-class Pair:
-    """Two clips to compare, and what the client knows of them (hidden from labellers)."""
-
-    first: Clip
-    second: Clip
-    key: str | None = None
-    """the idempotency key; None: one made from the pair's content"""
-    gold: Literal["first", "second"] | None = None
-    """a gold pair's known answer: it measures labellers and costs no budget"""
-    returns: tuple[float, float] | None = None
-    """the two segments' true returns, for accuracy and the calibration report"""
-    trajectory_returns: tuple[float, float] | None = None
-    meta: Mapping[str, Any] | None = None
-    """the client's own ids, given back with the pair's answers"""
 
 
 @dataclass(frozen=True)
@@ -162,54 +136,9 @@ class Call:
     timeout: float | None = None
 
 
-def clip_body(clip: Clip) -> tuple[bytes, str]:
-    """A clip's bytes and content type."""
-    if isinstance(clip, np.ndarray):
-        buffer = io.BytesIO()
-        np.save(buffer, np.ascontiguousarray(clip, dtype=np.uint8) if clip.dtype != np.uint8
-                else clip)
-        return buffer.getvalue(), MEDIA[".npy"]
-    if isinstance(clip, bytes):
-        return clip, "video/webm" if clip[:4] == b"\x1a\x45\xdf\xa3" else "video/mp4"
-    path = Path(clip)
-    if path.suffix.lower() not in MEDIA:
-        raise ValueError(f"{path}: a clip file is .mp4, .webm or .npy")
-    return path.read_bytes(), MEDIA[path.suffix.lower()]
-
-
-def pair_body(pair: Pair, first: str, second: str) -> dict[str, Any]:
-    """A pair as the server takes it, with its clips' ids and its key."""
-    body: dict[str, Any] = {"first_clip": first, "second_clip": second, "gold": pair.gold,
-                            "returns": pair.returns, "trajectory_returns": pair.trajectory_returns,
-                            "meta": None if pair.meta is None else dict(pair.meta)}
-    content = json.dumps(body, sort_keys=True, separators=(",", ":"))
-    key = pair.key or "auto-" + hashlib.sha256(content.encode()).hexdigest()[:40]
-    return {"key": key, **{name: value for name, value in body.items() if value is not None}}
-
-
-def push_batches(bodies: Sequence[dict[str, Any]]) -> list[list[dict[str, Any]]]:
-    """The pairs' bodies in order, in pushes of at most `PUSH_PAIRS` pairs and `PUSH_BYTES`
-    bytes (one pair larger than that is a push of its own)."""
-    batches: list[list[dict[str, Any]]] = []
-    batch: list[dict[str, Any]] = []
-    size = 0
-    for body in bodies:
-        item = len(compact(body)) + 1
-        if batch and (len(batch) == PUSH_PAIRS or size + item > PUSH_BYTES):
-            batches.append(batch)
-            batch, size = [], 0
-        batch.append(body)
-        size += item
-    return [*batches, batch] if batch else batches
-
-
 def push_call(batch: Sequence[dict[str, Any]]) -> Call:
     return Call("POST", "/pairs", content=compact({"pairs": list(batch)}),
                 content_type="application/json")
-
-
-def compact(value: Any) -> bytes:
-    return json.dumps(value, separators=(",", ":")).encode()
 
 
 def halves(batch: Sequence[dict[str, Any]], error: StudyError) -> list[Sequence[dict[str, Any]]]:
@@ -222,6 +151,12 @@ def halves(batch: Sequence[dict[str, Any]], error: StudyError) -> list[Sequence[
 
 def queries_of(pushed: Iterable[Mapping[str, Any]]) -> list[Query]:
     return [Query(item["key"], item["query_id"], item["created"]) for item in pushed]
+
+
+def in_order(bodies: Sequence[Mapping[str, Any]], pushed: Sequence[Query]) -> list[Query]:
+    """One query per pair asked, in order (a pair asked twice was pushed once: `each_once`)."""
+    by_key = {query.key: query for query in pushed}
+    return [by_key[body["key"]] for body in bodies]
 
 
 def retry_after(response: httpx.Response | None, attempt: int, backoff: float) -> float | None:
@@ -477,10 +412,12 @@ class Study:
     def ask(self, pairs: Sequence[Pair]) -> list[Query]:
         """Push the pairs for people to compare; their queries, in order. They go in pushes
         that fit the server's limits (`push_batches`), each stored whole or not at all:
-        should one fail, asking again makes no second query of a pair stored before."""
+        should one fail, asking again makes no second query of a pair stored before. A pair
+        given twice is pushed once, and both get its query."""
         bodies = [pair_body(pair, self.upload(pair.first), self.upload(pair.second))
                   for pair in pairs]
-        return [query for batch in push_batches(bodies) for query in self.push(batch)]
+        pushed = [query for batch in push_batches(each_once(bodies)) for query in self.push(batch)]
+        return in_order(bodies, pushed)
 
     def push(self, batch: Sequence[dict[str, Any]]) -> list[Query]:
         """One push of pairs' bodies (`pair_body`), in two when the server finds it too
@@ -571,7 +508,8 @@ class AsyncStudy:
         ids = await asyncio.gather(*(self.upload(clip) for pair in pairs
                                      for clip in (pair.first, pair.second)))
         bodies = [pair_body(pair, ids[2 * i], ids[2 * i + 1]) for i, pair in enumerate(pairs)]
-        return [query for batch in push_batches(bodies) for query in await self.push(batch)]
+        return in_order(bodies, [query for batch in push_batches(each_once(bodies))
+                                 for query in await self.push(batch)])
 
     async def push(self, batch: Sequence[dict[str, Any]]) -> list[Query]:
         try:

@@ -86,11 +86,15 @@ def allowed_methods(request: Request) -> set[str]:
 
 
 def _json_safe(value: Any) -> Any:
-    """`value` with each number JSON has no form for (NaN, an infinity) as its text."""
+    """`value` with each number JSON has no form for (NaN, an infinity) as its text, and each
+    lone surrogate in a string (JSON's "\\ud800" escape, which no UTF-8 encodes) as its
+    escape."""
     if isinstance(value, float) and not math.isfinite(value):
         return str(value)
+    if isinstance(value, str):
+        return value.encode("utf-8", "backslashreplace").decode("utf-8")
     if isinstance(value, dict):
-        return {key: _json_safe(item) for key, item in value.items()}
+        return {_json_safe(key): _json_safe(item) for key, item in value.items()}
     if isinstance(value, list):
         return [_json_safe(item) for item in value]
     return value
@@ -98,7 +102,7 @@ def _json_safe(value: Any) -> Any:
 
 async def _invalid_request(_request: Request, error: Exception) -> JSONResponse:
     # FastAPI's own 422, but a NaN or an infinity the body held (Python's JSON reads them) goes
-    # back as text: JSON has no such number, and rendering one would fail (a 500).
+    # back as text, and a lone surrogate as its escape: rendering either would fail (a 500).
     assert isinstance(error, RequestValidationError)
     return JSONResponse(status_code=422,
                         content={"detail": _json_safe(jsonable_encoder(error.errors()))})

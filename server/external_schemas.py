@@ -4,6 +4,7 @@ pairs its client pushes, and the answers it reads back."""
 from __future__ import annotations
 
 import math
+import re
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
@@ -28,19 +29,32 @@ def _no_nul(text: str) -> str:
     return text
 
 
+SURROGATE = re.compile("[\ud800-\udfff]")
+"""a lone surrogate, as JSON's "\\ud800" escape makes one: no character, so no UTF-8 has it
+(stored in meta, it would fail every read of its pair's answers)"""
+
+
+def _unstorable_text(text: str) -> str | None:
+    """What in `text` no database stores, in words; None for text without it."""
+    if "\x00" in text:
+        return "a NUL character (\\u0000), which no text can store"
+    if SURROGATE.search(text):
+        return "a lone surrogate (\\ud800-\\udfff), which is no character UTF-8 can store"
+    return None
+
+
 def _storable(value: Any, where: str = "meta") -> None:
     """ValueError naming the place of a number that is not finite (JSON has no NaN or
-    Infinity: it was stored as null on SQLite, refused as out of range on PostgreSQL) or a
-    NUL character in a key or a string."""
+    Infinity: it was stored as null on SQLite, refused as out of range on PostgreSQL), or of
+    a NUL character or a lone surrogate in a key or a string."""
     if isinstance(value, float) and not math.isfinite(value):
         raise ValueError(f"{where} is {value}: numbers in meta must be finite")
-    if isinstance(value, str) and "\x00" in value:
-        raise ValueError(f"{where} holds a NUL character (\\u0000), which no text can store")
+    if isinstance(value, str) and (problem := _unstorable_text(value)):
+        raise ValueError(f"{where} holds {problem}")
     if isinstance(value, dict):
         for key, item in value.items():
-            if "\x00" in key:
-                raise ValueError(f"a key of {where} holds a NUL character (\\u0000), which "
-                                 "no text can store")
+            if problem := _unstorable_text(key):
+                raise ValueError(f"a key of {where} holds {problem}")
             _storable(item, f"{where}.{key}")
     elif isinstance(value, list):
         for index, item in enumerate(value):
@@ -59,7 +73,8 @@ PairKey = Annotated[str, Field(min_length=1, max_length=200,
 """a pair's idempotency key: 1-200 characters, no NUL"""
 Meta = Annotated[SmallJson, AfterValidator(_storable_meta), Field(
     description="the client's own ids, hidden from labellers: at most 4096 bytes as JSON, "
-                "finite numbers only, no NUL character (\\u0000) in a key or a string")]
+                "finite numbers only, no NUL character (\\u0000) or lone surrogate "
+                "(\\ud800-\\udfff) in a key or a string")]
 ClipId = Annotated[str, Field(pattern=r"^[0-9a-f]{32}$",
                               description="an id `POST /api/runs/{id}/clips` gave")]
 

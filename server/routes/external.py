@@ -165,8 +165,9 @@ def stored_clip(settings: Settings, run_id: int, clip_id: str) -> ClipInfo | Non
         return None
 
 
-def _frames(body: bytes, settings: Settings) -> np.ndarray:
-    """A frame array sent as a NumPy .npy file: uint8, (frames, height, width, 3)."""
+def _frames(body: bytes, settings: Settings, fps: float) -> np.ndarray:
+    """A frame array sent as a NumPy .npy file: uint8, (frames, height, width, 3), within the
+    limits at `fps` before it is encoded (a rate too slow for ffmpeg makes a clip too long)."""
     try:
         frames: np.ndarray = np.load(io.BytesIO(body), allow_pickle=False)
     except (ValueError, OSError, EOFError):
@@ -180,6 +181,9 @@ def _frames(body: bytes, settings: Settings) -> np.ndarray:
     if height % 2 or width % 2 or not (_fits(height) and _fits(width)):
         raise Invalid(f"frames are {width}x{height}; width and height must be even, in "
                       f"[{SIDES[0]}, {SIDES[1]}] (yuv420p halves the colour planes)")
+    if count / fps > settings.clip_max_seconds:
+        raise Invalid(f"{count} frames at fps={fps:g} last {count / fps:.4g} s; at most "
+                      f"{settings.clip_max_seconds:.0f} s")
     return frames
 
 
@@ -215,7 +219,7 @@ def store_clip(settings: Settings, run_id: int, body: bytes, kind: str, fps: flo
         note_tmp = note.with_name(f".{note.name}.{uuid.uuid4().hex[:8]}.tmp")
         try:
             if kind == NPY:
-                frames = _frames(body, settings)
+                frames = _frames(body, settings, fps)
                 encode_mp4(frames, tmp, fps=fps, width=frames.shape[2], height=frames.shape[1])
             else:
                 tmp.write_bytes(body)

@@ -4,6 +4,7 @@ retried push makes no second query; a client killed while waiting resumes from i
 from __future__ import annotations
 
 import asyncio
+import io
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -19,15 +20,14 @@ from sqlalchemy import func, select
 
 from labelqueue import Query, make_engine, session_factory
 from sepoa.client import (
-    PUSH_BYTES,
     AsyncStudy,
     Pair,
     Study,
     StudyError,
-    push_batches,
     push_call,
 )
 from sepoa.client import Query as Asked
+from sepoa.client_pairs import PUSH_BYTES, push_batches
 from server.app import create_app
 from server.settings import Settings
 
@@ -185,6 +185,50 @@ def test_a_retried_push_makes_no_second_query(app_client: TestClient) -> None:
     app_client._transport = Flaky(app_client._transport, lambda _r, _n: 502)
     with pytest.raises(StudyError, match="gave up after 2 tries"):
         study.answers()
+
+
+def test_a_pair_asked_twice_in_one_ask_is_one_query(app_client: TestClient) -> None:
+    """As asked again in a later ask: the same content is the same key, and one push may
+    not name a key twice (the server's 422 for it once failed the whole ask)."""
+    run_id, token = run_and_token(app_client)
+    study = Study(URL, token, run_id, client=app_client, progress=False)
+    again, other = pairs(2)
+    queries = study.ask([again, other, again])
+    assert queries[0] == queries[2] and queries[0].key != queries[1].key
+    assert stored_queries(app_client) == 2
+    assert study.ask([other, other]) == [Asked(queries[1].key, queries[1].query_id, False)] * 2
+
+
+def test_numpy_numbers_in_returns_and_meta_go_as_plain_ones(app_client: TestClient) -> None:
+    """RL code's returns are often float32 sums and its ids int64: json.dumps refused them
+    (TypeError). They go as the Python numbers they are, under the same key."""
+    run_id, token = run_and_token(app_client)
+    study = Study(URL, token, run_id, client=app_client, progress=False)
+    [asked] = study.ask([Pair(clip(1), clip(2), returns=(np.float32(2.5), np.float64(-1.0)),
+                              meta={"episode": np.int64(7), "starts": np.array([3, 9])})])
+    [same] = study.ask([Pair(clip(1), clip(2), returns=(2.5, -1.0),
+                             meta={"episode": 7, "starts": [3, 9]})])
+    assert asked.created and same == Asked(asked.key, asked.query_id, False)
+    assert study.states([asked.key])[asked.key].meta == {"episode": 7, "starts": [3, 9]}
+
+
+def test_frames_are_uint8_and_an_npy_files_bytes_are_a_clip(app_client: TestClient) -> None:
+    """Float frames were cast to uint8 unscaled, so frames in [0, 1] went as a black clip:
+    they are a ValueError naming the fix. Integer frames within 0-255 are the uint8 clip; the
+    bytes of an .npy file are the clip they hold (they were sent as an MP4, a 422)."""
+    run_id, token = run_and_token(app_client)
+    study = Study(URL, token, run_id, client=app_client, progress=False)
+    frames = clip(1)
+    with pytest.raises(ValueError, match=r"float32.*\(frames \* 255\)"):
+        study.ask([Pair(frames / np.float32(255), clip(2))])
+    with pytest.raises(ValueError, match="int16"):
+        study.upload(frames.astype(np.int16) + 256)
+    assert stored_queries(app_client) == 0
+    uploaded = study.upload(frames)
+    assert study.upload(frames.astype(np.int64)) == uploaded
+    npy = io.BytesIO()
+    np.save(npy, frames)
+    assert study.upload(npy.getvalue()) == uploaded
 
 
 def test_a_client_killed_while_waiting_resumes_from_its_cursor(

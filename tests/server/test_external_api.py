@@ -30,6 +30,7 @@ from sepoa.client import Pair, Study
 from server.settings import Settings
 
 NPY = {"content-type": "application/x-npy"}
+JSON_TYPE = {"content-type": "application/json"}
 SECRET_ID = "client-episode-31337"
 
 
@@ -176,6 +177,24 @@ def test_the_same_frames_at_another_frame_rate_are_another_clip_and_pair_with_no
         pair("k", slow["clip_id"], other.json()["clip_id"])]}).status_code == 201
 
 
+def test_frames_at_a_rate_too_slow_for_the_length_limit_are_refused_before_encoding(
+    client: TestClient, settings: Settings
+) -> None:
+    """fps is only bounded above 0: 6 frames at fps=1e-300 made ffmpeg fail (a 500), and at
+    fps=0.001 they were encoded before the clip's 6 000 s were refused. Both are a 422 naming
+    the length the frames would last; at the limit they are a clip."""
+    run_id, auth = external_run(client)
+    url = f"/api/runs/{run_id}/clips"
+    for fps in (1e-300, 0.001):
+        refused = client.post(url, params={"fps": fps}, content=frames(1), headers=auth | NPY)
+        assert refused.status_code == 422, refused.text
+        assert "6 frames at fps=" in refused.json()["detail"]
+        assert "at most 60 s" in refused.json()["detail"]
+    assert list((settings.clips_root / "external" / str(run_id)).iterdir()) == []
+    longest = client.post(url, params={"fps": 0.1}, content=frames(1), headers=auth | NPY)
+    assert longest.status_code == 201 and longest.json()["seconds"] == pytest.approx(60, abs=1)
+
+
 def test_bad_clips_and_pairs_are_refused_by_name_and_nothing_is_kept(
     client: TestClient, session: Session, settings: Settings, tmp_path: Path
 ) -> None:
@@ -229,27 +248,41 @@ def test_bad_clips_and_pairs_are_refused_by_name_and_nothing_is_kept(
     assert queries(session) == 0
 
 
-def test_a_nul_or_a_number_json_has_not_in_a_pair_is_refused_naming_it(
+def refused_naming(client: TestClient, run_id: int, auth: dict[str, str], clip: str,
+                   cases: list[tuple[str, str, str]]) -> str:
+    """Push a pair of `clip` with each case's fields (raw JSON, as no Python dict holds
+    them): each is a 422 whose one problem is at the field and says `said`. The pairs URL."""
+    url = f"/api/runs/{run_id}/pairs"
+    for field, extra, said in cases:
+        body = f'{{"pairs": [{{"first_clip": "{clip}", "second_clip": "{clip}", {extra}}}]}}'
+        refused = client.post(url, content=body, headers=auth | JSON_TYPE)
+        assert refused.status_code == 422, (extra, refused.text)
+        [problem] = refused.json()["detail"]
+        assert problem["loc"][-1] == field and said in problem["msg"], (extra, problem)
+    return url
+
+
+def test_a_nul_a_lone_surrogate_or_a_number_json_has_not_in_a_pair_is_refused_naming_it(
     client: TestClient, session: Session
 ) -> None:
     """PostgreSQL stores no NUL in text and JSON has no NaN (SQLite kept it as null): such a
-    key or meta is a 422 naming the field, on both databases alike."""
+    key or meta is a 422 naming the field, on both databases alike. JSON's "\\ud800" escape
+    alone is no character: in meta it was stored, and every read of the pair's state or
+    answers failed (500) from then on; in a key, the 422 itself did."""
     run_id, auth = external_run(client)
     a = upload(client, run_id, auth, frames(1))
-    url, json_type = f"/api/runs/{run_id}/pairs", {"content-type": "application/json"}
-    for field, extra, said in [
+    url = refused_naming(client, run_id, auth, a, [
         ("key", '"key": "k\\u0000x"', "NUL character"),
         ("meta", '"key": "k", "meta": {"s": "a\\u0000b"}', "meta.s holds a NUL"),
         ("meta", '"key": "k", "meta": {"ok\\u0000": 1}', "a key of meta holds a NUL"),
         ("meta", '"key": "k", "meta": {"x": NaN}', "meta.x is nan"),
         ("meta", '"key": "k", "meta": {"ids": [1, {"r": -Infinity}]}', "meta.ids[1].r is -inf"),
         ("returns", '"key": "k", "returns": [NaN, 1.0]', "finite"),
-    ]:
-        body = f'{{"pairs": [{{"first_clip": "{a}", "second_clip": "{a}", {extra}}}]}}'
-        refused = client.post(url, content=body, headers=auth | json_type)
-        assert refused.status_code == 422, (extra, refused.text)
-        [problem] = refused.json()["detail"]
-        assert problem["loc"][-1] == field and said in problem["msg"], (extra, problem)
+        ("key", '"key": "k\\ud800"', "valid string"),
+        ("meta", '"key": "k", "meta": {"path": "ep\\udce9.npz"}', "meta.path holds a lone"),
+        ("meta", '"key": "k", "meta": {"\\udc00": 1}', "a key of meta holds a lone"),
+        ("meta", '"key": "k", "meta": {"ids": [{"n": "\\ud83d"}]}', "meta.ids[0].n holds"),
+    ])
     bad_key = client.get(url, params={"key": "k\x00"}, headers=auth)
     assert bad_key.status_code == 422 and "NUL character" in bad_key.text
     for field in ("task", "name"):
@@ -259,6 +292,39 @@ def test_a_nul_or_a_number_json_has_not_in_a_pair_is_refused_naming_it(
         [problem] = made.json()["detail"]
         assert problem["loc"][-1] == field and "NUL" in problem["msg"], problem
     assert queries(session) == 0
+
+
+def test_a_lone_surrogate_in_a_task_is_a_422_and_meta_of_any_character_comes_back(
+    client: TestClient,
+) -> None:
+    run_id, auth = external_run(client)
+    a = upload(client, run_id, auth, frames(1))
+    url = f"/api/runs/{run_id}/pairs"
+    made = client.post("/api/runs/external", headers=OPERATOR | JSON_TYPE,
+                       content='{"task": "cheetah \\udc80", "budget": 5}')
+    assert made.status_code == 422 and made.json()["detail"][0]["loc"][-1] == "task"
+    assert client.get("/api/runs/external", headers=OPERATOR).json()[1:] == []
+    stored = client.post(url, headers=auth, json={"pairs": [pair("k", a, a, meta={"ep": "🐆"})]})
+    assert stored.status_code == 201, stored.text
+    token = new_labeller(client, "ann")
+    shown = client.get(f"/api/label/next?run_id={run_id}", headers=bearer(token)).json()
+    assert answer(client, bearer(token), shown, "left").status_code == 201
+    feed = client.get(f"/api/runs/{run_id}/answers", headers=auth)
+    assert feed.status_code == 200 and feed.json()["events"][0]["meta"] == {"ep": "🐆"}
+
+
+def test_meta_is_measured_in_the_bytes_it_takes_not_its_ascii_escapes(
+    client: TestClient,
+) -> None:
+    """The limit is 4096 bytes of JSON: 1 500 'é' (3 000 bytes) fit, though their \\u00e9
+    escapes would take 9 000 characters; 2 100 (4 200 bytes) do not."""
+    run_id, auth = external_run(client)
+    a = upload(client, run_id, auth, frames(1))
+    url = f"/api/runs/{run_id}/pairs"
+    fits = client.post(url, headers=auth, json={"pairs": [pair("k", a, a, meta={"n": "é" * 1500})]})
+    assert fits.status_code == 201, fits.text
+    over = client.post(url, headers=auth, json={"pairs": [pair("l", a, a, meta={"n": "é" * 2100})]})
+    assert over.status_code == 422 and "larger than 4096 bytes" in over.json()["detail"]
 
 
 def test_a_run_token_reaches_its_own_run_and_nothing_else(client: TestClient) -> None:
