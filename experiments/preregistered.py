@@ -55,20 +55,24 @@ FINAL_SHARE = 0.25
 def _bootstrap(scores: dict[str, Any], func: Callable, reps: int
                ) -> dict[str, tuple[float, float, float]]:
     """{name: (point estimate, low, high)}: rliable's estimates with 95 % stratified-bootstrap
-    intervals, resampled with a fixed seed."""
+    intervals, each name resampled with the same fixed seed, so that its interval depends on
+    its own scores only (not on the names before it, or on how many runs they have)."""
     # rliable's bootstraps draw their indices from NumPy's global generator, not from the
-    # `random_state` they are given: seed that one for the call, and give it back as it was.
+    # `random_state` they are given: seed that one for each name, and give it back as it was.
     outside = np.random.get_state()
-    np.random.seed(0)
+    out = {}
     try:
-        with warnings.catch_warnings():  # rliable passes arch a RandomState, deprecated there
-            warnings.simplefilter("ignore", FutureWarning)
-            point, ci = rly.get_interval_estimates(scores, func, reps=reps,
-                                                   random_state=np.random.RandomState(0))
+        for name, score in scores.items():
+            np.random.seed(0)
+            with warnings.catch_warnings():  # rliable passes arch a RandomState, deprecated
+                warnings.simplefilter("ignore", FutureWarning)
+                point, ci = rly.get_interval_estimates({name: score}, func, reps=reps,
+                                                       random_state=np.random.RandomState(0))
+            out[name] = (float(np.ravel(point[name])[0]), float(np.ravel(ci[name])[0]),
+                         float(np.ravel(ci[name])[-1]))
     finally:
         np.random.set_state(outside)
-    return {name: (float(np.ravel(point[name])[0]), float(np.ravel(ci[name])[0]),
-                   float(np.ravel(ci[name])[-1])) for name in scores}
+    return out
 
 
 def _mean_interval(values: np.ndarray, reps: int) -> tuple[float, float]:

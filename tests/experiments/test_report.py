@@ -740,6 +740,20 @@ def test_bootstrap_intervals_are_the_same_on_every_call() -> None:
     assert np.array_equal(np.random.get_state()[1], outside[1])
 
 
+def test_a_variants_interval_does_not_move_as_another_variants_runs_finish() -> None:
+    """PEBBLE's scores are the same in both tables; only S-EPOA, listed before it, has a
+    run more: PEBBLE's interval must be the same."""
+    from experiments import preregistered
+
+    pebble = np.array([147.9, 227.7, 162.8, 180.3, 181.3, 138.6])[:, None]
+    before = {"S-EPOA": np.array([111.9, 165.2, 54.9])[:, None], "PEBBLE": pebble}
+    after = {"S-EPOA": np.array([111.9, 165.2, 54.9, 89.4])[:, None], "PEBBLE": pebble}
+    for func in (preregistered._iqm, preregistered._mean):
+        assert (preregistered._bootstrap(before, func, 300)["PEBBLE"]
+                == preregistered._bootstrap(after, func, 300)["PEBBLE"]
+                == preregistered._bootstrap({"PEBBLE": pebble}, func, 300)["PEBBLE"])
+
+
 def test_a_grid_whose_query_selecting_runs_have_not_finished_reports_as_partial(
         tmp_path: Path, capsys) -> None:
     """Mid-grid, or after a release at a time limit: only the SAC arm is done."""
