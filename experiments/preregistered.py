@@ -55,20 +55,24 @@ FINAL_SHARE = 0.25
 def _bootstrap(scores: dict[str, Any], func: Callable, reps: int
                ) -> dict[str, tuple[float, float, float]]:
     """{name: (point estimate, low, high)}: rliable's estimates with 95 % stratified-bootstrap
-    intervals, resampled with a fixed seed."""
+    intervals, each name resampled with the same fixed seed, so that its interval depends on
+    its own scores only (not on the names before it, or on how many runs they have)."""
     # rliable's bootstraps draw their indices from NumPy's global generator, not from the
-    # `random_state` they are given: seed that one for the call, and give it back as it was.
+    # `random_state` they are given: seed that one for each name, and give it back as it was.
     outside = np.random.get_state()
-    np.random.seed(0)
+    out = {}
     try:
-        with warnings.catch_warnings():  # rliable passes arch a RandomState, deprecated there
-            warnings.simplefilter("ignore", FutureWarning)
-            point, ci = rly.get_interval_estimates(scores, func, reps=reps,
-                                                   random_state=np.random.RandomState(0))
+        for name, score in scores.items():
+            np.random.seed(0)
+            with warnings.catch_warnings():  # rliable passes arch a RandomState, deprecated
+                warnings.simplefilter("ignore", FutureWarning)
+                point, ci = rly.get_interval_estimates({name: score}, func, reps=reps,
+                                                       random_state=np.random.RandomState(0))
+            out[name] = (float(np.ravel(point[name])[0]), float(np.ravel(ci[name])[0]),
+                         float(np.ravel(ci[name])[-1]))
     finally:
         np.random.set_state(outside)
-    return {name: (float(np.ravel(point[name])[0]), float(np.ravel(ci[name])[0]),
-                   float(np.ravel(ci[name])[-1])) for name in scores}
+    return out
 
 
 def _mean_interval(values: np.ndarray, reps: int) -> tuple[float, float]:
@@ -242,7 +246,7 @@ def with_equal_updates_scores(results: Results, runs: pd.DataFrame, budget: floa
 def _scores(runs: pd.DataFrame, column: str, variants: list[str]) -> dict[str, np.ndarray]:
     """{variant: (runs, tasks)} of `column` over runs with a value: rliable's layout, the tasks
     its strata. With several tasks a variant's array is as long as its task with the fewest
-    such runs (the tables count finished runs, so a cut shows)."""
+    such runs (the tables say how many runs they scored, so a cut shows)."""
     out = {}
     tasks = list(dict.fromkeys(runs["task"]))
     for variant in variants:
@@ -256,8 +260,9 @@ def _scores(runs: pd.DataFrame, column: str, variants: list[str]) -> dict[str, n
 
 def primary_table(results: Results, runs: pd.DataFrame, column: str = "score"
                   ) -> pd.DataFrame:
-    """Per variant: finished and planned runs, IQM and mean of the primary metric (or another
-    per-run score `column`) with their 95 % intervals."""
+    """Per variant: finished and planned runs, the runs scored (finished with a value of the
+    primary metric, or of another per-run score `column`, as `_scores` keeps them), and the
+    IQM and mean of those scores with their 95 % intervals."""
     variants = [v.label for v in results.spec.variants]
     scores = _scores(runs, column, variants)
     iqm = _bootstrap(scores, _iqm, REPS) if scores else {}
@@ -266,7 +271,8 @@ def primary_table(results: Results, runs: pd.DataFrame, column: str = "score"
     for variant in variants:
         sub = runs[runs["variant"] == variant]
         row = {"variant": variant, "algo": sub["algo"].iloc[0],
-               "finished": int((sub["state"] == "done").sum()), "planned": len(sub)}
+               "finished": int((sub["state"] == "done").sum()), "planned": len(sub),
+               "scored": int(scores[variant].size) if variant in scores else 0}
         if variant in scores:
             row |= dict(zip(("iqm", "iqm_low", "iqm_high"), iqm[variant], strict=True))
             row |= dict(zip(("mean", "mean_low", "mean_high"), mean[variant], strict=True))
@@ -286,9 +292,9 @@ def improvement_table(results: Results, runs: pd.DataFrame, column: str = "score
     scores = _scores(runs, column, list(dict.fromkeys(x for pair in pairs for x in pair)))
     rows = []
     for reference, other in pairs:
-        row = {"reference": reference, "other": other,
-               "n_reference": len(scores.get(reference, [])),
-               "n_other": len(scores.get(other, []))}
+        row = {"reference": reference, "other": other,  # runs, over every task
+               "n_reference": scores[reference].size if reference in scores else 0,
+               "n_other": scores[other].size if other in scores else 0}
         if reference in scores and other in scores:
             pair = {f"{reference},{other}": (scores[reference], scores[other])}
             (estimate,) = _bootstrap(pair, metrics.probability_of_improvement, REPS).values()
@@ -406,8 +412,15 @@ def status_line(runs: pd.DataFrame) -> str:
             "conclusion is drawn from them yet.")
 
 
+def _finished(r: Any) -> str:
+    """A primary table's runs cell: finished of planned, and the runs scored where a finished
+    run has no score (no evaluation in the window, or cut to another task's count)."""
+    scored = getattr(r, "scored", r.finished)
+    return f"{r.finished}/{r.planned}" + (f", {scored} scored" if scored < r.finished else "")
+
+
 def primary_markdown(primary: pd.DataFrame, improvement: pd.DataFrame) -> str:
-    rows = [[r.variant, r.algo, f"{r.finished}/{r.planned}",
+    rows = [[r.variant, r.algo, _finished(r),
              _interval(getattr(r, "iqm", math.nan), getattr(r, "iqm_low", math.nan),
                        getattr(r, "iqm_high", math.nan), 1),
              _interval(getattr(r, "mean", math.nan), getattr(r, "mean_low", math.nan),

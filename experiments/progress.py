@@ -222,13 +222,17 @@ def duration_text(seconds: float) -> str:
     return f"{s // 3600}h{s % 3600 // 60:02d}m"
 
 
-def summary(left: Mapping[str, float | None], workers: int, by_rate: int = 0) -> str:
+def summary(left: Mapping[str, float | None], workers: int, by_rate: int = 0,
+            left_out: int = 0) -> str:
     """One line: the training time left over the unfinished runs, and over the workers now
-    holding runs; `by_rate`: how many of the estimates came from rates (`TimeLeft.by_rate`)."""
+    holding runs; `by_rate`: how many of the estimates came from rates (`TimeLeft.by_rate`);
+    `left_out`: the runs a stop rule leaves out, which will not train (not in `left`)."""
     known = [s for s in left.values() if s is not None and s > 0]
     unknown = sum(s is None for s in left.values())
+    out = f"{left_out} run(s) of seeds the stop rule left out, which will not train"
     if not known and not unknown:
-        return "time left: none, every run is done"
+        return "time left: none, every run is done" + (
+            f" but {out}" if left_out else "")
     parts = []
     if known:
         total = sum(known)
@@ -245,6 +249,8 @@ def summary(left: Mapping[str, float | None], workers: int, by_rate: int = 0) ->
         parts.append(f"{by_rate} of them from average rates (no finished run of their variant "
                      "has the phase clock): likely short, as late steps hold the largest "
                      "feedback rounds")
+    if left_out:
+        parts.append(f"not counted: {out}")
     return "time left (estimated): " + "; ".join(parts)
 
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
-from collections.abc import Iterable
+from collections.abc import Collection, Iterable
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -275,7 +275,8 @@ def started_seeds(spec: Spec, rows: dict[str, Run], results: Path) -> set[int]:
 
 
 def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path,
-                 rule_line: str | None = None, rule_worked_s: float | None = None) -> str:
+                 rule_line: str | None = None, rule_worked_s: float | None = None,
+                 left_out: Collection[int] = ()) -> str:
     """A table of the spec's runs: their status in the database (or "not queued"), the step
     reached of the planned steps, the worker and how long ago it heartbeat (flagged `silent`
     past `SILENT_WORKER_AFTER_S`, `DEAD` past `DEAD_WORKER_AFTER_S`), whether the folder
@@ -284,7 +285,8 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path,
     (`experiments.progress`);
     then the time the grid has left, and `rule_line` (its stop rule's state) with, given
     `rule_worked_s` (the hours it counts, not spent yet), which seeds it lets start at these
-    estimates."""
+    estimates. The unfinished runs of the seeds a reached stop rule leaves out (`left_out`)
+    will not train: their time left says so, and the grid's does not count them."""
     rows = spec_rows(spec, sessions)
     now = utcnow()
     header = ("task", "variant", "eps", "budget", "seed", "status", "step", "worker",
@@ -329,7 +331,13 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path,
     for key, wait in waits.items():
         training = left[key]
         left[key] = None if wait is None or training is None else training + wait
+    ruled_out = {grid_key(spec, run) for run in spec.runs() if run.seed in left_out}
     for line, (key, _, _, done, _, _) in zip(lines, progress, strict=True):
+        if not done and key in ruled_out:
+            del left[key]
+            left.by_rate.discard(key)
+            line.append("left out")
+            continue
         seconds = left[key]
         line.append("-" if done else "?" if seconds is None else duration_text(seconds))
     widths = [max(len(r[i]) for r in [header, *lines]) for i in range(len(header))]
@@ -345,7 +353,8 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path,
     if rule_line and rule_worked_s is not None:
         ruled.append(stop_forecast(spec, rows, results, left, live_workers, rule_worked_s))
     return "\n".join([f"{spec.name}: {len(lines)} runs: {summary_line}", *text,
-                      summary(left, workers, len(left.by_rate))]
+                      summary(left, workers, len(left.by_rate),
+                              sum(line[-1] == "left out" for line in lines))]
                      + ([period.text(duration_text(period.seconds))] if period else [])
                      + ruled
                      + (["failed:", *errors] if errors else [])

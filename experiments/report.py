@@ -159,7 +159,8 @@ def _short_curves(panels: dict[tuple[str, str], dict[str, Band]], seeds: Mapping
 FINAL_DOC = ("Final return: the `return` of the last evaluation (eval.csv's last row, itself "
              "the mean over that evaluation's episodes) of each finished run (done.json), then "
              "mean ± sample std (ddof=1) across seeds. Unfinished runs are not averaged in; "
-             "the last column lists them with the step of their last evaluation.")
+             "the last column lists them with the step of their last evaluation, and any "
+             "finished run without an evaluation, which the mean's `(n=k)` leaves out.")
 QUERIES_DOC = ("Final return (as in the final-return table) by number of queries: a row per "
                "budget (each run's `feedback.budget`), a column per variant; mean ± sample std "
                "across finished seeds, `(n=k)` when fewer than the variant's planned seeds "
@@ -206,10 +207,11 @@ PROPOSITION_DOC = (
 PREREGISTERED_DOC = (
     "The spec's `[analysis]`, fixed before its runs: the primary metric of a run is "
     "{metric}. Per variant, the interquartile mean (IQM) and the mean over its finished runs "
-    "with 95 % stratified-bootstrap intervals; then the probability that a run of the first "
-    "variant scores above a run of the second (ties count half), with its 95 % interval "
-    "(rliable). The figure shows the IQM of the evaluation return over the finished runs at "
-    "each evaluation, with its 95 % interval.")
+    "with 95 % stratified-bootstrap intervals (the runs column says how many were scored "
+    "where a finished run has no evaluation to average); then the probability that a run of "
+    "the first variant scores above a run of the second (ties count half), with its 95 % "
+    "interval (rliable). The figure shows the IQM of the evaluation return over the finished "
+    "runs at each evaluation, with its 95 % interval.")
 MECHANISM_DOC = (
     "Per variant, the mean over its runs (finished or not: what they logged) with a 95 % "
     "bootstrap interval and the runs counted. SAC updates and those on r̂: episodes.csv's last "

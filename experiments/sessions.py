@@ -5,9 +5,10 @@ across sessions and restarts, with the time between them, when nothing ran, left
 
 While it runs, a launcher writes the time into its row's `alive_at` every `BEAT_S`. One killed
 outright (SIGKILL, the machine lost) leaves its row without an end, and it counts up to its last
-`alive_at`; the newest row counts up to now while its `alive_at` is recent (the launcher runs).
-A row without an end or an `alive_at` (written before the column existed) counts up to now while
-it is the newest, and not at all once a later session has begun, which `worked` says.
+`alive_at`; a row without an end counts up to now while its `alive_at` is recent (the launcher
+runs). A row without an end or an `alive_at` (written before the column existed) counts up to
+now while it is the newest, and not at all once a later session has begun, which `worked` says.
+Time two sessions share (two launchers on one grid at once) counts once: the sum is wall time.
 
 Two launchers on one spec share the file: each change is a read-modify-write under an exclusive
 lock on `sessions.csv.lock`, written to a temporary file of its own and renamed, and a launcher
@@ -131,10 +132,10 @@ def recorded_session(folder: Path, *, workers: int, threads: int,
 @dataclass(frozen=True)
 class Worked:
     seconds: float
-    """wall time the grid's local workers ran, summed over its sessions"""
+    """wall time the grid's local workers ran, over its sessions (time they share once)"""
     sessions: int
     running_since: datetime | None
-    """the newest session's start, while it has no end (it runs, or was killed outright)"""
+    """the start of the newest session that runs (no end, a recent sign of life)"""
     unended: int
     """sessions without an end and not running (killed outright): counted up to their last
     `alive_at`, or not at all without one"""
@@ -152,24 +153,39 @@ class Worked:
 
 
 def worked(folder: Path, now: datetime | None = None) -> Worked | None:
-    """The grid's training time so far; None before its first recorded session."""
+    """The grid's training time so far; None before its first recorded session. Sessions
+    that overlap (two launchers on one grid) count their common time once: it is wall time."""
     rows = _rows(folder / FILE)
     if not rows:
         return None
     now = now or datetime.now(UTC)
-    seconds, unended, running = 0.0, 0, None
+    periods: list[tuple[datetime, datetime]] = []
+    unended, running = 0, None
     for i, row in enumerate(rows):
         start = datetime.fromisoformat(row["started_at"])
         alive = datetime.fromisoformat(row["alive_at"]) if row.get("alive_at") else None
-        newest = i == len(rows) - 1
         if row["ended_at"]:
-            seconds += (datetime.fromisoformat(row["ended_at"]) - start).total_seconds()
-        elif newest and (alive is None
-                         or (now - alive).total_seconds() <= RUNNING_WITHIN_S):
-            seconds += max((now - start).total_seconds(), 0.0)
-            running = start
+            periods.append((start, datetime.fromisoformat(row["ended_at"])))
+        # A recent sign of life: it runs, newest or not (another launcher may have started
+        # since); without the column, only the newest row can be running.
+        elif (alive is not None and (now - alive).total_seconds() <= RUNNING_WITHIN_S) \
+                or (alive is None and i == len(rows) - 1):
+            periods.append((start, now))
+            running = start if running is None else max(running, start)
         else:
             unended += 1
             if alive is not None:
-                seconds += max((alive - start).total_seconds(), 0.0)
-    return Worked(seconds, len(rows), running, unended)
+                periods.append((start, alive))
+    return Worked(_union_seconds(periods), len(rows), running, unended)
+
+
+def _union_seconds(periods: list[tuple[datetime, datetime]]) -> float:
+    """The seconds covered by at least one of `periods` (start, end)."""
+    seconds, reached = 0.0, None
+    for start, end in sorted(periods):
+        if reached is not None:
+            start = max(start, reached)
+        if end > start:
+            seconds += (end - start).total_seconds()
+        reached = end if reached is None else max(reached, end)
+    return seconds

@@ -196,10 +196,17 @@ class Spec:
             own = tuple(s for s in v.seeds or self.seeds if seeds is None or s in seeds)
             if own:
                 kept.append(dataclasses.replace(v, seeds=own))
+        chosen = ", ".join(repr(x) for x in variants) if variants else "any variant"
         if not kept:
-            chosen = ", ".join(repr(x) for x in variants) if variants else "any variant"
             raise SpecError(f"spec {self.name!r} runs none of seeds "
                             f"{', '.join(map(str, seeds or []))} with {chosen}")
+        # One seed the part lacks among several it has would be left out without a word.
+        have = sorted({s for v in self.variants if variants is None or v.label in variants
+                       for s in v.seeds or self.seeds})
+        lacking = [s for s in seeds or [] if s not in have]
+        if lacking:
+            raise SpecError(f"spec {self.name!r} runs no seed {', '.join(map(str, lacking))} "
+                            f"with {chosen}; its seeds there: {', '.join(map(str, have))}")
         return dataclasses.replace(self, variants=tuple(kept), part_of=self.whole)
 
 

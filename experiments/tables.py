@@ -94,18 +94,22 @@ def final_returns(results: Results) -> pd.DataFrame:
 
 
 def final_table(results: Results) -> pd.DataFrame:
-    """Per task, eps, budget and variant: final return (and success rate) over finished seeds,
-    with how many seeds finished of those planned, and the unfinished ones' last evaluation."""
+    """Per task, eps, budget and variant: final return (and success rate) over finished seeds
+    (`n`: those with an evaluation), with how many seeds finished of those planned, and the
+    unfinished ones' last evaluation."""
     rows = []
     for cell_key, sub in grid_cells(final_returns(results), results):
         done = sub[sub["state"] == "done"]
         r_mean, r_std, n = mean_std(done["final_return"])
         s_mean, s_std, _ = mean_std(done["final_success"])
         unfinished = ", ".join(
-            f"s{r.seed} {r.state}" + ("" if pd.isna(r.eval_step) else f" @ {r.eval_step:g}")
-            for r in sub[sub["state"] != "done"].itertuples())
+            [f"s{r.seed} {r.state}" + ("" if pd.isna(r.eval_step) else f" @ {r.eval_step:g}")
+             for r in sub[sub["state"] != "done"].itertuples()]
+            + [f"s{r.seed} done, no evaluation"
+               for r in done[~np.isfinite(done["final_return"].astype(float))].itertuples()])
         rows.append(cell_key | {"algo": sub["algo"].iloc[0], "return_mean": r_mean,
-                                "return_std": r_std, "n": n, "planned": len(sub),
+                                "return_std": r_std, "n": n, "finished": len(done),
+                                "planned": len(sub),
                                 "success_mean": s_mean, "success_std": s_std,
                                 "unfinished": unfinished})
     return pd.DataFrame(rows)
@@ -247,10 +251,11 @@ def final_markdown(table: pd.DataFrame, metaworld: bool) -> str:
         header += ["seeds finished", "unfinished (state @ last evaluation step)"]
         rows = []
         for r in group.itertuples():
-            row = [r.variant, r.algo, cell(r.return_mean, r.return_std, r.n, 1, r.n)]
+            # `(n=k)` where a finished run has no final return to average.
+            row = [r.variant, r.algo, cell(r.return_mean, r.return_std, r.n, 1, r.finished)]
             if metaworld:
-                row.append(cell(r.success_mean, r.success_std, r.n, 2, r.n))
-            rows.append(row + [f"{r.n}/{r.planned}", r.unfinished or "–"])
+                row.append(cell(r.success_mean, r.success_std, r.n, 2, r.finished))
+            rows.append(row + [f"{r.finished}/{r.planned}", r.unfinished or "–"])
         parts.append(f"### {_title(task, eps, budget)}\n\n{markdown_table(header, rows)}")
     return "\n\n".join(parts) if parts else "No runs."
 

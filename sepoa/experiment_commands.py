@@ -237,7 +237,8 @@ def _status(spec, results: pathlib.Path, url: str | None) -> int:  # type: ignor
             rule = stop_rule(spec, sessions, results)
             say(status_table(spec, sessions, results,
                              rule.text(duration_text) if rule is not None else None,
-                             rule.worked_s if rule is not None and not rule.reached else None))
+                             rule.worked_s if rule is not None and not rule.reached else None,
+                             rule.seeds_not_started if rule is not None else ()))
         finally:
             engine.dispose()
     if current != head:

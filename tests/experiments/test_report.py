@@ -627,6 +627,52 @@ def test_the_iqm_curves_are_over_runs_and_say_what_they_pool(
     assert panels == [(rows[0], cols[0])]
 
 
+def test_a_finished_run_without_a_score_is_counted_as_not_scored(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """R's walker s1 finished but its eval.csv was lost: every table says it is left out of
+    the averages, rather than calling the run finished and averaging without it; two tasks
+    pool their runs, so the comparison counts runs over both."""
+    from experiments import preregistered
+    from experiments.tables import final_markdown, final_table
+
+    monkeypatch.setattr(preregistered, "REPS", 200)
+    folder = tmp_path / "two-tasks"
+    folder.mkdir()
+    (folder / "spec.toml").write_text(TWO_EPS.replace("eps = [0.1, 0.3]", "eps = [0.3]")
+                                      .replace("seeds = [0, 1, 2, 3]", "seeds = [0, 1]")
+                                      .replace('tasks = ["dmc:cheetah_run"]',
+                                               'tasks = ["dmc:cheetah_run", "dmc:walker_run"]'))
+    finals = {("R", "cheetah", 0): 10, ("R", "cheetah", 1): 20, ("R", "walker", 0): 30,
+              ("X", "cheetah", 0): 1, ("X", "cheetah", 1): 2, ("X", "walker", 0): 3,
+              ("X", "walker", 1): 4}
+    for variant in "RX":
+        for task in ("cheetah", "walker"):
+            for seed in (0, 1):
+                run = folder / f"dmc-{task}_run" / variant / "eps0.3" / f"s{seed}"
+                run.mkdir(parents=True)
+                (run / "config.json").write_text(json.dumps(
+                    {"algo": "pebble", "unsup_steps": 0,
+                     "feedback": {"budget": 30, "selection": "disagreement"}}))
+                if (variant, task, seed) in finals:
+                    _write_csv(run / "eval.csv", "step,return",
+                               ["400,0", f"800,{finals[(variant, task, seed)]}"])
+                (run / "done.json").write_text('{"step": 800}')
+    results = load_results(folder)
+    runs = preregistered.per_run(results)
+    primary = preregistered.primary_table(results, runs)
+    improvement = preregistered.improvement_table(results, runs)
+    table = preregistered.primary_markdown(primary, improvement)
+    # R: 4 finished; walker has one score, so one run of each task is scored (one run a
+    # task resamples to itself: no interval).
+    assert "| R | pebble | 4/4, 2 scored | 20.0 | 20.0 |" in table
+    assert "| X | surf | 4/4 | 2.5 [" in table
+    assert "| R | X | 2 vs 4 | 1.00 [" in table
+
+    final = final_markdown(final_table(results), metaworld=False)
+    assert "| R | pebble | 30.0 (n=1) | 2/2 | s1 done, no evaluation |" in final
+    assert "| R | pebble | 15.0 ± 7.1 | 2/2 | – |" in final
+
+
 OWN_SEEDS = """
 name = "own-seeds"
 preset = "tiny"
@@ -692,6 +738,20 @@ def test_bootstrap_intervals_are_the_same_on_every_call() -> None:
     assert preregistered._bootstrap(scores, preregistered._mean, 500) != first
     # ... and the global generator is left where the caller had it.
     assert np.array_equal(np.random.get_state()[1], outside[1])
+
+
+def test_a_variants_interval_does_not_move_as_another_variants_runs_finish() -> None:
+    """PEBBLE's scores are the same in both tables; only S-EPOA, listed before it, has a
+    run more: PEBBLE's interval must be the same."""
+    from experiments import preregistered
+
+    pebble = np.array([147.9, 227.7, 162.8, 180.3, 181.3, 138.6])[:, None]
+    before = {"S-EPOA": np.array([111.9, 165.2, 54.9])[:, None], "PEBBLE": pebble}
+    after = {"S-EPOA": np.array([111.9, 165.2, 54.9, 89.4])[:, None], "PEBBLE": pebble}
+    for func in (preregistered._iqm, preregistered._mean):
+        assert (preregistered._bootstrap(before, func, 300)["PEBBLE"]
+                == preregistered._bootstrap(after, func, 300)["PEBBLE"]
+                == preregistered._bootstrap({"PEBBLE": pebble}, func, 300)["PEBBLE"])
 
 
 def test_a_grid_whose_query_selecting_runs_have_not_finished_reports_as_partial(

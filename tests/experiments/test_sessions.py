@@ -82,6 +82,19 @@ def test_a_killed_session_counts_up_to_its_last_sign_of_life(tmp_path: Path) -> 
     assert (period.seconds, period.running_since, period.unended) == (90 * 60 + 3600, None, 2)
 
 
+def test_two_launchers_at_once_count_their_common_time_once(tmp_path: Path) -> None:
+    """Launcher A trains from 0 h on and still runs; B (another part of the grid) ran from
+    1 h to 2 h: 4 h of wall time at 4 h, not 5, and A runs although its row is not the
+    newest."""
+    write_sessions(tmp_path, [(T0, None, ""), (T0 + timedelta(hours=1),
+                                               T0 + timedelta(hours=2), "finished")],
+                   alive=[T0 + timedelta(hours=3, minutes=59), T0 + timedelta(hours=2)])
+    period = worked(tmp_path, now=T0 + timedelta(hours=4))
+    assert period is not None
+    assert (period.seconds, period.running_since, period.unended) == (4 * 3600, T0, 0)
+    assert "ended without a record" not in period.text("4h00m")
+
+
 def test_a_running_session_beats(tmp_path: Path) -> None:
     with recorded_session(tmp_path, workers=2, threads=1, now=T0, beat_s=0.02):
         deadline = time.monotonic() + 10

@@ -105,6 +105,22 @@ def test_a_variant_can_have_its_own_seeds_and_runs_are_queued_seed_first(tmp_pat
     assert "seeds" not in spec.variants[2].overrides
 
 
+def test_a_part_of_the_grid_names_the_seeds_it_lacks(tmp_path: Path) -> None:
+    """`--seed 1 --seed 7` where no variant runs seed 7: refused, not trained as seed 1 alone;
+    a seed some other variant runs is fine when that variant is in the part."""
+    text = GRID + '\n[variants.SAC]\nalgo = "sac"\nseeds = [5]\n'
+    spec = load_spec(write(tmp_path, text), check=False)
+    with pytest.raises(SpecError, match="runs no seed 7 with any variant; its seeds there: "
+                                        "0, 1, 2, 5$"):
+        spec.only(None, [1, 7])
+    with pytest.raises(SpecError,
+                       match="runs no seed 5 with 'PEBBLE'; its seeds there: 0, 1, 2$"):
+        spec.only(["PEBBLE"], [0, 1, 5])
+    part = spec.only(["PEBBLE", "SAC"], [1, 5])
+    assert sorted((r.variant, r.seed) for r in part.runs() if r.task == "dmc:cheetah_run"
+                  and r.eps == 0.1 and r.budget == 20) == [("PEBBLE", 1), ("SAC", 5)]
+
+
 def test_within_a_seed_a_second_run_of_one_snapshot_is_queued_after_those_needing_none() -> None:
     # The authors' grid: both S-EPOA arms of a seed start from one snapshot. Queued after
     # PEBBLE and SURF, the second finds it pretrained by the first's worker instead of waiting.

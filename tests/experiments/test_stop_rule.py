@@ -130,9 +130,17 @@ def test_spent_hours_stop_the_seeds_not_started_and_the_started_ones_finish(
     assert rule is not None and rule.recorded and rule.seeds_not_started == (1, 2)
 
     assert main(["experiment", "status", str(spec_path), "--results", str(results)]) == 0
-    last = capsys.readouterr().out.splitlines()[-1]
+    lines = capsys.readouterr().out.splitlines()
+    last = lines[-1]
     assert last.startswith("stop rule: no seed starts after 2 h of the workers' training; "
                            "reached (") and last.endswith("seeds not started: 1, 2")
+    # The runs left out will not train: no time left is counted for them.
+    rows = {(line.split()[1], line.split()[4]): line for line in lines[2:8]}
+    assert [key for key, line in rows.items() if line.endswith(" left out")] == [
+        ("A", "1"), ("A", "2"), ("B", "1"), ("B", "2")]
+    assert lines[8] == ("time left (estimated): 2 run(s) without an estimate yet (no run of "
+                        "their task and variant has logged an episode); not counted: 4 run(s) "
+                        "of seeds the stop rule left out, which will not train")
 
 
 @pytest.mark.parametrize("hours", ["0", "-1", "true", '"ten"'])
