@@ -6,6 +6,7 @@ workers that `sepoa.supervisor` holds, or by workers elsewhere; and its report.
                               [--force] [--dry-run]
     sepoa experiment status SPEC [--results results] [--database-url URL]
     sepoa experiment pack SPEC --out FILE.tar.gz [--results results] [--unfinished-only]
+                               [--database-url URL]
     sepoa experiment keep SPEC --out DIR [--results results]   # finished runs, to commit
     sepoa experiment slurm SPEC --workers N [--results DIR] ...   # an sbatch array script
     sepoa report <results>/<spec name>           # figures + tables -> <folder>/report
@@ -97,13 +98,15 @@ def _experiment_arguments(p: argparse.ArgumentParser) -> None:
     _database(status)
     pack = actions.add_parser(
         "pack", help="one archive of what the grid needs to go on on another machine: "
-        "unfinished runs with their checkpoints, finished runs' results, skill snapshots and "
-        "the SQLite queue (there: tar -xzf FILE -C <results>, then experiment run)")
+        "unfinished runs with their checkpoints, finished runs' results and episode stores, "
+        "skill snapshots and a SQLite queue; a PostgreSQL queue stays on its server (there: "
+        "tar -xzf FILE -C <results>, then experiment run)")
     pack.add_argument("spec", help="the spec file (TOML)")
     pack.add_argument("--results", default="results")
     pack.add_argument("--out", required=True, metavar="FILE.tar.gz", help="the archive to write")
     pack.add_argument("--unfinished-only", action="store_true",
                       help="leave finished runs out (they travel another way)")
+    _database(pack)
     kept = actions.add_parser(
         "keep", help="copy the grid's finished runs (no checkpoints or TensorBoard files) and "
         "its spec, sessions and stop rule into a folder small enough to commit beside its "
@@ -161,12 +164,12 @@ def _run_experiment(args: argparse.Namespace) -> int:
 
     results = pathlib.Path(args.results)
     try:
-        if args.action == "pack":  # the queue it packs is the SQLite file in the results
-            return _pack(args, results)
         if args.action == "keep":
             return _keep(args, results)
         url = database_url(args.database_url, args.database_url_file)
         url = check_url(url) if url else None
+        if args.action == "pack":
+            return _pack(args, results, url)
         if args.action == "slurm":
             return _slurm(args, url)
         spec = load_spec(args.spec, check=args.action == "run")
@@ -259,20 +262,25 @@ def _migrated_copy(database: str, copy: Path) -> str:
     return url
 
 
-def _pack(args: argparse.Namespace, results: pathlib.Path) -> int:
+def _pack(args: argparse.Namespace, results: pathlib.Path, url: str | None) -> int:
     from experiments.carry import pack
     from experiments.spec import load_spec
+    from labelqueue import mask_url
 
     if not results.is_dir():
         return fail(f"--results {results}: no such folder")
     spec = load_spec(args.spec, check=False)
-    packed = pack(spec, results, pathlib.Path(args.out), unfinished_only=args.unfinished_only)
+    packed = pack(spec, results, pathlib.Path(args.out), unfinished_only=args.unfinished_only,
+                  database_url=url)
+    there = f"sepoa experiment run {args.spec} --results <results>"
+    queue = "the queue database"
+    if not packed.database:  # PostgreSQL: it stays on its server, the runs' ids with it
+        queue = f"not the queue, which stays at {mask_url(url or '')}"
+        there += " with the same --database-url (or SEPOA_DATABASE_URL)"
     say(f"{args.out}: {packed.unfinished} unfinished run(s) with their checkpoints, "
         f"{packed.finished} finished, {packed.episode_stores} episode store(s), "
-        f"{packed.snapshots} snapshot file(s), "
-        f"{'the queue database' if packed.database else 'no queue database (not SQLite)'}; "
-        f"{packed.size / 2**20:.1f} MiB. There: tar -xzf {args.out} -C <results>, then "
-        f"sepoa experiment run {args.spec} --results <results>")
+        f"{packed.snapshots} snapshot file(s), {queue}; {packed.size / 2**20:.1f} MiB. "
+        f"There: tar -xzf {args.out} -C <results>, then {there}")
     return 0
 
 

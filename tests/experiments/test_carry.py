@@ -3,6 +3,7 @@ its finished runs counted as finished; packing under a live worker is refused.""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import signal
@@ -13,8 +14,10 @@ import tarfile
 from pathlib import Path
 
 import pytest
+from database_helpers import BACKENDS, postgres_schema
 from worker_helpers import wait_for, worker_config
 
+from labelqueue import release_run
 from sepoa.cli import main
 from trainer.worker import run_worker
 
@@ -163,3 +166,84 @@ def test_pack_carries_the_episode_stores_and_the_stop_rules_record(tmp_path: Pat
     assert f"{store}/.end-1.npz.7.tmp" not in names
     assert packed.episode_stores == 1
     assert (tmp_path / "a_b.tar.gz.partial").read_bytes() == b"another pack's"
+
+
+def _grid_with_a_stored_run(url: str, results: Path, spec_path: Path) -> tuple[str, Path]:
+    """The tiny grid enqueued in the queue at `url`, seed 0 stopped after its first checkpoint
+    with one stored episode; its grid key and episode store."""
+    from experiments.launch import run_experiment
+    from experiments.queue import grid_key, spec_rows
+    from experiments.spec import load_spec
+    from labelqueue import make_engine, session_factory
+    from rundata.episodes import episodes_dir
+
+    spec_path.write_text(SPEC)
+    spec = load_spec(spec_path)
+    assert run_experiment(spec, results=results, database_url=url, workers=0,
+                          echo=lambda line: None) == 0
+    engine = make_engine(url)
+    rows = spec_rows(spec, session_factory(engine))
+    engine.dispose()
+    key = grid_key(spec, spec.runs()[0])
+    (results / key).mkdir(parents=True)
+    (results / key / "checkpoint.pt").write_bytes(b"weights")
+    store = episodes_dir(results / "clips", rows[key].id)
+    store.mkdir(parents=True)
+    (store / "episode-0.npz").write_bytes(b"npz")
+    return key, store
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_pack_finds_the_episode_stores_by_the_queue_it_is_given(
+        backend: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from labelqueue import claim_run, make_engine, session_factory
+
+    with contextlib.ExitStack() as stack:
+        url = (f"sqlite:///{tmp_path / 'elsewhere' / 'queue.db'}" if backend == "sqlite"
+               else stack.enter_context(postgres_schema()))
+        results, spec = tmp_path / "results", tmp_path / "spec.toml"
+        key, store = _grid_with_a_stored_run(url, results, spec)
+        archive = tmp_path / "tiny.tar.gz"
+        pack = ["experiment", "pack", str(spec), "--results", str(results), "--out",
+                str(archive), "--database-url", url]
+        engine = make_engine(url)
+        with session_factory(engine)() as session:
+            held = claim_run(session, worker_id="w")
+            assert held is not None
+        engine.dispose()
+        assert main(pack) == 2  # a live worker holds a run: its checkpoint would be behind
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "held by live workers" in err
+        assert "(running, worker w, heartbeat" in err and not archive.exists()
+
+        engine = make_engine(url)
+        with session_factory(engine)() as session:
+            release_run(session, run_id=held.id, worker_id="w")
+        engine.dispose()
+        capsys.readouterr()
+        assert main(pack) == 0
+        out = capsys.readouterr().out
+        with tarfile.open(archive) as tar:
+            names = set(tar.getnames())
+    assert {f"{key}/checkpoint.pt", f"{store.relative_to(results)}/episode-0.npz"} <= names
+    assert "1 episode store(s)" in out
+    if backend == "sqlite":  # there, the launcher's default queue: <results>/queue.db
+        assert "queue.db" in names and "the queue database;" in out
+    else:  # the queue stays on its server, the runs' ids with it
+        assert "queue.db" not in names
+        assert "not the queue, which stays at postgresql" in out and "--database-url" in out
+
+
+def test_pack_without_a_queue_says_which_one_it_needs(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A grid whose queue is elsewhere (PostgreSQL) has its episode stores under the queue's run
+    ids: packed without that queue, the archive would leave them behind."""
+    results, spec = tmp_path / "results", tmp_path / "spec.toml"
+    _grid_with_a_stored_run(f"sqlite:///{tmp_path / 'elsewhere' / 'queue.db'}", results, spec)
+    archive = tmp_path / "tiny.tar.gz"
+    assert main(["experiment", "pack", str(spec), "--results", str(results),
+                 "--out", str(archive)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert f"no queue database at {results / 'queue.db'}" in err and "--database-url" in err
+    assert not archive.exists()
