@@ -25,6 +25,7 @@ from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
+from bench_label_api import query_spec
 from sqlalchemy import Engine, event
 from sqlalchemy.orm import Session
 
@@ -44,22 +45,13 @@ from labelqueue import (
 from labelqueue.models import utcnow
 
 
-def query_spec(position: int) -> dict[str, Any]:
-    return {"round": 0, "position": position, "step": 1000, "segment_length": 50,
-            "first_trajectory": 2 * position, "first_start": 10,
-            "second_trajectory": 2 * position + 1, "second_start": 20,
-            "first_segment_return": 1.5, "second_segment_return": 2.5,
-            "first_trajectory_return": 100.0, "second_trajectory_return": 120.0,
-            "first_clip": f"q{position}-a.mp4", "second_clip": f"q{position}-b.mp4",
-            "model_p": 0.6, "score": 0.1, "rule": "disagreement"}
-
-
 def seed_study(session: Session, people: int) -> int:
     """The study described above; its invite's id."""
     run = create_run(session, name="study", task="dmc:cheetah_run", algo="pebble",
                      budget=4 * people + 10, teacher="human")
     assert claim_run(session, worker_id="bench") is not None
-    push_queries(session, run_id=run.id, queries=[query_spec(i) for i in range(2 * people)])
+    push_queries(session, run_id=run.id, queries=[
+        query_spec(0, i, clips=(f"q{i}-a.mp4", f"q{i}-b.mp4")) for i in range(2 * people)])
     invite = create_invite(session, expires_at=utcnow() + timedelta(days=7), run_id=run.id,
                            target_answers=2, completion_code="BENCH")
     for i in range(people):
