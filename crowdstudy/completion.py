@@ -17,10 +17,12 @@ from __future__ import annotations
 import hashlib
 import hmac
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 from urllib.parse import parse_qsl, quote, urlencode, urlsplit, urlunsplit
 
-from sqlalchemy import func, select, update
+from sqlalchemy import and_, case, func, select, update
 from sqlalchemy.orm import Session
 
 from crowdstudy.invites import live_runs, runs_open
@@ -223,74 +225,152 @@ def labeller_progress(session: Session, *, labeller_id: int) -> Progress:
     failed the invite's entry test (which comes before every other end). The first completion
     found with a code is kept (`_keep`) and wins over what their runs say later."""
     with reading(session):
-        standing = (Label.labeller_id == labeller_id, Label.source == LabelSource.HUMAN,
-                    Label.withdrawn_at.is_(None))
-        labels = session.scalar(select(func.count(Label.id)).where(*standing)) or 0
-        row = session.execute(
-            select(Invite, Invitee.participant, Invitee.nothing_left_at, Invitee.entry_passed,
-                   Invitee.entry_correct, Invitee.completed_why, Labeller.active)
-            .join(Invitee, Invitee.invite_id == Invite.id)
-            .join(Labeller, Labeller.id == Invitee.labeller_id)
-            .where(Invitee.labeller_id == labeller_id)
-        ).one_or_none()
-        if row is None:
-            return Progress(labels, None, None, None, counted=labels)
-        invite, participant, nothing_left, entry_passed, entry_correct, kept, active = row
-        on_runs = [Label.run_id == invite.run_id] if invite.run_id is not None else []
-        # Practice answers never count toward a target (labelqueue.practice).
-        counted = session.scalar(select(func.count(Label.id)).where(
-            *standing, Label.answer.in_(DECISIVE), Label.practice.is_(False), *on_runs)) or 0
-        live = live_runs(session, invite.run_id)
-        over = not live and not runs_open(session, invite.run_id)
-        paused = _paused(session, invite, labeller_id, live)
+        invite = session.scalars(select(Invite).join(Invitee, Invitee.invite_id == Invite.id)
+                                 .where(Invitee.labeller_id == labeller_id)).one_or_none()
+        if invite is None:
+            labels = session.scalar(select(func.count(Label.id)).where(
+                Label.labeller_id == labeller_id, *_STANDING)) or 0
+        else:
+            read = _read(session, invite, labeller_id)
         session.expunge_all()
-    reached = invite.target_answers is not None and counted >= invite.target_answers
-    failed = entry_passed is not None and not entry_passed
-    why = kept or (
-        "entry_failed" if failed else "target" if reached else "runs_over" if over
-        else "paused" if paused else "nothing_left" if nothing_left is not None else None)
-    progress = Progress(labels, invite.target_answers, None, invite.run_id, counted=counted,
-                        invited=True, complete=why is not None, why=why, paused=paused,
-                        active=active,
-                        participant=participant, entry_correct=entry_correct,
-                        entry_pass=invite.entry_pass)
-    if why is None:
-        return progress
-    if why == "entry_failed":  # let go: no code, no redirect; the study's own words if any
-        return replace(progress, pause_message=invite.pause_message)
-    if why == "paused" and invite.pause_message:
-        return replace(progress, pause_message=invite.pause_message)
-    if kept is None:  # complete, with a code, for the first time: kept from now on
-        progress = replace(progress, why=_keep(session, labeller_id=labeller_id, why=why))
-    code = participant_code(server_key(session), invite, labeller_id)
-    redirect = (completion_redirect(invite.redirect_url, code=code, participant=participant)
-                if invite.redirect_url else None)
-    return replace(progress, completion_code=code, redirect_url=redirect)
+    if invite is None:
+        return Progress(labels, None, None, None, counted=labels)
+    return _progress(session, invite, read)[labeller_id]
 
 
-def _keep(session: Session, *, labeller_id: int, why: str) -> str:
-    """Record that the participant's study is complete with a code, for `why`, unless it was
-    already (a request beside this one): the reason kept, first come."""
-    with transaction(session):
-        changed(session, update(Invitee).where(
-            Invitee.labeller_id == labeller_id, Invitee.completed_at.is_(None),
-        ).values(completed_at=utcnow(), completed_why=why))
-        kept = session.scalar(select(Invitee.completed_why)
-                              .where(Invitee.labeller_id == labeller_id))
-    return kept or why
+def study_progress(session: Session, *, invite: Invite) -> dict[int, Progress]:
+    """How far each participant of the invite is (`labeller_progress`), by labeller id: read
+    in as many statements for a thousand participants as for one."""
+    with reading(session):
+        read = _read(session, invite, None)
+        session.expunge_all()
+    return _progress(session, invite, read)
 
 
-def _paused(session: Session, invite: Invite, labeller_id: int, live: list[int]) -> bool:
-    """Check pairs left the participant nothing: paused on the invite's run; for an all-runs
-    invite, on every run still giving pairs (`live`), or once none does, on every run they
-    answered on."""
-    on = set(session.scalars(select(LabellerPause.run_id).where(
-        LabellerPause.labeller_id == labeller_id)))
+_STANDING = (Label.source == LabelSource.HUMAN, Label.withdrawn_at.is_(None))
+"""a standing answer by hand: one not taken back"""
+
+
+@dataclass(frozen=True)
+class _Read:
+    """What the progress of an invite's participants is made of, as read in one transaction."""
+
+    people: Sequence[Any]
+    """per participant: labeller_id, participant, nothing_left_at, entry_passed,
+    entry_correct, completed_why, active"""
+    labels: dict[int, int]
+    """standing answers by hand on any run, by labeller"""
+    counted: dict[int, int]
+    """what the target counts, by labeller"""
+    paused: set[int]
+    """the labellers check pairs left nothing to label (`_paused`)"""
+    over: bool
+    """the invite's runs are over (`runs_open`)"""
+
+
+def _read(session: Session, invite: Invite, labeller_id: int | None) -> _Read:
+    """The invite's participants (`labeller_id`: that one only) as their progress needs them,
+    in a fixed number of statements. Call it inside a transaction."""
+    mine = [Invitee.invite_id == invite.id]
+    if labeller_id is not None:
+        mine.append(Invitee.labeller_id == labeller_id)
+    people = session.execute(
+        select(Invitee.labeller_id, Invitee.participant, Invitee.nothing_left_at,
+               Invitee.entry_passed, Invitee.entry_correct, Invitee.completed_why,
+               Labeller.active)
+        .join(Labeller, Labeller.id == Invitee.labeller_id).where(*mine)
+    ).all()
+    # Practice answers never count toward a target (labelqueue.practice).
+    on_runs = [Label.run_id == invite.run_id] if invite.run_id is not None else []
+    counts = case((and_(Label.answer.in_(DECISIVE), Label.practice.is_(False), *on_runs), 1),
+                  else_=0)
+    answers = session.execute(
+        select(Label.labeller_id, func.count(Label.id), func.sum(counts))
+        .join(Invitee, Invitee.labeller_id == Label.labeller_id)
+        .where(*mine, *_STANDING).group_by(Label.labeller_id)
+    ).all()
+    live = live_runs(session, invite.run_id)
+    over = not live and not runs_open(session, invite.run_id)
+    return _Read(people, {who: total for who, total, _ in answers},
+                 {who: int(counted or 0) for who, _, counted in answers},
+                 _paused(session, invite, mine, live), over)
+
+
+def _paused(session: Session, invite: Invite, mine: list[Any], live: list[int]) -> set[int]:
+    """The participants (`mine`: the conditions on `Invitee` that pick them) check pairs left
+    nothing: paused on the invite's run; for an all-runs invite, on every run still giving pairs
+    (`live`), or once none does, on every run they answered on."""
+    on: dict[int, set[int]] = {}
+    for who, run_id in session.execute(
+            select(LabellerPause.labeller_id, LabellerPause.run_id)
+            .join(Invitee, Invitee.labeller_id == LabellerPause.labeller_id).where(*mine)):
+        on.setdefault(who, set()).add(run_id)
     if invite.run_id is not None:
-        return invite.run_id in on
+        return {who for who, runs in on.items() if invite.run_id in runs}
     if live:
-        return set(live) <= on
-    answered = set(session.scalars(select(Label.run_id).distinct().where(
-        Label.labeller_id == labeller_id, Label.source == LabelSource.HUMAN,
-        Label.withdrawn_at.is_(None), Label.practice.is_(False))))
-    return bool(on) and answered <= on
+        return {who for who, runs in on.items() if set(live) <= runs}
+    answered: dict[int, set[int]] = {}
+    for who, run_id in session.execute(
+            select(Label.labeller_id, Label.run_id).distinct()
+            .join(Invitee, Invitee.labeller_id == Label.labeller_id)
+            .where(*mine, *_STANDING, Label.practice.is_(False))):
+        answered.setdefault(who, set()).add(run_id)
+    return {who for who, runs in on.items() if answered.get(who, set()) <= runs}
+
+
+def _progress(session: Session, invite: Invite, read: _Read) -> dict[int, Progress]:
+    """Each participant's progress from what was read; the completions found with a code for
+    the first time kept (`_keep`), their codes made with one read of the key."""
+    out: dict[int, Progress] = {}
+    coded: list[int] = []
+    first: dict[int, str] = {}
+    for labeller_id, participant, nothing_left, entry_passed, entry_correct, kept, active \
+            in read.people:
+        counted = read.counted.get(labeller_id, 0)
+        paused = labeller_id in read.paused
+        reached = invite.target_answers is not None and counted >= invite.target_answers
+        failed = entry_passed is not None and not entry_passed
+        why = kept or (
+            "entry_failed" if failed else "target" if reached else "runs_over" if read.over
+            else "paused" if paused else "nothing_left" if nothing_left is not None else None)
+        progress = Progress(read.labels.get(labeller_id, 0), invite.target_answers, None,
+                            invite.run_id, counted=counted, invited=True,
+                            complete=why is not None, why=why, paused=paused, active=active,
+                            participant=participant, entry_correct=entry_correct,
+                            entry_pass=invite.entry_pass)
+        if why == "entry_failed" or (why == "paused" and invite.pause_message):
+            # Let go without a code, or told to return the study: the study's own words.
+            progress = replace(progress, pause_message=invite.pause_message)
+        elif why is not None:
+            coded.append(labeller_id)
+            if kept is None:  # complete, with a code, for the first time: kept from now on
+                first[labeller_id] = why
+        out[labeller_id] = progress
+    kept_now = _keep(session, first) if first else {}
+    key = server_key(session) if coded else b""
+    for labeller_id in coded:
+        progress = out[labeller_id]
+        code = participant_code(key, invite, labeller_id)
+        redirect = (completion_redirect(invite.redirect_url, code=code,
+                                        participant=progress.participant)
+                    if invite.redirect_url else None)
+        out[labeller_id] = replace(progress, why=kept_now.get(labeller_id, progress.why),
+                                   completion_code=code, redirect_url=redirect)
+    return out
+
+
+def _keep(session: Session, found: dict[int, str]) -> dict[int, str]:
+    """Record that each participant's study is complete with a code, for its reason in `found`
+    (by labeller id), unless it was already (a request beside this one): the reasons kept,
+    first come. One statement per reason, however many participants."""
+    with transaction(session):
+        for why in set(found.values()):
+            changed(session, update(Invitee).where(
+                Invitee.labeller_id.in_([who for who, was in found.items() if was == why]),
+                Invitee.completed_at.is_(None),
+            ).values(completed_at=utcnow(), completed_why=why))
+        kept: dict[int, str | None] = {
+            who: why for who, why in session.execute(
+                select(Invitee.labeller_id, Invitee.completed_why)
+                .where(Invitee.labeller_id.in_(list(found))))}
+    return {who: kept.get(who) or why for who, why in found.items()}

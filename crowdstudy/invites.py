@@ -10,6 +10,11 @@ any more: stopped, finished, failed or its budget spent, `live_runs`), it may ca
 text (nobody joins without agreeing), a target number of answers, a completion redirect URL
 and what a participant paused by check pairs is told. How far each participant is, and their
 completion code, are `crowdstudy.completion`'s.
+
+An all-runs invite's entry test is taken on the practice pairs of whichever of its runs has
+them (`labelqueue.entry_test`): one is refused while runs are open and none has enough practice
+pairs, and one whose runs lose them later is said to lack them (`entry_test_missing`), to its
+operator and to each participant who waits on the test with nothing to label.
 """
 
 from __future__ import annotations
@@ -25,10 +30,11 @@ from sqlalchemy import ColumnElement, exists, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from labelqueue.entry_test import check_entry_pass
+from labelqueue.entry_test import EntryPassInvalid, check_entry_pass
 from labelqueue.errors import Conflict, Invalid, NotFound, QueueError, Revoked
 from labelqueue.labellers import hash_token
 from labelqueue.models import (
+    RUNS,
     Invite,
     Invitee,
     Labeller,
@@ -38,6 +44,8 @@ from labelqueue.models import (
     TeacherKind,
     utcnow,
 )
+from labelqueue.practice import practice_pairs
+from labelqueue.run_config import FEEDBACK, run_feedback
 from labelqueue.runs import budget_spent
 from labelqueue.transaction import changed, detach, get_row, reading, transaction
 from runvocab.text import filled
@@ -118,6 +126,54 @@ def runs_open(session: Session, run_id: int | None) -> bool:
         select(exists().where(Run.teacher == TeacherKind.HUMAN)))
 
 
+ENTRY_TEST_WAIT = (
+    "This study starts with an entry test on practice pairs, and none of its runs has practice "
+    "pairs to give you now, so there is nothing for you to label yet. The study's organisers "
+    "can see this on their side. Keep this page open: the practice pairs appear here by "
+    "themselves once a run has them, and if none comes within the study's wait, you finish "
+    "with your completion code.")
+"""what a participant waiting on an entry test that no open run can give is told"""
+
+
+def _short_of_practice(session: Session, run_id: int | None, entry_pass: int) -> list[int]:
+    """The invite's open runs (`live_runs`) when none of them has `entry_pass` practice pairs
+    (`feedback.practice_pairs`), so none can give its entry test; [] when one can, or when none
+    is open. Call it inside a transaction."""
+    live = live_runs(session, run_id)
+    if not live:
+        return []
+    rows = session.execute(select(RUNS.c.config, FEEDBACK).where(RUNS.c.id.in_(live))).all()
+    return [] if any(practice_pairs(run_feedback(row)) >= entry_pass for row in rows) else live
+
+
+def entry_test_missing(session: Session, invite: Invite) -> str | None:
+    """For the invite's operator: why its participants cannot take its entry test now (open
+    runs, none with enough practice pairs: they are served nothing, and on a run with fewer
+    they would fail it); None when nothing is missing, or the invite has no entry test."""
+    if invite.entry_pass is None:
+        return None
+    with reading(session):
+        short = _short_of_practice(session, invite.run_id, invite.entry_pass)
+    if not short:
+        return None
+    return (f"none of its open runs ({', '.join(map(str, short))}) has at least "
+            f"{invite.entry_pass} practice pairs (feedback.practice_pairs) for its entry test: "
+            "its participants are served nothing to label until one has, and would fail the "
+            "test on a run with fewer")
+
+
+def waits_on_entry_test(session: Session, *, labeller_id: int) -> bool:
+    """Whether the labeller's entry test is undecided and no open run of their invite can give
+    it (`entry_test_missing`): what they wait on is that, not the runs."""
+    with reading(session):
+        invite = session.scalar(select(Invite).join(Invitee, Invitee.invite_id == Invite.id)
+                                .where(Invitee.labeller_id == labeller_id,
+                                       Invitee.entry_passed.is_(None)))
+        if invite is None or invite.entry_pass is None:
+            return False
+        return bool(_short_of_practice(session, invite.run_id, invite.entry_pass))
+
+
 def invite_runs_open(session: Session, invites: list[Invite]) -> dict[int, bool]:
     """Whether each invite's runs may still give pairs (`runs_open`), by invite id."""
     with reading(session):
@@ -186,6 +242,14 @@ def create_invite(
         if run_id is not None:
             get_row(session, Run, run_id)
         check_entry_pass(session, run_id=run_id, entry_pass=entry_pass)
+        short = (_short_of_practice(session, None, entry_pass)
+                 if run_id is None and entry_pass is not None else [])
+        if short:
+            raise EntryPassInvalid(
+                f"entry_pass needs a run with at least {entry_pass} practice pairs "
+                f"(feedback.practice_pairs), and none of the open runs taught by people "
+                f"({', '.join(map(str, short))}) has that many: make one first, or leave "
+                "entry_pass out")
         invite = Invite(
             code=secrets.token_urlsafe(CODE_BYTES), run_id=run_id, note=note,
             expires_at=expires_at, max_uses=max_uses, uses=0, target_answers=target_answers,

@@ -26,8 +26,8 @@ from sqlalchemy.orm import Session
 from crowdstudy.completion import (
     code_owner,
     code_owners,
-    labeller_progress,
     participant_code,
+    study_progress,
     verified,
 )
 from labelqueue.errors import NotFound
@@ -90,7 +90,9 @@ class Participant:
 
 
 def participants(session: Session, *, invite_id: int) -> list[Participant]:
-    """Everyone who joined the invite, in the order they joined. NotFound for an unknown one."""
+    """Everyone who joined the invite, in the order they joined, in a fixed number of
+    statements however many joined (`crowdstudy.completion.study_progress`). NotFound for an
+    unknown one."""
     key = server_key(session)
     with reading(session):
         invite = session.get(Invite, invite_id)
@@ -112,6 +114,7 @@ def participants(session: Session, *, invite_id: int) -> list[Participant]:
                    Label.source == LabelSource.HUMAN, *on_run)
         ).all() if ids else []
         session.expunge_all()
+    progress_of = study_progress(session, invite=invite)
     by_labeller: dict[int, list[Any]] = {}
     for row in labels:
         by_labeller.setdefault(row.labeller_id, []).append(row)
@@ -126,7 +129,7 @@ def participants(session: Session, *, invite_id: int) -> list[Participant]:
                       for r in gold)
         last = max([invitee.joined_at, *(r.answered_at for r in rows),
                     *([invitee.asked_at] if invitee.asked_at else [])])
-        progress = labeller_progress(session, labeller_id=invitee.labeller_id)
+        progress = progress_of[invitee.labeller_id]
         out.append(Participant(
             participant=invitee.participant, labeller_id=invitee.labeller_id, labeller=name,
             joined_at=invitee.joined_at,

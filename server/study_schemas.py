@@ -91,6 +91,10 @@ class InviteOut(Out):
     wait_limit_s: int | None
     entry_pass: int | None
     """practice answers to get right to go on; null: no entry test"""
+    entry_test_missing: str | None = None
+    """why its participants cannot take its entry test now: none of its open runs has
+    `entry_pass` practice pairs (an all-runs link), so they are served nothing to label; null:
+    nothing is missing, or no entry test"""
     state: InviteState
     """closed: its run is over (stopping, stopped, finished or failed, or its budget spent; for
     an all-runs link, no run taught by people is queued, running or paused with budget left)"""
@@ -153,8 +157,8 @@ class WaitingOut(BaseModel):
 
     reason: str
     """the run's phase (`queued`, `starting`, `pretraining`, `exploring`, `training`,
-    `labelling`: the rest of the round is with others, `paused`, `silent`, `stopping`) or
-    `no_run`"""
+    `labelling`: the rest of the round is with others, `paused`, `silent`, `stopping`),
+    `no_run`, or `entry_test`: the caller's entry test waits for a run with practice pairs"""
     text: str
     run_id: int | None
     eta_s: float | None

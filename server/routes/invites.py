@@ -21,13 +21,16 @@ from fastapi.responses import HTMLResponse
 from crowdstudy.completion import Progress, labeller_progress, verify_code
 from crowdstudy.invites import (
     CLOSED_TEXT,
+    ENTRY_TEST_WAIT,
     create_invite,
+    entry_test_missing,
     invite_runs_open,
     invite_state,
     join_invite,
     list_invites,
     read_invite,
     revoke_invite,
+    waits_on_entry_test,
 )
 from labelqueue import Invite, NotFound
 from labelqueue.entry_test import EntryPassInvalid
@@ -70,9 +73,10 @@ def invite_outs(request: Request, session: SessionDep, invites: list[Invite]) ->
     runs_open = invite_runs_open(session, invites)
     return [
         InviteOut(**{column: getattr(invite, column) for column in InviteOut.model_fields
-                     if column not in ("url", "state")},
+                     if column not in ("url", "state", "entry_test_missing")},
                   url=invite_url(request, invite),
-                  state=invite_state(invite, runs_open=runs_open[invite.id]))
+                  state=invite_state(invite, runs_open=runs_open[invite.id]),
+                  entry_test_missing=entry_test_missing(session, invite))
         for invite in invites
     ]
 
@@ -220,14 +224,18 @@ def get_status(session: SessionDep, caller: LabellerDep, run_id: RunFilter = Non
     """What the label page shows when it has no pair: the caller's progress and, unless their
     study is complete, why nothing is there (the run waits for a worker, pretrains, explores or
     trains, with an estimate; the round's pairs are with others; no run is open). For one who
-    joined by an invite for one run, that run is asked about whatever `run_id` says. A
-    participant who has asked for pairs and got none for the invite's `wait_limit_s` is done:
-    complete, `why` "nothing_left", with their code."""
+    joined by an invite for one run, that run is asked about whatever `run_id` says. One whose
+    invite's entry test no open run has the practice pairs for waits on that (`entry_test`),
+    not on the runs. A participant who has asked for pairs and got none for the invite's
+    `wait_limit_s` is done: complete, `why` "nothing_left", with their code."""
     assert caller.labeller_id is not None
     finish_if_waited(session, labeller_id=caller.labeller_id)  # nobody waits unpaid
     progress = labeller_progress(session, labeller_id=caller.labeller_id)
     waiting = None
-    if not progress.complete:
+    if not progress.complete and progress.entry_pass is not None and waits_on_entry_test(
+            session, labeller_id=caller.labeller_id):
+        waiting = WaitingOut(reason="entry_test", text=ENTRY_TEST_WAIT, run_id=None, eta_s=None)
+    elif not progress.complete:
         scope = progress.run_id if progress.run_id is not None else run_id
         why = labeller_waiting(session, run_id=scope)
         waiting = WaitingOut(reason=why.reason, text=why.text, run_id=why.run_id,

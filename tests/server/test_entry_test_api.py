@@ -9,7 +9,7 @@ import io
 from typing import Any
 
 from fastapi.testclient import TestClient
-from server_helpers import OPERATOR, bearer, new_run, query_spec
+from server_helpers import OPERATOR, bearer, new_run, query_spec, running_run_with_queries
 from sqlalchemy.orm import Session
 
 from labelqueue import Run, claim_run, push_queries, reading, set_clips
@@ -155,3 +155,28 @@ def test_who_passes_goes_on_and_who_fails_is_let_go_without_a_code(
     checked = client.post("/api/invites/verify-codes", headers=OPERATOR, json={
         "codes": [rows["bob"]["completion_code"]]}).json()
     assert (checked[0]["valid"], checked[0]["why"]) == (False, "entry_failed")
+
+
+def test_an_all_runs_entry_test_that_no_run_can_give_is_said_to_both_sides(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    # Made before its runs, as an all-runs link may be; then the only run has no practice pairs.
+    study = client.post("/api/invites", headers=OPERATOR, json={"entry_pass": 2}).json()
+    plain, _ = running_run_with_queries(client, session, settings, n=3)
+    ann = join(client, study["code"], "ann")
+    assert client.get("/api/label/next", headers=bearer(ann)).status_code == 204
+    waiting = client.get("/api/label/status", headers=bearer(ann)).json()["waiting"]
+    assert waiting["reason"] == "entry_test" and "practice pairs" in waiting["text"]
+    [listed] = client.get("/api/invites", headers=OPERATOR).json()
+    assert f"none of its open runs ({plain}) has at least 2 practice pairs" in \
+        listed["entry_test_missing"]
+    # A new link with such a test is refused while no open run could give it.
+    refused = client.post("/api/invites", headers=OPERATOR, json={"entry_pass": 2})
+    assert refused.status_code == 422, refused.text
+    assert refused.json()["detail"][0]["loc"] == ["body", "entry_pass"]
+    assert "practice pairs" in refused.text
+
+    practice_run(client, session, settings, practice=2)  # a run that can give it: she starts
+    assert next_pair(client, ann)["practice"] is not None
+    [listed] = client.get("/api/invites", headers=OPERATOR).json()
+    assert listed["entry_test_missing"] is None

@@ -31,8 +31,9 @@ export async function explainWait(runId) {
   // labelling past the target (their run may have ended since).
   if (showProgress(data.progress, true)) return true;
   const waiting = data.waiting;
-  $("waiting-title").textContent = waiting.reason === "no_run"
-    ? "No run to label right now" : "Waiting for the trainer…";
+  $("waiting-title").textContent = waiting.reason === "no_run" ? "No run to label right now"
+    : waiting.reason === "entry_test" ? "Waiting for the study's practice pairs"
+      : "Waiting for the trainer…";
   $("waiting-why").textContent = waiting.text;
   $("waiting").dataset.reason = waiting.reason;
   return false;
