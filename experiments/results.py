@@ -104,7 +104,9 @@ def load_results(folder: str | Path) -> Results:
             frame = read_metrics(path / name)
             if frame is not None:
                 frames.append(frame.assign(**key)[KEYS + list(frame.columns)])
-    empty = pd.DataFrame(columns=[*KEYS, "step"])
-    return Results(spec, folder, pd.DataFrame(runs),
+    table = pd.DataFrame(runs)
+    # Keyed as the runs are, so that a grid without metrics yet still merges with its runs.
+    empty = table[KEYS].iloc[:0].assign(step=pd.Series(dtype=float))
+    return Results(spec, folder, table,
                    pd.concat(evals, ignore_index=True) if evals else empty,
                    pd.concat(rounds, ignore_index=True) if rounds else empty)

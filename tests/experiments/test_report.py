@@ -777,6 +777,22 @@ def test_a_grid_whose_query_selecting_runs_have_not_finished_reports_as_partial(
     assert "6 planned: 1 done, 0 stopped, 1 partial, 0 failed, 4 not started." in index
 
 
+def test_a_preregistered_grid_with_no_evaluation_yet_is_reported_as_partial(
+        tmp_path: Path, capsys, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Just enqueued: spec.toml and nothing else. The report says so, without a traceback."""
+    from experiments import preregistered
+    from sepoa.cli import main
+
+    monkeypatch.setattr(preregistered, "REPS", 100)
+    folder = tmp_path / "two-eps"
+    folder.mkdir()
+    (folder / "spec.toml").write_text(TWO_EPS)
+    assert main(["report", str(folder)]) == 0, capsys.readouterr().err
+    index = (folder / "report" / "report.md").read_text()
+    assert "**Partial**: 0 of 16 planned runs finished (16 not started)" in index
+    assert "| R | pebble | 0/8 | – | – |" in index
+
+
 def _measured_quality(seed: int, skills: list[float], randoms: list[float]) -> dict:
     from trainer.skills import quality
 
