@@ -162,7 +162,8 @@ def _run_pretrain(args: argparse.Namespace) -> int:
         cfg = build_config(args.task, args.preset, overrides_from_args(args))
         # By default the name online runs of these settings look for: it hashes the settings
         # as given, where pretraining's own default hashes them with its skill fields resolved.
-        path = pretrain(cfg, out=args.out or default_snapshot_path(cfg), progress=not args.no_progress, tick=tick,
+        path = pretrain(cfg, out=args.out or default_snapshot_path(cfg),
+                        progress=not args.no_progress, tick=tick,
                         quality_skills=args.quality_skills,
                         snapshots_at=args.snapshots_at or ())
     except PretrainingLeft as err:
