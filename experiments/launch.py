@@ -27,7 +27,7 @@ from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import IO, Any
 
-from experiments.queue import enqueue_spec, grid_key, spec_rows
+from experiments.queue import enqueue_spec, grid_key, shown_status, spec_rows
 from experiments.sessions import recorded_session
 from experiments.spec import Spec, SpecError
 from experiments.stop_rule import apply_stop_rule, recorded_stop_rule, stop_rule_watch
@@ -153,19 +153,18 @@ def run_experiment(spec: Spec, *, results: Path, database_url: str | None = None
             apply_stop_rule(spec, sessions, results, echo)
             stopped = train(url, results, workers, threads, echo)
             period.end("finished" if stopped is None else f"signal {stopped}")
-        return _summary(spec, sessions, echo, stopped)
+        return _summary(spec, sessions, results, echo, stopped)
     finally:
         engine.dispose()
 
 
-def _summary(spec: Spec, sessions: Any, echo: Callable[[str], None],
+def _summary(spec: Spec, sessions: Any, results: Path, echo: Callable[[str], None],
              stopped: int | None) -> int:
     rows = spec_rows(spec, sessions)
     keys = [grid_key(spec, run) for run in spec.runs()]
     by_status: dict[str, list[str]] = {}
-    for key in keys:
-        row = rows.get(key)
-        by_status.setdefault(str(row.status) if row else "not queued", []).append(key)
+    for key, run in zip(keys, spec.runs(), strict=True):
+        by_status.setdefault(shown_status(rows.get(key), results, spec, run), []).append(key)
     for key in by_status.get("failed", []):
         echo(f"FAILED   {key}: {rows[key].error}")
     for key in by_status.get("running", []) + by_status.get("paused", []):

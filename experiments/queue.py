@@ -132,6 +132,15 @@ def finished_results(results: Path, spec: Spec, run: GridRun) -> dict[str, Any] 
     return done if mine == theirs else None
 
 
+def shown_status(row: Run | None, results: Path, spec: Spec, run: GridRun) -> str:
+    """`run`'s status in the database; without a row there, "finished" when its folder holds
+    its finished results (copied in from another host; enqueueing would record it so), else
+    "not queued"."""
+    if row is not None:
+        return str(row.status)
+    return "finished" if finished_results(results, spec, run) is not None else "not queued"
+
+
 def conflicts(spec: Spec, sessions: sessionmaker[Session]) -> dict[str, Run]:
     """The spec's runs whose row in the database has another definition, by grid key."""
     with sessions() as session:
@@ -296,7 +305,7 @@ def status_table(spec: Spec, sessions: sessionmaker[Session], results: Path,
     for run in spec.runs():
         key = grid_key(spec, run)
         row = rows.get(key)
-        status = str(row.status) if row is not None else "not queued"
+        status = shown_status(row, results, spec, run)
         counts[status] = counts.get(status, 0) + 1
         folder = results / key
         done = (folder / "done.json").exists()

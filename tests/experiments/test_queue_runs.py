@@ -439,3 +439,29 @@ algo = "sepoa"
         err = capsys.readouterr().err
         assert message in err and len(err.strip().splitlines()) == 1
         assert not (tmp_path / "none").exists()
+
+
+def test_status_counts_a_copied_in_finished_run_of_a_part_not_launched_here(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A finished run folder copied in from another host, of a part no launch here enqueued,
+    is finished in `experiment status` (its table and its counts), not "not queued"."""
+    from runvocab.config import to_dict
+
+    spec_path = write(tmp_path, TINY.format(steps=400, seeds="[0, 1]")
+                      + '[variants.PEBBLE]\nalgo = "pebble"\n')
+    spec = load_spec(spec_path, check=False)
+    results = tmp_path / "results"
+    copied = next(run for run in spec.runs() if run.seed == 1)
+    folder = results / grid_key(spec, copied)
+    folder.mkdir(parents=True)
+    (folder / "config.json").write_text(json.dumps(to_dict(copied.config()), default=str))
+    (folder / "done.json").write_text(json.dumps({"step": 400}))
+
+    assert main(["experiment", "run", str(spec_path), "--results", str(results),
+                 "--no-workers", "--seed", "0"]) == 0
+    capsys.readouterr()
+    assert main(["experiment", "status", str(spec_path), "--results", str(results)]) == 0
+    out = capsys.readouterr().out
+    assert "tiny: 2 runs: 1 finished, 1 queued" in out, out
+    line = next(x for x in out.splitlines() if x.split()[4:5] == ["1"])
+    assert line.split()[5] == "finished" and "done" in line.split(), line
