@@ -48,14 +48,19 @@ class Cursor:
 
     @classmethod
     def parse(cls, text: str) -> Cursor:
-        """Invalid for text that is no cursor the feed gave, or one of two numbers (the
-        older form, naming no run) other than the start."""
+        """Invalid for text that is no cursor the feed gave: one of three numbers naming run 0
+        (read as the start of any run's, it skipped the answers below its ids), or one of two
+        numbers (the older form, naming no run) other than the start."""
         parts = text.split(".")
         ids = [stored_id(part) for part in parts]
         if len(parts) == 2 and ids[0] is not None and ids[1] is not None and ids != [0, 0]:
             raise Invalid(f"cursor {text!r} names no run (the feed gives '<run>.<label>."
                           "<withdrawal>'): read from the start, after=0.0, and pass over the "
                           "answers already handled by their label_id")
+        if len(parts) == 3 and ids[0] == 0:
+            raise Invalid(f"cursor {text!r} names run 0, which is no run: the feed gives "
+                          "'<run>.<label>.<withdrawal>', the run's id first (like '7.57.2'), "
+                          "or '0.0' for the start")
         if not (len(parts) in (2, 3) and all(i is not None for i in ids)):
             raise Invalid(f"cursor {text[:40]!r} is not one the answers feed gave (like "
                           "'0.0', the start, or '7.57.2')")

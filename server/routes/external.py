@@ -324,8 +324,8 @@ async def answers(
     run: ClientRun, request: Request, session: SessionDep,
     after: Annotated[str, Query(max_length=40, description=(
         "the cursor the last read gave, the run's id, a label's and a withdrawal's joined by "
-        "dots ('7.57.2'; '0.0': from the start); one this run never gave, another run's or "
-        "one of two numbers but the start, is refused (422)"))] = "0.0",
+        "dots ('7.57.2'; '0.0': from the start); one this run never gave, another run's, "
+        "one naming run 0 or one of two numbers but the start, is refused (422)"))] = "0.0",
     wait: Annotated[float, Query(ge=0, le=60, description="seconds to wait for an answer when "
                                                          "there is none yet")] = 0.0,
 ) -> AnswersOut:

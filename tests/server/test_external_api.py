@@ -440,6 +440,30 @@ def test_a_cursor_names_its_run_and_another_runs_is_refused(client: TestClient) 
     assert [e["label_id"] for e in start.json()["events"]] == [1, 3]
 
 
+def test_a_cursor_of_run_0_past_the_start_is_refused_rather_than_skipping_answers(
+    client: TestClient,
+) -> None:
+    """'0.1.0' is no cursor the feed gives (run 0 is the start's alone): read as one, it
+    skipped the answers up to label 1."""
+    run_id, auth = external_run(client)
+    a, b = upload(client, run_id, auth, frames(1)), upload(client, run_id, auth, frames(2))
+    client.post(f"/api/runs/{run_id}/pairs", headers=auth,
+                json={"pairs": [pair("k1", a, b), pair("k2", b, a)]})
+    token = bearer(new_labeller(client, "ivy"))
+    for _ in range(2):
+        shown = client.get(f"/api/label/next?run_id={run_id}", headers=token).json()
+        assert answer(client, token, shown, "left").status_code == 201
+    url = f"/api/runs/{run_id}/answers"
+    for cursor in ("0.1.0", "0.0.1", "0.0.0"):
+        read = client.get(url, params={"after": cursor}, headers=auth)
+        assert read.status_code == 422, (cursor, read.text)
+        detail = read.json()["detail"]
+        assert f"cursor {cursor!r} names run 0" in detail and "'0.0'" in detail, detail
+        assert "'<run>.<label>.<withdrawal>'" in detail, detail
+    start = client.get(url, params={"after": "0.0"}, headers=auth).json()
+    assert [e["label_id"] for e in start["events"]] == [1, 2]
+
+
 def test_a_gold_pair_known_by_its_answer_measures_labellers_and_costs_no_budget(
     client: TestClient,
 ) -> None:
