@@ -156,9 +156,9 @@ def answers_after(session: Session, *, run_id: int, cursor: Cursor,
 def pair_states(session: Session, *, run_id: int,
                 keys: Sequence[str]) -> tuple[list[dict[str, Any]], list[str]]:
     """The external run's pairs under these keys as they stand now, each as an answers event
-    carries it (standing answers, aggregate, tie, complete), in the order of `keys`; and the
-    keys no pair of the run has. A reader that read past a pair's answers (before a restart,
-    or for another wait) learns here that it has them. NotFound for an unknown run."""
+    carries it (standing answers, aggregate, tie, complete, withdrawn), in the order of `keys`;
+    and the keys no pair of the run has. A reader that read past a pair's answers (before a
+    restart, or for another wait) learns here that it has them. NotFound for an unknown run."""
     keys = list(dict.fromkeys(keys))
     with reading(session):
         get_row(session, Run, run_id)
@@ -171,11 +171,13 @@ def pair_states(session: Session, *, run_id: int,
 
 
 def _pair_states(session: Session, query_ids: set[int]) -> dict[int, dict[str, Any]]:
-    """Per query: its key, meta, gold, k, and its standing answers with their tally."""
+    """Per query: its key, meta, gold, k, its standing answers with their tally, and whether
+    its client withdrew it (`externalruns.pairs.withdraw_pair`)."""
     if not query_ids:
         return {}
     pairs = session.execute(
-        select(Query.id, Query.needs_labels, Query.gold, ExternalPair.key, ExternalPair.meta)
+        select(Query.id, Query.needs_labels, Query.gold, Query.status, ExternalPair.key,
+               ExternalPair.meta)
         .outerjoin(ExternalPair, ExternalPair.query_id == Query.id)
         .where(Query.id.in_(query_ids))).all()
     standing = session.execute(
@@ -197,5 +199,6 @@ def _pair_states(session: Session, query_ids: set[int]) -> dict[int, dict[str, A
             "answers": [{"labeller_id": row.labeller_id, "labeller": row.name,
                          "answer": Answer(row.answer).value} for row in given],
             "aggregate": agreed.value if given else None, "tie": tie,
-            "complete": not pair.gold and len(given) >= pair.needs_labels}
+            "complete": not pair.gold and len(given) >= pair.needs_labels,
+            "withdrawn": pair.status == QueryStatus.CANCELLED}
     return out

@@ -26,7 +26,7 @@ from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
 from externalruns.feed import STATES_LIMIT, Cursor, answers_after, pair_states
-from externalruns.pairs import PairSpec, clip_key, push_pairs
+from externalruns.pairs import PairSpec, clip_key, push_pairs, withdraw_pair
 from externalruns.runs import (
     create_external_run,
     is_external,
@@ -55,12 +55,13 @@ from server.external_schemas import (
     ExternalRunCreate,
     PairKey,
     PairsIn,
+    PairState,
     PairStatesOut,
     PushOut,
     RunTokenInfo,
     RunTokenOut,
 )
-from server.schemas import INT32_MAX, RunId, RunOut, errors
+from server.schemas import INT32_MAX, QueryId, RunId, RunOut, errors
 from server.settings import Settings
 from server.upload_sweep import upload_lock
 
@@ -317,6 +318,20 @@ def states(
     while waiting for other pairs) learns here that the pair has them."""
     found, unknown = pair_states(session, run_id=run.id, keys=key)
     return PairStatesOut.model_validate({"pairs": found, "unknown": unknown})
+
+
+@router.post("/{run_id}/pairs/{query_id}/withdraw", response_model=PairState,
+             responses=errors(404, 409, 422))
+def withdraw(query_id: QueryId, run: ClientRun, session: SessionDep) -> PairState:
+    """Withdraw a pushed pair nobody has answered (one pushed by mistake): it is shown to no
+    labeller again, one who has it on screen is refused the answer (409), and the answers it
+    asked of the budget are free again. Its key stays used: pushed again, it comes back
+    withdrawn. Gives the pair as it stands, `withdrawn`; withdrawing it again changes nothing.
+    409 for a pair with an answer (one of its k is enough) or one of the run's practice pairs;
+    404 for no pair of the run."""
+    key = withdraw_pair(session, run_id=run.id, query_id=query_id)
+    [state], _ = pair_states(session, run_id=run.id, keys=[key])
+    return PairState.model_validate(state)
 
 
 @router.get("/{run_id}/answers", response_model=AnswersOut, responses=errors(404, 409, 422))
