@@ -21,7 +21,7 @@ killed while it handles a page reads that page again. The cursor names its run: 
 is a ValueError. `wait_for` reads where its pairs stand before it follows the feed, so it also
 returns pairs whose answers the cursor has passed (read by `answers()`, by another wait, or before a
 restart). A pair nobody has answered yet is withdrawn with `withdraw`. `AsyncStudy` is the same
-over asyncio.
+over asyncio, with at most `uploads` clips uploading at once.
 """
 
 from __future__ import annotations
@@ -48,6 +48,8 @@ STATES_KEYS = 100
 """the most keys one read of pair states names (the server's limit)"""
 STATES_URL_CHARS = 6000
 """the most characters of keys one read of pair states sends (a URL stays short)"""
+UPLOADS = 4
+"""the most clips `AsyncStudy.ask` uploads at once, by default"""
 
 
 class StudyError(Exception):
@@ -498,11 +500,18 @@ class Study:
 
 
 class AsyncStudy:
-    """`Study` over asyncio (httpx's AsyncClient): the same calls, awaited."""
+    """`Study` over asyncio (httpx's AsyncClient): the same calls, awaited. `ask` uploads at
+    most `uploads` clips at once (4 by default): a batch of hundreds of pairs opens no hundreds
+    of connections, nor asks the server to encode hundreds of clips at once."""
 
     def __init__(self, url: str, token: str, run: int, *, retries: int = 6,
                  backoff: float = 0.5, cursor_file: str | os.PathLike[str] | None = None,
-                 progress: bool = True, client: httpx.AsyncClient | None = None):
+                 progress: bool = True, client: httpx.AsyncClient | None = None,
+                 uploads: int = UPLOADS):
+        if isinstance(uploads, bool) or not isinstance(uploads, int) or uploads < 1:
+            raise ValueError(f"uploads is the most clips uploading at once, an int of at "
+                             f"least 1; got {uploads!r}")
+        self.uploading = asyncio.Semaphore(uploads)
         self.core = _Core(url, token, run, retries=retries, backoff=backoff,
                           cursor_file=cursor_file, progress=progress)
         self.http = client or httpx.AsyncClient(timeout=60.0)
@@ -541,8 +550,9 @@ class AsyncStudy:
         raise AssertionError("unreachable: the last attempt returns or raises")
 
     async def upload(self, clip: Clip) -> str:
-        content, kind = clip_body(clip)
-        body = await self.call(Call("POST", "/clips", content=content, content_type=kind))
+        async with self.uploading:
+            content, kind = clip_body(clip)
+            body = await self.call(Call("POST", "/clips", content=content, content_type=kind))
         return str(body["clip_id"])
 
     async def ask(self, pairs: Sequence[Pair]) -> list[Query]:

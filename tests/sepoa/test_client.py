@@ -440,3 +440,42 @@ def test_a_wait_under_way_ends_when_its_pair_is_withdrawn(app_client: TestClient
 
     asyncio.run(main())
 
+
+class Uploads:
+    """The app, counting the clip uploads it serves at once (the most in `peak`)."""
+
+    def __init__(self, app: Any):
+        self.app, self.now, self.peak = app, 0, 0
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        if not (scope["type"] == "http" and scope["path"].endswith("/clips")):
+            return await self.app(scope, receive, send)
+        self.now += 1
+        self.peak = max(self.peak, self.now)
+        try:
+            await self.app(scope, receive, send)
+        finally:
+            self.now -= 1
+
+
+@pytest.mark.parametrize("bound", [None, 2])
+def test_the_asyncio_client_uploads_a_few_clips_at_once(app_client: TestClient,
+                                                        bound: int | None) -> None:
+    """A batch of many pairs opens no connection per clip at once: at most 4 uploads (or
+    `uploads`) are under way on the server at any time."""
+    run_id, token = run_and_token(app_client, budget=100)
+    server = Uploads(app_client.app)
+    given = {} if bound is None else {"uploads": bound}
+
+    async def main() -> list[Asked]:
+        transport = httpx.ASGITransport(app=server)  # type: ignore[arg-type]
+        async with httpx.AsyncClient(transport=transport, base_url=URL) as http, AsyncStudy(
+                URL, token, run_id, progress=False, client=http, **given) as study:
+            return await study.ask(pairs(3))
+
+    asked = asyncio.run(main())
+    assert len({query.query_id for query in asked}) == 3  # six clips, uploaded
+    assert server.peak == (bound or 4)
+    for wrong in (0, -1, True, 2.5, "4"):
+        with pytest.raises(ValueError, match="uploads is the most clips uploading at once"):
+            AsyncStudy(URL, token, run_id, uploads=wrong)  # type: ignore[arg-type]
