@@ -4,10 +4,12 @@ The run and its tokens are in `runs`, the pushed pairs in `pairs`, the answers f
 
 An external run (`algo` "external") is created running, with no worker: a client holding a
 token scoped to the run (`issue_run_token`; `revoke_run_token` ends one at once) pushes pairs
-of clips (`push_pairs`) and reads the answers people give them (`answers_after`). Everything
-else is the queue's as for any run: the pairs are queries, leased and answered through the same
-operations, with k answers each (`feedback.labels_per_query`), gold and practice pairs, invites
-and the quality pages. A worker never claims one (`labelqueue.runs.claim_run`).
+of clips (`push_pairs`), withdraws one nobody has answered yet (`withdraw_pair`: its query is
+cancelled, as a closed round's are) and reads the answers people give them (`answers_after`).
+Everything else is the queue's as for any run: the pairs are queries, leased and answered
+through the same operations, with k answers each (`feedback.labels_per_query`), gold and
+practice pairs, invites and the quality pages. A worker never claims one
+(`labelqueue.runs.claim_run`).
 
 How its answers count: an answer to an ordinary pair spends one of the run's budget (skips
 and can't-tells too), counts toward a study's target and code when decisive, and is given to

@@ -48,14 +48,19 @@ class Cursor:
 
     @classmethod
     def parse(cls, text: str) -> Cursor:
-        """Invalid for text that is no cursor the feed gave, or one of two numbers (the
-        older form, naming no run) other than the start."""
+        """Invalid for text that is no cursor the feed gave: one of three numbers naming run 0
+        (read as the start of any run's, it skipped the answers below its ids), or one of two
+        numbers (the older form, naming no run) other than the start."""
         parts = text.split(".")
         ids = [stored_id(part) for part in parts]
         if len(parts) == 2 and ids[0] is not None and ids[1] is not None and ids != [0, 0]:
             raise Invalid(f"cursor {text!r} names no run (the feed gives '<run>.<label>."
                           "<withdrawal>'): read from the start, after=0.0, and pass over the "
                           "answers already handled by their label_id")
+        if len(parts) == 3 and ids[0] == 0:
+            raise Invalid(f"cursor {text!r} names run 0, which is no run: the feed gives "
+                          "'<run>.<label>.<withdrawal>', the run's id first (like '7.57.2'), "
+                          "or '0.0' for the start")
         if not (len(parts) in (2, 3) and all(i is not None for i in ids)):
             raise Invalid(f"cursor {text[:40]!r} is not one the answers feed gave (like "
                           "'0.0', the start, or '7.57.2')")
@@ -151,9 +156,9 @@ def answers_after(session: Session, *, run_id: int, cursor: Cursor,
 def pair_states(session: Session, *, run_id: int,
                 keys: Sequence[str]) -> tuple[list[dict[str, Any]], list[str]]:
     """The external run's pairs under these keys as they stand now, each as an answers event
-    carries it (standing answers, aggregate, tie, complete), in the order of `keys`; and the
-    keys no pair of the run has. A reader that read past a pair's answers (before a restart,
-    or for another wait) learns here that it has them. NotFound for an unknown run."""
+    carries it (standing answers, aggregate, tie, complete, withdrawn), in the order of `keys`;
+    and the keys no pair of the run has. A reader that read past a pair's answers (before a
+    restart, or for another wait) learns here that it has them. NotFound for an unknown run."""
     keys = list(dict.fromkeys(keys))
     with reading(session):
         get_row(session, Run, run_id)
@@ -166,11 +171,13 @@ def pair_states(session: Session, *, run_id: int,
 
 
 def _pair_states(session: Session, query_ids: set[int]) -> dict[int, dict[str, Any]]:
-    """Per query: its key, meta, gold, k, and its standing answers with their tally."""
+    """Per query: its key, meta, gold, k, its standing answers with their tally, and whether
+    its client withdrew it (`externalruns.pairs.withdraw_pair`)."""
     if not query_ids:
         return {}
     pairs = session.execute(
-        select(Query.id, Query.needs_labels, Query.gold, ExternalPair.key, ExternalPair.meta)
+        select(Query.id, Query.needs_labels, Query.gold, Query.status, ExternalPair.key,
+               ExternalPair.meta)
         .outerjoin(ExternalPair, ExternalPair.query_id == Query.id)
         .where(Query.id.in_(query_ids))).all()
     standing = session.execute(
@@ -192,5 +199,6 @@ def _pair_states(session: Session, query_ids: set[int]) -> dict[int, dict[str, A
             "answers": [{"labeller_id": row.labeller_id, "labeller": row.name,
                          "answer": Answer(row.answer).value} for row in given],
             "aggregate": agreed.value if given else None, "tie": tie,
-            "complete": not pair.gold and len(given) >= pair.needs_labels}
+            "complete": not pair.gold and len(given) >= pair.needs_labels,
+            "withdrawn": pair.status == QueryStatus.CANCELLED}
     return out

@@ -1,6 +1,7 @@
 """Pairs an external client pushes (`push_pairs`): checked against the clips it uploaded and
 the run's budget, stored as the run's queries with their hidden metadata beside them, under an
-idempotency key unique in the run; and which uploaded clips a run's pairs use (`clip_use`)."""
+idempotency key unique in the run; withdrawn while nobody has answered them (`withdraw_pair`);
+and which uploaded clips a run's pairs use (`clip_use`)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import func, insert, select
+from sqlalchemy import func, insert, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -31,7 +32,7 @@ from labelqueue.models import (
 from labelqueue.practice import reserve
 from labelqueue.queries import checked_query_fields
 from labelqueue.runs import EXTERNAL
-from labelqueue.transaction import reading, transaction
+from labelqueue.transaction import changed, reading, transaction
 from runvocab.answers import Answer
 from runvocab.clip_format import ClipInfo
 
@@ -259,6 +260,46 @@ def _query_spec(run_id: int, pair: PairSpec, clips: Mapping[str, ClipInfo], posi
         "rule": EXTERNAL, "gold": pair.gold is not None, "needs_labels": k, **truth})
     return fields | {"run_id": run_id, "status": QueryStatus.PENDING, "created_at": now,
                      "practice": False}
+
+
+def withdraw_pair(session: Session, *, run_id: int, query_id: int) -> str:
+    """Withdraw one of the external run's pushed pairs that has no answer: its query is
+    cancelled, as a closed round's are (`labelqueue.queries.cancel_queries`), so it is leased
+    no more, a labeller who has it on screen is refused the answer (LeaseError), and the answers
+    it asked of the budget are free again (`_check_budget`). Its key stays used. Withdrawing a
+    withdrawn pair changes nothing. The pair's key.
+
+    NotFound for a query that is no pair the run's client pushed; Conflict for a pair with a
+    standing answer (one of its k is enough: the answers stand, and the feed gave them), or
+    one of the run's practice pairs (every newcomer is shown them). Decided by one conditional
+    update of the query's row, which a submit takes too: an answer and a withdrawal at once
+    never both succeed."""
+    with transaction(session):
+        changed(session, update(QUERIES).where(
+            QUERIES.c.id == query_id, QUERIES.c.run_id == run_id,
+            QUERIES.c.status.in_((QueryStatus.PENDING, QueryStatus.LEASED)),
+            QUERIES.c.label_count == 0, QUERIES.c.practice.is_(False),
+            select(EXTERNAL_PAIRS.c.query_id).where(
+                EXTERNAL_PAIRS.c.query_id == QUERIES.c.id).exists(),
+        ).values(status=QueryStatus.CANCELLED, lease_holder=None, lease_expires_at=None,
+                 leased_at=None))
+        row = session.execute(
+            select(EXTERNAL_PAIRS.c.key, QUERIES.c.status, QUERIES.c.label_count,
+                   QUERIES.c.needs_labels, QUERIES.c.gold, QUERIES.c.practice)
+            .join(QUERIES, QUERIES.c.id == EXTERNAL_PAIRS.c.query_id)
+            .where(EXTERNAL_PAIRS.c.query_id == query_id, EXTERNAL_PAIRS.c.run_id == run_id)
+        ).first()
+        if row is None:
+            raise NotFound(f"run {run_id} has no pair of query id {query_id}")
+        where = f"pair {row.key!r} (query {query_id})"
+        if row.status == QueryStatus.CANCELLED:
+            return str(row.key)
+        if row.practice:
+            raise Conflict(f"{where} is one of the run's practice pairs, shown to every "
+                           "newcomer: it cannot be withdrawn")
+        of = "" if row.gold else f" of the {row.needs_labels} it asks for"
+        raise Conflict(f"{where} has {row.label_count} answer(s){of}: a pair with an answer "
+                       "cannot be withdrawn (its answers stand, and the feed gives them)")
 
 
 def known_answer(session: Session, *, query_id: int) -> Answer | None:

@@ -213,7 +213,7 @@ def _why_refused(connection: DriverConnection, params: dict[str, Any]) -> Except
         return RunClosed(f"run {row.run_id} is {row.run_status}: it takes no more answers")
     status, expires = QueryStatus(row.status), row.lease_expires_at
     if status in (QueryStatus.LABELLED, QueryStatus.CANCELLED):
-        why = f"query {query_id} is {status}"
+        why = f"query {query_id} is {status}: it takes no more answers"
     elif status is QueryStatus.LEASED and row.lease_holder == labeller_id:
         why = f"labeller {labeller_id}'s lease on query {query_id} has expired"
     elif status is QueryStatus.LEASED and expires is not None and expires > now:

@@ -20,7 +20,8 @@ lost. The file moves past a page of answers when the next read begins (or at `cl
 killed while it handles a page reads that page again. The cursor names its run: another run's file
 is a ValueError. `wait_for` reads where its pairs stand before it follows the feed, so it also
 returns pairs whose answers the cursor has passed (read by `answers()`, by another wait, or before a
-restart). `AsyncStudy` is the same over asyncio.
+restart). A pair nobody has answered yet is withdrawn with `withdraw`. `AsyncStudy` is the same
+over asyncio, with at most `uploads` clips uploading at once.
 """
 
 from __future__ import annotations
@@ -47,6 +48,8 @@ STATES_KEYS = 100
 """the most keys one read of pair states names (the server's limit)"""
 STATES_URL_CHARS = 6000
 """the most characters of keys one read of pair states sends (a URL stays short)"""
+UPLOADS = 4
+"""the most clips `AsyncStudy.ask` uploads at once, by default"""
 
 
 class StudyError(Exception):
@@ -91,6 +94,8 @@ class AnswerEvent:
     """each labeller's standing answer"""
     meta: Mapping[str, Any] | None
     raw: Mapping[str, Any] = field(repr=False)
+    withdrawn: bool = False
+    """the run's client withdrew the pair (`Study.withdraw`): it gets no more answers"""
 
     @classmethod
     def of(cls, event: Mapping[str, Any]) -> AnswerEvent:
@@ -98,6 +103,7 @@ class AnswerEvent:
                    label_id=event["label_id"], labeller=event["labeller"], answer=event["answer"],
                    aggregate=event["aggregate"], tie=event["tie"], complete=event["complete"],
                    gold=event["gold"], meta=event["meta"], raw=event,
+                   withdrawn=event.get("withdrawn", False),
                    answers={given["labeller"]: given["answer"] for given in event["answers"]})
 
 
@@ -114,12 +120,14 @@ class PairState:
     gold: bool
     answers: dict[str, str]
     meta: Mapping[str, Any] | None
+    withdrawn: bool = False
+    """the run's client withdrew the pair (`Study.withdraw`): it gets no answer"""
 
     @classmethod
     def of(cls, state: Mapping[str, Any]) -> PairState:
         return cls(key=state["key"], query_id=state["query_id"], aggregate=state["aggregate"],
                    tie=state["tie"], complete=state["complete"], gold=state["gold"],
-                   meta=state["meta"],
+                   meta=state["meta"], withdrawn=state.get("withdrawn", False),
                    answers={given["labeller"]: given["answer"] for given in state["answers"]})
 
 
@@ -139,6 +147,14 @@ class Call:
 def push_call(batch: Sequence[dict[str, Any]]) -> Call:
     return Call("POST", "/pairs", content=compact({"pairs": list(batch)}),
                 content_type="application/json")
+
+
+def withdraw_call(query: Query | int) -> Call:
+    query_id = query.query_id if isinstance(query, Query) else query
+    if isinstance(query_id, bool) or not isinstance(query_id, int) or query_id < 1:
+        raise ValueError(f"withdraw takes a Query that ask gave, or its query_id (an int of "
+                         f"at least 1); got {query!r}")
+    return Call("POST", f"/pairs/{query_id}/withdraw")
 
 
 def halves(batch: Sequence[dict[str, Any]], error: StudyError) -> list[Sequence[dict[str, Any]]]:
@@ -272,6 +288,13 @@ class _Core:
             waiting.note(events)
         return events
 
+    def withdrew(self, body: Mapping[str, Any]) -> PairState:
+        """A pair this client withdrew, noted by every wait under way (none will answer it)."""
+        state = PairState.of(body)
+        for waiting in self.waits:
+            waiting.note([state])
+        return state
+
     @contextmanager
     def watching(self, waiting: Waiting) -> Iterator[None]:
         self.waits.append(waiting)
@@ -309,6 +332,8 @@ class Waiting:
 
     def __init__(self, queries: Sequence[Query], timeout: float | None, progress: bool):
         self.pending: dict[str, str | None] = {query.key: None for query in queries}
+        self.withdrawn: dict[str, None] = {}
+        """the pairs withdrawn while waited for, in the order it was noted"""
         self.deadline = None if timeout is None else time.monotonic() + timeout
         self.bar = tqdm(total=len(self.pending), desc="answered pairs", unit="pair",
                         disable=not progress)
@@ -322,6 +347,9 @@ class Waiting:
         last read gave it: the feed waits for nothing then, and no answer is to come)."""
         if self.done() == len(self.pending):
             return None
+        if self.withdrawn:
+            raise StudyError(None, f"pairs withdrawn while waited for get no answer: "
+                                   f"{list(self.withdrawn)[:5]}")
         if status is not None and status not in ("running", "paused"):
             raise StudyError(None, f"the run is {status}: {len(self.pending) - self.done()} of "
                                    f"{len(self.pending)} pairs still want answers")
@@ -334,8 +362,8 @@ class Waiting:
     def start(self, states: Mapping[str, PairState]) -> None:
         """Begin from where the pairs stand now (answers read before, by another wait or
         before a restart, come no more in the feed). ValueError for a key no pair of the run
-        has, or a gold pair: it takes the answer of everyone it is shown to, so it is never
-        complete; its answers come in `answers()`."""
+        has, a withdrawn pair (it gets no answer), or a gold pair: it takes the answer of
+        everyone it is shown to, so it is never complete; its answers come in `answers()`."""
         unknown = [key for key in self.pending if key not in states]
         if unknown:
             raise ValueError(f"no pair of this run has the key(s) {unknown[:5]}")
@@ -343,12 +371,18 @@ class Waiting:
         if gold:
             raise ValueError(f"gold pairs are never complete, so wait_for does not wait for "
                              f"them (their answers come in answers()): {gold[:5]}")
+        withdrawn = [key for key in self.pending if states[key].withdrawn]
+        if withdrawn:
+            raise ValueError(f"withdrawn pairs get no answer, so wait_for does not wait for "
+                             f"them (ask again under a new key): {withdrawn[:5]}")
         self.note(states[key] for key in self.pending)
 
     def note(self, events: Iterable[AnswerEvent | PairState]) -> None:
         for event in events:
             if event.key in self.pending:
                 self.pending[event.key] = event.aggregate if event.complete else None
+                if event.withdrawn:
+                    self.withdrawn[event.key] = None
         self.bar.n = self.done()
         self.bar.refresh()
 
@@ -427,6 +461,15 @@ class Study:
         except StudyError as error:
             return [query for half in halves(batch, error) for query in self.push(half)]
 
+    def withdraw(self, query: Query | int) -> PairState:
+        """Withdraw a pair nobody has answered yet (pushed by mistake), by its `Query` or
+        query_id: no labeller is shown it again, one who has it on screen cannot answer it, and
+        the answers it asked of the budget are free again; its key stays used. The pair as it
+        stands, `withdrawn`; withdrawing it again changes nothing, and a `wait_for` under way
+        for it raises a StudyError. StudyError 409 for a pair with an answer (one of its k is
+        enough) or one of the run's practice pairs, 404 for no pair of the run."""
+        return self.core.withdrew(self.call(withdraw_call(query)))
+
     def answers(self, wait: float = 0.0) -> list[AnswerEvent]:
         """The answers and withdrawals since the cursor (waiting up to `wait` s, 60 at most,
         for one), and the cursor moved past them. The cursor file moves past a page when the
@@ -457,11 +500,18 @@ class Study:
 
 
 class AsyncStudy:
-    """`Study` over asyncio (httpx's AsyncClient): the same calls, awaited."""
+    """`Study` over asyncio (httpx's AsyncClient): the same calls, awaited. `ask` uploads at
+    most `uploads` clips at once (4 by default): a batch of hundreds of pairs opens no hundreds
+    of connections, nor asks the server to encode hundreds of clips at once."""
 
     def __init__(self, url: str, token: str, run: int, *, retries: int = 6,
                  backoff: float = 0.5, cursor_file: str | os.PathLike[str] | None = None,
-                 progress: bool = True, client: httpx.AsyncClient | None = None):
+                 progress: bool = True, client: httpx.AsyncClient | None = None,
+                 uploads: int = UPLOADS):
+        if isinstance(uploads, bool) or not isinstance(uploads, int) or uploads < 1:
+            raise ValueError(f"uploads is the most clips uploading at once, an int of at "
+                             f"least 1; got {uploads!r}")
+        self.uploading = asyncio.Semaphore(uploads)
         self.core = _Core(url, token, run, retries=retries, backoff=backoff,
                           cursor_file=cursor_file, progress=progress)
         self.http = client or httpx.AsyncClient(timeout=60.0)
@@ -500,8 +550,9 @@ class AsyncStudy:
         raise AssertionError("unreachable: the last attempt returns or raises")
 
     async def upload(self, clip: Clip) -> str:
-        content, kind = clip_body(clip)
-        body = await self.call(Call("POST", "/clips", content=content, content_type=kind))
+        async with self.uploading:
+            content, kind = clip_body(clip)
+            body = await self.call(Call("POST", "/clips", content=content, content_type=kind))
         return str(body["clip_id"])
 
     async def ask(self, pairs: Sequence[Pair]) -> list[Query]:
@@ -516,6 +567,10 @@ class AsyncStudy:
             return queries_of((await self.call(push_call(batch)))["pairs"])
         except StudyError as error:
             return [query for half in halves(batch, error) for query in await self.push(half)]
+
+    async def withdraw(self, query: Query | int) -> PairState:
+        """`Study.withdraw`, awaited."""
+        return self.core.withdrew(await self.call(withdraw_call(query)))
 
     async def answers(self, wait: float = 0.0) -> list[AnswerEvent]:
         async with self.reading:

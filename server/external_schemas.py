@@ -188,6 +188,9 @@ class PairState(Out):
     complete: bool
     """the pair has its k answers (skips count: the queue asks no more); never for a gold
     pair, which takes the answer of everyone it is shown to"""
+    withdrawn: bool
+    """its client withdrew it before anyone answered it: it is shown to nobody again and gets
+    no answer"""
 
 
 class AnswerEvent(PairState):

@@ -26,7 +26,7 @@ from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
 from externalruns.feed import STATES_LIMIT, Cursor, answers_after, pair_states
-from externalruns.pairs import PairSpec, clip_key, push_pairs
+from externalruns.pairs import PairSpec, clip_key, push_pairs, withdraw_pair
 from externalruns.runs import (
     create_external_run,
     is_external,
@@ -55,12 +55,13 @@ from server.external_schemas import (
     ExternalRunCreate,
     PairKey,
     PairsIn,
+    PairState,
     PairStatesOut,
     PushOut,
     RunTokenInfo,
     RunTokenOut,
 )
-from server.schemas import INT32_MAX, RunId, RunOut, errors
+from server.schemas import INT32_MAX, QueryId, RunId, RunOut, errors
 from server.settings import Settings
 from server.upload_sweep import upload_lock
 
@@ -319,13 +320,27 @@ def states(
     return PairStatesOut.model_validate({"pairs": found, "unknown": unknown})
 
 
+@router.post("/{run_id}/pairs/{query_id}/withdraw", response_model=PairState,
+             responses=errors(404, 409, 422))
+def withdraw(query_id: QueryId, run: ClientRun, session: SessionDep) -> PairState:
+    """Withdraw a pushed pair nobody has answered (one pushed by mistake): it is shown to no
+    labeller again, one who has it on screen is refused the answer (409), and the answers it
+    asked of the budget are free again. Its key stays used: pushed again, it comes back
+    withdrawn. Gives the pair as it stands, `withdrawn`; withdrawing it again changes nothing.
+    409 for a pair with an answer (one of its k is enough) or one of the run's practice pairs;
+    404 for no pair of the run."""
+    key = withdraw_pair(session, run_id=run.id, query_id=query_id)
+    [state], _ = pair_states(session, run_id=run.id, keys=[key])
+    return PairState.model_validate(state)
+
+
 @router.get("/{run_id}/answers", response_model=AnswersOut, responses=errors(404, 409, 422))
 async def answers(
     run: ClientRun, request: Request, session: SessionDep,
     after: Annotated[str, Query(max_length=40, description=(
         "the cursor the last read gave, the run's id, a label's and a withdrawal's joined by "
-        "dots ('7.57.2'; '0.0': from the start); one this run never gave, another run's or "
-        "one of two numbers but the start, is refused (422)"))] = "0.0",
+        "dots ('7.57.2'; '0.0': from the start); one this run never gave, another run's, "
+        "one naming run 0 or one of two numbers but the start, is refused (422)"))] = "0.0",
     wait: Annotated[float, Query(ge=0, le=60, description="seconds to wait for an answer when "
                                                          "there is none yet")] = 0.0,
 ) -> AnswersOut:

@@ -396,3 +396,86 @@ def test_the_asyncio_client_asks_and_reads_the_same(app_client: TestClient) -> N
     queries, answers = asyncio.run(main())
     assert [q.created for q in queries] == [True, True]
     assert {key for key, _ in answers} == {q.key for q in queries}
+
+
+def test_a_withdrawn_pair_is_answered_by_nobody_and_waited_for_by_none(
+    app_client: TestClient,
+) -> None:
+    run_id, token = run_and_token(app_client, budget=2)
+    study = Study(URL, token, run_id, client=app_client, progress=False)
+    oops, kept = study.ask(pairs(2))
+    state = study.withdraw(oops)
+    assert (state.key, state.withdrawn, state.answers) == (oops.key, True, {})
+    assert study.withdraw(oops.query_id) == state  # again: nothing changes
+    assert study.states([oops.key, kept.key])[kept.key].withdrawn is False
+    with pytest.raises(ValueError, match=rf"withdrawn pairs .* \['{oops.key}'\]"):
+        study.wait_for([oops, kept], timeout=3)
+    # The withdrawn pair is shown to nobody: una answers the other one only.
+    assert label_all(app_client, run_id, "una", picking({kept.query_id: "first"})) == 1
+    assert study.wait_for([kept], timeout=5) == {kept.key: "first"}
+    with pytest.raises(StudyError, match="has 1 answer") as refused:
+        study.withdraw(kept)
+    assert refused.value.status == 409
+    for wrong in (0, oops.key, True):
+        with pytest.raises(ValueError, match="a Query that ask gave, or its query_id"):
+            study.withdraw(wrong)  # type: ignore[arg-type]
+    # Its budget is free again: a third pair fits a budget of two.
+    assert [q.created for q in study.ask(pairs(3))] == [False, False, True]
+
+
+def test_a_wait_under_way_ends_when_its_pair_is_withdrawn(app_client: TestClient) -> None:
+    run_id, token = run_and_token(app_client)
+
+    async def main() -> None:
+        transport = httpx.ASGITransport(app=app_client.app)  # type: ignore[arg-type]
+        async with httpx.AsyncClient(transport=transport, base_url=URL) as http, AsyncStudy(
+                URL, token, run_id, progress=False, client=http) as study:
+            [asked] = await study.ask(pairs(1))
+            # It reads where its pair stands, then long-polls the feed (5 s at most here).
+            waiting = asyncio.create_task(study.wait_for([asked], timeout=5))
+            await asyncio.sleep(0.2)
+            assert (await study.withdraw(asked)).withdrawn
+            with pytest.raises(StudyError, match=rf"withdrawn while waited for .*{asked.key}"):
+                await waiting  # said once its poll ends: no TimeoutError
+
+    asyncio.run(main())
+
+
+class Uploads:
+    """The app, counting the clip uploads it serves at once (the most in `peak`)."""
+
+    def __init__(self, app: Any):
+        self.app, self.now, self.peak = app, 0, 0
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        if not (scope["type"] == "http" and scope["path"].endswith("/clips")):
+            return await self.app(scope, receive, send)
+        self.now += 1
+        self.peak = max(self.peak, self.now)
+        try:
+            await self.app(scope, receive, send)
+        finally:
+            self.now -= 1
+
+
+@pytest.mark.parametrize("bound", [None, 2])
+def test_the_asyncio_client_uploads_a_few_clips_at_once(app_client: TestClient,
+                                                        bound: int | None) -> None:
+    """A batch of many pairs opens no connection per clip at once: at most 4 uploads (or
+    `uploads`) are under way on the server at any time."""
+    run_id, token = run_and_token(app_client, budget=100)
+    server = Uploads(app_client.app)
+    given = {} if bound is None else {"uploads": bound}
+
+    async def main() -> list[Asked]:
+        transport = httpx.ASGITransport(app=server)  # type: ignore[arg-type]
+        async with httpx.AsyncClient(transport=transport, base_url=URL) as http, AsyncStudy(
+                URL, token, run_id, progress=False, client=http, **given) as study:
+            return await study.ask(pairs(3))
+
+    asked = asyncio.run(main())
+    assert len({query.query_id for query in asked}) == 3  # six clips, uploaded
+    assert server.peak == (bound or 4)
+    for wrong in (0, -1, True, 2.5, "4"):
+        with pytest.raises(ValueError, match="uploads is the most clips uploading at once"):
+            AsyncStudy(URL, token, run_id, uploads=wrong)  # type: ignore[arg-type]

@@ -440,6 +440,103 @@ def test_a_cursor_names_its_run_and_another_runs_is_refused(client: TestClient) 
     assert [e["label_id"] for e in start.json()["events"]] == [1, 3]
 
 
+def test_a_cursor_of_run_0_past_the_start_is_refused_rather_than_skipping_answers(
+    client: TestClient,
+) -> None:
+    """'0.1.0' is no cursor the feed gives (run 0 is the start's alone): read as one, it
+    skipped the answers up to label 1."""
+    run_id, auth = external_run(client)
+    a, b = upload(client, run_id, auth, frames(1)), upload(client, run_id, auth, frames(2))
+    client.post(f"/api/runs/{run_id}/pairs", headers=auth,
+                json={"pairs": [pair("k1", a, b), pair("k2", b, a)]})
+    token = bearer(new_labeller(client, "ivy"))
+    for _ in range(2):
+        shown = client.get(f"/api/label/next?run_id={run_id}", headers=token).json()
+        assert answer(client, token, shown, "left").status_code == 201
+    url = f"/api/runs/{run_id}/answers"
+    for cursor in ("0.1.0", "0.0.1", "0.0.0"):
+        read = client.get(url, params={"after": cursor}, headers=auth)
+        assert read.status_code == 422, (cursor, read.text)
+        detail = read.json()["detail"]
+        assert f"cursor {cursor!r} names run 0" in detail and "'0.0'" in detail, detail
+        assert "'<run>.<label>.<withdrawal>'" in detail, detail
+    start = client.get(url, params={"after": "0.0"}, headers=auth).json()
+    assert [e["label_id"] for e in start["events"]] == [1, 2]
+
+
+def test_a_pair_pushed_by_mistake_is_withdrawn_and_shown_to_nobody_again(
+    client: TestClient,
+) -> None:
+    run_id, auth = external_run(client, budget=2)
+    a, b = upload(client, run_id, auth, frames(1)), upload(client, run_id, auth, frames(2))
+    pushed = client.post(f"/api/runs/{run_id}/pairs", headers=auth,
+                         json={"pairs": [pair("oops", a, b), pair("kept", b, a)]}).json()
+    oops, kept = (item["query_id"] for item in pushed["pairs"])
+    token = bearer(new_labeller(client, "ann"))
+    shown = client.get(f"/api/label/next?run_id={run_id}", headers=token).json()
+    assert shown["query_id"] == oops  # on ann's screen when its client withdraws it
+    url = f"/api/runs/{run_id}/pairs/{oops}/withdraw"
+    withdrawn = client.post(url, headers=auth)
+    assert withdrawn.status_code == 200, withdrawn.text
+    assert withdrawn.json() == {
+        "query_id": oops, "key": "oops", "meta": None, "gold": False, "k": 1, "answers": [],
+        "aggregate": None, "tie": False, "complete": False, "withdrawn": True}
+    refused = answer(client, token, shown, "left")
+    assert refused.status_code == 409 and "takes no more answers" in refused.json()["detail"]
+    assert client.get(f"/api/runs/{run_id}", headers=OPERATOR).json()["labels_used"] == 0
+    # The next pair ann or anyone is shown is the one left, and then none.
+    assert client.get(f"/api/label/next?run_id={run_id}&ahead_of={oops}",
+                      headers=token).json()["query_id"] == kept
+    other = bearer(new_labeller(client, "bob"))
+    assert client.get(f"/api/label/next?run_id={run_id}", headers=other).status_code == 204
+    feed = client.get(f"/api/runs/{run_id}/answers", headers=auth).json()
+    assert (feed["events"], feed["open_pairs"]) == ([], 1)
+    # Withdrawn again, it changes nothing; its answer is free for another pair of the budget.
+    assert client.post(url, headers=auth).json() == withdrawn.json()
+    more = client.post(f"/api/runs/{run_id}/pairs", headers=auth,
+                       json={"pairs": [pair("oops", a, b), pair("new", a, a)]})
+    assert more.status_code == 201, more.text
+    assert [(p["key"], p["created"]) for p in more.json()["pairs"]] == [
+        ("oops", False), ("new", True)]  # its key stays used, and comes back withdrawn
+    states = client.get(f"/api/runs/{run_id}/pairs", params={"key": ["oops", "new"]},
+                        headers=auth).json()["pairs"]
+    assert [state["withdrawn"] for state in states] == [True, False]
+
+
+def test_a_pair_with_an_answer_is_not_withdrawn(client: TestClient) -> None:
+    run_id, auth = external_run(client, labels_per_query=3, practice_pairs=1)
+    a, b = upload(client, run_id, auth, frames(1)), upload(client, run_id, auth, frames(2))
+    pushed = client.post(f"/api/runs/{run_id}/pairs", headers=auth, json={"pairs": [
+        pair("practice", a, b, gold="first", returns=[2.0, 1.0]), pair("half", b, a),
+        pair("taken-back", a, b)]})
+    practice, half, taken_back = (item["query_id"] for item in pushed.json()["pairs"])
+    token = bearer(new_labeller(client, "cat"))
+    shown = client.get(f"/api/label/next?run_id={run_id}", headers=token).json()
+    assert shown["query_id"] == practice and answer(client, token, shown, "left").status_code == 201
+    for _ in ("half", "taken-back"):
+        shown = client.get(f"/api/label/next?run_id={run_id}", headers=token).json()
+        assert answer(client, token, shown, "left").status_code == 201
+    assert shown["query_id"] == taken_back
+    assert client.post(f"/api/label/{taken_back}/withdraw", headers=token,
+                       json={}).status_code == 200
+    url = f"/api/runs/{run_id}/pairs/{{}}/withdraw"
+    # One answer of the three it asks for is enough: it stands, and the feed gave it.
+    refused = client.post(url.format(half), headers=auth)
+    assert refused.status_code == 409
+    assert "has 1 answer(s) of the 3 it asks for" in refused.json()["detail"]
+    refused = client.post(url.format(practice), headers=auth)
+    assert refused.status_code == 409 and "practice pairs" in refused.json()["detail"]
+    # An answer taken back stands no more: that pair has none.
+    assert client.post(url.format(taken_back), headers=auth).json()["withdrawn"]
+    assert client.post(url.format(taken_back + 1), headers=auth).status_code == 404
+    other, other_auth = external_run(client)
+    unknown = client.post(f"/api/runs/{other}/pairs/{half}/withdraw", headers=other_auth)
+    assert unknown.status_code == 404 and f"run {other} has no pair" in unknown.text
+    states = client.get(f"/api/runs/{run_id}/pairs", params={"key": ["half", "practice"]},
+                        headers=auth).json()["pairs"]
+    assert [(len(s["answers"]), s["withdrawn"]) for s in states] == [(1, False), (0, False)]
+
+
 def test_a_gold_pair_known_by_its_answer_measures_labellers_and_costs_no_budget(
     client: TestClient,
 ) -> None:
