@@ -385,6 +385,24 @@ def test_settings_come_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> 
         get_settings.cache_clear()
 
 
+def assert_served_alone_into(folder: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A server made from the environment, as uvicorn makes it, stores a labeller it is asked
+    to create in the SQLite queue in `folder`."""
+    monkeypatch.setenv("SEPOA_OPERATOR_TOKEN", OPERATOR_TOKEN)
+    get_settings.cache_clear()
+    try:
+        with TestClient(create_app()) as client:
+            new_labeller(client, "ann")
+    finally:
+        get_settings.cache_clear()
+    engine = make_engine(sqlite_url(folder))
+    try:
+        with session_factory(engine)() as session:
+            assert find_labeller(session, name="ann") is not None
+    finally:
+        engine.dispose()
+
+
 def test_a_server_started_alone_keeps_its_queue_in_the_data_dir(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -396,18 +414,8 @@ def test_a_server_started_alone_keeps_its_queue_in_the_data_dir(
     monkeypatch.delenv("SEPOA_DATABASE_URL", raising=False)
     monkeypatch.delenv("SEPOA_DATABASE_URL_FILE", raising=False)
     monkeypatch.setenv("SEPOA_DATA_DIR", str(data))
-    monkeypatch.setenv("SEPOA_OPERATOR_TOKEN", OPERATOR_TOKEN)
-    get_settings.cache_clear()
-    try:
-        with TestClient(create_app()) as client:
-            new_labeller(client, "ann")
-        engine = make_engine(sqlite_url(data))
-        with session_factory(engine)() as session:
-            assert find_labeller(session, name="ann") is not None
-        engine.dispose()
-        assert not (tmp_path / "data").exists()
-    finally:
-        get_settings.cache_clear()
+    assert_served_alone_into(data, monkeypatch)
+    assert not (tmp_path / "data").exists()
     given = sqlite_url(tmp_path / "elsewhere")
     assert Settings(data_dir=data, database_url=given).database_url == given
     url_file = tmp_path / "queue-url"
@@ -427,20 +435,13 @@ def test_a_server_started_alone_opens_the_database_the_url_file_names(
     url_file.chmod(0o600)
     monkeypatch.delenv("SEPOA_DATABASE_URL", raising=False)
     monkeypatch.setenv("SEPOA_DATABASE_URL_FILE", str(url_file))
-    monkeypatch.setenv("SEPOA_OPERATOR_TOKEN", OPERATOR_TOKEN)
-    get_settings.cache_clear()
+    assert_served_alone_into(tmp_path, monkeypatch)
+    assert not (tmp_path / "data" / "queue.db").exists()
+    empty, missing = tmp_path / "empty", tmp_path / "missing"
+    empty.write_text("# nothing yet\n")
+    empty.chmod(0o600)
+    url_file.chmod(0o644)  # readable by others: refused, as libpq refuses such a file
     try:
-        with TestClient(create_app()) as client:
-            new_labeller(client, "ann")
-        engine = make_engine(sqlite_url(tmp_path))
-        with session_factory(engine)() as session:
-            assert find_labeller(session, name="ann") is not None
-        engine.dispose()
-        assert not (tmp_path / "data" / "queue.db").exists()
-        empty, missing = tmp_path / "empty", tmp_path / "missing"
-        empty.write_text("# nothing yet\n")
-        empty.chmod(0o600)
-        url_file.chmod(0o644)  # readable by others: refused, as libpq refuses such a file
         for path, words in ((url_file, "chmod 600"), (empty, "holds no URL"),
                             (missing, "No such file")):
             monkeypatch.setenv("SEPOA_DATABASE_URL_FILE", str(path))
