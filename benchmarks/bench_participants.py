@@ -1,12 +1,14 @@
-"""A study's participants list (`GET /api/invites/{id}/participants`) against its size.
+"""A study's participants list (`GET /api/invites/{id}/participants`), and the check of all
+their completion codes at once (`POST /api/invites/verify-codes`), against its size.
 
 For each --participants count a fresh SQLite queue database (in a temporary folder) gets one
 human-taught run with an invite (target 2 answers), joined by that many participants in mixed
 states: a third answered nothing, a third one pair, a third two (their target); every fifth is
 paused by check pairs. The list (`crowdstudy.participants.participants`) is made once to warm
-up (it records the completions it finds), then timed --repeats times; the table gives the
-median wall and CPU ms per list, the CPU ms per participant, and the SQL statements one list
-runs (which the machine's load does not move).
+up (it records the completions it finds), then timed --repeats times, and so is the check of
+every participant's code (`crowdstudy.participants.verify_codes`); a table for each gives the
+median wall and CPU ms per call, the CPU ms per participant (or code), and the SQL statements
+one call runs (which the machine's load does not move).
 
     PYTHONPATH=. .venv/bin/python benchmarks/bench_participants.py
     PYTHONPATH=. .venv/bin/python benchmarks/bench_participants.py --participants 20 200 1000
@@ -21,6 +23,7 @@ import argparse
 import statistics
 import tempfile
 import time
+from collections.abc import Callable
 from datetime import timedelta
 from pathlib import Path
 from typing import Any
@@ -30,7 +33,7 @@ from sqlalchemy import Engine, event
 from sqlalchemy.orm import Session
 
 from crowdstudy.invites import create_invite, join_invite
-from crowdstudy.participants import participants
+from crowdstudy.participants import participants, verify_codes
 from labelqueue import (
     LabellerPause,
     claim_run,
@@ -68,7 +71,7 @@ def seed_study(session: Session, people: int) -> int:
     return invite.id
 
 
-def statements(engine: Engine, session: Session, invite_id: int) -> int:
+def statements(engine: Engine, call: Callable[[], object]) -> int:
     seen: list[str] = []
 
     def count(conn: Any, cursor: Any, statement: str, *_: Any) -> None:
@@ -76,14 +79,30 @@ def statements(engine: Engine, session: Session, invite_id: int) -> int:
 
     event.listen(engine, "before_cursor_execute", count)
     try:
-        participants(session, invite_id=invite_id)
+        call()
     finally:
         event.remove(engine, "before_cursor_execute", count)
     return len(seen)
 
 
-def measure(people: int, repeats: int) -> tuple[float, float, int]:
-    """(median wall ms, median CPU ms, statements) of one list of `people` participants."""
+Figures = tuple[float, float, int]
+"""median wall ms, median CPU ms and statements of one call"""
+
+
+def timed(engine: Engine, call: Callable[[], object], repeats: int) -> Figures:
+    walls, cpus = [], []
+    for _ in range(repeats):
+        wall, cpu = time.perf_counter(), time.process_time()
+        call()
+        cpus.append(time.process_time() - cpu)
+        walls.append(time.perf_counter() - wall)
+    return (1000 * statistics.median(walls), 1000 * statistics.median(cpus),
+            statements(engine, call))
+
+
+def measure(people: int, repeats: int) -> tuple[Figures, Figures]:
+    """The figures of one list of `people` participants, and of one check of all their
+    codes."""
     with tempfile.TemporaryDirectory() as tmp:
         url = f"sqlite:///{Path(tmp) / 'queue.db'}"
         migrate(url)
@@ -91,17 +110,15 @@ def measure(people: int, repeats: int) -> tuple[float, float, int]:
         try:
             with session_factory(engine)() as session:
                 invite_id = seed_study(session, people)
-                assert len(participants(session, invite_id=invite_id)) == people  # warm-up
-                walls, cpus = [], []
-                for _ in range(repeats):
-                    wall, cpu = time.perf_counter(), time.process_time()
-                    participants(session, invite_id=invite_id)
-                    cpus.append(time.process_time() - cpu)
-                    walls.append(time.perf_counter() - wall)
-                count = statements(engine, session, invite_id)
+                rows = participants(session, invite_id=invite_id)  # warm-up
+                assert len(rows) == people
+                codes = [row.completion_code for row in rows]
+                listed = timed(engine, lambda: participants(session, invite_id=invite_id),
+                               repeats)
+                checked = timed(engine, lambda: verify_codes(session, codes), repeats)
         finally:
             engine.dispose()
-    return 1000 * statistics.median(walls), 1000 * statistics.median(cpus), count
+    return listed, checked
 
 
 def main() -> None:
@@ -109,12 +126,13 @@ def main() -> None:
     parser.add_argument("--participants", type=int, nargs="+", default=[20, 200])
     parser.add_argument("--repeats", type=int, default=7)
     args = parser.parse_args()
-    print(f"{'participants':>12} {'wall ms':>9} {'CPU ms':>9} {'CPU ms each':>12} "
+    print(f"{'':>12} {'participants':>12} {'wall ms':>9} {'CPU ms':>9} {'CPU ms each':>12} "
           f"{'statements':>10}")
     for people in args.participants:
-        wall, cpu, count = measure(people, args.repeats)
-        print(f"{people:>12} {wall:>9.1f} {cpu:>9.1f} {cpu / people:>12.2f} {count:>10}",
-              flush=True)
+        for what, (wall, cpu, count) in zip(("list", "codes"), measure(people, args.repeats),
+                                            strict=True):
+            print(f"{what:>12} {people:>12} {wall:>9.1f} {cpu:>9.1f} {cpu / people:>12.2f} "
+                  f"{count:>10}", flush=True)
 
 
 if __name__ == "__main__":

@@ -28,7 +28,6 @@ from crowdstudy.completion import (
     code_owners,
     participant_code,
     study_progress,
-    verified,
 )
 from labelqueue.errors import NotFound
 from labelqueue.gold import gold_answer
@@ -170,6 +169,13 @@ class CodeCheck:
     """why their study is complete, or "not_complete", or "unknown" (nobody's code), or
     "other_study" (a participant's of another invite than the one checked for: not valid
     here)"""
+    labeller: str | None = None
+    run_id: int | None = None
+    """the run of their invite; none: all runs (or nobody's code)"""
+    counted: int | None = None
+    """what the target counts (`crowdstudy.completion.Progress.counted`); none for a code
+    not checked ("unknown", "other_study")"""
+    target_answers: int | None = None
 
 
 def verify_codes(session: Session, codes: Iterable[str], *,
@@ -177,25 +183,32 @@ def verify_codes(session: Session, codes: Iterable[str], *,
     """Each code of a list, in order: whose it is and whether it is earned. Blank lines are
     left out; a code given twice is checked twice (and said so by the caller if it wants).
     With `invite_id` (NotFound for an unknown one), a code of another invite's participant is
-    "other_study", never valid. Whose each code is is looked up once for the whole list."""
+    "other_study", never valid. Whose each code is is looked up once for the whole list, and
+    how far its owner got once for each invite the codes are of (`study_progress`), however
+    many codes."""
     if invite_id is not None:
         with reading(session):
             if session.get(Invite, invite_id) is None:
                 raise NotFound(f"invite {invite_id} does not exist")
     owners = code_owners(session)
+    given = [(code, code_owner(owners, code)) for code in (c.strip() for c in codes) if code]
+    studies = {owner.invite.id: owner.invite for _, owner in given
+               if owner is not None and invite_id in (None, owner.invite.id)}
+    progress_of = {study: study_progress(session, invite=invite)
+                   for study, invite in studies.items()}
     out = []
-    for code in (c.strip() for c in codes):
-        if not code:
-            continue
-        owner = code_owner(owners, code)
+    for code, owner in given:
         if owner is None:
             out.append(CodeCheck(code, False, None, None, None, "unknown"))
             continue
-        if invite_id not in (None, owner.invite.id):
-            out.append(CodeCheck(code, False, owner.participant, owner.labeller_id,
-                                 owner.invite.id, "other_study"))
-            continue
-        found = verified(session, owner)
-        out.append(CodeCheck(code, found.earned, found.participant, found.labeller_id,
-                             found.invite_id, found.why if found.complete else "not_complete"))
+        invite = owner.invite
+        # None: a code of another invite than the one checked for
+        progress = progress_of[invite.id][owner.labeller_id] if invite.id in studies else None
+        why = ("other_study" if progress is None
+               else progress.why if progress.complete else "not_complete")
+        out.append(CodeCheck(
+            code, progress is not None and progress.earned, owner.participant,
+            owner.labeller_id, invite.id, why, labeller=owner.labeller, run_id=invite.run_id,
+            counted=None if progress is None else progress.counted,
+            target_answers=None if progress is None else invite.target_answers))
     return out

@@ -427,7 +427,8 @@ def _invite(args: argparse.Namespace) -> int:
 WHY = {"target": "complete: reached the target", "runs_over": "complete: the run ended",
        "paused": "complete: paused by check pairs",
        "nothing_left": "complete: nothing left to label",
-       "entry_failed": "let go: failed the entry test, not to be paid", None: "not complete yet"}
+       "entry_failed": "let go: failed the entry test, not to be paid", None: "not complete yet",
+       "not_complete": "not complete yet"}
 
 
 def _verify(session: Session, given: list[str]) -> int:
@@ -442,16 +443,11 @@ def _verify(session: Session, given: list[str]) -> int:
             print(f"{check.code!r} is no participant's completion code (check it was copied "
                   "whole)", file=sys.stderr)
             continue
-        from crowdstudy.completion import verify_code
-
-        verified = verify_code(session, check.code)
-        assert verified is not None
-        target = "" if verified.target_answers is None else f" of {verified.target_answers}"
-        print(f"{'valid' if check.valid else 'not earned'}: {verified.participant or '-'} "
-              f"(labeller {verified.labeller!r}, id {verified.labeller_id}), invite "
-              f"{verified.invite_id}, run "
-              f"{verified.run_id if verified.run_id is not None else 'all'}: "
-              f"{verified.counted}{target} decisive answers; {WHY[verified.why]}")
+        target = "" if check.target_answers is None else f" of {check.target_answers}"
+        print(f"{'valid' if check.valid else 'not earned'}: {check.participant or '-'} "
+              f"(labeller {check.labeller!r}, id {check.labeller_id}), invite "
+              f"{check.invite_id}, run {check.run_id if check.run_id is not None else 'all'}: "
+              f"{check.counted}{target} decisive answers; {WHY[check.why]}")
     return 0 if checked and all(check.valid for check in checked) else 1
 
 

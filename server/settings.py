@@ -12,7 +12,7 @@ from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic_core import ErrorDetails
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from labelqueue import DEFAULT_URL, LEASE_SECONDS, read_url_file
+from labelqueue import LEASE_SECONDS, read_url_file, sqlite_url
 
 
 class Settings(BaseSettings):
@@ -20,9 +20,10 @@ class Settings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="SEPOA_", frozen=True)
 
-    database_url: str = DEFAULT_URL
-    """the queue database (SQLite file by default, or a `postgresql+psycopg://` URL); unset,
-    the one `database_url_file` holds when that is set"""
+    database_url: str = ""
+    """the queue database (a `sqlite:///` or `postgresql+psycopg://` URL); unset (or empty),
+    the one `database_url_file` holds when that is set, else the SQLite file
+    `<data_dir>/queue.db`"""
     database_url_file: str | None = None
     """a file holding the database URL, read as every `sepoa` command reads it
     (`labelqueue.read_url_file`: mode 600, its first line that is no `#` comment), so that a
@@ -100,14 +101,16 @@ class Settings(BaseSettings):
         return path if self.public_url is None else self.public_url + path
 
     @model_validator(mode="after")
-    def _url_from_file(self) -> Settings:
-        """`database_url` from `database_url_file` when only the file is given (as
-        `labelqueue.database_url` orders them); ValueError naming the file and what is wrong
-        with it (unreadable, readable by others, no URL in it)."""
-        given = "database_url" in self.model_fields_set and self.database_url
-        if self.database_url_file and not given:
+    def _default_database_url(self) -> Settings:
+        """`database_url` when it is not given: from `database_url_file` when that is, else
+        the SQLite file in `data_dir` (as `labelqueue.database_url` and every `sepoa` command
+        order them); ValueError naming the file and what is wrong with it (unreadable, readable
+        by others, no URL in it)."""
+        if not self.database_url:
+            url = (read_url_file(self.database_url_file) if self.database_url_file
+                   else sqlite_url(self.data_dir))
             # frozen: set through the object's dict, once, while validating.
-            object.__setattr__(self, "database_url", read_url_file(self.database_url_file))
+            object.__setattr__(self, "database_url", url)
         return self
 
     @model_validator(mode="after")

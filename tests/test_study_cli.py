@@ -14,8 +14,10 @@ import sys
 import time
 from datetime import timedelta
 from pathlib import Path
+from typing import Any
 
 import pytest
+from sqlalchemy import Engine, event
 
 from crowdstudy.completion import labeller_progress
 from crowdstudy.invites import create_invite, join_invite
@@ -63,9 +65,9 @@ def test_invite_verify_says_whose_code_it_is(tmp_path: Path, capsys: pytest.Capt
     assert code is not None
 
     assert main(["invite", "verify", code.lower(), "--data-dir", str(data)]) == 0
-    out = capsys.readouterr().out
-    assert out == (f"valid: P-1 (labeller 'P-1', id {joined.id}), invite {invite.id}, run "
-                   f"{run.id}: 1 of 1 decisive answers; complete: reached the target\n")
+    line = (f"valid: P-1 (labeller 'P-1', id {joined.id}), invite {invite.id}, run {run.id}: 1 "
+            "of 1 decisive answers; complete: reached the target")
+    assert capsys.readouterr().out == line + "\n"
     assert main(["invite", "--data-dir", str(data), "verify", "PILOT-AAAA-BBBB-CCCC"]) == 1
     assert "is no participant's completion code" in capsys.readouterr().err
     assert main(["invite", "verify", code, "--data-dir", str(tmp_path / "none")]) == 2
@@ -81,6 +83,15 @@ def test_invite_verify_says_whose_code_it_is(tmp_path: Path, capsys: pytest.Capt
     assert main(["invite", "verify", "-", "--data-dir", str(data)]) == 1
     captured = capsys.readouterr()
     assert captured.out.startswith("valid: P-1") and "no participant's" in captured.err
+    # However many codes, as many statements: whose each is and how far they got, read once.
+    counted = []
+    for given in (code, f"{code}\n" * 5):
+        monkeypatch.setattr("sys.stdin", io.StringIO(given))
+        status, statements = run_counting(["invite", "verify", "-", "--data-dir", str(data)])
+        assert status == 0
+        counted.append(statements)
+    assert capsys.readouterr().out.split("\n") == [line] * 6 + [""]
+    assert counted[0] == counted[1]
 
     # The list to pay from.
     assert main(["invite", "participants", str(invite.id), "--csv", "--data-dir",
@@ -90,6 +101,20 @@ def test_invite_verify_says_whose_code_it_is(tmp_path: Path, capsys: pytest.Capt
             for r in rows] == [("P-1", "1", "True", code)]
     assert main(["invite", "participants", "999", "--data-dir", str(data)]) == 2
     assert "invite 999 does not exist" in capsys.readouterr().err
+
+
+def run_counting(argv: list[str]) -> tuple[int, int]:
+    """`sepoa argv`'s exit status and the SQL statements it ran, on every engine it made."""
+    seen: list[str] = []
+
+    def count(conn: Any, cursor: Any, statement: str, *_: Any) -> None:
+        seen.append(statement)
+
+    event.listen(Engine, "before_cursor_execute", count)
+    try:
+        return main(argv), len(seen)
+    finally:
+        event.remove(Engine, "before_cursor_execute", count)
 
 
 def test_a_bad_public_url_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -11,7 +11,7 @@ from typing import Annotated
 from fastapi import APIRouter, Path, Query
 
 from labelqueue import read_run
-from labelqueue.flags import FlagSummary, flag_summary
+from runviews.flags import FlagSummary, flag_summary
 from runviews.label_browser import (
     MAX_PAGE,
     LabelDetail,

@@ -17,7 +17,7 @@ from labelqueue import (
     submit_label,
     withdraw_label,
 )
-from labelqueue.flags import flag_summary
+from runviews.flags import flag_summary
 from runvocab.answers import DECISIVE, FLAG_NOTE_MAX, Flag
 
 

@@ -1,11 +1,13 @@
 """The participants list of a study (SQLite and PostgreSQL): each participant's answers, state
 and code as a study with people in every state shows them, kept completions included; made
-with as many statements for six participants as for nine."""
+with as many statements for six participants as for nine. Their codes checked at once, with as
+many statements for two codes as for a dozen."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from datetime import timedelta
 from typing import Any
 
@@ -14,8 +16,9 @@ from sqlalchemy import Engine, event, select, update
 from sqlalchemy.orm import Session
 
 from crowdstudy.invites import create_invite, join_invite
-from crowdstudy.participants import participants
+from crowdstudy.participants import participants, verify_codes
 from labelqueue import (
+    Invite,
     Invitee,
     LabellerPause,
     Run,
@@ -75,9 +78,24 @@ def statements(engine: Engine) -> Iterator[list[str]]:
         event.remove(engine, "before_cursor_execute", count)
 
 
-def test_the_list_shows_each_participants_state_and_costs_no_statement_per_participant(
-    session: Session, engine: Engine
-) -> None:
+@dataclass(frozen=True)
+class Study:
+    """Two invites whose participants are in every state (`mixed_study`)."""
+
+    one: Invite
+    """on a run with a practice pair as its entry test: ann to fay"""
+    every: Invite
+    """on all runs: gus, hal and ivy"""
+    practised: int
+    """the first invite's run"""
+    people: dict[str, int]
+    """each participant's labeller id"""
+
+
+def mixed_study(session: Session) -> Study:
+    """ann reaches the target, bob fails the entry test, cat does nothing, check pairs pause
+    dan, eve is deactivated and fay waited with nothing to label; on all runs, gus answers
+    short of the target, hal is paused on both runs and ivy does nothing."""
     practised = human_run(session, "w1", practice_pairs=1)
     plain = human_run(session, "w2")
     push_queries(session, run_id=practised, queries=[query_spec(
@@ -112,7 +130,14 @@ def test_the_list_shows_each_participants_state_and_costs_no_statement_per_parti
     with session.begin():
         session.execute(update(Invitee).where(Invitee.labeller_id == people["fay"])
                         .values(nothing_left_at=utcnow()))
+    return Study(one, every, practised, people)
 
+
+def test_the_list_shows_each_participants_state_and_costs_no_statement_per_participant(
+    session: Session, engine: Engine
+) -> None:
+    study = mixed_study(session)
+    one, every, practised = study.one, study.every, study.practised
     assert table(session, one.id) == [
         ("ann", 2, 0, 0, 0, 1, False, 2, True, "target", True, "passed", 1, True),
         ("bob", 0, 0, 0, 0, 1, False, 0, True, "entry_failed", False, "failed", 0, True),
@@ -149,3 +174,42 @@ def test_the_list_shows_each_participants_state_and_costs_no_statement_per_parti
     with statements(engine) as nine:
         assert len(participants(session, invite_id=one.id)) == 9
     assert len(nine) == len(six)
+
+
+def test_many_codes_are_checked_in_every_state_with_no_statement_per_code(
+    session: Session, engine: Engine
+) -> None:
+    study = mixed_study(session)
+    code = {row.participant: row.completion_code for invite in (study.one, study.every)
+            for row in participants(session, invite_id=invite.id)}  # completions kept
+    names = ("ann", "bob", "cat", "dan", "eve", "fay", "gus", "hal", "ivy")
+    # Typed as people type them: lower case, without the study code, with blank lines.
+    given = [code[name] for name in names] + [
+        "", code["ann"].lower(), code["dan"].removeprefix("PAY-"), "PAY-0000-0000-0000"]
+
+    def checked(invite_id: int | None = None) -> list[tuple[Any, ...]]:
+        return [(c.code, c.participant, c.labeller_id, c.invite_id, c.valid, c.why)
+                for c in verify_codes(session, given, invite_id=invite_id)]
+
+    def row(name: str, valid: bool, why: str, typed: str | None = None) -> tuple[Any, ...]:
+        invite = study.one if name in names[:6] else study.every
+        return (typed or code[name], name, study.people[name], invite.id, valid, why)
+
+    unknown = ("PAY-0000-0000-0000", None, None, None, False, "unknown")
+    assert checked() == [
+        row("ann", True, "target"), row("bob", False, "entry_failed"),
+        row("cat", False, "not_complete"), row("dan", True, "paused"),
+        row("eve", False, "not_complete"), row("fay", True, "nothing_left"),
+        row("gus", False, "not_complete"), row("hal", True, "paused"),
+        row("ivy", False, "not_complete"), row("ann", True, "target", code["ann"].lower()),
+        row("dan", True, "paused", code["dan"].removeprefix("PAY-")), unknown]
+    other = [row(name, False, "other_study") for name in ("gus", "hal", "ivy")]
+    assert checked(study.one.id)[6:9] == other
+    assert checked(study.one.id)[:6] == checked()[:6]
+
+    # Two codes, one of each invite, read as many statements as the whole list.
+    with statements(engine) as two:
+        verify_codes(session, [code["ann"], code["gus"]])
+    with statements(engine) as all_of_them:
+        assert len(verify_codes(session, given)) == len(given) - 1
+    assert len(all_of_them) == len(two)

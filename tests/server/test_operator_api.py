@@ -371,6 +371,8 @@ def test_a_new_token_for_a_labeller_invalidates_the_old_one(client: TestClient) 
 
 
 def test_settings_come_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("SEPOA_DATABASE_URL", raising=False)
+    monkeypatch.delenv("SEPOA_DATABASE_URL_FILE", raising=False)
     monkeypatch.setenv("SEPOA_DATA_DIR", "/srv/sepoa")
     monkeypatch.setenv("SEPOA_LEASE_SECONDS", "30")
     get_settings.cache_clear()
@@ -378,9 +380,48 @@ def test_settings_come_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> 
         settings = get_settings()
         assert get_settings() is settings
         assert str(settings.clips_dir) == "/srv/sepoa/clips" and settings.lease_seconds == 30
-        assert settings.database_url == "sqlite:///data/queue.db"
+        assert settings.database_url == "sqlite:////srv/sepoa/queue.db"
     finally:
         get_settings.cache_clear()
+
+
+def assert_served_alone_into(folder: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A server made from the environment, as uvicorn makes it, stores a labeller it is asked
+    to create in the SQLite queue in `folder`."""
+    monkeypatch.setenv("SEPOA_OPERATOR_TOKEN", OPERATOR_TOKEN)
+    get_settings.cache_clear()
+    try:
+        with TestClient(create_app()) as client:
+            new_labeller(client, "ann")
+    finally:
+        get_settings.cache_clear()
+    engine = make_engine(sqlite_url(folder))
+    try:
+        with session_factory(engine)() as session:
+            assert find_labeller(session, name="ann") is not None
+    finally:
+        engine.dispose()
+
+
+def test_a_server_started_alone_keeps_its_queue_in_the_data_dir(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`uvicorn server.app:app` with SEPOA_DATA_DIR alone opens `<data dir>/queue.db`, as
+    `sepoa up` does (it opened data/queue.db under the working folder); a URL given still
+    wins, and so does a URL file."""
+    monkeypatch.chdir(tmp_path)  # where data/queue.db would be made
+    data = tmp_path / "study"
+    monkeypatch.delenv("SEPOA_DATABASE_URL", raising=False)
+    monkeypatch.delenv("SEPOA_DATABASE_URL_FILE", raising=False)
+    monkeypatch.setenv("SEPOA_DATA_DIR", str(data))
+    assert_served_alone_into(data, monkeypatch)
+    assert not (tmp_path / "data").exists()
+    given = sqlite_url(tmp_path / "elsewhere")
+    assert Settings(data_dir=data, database_url=given).database_url == given
+    url_file = tmp_path / "queue-url"
+    url_file.write_text(f"{given}\n")
+    url_file.chmod(0o600)
+    assert Settings(data_dir=data, database_url_file=str(url_file)).database_url == given
 
 
 def test_a_server_started_alone_opens_the_database_the_url_file_names(
@@ -394,20 +435,13 @@ def test_a_server_started_alone_opens_the_database_the_url_file_names(
     url_file.chmod(0o600)
     monkeypatch.delenv("SEPOA_DATABASE_URL", raising=False)
     monkeypatch.setenv("SEPOA_DATABASE_URL_FILE", str(url_file))
-    monkeypatch.setenv("SEPOA_OPERATOR_TOKEN", OPERATOR_TOKEN)
-    get_settings.cache_clear()
+    assert_served_alone_into(tmp_path, monkeypatch)
+    assert not (tmp_path / "data" / "queue.db").exists()
+    empty, missing = tmp_path / "empty", tmp_path / "missing"
+    empty.write_text("# nothing yet\n")
+    empty.chmod(0o600)
+    url_file.chmod(0o644)  # readable by others: refused, as libpq refuses such a file
     try:
-        with TestClient(create_app()) as client:
-            new_labeller(client, "ann")
-        engine = make_engine(sqlite_url(tmp_path))
-        with session_factory(engine)() as session:
-            assert find_labeller(session, name="ann") is not None
-        engine.dispose()
-        assert not (tmp_path / "data" / "queue.db").exists()
-        empty, missing = tmp_path / "empty", tmp_path / "missing"
-        empty.write_text("# nothing yet\n")
-        empty.chmod(0o600)
-        url_file.chmod(0o644)  # readable by others: refused, as libpq refuses such a file
         for path, words in ((url_file, "chmod 600"), (empty, "holds no URL"),
                             (missing, "No such file")):
             monkeypatch.setenv("SEPOA_DATABASE_URL_FILE", str(path))

@@ -1,7 +1,7 @@
 """Flagged pairs: answers whose labeller marked the pair as one nobody can judge (clip broken,
 agent not visible, other; `runvocab.answers.Flag`), with an optional note. A flag comes with a
-skip (`labels.check_flag`), so the trainer never trains on it; the run page counts a run's
-flags and lists the latest, and the export has them per row (`flag`, `flag_note`)."""
+skip (`labelqueue.labels.check_flag`), so the trainer never trains on it; the run page counts a
+run's flags and lists the latest, and the export has them per row (`flag`, `flag_note`)."""
 
 from __future__ import annotations
 
