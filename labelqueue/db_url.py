@@ -43,6 +43,10 @@ def check_url(url: str) -> str:
             f"{mask_url(url)!r} needs the {parsed.get_driver_name()} driver, which is not "
             f"installed; use {VALID_URLS}{hint}"
         ) from None
+    folder = Path(parsed.database or "").parent  # where a SQLite file would be made
+    file = next((p for p in (folder, *folder.parents) if p.exists() and not p.is_dir()), None)
+    if parsed.get_backend_name() == "sqlite" and file is not None:
+        raise ValueError(f"{mask_url(url)!r}: {file} is a file, not a folder to hold it")
     return url
 
 

@@ -213,9 +213,9 @@ def _status(spec, results: pathlib.Path, url: str | None) -> int:  # type: ignor
     from experiments.progress import duration_text
     from experiments.queue import status_table
     from experiments.stop_rule import stop_rule
-    from labelqueue import make_engine, mask_url, schema_revisions, session_factory
+    from labelqueue import check_url, make_engine, mask_url, schema_revisions, session_factory
 
-    url = url or default_database(results)
+    url = check_url(url or default_database(results))
     parsed = make_url(url)
     if parsed.get_backend_name() == "sqlite" and not os.path.exists(parsed.database or ""):
         return fail(f"no queue database at {parsed.database}: nothing enqueued yet "

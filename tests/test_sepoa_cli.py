@@ -277,3 +277,20 @@ def test_every_command_on_the_queue_database_reads_the_url_file_in_the_environme
     assert main(["labeller", "list", "--database-url", "sqlite:///x.db",
                  "--database-url-file", str(url_file)]) == 2
     assert "not both" in capsys.readouterr().err
+
+
+def test_a_queue_database_under_a_file_is_refused_in_one_line(tmp_path, capsys):
+    """A SQLite queue whose folder would be a file (--data-dir or --database-url a path through
+    a file) is named in one line; it was a FileExistsError or NotADirectoryError traceback."""
+    notes = tmp_path / "notes.txt"
+    notes.write_text("kept\n")
+    for argv in (["labeller", "list", "--data-dir", str(notes)],
+                 ["labeller", "create", "alice", "--data-dir", str(notes / "sub")],
+                 ["export", "--database-url", f"sqlite:///{notes / 'queue.db'}"],
+                 ["experiment", "status", "specs/small/dmc-curves.toml",
+                  "--results", str(notes)]):
+        assert main(argv) == 2, argv
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and f"{notes} is a file, not a folder" in lines[0], (argv, lines)
+    assert notes.read_text() == "kept\n"
+
