@@ -83,8 +83,9 @@ def read_url_file(path: str | Path) -> str:
     try:
         mode = Path(path).stat().st_mode
         lines = Path(path).read_text().splitlines()
-    except OSError as err:
-        raise ValueError(f"database URL file {path}: {err.strerror or err}") from None
+    except (OSError, UnicodeDecodeError) as err:
+        why = "not UTF-8 text" if isinstance(err, UnicodeDecodeError) else err.strerror or err
+        raise ValueError(f"database URL file {path}: {why}; give a text file of the URL") from None
     if mode & 0o077:
         raise ValueError(f"database URL file {path} may be read by other users (mode "
                          f"{mode & 0o777:o}); chmod 600 {path}")

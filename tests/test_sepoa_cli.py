@@ -294,3 +294,18 @@ def test_a_queue_database_under_a_file_is_refused_in_one_line(tmp_path, capsys):
         assert len(lines) == 1 and f"{notes} is a file, not a folder" in lines[0], (argv, lines)
     assert notes.read_text() == "kept\n"
 
+
+def test_files_that_are_not_text_are_named_in_one_line(tmp_path, capsys):
+    """A spec or database URL file that is not UTF-8 is named with what it should be; the
+    line was Python's "'utf-8' codec can't decode byte 0xff in position 0", naming neither."""
+    binary = tmp_path / "spec.toml"
+    binary.write_bytes(b"\xff\xfe\x00name")
+    binary.chmod(0o600)
+    for argv, words in (
+            (["experiment", "status", str(binary)], ("spec", "not UTF-8 text")),
+            (["labeller", "list", "--database-url-file", str(binary)],
+             ("database URL file", "not UTF-8 text"))):
+        assert main(argv) == 2, argv
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and str(binary) in lines[0], (argv, lines)
+        assert all(word in lines[0] for word in words), (argv, lines)
