@@ -33,7 +33,13 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
-from sepoa.parser import Command, DefaultsHelpFormatter, database_url_file_argument, fail
+from sepoa.parser import (
+    Command,
+    DefaultsHelpFormatter,
+    database_url_file_argument,
+    fail,
+    file_in_the_way,
+)
 from sepoa.supervisor import Supervisor
 
 STOP_GRACE_S = 120.0
@@ -269,6 +275,11 @@ def _pack(args: argparse.Namespace, results: pathlib.Path, url: str | None) -> i
 
     if not results.is_dir():
         return fail(f"--results {results}: no such folder")
+    if os.path.isdir(args.out):
+        return fail(f"--out {args.out} is a folder; give the archive's file name, such as "
+                    "grid.tar.gz")
+    if (file := file_in_the_way(os.path.dirname(os.path.abspath(args.out)))) is not None:
+        return fail(f"--out {args.out}: {file} is a file, not a folder")
     spec = load_spec(args.spec, check=False)
     packed = pack(spec, results, pathlib.Path(args.out), unfinished_only=args.unfinished_only,
                   database_url=url)
@@ -288,6 +299,8 @@ def _keep(args: argparse.Namespace, results: pathlib.Path) -> int:
     from experiments.keep import keep
     from experiments.spec import load_spec
 
+    if (file := file_in_the_way(args.out)) is not None:
+        return fail(f"--out {args.out}: {file} is a file, not a folder")
     spec = load_spec(args.spec, check=False)
     kept = keep(spec, results, pathlib.Path(args.out))
     say(f"{args.out}: {kept.runs} finished run(s) of {spec.name} and its grid files, "
