@@ -405,6 +405,10 @@ def _run_calibration_report(args: argparse.Namespace) -> int:
 def _run_report(args: argparse.Namespace) -> int:
     if (args.folder is None) == (args.calibration is None):
         return fail("give a results folder, or --calibration EXPORT_FILE (not both)")
+    if args.out is not None and (file := file_in_the_way(args.out)) is not None:
+        where = "" if file == os.path.abspath(args.out) else f": {file}"
+        return fail(f"--out {args.out}{where} is a file, not a folder: give a folder for the "
+                    "report")
     if args.calibration is not None:
         return _run_calibration_report(args)
     if args.bins is not None:
@@ -412,8 +416,6 @@ def _run_report(args: argparse.Namespace) -> int:
     from experiments.report import write_report
     from experiments.spec import SpecError
 
-    if args.out is not None and os.path.exists(args.out) and not os.path.isdir(args.out):
-        return fail(f"--out {args.out} is a file: give a folder for the report")
     try:
         files = write_report(args.folder, args.out)
     except SpecError as err:

@@ -309,3 +309,21 @@ def test_files_that_are_not_text_are_named_in_one_line(tmp_path, capsys):
         lines = capsys.readouterr().err.strip().splitlines()
         assert len(lines) == 1 and str(binary) in lines[0], (argv, lines)
         assert all(word in lines[0] for word in words), (argv, lines)
+
+
+def test_a_report_out_under_a_file_is_refused_in_one_line(tmp_path, capsys):
+    """`report --calibration E --out notes.txt` said `File exists`, and an --out under a file
+    `Not a directory`; both kinds of report now name the file in the way first."""
+    notes, export = tmp_path / "notes.txt", tmp_path / "labels.csv"
+    notes.write_text("kept\n")
+    data = ["--data-dir", str(tmp_path / "data")]
+    assert main(["labeller", "list", *data]) == 0
+    assert main(["export", *data, "--format", "csv", "--out", str(export)]) == 0
+    capsys.readouterr()
+    for argv in (["--calibration", str(export), "--out", str(notes)],
+                 ["--calibration", str(export), "--out", str(notes / "report")],
+                 [str(tmp_path / "results"), "--out", str(notes / "report")]):
+        assert main(["report", *argv]) == 2, argv
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and f"{notes} is a file, not a folder" in lines[0], (argv, lines)
+    assert notes.read_text() == "kept\n"
