@@ -228,6 +228,9 @@ def load_spec(path: str | Path, check: bool = True) -> Spec:
         data = tomllib.loads(text)
     except OSError as err:
         raise SpecError(f"{path}: cannot read the spec: {err.strerror}") from err
+    except UnicodeDecodeError:
+        raise SpecError(f"{path}: cannot read the spec: not UTF-8 text (a spec is a TOML "
+                        "file)") from None
     except tomllib.TOMLDecodeError as err:
         raise SpecError(f"{path}: not valid TOML: {err}") from err
     return parse_spec(data, str(path), source=text, check=check)

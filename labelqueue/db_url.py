@@ -43,6 +43,10 @@ def check_url(url: str) -> str:
             f"{mask_url(url)!r} needs the {parsed.get_driver_name()} driver, which is not "
             f"installed; use {VALID_URLS}{hint}"
         ) from None
+    folder = Path(parsed.database or "").parent  # where a SQLite file would be made
+    file = next((p for p in (folder, *folder.parents) if p.exists() and not p.is_dir()), None)
+    if parsed.get_backend_name() == "sqlite" and file is not None:
+        raise ValueError(f"{mask_url(url)!r}: {file} is a file, not a folder to hold it")
     return url
 
 
@@ -79,8 +83,9 @@ def read_url_file(path: str | Path) -> str:
     try:
         mode = Path(path).stat().st_mode
         lines = Path(path).read_text().splitlines()
-    except OSError as err:
-        raise ValueError(f"database URL file {path}: {err.strerror or err}") from None
+    except (OSError, UnicodeDecodeError) as err:
+        why = "not UTF-8 text" if isinstance(err, UnicodeDecodeError) else err.strerror or err
+        raise ValueError(f"database URL file {path}: {why}; give a text file of the URL") from None
     if mode & 0o077:
         raise ValueError(f"database URL file {path} may be read by other users (mode "
                          f"{mode & 0o777:o}); chmod 600 {path}")

@@ -33,7 +33,13 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
-from sepoa.parser import Command, DefaultsHelpFormatter, database_url_file_argument, fail
+from sepoa.parser import (
+    Command,
+    DefaultsHelpFormatter,
+    database_url_file_argument,
+    fail,
+    file_in_the_way,
+)
 from sepoa.supervisor import Supervisor
 
 STOP_GRACE_S = 120.0
@@ -213,9 +219,9 @@ def _status(spec, results: pathlib.Path, url: str | None) -> int:  # type: ignor
     from experiments.progress import duration_text
     from experiments.queue import status_table
     from experiments.stop_rule import stop_rule
-    from labelqueue import make_engine, mask_url, schema_revisions, session_factory
+    from labelqueue import check_url, make_engine, mask_url, schema_revisions, session_factory
 
-    url = url or default_database(results)
+    url = check_url(url or default_database(results))
     parsed = make_url(url)
     if parsed.get_backend_name() == "sqlite" and not os.path.exists(parsed.database or ""):
         return fail(f"no queue database at {parsed.database}: nothing enqueued yet "
@@ -269,6 +275,11 @@ def _pack(args: argparse.Namespace, results: pathlib.Path, url: str | None) -> i
 
     if not results.is_dir():
         return fail(f"--results {results}: no such folder")
+    if os.path.isdir(args.out):
+        return fail(f"--out {args.out} is a folder; give the archive's file name, such as "
+                    "grid.tar.gz")
+    if (file := file_in_the_way(os.path.dirname(os.path.abspath(args.out)))) is not None:
+        return fail(f"--out {args.out}: {file} is a file, not a folder")
     spec = load_spec(args.spec, check=False)
     packed = pack(spec, results, pathlib.Path(args.out), unfinished_only=args.unfinished_only,
                   database_url=url)
@@ -288,6 +299,8 @@ def _keep(args: argparse.Namespace, results: pathlib.Path) -> int:
     from experiments.keep import keep
     from experiments.spec import load_spec
 
+    if (file := file_in_the_way(args.out)) is not None:
+        return fail(f"--out {args.out}: {file} is a file, not a folder")
     spec = load_spec(args.spec, check=False)
     kept = keep(spec, results, pathlib.Path(args.out))
     say(f"{args.out}: {kept.runs} finished run(s) of {spec.name} and its grid files, "
@@ -392,6 +405,10 @@ def _run_calibration_report(args: argparse.Namespace) -> int:
 def _run_report(args: argparse.Namespace) -> int:
     if (args.folder is None) == (args.calibration is None):
         return fail("give a results folder, or --calibration EXPORT_FILE (not both)")
+    if args.out is not None and (file := file_in_the_way(args.out)) is not None:
+        where = "" if file == os.path.abspath(args.out) else f": {file}"
+        return fail(f"--out {args.out}{where} is a file, not a folder: give a folder for the "
+                    "report")
     if args.calibration is not None:
         return _run_calibration_report(args)
     if args.bins is not None:
@@ -399,8 +416,6 @@ def _run_report(args: argparse.Namespace) -> int:
     from experiments.report import write_report
     from experiments.spec import SpecError
 
-    if args.out is not None and os.path.exists(args.out) and not os.path.isdir(args.out):
-        return fail(f"--out {args.out} is a file: give a folder for the report")
     try:
         files = write_report(args.folder, args.out)
     except SpecError as err:

@@ -112,6 +112,15 @@ PORT = integer("a TCP port", 1, PORT_MAX)
 RUN_ID = integer("a run id", 1, ID_MAX)
 
 
+def file_in_the_way(path: str | os.PathLike[str]) -> str | None:
+    """The file standing at `path` or at a folder above it, where a folder is to be made;
+    None when there is none."""
+    here = os.path.abspath(path)
+    while not os.path.exists(here) and os.path.dirname(here) != here:
+        here = os.path.dirname(here)
+    return None if os.path.isdir(here) else here
+
+
 def fail(message: str) -> int:
     """Print `error: message` on stderr; the exit status of a user's mistake."""
     print(f"error: {message}", file=sys.stderr)

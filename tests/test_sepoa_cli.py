@@ -277,3 +277,53 @@ def test_every_command_on_the_queue_database_reads_the_url_file_in_the_environme
     assert main(["labeller", "list", "--database-url", "sqlite:///x.db",
                  "--database-url-file", str(url_file)]) == 2
     assert "not both" in capsys.readouterr().err
+
+
+def test_a_queue_database_under_a_file_is_refused_in_one_line(tmp_path, capsys):
+    """A SQLite queue whose folder would be a file (--data-dir or --database-url a path through
+    a file) is named in one line; it was a FileExistsError or NotADirectoryError traceback."""
+    notes = tmp_path / "notes.txt"
+    notes.write_text("kept\n")
+    for argv in (["labeller", "list", "--data-dir", str(notes)],
+                 ["labeller", "create", "alice", "--data-dir", str(notes / "sub")],
+                 ["export", "--database-url", f"sqlite:///{notes / 'queue.db'}"],
+                 ["experiment", "status", "specs/small/dmc-curves.toml",
+                  "--results", str(notes)]):
+        assert main(argv) == 2, argv
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and f"{notes} is a file, not a folder" in lines[0], (argv, lines)
+    assert notes.read_text() == "kept\n"
+
+
+def test_files_that_are_not_text_are_named_in_one_line(tmp_path, capsys):
+    """A spec or database URL file that is not UTF-8 is named with what it should be; the
+    line was Python's "'utf-8' codec can't decode byte 0xff in position 0", naming neither."""
+    binary = tmp_path / "spec.toml"
+    binary.write_bytes(b"\xff\xfe\x00name")
+    binary.chmod(0o600)
+    for argv, words in (
+            (["experiment", "status", str(binary)], ("spec", "not UTF-8 text")),
+            (["labeller", "list", "--database-url-file", str(binary)],
+             ("database URL file", "not UTF-8 text"))):
+        assert main(argv) == 2, argv
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and str(binary) in lines[0], (argv, lines)
+        assert all(word in lines[0] for word in words), (argv, lines)
+
+
+def test_a_report_out_under_a_file_is_refused_in_one_line(tmp_path, capsys):
+    """`report --calibration E --out notes.txt` said `File exists`, and an --out under a file
+    `Not a directory`; both kinds of report now name the file in the way first."""
+    notes, export = tmp_path / "notes.txt", tmp_path / "labels.csv"
+    notes.write_text("kept\n")
+    data = ["--data-dir", str(tmp_path / "data")]
+    assert main(["labeller", "list", *data]) == 0
+    assert main(["export", *data, "--format", "csv", "--out", str(export)]) == 0
+    capsys.readouterr()
+    for argv in (["--calibration", str(export), "--out", str(notes)],
+                 ["--calibration", str(export), "--out", str(notes / "report")],
+                 [str(tmp_path / "results"), "--out", str(notes / "report")]):
+        assert main(["report", *argv]) == 2, argv
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and f"{notes} is a file, not a folder" in lines[0], (argv, lines)
+    assert notes.read_text() == "kept\n"

@@ -247,3 +247,28 @@ def test_pack_without_a_queue_says_which_one_it_needs(
     assert len(err.splitlines()) == 1
     assert f"no queue database at {results / 'queue.db'}" in err and "--database-url" in err
     assert not archive.exists()
+
+
+def test_pack_and_keep_refuse_an_out_path_in_the_way_in_one_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """An --out that is a folder (pack) or lies under a file: pack said
+    `.archives.<hex>.partial: Is a directory` or `notes.txt: File exists`, keep the latter."""
+    spec = tmp_path / "spec.toml"
+    spec.write_text(SPEC)
+    results = tmp_path / "results"
+    assert main(["experiment", "run", str(spec), "--results", str(results), "--no-workers"]) == 0
+    notes, folder = tmp_path / "notes.txt", tmp_path / "archives"
+    notes.write_text("kept\n")
+    folder.mkdir()
+    capsys.readouterr()
+    for action, out, words in (
+            ("pack", folder, f"--out {folder} is a folder; give the archive's file name"),
+            ("pack", notes / "grid.tar.gz", f"{notes} is a file, not a folder"),
+            ("keep", notes, f"{notes} is a file, not a folder"),
+            ("keep", notes / "kept", f"{notes} is a file, not a folder")):
+        assert main(["experiment", action, str(spec), "--results", str(results),
+                     "--out", str(out)]) == 2, (action, out)
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and words in lines[0], (action, out, lines)
+    assert notes.read_text() == "kept\n" and list(folder.iterdir()) == []
+    assert [p.name for p in tmp_path.iterdir() if p.name.endswith(".partial")] == []
