@@ -91,7 +91,7 @@ def test_every_mistake_is_one_line_and_exit_2(
         (["--calibration", str(notes)], "not a label export"),
         (["--calibration", str(tmp_path)], "is a folder"),
         (["--calibration", str(good), "--bins", "0.1,1"], "first edge must be 0"),
-        (["--calibration", str(good), "--out", str(blocked / "sub")], "cannot write"),
+        (["--calibration", str(good), "--out", str(blocked / "sub")], "is a file, not a folder"),
         ([], "give a results folder, or --calibration EXPORT_FILE"),
         (["results/x", "--calibration", str(good)], "not both"),
         (["results/x", "--bins", "0,1"], "--bins goes with --calibration"),
