@@ -1,7 +1,8 @@
 """Pairs an external client pushes (`push_pairs`): checked against the clips it uploaded and
 the run's budget, stored as the run's queries with their hidden metadata beside them, under an
 idempotency key unique in the run; withdrawn while nobody has answered them (`withdraw_pair`);
-and which uploaded clips a run's pairs use (`clip_use`)."""
+and which uploaded clips a run's pairs use (`clip_use`), or used only in withdrawn pairs
+(`withdrawn_clips`)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import func, insert, select, update
+from sqlalchemy import func, insert, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -98,19 +99,41 @@ class ClipUse:
         return self.status not in (RunStatus.QUEUED, RunStatus.RUNNING, RunStatus.PAUSED)
 
 
+_SHOWN = QUERIES.c.status != QueryStatus.CANCELLED
+"""a pair that is not withdrawn (only a withdrawal cancels an external run's query)"""
+
+
 def clip_use(session: Session) -> dict[int, ClipUse]:
-    """Per external run: its status and the ids of the uploaded clips its pairs name."""
+    """Per external run: its status and the ids of the uploaded clips its pairs name (its
+    withdrawn pairs name none)."""
     with reading(session):
         statuses = dict(session.execute(select(Run.id, Run.status).where(Run.algo == EXTERNAL))
                         .tuples().all())
         named = session.execute(
             select(QUERIES.c.run_id, QUERIES.c.first_clip, QUERIES.c.second_clip)
-            .where(QUERIES.c.run_id.in_(list(statuses)), QUERIES.c.rule == EXTERNAL)).all()
+            .where(QUERIES.c.run_id.in_(list(statuses)), QUERIES.c.rule == EXTERNAL,
+                   _SHOWN)).all()
     ids: dict[int, set[str]] = {run_id: set() for run_id in statuses}
     for run_id, *keys in named:
         ids[run_id].update(key.rpartition("/")[2].partition(".")[0] for key in keys if key)
     return {run_id: ClipUse(RunStatus(status), frozenset(ids[run_id]))
             for run_id, status in statuses.items()}
+
+
+def withdrawn_clips(session: Session, *, run_id: int, query_id: int) -> list[str]:
+    """The storage keys of the clips of the run's withdrawn pair `query_id` that no pair of
+    the run still shows (none while the pair is not withdrawn)."""
+    with reading(session):
+        pair = session.execute(
+            select(QUERIES.c.first_clip, QUERIES.c.second_clip).where(
+                QUERIES.c.id == query_id, QUERIES.c.run_id == run_id,
+                QUERIES.c.rule == EXTERNAL, QUERIES.c.status == QueryStatus.CANCELLED)).first()
+        keys = {key for key in pair or () if key}
+        shown = session.execute(
+            select(QUERIES.c.first_clip, QUERIES.c.second_clip).where(
+                QUERIES.c.run_id == run_id, _SHOWN,
+                or_(QUERIES.c.first_clip.in_(keys), QUERIES.c.second_clip.in_(keys)))).all()
+    return sorted(keys - {key for row in shown for key in row})
 
 
 def _check_pair(index: int, pair: PairSpec, clips: Mapping[str, ClipInfo]) -> None:
@@ -266,8 +289,9 @@ def withdraw_pair(session: Session, *, run_id: int, query_id: int) -> str:
     """Withdraw one of the external run's pushed pairs that has no answer: its query is
     cancelled, as a closed round's are (`labelqueue.queries.cancel_queries`), so it is leased
     no more, a labeller who has it on screen is refused the answer (LeaseError), and the answers
-    it asked of the budget are free again (`_check_budget`). Its key stays used. Withdrawing a
-    withdrawn pair changes nothing. The pair's key.
+    it asked of the budget are free again (`_check_budget`). Its key stays used, and its clips
+    are no longer in use (`clip_use`, `withdrawn_clips`). Withdrawing a withdrawn pair changes
+    nothing. The pair's key.
 
     NotFound for a query that is no pair the run's client pushed; Conflict for a pair with a
     standing answer (one of its k is enough: the answers stand, and the feed gave them), or

@@ -19,6 +19,7 @@ from typing import Any
 from labelstats.agreement import agreement_report
 from labelstats.calibration import (
     DEFAULT_EDGES,
+    REQUIRED_COLUMNS,
     Bin,
     CalibrationReport,
     Group,
@@ -28,7 +29,7 @@ from labelstats.calibration import (
 )
 from labelstats.calibration_stats import EpsFit
 from labelstats.labeller_quality import LabellerQuality, labeller_quality
-from rundata.export_read import ExportFileError, read_export
+from rundata.export_read import ExportFileError, read_export_table
 
 MAX_LABELLERS_DRAWN = 8
 """labellers drawn in the figure (those with the most answers); the tables list all"""
@@ -225,16 +226,24 @@ def report_markdown(report: CalibrationReport, *, source: str) -> str:
     return "\n".join(lines)
 
 
+def _lacks(path: str, where: str, missing: list[str]) -> ExportFileError:
+    return ExportFileError(
+        f"{path}{where} lacks the columns a calibration report needs: {', '.join(missing)} "
+        f"(it needs {', '.join(REQUIRED_COLUMNS)}: a label export from `sepoa export`, "
+        "docs/EXPORT.md)"
+    )
+
+
 def read_calibration_rows(path: str) -> list[dict[str, Any]]:
-    """The rows of the label export at `path`; ExportFileError for a file that cannot be read
-    or lacks the columns a report needs."""
-    rows = read_export(path)
-    missing = missing_columns(set().union(*(row.keys() for row in rows))) if rows else []
-    if missing:
-        raise ExportFileError(
-            f"{path} lacks the columns a calibration report needs: {', '.join(missing)} "
-            "(a label export from `sepoa export`, docs/EXPORT.md)"
-        )
+    """The rows of the label export at `path` (none for an export with the columns and no
+    rows); ExportFileError for a file that cannot be read, or whose header or any row lacks
+    the columns a report needs."""
+    columns, rows = read_export_table(path)
+    if missing := missing_columns(columns):
+        raise _lacks(path, "", missing)
+    for number, row in enumerate(rows, start=1):
+        if missing := missing_columns(row):
+            raise _lacks(path, f" row {number}", missing)
     return rows
 
 

@@ -69,7 +69,7 @@ def _csv_value(name: str, text: str) -> Any:
     return _CSV_TYPES[kind](text)
 
 
-def _read_csv(path: str) -> list[dict[str, Any]]:
+def _read_csv(path: str) -> tuple[list[str], list[dict[str, Any]]]:
     with open(path, encoding="utf-8", newline="") as file:
         reader = csv.reader(file)
         header = next(reader, None)
@@ -86,10 +86,10 @@ def _read_csv(path: str) -> list[dict[str, Any]]:
                              for name, text in zip(header, cells, strict=True)})
             except ValueError as error:
                 raise ExportFileError(f"{path} line {line}: {error}") from error
-    return rows
+    return header, rows
 
 
-def _read_jsonl(path: str) -> list[dict[str, Any]]:
+def _read_jsonl(path: str) -> tuple[list[str], list[dict[str, Any]]]:
     rows = []
     with open(path, encoding="utf-8") as file:
         for line, text in enumerate(file, start=1):
@@ -102,10 +102,10 @@ def _read_jsonl(path: str) -> list[dict[str, Any]]:
             if not isinstance(row, dict):
                 raise ExportFileError(f"{path} line {line}: not a JSON object")
             rows.append(row)
-    return rows
+    return list({name: None for row in rows for name in row}), rows
 
 
-def _read_parquet(path: str) -> list[dict[str, Any]]:
+def _read_parquet(path: str) -> tuple[list[str], list[dict[str, Any]]]:
     import pyarrow.parquet as pq  # type: ignore[import-untyped]  # lazily: it is slow to import
 
     try:
@@ -117,7 +117,7 @@ def _read_parquet(path: str) -> list[dict[str, Any]]:
         for name, value in row.items():
             if hasattr(value, "isoformat"):
                 row[name] = value.isoformat(timespec="microseconds")
-    return rows
+    return list(table.column_names), rows
 
 
 _READERS = {"jsonl": _read_jsonl, "csv": _read_csv, "parquet": _read_parquet}
@@ -131,15 +131,25 @@ def _from_version_2(row: dict[str, Any]) -> dict[str, Any]:
     return row | {"answer": row["preferred"] or row.get("choice")}
 
 
-def read_export(path: str) -> list[dict[str, Any]]:
-    """The rows of the export file at `path`; ExportFileError when it cannot be read."""
+def read_export_table(path: str) -> tuple[list[str], list[dict[str, Any]]]:
+    """The columns and the rows of the export file at `path`; the columns are the file's own
+    even when it has no rows (a CSV header, a Parquet schema; a JSONL file's keys, so none for
+    an empty one). ExportFileError when it cannot be read."""
     if not os.path.exists(path):
         raise ExportFileError(f"{path} does not exist")
     if os.path.isdir(path):
         raise ExportFileError(f"{path} is a folder; give an export file")
     try:
-        return [_from_version_2(row) for row in _READERS[export_format(path)](path)]
+        columns, rows = _READERS[export_format(path)](path)
+        if "preferred" in columns and "answer" not in columns:
+            columns.append("answer")
+        return columns, [_from_version_2(row) for row in rows]
     except UnicodeDecodeError as error:
         raise ExportFileError(f"{path}: not UTF-8 text ({error.reason})") from error
     except OSError as error:
         raise ExportFileError(f"cannot read {path}: {error.strerror or error}") from error
+
+
+def read_export(path: str) -> list[dict[str, Any]]:
+    """The rows of the export file at `path`; ExportFileError when it cannot be read."""
+    return read_export_table(path)[1]

@@ -18,6 +18,12 @@ names the clip by then (a push that was under way), in which case the note is pu
 An upload and a sweep of the same run take turns (a lock file, `.lock`, in the run's folder),
 so a clip uploaded again while the sweep deletes it is whole when its upload returns. Leftovers
 of an upload cut short (dot files) go after an hour.
+
+A withdrawn pair names no clip: its clips that no other pair of the run shows are deleted at
+once, once the withdrawal has committed (`delete_withdrawn`), under the same lock, which a push
+holds from reading its clips' notes until it commits, so no pair is stored naming a clip that
+is being deleted (the push is a 422, "no clip uploaded", instead). A clip a withdrawal left
+(the server stopped in between) is an unused upload for the sweep.
 """
 
 from __future__ import annotations
@@ -35,7 +41,7 @@ from pathlib import Path
 from sqlalchemy.orm import Session, sessionmaker
 from starlette.concurrency import run_in_threadpool
 
-from externalruns.pairs import ClipUse, clip_use
+from externalruns.pairs import ClipUse, clip_use, withdrawn_clips
 from server.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -84,6 +90,23 @@ def upload_lock(folder: Path) -> Iterator[None]:
             yield
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def delete_withdrawn(session: Session, settings: Settings, *, run_id: int,
+                     query_id: int) -> int:
+    """Delete the clips (files and notes) of the run's withdrawn pair `query_id` that no other
+    pair of the run shows; how many clips were there to delete. A clip already gone is fine."""
+    folder = settings.clips_root / "external" / str(run_id)
+    if not folder.is_dir():
+        return 0
+    with upload_lock(folder):
+        keys = withdrawn_clips(session, run_id=run_id, query_id=query_id)
+        for key in keys:
+            clip = settings.clips_root / key
+            for note in (clip.with_suffix(".json"), clip.with_suffix(".json" + UNUSED)):
+                note.unlink(missing_ok=True)  # first: the clip is no longer uploaded
+            clip.unlink(missing_ok=True)
+    return len(keys)
 
 
 def _sweep_folder(folder: Path, run: ClipUse, now: float, limit_s: float,

@@ -12,6 +12,7 @@ import asyncio
 import hashlib
 import io
 import json
+import logging
 import os
 import re
 import time
@@ -63,8 +64,9 @@ from server.external_schemas import (
 )
 from server.schemas import INT32_MAX, QueryId, RunId, RunOut, errors
 from server.settings import Settings
-from server.upload_sweep import upload_lock
+from server.upload_sweep import delete_withdrawn, upload_lock
 
+log = logging.getLogger(__name__)
 router = APIRouter(prefix="/api/runs", tags=["external runs"], responses=errors(401, 403))
 
 UPLOADS = re.compile(r"^/api/runs/[0-9]+/clips$")
@@ -293,13 +295,16 @@ def push(run_id: RunId, body: PairsIn, run: ClientRun, response: Response, sessi
     known answer measures them. 422 for a clip not uploaded to the run or two clips of
     different shapes or lengths in seconds; 409 past the budget or once the run is stopped."""
     ids = {clip for pair in body.pairs for clip in (pair.first_clip, pair.second_clip)}
-    clips = {clip: info for clip in ids
-             if (info := stored_clip(settings, run.id, clip)) is not None}
-    pushed = push_pairs(session, run_id=run.id, clips=clips, pairs=[
-        PairSpec(key=pair.key, first_clip=pair.first_clip, second_clip=pair.second_clip,
-                 gold=None if pair.gold is None else Answer(pair.gold), returns=pair.returns,
-                 trajectory_returns=pair.trajectory_returns, meta=pair.meta)
-        for pair in body.pairs])
+    # From reading the notes to the commit: a withdrawal deletes no clip these pairs name.
+    with upload_lock(_folder(settings, run.id)):
+        clips = {clip: info for clip in ids
+                 if (info := stored_clip(settings, run.id, clip)) is not None}
+        pushed = push_pairs(session, run_id=run.id, clips=clips, pairs=[
+            PairSpec(key=pair.key, first_clip=pair.first_clip, second_clip=pair.second_clip,
+                     gold=None if pair.gold is None else Answer(pair.gold),
+                     returns=pair.returns, trajectory_returns=pair.trajectory_returns,
+                     meta=pair.meta)
+            for pair in body.pairs])
     if not any(item.created for item in pushed):
         response.status_code = 200
     return PushOut.model_validate({"pairs": [vars(item) for item in pushed]})
@@ -322,14 +327,21 @@ def states(
 
 @router.post("/{run_id}/pairs/{query_id}/withdraw", response_model=PairState,
              responses=errors(404, 409, 422))
-def withdraw(query_id: QueryId, run: ClientRun, session: SessionDep) -> PairState:
+def withdraw(query_id: QueryId, run: ClientRun, session: SessionDep,
+             settings: SettingsDep) -> PairState:
     """Withdraw a pushed pair nobody has answered (one pushed by mistake): it is shown to no
-    labeller again, one who has it on screen is refused the answer (409), and the answers it
-    asked of the budget are free again. Its key stays used: pushed again, it comes back
-    withdrawn. Gives the pair as it stands, `withdrawn`; withdrawing it again changes nothing.
-    409 for a pair with an answer (one of its k is enough) or one of the run's practice pairs;
-    404 for no pair of the run."""
+    labeller again, one who has it on screen is refused the answer (409), the answers it
+    asked of the budget are free again, and its uploaded clips that no other pair shows are
+    deleted (a pair naming one again needs it uploaded again). Its key stays used: pushed
+    again, it comes back withdrawn. Gives the pair as it stands, `withdrawn`; withdrawing it
+    again changes nothing. 409 for a pair with an answer (one of its k is enough) or one of the
+    run's practice pairs; 404 for no pair of the run."""
     key = withdraw_pair(session, run_id=run.id, query_id=query_id)
+    try:  # after the commit: a refused or failed withdrawal deletes nothing
+        delete_withdrawn(session, settings, run_id=run.id, query_id=query_id)
+    except OSError:  # withdrawn all the same: the upload sweep takes the clips later
+        log.exception("deleting the clips of run %d's withdrawn pair %d failed", run.id,
+                      query_id)
     [state], _ = pair_states(session, run_id=run.id, keys=[key])
     return PairState.model_validate(state)
 

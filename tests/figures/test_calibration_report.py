@@ -70,6 +70,30 @@ def test_bins_and_an_empty_export(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert numbers["edges"] == [0.0, 0.5, None] and numbers["rows"] == 0
 
 
+def test_an_export_without_the_columns_is_refused_and_nothing_is_written(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from labelstats.calibration import REQUIRED_COLUMNS
+
+    header_only = tmp_path / "header.csv"
+    header_only.write_text("label_id,choice,note\n")  # no rows, and not the columns
+    with_rows = tmp_path / "rows.csv"
+    with_rows.write_text("label_id,choice,note\n1,left,x\n")
+    partial = {key: value for key, value in ROW.items() if key != "algo"}
+    uneven = tmp_path / "uneven.jsonl"  # the second row lacks a column
+    uneven.write_text(json.dumps(ROW) + "\n" + json.dumps(partial) + "\n")
+    expected = ", ".join(REQUIRED_COLUMNS)
+    for export, missing in [
+        (header_only, "run_id, round, algo, query_id"),
+        (with_rows, "run_id, round, algo, query_id"),
+        (uneven, "row 2 lacks the columns a calibration report needs: algo"),
+    ]:
+        code, out, err = run_report(capsys, "--calibration", str(export))
+        assert code == 2, (export, out, err)
+        assert missing in err and expected in err and err.count("\n") == 1, (export, err)
+        assert out == "" and not Path(str(export).rsplit(".", 1)[0] + "-calibration").exists()
+
+
 def test_every_mistake_is_one_line_and_exit_2(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -1,5 +1,6 @@
 """Uploaded clips no pair names are deleted (`server.upload_sweep`): a day after their last
-upload, or soon after their run stops; a clip a pair names never is."""
+upload, or soon after their run stops; a clip a pair names never is. A withdrawn pair names
+none: its clips go with the withdrawal."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from server_helpers import OPERATOR, bearer, new_labeller
 from sqlalchemy.orm import Session
 from test_external_api import external_run, frames, pair, upload
 
-from externalruns.pairs import PairSpec, push_pairs
+from externalruns.pairs import PairSpec, push_pairs, withdraw_pair
 from server.app import create_app
 from server.routes.external import stored_clip
 from server.settings import Settings
@@ -51,6 +52,52 @@ def test_an_unused_upload_goes_a_day_after_its_last_upload_and_a_used_one_stays(
     assert sweep_uploads(session, settings).marked == 0
     assert client.post(f"/api/runs/{run_id}/pairs", headers=auth,
                        json={"pairs": [pair("ac", a, c)]}).status_code == 201
+
+
+def test_a_withdrawn_pairs_clips_are_deleted_and_served_no_more(
+    client: TestClient, settings: Settings
+) -> None:
+    run_id, auth = external_run(client)
+    a, b = upload(client, run_id, auth, frames(1)), upload(client, run_id, auth, frames(2))
+    pushed = client.post(f"/api/runs/{run_id}/pairs", headers=auth, json={"pairs": [
+        pair("oops", a, b), pair("kept", b, b)]}).json()
+    oops, _ = (item["query_id"] for item in pushed["pairs"])
+    token = bearer(new_labeller(client, "ann"))
+    shown = client.get(f"/api/label/next?run_id={run_id}", headers=token).json()
+    assert shown["query_id"] == oops  # on ann's screen when its client withdraws it
+    url = f"/api/runs/{run_id}/pairs/{oops}/withdraw"
+    assert client.post(url, headers=auth).status_code == 200
+    # Its own clip goes, note and all; the one another pair still shows stays.
+    assert files(settings, run_id) == {f"{b}.mp4", f"{b}.json"}
+    gone = client.get(shown["left_clip_url" if shown["left_is_first"] else "right_clip_url"])
+    assert gone.status_code == 404, gone.text
+    assert client.get(f"/api/clips/{oops}/first", headers=OPERATOR).status_code == 404
+    # Withdrawn again, with its clip already gone: the same answer, nothing else deleted.
+    again = client.post(url, headers=auth)
+    assert again.status_code == 200 and again.json()["withdrawn"], again.text
+    assert files(settings, run_id) == {f"{b}.mp4", f"{b}.json"}
+    # A deleted clip is named by no new pair until it is uploaded again.
+    refused = client.post(f"/api/runs/{run_id}/pairs", headers=auth,
+                          json={"pairs": [pair("again", a, b)]})
+    assert refused.status_code == 422 and "no clip uploaded" in refused.json()["detail"]
+    assert upload(client, run_id, auth, frames(1)) == a
+    assert client.post(f"/api/runs/{run_id}/pairs", headers=auth,
+                       json={"pairs": [pair("again", a, b)]}).status_code == 201
+
+
+def test_the_sweep_takes_a_withdrawn_pairs_clips_the_withdrawal_left(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    run_id, auth = external_run(client)
+    a, b = upload(client, run_id, auth, frames(1)), upload(client, run_id, auth, frames(2))
+    [pushed] = client.post(f"/api/runs/{run_id}/pairs", headers=auth,
+                           json={"pairs": [pair("ab", a, b)]}).json()["pairs"]
+    # Withdrawn in the database, its files not deleted (the server stopped in between).
+    withdraw_pair(session, run_id=run_id, query_id=pushed["query_id"])
+    later = time.time() + DAY + 60
+    assert sweep_uploads(session, settings, now=later).marked == 2
+    assert sweep_uploads(session, settings, now=later).deleted == 2
+    assert files(settings, run_id) == set()
 
 
 def test_uploading_a_clip_again_keeps_it_from_the_sweep(
