@@ -227,19 +227,21 @@ def report_markdown(report: CalibrationReport, *, source: str) -> str:
 
 
 def _lacks(path: str, where: str, missing: list[str]) -> ExportFileError:
-    return ExportFileError(
-        f"{path}{where} lacks the columns a calibration report needs: {', '.join(missing)} "
-        f"(it needs {', '.join(REQUIRED_COLUMNS)}: a label export from `sepoa export`, "
-        "docs/EXPORT.md)"
-    )
+    needed = ", ".join(REQUIRED_COLUMNS)
+    source = "a label export from `sepoa export`, docs/EXPORT.md"
+    if len(missing) == len(REQUIRED_COLUMNS):
+        return ExportFileError(f"{path}{where} has none of the columns a calibration report "
+                               f"needs ({needed}): give {source}")
+    return ExportFileError(f"{path}{where} lacks the columns a calibration report needs: "
+                           f"{', '.join(missing)} (it needs {needed}: {source})")
 
 
 def read_calibration_rows(path: str) -> list[dict[str, Any]]:
-    """The rows of the label export at `path` (none for an export with the columns and no
-    rows); ExportFileError for a file that cannot be read, or whose header or any row lacks
-    the columns a report needs."""
+    """The rows of the label export at `path` (none for an export with no rows: a header
+    with the columns, or an empty JSONL file, which has no header); ExportFileError for a file
+    that cannot be read, or whose header or any row lacks the columns a report needs."""
     columns, rows = read_export_table(path)
-    if missing := missing_columns(columns):
+    if columns and (missing := missing_columns(columns)):
         raise _lacks(path, "", missing)
     for number, row in enumerate(rows, start=1):
         if missing := missing_columns(row):

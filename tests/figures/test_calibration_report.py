@@ -94,6 +94,21 @@ def test_an_export_without_the_columns_is_refused_and_nothing_is_written(
         assert out == "" and not Path(str(export).rsplit(".", 1)[0] + "-calibration").exists()
 
 
+def test_an_empty_jsonl_export_is_an_empty_report_and_one_of_other_columns_is_named_once(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    empty = tmp_path / "empty.jsonl"  # a run with no labels yet: no rows, so no header
+    empty.write_text("")
+    code, _, err = run_report(capsys, "--calibration", str(empty), "--out", str(tmp_path / "a"))
+    assert code == 0, err
+    assert json.loads((tmp_path / "a" / "calibration.json").read_text())["rows"] == 0
+    other = tmp_path / "other.csv"
+    other.write_text("x,y\n1,2\n")
+    code, out, err = run_report(capsys, "--calibration", str(other))
+    assert code == 2 and out == "" and err.count("\n") == 1, err
+    assert "has none of the columns" in err and err.count("labeller_id") == 1, err
+
+
 def test_every_mistake_is_one_line_and_exit_2(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
