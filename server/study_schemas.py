@@ -190,6 +190,10 @@ class VerifiedOut(BaseModel):
     target_answers: int | None
     complete: bool
     why: StudyEnd | None
+    earned: bool
+    """the code is earned: pay them (as the participants list's `code_valid`). Not for one let
+    go by the entry test, one paused where the invite's pause message replaced the code, nor
+    one an operator deactivated"""
 
 
 class ParticipantOut(Out):

@@ -272,3 +272,26 @@ def test_codes_checked_for_one_study_tell_another_studys_apart(
     missing = client.post("/api/invites/verify-codes", headers=OPERATOR,
                           json={"codes": codes, "invite_id": 999})
     assert missing.status_code == 404 and "invite 999" in missing.json()["detail"]
+
+
+def test_checking_one_code_says_whether_to_pay_as_the_list_does(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    """A code whose owner reached the target but was deactivated (their work rejected) is not to
+    be paid: checked alone, it says so, as the participants list and a batch check do."""
+    run_id, _ = running_run_with_queries(client, session, settings, n=4)
+    study = invite(client, run_id=run_id, target_answers=1)
+    ann, bob = joined(client, study["code"], "ann"), joined(client, study["code"], "bob")
+    for who in (ann, bob):
+        answer(client, who["token"])
+    codes = {who["name"]: client.get("/api/label/progress", headers=bearer(who["token"]))
+             .json()["completion_code"] for who in (ann, bob)}
+    assert client.patch(f"/api/labellers/{bob['labeller_id']}", headers=OPERATOR,
+                        json={"active": False}).status_code == 200
+    listed = {row["participant"]: row["code_valid"] for row in client.get(
+        f"/api/invites/{study['id']}/participants", headers=OPERATOR).json()}
+    assert listed == {"ann": True, "bob": False}
+    for name, pay in listed.items():
+        checked = client.post("/api/invites/verify", json={"code": codes[name]},
+                              headers=OPERATOR).json()
+        assert (checked["complete"], checked["why"], checked["earned"]) == (True, "target", pay)
