@@ -433,10 +433,13 @@ WHY = {"target": "complete: reached the target", "runs_over": "complete: the run
 
 def _verify(session: Session, given: list[str]) -> int:
     """One code (its words joined: a code typed with spaces is one code), or with `-`, one a
-    line from stdin; exit 1 when any is nobody's or not earned."""
+    line from stdin; exit 1 when any is nobody's or not earned, 2 when none is given."""
     from crowdstudy.participants import verify_codes
 
     codes = sys.stdin.read().splitlines() if given == ["-"] else [" ".join(given)]
+    if not any(code.strip() for code in codes):
+        return fail("no completion code given" + (" on stdin (one a line)" if given == ["-"]
+                                                  else ""))
     checked = verify_codes(session, codes)
     for check in checked:
         if check.why == "unknown":

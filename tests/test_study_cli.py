@@ -103,6 +103,20 @@ def test_invite_verify_says_whose_code_it_is(tmp_path: Path, capsys: pytest.Capt
     assert "invite 999 does not exist" in capsys.readouterr().err
 
 
+def test_invite_verify_given_no_code_says_so(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """An empty codes file (or a blank code) is a one-line mistake, not a silent exit 1 that
+    reads as "some code is not to be paid"."""
+    data = tmp_path / "data"
+    migrate(sqlite_url(str(data)))
+    for argv, stdin in ((["-"], ""), (["-"], "\n  \n"), (["  "], "")):
+        monkeypatch.setattr("sys.stdin", io.StringIO(stdin))
+        assert main(["invite", "verify", *argv, "--data-dir", str(data)]) == 2, (argv, stdin)
+        captured = capsys.readouterr()
+        assert captured.out == "" and captured.err.count("\n") == 1
+        assert "no completion code given" in captured.err
+
+
 def run_counting(argv: list[str]) -> tuple[int, int]:
     """`sepoa argv`'s exit status and the SQL statements it ran, on every engine it made."""
     seen: list[str] = []
