@@ -295,3 +295,23 @@ def test_checking_one_code_says_whether_to_pay_as_the_list_does(
         checked = client.post("/api/invites/verify", json={"code": codes[name]},
                               headers=OPERATOR).json()
         assert (checked["complete"], checked["why"], checked["earned"]) == (True, "target", pay)
+
+
+def test_a_code_handed_in_twice_is_paid_once(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    """Two submissions of one participant's code (shared, or written differently) pay them
+    once: the repeat says so and is not valid; the first stays valid."""
+    run_id, _ = running_run_with_queries(client, session, settings, n=4)
+    study = invite(client, run_id=run_id, target_answers=1)
+    ann = joined(client, study["code"], "ann")
+    answer(client, ann["token"])
+    code = client.get("/api/label/progress", headers=bearer(ann["token"])).json()[
+        "completion_code"]
+    retyped = " ".join(code.lower().split("-"))
+    response = client.post("/api/invites/verify-codes", headers=OPERATOR,
+                           json={"codes": [code, retyped, "AAAA-BBBB-CCCC", code]})
+    assert response.status_code == 200, response.text
+    assert [(c["valid"], c["repeat"], c["why"]) for c in response.json()] == [
+        (True, False, "target"), (False, True, "target"), (False, False, "unknown"),
+        (False, True, "target")]
