@@ -160,8 +160,8 @@ class CodeCheck:
 
     code: str
     valid: bool
-    """the code is a participant's and earned (`crowdstudy.completion.Progress.earned`): pay
-    them"""
+    """the code is a participant's and earned (`crowdstudy.completion.Progress.earned`), and
+    not a `repeat`: pay them"""
     participant: str | None
     labeller_id: int | None
     invite_id: int | None
@@ -176,12 +176,16 @@ class CodeCheck:
     """what the target counts (`crowdstudy.completion.Progress.counted`); none for a code
     not checked ("unknown", "other_study")"""
     target_answers: int | None = None
+    repeat: bool = False
+    """the same participant's code was given earlier in the list (however written): they are
+    paid once, for the first, so this one is not valid"""
 
 
 def verify_codes(session: Session, codes: Iterable[str], *,
                  invite_id: int | None = None) -> list[CodeCheck]:
     """Each code of a list, in order: whose it is and whether it is earned. Blank lines are
-    left out; a code given twice is checked twice (and said so by the caller if it wants).
+    left out; a participant's code given again (the same, or written otherwise) is a `repeat`,
+    never valid: each participant is paid once.
     With `invite_id` (NotFound for an unknown one), a code of another invite's participant is
     "other_study", never valid. Whose each code is is looked up once for the whole list, and
     how far its owner got once for each invite the codes are of (`study_progress`), however
@@ -197,6 +201,7 @@ def verify_codes(session: Session, codes: Iterable[str], *,
     progress_of = {study: study_progress(session, invite=invite)
                    for study, invite in studies.items()}
     out = []
+    seen: set[int] = set()
     for code, owner in given:
         if owner is None:
             out.append(CodeCheck(code, False, None, None, None, "unknown"))
@@ -206,9 +211,11 @@ def verify_codes(session: Session, codes: Iterable[str], *,
         progress = progress_of[invite.id][owner.labeller_id] if invite.id in studies else None
         why = ("other_study" if progress is None
                else progress.why if progress.complete else "not_complete")
+        repeat = owner.labeller_id in seen
+        seen.add(owner.labeller_id)
         out.append(CodeCheck(
-            code, progress is not None and progress.earned, owner.participant,
+            code, progress is not None and progress.earned and not repeat, owner.participant,
             owner.labeller_id, invite.id, why, labeller=owner.labeller, run_id=invite.run_id,
             counted=None if progress is None else progress.counted,
-            target_answers=None if progress is None else invite.target_answers))
+            target_answers=None if progress is None else invite.target_answers, repeat=repeat))
     return out

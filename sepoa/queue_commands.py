@@ -433,15 +433,23 @@ WHY = {"target": "complete: reached the target", "runs_over": "complete: the run
 
 def _verify(session: Session, given: list[str]) -> int:
     """One code (its words joined: a code typed with spaces is one code), or with `-`, one a
-    line from stdin; exit 1 when any is nobody's or not earned."""
+    line from stdin; exit 1 when any is nobody's, not earned or given again (a participant is
+    paid once), 2 when none is given."""
     from crowdstudy.participants import verify_codes
 
     codes = sys.stdin.read().splitlines() if given == ["-"] else [" ".join(given)]
+    if not any(code.strip() for code in codes):
+        return fail("no completion code given" + (" on stdin (one a line)" if given == ["-"]
+                                                  else ""))
     checked = verify_codes(session, codes)
     for check in checked:
         if check.why == "unknown":
             print(f"{check.code!r} is no participant's completion code (check it was copied "
                   "whole)", file=sys.stderr)
+            continue
+        if check.repeat:
+            print(f"again: {check.participant or '-'} (labeller {check.labeller!r}, id "
+                  f"{check.labeller_id}): their code was given above, pay them once")
             continue
         target = "" if check.target_answers is None else f" of {check.target_answers}"
         print(f"{'valid' if check.valid else 'not earned'}: {check.participant or '-'} "
@@ -479,7 +487,8 @@ def _invite_arguments(p: argparse.ArgumentParser) -> None:
     invite_sub = p.add_subparsers(dest="action", required=True)
     verify = invite_sub.add_parser(
         "verify", help="whose completion code it is and whether it is earned (exit 1: nobody's"
-                       " or not earned); `-` checks one code a line from stdin")
+                       ", not earned, or a participant's given again: pay once); `-` checks "
+                       "one code a line from stdin")
     verify.add_argument("code", nargs="+")
     database_args(verify, inherit=True)
     listed = invite_sub.add_parser(

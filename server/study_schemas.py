@@ -190,6 +190,10 @@ class VerifiedOut(BaseModel):
     target_answers: int | None
     complete: bool
     why: StudyEnd | None
+    earned: bool
+    """the code is earned: pay them (as the participants list's `code_valid`). Not for one let
+    go by the entry test, one paused where the invite's pause message replaced the code, nor
+    one an operator deactivated"""
 
 
 class ParticipantOut(Out):
@@ -246,7 +250,8 @@ class CodesRequest(Body):
 class CodeCheckOut(Out):
     code: str
     valid: bool
-    """a participant's code, and earned (as the participants list's `code_valid`)"""
+    """a participant's code, earned (as the participants list's `code_valid`), and not a
+    `repeat`"""
     participant: str | None
     labeller_id: int | None
     invite_id: int | None
@@ -254,3 +259,6 @@ class CodeCheckOut(Out):
     """why the study is complete; `not_complete`; `unknown`: nobody's code; `other_study`: a
     participant's code of another invite than `invite_id` of the request (this `invite_id` is
     theirs)"""
+    repeat: bool = False
+    """the same participant's code was given earlier in the list (however written): pay them
+    once, for the first; this one is not valid"""

@@ -84,13 +84,16 @@ def test_invite_verify_says_whose_code_it_is(tmp_path: Path, capsys: pytest.Capt
     captured = capsys.readouterr()
     assert captured.out.startswith("valid: P-1") and "no participant's" in captured.err
     # However many codes, as many statements: whose each is and how far they got, read once.
+    # A participant's code given again is paid once: the repeats say so, and exit 1.
     counted = []
-    for given in (code, f"{code}\n" * 5):
+    for given, exit_status in ((code, 0), (f"{code}\n" * 5, 1)):
         monkeypatch.setattr("sys.stdin", io.StringIO(given))
         status, statements = run_counting(["invite", "verify", "-", "--data-dir", str(data)])
-        assert status == 0
+        assert status == exit_status
         counted.append(statements)
-    assert capsys.readouterr().out.split("\n") == [line] * 6 + [""]
+    again = (f"again: P-1 (labeller 'P-1', id {joined.id}): their code was given above, pay "
+             "them once")
+    assert capsys.readouterr().out.split("\n") == [line] * 2 + [again] * 4 + [""]
     assert counted[0] == counted[1]
 
     # The list to pay from.
@@ -101,6 +104,20 @@ def test_invite_verify_says_whose_code_it_is(tmp_path: Path, capsys: pytest.Capt
             for r in rows] == [("P-1", "1", "True", code)]
     assert main(["invite", "participants", "999", "--data-dir", str(data)]) == 2
     assert "invite 999 does not exist" in capsys.readouterr().err
+
+
+def test_invite_verify_given_no_code_says_so(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """An empty codes file (or a blank code) is a one-line mistake, not a silent exit 1 that
+    reads as "some code is not to be paid"."""
+    data = tmp_path / "data"
+    migrate(sqlite_url(str(data)))
+    for argv, stdin in ((["-"], ""), (["-"], "\n  \n"), (["  "], "")):
+        monkeypatch.setattr("sys.stdin", io.StringIO(stdin))
+        assert main(["invite", "verify", *argv, "--data-dir", str(data)]) == 2, (argv, stdin)
+        captured = capsys.readouterr()
+        assert captured.out == "" and captured.err.count("\n") == 1
+        assert "no completion code given" in captured.err
 
 
 def run_counting(argv: list[str]) -> tuple[int, int]:

@@ -141,7 +141,8 @@ def get_invites(request: Request, session: SessionDep, _: OperatorDep) -> list[I
 )
 def post_verify(body: VerifyRequest, session: SessionDep, _: OperatorDep) -> VerifiedOut:
     """Whose completion code this is, and how far they got: decisive answers on the invite's
-    run against its target, and whether (and why) their study is complete. 404 for a code that
+    run against its target, whether (and why) their study is complete, and whether the code is
+    earned (`earned`: pay them, as the participants list's `code_valid`). 404 for a code that
     is no participant's (a typo, or made up). The study-code prefix may be left out; case and
     spaces or dashes between its characters do not matter."""
     verified = verify_code(session, body.code)

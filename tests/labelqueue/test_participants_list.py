@@ -201,8 +201,11 @@ def test_many_codes_are_checked_in_every_state_with_no_statement_per_code(
         row("cat", False, "not_complete"), row("dan", True, "paused"),
         row("eve", False, "not_complete"), row("fay", True, "nothing_left"),
         row("gus", False, "not_complete"), row("hal", True, "paused"),
-        row("ivy", False, "not_complete"), row("ann", True, "target", code["ann"].lower()),
-        row("dan", True, "paused", code["dan"].removeprefix("PAY-")), unknown]
+        row("ivy", False, "not_complete"),
+        # Retyped, ann's and dan's codes are still theirs, and given again: paid once.
+        row("ann", False, "target", code["ann"].lower()),
+        row("dan", False, "paused", code["dan"].removeprefix("PAY-")), unknown]
+    assert [c.repeat for c in verify_codes(session, given)] == [False] * 9 + [True, True, False]
     other = [row(name, False, "other_study") for name in ("gus", "hal", "ivy")]
     assert checked(study.one.id)[6:9] == other
     assert checked(study.one.id)[:6] == checked()[:6]

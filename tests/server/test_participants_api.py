@@ -272,3 +272,46 @@ def test_codes_checked_for_one_study_tell_another_studys_apart(
     missing = client.post("/api/invites/verify-codes", headers=OPERATOR,
                           json={"codes": codes, "invite_id": 999})
     assert missing.status_code == 404 and "invite 999" in missing.json()["detail"]
+
+
+def test_checking_one_code_says_whether_to_pay_as_the_list_does(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    """A code whose owner reached the target but was deactivated (their work rejected) is not to
+    be paid: checked alone, it says so, as the participants list and a batch check do."""
+    run_id, _ = running_run_with_queries(client, session, settings, n=4)
+    study = invite(client, run_id=run_id, target_answers=1)
+    ann, bob = joined(client, study["code"], "ann"), joined(client, study["code"], "bob")
+    for who in (ann, bob):
+        answer(client, who["token"])
+    codes = {who["name"]: client.get("/api/label/progress", headers=bearer(who["token"]))
+             .json()["completion_code"] for who in (ann, bob)}
+    assert client.patch(f"/api/labellers/{bob['labeller_id']}", headers=OPERATOR,
+                        json={"active": False}).status_code == 200
+    listed = {row["participant"]: row["code_valid"] for row in client.get(
+        f"/api/invites/{study['id']}/participants", headers=OPERATOR).json()}
+    assert listed == {"ann": True, "bob": False}
+    for name, pay in listed.items():
+        checked = client.post("/api/invites/verify", json={"code": codes[name]},
+                              headers=OPERATOR).json()
+        assert (checked["complete"], checked["why"], checked["earned"]) == (True, "target", pay)
+
+
+def test_a_code_handed_in_twice_is_paid_once(
+    client: TestClient, session: Session, settings: Settings
+) -> None:
+    """Two submissions of one participant's code (shared, or written differently) pay them
+    once: the repeat says so and is not valid; the first stays valid."""
+    run_id, _ = running_run_with_queries(client, session, settings, n=4)
+    study = invite(client, run_id=run_id, target_answers=1)
+    ann = joined(client, study["code"], "ann")
+    answer(client, ann["token"])
+    code = client.get("/api/label/progress", headers=bearer(ann["token"])).json()[
+        "completion_code"]
+    retyped = " ".join(code.lower().split("-"))
+    response = client.post("/api/invites/verify-codes", headers=OPERATOR,
+                           json={"codes": [code, retyped, "AAAA-BBBB-CCCC", code]})
+    assert response.status_code == 200, response.text
+    assert [(c["valid"], c["repeat"], c["why"]) for c in response.json()] == [
+        (True, False, "target"), (False, True, "target"), (False, False, "unknown"),
+        (False, True, "target")]

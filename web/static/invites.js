@@ -29,7 +29,10 @@ async function verifyCode(event) {
   try {
     const who = await post("/api/invites/verify", { code });
     const target = who.target_answers == null ? "" : ` of ${who.target_answers}`;
-    shown.textContent = `Valid: ${who.participant || who.labeller} (labeller ${who.labeller_id}, `
+    // Earned as the participants list's code_valid: not for one deactivated, let go by the
+    // entry test, or paused where the link's pause message replaced the code.
+    shown.textContent = `${who.earned ? "Valid" : "Not earned"}: `
+      + `${who.participant || who.labeller} (labeller ${who.labeller_id}, `
       + `link ${who.invite_id}): ${who.counted}${target} decisive answers; `
       + (who.why === "entry_failed" ? `let go: ${WHY[who.why]}.`
         : who.complete ? `complete, ${WHY[who.why]}.` : "not complete yet.");

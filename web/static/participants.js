@@ -49,11 +49,12 @@ async function checkCodes(event) {
   $("codes-result").replaceChildren(...checked.map((c) => el("li", { "data-valid": c.valid },
     el("code", {}, c.code), " — ",
     c.valid ? `pay ${c.participant ?? `labeller ${c.labeller_id}`} (${WHY[c.why] ?? c.why})`
-      : c.why === "unknown" ? "nobody's code"
-        : c.why === "other_study"
-          ? `another study's code (invite ${c.invite_id}): not to be paid for this one`
-          : c.why === "not_complete" ? `${c.participant ?? "?"}: not complete yet`
-            : `${c.participant ?? "?"}: ${WHY[c.why] ?? c.why}, not to be paid`)));
+      : c.repeat ? `${c.participant ?? `labeller ${c.labeller_id}`}: given above, pay once`
+        : c.why === "unknown" ? "nobody's code"
+          : c.why === "other_study"
+            ? `another study's code (invite ${c.invite_id}): not to be paid for this one`
+            : c.why === "not_complete" ? `${c.participant ?? "?"}: not complete yet`
+              : `${c.participant ?? "?"}: ${WHY[c.why] ?? c.why}, not to be paid`)));
 }
 
 function guard(task) {
