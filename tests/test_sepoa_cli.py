@@ -327,3 +327,15 @@ def test_a_report_out_under_a_file_is_refused_in_one_line(tmp_path, capsys):
         lines = capsys.readouterr().err.strip().splitlines()
         assert len(lines) == 1 and f"{notes} is a file, not a folder" in lines[0], (argv, lines)
     assert notes.read_text() == "kept\n"
+
+
+def test_a_queue_in_memory_is_refused_at_the_door_naming_the_valid_forms(tmp_path, capsys):
+    """In memory, the server, the workers and the next start each had a queue of their own:
+    every command failed later with `no such table`."""
+    for url in ("sqlite://", "sqlite:///", "sqlite:///:memory:"):
+        for argv in (["labeller", "list"], ["labeller", "create", "amy"], ["export"],
+                     ["serve", "--port", "18677"]):
+            assert main([*argv, "--database-url", url]) == 2, (url, argv)
+            lines = capsys.readouterr().err.strip().splitlines()
+            assert len(lines) == 1 and "in memory" in lines[0], (url, argv, lines)
+            assert "sqlite:///PATH or postgresql+psycopg://" in lines[0], lines
