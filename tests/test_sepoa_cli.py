@@ -329,6 +329,31 @@ def test_a_report_out_under_a_file_is_refused_in_one_line(tmp_path, capsys):
     assert notes.read_text() == "kept\n"
 
 
+def test_a_file_that_is_no_queue_is_named_for_what_it_is_and_left_as_it_was(tmp_path, capsys):
+    """An SQLite database of something else, or a file that is no database at all, was called
+    damaged (or `labeller` and the worker wrote the queue's tables into it): each is now named
+    for what it is, in one line, and left byte for byte as it was."""
+    import sqlite3
+    from contextlib import closing
+
+    other = tmp_path / "notes.db"
+    with closing(sqlite3.connect(other)) as connection:
+        connection.execute("CREATE TABLE notes (text TEXT)")
+        connection.commit()
+    text = tmp_path / "notes.txt"
+    text.write_text("a list of things to do\n" * 50)
+    for path, said in ((other, "is an SQLite database but not a sepoa queue (no queue tables)"),
+                       (text, "is not an SQLite database")):
+        before = path.read_bytes()
+        for argv in (["labeller", "list"], ["labeller", "create", "amy"], ["export"],
+                     ["worker", "--once"]):
+            assert main([*argv, "--database-url", f"sqlite:///{path}"]) == 2, argv
+            lines = capsys.readouterr().err.strip().splitlines()
+            assert len(lines) == 1 and f"{path} {said}" in lines[0], (argv, lines)
+            assert "damaged" not in lines[0] and "the queue's own file" in lines[0], lines
+        assert path.read_bytes() == before
+
+
 def test_a_queue_in_memory_is_refused_at_the_door_naming_the_valid_forms(tmp_path, capsys):
     """In memory, the server, the workers and the next start each had a queue of their own:
     every command failed later with `no such table`."""
