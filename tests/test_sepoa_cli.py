@@ -317,7 +317,7 @@ def test_a_report_out_under_a_file_is_refused_in_one_line(tmp_path, capsys):
     notes, export = tmp_path / "notes.txt", tmp_path / "labels.csv"
     notes.write_text("kept\n")
     data = ["--data-dir", str(tmp_path / "data")]
-    assert main(["labeller", "list", *data]) == 0
+    assert main(["labeller", "create", "zoe", *data]) == 0
     assert main(["export", *data, "--format", "csv", "--out", str(export)]) == 0
     capsys.readouterr()
     for argv in (["--calibration", str(export), "--out", str(notes)],
@@ -346,7 +346,7 @@ def test_a_file_that_is_no_queue_is_named_for_what_it_is_and_left_as_it_was(tmp_
                        (text, "is not an SQLite database")):
         before = path.read_bytes()
         for argv in (["labeller", "list"], ["labeller", "create", "amy"], ["export"],
-                     ["worker", "--once"]):
+                     ["worker", "--once"], ["invite", "verify", "X"]):
             assert main([*argv, "--database-url", f"sqlite:///{path}"]) == 2, argv
             lines = capsys.readouterr().err.strip().splitlines()
             assert len(lines) == 1 and f"{path} {said}" in lines[0], (argv, lines)
@@ -364,3 +364,22 @@ def test_a_queue_in_memory_is_refused_at_the_door_naming_the_valid_forms(tmp_pat
             lines = capsys.readouterr().err.strip().splitlines()
             assert len(lines) == 1 and "in memory" in lines[0], (url, argv, lines)
             assert "sqlite:///PATH or postgresql+psycopg://" in lines[0], lines
+
+
+def test_commands_that_only_read_the_queue_make_none(tmp_path, capsys):
+    """`labeller list` (and revoke, activate, token, export, invite) where no queue is made a
+    folder and an empty queue there; they now say so in one line, and how one is made."""
+    missing = tmp_path / "missing"
+    for where in (["--data-dir", str(missing)],
+                  ["--database-url", f"sqlite:///{missing / 'elsewhere.db'}"]):
+        for argv in (["labeller", "list"], ["labeller", "revoke", "zoe"],
+                     ["labeller", "activate", "zoe"], ["labeller", "token", "zoe"],
+                     ["export"], ["invite", "verify", "X"], ["invite", "participants", "1"]):
+            assert main([*argv, *where]) == 2, (argv, where)
+            lines = capsys.readouterr().err.strip().splitlines()
+            assert len(lines) == 1 and f"no queue database at {missing}" in lines[0], lines
+            assert "sepoa up" in lines[0], lines
+        assert not missing.exists()
+    assert main(["labeller", "create", "zoe", "--data-dir", str(missing)]) == 0  # makes one
+    assert main(["labeller", "list", "--data-dir", str(missing)]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == "1\tzoe\tlabeller\tactive"
