@@ -4,6 +4,7 @@ that is no queue, damaged, read-only, newer than this code)."""
 
 from __future__ import annotations
 
+import mmap
 import os
 import sqlite3
 from contextlib import closing
@@ -88,17 +89,7 @@ def integrity_problem(url: str) -> str | None:
 SQLITE_HEADER = b"SQLite format 3\x00"
 QUEUE_SCHEMA = b"CREATE TABLE alembic_version"
 """a queue's first table as its file keeps it, still there when the file's header is damaged"""
-
-
-def _holds(path: str, text: bytes) -> bool:
-    """Whether the file at `path` holds `text` (read once, a MiB at a time)."""
-    with open(path, "rb") as file:
-        tail = b""
-        while piece := file.read(1 << 20):
-            if text in tail + piece:
-                return True
-            tail = piece[-len(text):]
-    return False
+ELSEWHERE = "give the queue's own file, or a path where there is none yet for a new queue"
 
 
 def check_queue_file(url: str) -> None:
@@ -110,22 +101,20 @@ def check_queue_file(url: str) -> None:
     if path is None or not os.path.isfile(path):
         return
     with open(path, "rb") as file:
-        header = file.read(len(SQLITE_HEADER))
-    what = None
-    if header not in (b"", SQLITE_HEADER):
-        what = None if _holds(path, QUEUE_SCHEMA) else "not an SQLite database"
-    else:
-        try:
-            with closing(sqlite3.connect(path, timeout=BUSY_TIMEOUT_S)) as connection:
-                tables = {name for (name,) in connection.execute(
-                    "SELECT name FROM sqlite_master WHERE type = 'table'")}
-        except sqlite3.DatabaseError:  # damaged: integrity_problem says how
-            tables = set()
-        if tables and not tables & {"alembic_version", *Base.metadata.tables}:
-            what = "an SQLite database but not a sepoa queue (no queue tables)"
-    if what is not None:
-        raise ValueError(f"{path} is {what}: give the queue's own file, or a path where there "
-                         "is none yet for a new queue")
+        if file.read(len(SQLITE_HEADER)) not in (b"", SQLITE_HEADER):
+            with mmap.mmap(file.fileno(), 0, access=mmap.ACCESS_READ) as content:
+                if content.find(QUEUE_SCHEMA) < 0:
+                    raise ValueError(f"{path} is not an SQLite database: {ELSEWHERE}")
+            return
+    try:
+        with closing(sqlite3.connect(path, timeout=BUSY_TIMEOUT_S)) as connection:
+            tables = {name for (name,) in connection.execute(
+                "SELECT name FROM sqlite_master WHERE type = 'table'")}
+    except sqlite3.DatabaseError:  # damaged: integrity_problem says how
+        return
+    if tables and not tables & {"alembic_version", *Base.metadata.tables}:
+        raise ValueError(f"{path} is an SQLite database but not a sepoa queue (no queue "
+                         f"tables): {ELSEWHERE}")
 
 
 def check_database(url: str, *, writable: bool = False) -> None:
