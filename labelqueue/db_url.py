@@ -21,8 +21,8 @@ VALID_URLS = "sqlite:///PATH or postgresql+psycopg://USER:PASSWORD@HOST/DATABASE
 
 
 def check_url(url: str) -> str:
-    """`url` if SQLAlchemy can open databases of its kind with a driver that is installed;
-    ValueError saying what is valid."""
+    """`url` if SQLAlchemy can open databases of its kind with a driver that is installed, and
+    it is not SQLite in memory (each connection's own); ValueError saying what is valid."""
     try:
         parsed = make_url(url)
         dialect = parsed.get_dialect()
@@ -34,6 +34,10 @@ def check_url(url: str) -> str:
         raise ValueError(
             f"{parsed.get_backend_name()} databases are not supported; use {VALID_URLS}"
         )
+    if parsed.get_backend_name() == "sqlite" and (
+            parsed.database in (None, "", ":memory:") or parsed.query.get("mode") == "memory"):
+        raise ValueError(f"{mask_url(url)!r} is a database in memory, which the server, the "
+                         f"workers and the next start cannot share; use {VALID_URLS}")
     try:  # the dialect loads its driver only when connecting: a missing one is found here
         dialect.import_dbapi()
     except ImportError:

@@ -1,9 +1,10 @@
 """The queue database's schema and health: Alembic migrations to the newest schema, the
-revision a database is at, and the checks that refuse a database that cannot be used (damaged,
-read-only, newer than this code)."""
+revision a database is at, and the checks that refuse a database that cannot be used (a file
+that is no queue, damaged, read-only, newer than this code)."""
 
 from __future__ import annotations
 
+import mmap
 import os
 import sqlite3
 from contextlib import closing
@@ -17,6 +18,7 @@ from sqlalchemy.exc import DBAPIError
 
 from labelqueue.db_url import mask_url
 from labelqueue.engine import make_engine
+from labelqueue.models import Base
 from labelqueue.sqlite_writer import BUSY_TIMEOUT_S
 
 MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
@@ -32,7 +34,9 @@ def alembic_config(url: str) -> Config:
 
 
 def migrate(url: str) -> None:
-    """Bring the database at `url` to the newest schema (Alembic `upgrade head`)."""
+    """Bring the database at `url` to the newest schema (Alembic `upgrade head`); a file that is
+    no queue is refused (`check_queue_file`), its tables never mixed with the queue's."""
+    check_queue_file(url)
     command.upgrade(alembic_config(url), "head")
 
 
@@ -82,11 +86,43 @@ def integrity_problem(url: str) -> str | None:
     return found[0] + (f" (and {len(found) - 1} more)" if len(found) > 1 else "")
 
 
+SQLITE_HEADER = b"SQLite format 3\x00"
+QUEUE_SCHEMA = b"CREATE TABLE alembic_version"
+"""a queue's first table as its file keeps it, still there when the file's header is damaged"""
+ELSEWHERE = "give the queue's own file, or a path where there is none yet for a new queue"
+
+
+def check_queue_file(url: str) -> None:
+    """Refuse, with a ValueError of one line, an existing SQLite file `url` names that is no
+    queue: not an SQLite database (no SQLite header, and no queue's schema, which a queue whose
+    header is damaged still holds: `integrity_problem` finds that), or an SQLite database with
+    tables, none of them the queue's. A file with no tables yet is one a queue is made in."""
+    path = sqlite_file(url)
+    if path is None or not os.path.isfile(path):
+        return
+    with open(path, "rb") as file:
+        if file.read(len(SQLITE_HEADER)) not in (b"", SQLITE_HEADER):
+            with mmap.mmap(file.fileno(), 0, access=mmap.ACCESS_READ) as content:
+                if content.find(QUEUE_SCHEMA) < 0:
+                    raise ValueError(f"{path} is not an SQLite database: {ELSEWHERE}")
+            return
+    try:
+        with closing(sqlite3.connect(path, timeout=BUSY_TIMEOUT_S)) as connection:
+            tables = {name for (name,) in connection.execute(
+                "SELECT name FROM sqlite_master WHERE type = 'table'")}
+    except sqlite3.DatabaseError:  # damaged: integrity_problem says how
+        return
+    if tables and not tables & {"alembic_version", *Base.metadata.tables}:
+        raise ValueError(f"{path} is an SQLite database but not a sepoa queue (no queue "
+                         f"tables): {ELSEWHERE}")
+
+
 def check_database(url: str, *, writable: bool = False) -> None:
-    """Refuse, with a ValueError of one line, a database that cannot be used: a SQLite file the
-    integrity check finds damaged, and with `writable` (a server's start) one that cannot be
-    migrated to the newest schema or written (a read-only file, a replica). `writable` also
-    migrates it."""
+    """Refuse, with a ValueError of one line, a database that cannot be used: a SQLite file that
+    is no queue (`check_queue_file`) or that the integrity check finds damaged, and with
+    `writable` (a server's start) one that cannot be migrated to the newest schema or written (a
+    read-only file, a replica). `writable` also migrates it."""
+    check_queue_file(url)
     problem = integrity_problem(url)
     if problem is not None:
         raise ValueError(f"the queue database {sqlite_file(url)} is damaged (PRAGMA "

@@ -1,7 +1,8 @@
 """Alembic environment for the queue database.
 
-The URL, first found wins: `migrate(url)`'s attribute, `alembic -x url=...`,
-$SEPOA_DATABASE_URL, then the embedded default `sqlite:///data/queue.db`.
+The URL, first found wins: `migrate(url)`'s attribute, `alembic -x url=...`, then the
+environment's as the server reads it: $SEPOA_DATABASE_URL, the file $SEPOA_DATABASE_URL_FILE
+names (`labelqueue.database_url`), else `queue.db` in $SEPOA_DATA_DIR (default `data`).
 """
 
 import os
@@ -9,7 +10,8 @@ from logging.config import fileConfig
 
 from alembic import context
 
-from labelqueue.db_url import DEFAULT_URL
+from labelqueue.db_url import database_url as environment_url
+from labelqueue.db_url import sqlite_url
 from labelqueue.engine import make_engine
 from labelqueue.models import Base, UTCDateTime
 
@@ -25,8 +27,8 @@ def database_url() -> str:
     return (
         config.attributes.get("url")
         or context.get_x_argument(as_dictionary=True).get("url")
-        or os.environ.get("SEPOA_DATABASE_URL")
-        or DEFAULT_URL
+        or environment_url(None, None)
+        or sqlite_url(os.environ.get("SEPOA_DATA_DIR", "data"))
     )
 
 

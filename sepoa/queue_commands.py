@@ -67,6 +67,23 @@ def database_url(args: argparse.Namespace) -> str:
                      or sqlite_url(args.data_dir))
 
 
+def existing_queue(args: argparse.Namespace) -> str:
+    """`database_url` for a command that needs a queue to be there (it only reads it, or
+    changes what is in it), which it never makes: ValueError naming the place where none is,
+    and how one is made; or what is there when it is no queue or damaged (`check_database`)."""
+    from labelqueue import check_database
+    from labelqueue.schema import sqlite_file
+
+    url = database_url(args)
+    path = sqlite_file(url)
+    if path is not None and not os.path.isfile(path):
+        raise ValueError(f"no queue database at {path}: `sepoa up` or `sepoa serve` with the "
+                         "same --data-dir or --database-url makes one")
+    # A damaged file can read back fewer labels than it holds, without an error.
+    check_database(url)
+    return url
+
+
 def _export_arguments(p: argparse.ArgumentParser) -> None:
     database_args(p)
     p.add_argument("--format", choices=(*LABEL_FORMATS, *DATASET_FORMATS), default=None,
@@ -86,21 +103,15 @@ def _export_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from sqlalchemy.engine import make_url
     from sqlalchemy.exc import DBAPIError
 
-    from labelqueue import NotFound, check_database, make_engine, session_factory
+    from labelqueue import NotFound, make_engine, mask_url, session_factory
     from labelqueue.errors import database_reason
     from rundata.label_files import write_export
 
     if args.dataset is None and (args.dataset_id is not None or args.clips_dir is not None):
         return fail("--dataset-id and --clips-dir go with --dataset DIR")
-    url = database_url(args)
-    parsed = make_url(url)
-    if parsed.get_backend_name() == "sqlite" and not os.path.exists(parsed.database or ""):
-        return fail(f"no queue database at {parsed.database} (--data-dir / --database-url)")
-    # A damaged file can read back fewer labels than it holds, without an error.
-    check_database(url)
+    url = existing_queue(args)
     if args.dataset is not None:
         return _export_dataset(args, url)
     if args.format in DATASET_FORMATS:
@@ -132,8 +143,7 @@ def _export(args: argparse.Namespace) -> int:
     except NotFound as err:
         return fail(str(err))
     except DBAPIError as err:
-        return fail(f"cannot read labels from {parsed.render_as_string(hide_password=True)}: "
-                    f"{database_reason(err)}")
+        return fail(f"cannot read labels from {mask_url(url)}: {database_reason(err)}")
     except OSError as err:
         return fail(f"cannot write --out {args.out}: {err.strerror or err}")
     finally:
@@ -231,15 +241,19 @@ def _label_dataset_arguments(p: argparse.ArgumentParser) -> None:
                    "feedback.labels_per_query=3 (repeatable; VALUE is JSON, else text)")
 
 
-def _migrated_engine(args: argparse.Namespace) -> Engine:
-    """The queue database, checked and migrated; ValueError naming what is wrong."""
+def _migrated_engine(args: argparse.Namespace, *, make: bool = True) -> Engine:
+    """The queue database, checked and migrated (made where there is none, with `make`);
+    ValueError naming what is wrong."""
     from sqlalchemy.exc import DBAPIError
 
     from labelqueue import check_database, make_engine, migrate
     from labelqueue.errors import database_reason
 
-    url = database_url(args)
-    check_database(url)
+    if make:
+        url = database_url(args)
+        check_database(url)
+    else:
+        url = existing_queue(args)
     try:
         migrate(url)
     except DBAPIError as err:
@@ -344,7 +358,8 @@ def _labeller(args: argparse.Namespace) -> int:
             args.name = filled(args.name, f"labeller name {name!r}")
         except ValueError as err:
             return fail(str(err))
-    engine = _migrated_engine(args)
+    # Only `create` makes a queue: the others need labellers that are there already.
+    engine = _migrated_engine(args, make=args.action == "create")
     try:
         with session_factory(engine)() as session:
             if args.action == "create":
@@ -400,17 +415,12 @@ def _labeller_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _invite(args: argparse.Namespace) -> int:
-    from sqlalchemy.engine import make_url
     from sqlalchemy.exc import DBAPIError
 
     from labelqueue import NotFound, make_engine, session_factory
     from labelqueue.errors import database_reason
 
-    url = database_url(args)
-    parsed = make_url(url)
-    if parsed.get_backend_name() == "sqlite" and not os.path.exists(parsed.database or ""):
-        return fail(f"no queue database at {parsed.database} (--data-dir / --database-url)")
-    engine = make_engine(url)
+    engine = make_engine(existing_queue(args))
     try:
         with session_factory(engine)() as session:
             if args.action == "participants":

@@ -239,6 +239,7 @@ def _run_worker(args: argparse.Namespace) -> int:
 
     from labelqueue import check_url, database_url, mask_url, sqlite_url
     from labelqueue.errors import database_reason
+    from labelqueue.schema import check_queue_file
     from trainer.clips import ClipConfig  # no MuJoCo yet: the rendering check comes first
 
     if args.host_processes is None:
@@ -271,6 +272,7 @@ def _run_worker(args: argparse.Namespace) -> int:
     try:
         url = check_url(database_url(args.database_url, args.database_url_file)
                         or sqlite_url(args.data_dir))
+        check_queue_file(url)  # its migration would refuse it, after retries, in a traceback
     except ValueError as err:
         return fail(str(err))
     from trainer.doctor import RenderingUnavailable, choose_backend

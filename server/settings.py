@@ -12,7 +12,7 @@ from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic_core import ErrorDetails
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from labelqueue import LEASE_SECONDS, read_url_file, sqlite_url
+from labelqueue import LEASE_SECONDS, check_url, read_url_file, sqlite_url
 
 
 class Settings(BaseSettings):
@@ -149,11 +149,15 @@ def get_settings() -> Settings:
 
 def settings_or_exit() -> Settings:
     """`get_settings()`, or the process ended with one line saying what is wrong (a server
-    that uvicorn starts would print a traceback)."""
+    that uvicorn starts would print a traceback), a database URL that cannot be used too."""
     try:
-        return get_settings()
+        settings = get_settings()
+        check_url(settings.database_url)  # a database it cannot open, or one in memory
     except ValidationError as error:
         raise SystemExit(f"error: {described(error.errors())}") from None
+    except ValueError as error:
+        raise SystemExit(f"error: {error}") from None
+    return settings
 
 
 SECRET_SETTINGS = ("secret_key", "operator_token", "database_url")

@@ -317,7 +317,7 @@ def test_a_report_out_under_a_file_is_refused_in_one_line(tmp_path, capsys):
     notes, export = tmp_path / "notes.txt", tmp_path / "labels.csv"
     notes.write_text("kept\n")
     data = ["--data-dir", str(tmp_path / "data")]
-    assert main(["labeller", "list", *data]) == 0
+    assert main(["labeller", "create", "zoe", *data]) == 0
     assert main(["export", *data, "--format", "csv", "--out", str(export)]) == 0
     capsys.readouterr()
     for argv in (["--calibration", str(export), "--out", str(notes)],
@@ -327,3 +327,59 @@ def test_a_report_out_under_a_file_is_refused_in_one_line(tmp_path, capsys):
         lines = capsys.readouterr().err.strip().splitlines()
         assert len(lines) == 1 and f"{notes} is a file, not a folder" in lines[0], (argv, lines)
     assert notes.read_text() == "kept\n"
+
+
+def test_a_file_that_is_no_queue_is_named_for_what_it_is_and_left_as_it_was(tmp_path, capsys):
+    """An SQLite database of something else, or a file that is no database at all, was called
+    damaged (or `labeller` and the worker wrote the queue's tables into it): each is now named
+    for what it is, in one line, and left byte for byte as it was."""
+    import sqlite3
+    from contextlib import closing
+
+    other = tmp_path / "notes.db"
+    with closing(sqlite3.connect(other)) as connection:
+        connection.execute("CREATE TABLE notes (text TEXT)")
+        connection.commit()
+    text = tmp_path / "notes.txt"
+    text.write_text("a list of things to do\n" * 50)
+    for path, said in ((other, "is an SQLite database but not a sepoa queue (no queue tables)"),
+                       (text, "is not an SQLite database")):
+        before = path.read_bytes()
+        for argv in (["labeller", "list"], ["labeller", "create", "amy"], ["export"],
+                     ["worker", "--once"], ["invite", "verify", "X"]):
+            assert main([*argv, "--database-url", f"sqlite:///{path}"]) == 2, argv
+            lines = capsys.readouterr().err.strip().splitlines()
+            assert len(lines) == 1 and f"{path} {said}" in lines[0], (argv, lines)
+            assert "damaged" not in lines[0] and "the queue's own file" in lines[0], lines
+        assert path.read_bytes() == before
+
+
+def test_a_queue_in_memory_is_refused_at_the_door_naming_the_valid_forms(tmp_path, capsys):
+    """In memory, the server, the workers and the next start each had a queue of their own:
+    every command failed later with `no such table`."""
+    for url in ("sqlite://", "sqlite:///", "sqlite:///:memory:"):
+        for argv in (["labeller", "list"], ["labeller", "create", "amy"], ["export"],
+                     ["serve", "--port", "18677"]):
+            assert main([*argv, "--database-url", url]) == 2, (url, argv)
+            lines = capsys.readouterr().err.strip().splitlines()
+            assert len(lines) == 1 and "in memory" in lines[0], (url, argv, lines)
+            assert "sqlite:///PATH or postgresql+psycopg://" in lines[0], lines
+
+
+def test_commands_that_only_read_the_queue_make_none(tmp_path, capsys):
+    """`labeller list` (and revoke, activate, token, export, invite) where no queue is made a
+    folder and an empty queue there; they now say so in one line, and how one is made."""
+    missing = tmp_path / "missing"
+    for where in (["--data-dir", str(missing)],
+                  ["--database-url", f"sqlite:///{missing / 'elsewhere.db'}"]):
+        for argv in (["labeller", "list"], ["labeller", "revoke", "zoe"],
+                     ["labeller", "activate", "zoe"], ["labeller", "token", "zoe"],
+                     ["export"], ["invite", "verify", "X"], ["invite", "participants", "1"]):
+            assert main([*argv, *where]) == 2, (argv, where)
+            lines = capsys.readouterr().err.strip().splitlines()
+            assert len(lines) == 1 and f"no queue database at {missing}" in lines[0], lines
+            assert "sepoa up" in lines[0], lines
+        assert not missing.exists()
+    assert main(["labeller", "create", "zoe", "--data-dir", str(missing)]) == 0  # makes one
+    assert main(["labeller", "list", "--data-dir", str(missing)]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == "1\tzoe\tlabeller\tactive"

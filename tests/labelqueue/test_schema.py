@@ -3,7 +3,9 @@ declared query fields; SQLite is set up for concurrency."""
 
 from __future__ import annotations
 
+import argparse
 import os
+import re
 import sqlite3
 import threading
 import time
@@ -34,7 +36,7 @@ from sqlalchemy.orm import Session
 
 from labelqueue import Labeller, create_labeller, make_engine, migrate, reading
 from labelqueue.models import QUERIES, Base
-from labelqueue.schema import alembic_config
+from labelqueue.schema import MIGRATIONS_DIR, alembic_config, check_database
 from runvocab.answers import Answer
 from runvocab.query_fields import QUERY_FIELD_NAMES, QUERY_FIELDS, FieldType
 
@@ -186,3 +188,47 @@ def test_the_entry_test_migration_goes_down_and_up(url: str, engine: Engine) -> 
     migrate(url)
     engine.dispose()
     assert all(name in columns(table) for table, name in entry)
+
+
+def test_the_queues_tables_are_never_written_into_a_file_that_is_no_queue(
+        tmp_path: Path) -> None:
+    """Migrating (as a server or a worker starting does) an SQLite database of something else
+    wrote the queue's tables into it; a file that is no database was called damaged."""
+    other = tmp_path / "notes.db"
+    with closing(sqlite3.connect(other)) as connection:
+        connection.execute("CREATE TABLE notes (text TEXT)")
+        connection.commit()
+    text = tmp_path / "notes.txt"
+    text.write_text("not a database, and long enough to have a header's worth of bytes\n")
+    for path, said in ((other, "is an SQLite database but not a sepoa queue (no queue tables)"),
+                       (text, "is not an SQLite database")):
+        before = path.read_bytes()
+        for check in (migrate, lambda url: check_database(url, writable=True)):
+            with pytest.raises(ValueError, match=re.escape(f"{path} {said}")):
+                check(f"sqlite:///{path}")
+        assert path.read_bytes() == before
+    empty = tmp_path / "empty.db"  # no tables yet: a queue is made in it
+    empty.touch()
+    migrate(f"sqlite:///{empty}")
+    check_database(f"sqlite:///{empty}", writable=True)
+
+
+def test_alembic_on_its_own_finds_the_queue_as_the_server_does(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`alembic current` (and upgrade) used data/queue.db whatever SEPOA_DATA_DIR said; `-x url=`
+    still wins."""
+    from alembic.config import Config
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("SEPOA_DATABASE_URL", raising=False)
+    monkeypatch.delenv("SEPOA_DATABASE_URL_FILE", raising=False)
+    monkeypatch.setenv("SEPOA_DATA_DIR", str(tmp_path / "study"))
+    config = Config()  # as alembic.ini makes it, without its logging
+    config.set_main_option("script_location", str(MIGRATIONS_DIR))
+    command.current(config)
+    assert (tmp_path / "study" / "queue.db").exists() and not (tmp_path / "data").exists()
+    given = tmp_path / "given.db"
+    config = Config(cmd_opts=argparse.Namespace(x=[f"url=sqlite:///{given}"]))
+    config.set_main_option("script_location", str(MIGRATIONS_DIR))
+    command.current(config)
+    assert given.exists()

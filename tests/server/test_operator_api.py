@@ -454,6 +454,25 @@ def test_a_server_started_alone_opens_the_database_the_url_file_names(
         get_settings.cache_clear()
 
 
+def test_a_server_started_alone_refuses_a_queue_in_memory_in_one_line(
+    monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """SEPOA_DATABASE_URL=sqlite:// gave the server a queue of its own in memory, which its
+    workers never saw (and the first request found no tables); it now ends the start."""
+    monkeypatch.delenv("SEPOA_DATABASE_URL_FILE", raising=False)
+    try:
+        for url in ("sqlite://", "sqlite:///:memory:"):
+            monkeypatch.setenv("SEPOA_DATABASE_URL", url)
+            get_settings.cache_clear()
+            with pytest.raises(SystemExit) as ended:
+                create_app()
+            said = str(ended.value)
+            assert said.startswith("error: ") and "in memory" in said and "\n" not in said
+            assert "sqlite:///PATH or postgresql+psycopg://" in said
+    finally:
+        get_settings.cache_clear()
+
+
 def test_the_label_api_works_on_one_thread_on_sqlite_and_on_the_pool_on_postgres() -> None:
     """SQLite's writes run one at a time, so more threads would only pass its lock around."""
     assert Settings(database_url="sqlite:///q.db", threadpool_size=6).label_thread_count == 1
