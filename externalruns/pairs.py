@@ -136,24 +136,33 @@ def withdrawn_clips(session: Session, *, run_id: int, query_id: int) -> list[str
     return sorted(keys - {key for row in shown for key in row})
 
 
+def _check_uploaded(index: int, pair: PairSpec, clips: Mapping[str, ClipInfo]) -> None:
+    """Invalid for a new pair naming a clip not uploaded (a stored pair's clips may be gone:
+    a withdrawal deletes them, and its key answers a push all the same)."""
+    for side, clip in (("first_clip", pair.first_clip), ("second_clip", pair.second_clip)):
+        if clip not in clips:
+            raise Invalid(f"pairs[{index}] ({pair.key!r}): {side} {clip!r} is no clip "
+                          "uploaded to this run")
+
+
 def _check_pair(index: int, pair: PairSpec, clips: Mapping[str, ClipInfo]) -> None:
     where = f"pairs[{index}] ({pair.key!r})"
     if not 1 <= len(pair.key) <= KEY_MAX:
         raise Invalid(f"{where}: key must be 1-{KEY_MAX} characters")
-    for side, clip in (("first_clip", pair.first_clip), ("second_clip", pair.second_clip)):
-        if clip not in clips:
-            raise Invalid(f"{where}: {side} {clip!r} is no clip uploaded to this run")
-    first, second = clips[pair.first_clip], clips[pair.second_clip]
-    if (first.width, first.height, first.frames) != (second.width, second.height, second.frames):
-        raise Invalid(
-            f"{where}: the two clips differ in shape: {first.width}x{first.height}, "
-            f"{first.frames} frames against {second.width}x{second.height}, {second.frames} "
-            "frames (the label page plays them side by side on one clock)")
-    if abs(first.seconds - second.seconds) > SECONDS_APART:
-        raise Invalid(
-            f"{where}: the two clips last {first.seconds:.2f} s and {second.seconds:.2f} s "
-            f"(another frame rate); the label page plays them side by side on one clock, so "
-            f"they must last as long, within {SECONDS_APART} s")
+    # A missing clip is refused once the pair is known to be new (`_check_uploaded`).
+    first, second = clips.get(pair.first_clip), clips.get(pair.second_clip)
+    if first is not None and second is not None:
+        if (first.width, first.height, first.frames) != (second.width, second.height,
+                                                         second.frames):
+            raise Invalid(
+                f"{where}: the two clips differ in shape: {first.width}x{first.height}, "
+                f"{first.frames} frames against {second.width}x{second.height}, "
+                f"{second.frames} frames (the label page plays them side by side on one clock)")
+        if abs(first.seconds - second.seconds) > SECONDS_APART:
+            raise Invalid(
+                f"{where}: the two clips last {first.seconds:.2f} s and {second.seconds:.2f} s "
+                f"(another frame rate); the label page plays them side by side on one clock, "
+                f"so they must last as long, within {SECONDS_APART} s")
     for name in ("returns", "trajectory_returns"):
         values = getattr(pair, name)
         if values is not None and not all(math.isfinite(v) for v in values):
@@ -180,7 +189,8 @@ def push_pairs(session: Session, *, run_id: int, pairs: Sequence[PairSpec],
     """Store the pairs as queries of the external run, all or none; one `Pushed` per pair, in
     order. `clips`: what the uploaded clips the pairs name hold (`runvocab.clip_format.ClipInfo`).
 
-    Invalid naming the pair for a missing clip, two clips of different shapes or lengths
+    Invalid naming the pair for a new pair's missing clip (a stored pair pushed again is
+    answered though a withdrawal deleted its clips), two clips of different shapes or lengths
     in seconds, a gold
     answer that is neither first nor second or contradicts the returns, or a key used twice in
     the push; Conflict for a key stored with other content, a run that is no external run or
@@ -226,6 +236,9 @@ def _store(session: Session, *, run_id: int, pairs: Sequence[PairSpec], digests:
                                f"{row.query_id}): a new pair needs a new key")
         new = [(pair, digest) for pair, digest in zip(pairs, digests, strict=True)
                if pair.key not in stored]
+        for index, pair in enumerate(pairs):
+            if pair.key not in stored:
+                _check_uploaded(index, pair, clips)
         k = int(run.resolved_config["feedback"]["labels_per_query"]) if run.resolved_config \
             else 1
         _check_budget(session, run=run, new_answers=k * sum(p.gold is None for p, _ in new))

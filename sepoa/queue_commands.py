@@ -226,7 +226,7 @@ def _label_dataset_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--segment-length", type=integer("a segment length", 1, ID_MAX),
                    default=None, help="steps per clip (default: the preset's, at most the "
                    "dataset's shortest episode)")
-    p.add_argument("--name", default=None, help="the run's name (default: label <id>)")
+    p.add_argument("--name", default=None, help="the run's name (default: label <dataset id>)")
     p.add_argument("--preset", default="small",
                    help="the size preset of the reward ensemble and rounds (default small)")
     p.add_argument("--seed", type=integer("a seed", 0, ID_MAX), default=0)

@@ -85,6 +85,29 @@ def test_a_withdrawn_pairs_clips_are_deleted_and_served_no_more(
                        json={"pairs": [pair("again", a, b)]}).status_code == 201
 
 
+def test_a_withdrawn_pair_pushed_again_comes_back_withdrawn_though_its_clips_are_gone(
+    client: TestClient, settings: Settings
+) -> None:
+    run_id, auth = external_run(client)
+    a, b = upload(client, run_id, auth, frames(1)), upload(client, run_id, auth, frames(2))
+    body = {"pairs": [pair("oops", a, b)]}
+    [pushed] = client.post(f"/api/runs/{run_id}/pairs", headers=auth, json=body).json()["pairs"]
+    url = f"/api/runs/{run_id}/pairs/{pushed['query_id']}/withdraw"
+    assert client.post(url, headers=auth).status_code == 200
+    assert files(settings, run_id) == set()
+    # A retry of the first push (its answer lost on the way) is answered as any push of a
+    # stored key: its query, not created, and nothing is stored.
+    again = client.post(f"/api/runs/{run_id}/pairs", headers=auth, json=body)
+    assert again.status_code == 200, again.text
+    assert again.json()["pairs"] == [{"key": "oops", "query_id": pushed["query_id"],
+                                      "created": False}]
+    state = client.get(f"/api/runs/{run_id}/pairs", headers=auth, params={"key": "oops"})
+    assert state.json()["pairs"][0]["withdrawn"]
+    # Beside a new pair, the new pair still needs its clips uploaded.
+    refused = client.post(f"/api/runs/{run_id}/pairs", headers=auth,
+                          json={"pairs": [pair("oops", a, b), pair("new", b, a)]})
+    assert refused.status_code == 422 and "pairs[1] ('new')" in refused.json()["detail"]
+
 def test_the_sweep_takes_a_withdrawn_pairs_clips_the_withdrawal_left(
     client: TestClient, session: Session, settings: Settings
 ) -> None:
