@@ -86,7 +86,6 @@ def integrity_problem(url: str) -> str | None:
     return found[0] + (f" (and {len(found) - 1} more)" if len(found) > 1 else "")
 
 
-SQLITE_HEADER = b"SQLite format 3\x00"
 QUEUE_SCHEMA = b"CREATE TABLE alembic_version"
 """a queue's first table as its file keeps it, still there when the file's header is damaged"""
 ELSEWHERE = "give the queue's own file, or a path where there is none yet for a new queue"
@@ -100,21 +99,25 @@ def check_queue_file(url: str) -> None:
     path = sqlite_file(url)
     if path is None or not os.path.isfile(path):
         return
-    with open(path, "rb") as file:
-        if file.read(len(SQLITE_HEADER)) not in (b"", SQLITE_HEADER):
-            with mmap.mmap(file.fileno(), 0, access=mmap.ACCESS_READ) as content:
-                if content.find(QUEUE_SCHEMA) < 0:
-                    raise ValueError(f"{path} is not an SQLite database: {ELSEWHERE}")
-            return
     try:
         with closing(sqlite3.connect(path, timeout=BUSY_TIMEOUT_S)) as connection:
             tables = {name for (name,) in connection.execute(
                 "SELECT name FROM sqlite_master WHERE type = 'table'")}
-    except sqlite3.DatabaseError:  # damaged: integrity_problem says how
-        return
+    except sqlite3.DatabaseError as error:
+        if error.sqlite_errorcode == sqlite3.SQLITE_NOTADB and not _holds_queue_schema(path):
+            raise ValueError(f"{path} is not an SQLite database: {ELSEWHERE}") from None
+        return  # damaged (or busy): integrity_problem says how
     if tables and not tables & {"alembic_version", *Base.metadata.tables}:
         raise ValueError(f"{path} is an SQLite database but not a sepoa queue (no queue "
                          f"tables): {ELSEWHERE}")
+
+
+def _holds_queue_schema(path: str) -> bool:
+    # Read only once SQLite has found no database header: closing any descriptor of a file
+    # drops every POSIX lock this process holds on it, so reading a live queue's bytes beside
+    # its open connections would let another connection write under them (a corrupted file).
+    with open(path, "rb") as file, mmap.mmap(file.fileno(), 0, access=mmap.ACCESS_READ) as data:
+        return data.find(QUEUE_SCHEMA) >= 0
 
 
 def check_database(url: str, *, writable: bool = False) -> None:

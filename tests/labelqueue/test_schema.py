@@ -9,6 +9,7 @@ import re
 import sqlite3
 import threading
 import time
+from typing import Any
 from contextlib import closing
 from pathlib import Path
 
@@ -232,3 +233,31 @@ def test_alembic_on_its_own_finds_the_queue_as_the_server_does(
     config.set_main_option("script_location", str(MIGRATIONS_DIR))
     command.current(config)
     assert given.exists()
+
+
+def test_a_live_queues_file_is_read_only_through_sqlite(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Checking a queue's file beside the process's open connections (a server's restart, a
+    worker's retry) must not open it outside SQLite: closing that descriptor dropped every POSIX
+    lock the process held on the file, and the queue's first page was overwritten under load."""
+    import builtins
+
+    url = f"sqlite:///{tmp_path / 'queue.db'}"
+    migrate(url)
+    engine = make_engine(url)
+    opened: list[str] = []
+    real_open = builtins.open
+
+    def spying_open(file: Any, *args: Any, **kwargs: Any) -> Any:
+        opened.append(os.fspath(file))
+        return real_open(file, *args, **kwargs)
+
+    with engine.connect() as connection:
+        connection.exec_driver_sql("SELECT count(*) FROM labellers").all()
+        connection.rollback()  # open, as a server's pooled connections are, in no transaction
+        monkeypatch.setattr(builtins, "open", spying_open)
+        migrate(url)
+        check_database(url, writable=True)
+        monkeypatch.setattr(builtins, "open", real_open)
+    engine.dispose()
+    assert not [path for path in opened if path.startswith(str(tmp_path / "queue.db"))], opened
