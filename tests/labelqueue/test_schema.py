@@ -9,9 +9,9 @@ import re
 import sqlite3
 import threading
 import time
-from typing import Any
 from contextlib import closing
 from pathlib import Path
+from typing import Any
 
 import pytest
 from alembic import command
