@@ -234,11 +234,11 @@ def _store(session: Session, *, run_id: int, pairs: Sequence[PairSpec], digests:
             if row is not None and row.digest != digest:
                 raise Conflict(f"key {pair.key!r} was pushed before with other content (query "
                                f"{row.query_id}): a new pair needs a new key")
-        new = [(pair, digest) for pair, digest in zip(pairs, digests, strict=True)
-               if pair.key not in stored]
-        for index, pair in enumerate(pairs):
+        new = []
+        for index, (pair, digest) in enumerate(zip(pairs, digests, strict=True)):
             if pair.key not in stored:
                 _check_uploaded(index, pair, clips)
+                new.append((pair, digest))
         k = int(run.resolved_config["feedback"]["labels_per_query"]) if run.resolved_config \
             else 1
         _check_budget(session, run=run, new_answers=k * sum(p.gold is None for p, _ in new))

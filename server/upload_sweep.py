@@ -81,6 +81,12 @@ def sweep_uploads(session: Session, settings: Settings, now: float | None = None
     return swept
 
 
+def upload_folder(settings: Settings, run_id: int) -> Path:
+    """The folder of an external run's uploaded clips and their notes (the one
+    `externalruns.pairs.clip_key` names)."""
+    return settings.clips_root / "external" / str(run_id)
+
+
 @contextmanager
 def upload_lock(folder: Path) -> Iterator[None]:
     """Hold the run folder's lock: uploads to the run and a sweep of it take turns."""
@@ -96,7 +102,7 @@ def delete_withdrawn(session: Session, settings: Settings, *, run_id: int,
                      query_id: int) -> int:
     """Delete the clips (files and notes) of the run's withdrawn pair `query_id` that no other
     pair of the run shows; how many clips were there to delete. A clip already gone is fine."""
-    folder = settings.clips_root / "external" / str(run_id)
+    folder = upload_folder(settings, run_id)
     if not folder.is_dir():
         return 0
     with upload_lock(folder):

@@ -64,7 +64,7 @@ from server.external_schemas import (
 )
 from server.schemas import INT32_MAX, QueryId, RunId, RunOut, errors
 from server.settings import Settings
-from server.upload_sweep import delete_withdrawn, upload_lock
+from server.upload_sweep import delete_withdrawn, upload_folder, upload_lock
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/api/runs", tags=["external runs"], responses=errors(401, 403))
@@ -154,14 +154,14 @@ ClientRun = Annotated[Run, Depends(run_client)]
 
 
 def _folder(settings: Settings, run_id: int) -> Path:
-    folder = settings.clips_root / "external" / str(run_id)
+    folder = upload_folder(settings, run_id)
     folder.mkdir(parents=True, exist_ok=True)
     return folder
 
 
 def stored_clip(settings: Settings, run_id: int, clip_id: str) -> ClipInfo | None:
     """What an uploaded clip holds, from the note written beside it; None when not uploaded."""
-    note = settings.clips_root / "external" / str(run_id) / f"{clip_id}.json"
+    note = upload_folder(settings, run_id) / f"{clip_id}.json"
     try:
         return ClipInfo(**json.loads(note.read_text()))
     except (OSError, ValueError, TypeError):
